@@ -1,0 +1,19 @@
+"""safelane: safe tactical decision making on highways with deep reinforcement learning.
+
+Reproduces and extends "Reinforcement Learning Based Safe Decision Making for Highway Autonomous
+Driving" (Mohammadhasani et al.) on the real highway-env.
+"""
+
+from __future__ import annotations
+
+from importlib.metadata import PackageNotFoundError, version
+
+try:
+    __version__ = version("safelane")
+except PackageNotFoundError:  # pragma: no cover - running from a source tree
+    __version__ = "0.0.0"
+
+from safelane.config import ConfigError, SafelaneConfig, load_config
+from safelane.env import make_env
+
+__all__ = ["ConfigError", "SafelaneConfig", "__version__", "load_config", "make_env"]

@@ -1,0 +1,230 @@
+"""The paper's environment on the real highway-env: factory, 26-number state (eq. 3), reward (eq. 6).
+
+``make_env`` builds ``gym.make(env_id, config=cfg.env)`` and layers, from the inside out:
+
+1. :class:`TrafficLayout` — safelane's traffic options (``traffic.vehicles_behind``);
+2. :class:`PaperReward` — eq. 6 and the ``collision`` / ``speed`` info fields;
+3. :class:`PaperObservation` — the paper's 26-number state (eq. 3);
+4. :class:`safelane.shield.SafetyShield` — only when ``shield.mode`` is not ``none``.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import gymnasium as gym
+import highway_env  # noqa: F401  (registers highway-v0 / highway-fast-v0)
+import numpy as np
+from highway_env import utils as hw_utils
+
+from safelane.config import ConfigError, SafelaneConfig, load_config
+
+# --- observation normalisation: every scale in one place, with units --------------------------
+OBSERVED_VEHICLES = 4
+"""Nearest vehicles in the state (paper Section III.A)."""
+FEATURES_PER_VEHICLE = 6
+"""δx, δy, δvx, δvy, heading, presence flag."""
+OBS_SIZE = OBSERVED_VEHICLES * FEATURES_PER_VEHICLE + 2
+"""26: four vehicles plus ego speed and ego heading."""
+X_SCALE = 100.0  # [m] longitudinal offset mapped to ±1
+Y_SCALE = 12.0  # [m] lateral offset mapped to ±1 (three 4 m lanes)
+REL_SPEED_SCALE = 20.0  # [m/s] relative velocity mapped to ±1
+HEADING_SCALE = math.pi / 2  # [rad] heading mapped to ±1
+EGO_SPEED_SCALE = 40.0  # [m/s] highway-env's Vehicle.MAX_SPEED
+PERCEPTION_DISTANCE = 200.0  # [m] vehicles farther than this are absent (highway-env's own range)
+
+
+def vehicle_arrays(road: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Positions [m] (n, 2), velocities [m/s] (n, 2) and headings [rad] (n,) of all road vehicles."""
+    vehicles = road.vehicles
+    pos = np.array([v.position for v in vehicles], dtype=float).reshape(-1, 2)
+    heading = np.array([v.heading for v in vehicles], dtype=float)
+    speed = np.array([v.speed for v in vehicles], dtype=float)
+    vel = np.stack([speed * np.cos(heading), speed * np.sin(heading)], axis=1)
+    return pos, vel, heading
+
+
+def paper_state(ego: Any, road: Any) -> np.ndarray:
+    """The paper's state (eq. 3) for ``ego`` on ``road``, normalised and clipped to [-1, 1].
+
+    Layout: for the 4 nearest vehicles (Euclidean distance, nearest first)
+    ``[δx/X_SCALE, δy/Y_SCALE, δvx/REL_SPEED_SCALE, δvy/REL_SPEED_SCALE, ψ/HEADING_SCALE, flag]``,
+    then ``[v_ego/EGO_SPEED_SCALE, ψ_ego/HEADING_SCALE]``. Absent vehicles are all zeros, flag 0.
+    """
+    obs = np.zeros(OBS_SIZE, dtype=np.float32)
+    others = [v for v in road.vehicles if v is not ego]
+    if others:
+        pos = np.array([v.position for v in others], dtype=float)
+        heading = np.array([v.heading for v in others], dtype=float)
+        speed = np.array([v.speed for v in others], dtype=float)
+        rel = pos - ego.position
+        dist = np.hypot(rel[:, 0], rel[:, 1])
+        near = np.argsort(dist, kind="stable")[:OBSERVED_VEHICLES]
+        near = near[dist[near] < PERCEPTION_DISTANCE]
+        ego_vel = ego.velocity
+        for slot, i in enumerate(near):
+            dv = speed[i] * np.array([math.cos(heading[i]), math.sin(heading[i])]) - ego_vel
+            base = slot * FEATURES_PER_VEHICLE
+            obs[base : base + FEATURES_PER_VEHICLE] = (
+                rel[i, 0] / X_SCALE,
+                rel[i, 1] / Y_SCALE,
+                dv[0] / REL_SPEED_SCALE,
+                dv[1] / REL_SPEED_SCALE,
+                hw_utils.wrap_to_pi(heading[i]) / HEADING_SCALE,
+                1.0,
+            )
+    obs[-2] = ego.speed / EGO_SPEED_SCALE
+    obs[-1] = hw_utils.wrap_to_pi(ego.heading) / HEADING_SCALE
+    np.clip(obs, -1.0, 1.0, out=obs)
+    return obs
+
+
+class PaperObservation(gym.ObservationWrapper, gym.utils.RecordConstructorArgs):
+    """Replace highway-env's observation by the paper's 26-number state (eq. 3)."""
+
+    def __init__(self, env: gym.Env) -> None:
+        gym.utils.RecordConstructorArgs.__init__(self)
+        super().__init__(env)
+        self.observation_space = gym.spaces.Box(-1.0, 1.0, shape=(OBS_SIZE,), dtype=np.float32)
+
+    def observation(self, observation: Any) -> np.ndarray:
+        base = self.env.unwrapped
+        return paper_state(base.vehicle, base.road)
+
+
+class PaperReward(gym.Wrapper, gym.utils.RecordConstructorArgs):
+    """The paper's reward (eq. 6): ``b·clip((v − v_min)/(v_max − v_min), 0, 1) − c·collision``.
+
+    ``v`` is the ego's forward speed (speed·cos heading) [m/s], as highway-env itself uses. ``info``
+    gains ``collision`` (bool), ``forward_speed`` [m/s] and ``highway_reward`` (highway-env's own
+    reward); highway-env's fields (``speed``, ``crashed``, ``rewards``…) are kept.
+    """
+
+    def __init__(self, env: gym.Env, b: float, c: float, v_min: float, v_max: float) -> None:
+        gym.utils.RecordConstructorArgs.__init__(self, b=b, c=c, v_min=v_min, v_max=v_max)
+        super().__init__(env)
+        self.b, self.c, self.v_min, self.v_max = b, c, v_min, v_max
+
+    def reward_of(self, forward_speed: float, collision: bool) -> float:
+        """Eq. 6 for a forward speed [m/s] and a collision flag."""
+        scaled = np.clip((forward_speed - self.v_min) / (self.v_max - self.v_min), 0.0, 1.0)
+        return float(self.b * scaled - self.c * float(collision))
+
+    def _annotate(self, info: dict[str, Any]) -> float:
+        ego = self.env.unwrapped.vehicle
+        forward = float(ego.speed * math.cos(ego.heading))
+        info["collision"] = bool(ego.crashed)
+        info["speed"] = float(ego.speed)
+        info["forward_speed"] = forward
+        return forward
+
+    def reset(self, **kwargs: Any) -> tuple[Any, dict[str, Any]]:
+        obs, info = self.env.reset(**kwargs)
+        self._annotate(info)
+        return obs, info
+
+    def step(self, action: Any) -> tuple[Any, float, bool, bool, dict[str, Any]]:
+        obs, highway_reward, terminated, truncated, info = self.env.step(action)
+        forward = self._annotate(info)
+        info["highway_reward"] = float(highway_reward)
+        return obs, self.reward_of(forward, info["collision"]), terminated, truncated, info
+
+
+class TrafficLayout(gym.Wrapper, gym.utils.RecordConstructorArgs):
+    """safelane traffic options applied right after highway-env builds its scene.
+
+    ``vehicles_behind = N`` removes the N vehicles farthest ahead and spawns N vehicles *behind* the
+    ego with highway-env's own rules mirrored backwards: random lane and spacing from
+    ``road.np_random`` (same spacing law as ``Vehicle.create_random``), speeds uniform in
+    [0.7, 1.0]·speed limit so that some are faster than the ego. highway-env alone spawns the ego
+    behind every other vehicle, so followers and cut-ins from behind never happen in the stock scene.
+    """
+
+    def __init__(self, env: gym.Env, vehicles_behind: int = 0) -> None:
+        gym.utils.RecordConstructorArgs.__init__(self, vehicles_behind=vehicles_behind)
+        super().__init__(env)
+        self.vehicles_behind = vehicles_behind
+
+    def reset(self, **kwargs: Any) -> tuple[Any, dict[str, Any]]:
+        obs, info = self.env.reset(**kwargs)
+        if self.vehicles_behind > 0:
+            self._spawn_behind()
+        return obs, info
+
+    def _spawn_behind(self) -> None:
+        base = self.env.unwrapped
+        road, ego = base.road, base.vehicle
+        others = [v for v in road.vehicles if v is not ego]
+        n = min(self.vehicles_behind, len(others))
+        if n == 0:
+            return
+        others.sort(key=lambda v: v.position[0])
+        vehicle_cls = type(others[0])
+        check_collisions = others[0].check_collisions
+        for v in others[-n:]:
+            road.vehicles.remove(v)
+        lanes = road.network.graph
+        _from = next(iter(lanes))
+        _to = next(iter(lanes[_from]))
+        n_lanes = len(lanes[_from][_to])
+        x = ego.lane.local_coordinates(ego.position)[0]
+        for _ in range(n):
+            lane_id = int(road.np_random.integers(n_lanes))
+            lane = road.network.get_lane((_from, _to, lane_id))
+            limit = lane.speed_limit or 30.0
+            speed = float(road.np_random.uniform(0.7 * limit, 1.0 * limit))
+            offset = (12 + speed) * math.exp(-5 / 40 * n_lanes) / base.config["vehicles_density"]
+            x -= offset * road.np_random.uniform(0.9, 1.1)
+            v = vehicle_cls(road, lane.position(x, 0), lane.heading_at(x), speed)
+            if hasattr(v, "randomize_behavior"):
+                v.randomize_behavior()
+            v.check_collisions = check_collisions
+            road.vehicles.append(v)
+
+
+def make_env(
+    config: SafelaneConfig | str | None = None,
+    *,
+    seed: int | None = None,
+    render_mode: str | None = None,
+    **overrides: Any,
+) -> gym.Env:
+    """Build the paper's environment on highway-env.
+
+    ``config``: a :class:`SafelaneConfig`, a preset name (``"fast"``, default, or ``"paper"``) or None.
+    ``overrides``: dotted keys or section dicts applied on top, e.g. ``make_env(env={"lanes_count": 5})``
+    or ``make_env(**{"shield.mode": "robust"})``. With ``seed`` the env is reset once with that seed
+    (gymnasium's seeding) and its action space is seeded, so the same seed gives the same episodes.
+    """
+    if config is None or isinstance(config, str):
+        cfg = load_config(config or "fast", overrides=overrides)
+    else:
+        cfg = config
+        if overrides:
+            data = cfg.model_dump()
+            from safelane.config import _assign, build_config
+
+            for key, value in overrides.items():
+                if isinstance(value, dict) and "." not in key:
+                    for sub, v in value.items():
+                        _assign(data, f"{key}.{sub}", v)
+                else:
+                    _assign(data, key, value)
+            cfg = build_config(data)
+    try:
+        env = gym.make(cfg.env_id, config=dict(cfg.env), render_mode=render_mode)
+    except (TypeError, ValueError, KeyError, AttributeError, ImportError) as err:
+        raise ConfigError(f"env: highway-env rejected the configuration ({err})") from None
+    env = TrafficLayout(env, cfg.traffic.vehicles_behind)
+    env = PaperReward(env, cfg.reward.b, cfg.reward.c, cfg.reward.v_min, cfg.reward.v_max)
+    env = PaperObservation(env)
+    if cfg.shield.mode != "none":
+        from safelane.shield import SafetyShield
+
+        env = SafetyShield(env, mode=cfg.shield.mode, formula=cfg.shield.formula, override=cfg.shield.override)
+    env.safelane_config = cfg  # type: ignore[attr-defined]
+    if seed is not None:
+        env.reset(seed=seed)
+        env.action_space.seed(seed)
+    return env

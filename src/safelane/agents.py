@@ -1,0 +1,567 @@
+"""One DQN core and the paper's four methods as small overrides of it (Sections IV.1–4, V).
+
+The agents see observation arrays, safe-action masks and rewards only; they import nothing from
+highway-env or the safety model. The pieces, from the bottom up:
+
+* :class:`QNetwork` — the paper's network (Table 3): 26 → 100 → 100 → 5, ELU, densely connected.
+* :class:`ReplayBuffer` / :class:`Batch` — experience replay; every transition keeps the safe-action
+  mask of ``s`` and of ``s'`` so that every method can use them.
+* :class:`DQNAgent` — traditional Q-learning (Section IV.1): ε-greedy acting, TD target
+  ``r + γ·max_a' Q_target(s', a')·(1 − done)``, MSE or Huber loss, Adam, target network.
+* :class:`ConstrainedAgent` — Lagrangian constrained Q-learning (eq. 7).
+* :class:`QMaskAgent` — Q-masking (Fig. 3): unsafe actions removed from acting and bootstrapping.
+* :class:`RobustAgent` — robust Q-masking with Q-shaping (eqs. 13–14).
+
+The subclasses override only ``action_values`` (what acting maximises), ``allowed`` (which actions
+may be taken), ``td_target`` and ``loss``; the training loop (:mod:`safelane.training`) is shared.
+"""
+
+from __future__ import annotations
+
+import copy
+from importlib import resources
+from pathlib import Path
+from typing import Any, ClassVar, Literal, NamedTuple
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from torch import nn
+
+from safelane.actions import N_ACTIONS
+from safelane.config import ConfigError
+
+OBS_SIZE = 26
+"""Input size: the paper's state, eq. 3 (4 vehicles × 6 features + ego speed + ego heading)."""
+HIDDEN_SIZES = (100, 100)
+"""Two hidden layers of 100 neurons (Table 3); fixed by the paper, not a setting."""
+SHAPING_MARGIN = 1.0
+"""The "− 1" of eq. 14: an unsafe pair is shaped to ``min_a Q_θ(s, a) − SHAPING_MARGIN``."""
+
+Method = Literal["dqn", "constrained", "qmask", "robust"]
+METHODS: tuple[str, ...] = ("dqn", "constrained", "qmask", "robust")
+AGENT_PRESETS: tuple[str, ...] = ("paper", "tuned")
+
+
+# --- configuration ------------------------------------------------------------------------------
+class AgentConfig(BaseModel):
+    """Every learning setting of an agent. Units: steps are environment decisions (1 s each)."""
+
+    model_config = ConfigDict(extra="forbid", validate_assignment=True)
+
+    method: Method = Field(
+        "dqn",
+        description="dqn (traditional, IV.1), constrained (Lagrangian, eq. 7), qmask (Q-masking, IV.3) "
+        "or robust (robust Q-masking with Q-shaping, eqs. 13–14).",
+    )
+    lr: float = Field(5e-4, gt=0, description="Adam learning rate (the paper's α).")
+    gamma: float = Field(0.9, ge=0, lt=1, description="Discount factor γ per decision.")
+    batch_size: int = Field(64, ge=1, description="Transitions per gradient step (mini-batch).")
+    buffer_size: int = Field(15000, ge=1, description="Replay buffer capacity [transitions].")
+    learning_starts: int = Field(200, ge=0, description="Environment steps collected before the first update.")
+    train_freq: int = Field(1, ge=1, description="Environment steps between updates.")
+    gradient_steps: int = Field(1, ge=1, description="Gradient steps per update.")
+    target_update_interval: int = Field(
+        200, ge=1, description="Environment steps between target-network updates."
+    )
+    tau: float = Field(
+        1.0, gt=0, le=1, description="Target update weight: 1 = copy (hard), < 1 = Polyak average."
+    )
+    eps_start: float = Field(1.0, ge=0, le=1, description="Exploration rate ε at step 0.")
+    eps_end: float = Field(0.05, ge=0, le=1, description="Final exploration rate ε.")
+    eps_decay_steps: int = Field(
+        3200, ge=0, description="Environment steps over which ε decays linearly from eps_start to eps_end."
+    )
+    loss: Literal["mse", "huber"] = Field(
+        "huber", description="TD loss: mse (the paper's quadratic cost, eq. 15) or huber (smooth L1, δ = 1)."
+    )
+    grad_clip: float | None = Field(
+        10.0, gt=0, description="Clip the global gradient L2 norm to this value (null = no clipping)."
+    )
+    cost_budget: float = Field(
+        1.0,
+        ge=0,
+        description="constrained: per-episode cost budget C (eq. 7); cost 1 per step whose action was "
+        "unsafe under the shield's mask or that ended in a collision.",
+    )
+    lambda_lr: float = Field(
+        0.02, ge=0, description="constrained: dual-ascent step for λ per episode, per unit of excess cost."
+    )
+    lambda_init: float = Field(0.0, ge=0, description="constrained: initial Lagrange multiplier λ.")
+    shaping_weight: float = Field(
+        1.0, ge=0, description="robust: weight of the unsafe-pair regression (Q-shaping) in the loss."
+    )
+    shaping_floor: Literal["all_actions", "safe_actions"] = Field(
+        "all_actions",
+        description="robust: the minimum in eq. 14 is over all actions (the paper) or over safe actions "
+        "only (a fixed point exists: unsafe values settle at min_safe − 1 instead of drifting down).",
+    )
+
+
+def agent_preset_path(name: str) -> Path:
+    """Path of an agent preset shipped in the package (``safelane/presets/agents/NAME.yaml``)."""
+    if name not in AGENT_PRESETS:
+        raise ConfigError(f"agent preset: unknown preset '{name}'; allowed: {', '.join(AGENT_PRESETS)}")
+    return Path(str(resources.files("safelane") / "presets" / "agents" / f"{name}.yaml"))
+
+
+def build_agent_config(data: dict[str, Any]) -> AgentConfig:
+    """Validate a plain dict into an :class:`AgentConfig` (raises a one-line :class:`ConfigError`)."""
+    try:
+        return AgentConfig.model_validate(data)
+    except ValidationError as err:
+        e = err.errors()[0]
+        key = "agent." + ".".join(str(p) for p in e["loc"])
+        if e["type"] == "extra_forbidden":
+            raise ConfigError(f"{key}: unknown key; allowed: {', '.join(AgentConfig.model_fields)}") from None
+        raise ConfigError(f"{key}: {e['msg']} (got {e.get('input')!r})") from None
+
+
+def load_agent_config(
+    preset: str = "tuned", method: str | None = None, overrides: dict[str, Any] | None = None
+) -> AgentConfig:
+    """Load an agent preset, set ``method`` and apply ``overrides`` (keys without the ``agent.`` prefix)."""
+    with open(agent_preset_path(preset)) as f:
+        data = yaml.safe_load(f) or {}
+    if method is not None:
+        data["method"] = method
+    data.update(overrides or {})
+    return build_agent_config(data)
+
+
+def linear_epsilon(step: int, cfg: AgentConfig) -> float:
+    """ε after ``step`` environment steps: linear from ``eps_start`` to ``eps_end``, then constant."""
+    if cfg.eps_decay_steps <= 0 or step >= cfg.eps_decay_steps:
+        return cfg.eps_end
+    return cfg.eps_start + (cfg.eps_end - cfg.eps_start) * step / cfg.eps_decay_steps
+
+
+# --- network and replay -------------------------------------------------------------------------
+class QNetwork(nn.Module):
+    """The paper's DQN (Table 3): 26 inputs, two dense hidden layers of 100 ELU units, 5 Q-values."""
+
+    def __init__(self, obs_size: int = OBS_SIZE, n_actions: int = N_ACTIONS) -> None:
+        super().__init__()
+        h1, h2 = HIDDEN_SIZES
+        self.net = nn.Sequential(
+            nn.Linear(obs_size, h1), nn.ELU(), nn.Linear(h1, h2), nn.ELU(), nn.Linear(h2, n_actions)
+        )
+
+    def forward(self, obs: torch.Tensor) -> torch.Tensor:
+        """Q-values, shape (batch, n_actions), for observations of shape (batch, obs_size)."""
+        return self.net(obs)
+
+
+class Batch(NamedTuple):
+    """A mini-batch of transitions as tensors (B = batch size, A = number of actions)."""
+
+    obs: torch.Tensor  # (B, obs_size) float32
+    actions: torch.Tensor  # (B,) int64
+    rewards: torch.Tensor  # (B,) float32, eq. 6
+    costs: torch.Tensor  # (B,) float32, 1 = unsafe action or collision
+    next_obs: torch.Tensor  # (B, obs_size) float32
+    dones: torch.Tensor  # (B,) float32, 1 = terminated (a crash); truncation is not terminal
+    masks: torch.Tensor  # (B, A) bool, safe actions of s
+    next_masks: torch.Tensor  # (B, A) bool, safe actions of s'
+
+
+def sanitize_mask(mask: np.ndarray | None, n_actions: int = N_ACTIONS) -> np.ndarray:
+    """A bool mask of shape (n_actions,); ``None`` or an all-False mask means every action is allowed."""
+    if mask is None:
+        return np.ones(n_actions, dtype=bool)
+    mask = np.asarray(mask, dtype=bool)
+    if mask.shape != (n_actions,):
+        raise ValueError(f"action mask: expected shape ({n_actions},), got {mask.shape}")
+    return mask if mask.any() else np.ones(n_actions, dtype=bool)
+
+
+class ReplayBuffer:
+    """Fixed-capacity circular experience replay in preallocated numpy arrays."""
+
+    FIELDS: ClassVar[tuple[str, ...]] = (
+        "obs", "actions", "rewards", "costs", "next_obs", "dones", "masks", "next_masks"
+    )
+
+    def __init__(self, capacity: int, obs_size: int = OBS_SIZE, n_actions: int = N_ACTIONS) -> None:
+        self.capacity = capacity
+        self.obs = np.zeros((capacity, obs_size), dtype=np.float32)
+        self.actions = np.zeros(capacity, dtype=np.int64)
+        self.rewards = np.zeros(capacity, dtype=np.float32)
+        self.costs = np.zeros(capacity, dtype=np.float32)
+        self.next_obs = np.zeros((capacity, obs_size), dtype=np.float32)
+        self.dones = np.zeros(capacity, dtype=np.float32)
+        self.masks = np.ones((capacity, n_actions), dtype=bool)
+        self.next_masks = np.ones((capacity, n_actions), dtype=bool)
+        self.pos = 0
+        self.size = 0
+
+    def __len__(self) -> int:
+        return self.size
+
+    def add(
+        self,
+        obs: np.ndarray,
+        action: int,
+        reward: float,
+        cost: float,
+        next_obs: np.ndarray,
+        terminated: bool,
+        mask: np.ndarray,
+        next_mask: np.ndarray,
+    ) -> None:
+        """Store one transition, overwriting the oldest once full."""
+        i = self.pos
+        self.obs[i] = obs
+        self.actions[i] = action
+        self.rewards[i] = reward
+        self.costs[i] = cost
+        self.next_obs[i] = next_obs
+        self.dones[i] = float(terminated)
+        self.masks[i] = mask
+        self.next_masks[i] = next_mask
+        self.pos = (i + 1) % self.capacity
+        self.size = min(self.size + 1, self.capacity)
+
+    def sample(self, batch_size: int, rng: np.random.Generator) -> Batch:
+        """``batch_size`` transitions drawn uniformly with replacement using ``rng``."""
+        idx = rng.integers(0, self.size, size=batch_size)
+        return Batch(*(torch.from_numpy(getattr(self, name)[idx]) for name in self.FIELDS))
+
+    def state_dict(self) -> dict[str, Any]:
+        """The filled part of the buffer as tensors, plus the write position (for checkpoints)."""
+        state: dict[str, Any] = {
+            name: torch.from_numpy(getattr(self, name)[: self.size].copy()) for name in self.FIELDS
+        }
+        state.update(pos=self.pos, size=self.size, capacity=self.capacity)
+        return state
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        """Restore a buffer saved by :meth:`state_dict` (same capacity)."""
+        if int(state["capacity"]) != self.capacity:
+            raise ValueError(f"replay buffer capacity {state['capacity']} != {self.capacity}")
+        self.size, self.pos = int(state["size"]), int(state["pos"])
+        for name in self.FIELDS:
+            getattr(self, name)[: self.size] = state[name].numpy()
+
+
+# --- pure helpers for the losses (tested on hand-worked numbers) --------------------------------
+def elementwise_loss(kind: str, prediction: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    """Per-element squared error (``mse``, eq. 15) or smooth-L1 with δ = 1 (``huber``)."""
+    if kind == "mse":
+        return F.mse_loss(prediction, target, reduction="none")
+    return F.smooth_l1_loss(prediction, target, reduction="none")
+
+
+def masked_max(q: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+    """``max_a q[:, a]`` over actions where ``mask`` is True (Q-masking's bootstrap)."""
+    return q.masked_fill(~mask, float("-inf")).max(dim=1).values
+
+
+def shaping_floor(q: torch.Tensor, mask: torch.Tensor, over: str = "all_actions") -> torch.Tensor:
+    """``min_a Q_θ(s, a) − 1`` per row, shape (B, 1): the value eq. 14 gives an unsafe pair.
+
+    ``over = "all_actions"`` takes the minimum over all actions as printed in eq. 14;
+    ``"safe_actions"`` over the safe ones only.
+    """
+    source = q if over == "all_actions" else q.masked_fill(~mask, float("inf"))
+    return source.min(dim=1, keepdim=True).values - SHAPING_MARGIN
+
+
+def shaped_q(q: torch.Tensor, mask: torch.Tensor, over: str = "all_actions") -> torch.Tensor:
+    """Q-shaping (eqs. 13–14): ``Q(s, a) = Q_θ(s, a) + Q_u(s, a)``.
+
+    Eq. 14 sets ``Q_u = 0`` on safe pairs. On an unsafe pair it writes ``Q_u = min_a Q_θ(s, a) − 1``;
+    read as an additive correction that makes the *sum* ``Q_θ + Q_u`` equal ``min_a Q_θ(s, ·) − 1``
+    (the paper's stated intent: "the Q of an unsafe pair will be less than the minimum of the safe
+    pairs"), ``Q_u = (min_a Q_θ(s, ·) − 1) − Q_θ(s, a)``. So the shaped value is ``Q_θ(s, a)`` for a
+    safe pair and ``min_a Q_θ(s, ·) − 1`` for an unsafe one, strictly below every safe value: the
+    argmax and the max of shaped Q are those over safe actions only.
+    """
+    return torch.where(mask, q, shaping_floor(q, mask, over))
+
+
+def q_shaping_loss(
+    q: torch.Tensor,
+    actions: torch.Tensor,
+    td_target: torch.Tensor,
+    mask: torch.Tensor,
+    weight: float = 1.0,
+    kind: str = "mse",
+    over: str = "all_actions",
+) -> torch.Tensor:
+    """Robust Q-masking loss: TD loss of the taken actions + ``weight`` × unsafe-pair regression.
+
+    ``TD = mean_b ℓ(Q_θ(s_b, a_b), y_b)``; ``shaping = mean over unsafe pairs (b, a) of
+    ℓ(Q_θ(s_b, a), stopgrad(min_a' Q_θ(s_b, a') − 1))`` (0 when the batch has no unsafe pair);
+    ``loss = TD + weight · shaping``. ``ℓ`` is the squared error (mse) or smooth L1 (huber). The
+    regression teaches the network itself the low value of unsafe pairs, so it generalises to nearby
+    states instead of staying high as under Q-masking.
+    """
+    q_taken = q.gather(1, actions.unsqueeze(1)).squeeze(1)
+    td = elementwise_loss(kind, q_taken, td_target).mean()
+    unsafe = ~mask
+    target = shaping_floor(q, mask, over).detach().expand_as(q)
+    per_pair = elementwise_loss(kind, q, target) * unsafe
+    shaping = per_pair.sum() / unsafe.sum().clamp(min=1)
+    return td + weight * shaping
+
+
+# --- the core -----------------------------------------------------------------------------------
+class DQNAgent:
+    """Traditional DQN (Section IV.1, Section V): the core every method overrides in small places.
+
+    ``act(obs, mask, eps)`` is ε-greedy over ``allowed(mask)``; ``update(batch)`` does one Adam step on
+    ``loss(batch)``; ``sync_target()`` moves the target network(s) toward the online one(s).
+    """
+
+    method: ClassVar[str] = "dqn"
+    uses_mask: ClassVar[bool] = False
+    """True when the safe-action mask restricts acting (and bootstrapping)."""
+
+    def __init__(self, cfg: AgentConfig, seed: int = 0, obs_size: int = OBS_SIZE) -> None:
+        self.cfg = cfg
+        self.n_actions = N_ACTIONS
+        with torch.random.fork_rng(devices=[]):
+            torch.manual_seed(seed)
+            self.networks: dict[str, nn.Module] = self.build_networks(obs_size)
+        self.targets: dict[str, nn.Module] = {k: copy.deepcopy(v) for k, v in self.networks.items()}
+        for target in self.targets.values():
+            target.requires_grad_(False)
+        params = [p for net in self.networks.values() for p in net.parameters()]
+        self.optimizer = torch.optim.Adam(params, lr=cfg.lr)
+        self.rng = np.random.default_rng(seed)
+        """The one generator for exploration and replay sampling (saved in checkpoints)."""
+        self._all_allowed = np.ones(self.n_actions, dtype=bool)
+
+    # -- overridable pieces ----------------------------------------------------------------------
+    def build_networks(self, obs_size: int) -> dict[str, nn.Module]:
+        """The online networks by name (targets are copies)."""
+        return {"q": QNetwork(obs_size, N_ACTIONS)}
+
+    @property
+    def q_net(self) -> nn.Module:
+        """The online reward Q-network."""
+        return self.networks["q"]
+
+    def allowed(self, mask: np.ndarray) -> np.ndarray:
+        """Actions the agent may take given the safe-action mask (all of them for dqn)."""
+        return self._all_allowed
+
+    def action_values(self, obs: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+        """The values acting maximises, shape (B, A) (Q_θ for dqn)."""
+        return self.q_net(obs)
+
+    def td_target(self, batch: Batch) -> torch.Tensor:
+        """``r + γ·max_a' Q_target(s', a')·(1 − done)``, shape (B,)."""
+        with torch.no_grad():
+            next_v = self.targets["q"](batch.next_obs).max(dim=1).values
+            return batch.rewards + self.cfg.gamma * next_v * (1.0 - batch.dones)
+
+    def loss(self, batch: Batch) -> torch.Tensor:
+        """TD loss of the taken actions (mse = eq. 15, or huber)."""
+        q_taken = self.q_net(batch.obs).gather(1, batch.actions.unsqueeze(1)).squeeze(1)
+        return elementwise_loss(self.cfg.loss, q_taken, self.td_target(batch)).mean()
+
+    def end_episode(self, episode_cost: float) -> None:
+        """Per-episode hook (constrained updates λ here)."""
+
+    # -- shared machinery -------------------------------------------------------------------------
+    def greedy(self, obs: np.ndarray, mask: np.ndarray | None = None) -> int:
+        """The greedy action for one observation (26,) among ``allowed(mask)``."""
+        mask = sanitize_mask(mask, self.n_actions)
+        allowed = self.allowed(mask)
+        with torch.no_grad():
+            obs_t = torch.from_numpy(np.asarray(obs, dtype=np.float32)).unsqueeze(0)
+            values = self.action_values(obs_t, torch.from_numpy(mask).unsqueeze(0))[0].numpy()
+        values = np.where(allowed, values, -np.inf)
+        return int(np.argmax(values))
+
+    def act(self, obs: np.ndarray, mask: np.ndarray | None, eps: float) -> int:
+        """ε-greedy: with probability ``eps`` a uniform action among ``allowed(mask)``, else greedy."""
+        mask = sanitize_mask(mask, self.n_actions)
+        if self.rng.random() < eps:
+            choices = np.flatnonzero(self.allowed(mask))
+            return int(choices[self.rng.integers(len(choices))])
+        return self.greedy(obs, mask)
+
+    def update(self, batch: Batch) -> float:
+        """One gradient step on ``loss(batch)``; returns the loss value."""
+        loss = self.loss(batch)
+        self.optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        if self.cfg.grad_clip is not None:
+            params = [p for group in self.optimizer.param_groups for p in group["params"]]
+            nn.utils.clip_grad_norm_(params, self.cfg.grad_clip)
+        self.optimizer.step()
+        return float(loss.detach())
+
+    def sync_target(self) -> None:
+        """Target ← online (``tau = 1``) or ``target ← (1 − τ)·target + τ·online``."""
+        tau = self.cfg.tau
+        with torch.no_grad():
+            for name, net in self.networks.items():
+                target = self.targets[name]
+                if tau >= 1.0:
+                    target.load_state_dict(net.state_dict())
+                else:
+                    for tp, p in zip(target.parameters(), net.parameters(), strict=True):
+                        tp.mul_(1.0 - tau).add_(p, alpha=tau)
+
+    def extra_state(self) -> dict[str, Any]:
+        """Method-specific state to checkpoint (λ for constrained)."""
+        return {}
+
+    def load_extra_state(self, state: dict[str, Any]) -> None:
+        """Restore :meth:`extra_state`."""
+
+    def state_dict(self) -> dict[str, Any]:
+        """Networks, targets, optimizer, exploration generator and method state (for checkpoints)."""
+        return {
+            "method": self.method,
+            "networks": {k: v.state_dict() for k, v in self.networks.items()},
+            "targets": {k: v.state_dict() for k, v in self.targets.items()},
+            "optimizer": self.optimizer.state_dict(),
+            "rng": self.rng.bit_generator.state,
+            "extra": self.extra_state(),
+        }
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        """Restore :meth:`state_dict` (raises ValueError on a different method or network)."""
+        if state.get("method") != self.method:
+            raise ValueError(f"checkpoint is for method {state.get('method')!r}, not {self.method!r}")
+        for k, net in self.networks.items():
+            net.load_state_dict(state["networks"][k])
+            self.targets[k].load_state_dict(state["targets"][k])
+        self.optimizer.load_state_dict(state["optimizer"])
+        self.rng.bit_generator.state = state["rng"]
+        self.load_extra_state(state.get("extra", {}))
+
+
+class ConstrainedAgent(DQNAgent):
+    """Lagrangian constrained Q-learning (eq. 7) with a per-episode cost budget ``C``.
+
+    A second network learns the cost value ``Q_c`` (cost 1 per step whose action the shield marked
+    unsafe, or that ended in a collision) by its own TD target. Acting and bootstrapping maximise the
+    Lagrangian ``Q_r − λ·Q_c``: ``a* = argmax_a' (Q_r^tgt − λ·Q_c^tgt)(s', a')``,
+    ``y_r = r + γ·Q_r^tgt(s', a*)``, ``y_c = c + γ·Q_c^tgt(s', a*)``. λ ≥ 0 follows dual ascent after each
+    episode: ``λ ← max(0, λ + lambda_lr·(episode_cost − C))``.
+    """
+
+    method: ClassVar[str] = "constrained"
+
+    def __init__(self, cfg: AgentConfig, seed: int = 0, obs_size: int = OBS_SIZE) -> None:
+        super().__init__(cfg, seed, obs_size)
+        self.lam = float(cfg.lambda_init)
+        """The Lagrange multiplier λ ≥ 0 (reward units per unit of cost)."""
+
+    def build_networks(self, obs_size: int) -> dict[str, nn.Module]:
+        """Reward and cost Q-networks, same architecture."""
+        return {"q": QNetwork(obs_size, N_ACTIONS), "cost": QNetwork(obs_size, N_ACTIONS)}
+
+    def action_values(self, obs: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+        """``Q_r − λ·Q_c``."""
+        return self.q_net(obs) - self.lam * self.networks["cost"](obs)
+
+    def _targets(self, batch: Batch) -> tuple[torch.Tensor, torch.Tensor]:
+        with torch.no_grad():
+            next_r = self.targets["q"](batch.next_obs)
+            next_c = self.targets["cost"](batch.next_obs)
+            best = (next_r - self.lam * next_c).argmax(dim=1, keepdim=True)
+            not_done = 1.0 - batch.dones
+            y_r = batch.rewards + self.cfg.gamma * next_r.gather(1, best).squeeze(1) * not_done
+            y_c = batch.costs + self.cfg.gamma * next_c.gather(1, best).squeeze(1) * not_done
+        return y_r, y_c
+
+    def td_target(self, batch: Batch) -> torch.Tensor:
+        """The reward target ``y_r`` (the cost target is in :meth:`loss`)."""
+        return self._targets(batch)[0]
+
+    def loss(self, batch: Batch) -> torch.Tensor:
+        """TD loss of ``Q_r`` toward ``y_r`` plus TD loss of ``Q_c`` toward ``y_c``."""
+        y_r, y_c = self._targets(batch)
+        a = batch.actions.unsqueeze(1)
+        q_r = self.q_net(batch.obs).gather(1, a).squeeze(1)
+        q_c = self.networks["cost"](batch.obs).gather(1, a).squeeze(1)
+        kind = self.cfg.loss
+        return elementwise_loss(kind, q_r, y_r).mean() + elementwise_loss(kind, q_c, y_c).mean()
+
+    def end_episode(self, episode_cost: float) -> None:
+        """Dual ascent toward the budget: ``λ ← max(0, λ + lambda_lr·(episode_cost − C))``."""
+        self.lam = max(0.0, self.lam + self.cfg.lambda_lr * (episode_cost - self.cfg.cost_budget))
+
+    def extra_state(self) -> dict[str, Any]:
+        """λ."""
+        return {"lambda": self.lam}
+
+    def load_extra_state(self, state: dict[str, Any]) -> None:
+        """Restore λ."""
+        self.lam = float(state["lambda"])
+
+
+class QMaskAgent(DQNAgent):
+    """Q-masking (Section IV.3, Fig. 3): unsafe actions are never taken nor bootstrapped from.
+
+    Greedy and random actions are both drawn among the safe actions of ``s``; the TD target's max
+    runs over the safe actions of ``s'``. The network's values of unsafe pairs are otherwise left as
+    they are — the weakness the paper points out (high values of masked actions generalise).
+    """
+
+    method: ClassVar[str] = "qmask"
+    uses_mask: ClassVar[bool] = True
+
+    def allowed(self, mask: np.ndarray) -> np.ndarray:
+        """The safe actions."""
+        return mask
+
+    def td_target(self, batch: Batch) -> torch.Tensor:
+        """``r + γ·max_{a' safe in s'} Q_target(s', a')·(1 − done)``."""
+        with torch.no_grad():
+            next_v = masked_max(self.targets["q"](batch.next_obs), batch.next_masks)
+            return batch.rewards + self.cfg.gamma * next_v * (1.0 - batch.dones)
+
+
+class RobustAgent(DQNAgent):
+    """Robust Q-masking with Q-shaping (Section IV.4, eqs. 13–14); masks come from the robust shield.
+
+    Acting maximises the shaped Q (:func:`shaped_q`), so unsafe actions are never chosen; exploration
+    picks among safe actions. The TD target bootstraps from the shaped target Q of ``s'`` (its max is
+    the max over safe actions). The loss (:func:`q_shaping_loss`) adds a regression of every unsafe
+    pair of ``s`` toward its shaped value, so the network learns the low value and generalises it.
+    """
+
+    method: ClassVar[str] = "robust"
+    uses_mask: ClassVar[bool] = True
+
+    def allowed(self, mask: np.ndarray) -> np.ndarray:
+        """The safe actions."""
+        return mask
+
+    def action_values(self, obs: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+        """Shaped Q (eqs. 13–14)."""
+        return shaped_q(self.q_net(obs), mask, self.cfg.shaping_floor)
+
+    def td_target(self, batch: Batch) -> torch.Tensor:
+        """``r + γ·max_a' Q_shaped^tgt(s', a')·(1 − done)``."""
+        with torch.no_grad():
+            shaped = shaped_q(self.targets["q"](batch.next_obs), batch.next_masks, self.cfg.shaping_floor)
+            return batch.rewards + self.cfg.gamma * shaped.max(dim=1).values * (1.0 - batch.dones)
+
+    def loss(self, batch: Batch) -> torch.Tensor:
+        """:func:`q_shaping_loss` with the configured weight, loss kind and floor."""
+        cfg = self.cfg
+        return q_shaping_loss(
+            self.q_net(batch.obs), batch.actions, self.td_target(batch), batch.masks,
+            weight=cfg.shaping_weight, kind=cfg.loss, over=cfg.shaping_floor,
+        )
+
+
+AGENT_CLASSES: dict[str, type[DQNAgent]] = {
+    cls.method: cls for cls in (DQNAgent, ConstrainedAgent, QMaskAgent, RobustAgent)
+}
+
+
+def make_agent(cfg: AgentConfig, seed: int = 0, obs_size: int = OBS_SIZE) -> DQNAgent:
+    """The agent for ``cfg.method``, networks initialised from ``seed``."""
+    return AGENT_CLASSES[cfg.method](cfg, seed, obs_size)

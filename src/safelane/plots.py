@@ -1,0 +1,105 @@
+"""Figures from run directories. Each function returns a matplotlib ``Figure``; the caller saves it.
+
+Figures are built with ``matplotlib.figure.Figure`` directly, not pyplot: no global state, no GUI
+backend, and ``fig.savefig`` renders with Agg.
+"""
+
+from __future__ import annotations
+
+import csv
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+from matplotlib.figure import Figure
+
+from safelane.stats import scale_01, smooth
+
+METRICS_FILE = "metrics.csv"
+"""Per-episode training metrics in a run directory (columns ``episode``, ``return``, ``epsilon``…)."""
+
+
+_BOOLEANS = {"true": 1.0, "false": 0.0}
+
+
+def read_metrics(
+    path: str | Path, columns: Sequence[str], optional: Sequence[str] = ()
+) -> dict[str, np.ndarray]:
+    """The numeric ``columns`` (required) and ``optional`` columns (when present) of a metrics CSV.
+
+    Values become float arrays (``True``/``False`` → 1/0, an empty cell → NaN, as training writes
+    for e.g. ``mean_loss`` before learning starts). Raises :class:`FileNotFoundError` for a
+    missing file and :class:`ValueError` naming the file for a missing required column or a
+    non-numeric value.
+    """
+    path = Path(path)
+    with path.open(newline="") as handle:
+        reader = csv.DictReader(handle)
+        header = reader.fieldnames or []
+        missing = [c for c in columns if c not in header]
+        if missing:
+            raise ValueError(f"{path}: missing column(s) {missing}; has {header}")
+        wanted = [*columns, *(c for c in optional if c in header)]
+        values: dict[str, list[float]] = {c: [] for c in wanted}
+        for line, row in enumerate(reader, start=2):
+            for c in wanted:
+                text = (row[c] or "").strip()
+                try:
+                    key = text.lower()
+                    values[c].append(_BOOLEANS[key] if key in _BOOLEANS else float(text or "nan"))
+                except ValueError:
+                    raise ValueError(f"{path}:{line}: column {c!r} is not a number: {text!r}") from None
+    return {c: np.asarray(v, dtype=float) for c, v in values.items()}
+
+
+def plot_training_curves(
+    run_dirs: Sequence[str | Path],
+    window: int = 10,
+    scaled: bool = False,
+    labels: Sequence[str] | None = None,
+) -> Figure:
+    """Smoothed episode return vs episode for each run, with ε on a twin axis (dashed).
+
+    Reads ``run_dir/metrics.csv`` (columns ``episode`` and ``return``; ``epsilon`` is drawn when
+    present). Returns are smoothed with :func:`safelane.stats.smooth` (trailing ``window``-episode
+    mean). ``scaled=True`` min–max scales each smoothed return curve to [0, 1] as in the paper's
+    Fig. 7, to compare convergence speed regardless of final level. ``labels`` default to the run
+    directories' names.
+    """
+    if not run_dirs:
+        raise ValueError("run_dirs: no run directories given")
+    dirs = [Path(d) for d in run_dirs]
+    names = list(labels) if labels is not None else [d.name for d in dirs]
+    if len(names) != len(dirs):
+        raise ValueError(f"labels: {len(names)} labels for {len(dirs)} run directories")
+
+    fig = Figure(figsize=(8, 4.5), layout="constrained")
+    ax = fig.add_subplot()
+    ax_eps = ax.twinx()
+    any_eps = False
+    for i, (run_dir, name) in enumerate(zip(dirs, names, strict=True)):
+        path = run_dir / METRICS_FILE
+        if not path.is_file():
+            raise FileNotFoundError(f"{path}: no {METRICS_FILE} in run directory {run_dir}")
+        data = read_metrics(path, ["episode", "return"], optional=["epsilon"])
+        curve = smooth(data["return"], window)
+        if scaled and curve.size:
+            curve = scale_01(curve)
+        colour = f"C{i % 10}"
+        ax.plot(data["episode"], curve, color=colour, label=name)
+        if "epsilon" in data:
+            ax_eps.plot(data["episode"], data["epsilon"], color=colour, linestyle="--", alpha=0.6)
+            any_eps = True
+
+    ax.set_xlabel("episode")
+    ax.set_ylabel(
+        f"return (scaled to [0, 1], {window}-episode mean)" if scaled else f"return ({window}-episode mean)"
+    )
+    if any_eps:
+        ax_eps.set_ylabel("ε (dashed)")
+        ax_eps.set_ylim(0.0, 1.05)
+    else:
+        ax_eps.set_axis_off()
+    ax.grid(alpha=0.3)
+    ax.legend(loc="best", fontsize="small")
+    return fig

@@ -1,0 +1,286 @@
+"""Episode videos with the action mask drawn under each frame.
+
+:func:`render_episode` plays one episode with highway-env's ``render_mode="rgb_array"`` (offscreen,
+``SDL_VIDEODRIVER=dummy``), one frame per decision, and appends to every frame a legend bar of the
+five meta-actions (:data:`safelane.actions.ACTION_NAMES`):
+
+* a safe action is green, an unsafe one (``info["action_mask"][a]`` false) is grey;
+* the action the policy chose in that state is blue, or red if it was unsafe;
+* if the environment executed another action (``info["executed_action"]`` from a shield override,
+  else highway-env's ``info["action"]``), that one is outlined in yellow.
+
+Without an ``action_mask`` in ``info`` (no shield), every action is drawn safe. Boxes are drawn with
+numpy; their labels, and a caption with the decision index, ego speed and any collision, with Pillow
+when it can be imported (imageio depends on it). The caption also keeps consecutive frames distinct,
+which GIF writers would otherwise merge.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import os
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import Any, NamedTuple
+
+import numpy as np
+
+from safelane.actions import ACTION_NAMES, N_ACTIONS
+from safelane.config import ConfigError, SafelaneConfig
+
+Policy = Callable[[np.ndarray, dict[str, Any]], int]
+"""``policy(obs, info) -> action``: ``info`` is the one returned with ``obs`` (it holds the mask)."""
+
+LEGEND_HEIGHT = 28
+"""Height [px] of the legend bar appended under each frame."""
+BOX_GAP = 2
+"""Gap [px] between and around legend boxes."""
+OUTLINE_WIDTH = 3
+"""Width [px] of the outline marking an executed action that differs from the chosen one."""
+
+BACKGROUND = (30, 30, 30)
+SAFE_COLOUR = (60, 150, 80)
+UNSAFE_COLOUR = (140, 140, 140)
+CHOSEN_COLOUR = (40, 100, 220)
+CHOSEN_UNSAFE_COLOUR = (210, 50, 50)
+EXECUTED_OUTLINE = (250, 210, 40)
+TEXT_COLOUR = (255, 255, 255)
+
+SHORT_NAMES: tuple[str, ...] = ("LEFT", "IDLE", "RIGHT", "FASTER", "SLOWER")
+"""Legend labels, in :data:`ACTION_NAMES` order."""
+assert len(SHORT_NAMES) == len(ACTION_NAMES)
+
+VIDEO_EXTENSIONS = (".gif", ".mp4")
+
+
+class RenderedEpisode(NamedTuple):
+    """What :func:`render_episode` wrote."""
+
+    path: Path
+    frames: int
+    """Frames rendered: decisions + 1 (the last state). A GIF writer merges identical consecutive
+    frames into one longer frame, so a GIF read back may hold fewer."""
+
+
+def legend_box(width: int, action: int) -> tuple[int, int]:
+    """Horizontal extent ``[x0, x1)`` [px] of ``action``'s box in a legend of ``width`` pixels.
+
+    The box spans rows ``[BOX_GAP, LEGEND_HEIGHT − BOX_GAP)`` of the legend bar, i.e. rows
+    ``frame_height + BOX_GAP …`` of the composed frame.
+    """
+    if not 0 <= action < N_ACTIONS:
+        raise ValueError(f"action: must be in [0, {N_ACTIONS}), got {action}")
+    cell = width / N_ACTIONS
+    return round(action * cell) + BOX_GAP, round((action + 1) * cell) - BOX_GAP
+
+
+def _mask_of(info: dict[str, Any]) -> np.ndarray:
+    """``info["action_mask"]`` as 5 booleans (True = safe); all True when absent."""
+    mask = info.get("action_mask")
+    if mask is None:
+        return np.ones(N_ACTIONS, dtype=bool)
+    mask = np.asarray(mask, dtype=bool).ravel()
+    if mask.size != N_ACTIONS:
+        raise ValueError(f"info['action_mask']: expected {N_ACTIONS} entries, got {mask.size}")
+    return mask
+
+
+def _executed_of(info: dict[str, Any]) -> int | None:
+    """The action the environment executed, as reported in a step's ``info``, if any."""
+    for key in ("executed_action", "action"):
+        value = info.get(key)
+        if isinstance(value, int | np.integer) and 0 <= int(value) < N_ACTIONS:
+            return int(value)
+    return None
+
+
+def draw_action_legend(
+    frame: np.ndarray,
+    mask: Sequence[bool] | np.ndarray,
+    chosen: int | None = None,
+    executed: int | None = None,
+    caption: str | None = None,
+) -> np.ndarray:
+    """``frame`` (H, W, 3) uint8 with a legend bar of the five actions appended below it.
+
+    ``mask[a]`` true means action ``a`` is safe (green), false unsafe (grey); ``chosen`` is filled blue
+    (red when unsafe); ``executed``, when given and different from ``chosen``, is outlined in yellow.
+    ``caption`` (e.g. the step and speed) is written in the frame's top-left corner. Returns a new
+    (H + LEGEND_HEIGHT, W, 3) array; ``frame`` is not modified.
+    """
+    frame = np.asarray(frame)
+    if frame.ndim != 3 or frame.shape[2] < 3:
+        raise ValueError(f"frame: expected (H, W, 3) RGB, got shape {frame.shape}")
+    mask = np.asarray(mask, dtype=bool)
+    width = frame.shape[1]
+    bar = np.empty((LEGEND_HEIGHT, width, 3), dtype=np.uint8)
+    bar[:] = BACKGROUND
+    top, bottom = BOX_GAP, LEGEND_HEIGHT - BOX_GAP
+    for a in range(N_ACTIONS):
+        x0, x1 = legend_box(width, a)
+        if a == chosen:
+            colour = CHOSEN_COLOUR if mask[a] else CHOSEN_UNSAFE_COLOUR
+        else:
+            colour = SAFE_COLOUR if mask[a] else UNSAFE_COLOUR
+        bar[top:bottom, x0:x1] = colour
+        if executed is not None and a == executed and executed != chosen:
+            w = OUTLINE_WIDTH
+            bar[top : top + w, x0:x1] = EXECUTED_OUTLINE
+            bar[bottom - w : bottom, x0:x1] = EXECUTED_OUTLINE
+            bar[top:bottom, x0 : x0 + w] = EXECUTED_OUTLINE
+            bar[top:bottom, x1 - w : x1] = EXECUTED_OUTLINE
+    out = np.concatenate([frame[:, :, :3].astype(np.uint8), bar], axis=0)
+    _write_text(out, frame.shape[0], caption)
+    return out
+
+
+def _write_text(image: np.ndarray, frame_height: int, caption: str | None) -> None:
+    """Write the action names centred in their boxes and ``caption`` top-left, in place.
+
+    A no-op without Pillow (the boxes alone still show the mask).
+    """
+    try:
+        from PIL import Image, ImageDraw, ImageFont
+    except ImportError:  # pragma: no cover - Pillow ships with imageio
+        return
+    pil = Image.fromarray(image)
+    draw = ImageDraw.Draw(pil)
+    font = ImageFont.load_default()
+    for a, name in enumerate(SHORT_NAMES):
+        x0, x1 = legend_box(image.shape[1], a)
+        left, top, right, bottom = draw.textbbox((0, 0), name, font=font)
+        x = (x0 + x1 - (right - left)) / 2 - left
+        y = frame_height + (LEGEND_HEIGHT - (bottom - top)) / 2 - top
+        draw.text((x, y), name, fill=TEXT_COLOUR, font=font)
+    if caption:
+        left, top, right, bottom = draw.textbbox((4, 4), caption, font=font)
+        draw.rectangle((left - 3, top - 3, right + 3, bottom + 3), fill=BACKGROUND)
+        draw.text((4, 4), caption, fill=TEXT_COLOUR, font=font)
+    image[:] = np.asarray(pil)
+
+
+def _caption(step: int, info: dict[str, Any]) -> str:
+    """``t=<decision>  v=<ego speed> m/s`` and, after a crash, ``COLLISION``."""
+    text = f"t={step}"
+    if "speed" in info:
+        text += f"  v={float(info['speed']):.1f} m/s"
+    if info.get("collision") or info.get("crashed"):
+        text += "  COLLISION"
+    return text
+
+
+def mp4_writer_available() -> bool:
+    """Whether imageio can write MP4 here (it needs the ``imageio-ffmpeg`` package)."""
+    return importlib.util.find_spec("imageio_ffmpeg") is not None
+
+
+def _write_video(frames: list[np.ndarray], out_path: Path, fps: float) -> None:
+    import imageio.v2 as imageio
+
+    if out_path.suffix.lower() == ".gif":
+        imageio.mimsave(out_path, frames, duration=1000.0 / fps, loop=0)
+        return
+    # libx264/yuv420p needs even sizes: pad by one black row/column rather than let imageio resize.
+    h, w = frames[0].shape[:2]
+    pad = ((0, h % 2), (0, w % 2), (0, 0))
+    imageio.mimsave(out_path, [np.pad(f, pad) for f in frames], fps=fps, macro_block_size=1)
+
+
+def _check_out_path(out_path: Path) -> None:
+    suffix = out_path.suffix.lower()
+    if suffix not in VIDEO_EXTENSIONS:
+        raise ConfigError(f"out_path: unsupported video extension {suffix!r}; use .gif (or .mp4)")
+    if suffix == ".mp4" and not mp4_writer_available():
+        raise ConfigError("out_path: .mp4 needs the imageio-ffmpeg package, not installed; use .gif")
+
+
+def _open_env(env: Any) -> tuple[Any, bool]:
+    """The rgb_array env to render and whether this module owns (and must close) it."""
+    if isinstance(env, SafelaneConfig | str):
+        from safelane.env import make_env
+
+        return make_env(env, render_mode="rgb_array"), True
+    if hasattr(env, "step") and hasattr(env, "reset"):
+        owned = False
+    elif callable(env):
+        env, owned = env(), True
+    else:
+        raise TypeError(f"env: expected a gymnasium Env, an env factory or a config, got {type(env)!r}")
+    if getattr(env, "render_mode", None) != "rgb_array":
+        mode = getattr(env, "render_mode", None)
+        if owned:
+            env.close()
+        raise ValueError(
+            f"env: render_mode must be 'rgb_array' (got {mode!r}); "
+            "build it with safelane.make_env(cfg, render_mode='rgb_array')"
+        )
+    return env, owned
+
+
+def _enable_drawing(env: Any) -> None:
+    """Make highway-env actually draw under ``SDL_VIDEODRIVER=dummy``.
+
+    highway-env 1.12's ``EnvViewer.__init__`` sets ``enabled = False`` when the driver is ``dummy``,
+    and ``display()`` then draws nothing: every ``rgb_array`` frame is black. Drawing onto the
+    viewer's pygame Surface works under the dummy driver, so the flag is switched back on.
+    """
+    base = env.unwrapped
+    if getattr(base, "viewer", None) is None:
+        env.render()  # creates the viewer
+    viewer = getattr(base, "viewer", None)
+    if viewer is not None and hasattr(viewer, "enabled"):
+        viewer.enabled = True
+
+
+def render_episode(
+    env: Any,
+    policy: Policy,
+    seed: int,
+    out_path: str | Path,
+    max_steps: int | None = None,
+    fps: float | None = None,
+) -> RenderedEpisode:
+    """Play one episode of ``policy`` and write it, with the action legend, to ``out_path``.
+
+    ``env``: a gymnasium Env built with ``render_mode="rgb_array"``, a zero-argument factory returning
+    one (closed afterwards), or a :class:`SafelaneConfig` / preset name passed to
+    ``make_env(..., render_mode="rgb_array")``. The env is reset with ``seed``; the episode runs until
+    termination, truncation or ``max_steps`` decisions. Frame ``t`` shows the state before decision
+    ``t`` with that state's mask, the chosen action and (if different) the executed one; the last frame
+    shows the final state with no action chosen. ``fps`` defaults to the env's ``policy_frequency``
+    (real time). ``out_path`` must end in ``.gif``, or ``.mp4`` when imageio-ffmpeg is installed
+    (otherwise :class:`~safelane.config.ConfigError`, a ``ValueError``).
+    """
+    out_path = Path(out_path)
+    _check_out_path(out_path)
+    if max_steps is not None and max_steps < 0:
+        raise ValueError(f"max_steps: must be non-negative, got {max_steps}")
+    os.environ.setdefault("SDL_VIDEODRIVER", "dummy")
+    env, owned = _open_env(env)
+    try:
+        if fps is None:
+            fps = float(getattr(env.unwrapped, "config", {}).get("policy_frequency", 1))
+        if fps <= 0:
+            raise ValueError(f"fps: must be positive, got {fps}")
+        obs, info = env.reset(seed=seed)
+        _enable_drawing(env)
+        frames: list[np.ndarray] = []
+        steps = 0
+        done = False
+        while not done and (max_steps is None or steps < max_steps):
+            raw = np.asarray(env.render())
+            mask, caption = _mask_of(info), _caption(steps, info)
+            action = int(policy(obs, info))
+            obs, _, terminated, truncated, info = env.step(action)
+            executed = _executed_of(info)
+            frames.append(draw_action_legend(raw, mask, action, executed, caption))
+            steps += 1
+            done = bool(terminated or truncated)
+        final = np.asarray(env.render())
+        frames.append(draw_action_legend(final, _mask_of(info), caption=_caption(steps, info)))
+    finally:
+        if owned:
+            env.close()
+    out_path.parent.mkdir(parents=True, exist_ok=True)
+    _write_video(frames, out_path, fps)
+    return RenderedEpisode(out_path, len(frames))

@@ -1,0 +1,507 @@
+"""The safety model: which of the 5 meta-actions are safe, from kinematics alone (paper Section IV).
+
+Pure maths over a road snapshot in SI units (metres, m/s, seconds). It imports nothing from
+highway-env, the agents or training: :mod:`safelane.shield` reads the snapshot and the dynamics
+constants from highway-env and calls :func:`evaluate`.
+
+The rule (derivation in ``docs/safety.md``): an action is **safe** when, after executing it for one
+decision period under the worst-case behaviour of the other vehicles, a *fallback* — hold the
+speed target for ``k ∈ {0..MAX_HOLD_DECISIONS}`` decisions, then SLOWER at every decision until
+standstill — keeps every longitudinal gap above ``margin`` in every lane the ego and the other
+vehicle may share. The ego's own motion is simulated exactly as highway-env integrates it
+(P-controller on the speed target, explicit Euler at the simulation step); the others are
+bounded by their driver model's limits:
+
+* a vehicle ahead may brake at its maximum deceleration (IDM's ``ACC_MAX``) from now on;
+* a vehicle behind may accelerate at its maximum (IDM's ``COMFORT_ACC_MAX``) for a reaction time
+  and then brake at ``ACC_MAX``.
+
+Modes
+-----
+``nominal`` — the paper's Q-masking (Section IV.3, eqs. 8–11): only vehicles in the lanes the
+action uses count, each with its own worst case and its own fallback (eq. 11's free space is
+checked leader by leader, follower by follower). With ``formula="paper"`` the safe distance is
+eq. 12 as printed, evaluated at decision time — kept as the faithful baseline, unsound here (see
+docs/safety.md).
+
+``robust`` — the paper's robust Q-masking (Section IV.4b, Fig. 5). In addition to nominal:
+vehicles moving laterally (heading angle) are projected into the lane they move to; any vehicle in
+a lane adjacent to a lane the ego uses may cut in, if its own lane-change rule (MOBIL's safety
+criterion, with the ego as its new follower) allows it, and is then a leader braking fully;
+and **one** fallback must handle every leader braking and every follower accelerating at the same
+time.
+
+``robust ⊆ nominal ⊆ available`` holds by construction: robust adds conflicts and requires a
+joint fallback. The mask is never empty: when no action is safe the least-bad one is allowed and
+``fallback`` is set (:func:`least_bad_action`).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Literal
+
+import numpy as np
+
+from safelane.actions import FASTER, IDLE, LANE_LEFT, LANE_RIGHT, N_ACTIONS, SLOWER
+
+Mode = Literal["nominal", "robust"]
+Formula = Literal["kinematic", "paper"]
+
+MAX_HOLD_DECISIONS = 3
+"""Fallbacks hold the speed target for 0..3 decisions before braking (lets a far leader and a close
+follower be handled together: keep speed now, brake later)."""
+TAIL_DECISIONS = 2
+"""Decisions simulated after the speed target reaches its minimum (the P-controller's exponential tail)."""
+RELEVANCE_RANGE = 250.0  # [m] vehicles farther than this (longitudinally) cannot matter in the horizon
+LATERAL_MOTION_THRESHOLD = 0.01  # [rad] |heading| above which a vehicle counts as changing lane (robust)
+
+OVERRIDE_ORDER: dict[int, tuple[int, ...]] = {
+    LANE_LEFT: (LANE_LEFT, IDLE, SLOWER, FASTER, LANE_RIGHT),
+    IDLE: (IDLE, SLOWER, FASTER, LANE_LEFT, LANE_RIGHT),
+    LANE_RIGHT: (LANE_RIGHT, IDLE, SLOWER, FASTER, LANE_LEFT),
+    FASTER: (FASTER, IDLE, SLOWER, LANE_LEFT, LANE_RIGHT),
+    SLOWER: (SLOWER, IDLE, LANE_LEFT, LANE_RIGHT, FASTER),
+}
+"""For each chosen action, the actions closest to it, in order: the shield's override takes the first
+safe one. Keeping the lane beats changing it; slowing beats speeding up."""
+
+TIE_BREAK_ORDER = (SLOWER, IDLE, FASTER, LANE_RIGHT, LANE_LEFT)
+"""Preference among equally bad actions when no action is safe."""
+
+
+@dataclass(frozen=True)
+class Dynamics:
+    """Constants of the simulated world, read from highway-env at run time by the shield.
+
+    All in SI units. ``target_speeds`` are the ego's discrete speed targets [m/s].
+    """
+
+    decision_period: float  # [s] 1 / policy_frequency
+    frame_dt: float  # [s] 1 / simulation_frequency
+    frames_per_decision: int
+    ego_kp: float  # [1/s] ego speed P-gain (ControlledVehicle.KP_A)
+    target_speeds: tuple[float, ...]  # [m/s]
+    lane_width: float  # [m]
+    lanes_count: int
+    follower_reaction: float = 0.5  # [s] a follower may keep accelerating this long before it brakes
+    ego_leave_time: float = 0.8  # [s] the ego still overlaps its old lane this long into a lane change
+    cut_in_time: float = 0.4  # [s] fastest time for another vehicle to reach the ego's lane
+    margin: float = 1.0  # [m] minimum bumper-to-bumper gap kept under the worst case
+
+    @property
+    def horizon_decisions(self) -> int:
+        """Decisions simulated: the action, the longest hold, braking to standstill, the tail."""
+        return 1 + MAX_HOLD_DECISIONS + len(self.target_speeds) + TAIL_DECISIONS
+
+    @property
+    def times(self) -> np.ndarray:
+        """Frame times [s] of the horizon, starting at 0 (now)."""
+        n = self.horizon_decisions * self.frames_per_decision
+        return np.arange(n + 1) * self.frame_dt
+
+
+@dataclass(frozen=True)
+class RoadState:
+    """A snapshot of the road around the ego, in lane coordinates (x along the road, y across).
+
+    Lane ``i``'s centre is at ``y = i · lane_width``. Arrays describe the other vehicles, one entry
+    each. Speeds are signed along x (``vx``) and y (``vy``) [m/s].
+    """
+
+    ego_x: float  # [m]
+    ego_y: float  # [m]
+    ego_speed: float  # [m/s] along x
+    ego_lane: int
+    ego_target_lane: int
+    ego_target_speed: float  # [m/s] current speed set-point
+    ego_speed_index: int  # index of the current set-point in Dynamics.target_speeds
+    ego_length: float = 5.0  # [m]
+    x: np.ndarray = field(default_factory=lambda: np.zeros(0))  # [m]
+    y: np.ndarray = field(default_factory=lambda: np.zeros(0))  # [m]
+    vx: np.ndarray = field(default_factory=lambda: np.zeros(0))  # [m/s]
+    vy: np.ndarray = field(default_factory=lambda: np.zeros(0))  # [m/s]
+    heading: np.ndarray = field(default_factory=lambda: np.zeros(0))  # [rad]
+    length: np.ndarray = field(default_factory=lambda: np.zeros(0))  # [m]
+    crashed: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))
+    brake_max: np.ndarray = field(default_factory=lambda: np.zeros(0))  # [m/s²] positive
+    accel_max: np.ndarray = field(default_factory=lambda: np.zeros(0))  # [m/s²]
+    # Each vehicle's lane-change rule (MOBIL safety criterion with its own IDM parameters);
+    # ``can_change_lane`` False for vehicles that never change lane.
+    can_change_lane: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))
+    idm_delta: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    idm_comfort_acc: np.ndarray = field(default_factory=lambda: np.zeros(0))  # [m/s²] > 0
+    idm_comfort_dec: np.ndarray = field(default_factory=lambda: np.zeros(0))  # [m/s²] < 0
+    idm_distance_wanted: np.ndarray = field(default_factory=lambda: np.zeros(0))  # [m]
+    idm_time_wanted: np.ndarray = field(default_factory=lambda: np.zeros(0))  # [s]
+    max_braking_imposed: np.ndarray = field(default_factory=lambda: np.zeros(0))  # [m/s²] > 0
+    speed_limit: float = 30.0  # [m/s] of the ego's lane (IDM clips the ego's set-point to it)
+
+    @property
+    def n(self) -> int:
+        """Number of other vehicles."""
+        return int(self.x.shape[0])
+
+    def lane_of(self, y: np.ndarray | float, lanes_count: int, lane_width: float) -> np.ndarray:
+        """Nearest lane index of lateral positions ``y`` [m]."""
+        return np.clip(np.rint(np.asarray(y) / lane_width), 0, lanes_count - 1).astype(int)
+
+
+@dataclass(frozen=True)
+class SafetyResult:
+    """What the safety model says about the 5 actions in one state."""
+
+    mask: np.ndarray  # bool (5,): allowed actions (never all False)
+    safe: np.ndarray  # bool (5,): actions that satisfy the rule (may be all False)
+    available: np.ndarray  # bool (5,): highway-env's get_available_actions()
+    fallback: bool  # no action was safe: ``mask`` holds the least-bad one
+    min_gap: np.ndarray  # (5,) [m] worst-case smallest gap under the best fallback (inf: no conflict)
+
+
+# --------------------------------------------------------------------------------------------
+# Ego motion: highway-env's MDPVehicle, integrated exactly as the simulator does.
+# --------------------------------------------------------------------------------------------
+
+
+def speed_to_index(speed: np.ndarray | float, target_speeds: tuple[float, ...]) -> np.ndarray:
+    """Index of the target speed closest to ``speed`` [m/s] (MDPVehicle.speed_to_index, rounding included)."""
+    ts = target_speeds
+    x = (np.asarray(speed, dtype=float) - ts[0]) / (ts[-1] - ts[0])
+    return np.clip(np.round(x * (len(ts) - 1)), 0, len(ts) - 1).astype(int)
+
+
+def action_targets(state: RoadState, dyn: Dynamics) -> np.ndarray:
+    """The ego's speed set-point [m/s] after each action (MDPVehicle.act)."""
+    ts = dyn.target_speeds
+    idx_now = int(speed_to_index(state.ego_speed, ts))
+    target = np.full(N_ACTIONS, state.ego_target_speed, dtype=float)
+    target[FASTER] = ts[min(idx_now + 1, len(ts) - 1)]
+    target[SLOWER] = ts[max(idx_now - 1, 0)]
+    return target
+
+
+def ego_trajectories(state: RoadState, dyn: Dynamics) -> tuple[np.ndarray, np.ndarray]:
+    """Ego positions [m] and speeds [m/s] for every (action, fallback) over the horizon.
+
+    Returns arrays of shape ``(5, MAX_HOLD_DECISIONS + 1, frames + 1)``. Decision 0 applies the
+    action (FASTER / SLOWER move the set-point one step from the *current speed's* index, as
+    MDPVehicle does; IDLE and lane changes keep the set-point); fallback ``k`` then holds for ``k``
+    decisions and sends SLOWER at every later decision. Per frame, as highway-env's
+    ``Vehicle.step``: ``x += v·dt`` then ``v += KP_A·(target − v)·dt``.
+    """
+    ts = np.asarray(dyn.target_speeds, dtype=float)
+    n_fb = MAX_HOLD_DECISIONS + 1
+    shape = (N_ACTIONS, n_fb)
+    v = np.full(shape, state.ego_speed, dtype=float)
+    x = np.full(shape, state.ego_x, dtype=float)
+    target = np.repeat(action_targets(state, dyn)[:, None], n_fb, axis=1)
+    hold = np.arange(n_fb)[None, :]
+    frames = dyn.frames_per_decision
+    total = dyn.horizon_decisions * frames
+    xs = np.empty((*shape, total + 1))
+    vs = np.empty((*shape, total + 1))
+    xs[..., 0], vs[..., 0] = x, v
+    decay = 1.0 - dyn.ego_kp * dyn.frame_dt
+    powers = decay ** np.arange(frames + 1)  # v_k = target + (v_0 - target)·decay^k
+    for d in range(dyn.horizon_decisions):
+        if d >= 1:
+            braking = np.broadcast_to(d > hold, shape)
+            slower = ts[np.maximum(speed_to_index(v, dyn.target_speeds) - 1, 0)]
+            target = np.where(braking, slower, target)
+        v_frames = target[..., None] + (v - target)[..., None] * powers  # (5, n_fb, frames+1)
+        x_frames = x[..., None] + dyn.frame_dt * np.concatenate(
+            [np.zeros((*shape, 1)), np.cumsum(v_frames[..., :-1], axis=-1)], axis=-1
+        )
+        sl = slice(d * frames, (d + 1) * frames + 1)
+        xs[..., sl], vs[..., sl] = x_frames, v_frames
+        x, v = x_frames[..., -1], v_frames[..., -1]
+    # Beyond the horizon the ego still creeps towards its final set-point: credit the remaining
+    # distance of the exponential approach to the last frame so a stopped leader is not missed.
+    tail = np.maximum(vs[..., -1] - 0.0, 0.0) / dyn.ego_kp
+    xs[..., -1] += tail
+    return xs, vs
+
+
+# --------------------------------------------------------------------------------------------
+# Other vehicles' worst cases.
+# --------------------------------------------------------------------------------------------
+
+
+def braking_positions(x0: np.ndarray, v0: np.ndarray, brake: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """Positions [m] of vehicles braking at ``brake`` [m/s²] from speed ``v0`` [m/s] until standstill."""
+    v0 = np.maximum(v0, 0.0)[:, None]
+    b = np.maximum(brake, 1e-6)[:, None]
+    tt = np.minimum(t[None, :], v0 / b)
+    return x0[:, None] + v0 * tt - 0.5 * b * tt**2
+
+
+def follower_positions(
+    x0: np.ndarray, v0: np.ndarray, accel: np.ndarray, brake: np.ndarray, reaction: float, t: np.ndarray
+) -> np.ndarray:
+    """Positions [m] of vehicles accelerating at ``accel`` for ``reaction`` s, then braking to a stop."""
+    v0 = np.maximum(v0, 0.0)[:, None]
+    a = accel[:, None]
+    b = np.maximum(brake, 1e-6)[:, None]
+    t_r = min(reaction, float(t[-1]))
+    t1 = np.minimum(t[None, :], t_r)
+    x1 = x0[:, None] + v0 * t1 + 0.5 * a * t1**2
+    v1 = v0 + a * t_r
+    t2 = np.clip(t[None, :] - t_r, 0.0, None)
+    t2 = np.minimum(t2, v1 / b)
+    return x1 + v1 * t2 - 0.5 * b * t2**2
+
+
+def idm_acceleration_behind(
+    state: RoadState, who: np.ndarray, gap_centres: np.ndarray, ego_speed: np.ndarray, ego_target: np.ndarray
+) -> np.ndarray:
+    """IDM acceleration [m/s²] that vehicles ``who`` predict for the ego following them.
+
+    This is the quantity of MOBIL's safety criterion (highway-env ``IDMVehicle.mobil``), computed
+    with the cutting vehicle's own IDM parameters; ``gap_centres`` is the centre-to-centre distance
+    [m] (highway-env's ``lane_distance_to``), ``ego_target`` the ego's set-point clipped to the
+    speed limit.
+    """
+    acc = state.idm_comfort_acc[who]
+    target = np.where(np.abs(ego_target) < 1e-2, 1e-2, ego_target)
+    free = acc * (1 - np.power(np.maximum(ego_speed, 0.0) / np.abs(target), state.idm_delta[who]))
+    ab = -acc * state.idm_comfort_dec[who]
+    dv = ego_speed - state.vx[who]
+    d_star = state.idm_distance_wanted[who] + ego_speed * state.idm_time_wanted[who] + ego_speed * dv / (
+        2 * np.sqrt(ab)
+    )
+    d = np.where(np.abs(gap_centres) < 1e-2, 1e-2, gap_centres)
+    return free - acc * (d_star / d) ** 2
+
+
+# --------------------------------------------------------------------------------------------
+# Conflicts: (vehicle, lane, time window) pairs the ego must keep a gap to.
+# --------------------------------------------------------------------------------------------
+
+
+def _action_lanes(state: RoadState, dyn: Dynamics, action: int) -> list[tuple[int, float]]:
+    """Lanes the ego occupies under ``action``, each with the time [s] until which it does (inf)."""
+    base = {state.ego_lane, state.ego_target_lane}
+    if action not in (LANE_LEFT, LANE_RIGHT):
+        return [(lane, math.inf) for lane in sorted(base)]
+    step = -1 if action == LANE_LEFT else 1
+    new_target = int(np.clip(state.ego_target_lane + step, 0, dyn.lanes_count - 1))
+    lanes = [(lane, dyn.ego_leave_time) for lane in sorted(base) if lane != new_target]
+    return [*lanes, (new_target, math.inf)]
+
+
+def available_actions(state: RoadState, dyn: Dynamics) -> np.ndarray:
+    """highway-env's ``DiscreteMetaAction.get_available_actions()`` as a bool mask."""
+    avail = np.zeros(N_ACTIONS, dtype=bool)
+    avail[IDLE] = True
+    avail[LANE_LEFT] = state.ego_lane > 0
+    avail[LANE_RIGHT] = state.ego_lane < dyn.lanes_count - 1
+    avail[FASTER] = state.ego_speed_index < len(dyn.target_speeds) - 1
+    avail[SLOWER] = state.ego_speed_index > 0
+    return avail
+
+
+@dataclass
+class _Occupancy:
+    """For each other vehicle, the lanes it may occupy and from when [s] (robust adds cut-ins)."""
+
+    vehicle: list[int] = field(default_factory=list)
+    lane: list[int] = field(default_factory=list)
+    start: list[float] = field(default_factory=list)
+    nominal: list[bool] = field(default_factory=list)  # also a conflict of the nominal model
+
+    def add(self, vehicle: int, lane: int, start: float, nominal: bool) -> None:
+        self.vehicle.append(vehicle)
+        self.lane.append(lane)
+        self.start.append(start)
+        self.nominal.append(nominal)
+
+
+def _occupancy(state: RoadState, dyn: Dynamics, mode: Mode, near: np.ndarray) -> _Occupancy:
+    occ = _Occupancy()
+    lanes = state.lane_of(state.y, dyn.lanes_count, dyn.lane_width)
+    for i in near:
+        own = int(lanes[i])
+        occ.add(int(i), own, 0.0, True)
+        if mode != "robust":
+            continue
+        # Heading angle (Section IV.4b): a vehicle already moving sideways is in the next lane too.
+        if abs(state.heading[i]) > LATERAL_MOTION_THRESHOLD or abs(state.vy[i]) > 0.3:
+            direction = 1 if state.vy[i] > 0 else -1
+            nxt = own + direction
+            if 0 <= nxt < dyn.lanes_count:
+                occ.add(int(i), nxt, 0.0, False)
+    return occ
+
+
+def _cut_in_candidates(
+    state: RoadState, dyn: Dynamics, near: np.ndarray, ego_x_end: float, ego_v_end: float, ego_target: float
+) -> np.ndarray:
+    """Vehicles whose own lane-change rule lets them cut in front of the ego now or by the period's end.
+
+    MOBIL's safety criterion (highway-env): a vehicle changes lane only if the IDM acceleration it
+    predicts for its new follower stays ≥ −LANE_CHANGE_MAX_BRAKING_IMPOSED. The ego is taken as that
+    follower (conservative and independent of the other vehicles, which keeps the model monotone).
+    Only vehicles ahead of the ego qualify; the criterion is checked now and at the end of the
+    decision period (others at constant speed, the ego on the action's trajectory).
+    """
+    if near.size == 0:
+        return np.zeros(0, dtype=bool)
+    can = state.can_change_lane[near] & (np.abs(state.vx[near]) >= 1.0)
+    target = np.clip(ego_target, 0.0, state.speed_limit)
+    d_now = state.x[near] - state.ego_x
+    a_now = idm_acceleration_behind(
+        state, near, d_now, np.full(near.size, state.ego_speed), np.full(near.size, target)
+    )
+    d_end = state.x[near] + state.vx[near] * dyn.decision_period - ego_x_end
+    a_end = idm_acceleration_behind(
+        state, near, d_end, np.full(near.size, ego_v_end), np.full(near.size, target)
+    )
+    limit = -state.max_braking_imposed[near]
+    ahead = (d_now > 0) | (d_end > 0)
+    return can & ahead & ((a_now >= limit) | (a_end >= limit))
+
+
+def evaluate(state: RoadState, dyn: Dynamics, mode: Mode = "robust", formula: Formula = "kinematic") -> SafetyResult:
+    """The safety mask of ``state`` (see the module docstring for the rule and the modes)."""
+    if mode not in ("nominal", "robust"):
+        raise ValueError(f"mode: got {mode!r}; allowed: 'nominal', 'robust'")
+    if formula not in ("kinematic", "paper"):
+        raise ValueError(f"formula: got {formula!r}; allowed: 'kinematic', 'paper'")
+    available = available_actions(state, dyn)
+    if mode == "nominal" and formula == "paper":
+        safe, gaps = _paper_eq12(state, dyn)
+        return _finish(safe & available, available, gaps, gaps)
+
+    t = dyn.times
+    ego_x, ego_v = ego_trajectories(state, dyn)  # (5, F, T)
+    half = 0.5 * (state.length + state.ego_length)  # centre distance at contact [m]
+    dx0 = state.x - state.ego_x
+    near = np.flatnonzero((np.abs(dx0) < RELEVANCE_RANGE) & np.isfinite(state.x))
+    ahead = dx0 >= 0
+    # Worst-case longitudinal motion of every nearby vehicle: leaders brake, followers surge.
+    stopped = state.crashed  # a crashed vehicle is treated as a wall where it stands
+    brake = np.where(stopped, 1e9, state.brake_max)
+    lead_x = braking_positions(state.x[near], np.where(stopped[near], 0.0, state.vx[near]), brake[near], t)
+    foll_x = follower_positions(
+        state.x[near], state.vx[near], state.accel_max[near], state.brake_max[near], dyn.follower_reaction, t
+    )
+    other_x = np.where(ahead[near][:, None], lead_x, foll_x)  # (m, T)
+    row_of = {int(v): r for r, v in enumerate(near)}
+
+    occ = _occupancy(state, dyn, mode, near)
+    targets = action_targets(state, dyn)
+    frames = dyn.frames_per_decision
+    n_fb = MAX_HOLD_DECISIONS + 1
+    # gaps[a, f] = worst gap over conflicts (joint, robust); nominal keeps per-conflict best fallback
+    joint_gap = np.full((N_ACTIONS, n_fb), np.inf)
+    ahead_gap = np.full((N_ACTIONS, n_fb), np.inf)
+    nominal_ok = np.ones(N_ACTIONS, dtype=bool)
+    for a in range(N_ACTIONS):
+        if not available[a]:
+            continue
+        ego_lanes = _action_lanes(state, dyn, a)
+        vehicles, lanes_v, starts, nominal_flags = occ.vehicle, occ.lane, occ.start, occ.nominal
+        if mode == "robust":
+            used = {lane for lane, _ in ego_lanes}
+            cands = _cut_in_candidates(
+                state,
+                dyn,
+                near,
+                float(ego_x[a, 0, frames]),
+                float(ego_v[a, 0, frames]),
+                float(targets[a]),
+            )
+            extra_v, extra_l = [], []
+            lanes_near = state.lane_of(state.y[near], dyn.lanes_count, dyn.lane_width)
+            for j in np.flatnonzero(cands):
+                for lane in used:
+                    if abs(int(lanes_near[j]) - lane) == 1:
+                        extra_v.append(int(near[j]))
+                        extra_l.append(lane)
+            vehicles = vehicles + extra_v
+            lanes_v = lanes_v + extra_l
+            starts = starts + [dyn.cut_in_time] * len(extra_v)
+            nominal_flags = nominal_flags + [False] * len(extra_v)
+        for vi, lane, start, is_nominal in zip(vehicles, lanes_v, starts, nominal_flags, strict=True):
+            for ego_lane, until in ego_lanes:
+                if ego_lane != lane:
+                    continue
+                window = (t >= start) & (t <= until)
+                if not window.any():
+                    continue
+                r = row_of[vi]
+                if ahead[vi]:
+                    gap = other_x[r] - ego_x[a] - half[vi]  # (F, T)
+                else:
+                    gap = ego_x[a] - other_x[r] - half[vi]
+                worst = np.where(window, gap, np.inf).min(axis=-1)  # (F,)
+                joint_gap[a] = np.minimum(joint_gap[a], worst)
+                if ahead[vi]:
+                    ahead_gap[a] = np.minimum(ahead_gap[a], worst)
+                if is_nominal and worst.max() < dyn.margin:
+                    nominal_ok[a] = False
+    best_gap = joint_gap.max(axis=1)
+    if mode == "robust":
+        safe = (best_gap >= dyn.margin) & available
+    else:
+        safe = nominal_ok & available
+    # Least-bad ranking: first the ego's own responsibility (vehicles ahead), then everything.
+    ahead_best = np.where(available, ahead_gap.max(axis=1), -np.inf)
+    best_gap = np.where(available, best_gap, -np.inf)
+    prefer = nominal_ok & available if mode == "robust" else available
+    return _finish(safe, available, best_gap, ahead_best, prefer)
+
+
+def _finish(
+    safe: np.ndarray,
+    available: np.ndarray,
+    gaps: np.ndarray,
+    ahead_gaps: np.ndarray,
+    prefer: np.ndarray | None = None,
+) -> SafetyResult:
+    if safe.any():
+        return SafetyResult(safe.copy(), safe, available, False, gaps)
+    pool = prefer if prefer is not None and prefer.any() else available
+    mask = np.zeros(N_ACTIONS, dtype=bool)
+    mask[least_bad_action(ahead_gaps, gaps, pool)] = True
+    return SafetyResult(mask, safe, available, True, gaps)
+
+
+def least_bad_action(ahead_gaps: np.ndarray, gaps: np.ndarray, pool: np.ndarray) -> int:
+    """The action to allow when none is safe: largest worst-case gap to vehicles *ahead* (the ego's
+    own responsibility), then to everybody, then :data:`TIE_BREAK_ORDER`."""
+    best: tuple[float, float, int] | None = None
+    choice = IDLE
+    for rank, a in enumerate(TIE_BREAK_ORDER):
+        if not pool[a]:
+            continue
+        key = (float(np.minimum(ahead_gaps[a], 1e6)), float(np.minimum(gaps[a], 1e6)), -rank)
+        if best is None or key > best:
+            best, choice = key, a
+    return choice
+
+
+def _paper_eq12(state: RoadState, dyn: Dynamics) -> tuple[np.ndarray, np.ndarray]:
+    """Eq. 11–12 as printed: ``P_f + P_safe < P < P_l − P_safe`` at decision time, with
+    ``P_safe = (v_l − v_ego)² / (2(|a_max,l| − |a_max,ego|))`` (point masses, plus the body lengths).
+
+    Unsound here: the ego's P-controller brakes harder at first (KP_A·ΔV = 8.3 m/s²) than IDM's
+    ACC_MAX (6 m/s²), so the denominator is negative and the formula demands no distance at all
+    (taken as 0): only overlapping vehicles are excluded. Kept only as the faithful baseline.
+    """
+    ego_brake = dyn.ego_kp * (dyn.target_speeds[1] - dyn.target_speeds[0])
+    lanes = state.lane_of(state.y, dyn.lanes_count, dyn.lane_width)
+    safe = np.ones(N_ACTIONS, dtype=bool)
+    gaps = np.full(N_ACTIONS, np.inf)
+    half = 0.5 * (state.length + state.ego_length)
+    for a in range(N_ACTIONS):
+        for lane, _ in _action_lanes(state, dyn, a):
+            for i in np.flatnonzero(lanes == lane):
+                denom = 2.0 * (abs(state.brake_max[i]) - ego_brake)
+                p_safe = (state.vx[i] - state.ego_speed) ** 2 / denom if denom > 0 else 0.0
+                gap = abs(state.x[i] - state.ego_x) - half[i]
+                gaps[a] = min(gaps[a], gap - p_safe)
+                if gap - p_safe <= 0:
+                    safe[a] = False
+    return safe, gaps

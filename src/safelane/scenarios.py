@@ -1,0 +1,182 @@
+"""Hand-built road scenes on the real highway-env, for tests, for the stress suite and for users.
+
+Each scenario function returns a :class:`Scene`: a shielded environment whose road has been
+replaced by hand-placed vehicles (the ego plus a few highway-env ``IDMVehicle``\\ s at known lanes,
+offsets and speeds), ready to ``step``. Lane 0 is the leftmost lane (highway-env's convention);
+offsets ``dx`` are centre-to-centre along the road [m], positive ahead of the ego.
+
+    scene = scenarios.stopped_car_ahead(mode="robust")
+    scene.mask            # bool (5,) over LANE_LEFT, IDLE, LANE_RIGHT, FASTER, SLOWER
+    scene.env.step(1)     # and drive on
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+from highway_env.vehicle.behavior import IDMVehicle
+
+from safelane.env import make_env
+from safelane.safety import Mode, SafetyResult
+from safelane.shield import SafetyShield
+
+
+@dataclass(frozen=True)
+class VehicleSpec:
+    """One hand-placed vehicle: lane index, offset from the ego [m], speed [m/s], heading [rad]."""
+
+    lane: int
+    dx: float
+    speed: float
+    heading: float = 0.0
+    target_lane: int | None = None  # a lane change already under way (None: keep the lane)
+    vehicle_class: type = IDMVehicle
+    lateral_offset: float = 0.0  # [m] from the lane centre, positive to the right
+
+
+@dataclass
+class Scene:
+    """A shielded environment holding a hand-built road, and the shield's verdict on it."""
+
+    env: gym.Env
+    result: SafetyResult
+    vehicles: list[Any] = field(default_factory=list)
+
+    @property
+    def mask(self) -> np.ndarray:
+        """Allowed actions (bool, shape (5,))."""
+        return self.result.mask
+
+    @property
+    def shield(self) -> SafetyShield:
+        """The :class:`SafetyShield` layer of the environment."""
+        env = self.env
+        while not isinstance(env, SafetyShield):
+            env = env.env  # type: ignore[attr-defined]
+        return env
+
+
+def build_scene(
+    ego_lane: int,
+    ego_speed: float,
+    vehicles: list[VehicleSpec],
+    *,
+    mode: Mode = "robust",
+    lanes_count: int = 4,
+    ego_target_speed: float | None = None,
+    preset: str = "fast",
+    **overrides: Any,
+) -> Scene:
+    """Place the ego at ``x = 200 m`` in ``ego_lane`` at ``ego_speed`` [m/s] and ``vehicles`` around it."""
+    env = make_env(
+        preset,
+        seed=0,
+        **{"env.lanes_count": lanes_count, "env.vehicles_count": 1, "shield.mode": mode},
+        **overrides,
+    )
+    base = env.unwrapped
+    road = base.road
+    ego = base.vehicle
+    _from, _to = next(iter(road.network.graph.items()))[0], None
+    _to = next(iter(road.network.graph[_from]))
+    ego_lane_obj = road.network.get_lane((_from, _to, ego_lane))
+    ego.position = ego_lane_obj.position(200.0, 0.0)
+    ego.heading = ego_lane_obj.heading_at(200.0)
+    ego.speed = float(ego_speed)
+    ego.lane_index = ego.target_lane_index = (_from, _to, ego_lane)
+    ego.lane = ego_lane_obj
+    target = ego_speed if ego_target_speed is None else ego_target_speed
+    ego.speed_index = int(ego.speed_to_index(target))
+    ego.target_speed = float(ego.index_to_speed(ego.speed_index))
+    placed = []
+    road.vehicles = [ego]
+    for spec in vehicles:
+        lane = road.network.get_lane((_from, _to, spec.lane))
+        v = spec.vehicle_class(
+            road, lane.position(200.0 + spec.dx, spec.lateral_offset), spec.heading, float(spec.speed)
+        )
+        if spec.target_lane is not None:
+            v.target_lane_index = (_from, _to, spec.target_lane)
+        v.check_collisions = True
+        road.vehicles.append(v)
+        placed.append(v)
+    shield = Scene(env, None, placed).shield  # type: ignore[arg-type]
+    result = shield.refresh()
+    return Scene(env, result, placed)
+
+
+# --- the scenario library ----------------------------------------------------------------------
+
+
+def leader_braking(mode: Mode = "robust", gap: float = 25.0, **kw: Any) -> Scene:
+    """A leader ``gap`` m ahead (centre to centre) in the ego lane, 10 m/s slower and braking hard;
+    the lane to the left is free, a slow truck blocks the right."""
+    return build_scene(
+        1, 25.0, [VehicleSpec(1, gap, 15.0), VehicleSpec(2, 8.0, 25.0)], mode=mode, **kw
+    )
+
+
+def stopped_car_ahead(mode: Mode = "robust", distance: float = 60.0, **kw: Any) -> Scene:
+    """A stopped car ``distance`` m ahead in the ego lane; the neighbouring lanes are free."""
+    return build_scene(1, 25.0, [VehicleSpec(1, distance, 0.0)], mode=mode, **kw)
+
+
+def slow_car_in_target_lane(mode: Mode = "robust", **kw: Any) -> Scene:
+    """The left lane has a slow car just ahead (15 m/s, 15 m ahead); the ego lane is free."""
+    return build_scene(1, 25.0, [VehicleSpec(0, 15.0, 15.0)], mode=mode, **kw)
+
+
+def fast_follower_in_target_lane(mode: Mode = "robust", **kw: Any) -> Scene:
+    """A fast car (35 m/s) 15 m behind in the left lane; the ego lane is free."""
+    return build_scene(1, 25.0, [VehicleSpec(0, -15.0, 35.0)], mode=mode, **kw)
+
+
+def cut_in_from_left(mode: Mode = "robust", **kw: Any) -> Scene:
+    """A car 20 m ahead in the left lane, at ego speed, already steering into the ego lane."""
+    return build_scene(1, 25.0, [VehicleSpec(0, 20.0, 22.0, heading=0.15, target_lane=1)], mode=mode, **kw)
+
+
+def cut_in_from_right(mode: Mode = "robust", **kw: Any) -> Scene:
+    """A car 20 m ahead in the right lane, already steering into the ego lane."""
+    return build_scene(1, 25.0, [VehicleSpec(2, 20.0, 22.0, heading=-0.15, target_lane=1)], mode=mode, **kw)
+
+
+def ego_leftmost_lane(mode: Mode = "robust", **kw: Any) -> Scene:
+    """The ego alone on the leftmost lane (no LANE_LEFT available)."""
+    return build_scene(0, 25.0, [], mode=mode, **kw)
+
+
+def ego_rightmost_lane(mode: Mode = "robust", **kw: Any) -> Scene:
+    """The ego alone on the rightmost lane (no LANE_RIGHT available)."""
+    return build_scene(3, 25.0, [], mode=mode, **kw)
+
+
+def dense_jam(mode: Mode = "robust", **kw: Any) -> Scene:
+    """Slow traffic (10 m/s) all around: close leaders in every lane, the ego at 20 m/s."""
+    specs = [VehicleSpec(lane, dx, 10.0) for lane in (0, 1, 2) for dx in (25.0, 50.0)]
+    specs += [VehicleSpec(lane, -20.0, 12.0) for lane in (0, 2)]
+    return build_scene(1, 20.0, specs, mode=mode, lanes_count=3, **kw)
+
+
+def adjacent_car_ahead(mode: Mode = "robust", dx: float = 20.0, **kw: Any) -> Scene:
+    """A car ``dx`` m ahead in the left lane, driving straight at 22 m/s, that *could* cut in."""
+    return build_scene(1, 25.0, [VehicleSpec(0, dx, 22.0)], mode=mode, **kw)
+
+
+SCENARIOS: dict[str, Callable[..., Scene]] = {
+    "leader_braking": leader_braking,
+    "stopped_car_ahead": stopped_car_ahead,
+    "slow_car_in_target_lane": slow_car_in_target_lane,
+    "fast_follower_in_target_lane": fast_follower_in_target_lane,
+    "cut_in_from_left": cut_in_from_left,
+    "cut_in_from_right": cut_in_from_right,
+    "ego_leftmost_lane": ego_leftmost_lane,
+    "ego_rightmost_lane": ego_rightmost_lane,
+    "dense_jam": dense_jam,
+    "adjacent_car_ahead": adjacent_car_ahead,
+}
+"""Every scenario by name."""

@@ -1,0 +1,201 @@
+"""Statistics on tiny arrays with answers worked out by hand."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from hypothesis import given
+from hypothesis import strategies as st
+
+from safelane import stats
+
+# --- point estimates -----------------------------------------------------------------------------
+
+
+def test_mean_pools_runs_and_tasks() -> None:
+    assert stats.mean([[1, 2], [3, 6]]) == 3.0
+
+
+def test_iqm_hand_worked() -> None:
+    assert stats.iqm([1, 2, 3, 4]) == 2.5  # cut 1 each side: mean(2, 3)
+    assert stats.iqm([0, 1, 2, 3, 4, 5, 6, 7]) == 3.5  # cut 2 each side: mean(2, 3, 4, 5)
+    assert stats.iqm([7, 0, 5, 2, 6, 1, 4, 3]) == 3.5  # order does not matter
+    assert stats.iqm([100, 1, 2, -100]) == 1.5  # outliers are cut
+
+
+def test_iqm_rounds_the_cut_down_like_scipy() -> None:
+    assert stats.iqm([1, 2, 30]) == 11.0  # int(0.75) = 0: nothing cut
+    assert stats.iqm([0, 1, 2, 3, 100]) == 2.0  # int(1.25) = 1: mean(1, 2, 3)
+    assert stats.iqm([[0, 1], [2, 3], [4, 5], [6, 7]]) == 3.5  # runs × tasks are pooled
+
+
+@pytest.mark.parametrize("bad", [[], [[]], [1.0, math.nan]])
+def test_point_estimates_reject_empty_and_nan(bad: list) -> None:
+    with pytest.raises(ValueError):
+        stats.mean(bad)
+    with pytest.raises(ValueError):
+        stats.iqm(bad)
+
+
+# --- probability of improvement ------------------------------------------------------------------
+
+
+def test_probability_of_improvement_hand_worked() -> None:
+    # pairs (1,0) (1,3) (2,0) (2,3) -> 1 0 1 0
+    assert stats.probability_of_improvement([1, 2], [0, 3]) == 0.5
+    # pairs (1,2) (1,0) (2,2) (2,0) (3,2) (3,0) -> 0 1 ½ 1 1 1 = 4.5 / 6
+    assert stats.probability_of_improvement([1, 2, 3], [2, 0]) == 0.75
+    assert stats.probability_of_improvement([5, 5], [5]) == 0.5
+    assert stats.probability_of_improvement([1], [0]) == 1.0
+
+
+def test_probability_of_improvement_averages_over_tasks() -> None:
+    x = [[1, 0], [2, 0]]  # task 0: [1, 2]; task 1: [0, 0]
+    y = [[0, 1], [3, 1]]  # task 0: [0, 3]; task 1: [1, 1]
+    assert stats.probability_of_improvement(x, y) == (0.5 + 0.0) / 2
+
+
+def test_probability_of_improvement_is_complementary() -> None:
+    x, y = [0.3, 1.2, 1.2, 4.0], [1.2, 0.1, 5.0]
+    assert stats.probability_of_improvement(x, y) + stats.probability_of_improvement(y, x) == 1.0
+
+
+def test_probability_of_improvement_rejects_mismatched_tasks() -> None:
+    with pytest.raises(ValueError, match="tasks"):
+        stats.probability_of_improvement([[1, 2]], [[1, 2, 3]])
+
+
+# --- Wilson interval -----------------------------------------------------------------------------
+
+
+def test_wilson_zero_successes_by_hand() -> None:
+    # k = 0: centre = half = (z²/2n)/(1 + z²/n), so the upper bound is (z²/n)/(1 + z²/n).
+    z = 1.959963984540054
+    expected_high = (z * z / 50) / (1 + z * z / 50)
+    low, high = stats.binomial_ci(0, 50)
+    assert low == 0.0
+    assert high == pytest.approx(expected_high, rel=1e-12)
+    assert high == pytest.approx(0.0713, abs=5e-5)
+
+
+def test_wilson_half_by_hand() -> None:
+    # k = 5, n = 10: centre 0.5; half = z/(1 + z²/10)·sqrt(0.025 + z²/400)
+    z = 1.959963984540054
+    half = z / (1 + z * z / 10) * math.sqrt(0.025 + z * z / 400)
+    low, high = stats.binomial_ci(5, 10)
+    assert low == pytest.approx(0.5 - half, rel=1e-12)
+    assert high == pytest.approx(0.5 + half, rel=1e-12)
+    assert (low, high) == pytest.approx((0.2366, 0.7634), abs=1e-4)
+
+
+def test_wilson_all_successes_and_errors() -> None:
+    low, high = stats.binomial_ci(50, 50)
+    assert high == 1.0
+    assert low == pytest.approx(1 - stats.binomial_ci(0, 50)[1], rel=1e-12)
+    with pytest.raises(ValueError, match="n"):
+        stats.binomial_ci(0, 0)
+    with pytest.raises(ValueError, match="successes"):
+        stats.binomial_ci(3, 2)
+    with pytest.raises(ValueError, match="alpha"):
+        stats.binomial_ci(1, 2, alpha=0.0)
+
+
+@given(st.integers(1, 500).flatmap(lambda n: st.tuples(st.integers(0, n), st.just(n))))
+def test_wilson_contains_the_estimate(kn: tuple[int, int]) -> None:
+    k, n = kn
+    low, high = stats.binomial_ci(k, n)
+    assert 0.0 <= low <= k / n <= high <= 1.0
+
+
+# --- bootstrap -----------------------------------------------------------------------------------
+
+
+def test_bootstrap_ci_contains_mean_and_is_deterministic() -> None:
+    scores = np.array([0.1, 0.4, 0.35, 0.8, 0.55, 0.6, 0.2, 0.9])
+    low, high = stats.bootstrap_ci(scores, seed=3)
+    assert low < scores.mean() < high
+    assert (low, high) == stats.bootstrap_ci(scores, seed=3)
+    assert (low, high) != stats.bootstrap_ci(scores, seed=4)
+    assert low >= 0.1 and high <= 0.9  # a mean of resampled values stays within their range
+
+
+def test_bootstrap_ci_iqm_and_2d() -> None:
+    scores = np.arange(20, dtype=float).reshape(10, 2)
+    low, high = stats.bootstrap_ci(scores, statistic=stats.iqm, reps=500)
+    assert low <= stats.iqm(scores) <= high
+
+
+def test_bootstrap_of_identical_runs_is_a_point() -> None:
+    assert stats.bootstrap_ci([2.0, 2.0, 2.0]) == (2.0, 2.0)
+    assert stats.stratified_bootstrap_ci([[1.0, 3.0], [1.0, 3.0]]) == (2.0, 2.0)
+
+
+def test_stratified_bootstrap_resamples_within_tasks() -> None:
+    # Task 0 is always 0, task 1 always 10: any within-task resample keeps the mean at exactly 5,
+    # whereas resampling rows of a matrix whose rows differ does not.
+    scores = np.array([[0.0, 10.0], [0.0, 10.0], [0.0, 10.0]])
+    assert stats.stratified_bootstrap_ci(scores, seed=1) == (5.0, 5.0)
+    varied = np.array([[0.0, 10.0], [1.0, 12.0], [2.0, 8.0], [0.5, 11.0]])
+    low, high = stats.stratified_bootstrap_ci(varied, statistic=stats.mean, seed=1)
+    assert low < stats.mean(varied) < high
+    assert (low, high) == stats.stratified_bootstrap_ci(varied, statistic=stats.mean, seed=1)
+
+
+def test_bootstrap_rejects_bad_arguments() -> None:
+    with pytest.raises(ValueError, match="empty"):
+        stats.bootstrap_ci([])
+    with pytest.raises(ValueError, match="reps"):
+        stats.bootstrap_ci([1.0], reps=0)
+    with pytest.raises(ValueError, match="alpha"):
+        stats.stratified_bootstrap_ci([[1.0]], alpha=1.5)
+
+
+# --- curves --------------------------------------------------------------------------------------
+
+
+def test_smooth_is_trailing() -> None:
+    np.testing.assert_array_equal(stats.smooth([0, 3, 6, 9], 2), [0.0, 1.5, 4.5, 7.5])
+    np.testing.assert_array_equal(stats.smooth([0, 3, 6, 9], 3), [0.0, 1.5, 3.0, 6.0])
+    np.testing.assert_array_equal(stats.smooth([4, 5], 1), [4.0, 5.0])
+    assert stats.smooth([], 5).size == 0
+    with pytest.raises(ValueError, match="window"):
+        stats.smooth([1.0], 0)
+
+
+def test_scale_01() -> None:
+    np.testing.assert_array_equal(stats.scale_01([2, 4, 3, 6]), [0.0, 0.5, 0.25, 1.0])
+    np.testing.assert_array_equal(stats.scale_01([7, 7, 7]), [0.0, 0.0, 0.0])
+    with pytest.raises(ValueError, match="empty"):
+        stats.scale_01([])
+
+
+def test_convergence_episode_on_a_step() -> None:
+    curve = np.r_[np.zeros(50), np.ones(50)]
+    # smoothed s[t] = (t − 49)/10 for t in 50..59; target 0.9 is reached at t = 58
+    assert stats.convergence_episode(curve) == 58
+    assert stats.convergence_episode(curve, frac=0.5) == 54  # (t − 49)/10 ≥ 0.5
+    assert stats.convergence_episode(curve, window=1) == 50  # no smoothing: the step itself
+
+
+def test_convergence_episode_falling_and_flat() -> None:
+    collisions = np.r_[np.ones(30), np.zeros(70)]
+    assert stats.convergence_episode(collisions, window=5) == 34  # s = (34 − t)/5 ≤ 0.1 → t ≥ 33.5
+    assert stats.convergence_episode(np.full(40, 3.0), window=5) == 4  # flat: first full window
+    assert stats.convergence_episode([1.0, 2.0], window=10) == 1  # shorter than a window
+
+
+def test_convergence_episode_start_is_first_full_window() -> None:
+    # step at 5 with window 10: start = s[9] = 0.5, plateau 1, target 0.95 → (t − 4)/10 ≥ 0.95 → t = 14
+    curve = np.r_[np.zeros(5), np.ones(95)]
+    assert stats.convergence_episode(curve) == 14
+
+
+def test_convergence_episode_rejects_degenerate_input() -> None:
+    with pytest.raises(ValueError, match="empty"):
+        stats.convergence_episode([])
+    with pytest.raises(ValueError, match="NaN"):
+        stats.convergence_episode([0.0, math.nan])
+    with pytest.raises(ValueError, match="frac"):
+        stats.convergence_episode([0.0, 1.0], frac=0.0)

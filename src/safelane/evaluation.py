@@ -114,25 +114,21 @@ def collision_kind(
     one physics frame before (``before``) and at (``after``) the impact; ``half_length`` /
     ``half_width`` [m] are the sums of the two bodies' longitudinal / lateral half-extents.
 
-    The face that was hit is the axis along which the bodies came to overlap last: already side by
-    side (|δr| < half_width before) means a front/rear contact, ``ego_hit_front`` if the other was
-    ahead (δs > 0), else ``rear_ended``; already overlapping along the lane means ``side``; for a
-    corner contact the entry times into overlap along each axis, linear over the frame, decide.
+    The face that was hit is the axis along which the bodies came to overlap last. Entry times into
+    overlap are linear over the frame; an axis already overlapping before the frame (or not closing,
+    which a rotated body allows) entered "before". Lateral overlap first (or together) means a
+    front/rear contact: ``ego_hit_front`` if the other was ahead (δs > 0), else ``rear_ended``;
+    otherwise ``side``.
     """
+
+    def entry(d0: float, d1: float, half: float) -> float:
+        closing = abs(d0) - abs(d1)
+        if abs(d0) < half or closing <= 0:
+            return -math.inf
+        return (abs(d0) - half) / closing
+
     (s0, r0), (s1, r1) = before, after
-    aligned: bool
-    if abs(r0) < half_width:
-        aligned = True
-    elif abs(s0) < half_length:
-        aligned = False
-    else:
-
-        def entry(d0: float, d1: float, half: float) -> float:
-            closing = abs(d0) - abs(d1)
-            return (abs(d0) - half) / closing if closing > 0 else math.inf
-
-        aligned = entry(s0, s1, half_length) >= entry(r0, r1, half_width)
-    if not aligned:
+    if entry(r0, r1, half_width) > entry(s0, s1, half_length):
         return "side"
     return "ego_hit_front" if s0 > 0 else "rear_ended"
 

@@ -393,10 +393,14 @@ def evaluate(state: RoadState, dyn: Dynamics, mode: Mode = "robust", formula: Fo
     targets = action_targets(state, dyn)
     frames = dyn.frames_per_decision
     n_fb = MAX_HOLD_DECISIONS + 1
-    # gaps[a, f] = worst gap over conflicts (joint, robust); nominal keeps per-conflict best fallback
+    # Worst gap [m] per (action, fallback) over all conflicts of the mode, over those with vehicles
+    # ahead only, and the same two over the nominal conflicts alone (for a consistent least-bad choice).
     joint_gap = np.full((N_ACTIONS, n_fb), np.inf)
     ahead_gap = np.full((N_ACTIONS, n_fb), np.inf)
-    nominal_ok = np.ones(N_ACTIONS, dtype=bool)
+    nominal_joint = np.full((N_ACTIONS, n_fb), np.inf)
+    nominal_ahead = np.full((N_ACTIONS, n_fb), np.inf)
+    nominal_ok = np.ones(N_ACTIONS, dtype=bool)  # every nominal conflict has *some* good fallback
+    lanes_near = state.lane_of(state.y[near], dyn.lanes_count, dyn.lane_width)
     for a in range(N_ACTIONS):
         if not available[a]:
             continue
@@ -413,7 +417,6 @@ def evaluate(state: RoadState, dyn: Dynamics, mode: Mode = "robust", formula: Fo
                 float(targets[a]),
             )
             extra_v, extra_l = [], []
-            lanes_near = state.lane_of(state.y[near], dyn.lanes_count, dyn.lane_width)
             for j in np.flatnonzero(cands):
                 for lane in used:
                     if abs(int(lanes_near[j]) - lane) == 1:
@@ -431,40 +434,41 @@ def evaluate(state: RoadState, dyn: Dynamics, mode: Mode = "robust", formula: Fo
                 if not window.any():
                     continue
                 r = row_of[vi]
-                if ahead[vi]:
-                    gap = other_x[r] - ego_x[a] - half[vi]  # (F, T)
-                else:
-                    gap = ego_x[a] - other_x[r] - half[vi]
+                sign = 1.0 if ahead[vi] else -1.0
+                gap = sign * (other_x[r] - ego_x[a]) - half[vi]  # (F, T)
                 worst = np.where(window, gap, np.inf).min(axis=-1)  # (F,)
                 joint_gap[a] = np.minimum(joint_gap[a], worst)
                 if ahead[vi]:
                     ahead_gap[a] = np.minimum(ahead_gap[a], worst)
-                if is_nominal and worst.max() < dyn.margin:
-                    nominal_ok[a] = False
-    best_gap = joint_gap.max(axis=1)
-    if mode == "robust":
-        safe = (best_gap >= dyn.margin) & available
+                if is_nominal:
+                    nominal_joint[a] = np.minimum(nominal_joint[a], worst)
+                    if ahead[vi]:
+                        nominal_ahead[a] = np.minimum(nominal_ahead[a], worst)
+                    if worst.max() < dyn.margin:
+                        nominal_ok[a] = False
+    best_gap = np.where(available, joint_gap.max(axis=1), -np.inf)
+    safe = ((best_gap >= dyn.margin) if mode == "robust" else nominal_ok) & available
+    if safe.any():
+        return SafetyResult(safe.copy(), safe, available, False, best_gap)
+    # Least-bad choice. Robust picks among the nominally safe actions when there are some (so that
+    # robust ⊆ nominal holds for the final masks too), else exactly what nominal would pick.
+    nominal_safe = nominal_ok & available
+    if mode == "robust" and nominal_safe.any():
+        choice = least_bad_action(ahead_gap.max(axis=1), joint_gap.max(axis=1), nominal_safe)
     else:
-        safe = nominal_ok & available
-    # Least-bad ranking: first the ego's own responsibility (vehicles ahead), then everything.
-    ahead_best = np.where(available, ahead_gap.max(axis=1), -np.inf)
-    best_gap = np.where(available, best_gap, -np.inf)
-    prefer = nominal_ok & available if mode == "robust" else available
-    return _finish(safe, available, best_gap, ahead_best, prefer)
+        choice = least_bad_action(nominal_ahead.max(axis=1), nominal_joint.max(axis=1), available)
+    return _fallback(choice, safe, available, best_gap)
 
 
-def _finish(
-    safe: np.ndarray,
-    available: np.ndarray,
-    gaps: np.ndarray,
-    ahead_gaps: np.ndarray,
-    prefer: np.ndarray | None = None,
-) -> SafetyResult:
+def _finish(safe: np.ndarray, available: np.ndarray, gaps: np.ndarray, ahead_gaps: np.ndarray) -> SafetyResult:
     if safe.any():
         return SafetyResult(safe.copy(), safe, available, False, gaps)
-    pool = prefer if prefer is not None and prefer.any() else available
+    return _fallback(least_bad_action(ahead_gaps, gaps, available), safe, available, gaps)
+
+
+def _fallback(choice: int, safe: np.ndarray, available: np.ndarray, gaps: np.ndarray) -> SafetyResult:
     mask = np.zeros(N_ACTIONS, dtype=bool)
-    mask[least_bad_action(ahead_gaps, gaps, pool)] = True
+    mask[choice] = True
     return SafetyResult(mask, safe, available, True, gaps)
 
 

@@ -162,9 +162,10 @@ def dense_jam(mode: Mode = "robust", **kw: Any) -> Scene:
     return build_scene(1, 20.0, specs, mode=mode, lanes_count=3, **kw)
 
 
-def adjacent_car_ahead(mode: Mode = "robust", dx: float = 20.0, **kw: Any) -> Scene:
-    """A car ``dx`` m ahead in the left lane, driving straight at 22 m/s, that *could* cut in."""
-    return build_scene(1, 25.0, [VehicleSpec(0, dx, 22.0)], mode=mode, **kw)
+def adjacent_car_ahead(mode: Mode = "robust", dx: float = 45.0, **kw: Any) -> Scene:
+    """A car ``dx`` m ahead in the left lane at the ego's speed (25 m/s), driving straight; the ego's
+    set-point is 30 m/s. Its lane-change rule (MOBIL) would let it cut in, and then brake."""
+    return build_scene(1, 25.0, [VehicleSpec(0, dx, 25.0)], mode=mode, ego_target_speed=30.0, **kw)
 
 
 SCENARIOS: dict[str, Callable[..., Scene]] = {

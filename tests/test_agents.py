@@ -1,0 +1,277 @@
+"""The DQN core and the four methods, on hand-worked numbers (no simulator needed)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from torch import nn
+
+from safelane.agents import (
+    AGENT_PRESETS,
+    METHODS,
+    Batch,
+    ConstrainedAgent,
+    DQNAgent,
+    QMaskAgent,
+    QNetwork,
+    ReplayBuffer,
+    RobustAgent,
+    linear_epsilon,
+    load_agent_config,
+    make_agent,
+    q_shaping_loss,
+    shaped_q,
+)
+from safelane.config import ConfigError
+
+T, F_ = True, False
+
+
+def constant_net(net: nn.Module, values: list[float]) -> None:
+    """Make a QNetwork output ``values`` for every input: last layer weights 0, bias = values."""
+    last = net.net[-1]
+    with torch.no_grad():
+        last.weight.zero_()
+        last.bias.copy_(torch.tensor(values))
+
+
+def agent_with_constant_q(method: str, values: list[float], **cfg: object) -> DQNAgent:
+    agent = make_agent(load_agent_config("tuned", method, {"grad_clip": None, "loss": "mse", **cfg}), seed=0)
+    constant_net(agent.q_net, values)
+    agent.sync_target()
+    return agent
+
+
+def batch_of(n: int, masks: list[list[bool]], next_masks: list[list[bool]], **fields: list) -> Batch:
+    def t(name: str, default: float, dtype: torch.dtype) -> torch.Tensor:
+        return torch.tensor(fields.get(name, [default] * n), dtype=dtype)
+
+    return Batch(
+        obs=torch.zeros(n, 26),
+        actions=t("actions", 0, torch.int64),
+        rewards=t("rewards", 0.0, torch.float32),
+        costs=t("costs", 0.0, torch.float32),
+        next_obs=torch.zeros(n, 26),
+        dones=t("dones", 0.0, torch.float32),
+        masks=torch.tensor(masks),
+        next_masks=torch.tensor(next_masks),
+    )
+
+
+# --- network, buffer, schedule -------------------------------------------------------------------
+def test_q_network_is_the_papers_table_3() -> None:
+    net = QNetwork()
+    linears = [m for m in net.modules() if isinstance(m, nn.Linear)]
+    assert [(m.in_features, m.out_features) for m in linears] == [(26, 100), (100, 100), (100, 5)]
+    assert sum(isinstance(m, nn.ELU) for m in net.modules()) == 2
+    assert net(torch.zeros(7, 26)).shape == (7, 5)
+
+
+def test_replay_buffer_is_circular_and_samples_typed_batches() -> None:
+    buf = ReplayBuffer(3)
+    for i in range(5):
+        obs = np.full(26, i, dtype=np.float32)
+        mask = np.array([i % 2 == 0] * 5)
+        buf.add(obs, i % 5, float(i), 1.0, obs + 1, i == 4, mask, ~mask)
+    assert len(buf) == 3 and buf.pos == 2
+    assert sorted(buf.rewards.tolist()) == [2.0, 3.0, 4.0]  # the two oldest were overwritten
+    batch = buf.sample(10, np.random.default_rng(0))
+    assert batch.obs.shape == (10, 26) and batch.obs.dtype == torch.float32
+    assert batch.actions.dtype == torch.int64 and batch.masks.dtype == torch.bool
+    assert torch.equal(batch.next_obs, batch.obs + 1)
+    assert torch.equal(batch.dones, (batch.rewards == 4.0).float())  # only the last was terminal
+    copy = ReplayBuffer(3)
+    copy.load_state_dict(buf.state_dict())
+    assert copy.pos == buf.pos and np.array_equal(copy.obs, buf.obs) and np.array_equal(copy.masks, buf.masks)
+
+
+def test_epsilon_decays_linearly_then_stays() -> None:
+    cfg = load_agent_config("tuned", overrides={"eps_start": 1.0, "eps_end": 0.1, "eps_decay_steps": 100})
+    assert linear_epsilon(0, cfg) == 1.0
+    assert linear_epsilon(50, cfg) == pytest.approx(0.55)
+    assert linear_epsilon(100, cfg) == 0.1 and linear_epsilon(10_000, cfg) == 0.1
+
+
+# --- configuration -------------------------------------------------------------------------------
+def test_paper_preset_is_table_3_literally() -> None:
+    cfg = load_agent_config("paper", "dqn")
+    assert (cfg.lr, cfg.batch_size, cfg.gamma, cfg.loss) == (0.01, 50, 0.99, "mse")
+    for name in AGENT_PRESETS:
+        for method in METHODS:
+            assert load_agent_config(name, method).method == method
+
+
+@pytest.mark.parametrize(
+    ("overrides", "message"),
+    [({"lrr": 1.0}, "agent.lrr: unknown key"), ({"gamma": 1.5}, "agent.gamma"), ({"loss": "l1"}, "agent.loss")],
+)
+def test_agent_config_errors_are_one_line(overrides: dict, message: str) -> None:
+    with pytest.raises(ConfigError, match=message) as err:
+        load_agent_config("tuned", "dqn", overrides)
+    assert "\n" not in str(err.value)
+    with pytest.raises(ConfigError, match="unknown preset"):
+        load_agent_config("nope")
+
+
+# --- acting --------------------------------------------------------------------------------------
+BEST_UNSAFE = [0.0, 1.0, 2.0, 10.0, 3.0]  # action 3 (FASTER) looks best
+MASK_NO_3 = np.array([T, T, T, F_, T])
+
+
+def test_dqn_ignores_the_mask_and_qmask_robust_obey_it() -> None:
+    obs = np.zeros(26, dtype=np.float32)
+    assert agent_with_constant_q("dqn", BEST_UNSAFE).greedy(obs, MASK_NO_3) == 3
+    assert agent_with_constant_q("qmask", BEST_UNSAFE).greedy(obs, MASK_NO_3) == 4
+    assert agent_with_constant_q("robust", BEST_UNSAFE).greedy(obs, MASK_NO_3) == 4
+
+
+@settings(max_examples=30, deadline=None)
+@given(
+    method=st.sampled_from(["qmask", "robust"]),
+    masks=st.lists(st.lists(st.booleans(), min_size=5, max_size=5).filter(any), min_size=1, max_size=20),
+    eps=st.sampled_from([0.0, 0.3, 1.0]),
+)
+def test_masked_actions_are_never_taken(method: str, masks: list[list[bool]], eps: float) -> None:
+    agent = make_agent(load_agent_config("tuned", method), seed=1)
+    rng = np.random.default_rng(0)
+    for m in masks:
+        mask = np.array(m)
+        for _ in range(5):
+            obs = rng.uniform(-1, 1, 26).astype(np.float32)
+            assert mask[agent.act(obs, mask, eps)]
+
+
+def test_exploration_covers_every_safe_action_and_only_those() -> None:
+    agent = make_agent(load_agent_config("tuned", "qmask"), seed=0)
+    mask = np.array([F_, T, F_, T, T])
+    taken = {agent.act(np.zeros(26, np.float32), mask, 1.0) for _ in range(300)}
+    assert taken == {1, 3, 4}
+
+
+# --- Q-shaping (eqs. 13–14) ----------------------------------------------------------------------
+def test_shaped_q_puts_unsafe_pairs_below_every_safe_one() -> None:
+    q = torch.tensor([[1.0, 3.0, -2.0, 0.5, 4.0]])
+    mask = torch.tensor([[T, T, F_, T, F_]])
+    assert shaped_q(q, mask).tolist() == [[1.0, 3.0, -3.0, 0.5, -3.0]]  # min over all = -2, minus 1
+    assert shaped_q(q, mask, "safe_actions").tolist() == [[1.0, 3.0, -0.5, 0.5, -0.5]]  # min safe = 0.5
+
+
+def test_q_shaping_loss_hand_computed() -> None:
+    q = torch.tensor([[1.0, 3.0, -2.0, 0.5, 4.0], [2.0, 2.0, 2.0, 2.0, 2.0]], requires_grad=True)
+    mask = torch.tensor([[T, T, F_, T, F_], [T, T, T, T, F_]])
+    actions = torch.tensor([1, 0])
+    target = torch.tensor([2.5, 1.0])
+    # TD: ((3 - 2.5)² + (2 - 1)²) / 2 = (0.25 + 1) / 2 = 0.625
+    # floors: row 0 min -2 → -3; row 1 min 2 → 1
+    # unsafe pairs: (0,2): (-2 - -3)² = 1; (0,4): (4 - -3)² = 49; (1,4): (2 - 1)² = 1 → mean 51/3 = 17
+    loss = q_shaping_loss(q, actions, target, mask, weight=0.5, kind="mse")
+    assert loss.item() == pytest.approx(0.625 + 0.5 * 17.0)
+    loss.backward()
+    # stop-gradient: the floor carries no gradient, so safe untaken pairs get none
+    assert q.grad[0, 0] == 0 and q.grad[0, 3] == 0
+    assert q.grad[0, 4].item() == pytest.approx(0.5 * 2 * 7 / 3)  # weight · 2·(q − floor) / n_unsafe
+    assert q.grad[0, 1].item() == pytest.approx(2 * 0.5 / 2)  # 2·(q − y) / B
+
+
+def test_robust_agent_loss_matches_hand_computation_from_network_outputs() -> None:
+    values = [1.0, 3.0, -2.0, 0.5, 4.0]
+    agent = agent_with_constant_q("robust", values, gamma=0.9, shaping_weight=1.0)
+    assert isinstance(agent, RobustAgent)
+    batch = batch_of(
+        2,
+        masks=[[T, T, F_, T, F_], [T, T, T, T, T]],
+        next_masks=[[F_, T, T, F_, T], [T, T, T, T, T]],
+        actions=[1, 3],
+        rewards=[1.0, -10.0],
+        dones=[0.0, 1.0],
+    )
+    # y0 = 1 + 0.9 · max(safe next) = 1 + 0.9 · 4 = 4.6; y1 = -10 (terminal)
+    assert agent.td_target(batch).tolist() == pytest.approx([4.6, -10.0])
+    # TD: ((3 - 4.6)² + (0.5 + 10)²) / 2 = (2.56 + 110.25) / 2 = 56.405
+    # unsafe pairs of row 0 → floor -3: (-2 + 3)² = 1, (4 + 3)² = 49 → mean 25
+    assert agent.loss(batch).item() == pytest.approx(56.405 + 25.0)
+
+
+def test_robust_regression_lowers_unsafe_values_below_safe_ones() -> None:
+    agent = make_agent(load_agent_config("tuned", "robust", {"lr": 1e-2, "shaping_floor": "safe_actions"}), 0)
+    rng = np.random.default_rng(0)
+    obs = torch.from_numpy(rng.uniform(-1, 1, (32, 26)).astype(np.float32))
+    mask = torch.tensor([[T, T, T, F_, T]] * 32)
+    batch = Batch(obs, torch.ones(32, dtype=torch.int64), torch.zeros(32), torch.zeros(32), obs,
+                  torch.ones(32), mask, mask)
+    constant_net(agent.q_net, BEST_UNSAFE)
+    for _ in range(300):
+        agent.update(batch)
+    with torch.no_grad():
+        q = agent.q_net(obs)
+    # learned by the network itself (not just masked): FASTER now below every safe action
+    assert bool((q[:, 3] < q[:, [0, 1, 2, 4]].min(dim=1).values).all())
+
+
+# --- Q-masking and constrained -------------------------------------------------------------------
+def test_qmask_bootstraps_over_safe_actions_only() -> None:
+    agent = agent_with_constant_q("qmask", BEST_UNSAFE, gamma=0.5)
+    assert isinstance(agent, QMaskAgent)
+    batch = batch_of(1, masks=[[T] * 5], next_masks=[[T, T, T, F_, T]], rewards=[1.0])
+    assert agent.td_target(batch).item() == pytest.approx(1 + 0.5 * 3.0)  # not 1 + 0.5 · 10
+    dqn = agent_with_constant_q("dqn", BEST_UNSAFE, gamma=0.5)
+    assert dqn.td_target(batch).item() == pytest.approx(1 + 0.5 * 10.0)
+
+
+def test_constrained_acts_and_bootstraps_on_the_lagrangian() -> None:
+    agent = agent_with_constant_q("constrained", [1.0, 2.0, 3.0, 0.0, 0.0], gamma=0.5)
+    assert isinstance(agent, ConstrainedAgent)
+    constant_net(agent.networks["cost"], [0.0, 0.0, 5.0, 0.0, 0.0])
+    agent.sync_target()
+    obs = np.zeros(26, np.float32)
+    agent.lam = 0.0
+    assert agent.greedy(obs) == 2
+    agent.lam = 1.0  # 3 − 1·5 = −2 < 2
+    assert agent.greedy(obs) == 1
+    batch = batch_of(1, masks=[[T] * 5], next_masks=[[T] * 5], rewards=[1.0], costs=[1.0])
+    y_r, y_c = agent._targets(batch)  # a* = 1: y_r = 1 + 0.5·2, y_c = 1 + 0.5·0
+    assert (y_r.item(), y_c.item()) == pytest.approx((2.0, 1.0))
+
+
+def test_constrained_lambda_dual_ascent() -> None:
+    agent = make_agent(load_agent_config("tuned", "constrained", {"cost_budget": 2.0, "lambda_lr": 0.1}), 0)
+    assert isinstance(agent, ConstrainedAgent) and agent.lam == 0.0
+    agent.end_episode(7.0)  # over budget by 5 → +0.5
+    assert agent.lam == pytest.approx(0.5)
+    agent.end_episode(0.0)  # under budget by 2 → −0.2
+    assert agent.lam == pytest.approx(0.3)
+    agent.end_episode(0.0)
+    agent.end_episode(0.0)
+    assert agent.lam == 0.0  # never below 0
+
+
+# --- update and state -----------------------------------------------------------------------------
+@pytest.mark.parametrize("method", METHODS)
+def test_update_reduces_the_loss_and_state_round_trips(method: str) -> None:
+    cfg = load_agent_config("tuned", method, {"lr": 1e-3})
+    agent = make_agent(cfg, seed=3)
+    rng = np.random.default_rng(3)
+    buf = ReplayBuffer(64)
+    for _ in range(64):
+        mask = rng.random(5) > 0.3
+        mask[1] = True
+        buf.add(rng.uniform(-1, 1, 26).astype(np.float32), int(rng.integers(5)), float(rng.random()),
+                float(rng.random() < 0.2), rng.uniform(-1, 1, 26).astype(np.float32), bool(rng.random() < 0.1),
+                mask, mask)
+    batch = buf.sample(64, rng)
+    first = agent.loss(batch).item()
+    for _ in range(50):
+        agent.update(batch)
+    assert agent.loss(batch).item() < first
+
+    clone = make_agent(cfg, seed=99)
+    clone.load_state_dict(agent.state_dict())
+    obs = rng.uniform(-1, 1, 26).astype(np.float32)
+    assert [clone.act(obs, None, 0.5) for _ in range(20)] == [agent.act(obs, None, 0.5) for _ in range(20)]
+    with pytest.raises(ValueError, match="method"):
+        make_agent(load_agent_config("tuned", "dqn" if method != "dqn" else "qmask"), 0).load_state_dict(
+            agent.state_dict()
+        )

@@ -1,0 +1,282 @@
+"""The safety model: hand-built scenes on the real highway-env, physics, and properties over random roads."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from safelane import scenarios
+from safelane.actions import FASTER, IDLE, LANE_LEFT, LANE_RIGHT, SLOWER
+from safelane.safety import Dynamics, RoadState, ego_trajectories, evaluate
+
+L, I, R, F, S = LANE_LEFT, IDLE, LANE_RIGHT, FASTER, SLOWER
+
+
+def mask_of(*actions: int) -> list[bool]:
+    return [a in actions for a in range(5)]
+
+
+# Expected masks for every scenario and both modes (LANE_LEFT, IDLE, LANE_RIGHT, FASTER, SLOWER).
+EXPECTED = {
+    # A leader 25 m ahead at 15 m/s: too close to stop behind under full braking even with SLOWER;
+    # the right lane is blocked by a car beside-ahead; escaping left is the only safe move.
+    "leader_braking": {"nominal": mask_of(L), "robust": mask_of(L)},
+    # A stopped car 60 m ahead: braking 5 m/s per decision from 25 m/s does not stop in time.
+    "stopped_car_ahead": {"nominal": mask_of(L, R), "robust": mask_of(L, R)},
+    "slow_car_in_target_lane": {"nominal": mask_of(I, R, F, S), "robust": mask_of(I, R, F, S)},
+    "fast_follower_in_target_lane": {"nominal": mask_of(I, R, F, S), "robust": mask_of(I, R, F, S)},
+    # The heading angle puts the cutting-in car into the ego lane for robust only.
+    "cut_in_from_left": {"nominal": mask_of(I, R, F, S), "robust": mask_of(R)},
+    "cut_in_from_right": {"nominal": mask_of(L, I, F, S), "robust": mask_of(L)},
+    "ego_leftmost_lane": {"nominal": mask_of(I, R, F, S), "robust": mask_of(I, R, F, S)},
+    "ego_rightmost_lane": {"nominal": mask_of(L, I, F, S), "robust": mask_of(L, I, F, S)},
+    # Nothing is safe in the jam: the least-bad action (SLOWER) is allowed and flagged.
+    "dense_jam": {"nominal": mask_of(S), "robust": mask_of(S)},
+    # The left-lane car may legally cut in (MOBIL) and brake: robust keeps speed down.
+    "adjacent_car_ahead": {"nominal": mask_of(I, R, S), "robust": mask_of(R, S)},
+}
+
+
+@pytest.mark.parametrize("name", sorted(EXPECTED))
+@pytest.mark.parametrize("mode", ["nominal", "robust"])
+def test_scenario_masks(name: str, mode: str) -> None:
+    scene = scenarios.SCENARIOS[name](mode=mode)
+    assert scene.mask.tolist() == EXPECTED[name][mode]
+    assert scene.result.fallback == (name == "dense_jam")
+    available = scene.env.unwrapped.action_type.get_available_actions()
+    assert set(np.flatnonzero(scene.mask)) <= set(available)
+
+
+def test_paper_eq12_is_unsound_here() -> None:
+    """Eq. 12's denominator is negative in highway-env (ego brakes at 8.3 m/s² > 6): it lets the ego
+    drive on at 25 m/s towards a stopped car 60 m ahead, which the kinematic rule forbids."""
+    paper = scenarios.stopped_car_ahead(mode="nominal", **{"shield.formula": "paper"})
+    kinematic = scenarios.stopped_car_ahead(mode="nominal")
+    assert paper.mask[IDLE] and paper.mask[FASTER]
+    assert not kinematic.mask[IDLE] and not kinematic.mask[FASTER]
+
+
+def test_stopped_car_mask_is_honoured_by_the_simulator() -> None:
+    """Driving on (IDLE) into the stopped car really crashes; the allowed lane change does not."""
+    crash = scenarios.stopped_car_ahead(mode="robust")
+    for _ in range(5):
+        *_, info = crash.env.step(IDLE)
+        if info["collision"]:
+            break
+    assert info["collision"]
+    escape = scenarios.stopped_car_ahead(mode="robust", **{"shield.override": True})
+    for _ in range(6):
+        *_, info = escape.env.step(LANE_LEFT if _ == 0 else IDLE)
+        assert not info["collision"]
+
+
+@pytest.mark.parametrize("preset", ["fast", "paper"])
+def test_ego_trajectory_matches_highway_env(preset: str) -> None:
+    """The ego model reproduces highway-env's integration: SLOWER then SLOWER (fallback k=0), and
+    FASTER then a 1-decision hold then SLOWER, positions within 1 cm over 3 decisions."""
+    for action, hold in ((SLOWER, 0), (FASTER, 1)):
+        scene = scenarios.ego_leftmost_lane(mode="robust", preset=preset, ego_target_speed=20.0)
+        shield = scene.shield
+        from safelane.shield import road_state
+
+        state = road_state(shield.env, shield.dynamics)
+        dyn = shield.dynamics
+        xs, vs = ego_trajectories(state, dyn)
+        ego = scene.env.unwrapped.vehicle
+        x0 = ego.position[0]
+        actions = [action] + [IDLE] * hold + [SLOWER] * (2 - hold)
+        for d, a in enumerate(actions, start=1):
+            scene.env.step(a)
+            frame = d * dyn.frames_per_decision
+            assert ego.position[0] - x0 == pytest.approx(xs[action, hold, frame] - state.ego_x, abs=0.01)
+            assert ego.speed == pytest.approx(vs[action, hold, frame], abs=0.01)
+
+
+def test_dynamics_are_read_from_highway_env() -> None:
+    scene = scenarios.ego_leftmost_lane(
+        mode="robust", **{"env.policy_frequency": 2, "env.simulation_frequency": 10}
+    )
+    dyn = scene.shield.dynamics
+    from highway_env.vehicle.controller import ControlledVehicle
+
+    assert dyn.decision_period == pytest.approx(0.5)
+    assert dyn.frame_dt == pytest.approx(0.1)
+    assert dyn.frames_per_decision == 5
+    assert dyn.ego_kp == pytest.approx(ControlledVehicle.KP_A)
+    assert dyn.target_speeds == (0.0, 5.0, 10.0, 15.0, 20.0, 25.0, 30.0)
+
+
+def test_override_makes_unsafe_action_safe() -> None:
+    scene = scenarios.stopped_car_ahead(mode="robust", **{"shield.override": True})
+    *_, info = scene.env.step(FASTER)
+    assert info["shield_intervened"]
+    assert info["executed_action"] in (L, R)
+    assert info["unsafe_action"]
+
+
+def test_shield_on_real_traffic_nests_masks() -> None:
+    """robust ⊆ nominal ⊆ get_available_actions() on states visited by a random policy."""
+    from safelane.env import make_env
+
+    env = make_env("fast", seed=3, **{"shield.mode": "robust"})
+    shield = env
+    rng = np.random.default_rng(0)
+    env.reset(seed=3)
+    for _ in range(25):
+        robust_mask = shield.compute_mask()
+        shield.mode = "nominal"
+        nominal_mask = shield.compute_mask()
+        shield.mode = "robust"
+        available = set(env.unwrapped.action_type.get_available_actions())
+        assert set(np.flatnonzero(robust_mask)) <= set(np.flatnonzero(nominal_mask)) <= available
+        safe = np.flatnonzero(robust_mask)
+        *_, terminated, truncated, info = env.step(int(rng.choice(safe)))
+        assert info["action_mask"].dtype == bool and info["action_mask"].shape == (5,)
+        if terminated or truncated:
+            break
+
+
+# --------------------------------------------------------------------------------------------
+# Properties over random road states (pure model, no simulator).
+# --------------------------------------------------------------------------------------------
+
+SPEEDS = (0.0, 5.0, 10.0, 15.0, 20.0, 25.0, 30.0)
+
+
+def dynamics(lanes: int, sim_hz: int) -> Dynamics:
+    return Dynamics(
+        decision_period=1.0,
+        frame_dt=1.0 / sim_hz,
+        frames_per_decision=sim_hz,
+        ego_kp=1 / 0.6,
+        target_speeds=SPEEDS,
+        lane_width=4.0,
+        lanes_count=lanes,
+    )
+
+
+@st.composite
+def vehicle(draw: st.DrawFn, lanes: int, extreme: bool = False) -> dict[str, float]:
+    lane = draw(st.integers(0, lanes - 1))
+    max_heading = np.pi / 2 if extreme else 0.3
+    return {
+        "x": draw(st.floats(0.0 if extreme else 100.0, 400.0 if extreme else 300.0)),
+        "y": lane * 4.0 + draw(st.floats(-1.5, 1.5)),
+        "speed": draw(st.floats(0.0, 40.0)),
+        "heading": draw(st.floats(-max_heading, max_heading)),
+        "crashed": draw(st.booleans()) if extreme else False,
+        "delta": draw(st.floats(3.5, 4.5)),
+        "idm": draw(st.booleans()),
+    }
+
+
+@st.composite
+def road(draw: st.DrawFn, extreme: bool = False) -> tuple[RoadState, Dynamics, list[dict[str, float]]]:
+    lanes = draw(st.integers(1, 5))
+    sim_hz = draw(st.sampled_from([5, 15]))
+    ego_lane = draw(st.integers(0, lanes - 1))
+    change = draw(st.sampled_from([-1, 0, 1]))
+    target_lane = int(np.clip(ego_lane + change, 0, lanes - 1))
+    idx = draw(st.integers(0, len(SPEEDS) - 1))
+    cars = draw(st.lists(vehicle(lanes, extreme), max_size=10))
+    ego_x = 200.0
+    state = make_state(
+        ego_x, ego_lane, target_lane, draw(st.floats(0.0, 40.0 if extreme else 32.0)), idx, cars
+    )
+    return state, dynamics(lanes, sim_hz), cars
+
+
+def make_state(
+    ego_x: float, lane: int, target_lane: int, speed: float, idx: int, cars: list[dict[str, float]]
+) -> RoadState:
+    n = len(cars)
+
+    def col(key: str) -> np.ndarray:
+        return np.array([c[key] for c in cars], dtype=float).reshape(n)
+
+    heading = col("heading")
+    speed_o = col("speed")
+    idm = np.array([c["idm"] for c in cars], dtype=bool).reshape(n)
+    return RoadState(
+        ego_x=ego_x,
+        ego_y=lane * 4.0,
+        ego_speed=speed,
+        ego_lane=lane,
+        ego_target_lane=target_lane,
+        ego_target_speed=SPEEDS[idx],
+        ego_speed_index=idx,
+        x=col("x"),
+        y=col("y"),
+        vx=speed_o * np.cos(heading),
+        vy=speed_o * np.sin(heading),
+        heading=heading,
+        length=np.full(n, 5.0),
+        crashed=np.array([c["crashed"] for c in cars], dtype=bool).reshape(n),
+        brake_max=np.full(n, 6.0),
+        accel_max=np.where(idm, 3.0, 6.0),
+        can_change_lane=idm,
+        idm_delta=col("delta"),
+        idm_comfort_acc=np.full(n, 3.0),
+        idm_comfort_dec=np.full(n, -5.0),
+        idm_distance_wanted=np.full(n, 10.0),
+        idm_time_wanted=np.full(n, 1.5),
+        max_braking_imposed=np.where(idm, 2.0, np.inf),
+    )
+
+
+PROPERTY_SETTINGS = settings(max_examples=150, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+
+
+@PROPERTY_SETTINGS
+@given(road())
+def test_masks_are_never_empty_and_nested(case: tuple[RoadState, Dynamics, list]) -> None:
+    state, dyn, _ = case
+    nominal = evaluate(state, dyn, "nominal")
+    robust = evaluate(state, dyn, "robust")
+    for result in (nominal, robust):
+        assert result.mask.any()
+        assert not (result.mask & ~result.available).any()
+        assert result.fallback == (not result.safe.any())
+        assert not np.isnan(result.min_gap).any()
+    assert not (robust.safe & ~nominal.safe).any()
+    assert not (robust.mask & ~nominal.mask).any()
+
+
+@PROPERTY_SETTINGS
+@given(road(), st.data())
+def test_adding_a_vehicle_never_makes_an_action_safer(case: tuple, data: st.DataObject) -> None:
+    state, dyn, cars = case
+    extra = data.draw(vehicle(dyn.lanes_count))
+    bigger = make_state(
+        state.ego_x, state.ego_lane, state.ego_target_lane, state.ego_speed, state.ego_speed_index, [*cars, extra]
+    )
+    for mode in ("nominal", "robust"):
+        before = evaluate(state, dyn, mode).safe
+        after = evaluate(bigger, dyn, mode).safe
+        assert not (after & ~before).any(), mode
+
+
+@settings(max_examples=150, deadline=None)
+@given(road(extreme=True))
+def test_fuzz_extreme_states(case: tuple) -> None:
+    """Speeds 0–40 m/s, gaps 0–200 m, overlapping vehicles, headings ±π/2, crashed cars, one lane."""
+    state, dyn, _ = case
+    for mode in ("nominal", "robust"):
+        result = evaluate(state, dyn, mode)
+        assert result.mask.any()
+        assert not np.isnan(result.min_gap).any()
+
+
+def test_empty_road_everything_available_is_safe() -> None:
+    dyn = dynamics(3, 5)
+    state = make_state(0.0, 1, 1, 25.0, 5, [])
+    result = evaluate(state, dyn, "robust")
+    assert result.mask.tolist() == result.available.tolist() == [True] * 5
+    assert not result.fallback
+
+
+def test_invalid_mode_is_a_clear_error() -> None:
+    with pytest.raises(ValueError, match="mode"):
+        evaluate(make_state(0.0, 0, 0, 25.0, 5, []), dynamics(2, 5), "paranoid")  # type: ignore[arg-type]

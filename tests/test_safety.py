@@ -11,7 +11,7 @@ from safelane import scenarios
 from safelane.actions import FASTER, IDLE, LANE_LEFT, LANE_RIGHT, SLOWER
 from safelane.safety import Dynamics, RoadState, ego_trajectories, evaluate
 
-L, I, R, F, S = LANE_LEFT, IDLE, LANE_RIGHT, FASTER, SLOWER
+L, I, R, F, S = LANE_LEFT, IDLE, LANE_RIGHT, FASTER, SLOWER  # noqa: E741
 
 
 def mask_of(*actions: int) -> list[bool]:

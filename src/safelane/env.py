@@ -18,6 +18,7 @@ import highway_env  # noqa: F401  (registers highway-v0 / highway-fast-v0)
 import numpy as np
 from highway_env import utils as hw_utils
 
+from safelane import fastsim
 from safelane.config import ConfigError, SafelaneConfig, load_config
 
 # --- observation normalisation: every scale in one place, with units --------------------------
@@ -134,6 +135,9 @@ class PaperReward(gym.Wrapper, gym.utils.RecordConstructorArgs):
 class TrafficLayout(gym.Wrapper, gym.utils.RecordConstructorArgs):
     """safelane traffic options applied right after highway-env builds its scene.
 
+    Also switches the road to :mod:`safelane.fastsim`'s vectorised neighbour search when
+    ``vectorized`` (config ``backend``), which gives identical episodes, faster.
+
     ``vehicles_behind = N`` removes the N vehicles farthest ahead and spawns N vehicles *behind* the
     ego with highway-env's own rules mirrored backwards: random lane and spacing from
     ``road.np_random`` (same spacing law as ``Vehicle.create_random``), speeds uniform in
@@ -141,13 +145,15 @@ class TrafficLayout(gym.Wrapper, gym.utils.RecordConstructorArgs):
     behind every other vehicle, so followers and cut-ins from behind never happen in the stock scene.
     """
 
-    def __init__(self, env: gym.Env, vehicles_behind: int = 0) -> None:
-        gym.utils.RecordConstructorArgs.__init__(self, vehicles_behind=vehicles_behind)
+    def __init__(self, env: gym.Env, vehicles_behind: int = 0, vectorized: bool = True) -> None:
+        gym.utils.RecordConstructorArgs.__init__(self, vehicles_behind=vehicles_behind, vectorized=vectorized)
         super().__init__(env)
         self.vehicles_behind = vehicles_behind
+        self.vectorized = vectorized
 
     def reset(self, **kwargs: Any) -> tuple[Any, dict[str, Any]]:
         obs, info = self.env.reset(**kwargs)
+        fastsim.enable(self.env.unwrapped.road, self.vectorized)
         if self.vehicles_behind > 0:
             self._spawn_behind()
         return obs, info
@@ -216,7 +222,7 @@ def make_env(
         env = gym.make(cfg.env_id, config=dict(cfg.env), render_mode=render_mode)
     except (TypeError, ValueError, KeyError, AttributeError, ImportError) as err:
         raise ConfigError(f"env: highway-env rejected the configuration ({err})") from None
-    env = TrafficLayout(env, cfg.traffic.vehicles_behind)
+    env = TrafficLayout(env, cfg.traffic.vehicles_behind, vectorized=cfg.backend == "vectorized")
     env = PaperReward(env, cfg.reward.b, cfg.reward.c, cfg.reward.v_min, cfg.reward.v_max)
     env = PaperObservation(env)
     if cfg.shield.mode != "none":

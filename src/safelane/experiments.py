@@ -1,0 +1,235 @@
+"""Experiment runner: every method × seed trained, evaluated on held-out test episodes, collected.
+
+``run_experiment(spec, out_dir)`` trains each (method, seed) into ``out_dir/runs/METHOD-sSEED``
+(resuming a run that was interrupted), evaluates its greedy policy on ``test_episodes`` episodes
+whose seeds are never used in training, and writes ``out_dir/results.json`` atomically. A task whose
+evaluation file exists is skipped, so re-running after a crash loses nothing and duplicates
+nothing. Tasks run in a process pool (``workers``, default: all cores).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import tempfile
+import time
+from collections.abc import Callable
+from concurrent.futures import ProcessPoolExecutor, as_completed
+from pathlib import Path
+from typing import Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
+
+from safelane.config import ConfigError
+
+METHODS: tuple[str, ...] = ("dqn", "constrained", "qmask", "robust")
+TEST_SEED_BASE = 2_000_000_000
+"""Test episodes are reset with ``TEST_SEED_BASE + k``: far from every training seed
+(``seed·EPISODE_SEED_STRIDE + episode``), so the agents never saw them."""
+
+
+class ExperimentSpec(BaseModel):
+    """What to run: methods × seeds, training length and test episodes."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    methods: list[Literal["dqn", "constrained", "qmask", "robust"]] = Field(default_factory=lambda: list(METHODS))
+    seeds: list[int] = Field(default_factory=lambda: [0, 1, 2, 3, 4])
+    episodes: int = Field(200, ge=1, description="Training episodes per run (paper: 200).")
+    test_episodes: int = Field(20, ge=1, description="Held-out test episodes per run (paper: 20).")
+    env_preset: Literal["fast", "paper"] = "fast"
+    agent_preset: str = "tuned"
+    sets: list[str] = Field(default_factory=list, description="--set overrides for every run.")
+    quick: bool = False
+    stress_conditions: list[str] = Field(
+        default_factory=list, description="Stress-suite conditions each trained run is also evaluated on."
+    )
+    stress_episodes: int = Field(10, ge=1)
+
+
+def make_spec(**fields: Any) -> ExperimentSpec:
+    """An :class:`ExperimentSpec`, raising a one-line :class:`ConfigError` on bad input."""
+    try:
+        return ExperimentSpec(**fields)
+    except ValidationError as err:
+        e = err.errors()[0]
+        key = ".".join(str(p) for p in e["loc"])
+        raise ConfigError(f"reproduce.{key}: {e['msg']} (got {e.get('input')!r})") from None
+
+
+def atomic_write_text(path: Path, text: str) -> None:
+    """Write ``text`` to ``path`` via a temporary file and a rename (never a truncated file)."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "w") as f:
+            f.write(text)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def run_dir_of(out_dir: Path, method: str, seed: int) -> Path:
+    """Directory of the (method, seed) run."""
+    return out_dir / "runs" / f"{method}-s{seed}"
+
+
+def _task(out_dir: str, spec_json: str, method: str, seed: int) -> dict[str, Any]:
+    """Train (or resume) one run and evaluate it; returns its evaluation record (also on disk)."""
+    import torch
+
+    from safelane.env import make_env
+    from safelane.evaluation import run_episodes, summarize
+    from safelane.training import load_policy, load_run_config, make_train_config, train
+
+    torch.set_num_threads(1)
+    spec = ExperimentSpec.model_validate_json(spec_json)
+    run_dir = run_dir_of(Path(out_dir), method, seed)
+    eval_path = run_dir / "eval.json"
+    if eval_path.exists():
+        return json.loads(eval_path.read_text())
+    start = time.perf_counter()
+    cfg = make_train_config(
+        method=method,
+        agent_preset=spec.agent_preset,
+        env_preset=spec.env_preset,
+        episodes=spec.episodes,
+        seed=seed,
+        sets=spec.sets,
+        checkpoint_every=max(1, min(25, spec.episodes // 4)),
+    )
+    resume = (run_dir / "checkpoint.pt").exists()
+    train(cfg, run_dir, resume=resume)
+    train_time = time.perf_counter() - start
+    run = load_run_config(run_dir)
+    policy = load_policy(run_dir)
+    env = make_env(run.env)
+    reward_c = run.env.reward.c
+    records = run_episodes(env, policy, spec.test_episodes, TEST_SEED_BASE)
+    env.close()
+    episodes = []
+    for k, r in enumerate(records):
+        d = r.to_dict()
+        d.update(
+            method=method,
+            seed=seed,
+            test_episode=k,
+            # Fig. 6: reward earned before the collision (the eq. 6 speed terms, without the penalty)
+            return_before_collision=r.return_ + (reward_c if r.collision else 0.0),
+        )
+        episodes.append(d)
+    stress: list[dict[str, Any]] = []
+    if spec.stress_conditions:
+        from safelane.stress import run_condition
+
+        for name in spec.stress_conditions:
+            stress.append(
+                run_condition(
+                    name, policy, spec.stress_episodes, shield=run.env.shield.mode, base=run.env, override=False
+                )
+            )
+    summary = summarize(records, method=method, seed=seed)
+    record = {
+        "method": method,
+        "seed": seed,
+        "summary": summary,
+        "episodes": episodes,
+        "stress": stress,
+        "train_wall_time_s": train_time,
+        "eval_wall_time_s": time.perf_counter() - start - train_time,
+    }
+    atomic_write_text(eval_path, json.dumps(record))
+    return record
+
+
+def run_experiment(
+    spec: ExperimentSpec,
+    out_dir: str | Path,
+    workers: int | None = None,
+    progress: Callable[[dict[str, Any]], None] | None = None,
+) -> dict[str, Any]:
+    """Run every (method, seed) task not yet done, then collect all into ``out_dir/results.json``."""
+    out = Path(out_dir)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        probe = out / ".write-test"
+        probe.write_text("")
+        probe.unlink()
+    except OSError as err:
+        raise ConfigError(f"--out {out}: not writable ({err.strerror})") from None
+    atomic_write_text(out / "spec.json", spec.model_dump_json(indent=2))
+    tasks = [(m, s) for s in spec.seeds for m in spec.methods]
+    workers = max(1, min(workers or os.cpu_count() or 1, len(tasks)))
+    start = time.perf_counter()
+    records: list[dict[str, Any]] = []
+    spec_json = spec.model_dump_json()
+    if workers == 1:
+        for m, s in tasks:
+            rec = _task(str(out), spec_json, m, s)
+            records.append(rec)
+            if progress:
+                progress(rec)
+    else:
+        with ProcessPoolExecutor(max_workers=workers) as pool:
+            futures = [pool.submit(_task, str(out), spec_json, m, s) for m, s in tasks]
+            for fut in as_completed(futures):
+                rec = fut.result()
+                records.append(rec)
+                if progress:
+                    progress(rec)
+    results = collect(out, spec)
+    results["wall_time_s"] = time.perf_counter() - start
+    atomic_write_text(out / "results.json", json.dumps(results, indent=1))
+    return results
+
+
+def collect(out_dir: Path, spec: ExperimentSpec) -> dict[str, Any]:
+    """Gather every run's evaluation into one dict: per-episode records and per-method aggregates."""
+    from safelane import stats
+
+    methods: dict[str, Any] = {}
+    all_episodes: list[dict[str, Any]] = []
+    for method in spec.methods:
+        per_seed: dict[str, Any] = {}
+        for seed in spec.seeds:
+            path = run_dir_of(out_dir, method, seed) / "eval.json"
+            if not path.exists():
+                continue
+            rec = json.loads(path.read_text())
+            all_episodes.extend(rec["episodes"])
+            s = rec["summary"]
+            per_seed[str(seed)] = {
+                "collision_rate": s["collision_rate"],
+                "collisions": s["collisions"],
+                "episodes": s["episodes"],
+                "mean_speed": s["mean_speed"],
+                "mean_return": s["mean_return"],
+                "return_before_collision": float(
+                    sum(e["return_before_collision"] for e in rec["episodes"]) / len(rec["episodes"])
+                ),
+                "shield_intervention_rate": s["shield_intervention_rate"],
+                "fallback_rate": s["fallback_rate"],
+                "collision_kinds": s["collision_kinds"],
+                "train_wall_time_s": rec["train_wall_time_s"],
+                "stress": rec.get("stress", []),
+            }
+        if not per_seed:
+            continue
+        agg: dict[str, Any] = {}
+        for key in ("collision_rate", "mean_speed", "mean_return", "return_before_collision"):
+            values = [v[key] for v in per_seed.values()]
+            agg[key] = {
+                "mean": stats.mean(values),
+                "iqm": stats.iqm(values),
+                "ci95": list(stats.bootstrap_ci(values, seed=0)) if len(values) > 1 else [values[0], values[0]],
+            }
+        collisions = sum(v["collisions"] for v in per_seed.values())
+        n = sum(v["episodes"] for v in per_seed.values())
+        agg["collisions"] = collisions
+        agg["test_episodes"] = n
+        agg["collision_rate_wilson95"] = list(stats.binomial_ci(collisions, n))
+        methods[method] = {"per_seed": per_seed, "aggregate": agg}
+    return {"spec": spec.model_dump(), "methods": methods, "episodes": all_episodes}

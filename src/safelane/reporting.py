@@ -1,0 +1,312 @@
+"""The reproduction report: Table 4, Fig. 6, Fig. 7, speed vs safety, and the paper's claims, from data.
+
+``write_report(out_dir)`` reads ``results.json`` and every run's ``metrics.csv`` written by
+:mod:`safelane.experiments` and writes ``report.md`` with PNG figures beside it. Verdicts on the
+paper's claims are computed from the numbers (never written by hand).
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from matplotlib.figure import Figure
+
+from safelane import stats
+from safelane.experiments import ExperimentSpec, run_dir_of
+from safelane.plots import read_metrics
+
+LABELS = {"dqn": "Traditional DQN", "constrained": "Constrained Q", "qmask": "Q-masking", "robust": "Robust Q-masking"}
+TABLE4_EPISODES = 7
+CONVERGENCE_WINDOW = 10
+
+
+def _fmt(x: float, digits: int = 2) -> str:
+    return f"{x:.{digits}f}"
+
+
+def _ci(values: list[float]) -> tuple[float, float]:
+    if len(values) < 2:
+        return (values[0], values[0]) if values else (float("nan"), float("nan"))
+    return stats.bootstrap_ci(values, seed=0)
+
+
+def training_curves(out_dir: Path, spec: ExperimentSpec) -> dict[str, list[dict[str, np.ndarray]]]:
+    """Per method, the metrics.csv columns (return, epsilon, collision) of every seed's run."""
+    curves: dict[str, list[dict[str, np.ndarray]]] = {}
+    for method in spec.methods:
+        for seed in spec.seeds:
+            path = run_dir_of(out_dir, method, seed) / "metrics.csv"
+            if path.exists():
+                curves.setdefault(method, []).append(read_metrics(path, ["episode", "return", "epsilon", "collision"]))
+    return curves
+
+
+def convergence_episodes(curves: dict[str, list[dict[str, np.ndarray]]]) -> dict[str, list[int]]:
+    """Convergence episode of each run (:func:`safelane.stats.convergence_episode` on its return)."""
+    out: dict[str, list[int]] = {}
+    for method, runs in curves.items():
+        eps = []
+        for run in runs:
+            ret = run["return"]
+            window = max(1, min(CONVERGENCE_WINDOW, len(ret) // 4 or 1))
+            eps.append(int(stats.convergence_episode(ret, window=window)))
+        out[method] = eps
+    return out
+
+
+def fig7(curves: dict[str, list[dict[str, np.ndarray]]]) -> Figure:
+    """Paper Fig. 7: each method's mean training return, smoothed and scaled to [0, 1], with ε."""
+    fig = Figure(figsize=(7, 4))
+    ax = fig.add_subplot()
+    ax2 = ax.twinx()
+    for method, runs in curves.items():
+        n = min(len(r["return"]) for r in runs)
+        mean_ret = np.mean([r["return"][:n] for r in runs], axis=0)
+        window = max(1, min(CONVERGENCE_WINDOW, n // 4 or 1))
+        ax.plot(np.arange(1, n + 1), stats.scale_01(stats.smooth(mean_ret, window)), label=LABELS[method])
+        eps = np.mean([r["epsilon"][:n] for r in runs], axis=0)
+        ax2.plot(np.arange(1, n + 1), eps, ls=":", lw=1, color="grey")
+    ax.set_xlabel("training episode")
+    ax.set_ylabel("scaled average reward (smoothed)")
+    ax2.set_ylabel("ε (dotted)")
+    ax.legend(loc="lower right", fontsize=8)
+    ax.set_title("Fig. 7 — convergence (mean over seeds, scaled per method)")
+    fig.tight_layout()
+    return fig
+
+
+def fig6(methods: dict[str, Any]) -> Figure:
+    """Paper Fig. 6: average total reward before collision, mean and 95 % CI over seeds."""
+    fig = Figure(figsize=(6, 3.5))
+    ax = fig.add_subplot()
+    names = list(methods)
+    means = [methods[m]["aggregate"]["return_before_collision"]["mean"] for m in names]
+    cis = [methods[m]["aggregate"]["return_before_collision"]["ci95"] for m in names]
+    err = np.array(
+        [
+            [mu - lo for mu, (lo, _) in zip(means, cis, strict=True)],
+            [hi - mu for mu, (_, hi) in zip(means, cis, strict=True)],
+        ]
+    )
+    ax.bar([LABELS[m] for m in names], means, yerr=np.maximum(err, 0), capsize=4, color="tab:blue")
+    ax.set_ylabel("reward before collision (test)")
+    ax.set_title("Fig. 6 — total reward before collision (95 % CI over seeds)")
+    ax.tick_params(axis="x", labelsize=8)
+    fig.tight_layout()
+    return fig
+
+
+def fig_speed_safety(methods: dict[str, Any]) -> Figure:
+    """Mean speed against collision rate per method (each seed a dot, the mean a cross)."""
+    fig = Figure(figsize=(5, 4))
+    ax = fig.add_subplot()
+    for m, data in methods.items():
+        xs = [v["collision_rate"] for v in data["per_seed"].values()]
+        ys = [v["mean_speed"] for v in data["per_seed"].values()]
+        (line,) = ax.plot(xs, ys, "o", alpha=0.5)
+        ax.plot(np.mean(xs), np.mean(ys), "x", ms=12, mew=3, color=line.get_color(), label=LABELS[m])
+    ax.set_xlabel("test collision rate")
+    ax.set_ylabel("mean speed [m/s]")
+    ax.legend(fontsize=8)
+    ax.set_title("Speed vs safety")
+    fig.tight_layout()
+    return fig
+
+
+def _verdict(ok: bool | None) -> str:
+    return {True: "reproduced", False: "not reproduced", None: "inconclusive"}[ok]
+
+
+def claims(methods: dict[str, Any], convergence: dict[str, list[int]]) -> list[tuple[str, str, str]]:
+    """(claim, verdict, evidence) for each claim of the paper, computed from the numbers.
+
+    A comparison is 'reproduced' when the 95 % CIs over seeds do not overlap in the claimed
+    direction, 'not reproduced' when they do not overlap the other way, else 'inconclusive'.
+    """
+
+    def agg(m: str, key: str) -> dict[str, Any]:
+        return methods[m]["aggregate"][key]
+
+    def compare(a: str, b: str, key: str, lower_better: bool) -> bool | None:
+        (alo, ahi), (blo, bhi) = agg(a, key)["ci95"], agg(b, key)["ci95"]
+        better = ahi < blo if lower_better else alo > bhi
+        worse = alo > bhi if lower_better else ahi < blo
+        return True if better else (False if worse else None)
+
+    out: list[tuple[str, str, str]] = []
+    if "robust" in methods:
+        n = methods["robust"]["aggregate"]["test_episodes"]
+        c = methods["robust"]["aggregate"]["collisions"]
+        out.append(("Robust Q-masking never collides", _verdict(c == 0), f"{c} collisions in {n} test episodes"))
+    base = [m for m in ("dqn", "constrained") if m in methods]
+    if "qmask" in methods and base:
+        results = [compare("qmask", b, "collision_rate", True) for b in base]
+        verdict = False if False in results else (True if all(r is True for r in results) else None)
+        ev = ", ".join(
+            f"{LABELS[m]} {_fmt(agg(m, 'collision_rate')['mean'], 3)} {_ci_str(agg(m, 'collision_rate'))}"
+            for m in ["qmask", *base]
+        )
+        out.append(("Q-masking is the safest baseline", _verdict(verdict), ev))
+    if "constrained" in methods and "dqn" in methods:
+        v = compare("constrained", "dqn", "collision_rate", True)
+        ev = (
+            f"collision rate constrained {_fmt(agg('constrained', 'collision_rate')['mean'], 3)} vs DQN "
+            f"{_fmt(agg('dqn', 'collision_rate')['mean'], 3)}"
+        )
+        out.append(("Constrained Q collides less than traditional DQN", _verdict(v), ev))
+    if "robust" in convergence and len(convergence) > 1:
+        cis = {m: _ci([float(e) for e in eps]) for m, eps in convergence.items()}
+        others = [m for m in convergence if m != "robust"]
+        faster = all(cis["robust"][1] < cis[m][0] for m in others)
+        slower = any(cis["robust"][0] > cis[m][1] for m in others)
+        ev = ", ".join(f"{LABELS[m]} {np.mean(eps):.0f}" for m, eps in convergence.items())
+        out.append(
+            (
+                "Robust Q-masking converges fastest",
+                _verdict(True if faster else (False if slower else None)),
+                "mean convergence episode: " + ev,
+            )
+        )
+    if "dqn" in methods and len(methods) > 1:
+        others = [m for m in methods if m != "dqn"]
+        res = [compare("dqn", m, "return_before_collision", False) for m in others]
+        verdict = True if all(r is True for r in res) else (False if False in res else None)
+        ev = ", ".join(f"{LABELS[m]} {_fmt(agg(m, 'return_before_collision')['mean'], 1)}" for m in methods)
+        out.append(("Traditional DQN earns the most reward before collision", _verdict(verdict), ev))
+    return out
+
+
+def _ci_str(a: dict[str, Any], digits: int = 3) -> str:
+    lo, hi = a["ci95"]
+    return f"[{lo:.{digits}f}, {hi:.{digits}f}]"
+
+
+def write_report(out_dir: str | Path, gifs: dict[str, str] | None = None) -> Path:
+    """Write ``report.md`` and its figures from ``out_dir/results.json``; returns the report path."""
+    out = Path(out_dir)
+    results = json.loads((out / "results.json").read_text())
+    spec = ExperimentSpec.model_validate(results["spec"])
+    methods = results["methods"]
+    curves = training_curves(out, spec)
+    convergence = convergence_episodes(curves)
+    figures = {"fig6.png": fig6(methods), "fig7.png": fig7(curves), "speed_vs_safety.png": fig_speed_safety(methods)}
+    for name, fig in figures.items():
+        fig.savefig(out / name, dpi=110)
+
+    lines = [
+        "# safelane reproduction report",
+        "",
+        f"Preset `{spec.env_preset}`, agent preset `{spec.agent_preset}`, methods {', '.join(spec.methods)}, "
+        f"seeds {spec.seeds}, {spec.episodes} training episodes per run, {spec.test_episodes} held-out test "
+        f"episodes per run"
+        + (" — **quick mode: too few seeds and episodes for conclusions**" if spec.quick else "")
+        + f". Wall time: {results.get('wall_time_s', float('nan')):.0f} s.",
+        "",
+        f"## Table 4 — time to collision [s] in the first 7 test episodes (seed {spec.seeds[0]}; – = no collision)",
+        "",
+        "| | " + " | ".join(LABELS[m] for m in methods) + " |",
+        "|---|" + "---|" * len(methods),
+    ]
+    first_seed = spec.seeds[0]
+    by_method = {m: [e for e in results["episodes"] if e["method"] == m and e["seed"] == first_seed] for m in methods}
+    for k in range(min(TABLE4_EPISODES, spec.test_episodes)):
+        row = []
+        for m in methods:
+            eps = [e for e in by_method[m] if e["test_episode"] == k]
+            ttc = eps[0]["time_to_collision"] if eps else None
+            row.append("–" if ttc is None else f"{ttc:.0f}")
+        lines.append(f"| Test {k + 1} | " + " | ".join(row) + " |")
+    lines += [
+        "",
+        "What the paper could not show — all test episodes, all seeds:",
+        "",
+        "| method | collisions / episodes | collision rate (mean over seeds, 95 % bootstrap CI) | mean speed [m/s] "
+        "| reward before collision | shield interventions / decision | no-safe-action rate |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for m, data in methods.items():
+        a = data["aggregate"]
+        per = list(data["per_seed"].values())
+        lines.append(
+            f"| {LABELS[m]} | {a['collisions']} / {a['test_episodes']} | {_fmt(a['collision_rate']['mean'], 3)} "
+            f"{_ci_str(a['collision_rate'])} | {_fmt(a['mean_speed']['mean'])} {_ci_str(a['mean_speed'], 2)} | "
+            f"{_fmt(a['return_before_collision']['mean'], 1)} | "
+            f"{np.mean([p['shield_intervention_rate'] for p in per]):.3f} | "
+            f"{np.mean([p['fallback_rate'] for p in per]):.4f} |"
+        )
+    lines += [
+        "",
+        "Shield interventions count decisions whose chosen action the training-time safety model marks unsafe "
+        "(for DQN and constrained Q: would have been masked).",
+        "",
+        "## Fig. 6 — total reward before collision",
+        "",
+        "![fig6](fig6.png)",
+        "",
+        "## Fig. 7 — convergence",
+        "",
+        "![fig7](fig7.png)",
+        "",
+        "Convergence episode (first episode where the smoothed return reaches 90 % of the way to its final "
+        "plateau; mean and 95 % bootstrap CI over seeds):",
+        "",
+        "| method | convergence episode |",
+        "|---|---|",
+    ]
+    for m, eps in convergence.items():
+        lo, hi = _ci([float(e) for e in eps])
+        lines.append(f"| {LABELS[m]} | {np.mean(eps):.1f} [{lo:.1f}, {hi:.1f}] |")
+    lines += ["", "## Speed vs safety", "", "![speed](speed_vs_safety.png)", ""]
+    stress_rows = [(m, s) for m, d in methods.items() for p in d["per_seed"].values() for s in p.get("stress", [])]
+    if stress_rows:
+        lines += [
+            "## Generalisation — each method on the stress conditions",
+            "",
+            "| method | condition | collisions / episodes | mean speed [m/s] |",
+            "|---|---|---|---|",
+        ]
+        for m, s in stress_rows:
+            lines.append(f"| {LABELS[m]} | {s['name']} | {s['collisions']} / {s['episodes']} | {s['mean_speed']:.2f} |")
+        lines.append("")
+    lines += [
+        "## The paper's claims, checked against these numbers",
+        "",
+        "| claim | verdict | evidence |",
+        "|---|---|---|",
+    ]
+    for claim, verdict, evidence in claims(methods, convergence):
+        lines.append(f"| {claim} | **{verdict}** | {evidence} |")
+    if gifs:
+        lines += ["", "## Episodes (seed-0 policy, first test episode; unsafe actions greyed)", ""]
+        for m, path in gifs.items():
+            lines += [f"### {LABELS[m]}", "", f"![{m}]({path})", ""]
+    report = out / "report.md"
+    from safelane.experiments import atomic_write_text
+
+    atomic_write_text(report, "\n".join(lines) + "\n")
+    return report
+
+
+def render_gifs(out_dir: str | Path, max_steps: int = 40) -> dict[str, str]:
+    """One GIF per method: the first seed's greedy policy on the first test episode."""
+    from safelane.env import make_env
+    from safelane.experiments import TEST_SEED_BASE
+    from safelane.render import render_episode
+    from safelane.training import load_policy, load_run_config
+
+    out = Path(out_dir)
+    spec = ExperimentSpec.model_validate(json.loads((out / "results.json").read_text())["spec"])
+    gifs: dict[str, str] = {}
+    for m in spec.methods:
+        run_dir = run_dir_of(out, m, spec.seeds[0])
+        if not (run_dir / "checkpoint.pt").exists():
+            continue
+        run = load_run_config(run_dir)
+        env = make_env(run.env, render_mode="rgb_array")
+        render_episode(env, load_policy(run_dir), TEST_SEED_BASE, out / f"episode_{m}.gif", max_steps=max_steps)
+        env.close()
+        gifs[m] = f"episode_{m}.gif"
+    return gifs

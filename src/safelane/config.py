@@ -61,6 +61,11 @@ class TrafficConfig(_Section):
         description="How many of env.vehicles_count vehicles spawn behind the ego instead of ahead "
         "(0 = highway-env's own scene, where the ego starts behind everybody).",
     )
+    adversary: Literal["none", "brake", "cut_in", "stopped"] = Field(
+        "none",
+        description="A scripted adversary placed near the ego at reset (safelane.adversaries): a leader "
+        "that brakes at full ACC_MAX at a random time, a car that cuts in ignoring MOBIL, a stopped car.",
+    )
 
 
 class ShieldConfig(_Section):
@@ -194,6 +199,8 @@ def _first_error(err: ValidationError) -> str:
         return f"{loc}: unknown key; allowed: {allowed}"
     if e["type"] == "literal_error":
         return f"{loc}: got {e.get('input')!r}; {msg.lower()}"
+    if e["type"] == "value_error":
+        msg = msg.removeprefix("Value error, ")  # pydantic's prefix for a validator's ValueError
     return f"{loc}: {msg} (got {e.get('input')!r})"
 
 

@@ -19,6 +19,7 @@ import numpy as np
 from highway_env import utils as hw_utils
 
 from safelane import fastsim
+from safelane.adversaries import add_adversary
 from safelane.config import ConfigError, SafelaneConfig, load_config
 
 # --- observation normalisation: every scale in one place, with units --------------------------
@@ -145,17 +146,25 @@ class TrafficLayout(gym.Wrapper, gym.utils.RecordConstructorArgs):
     behind every other vehicle, so followers and cut-ins from behind never happen in the stock scene.
     """
 
-    def __init__(self, env: gym.Env, vehicles_behind: int = 0, vectorized: bool = True) -> None:
-        gym.utils.RecordConstructorArgs.__init__(self, vehicles_behind=vehicles_behind, vectorized=vectorized)
+    def __init__(
+        self, env: gym.Env, vehicles_behind: int = 0, vectorized: bool = True, adversary: str = "none"
+    ) -> None:
+        gym.utils.RecordConstructorArgs.__init__(
+            self, vehicles_behind=vehicles_behind, vectorized=vectorized, adversary=adversary
+        )
         super().__init__(env)
         self.vehicles_behind = vehicles_behind
         self.vectorized = vectorized
+        self.adversary = adversary
 
     def reset(self, **kwargs: Any) -> tuple[Any, dict[str, Any]]:
         obs, info = self.env.reset(**kwargs)
         fastsim.enable(self.env.unwrapped.road, self.vectorized)
         if self.vehicles_behind > 0:
             self._spawn_behind()
+        if self.adversary != "none":
+            base = self.env.unwrapped
+            add_adversary(base.road, base.vehicle, self.adversary)
         return obs, info
 
     def _spawn_behind(self) -> None:
@@ -222,7 +231,9 @@ def make_env(
         env = gym.make(cfg.env_id, config=dict(cfg.env), render_mode=render_mode)
     except (TypeError, ValueError, KeyError, AttributeError, ImportError) as err:
         raise ConfigError(f"env: highway-env rejected the configuration ({err})") from None
-    env = TrafficLayout(env, cfg.traffic.vehicles_behind, vectorized=cfg.backend == "vectorized")
+    env = TrafficLayout(
+        env, cfg.traffic.vehicles_behind, vectorized=cfg.backend == "vectorized", adversary=cfg.traffic.adversary
+    )
     env = PaperReward(env, cfg.reward.b, cfg.reward.c, cfg.reward.v_min, cfg.reward.v_max)
     env = PaperObservation(env)
     if cfg.shield.mode != "none":

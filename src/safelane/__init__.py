@@ -15,5 +15,6 @@ except PackageNotFoundError:  # pragma: no cover - running from a source tree
 
 from safelane.config import ConfigError, SafelaneConfig, load_config
 from safelane.env import make_env
+from safelane.shield import SafetyShield
 
-__all__ = ["ConfigError", "SafelaneConfig", "__version__", "load_config", "make_env"]
+__all__ = ["ConfigError", "SafelaneConfig", "SafetyShield", "__version__", "load_config", "make_env"]

@@ -39,12 +39,13 @@ def _act(self: Road) -> None:
         self._safelane_cache = None
 
 
-def _entities(road: Road) -> tuple[list[Any], np.ndarray]:
+def _entities(road: Road) -> tuple[list[Any], np.ndarray, dict[int, int]]:
     cache = road._safelane_cache
     if cache is None:
         entities = [v for v in road.vehicles + road.objects if not isinstance(v, Landmark)]
         positions = np.array([v.position for v in entities], dtype=float).reshape(len(entities), 2)
-        cache = road._safelane_cache = (entities, positions)
+        index = {id(v): i for i, v in enumerate(entities)}
+        cache = road._safelane_cache = (entities, positions, index)
     return cache
 
 
@@ -57,7 +58,7 @@ def _neighbour_vehicles(self: Road, vehicle: Any, lane_index: Any = None) -> tup
     lane = self.network.get_lane(lane_index)
     if type(lane) is not StraightLane:
         return _original_neighbour_vehicles(self, vehicle, lane_index)
-    entities, positions = _entities(self)
+    entities, positions, index = _entities(self)
     if not entities:
         return None, None
     s = lane.local_coordinates(vehicle.position)[0]
@@ -66,10 +67,9 @@ def _neighbour_vehicles(self: Road, vehicle: Any, lane_index: Any = None) -> tup
     s_v = delta[:, 0] * lane.direction[0] + delta[:, 1] * lane.direction[1]
     lat = delta[:, 0] * lane.direction_lateral[0] + delta[:, 1] * lane.direction_lateral[1]
     on = (np.abs(lat) <= lane.width / 2 + 1) & (s_v >= -lane.VEHICLE_LENGTH) & (s_v < lane.length + lane.VEHICLE_LENGTH)
-    for i, v in enumerate(entities):
-        if v is vehicle:
-            on[i] = False
-            break
+    own = index.get(id(vehicle))
+    if own is not None:
+        on[own] = False
     front = rear = None
     ahead = on & (s_v >= s)
     if ahead.any():

@@ -65,6 +65,15 @@ def fixed_policy(name: str, seed: int = 0) -> Policy:
 # --- collision classification -----------------------------------------------------------------
 
 
+def _bodies(road: Any) -> list[Any]:
+    """Everything the ego can crash into: vehicles and collidable objects (obstacles)."""
+    return [*road.vehicles, *(o for o in getattr(road, "objects", []) if getattr(o, "collidable", True))]
+
+
+def _positions(road: Any) -> list[tuple[Any, np.ndarray]]:
+    return [(v, np.array(v.position, dtype=float)) for v in _bodies(road)]
+
+
 class _CrashWatch:
     """Replaces one road's ``step`` (one physics frame) to keep the positions around the ego's first
     crash: ``before`` (start of the impact frame) and ``after`` (end of it, bodies still overlapping,
@@ -85,11 +94,11 @@ class _CrashWatch:
         if self.before is not None or self.ego.crashed:
             self.inner(dt)
             return
-        snapshot = [(v, np.array(v.position, dtype=float)) for v in self.road.vehicles]
+        snapshot = _positions(self.road)
         self.inner(dt)
         if self.ego.crashed:
             self.before = snapshot
-            self.after = [(v, np.array(v.position, dtype=float)) for v in self.road.vehicles]
+            self.after = _positions(self.road)
 
 
 def watch_collisions(env: gym.Env) -> None:
@@ -157,9 +166,9 @@ def classify_collision(env: gym.Env) -> str | None:
         before = {id(v): p for v, p in watch.before}
         after = {id(v): p for v, p in watch.after}
     else:
-        before = after = {id(v): np.array(v.position, dtype=float) for v in road.vehicles}
+        before = after = {id(v): p for v, p in _positions(road)}
     lane = ego.lane
-    candidates = [v for v in road.vehicles if v is not ego and v.crashed and id(v) in after]
+    candidates = [v for v in _bodies(road) if v is not ego and getattr(v, "crashed", False) and id(v) in after]
     if not candidates:
         return "side"  # no partner found (not produced by highway-env's straight roads)
     ego_after = after[id(ego)]
@@ -305,7 +314,7 @@ def evaluate_fixed(
     progress: ProgressCallback | None = None,
 ) -> dict[str, Any]:
     """Evaluate a fixed policy (:data:`FIXED_POLICIES`) on ``config``: the summary dict of
-    :func:`summarize` with ``policy``, ``shield``, ``override``, ``preset``, ``env_id``, ``seed`` and
+    :func:`summarize` with ``policy``, ``shield``, ``override``, ``preset``, ``env_id``, ``backend``, ``seed`` and
     ``wall_time_s`` added. With a shield the config should set ``shield.override`` (a fixed policy
     cannot read the mask)."""
     from safelane.env import make_env
@@ -328,6 +337,7 @@ def evaluate_fixed(
         override=config.shield.override,
         preset=config.preset,
         env_id=config.env_id,
+        backend=config.backend,
         seed=seed,
         wall_time_s=time.perf_counter() - start,
     )

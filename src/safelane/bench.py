@@ -1,0 +1,116 @@
+"""Speed of the simulator, of the safety shield and of the paper observation (``safelane bench``).
+
+Raw and shielded episodes are interleaved (in alternating order) with the same seeds and the same
+random actions, so both drive identical trajectories and machine noise hits both alike: the
+shielded env differs only by the mask computed at every reset and step, and
+``shield_overhead_ratio`` (shielded ÷ raw decisions/s, 1.0 = free) isolates its cost. Only
+``env.step`` calls are timed (resets are not decisions). On a busy machine the ratio can come out
+slightly above 1: that is noise, run more episodes.
+"""
+
+from __future__ import annotations
+
+import platform
+import time
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+
+from safelane.config import ConfigError
+from safelane.env import make_env, paper_state
+from safelane.evaluation import fixed_policy
+
+BENCH_PRESET = "fast"
+BENCH_SHIELDS = ("nominal", "robust")
+
+
+def _play(env: Any, seed: int, on_decision: Callable[[], None] | None = None) -> tuple[int, float]:
+    """One episode with the random policy of ``seed``: (decisions, seconds spent in ``env.step``).
+
+    ``on_decision`` runs before every decision, outside the timed ``env.step``."""
+    policy = fixed_policy("random", seed)
+    obs, info = env.reset(seed=seed)
+    decisions, stepping = 0, 0.0
+    done = False
+    while not done:
+        if on_decision is not None:
+            on_decision()
+        action = policy(obs, info)
+        t0 = time.perf_counter()
+        obs, _, terminated, truncated, info = env.step(action)
+        stepping += time.perf_counter() - t0
+        decisions += 1
+        done = terminated or truncated
+    return decisions, stepping
+
+
+def run_bench(
+    episodes: int = 10,
+    seed: int = 0,
+    shield: str = "robust",
+    progress: Callable[[int], None] | None = None,
+) -> dict[str, Any]:
+    """Measure, on the ``fast`` preset with a random policy, interleaving raw and shielded episodes
+    (pair ``i`` uses seed ``seed + i``; ``progress(i)`` is called after each pair):
+
+    * ``env_steps_per_s``: raw decisions per second [1/s];
+    * ``shielded_env_steps_per_s``: decisions per second with the ``shield`` (nominal or robust) [1/s];
+    * ``shield_overhead_ratio``: shielded ÷ raw (≤ 1; 1 means the shield is free);
+    * ``shield_mask_us_median``: one ``SafetyShield.compute_mask()`` [µs], median over decisions;
+    * ``obs_us_median``: one paper observation ``paper_state`` (eq. 3) [µs], median over decisions.
+    """
+    if episodes < 1:
+        raise ConfigError(f"--episodes: must be >= 1 (got {episodes})")
+    if shield not in BENCH_SHIELDS:
+        raise ConfigError(f"--shield: bench measures a shield; allowed: {', '.join(BENCH_SHIELDS)}")
+    start = time.perf_counter()
+    raw = make_env(BENCH_PRESET)
+    shielded = make_env(BENCH_PRESET, **{"shield.mode": shield})
+    mask_us: list[float] = []
+    obs_us: list[float] = []
+
+    def time_extras() -> None:
+        t0 = time.perf_counter()
+        shielded.compute_mask()
+        t1 = time.perf_counter()
+        base = shielded.unwrapped
+        paper_state(base.vehicle, base.road)
+        t2 = time.perf_counter()
+        mask_us.append((t1 - t0) * 1e6)
+        obs_us.append((t2 - t1) * 1e6)
+
+    raw_n = shield_n = 0
+    raw_s = shield_s = 0.0
+    try:
+        for i in range(episodes):
+            # Alternate which of the pair runs first, so warm-up and drifts favour neither.
+            for shielded_turn in (i % 2 == 1, i % 2 == 0):
+                if shielded_turn:
+                    n, s = _play(shielded, seed + i, on_decision=time_extras)
+                    shield_n, shield_s = shield_n + n, shield_s + s
+                else:
+                    n, s = _play(raw, seed + i)
+                    raw_n, raw_s = raw_n + n, raw_s + s
+            if progress is not None:
+                progress(i)
+    finally:
+        raw.close()
+        shielded.close()
+    raw_rate = raw_n / raw_s
+    shield_rate = shield_n / shield_s
+    return {
+        "preset": BENCH_PRESET,
+        "shield": shield,
+        "policy": "random",
+        "episodes": episodes,
+        "seed": seed,
+        "decisions": raw_n,
+        "env_steps_per_s": raw_rate,
+        "shielded_env_steps_per_s": shield_rate,
+        "shield_overhead_ratio": shield_rate / raw_rate,
+        "shield_mask_us_median": float(np.median(mask_us)),
+        "obs_us_median": float(np.median(obs_us)),
+        "python": platform.python_version(),
+        "wall_time_s": time.perf_counter() - start,
+    }

@@ -1,0 +1,88 @@
+"""Shared test setup: headless pygame, small environment helpers, the installed console script."""
+
+from __future__ import annotations
+
+import os
+
+os.environ.setdefault("SDL_VIDEODRIVER", "dummy")  # highway-env imports pygame; no display in tests
+
+import shutil
+import sys
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+import pytest
+
+REPO_ROOT = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture
+def make_fast_env() -> Iterator[Callable[..., gym.Env]]:
+    """Factory of ``fast``-preset environments (``make_env`` keyword overrides); all closed after the test."""
+    from safelane.env import make_env
+
+    envs: list[gym.Env] = []
+
+    def factory(**overrides: Any) -> gym.Env:
+        seed = overrides.pop("seed", 0)
+        env = make_env("fast", seed=seed, **overrides)
+        envs.append(env)
+        return env
+
+    yield factory
+    for env in envs:
+        env.close()
+
+
+@pytest.fixture(scope="session")
+def safelane_exe() -> Path:
+    """The installed ``safelane`` console script of the running interpreter's environment."""
+    candidate = Path(sys.executable).parent / "safelane"
+    if candidate.exists():
+        return candidate
+    found = shutil.which("safelane")
+    if found is None:
+        pytest.skip("the safelane console script is not installed")
+    return Path(found)
+
+
+LANE_WIDTH = 4.0  # [m] highway-env's StraightLane.DEFAULT_WIDTH: lane i is centred at y = 4·i
+
+
+def place_vehicles(
+    env: gym.Env,
+    ego: tuple[float, int, float],
+    others: list[tuple[float, float, float, float]],
+) -> list[Any]:
+    """Replace the road's traffic by a hand-built scene (straight road along x).
+
+    ``ego``: (x [m], lane index, speed [m/s]), heading 0, its speed controller aimed at that speed.
+    ``others``: (x [m], y [m], speed [m/s], heading [rad]) of IDM vehicles. Returns the vehicles,
+    ego first.
+    """
+    from highway_env.vehicle.behavior import IDMVehicle
+
+    base = env.unwrapped
+    road, vehicle = base.road, base.vehicle
+    x, lane, speed = ego
+    vehicle.position = np.array([x, LANE_WIDTH * lane], dtype=float)
+    vehicle.heading = 0.0
+    vehicle.speed = speed
+    vehicle.on_state_update()
+    vehicle.target_lane_index = vehicle.lane_index
+    vehicle.speed_index = vehicle.speed_to_index(speed)
+    vehicle.target_speed = vehicle.index_to_speed(vehicle.speed_index)
+    placed = [vehicle]
+    for ox, oy, ospeed, oheading in others:
+        placed.append(IDMVehicle(road, np.array([ox, oy], dtype=float), heading=oheading, speed=ospeed))
+    road.vehicles = placed
+    return placed
+
+
+@pytest.fixture
+def scene() -> Callable[..., list[Any]]:
+    """:func:`place_vehicles`, as a fixture."""
+    return place_vehicles

@@ -1,0 +1,210 @@
+"""The command line: in-process with typer's CliRunner, and as the installed ``safelane`` script."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+from pathlib import Path
+
+import pytest
+import yaml
+from typer.testing import CliRunner
+
+from safelane import __version__
+from safelane.cli import app
+
+runner = CliRunner()
+
+SUMMARY_FIELDS = {
+    "episodes",
+    "collisions",
+    "collision_rate",
+    "mean_speed",
+    "mean_return",
+    "mean_length",
+    "time_to_collision",
+    "shield_intervention_rate",
+    "fallback_rate",
+    "collision_kinds",
+    "policy",
+    "shield",
+    "preset",
+    "seed",
+    "wall_time_s",
+}
+SHORT = ["--set", "env.duration=3"]  # 3-decision episodes keep the CLI tests fast
+
+
+def assert_one_error_line(stderr: str, starts: str) -> None:
+    lines = stderr.strip().splitlines()
+    assert len(lines) == 1, stderr
+    assert lines[0].startswith(f"error: {starts}"), lines[0]
+    assert "Traceback" not in stderr
+
+
+# --- basics -------------------------------------------------------------------------------------------------
+
+
+def test_version() -> None:
+    result = runner.invoke(app, ["--version"])
+    assert result.exit_code == 0
+    assert result.stdout.strip() == f"safelane {__version__}"
+
+
+def test_help_lists_the_commands() -> None:
+    result = runner.invoke(app, ["--help"])
+    assert result.exit_code == 0
+    for command in ("evaluate", "bench", "env"):
+        assert command in result.stdout
+
+
+def test_evaluate_help_documents_the_shared_options() -> None:
+    result = runner.invoke(app, ["evaluate", "--help"])
+    assert result.exit_code == 0
+    for option in ("--policy", "--episodes", "--seed", "--preset", "--set", "--shield", "--json", "RUN_DIR"):
+        assert option in result.stdout
+
+
+# --- env show ---------------------------------------------------------------------------------------------
+
+
+def test_env_show_applies_set() -> None:
+    result = runner.invoke(app, ["env", "show", "--set", "env.lanes_count=5", "--set", "reward.c=2"])
+    assert result.exit_code == 0, result.output
+    shown = yaml.safe_load(result.stdout)
+    assert shown["env"]["lanes_count"] == 5
+    assert shown["env"]["vehicles_count"] == 50
+    assert shown["reward"]["c"] == 2.0
+
+
+def test_env_show_preset_and_shield() -> None:
+    result = runner.invoke(app, ["env", "show", "--preset", "paper", "--shield", "robust"])
+    assert result.exit_code == 0, result.output
+    shown = yaml.safe_load(result.stdout)
+    assert shown["preset"] == "paper" and shown["env_id"] == "highway-v0"
+    assert shown["shield"]["mode"] == "robust"
+
+
+# --- errors: one line, exit code 2, no traceback -------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    ("args", "starts"),
+    [
+        (["env", "show", "--set", "env.lanes_count=banana"], "env.lanes_count: expected positive integer"),
+        (["env", "show", "--set", "env.lanes_countt=3"], "env.lanes_countt: unknown highway-env key"),
+        (["env", "show", "--set", "lanes_count"], "--set 'lanes_count': expected KEY=VALUE"),
+        (["env", "show", "--preset", "fastest"], "preset: unknown preset 'fastest'; allowed: fast, paper"),
+        (["env", "show", "--shield", "strict"], "--shield: unknown shield 'strict'; allowed: none, nominal, robust"),
+        (["evaluate", "--policy", "slower", "--set", "env.lanes_count=banana"], "env.lanes_count"),
+        (["evaluate", "--policy", "slower", "--episodes", "0"], "--episodes: must be >= 1 (got 0)"),
+        (["evaluate", "--policy", "slower", "--episodes", "-3"], "--episodes: must be >= 1 (got -3)"),
+        (["evaluate", "--policy", "slower", "--seed", "-1"], "--seed: must be >= 0"),
+        (["evaluate", "--policy", "fastest"], "--policy: unknown policy 'fastest'; allowed: random, idle, faster"),
+        (["evaluate"], "evaluate: give --policy"),
+        (["evaluate", "runs/dqn", "--policy", "idle"], "evaluate RUN_DIR: trained runs are not supported yet"),
+        (["evaluate", "--policy", "idle", "--set", "reward.v_max=10"], "reward.v_max: must be greater than"),
+        (["bench", "--episodes", "0"], "--episodes: must be >= 1"),
+        (["bench", "--shield", "none"], "--shield: bench measures a shield; allowed: nominal, robust"),
+    ],
+)
+def test_bad_input_is_one_error_line(args: list[str], starts: str) -> None:
+    result = runner.invoke(app, args)
+    assert result.exit_code == 2
+    assert result.stdout == ""
+    assert_one_error_line(result.stderr, starts)
+    assert result.exception is None or isinstance(result.exception, SystemExit)
+
+
+# --- evaluate -------------------------------------------------------------------------------------------------
+
+
+def test_evaluate_json_is_one_object_on_stdout() -> None:
+    result = runner.invoke(app, ["evaluate", "--policy", "idle", "--episodes", "2", "--seed", "4", "--json", *SHORT])
+    assert result.exit_code == 0, result.output
+    summary = json.loads(result.stdout)
+    assert set(summary) >= SUMMARY_FIELDS
+    assert summary["episodes"] == 2 and summary["seed"] == 4 and summary["policy"] == "idle"
+    assert summary["shield"] == "none"
+    assert len(summary["time_to_collision"]) == 2
+    assert set(summary["collision_kinds"]) == {"ego_hit_front", "rear_ended", "side"}
+
+
+def test_evaluate_is_deterministic() -> None:
+    args = ["evaluate", "--policy", "random", "--episodes", "2", "--seed", "1", "--json", *SHORT]
+    first, second = (json.loads(runner.invoke(app, args).stdout) for _ in range(2))
+    first.pop("wall_time_s"), second.pop("wall_time_s")
+    assert first == second
+
+
+def test_evaluate_with_a_shield_overrides_a_fixed_policy() -> None:
+    args = ["evaluate", "--policy", "faster", "-n", "1", "--shield", "robust", "--json", "--set", "env.duration=8"]
+    result = runner.invoke(app, args)
+    assert result.exit_code == 0, result.output
+    summary = json.loads(result.stdout)
+    assert summary["shield"] == "robust" and summary["override"] is True
+    assert 0.0 < summary["shield_intervention_rate"] <= 1.0
+    assert 0.0 <= summary["fallback_rate"] <= 1.0
+
+
+def test_evaluate_respects_an_explicit_override_setting() -> None:
+    args = ["evaluate", "--policy", "faster", "-n", "1", "--shield", "nominal", "--json"]
+    result = runner.invoke(app, [*args, "--set", "shield.override=false", *SHORT])
+    summary = json.loads(result.stdout)
+    assert summary["override"] is False
+    assert summary["shield_intervention_rate"] == 0.0
+
+
+def test_evaluate_prints_a_table_without_json() -> None:
+    result = runner.invoke(app, ["evaluate", "--policy", "slower", "--episodes", "1", *SHORT])
+    assert result.exit_code == 0, result.output
+    for row in ("collision_rate", "mean_speed", "time_to_collision", "shield_intervention_rate"):
+        assert row in result.stdout
+
+
+# --- bench ----------------------------------------------------------------------------------------------------
+
+
+def test_bench_json() -> None:
+    result = runner.invoke(app, ["bench", "--episodes", "1", "--json"])
+    assert result.exit_code == 0, result.output
+    out = json.loads(result.stdout)
+    for key in ("env_steps_per_s", "shielded_env_steps_per_s", "shield_mask_us_median", "obs_us_median"):
+        assert out[key] > 0
+    assert out["shield_overhead_ratio"] == pytest.approx(out["shielded_env_steps_per_s"] / out["env_steps_per_s"])
+    assert out["preset"] == "fast" and out["shield"] == "robust"
+
+
+# --- the installed script, as a user runs it ---------------------------------------------------------------
+
+
+def _run(exe: Path, *args: str) -> subprocess.CompletedProcess[str]:
+    env = {**os.environ, "SDL_VIDEODRIVER": "dummy"}
+    return subprocess.run([str(exe), *args], capture_output=True, text=True, env=env, timeout=120, check=False)
+
+
+def test_script_evaluate_json(safelane_exe: Path) -> None:
+    proc = _run(safelane_exe, "evaluate", "--policy", "slower", "--episodes", "3", "--seed", "0", "--json")
+    assert proc.returncode == 0, proc.stderr
+    summary = json.loads(proc.stdout)
+    assert set(summary) >= SUMMARY_FIELDS
+    assert summary["episodes"] == 3
+    assert summary["collisions"] == summary["collision_kinds"]["ego_hit_front"] + sum(
+        summary["collision_kinds"][k] for k in ("rear_ended", "side")
+    )
+    assert summary["time_to_collision"] == [None, None, None]  # always SLOWER stops safely
+    assert summary["mean_length"] == 40
+
+
+def test_script_bad_value_is_one_line_without_traceback(safelane_exe: Path) -> None:
+    proc = _run(safelane_exe, "evaluate", "--policy", "slower", "--set", "env.lanes_count=banana")
+    assert proc.returncode == 2
+    assert proc.stdout == ""
+    assert_one_error_line(proc.stderr, "env.lanes_count: expected positive integer")
+
+
+def test_script_version(safelane_exe: Path) -> None:
+    proc = _run(safelane_exe, "--version")
+    assert proc.returncode == 0
+    assert proc.stdout.strip() == f"safelane {__version__}"

@@ -1,0 +1,191 @@
+"""Configuration: presets, ``--set`` parsing, Python overrides, and one-line error messages."""
+
+from __future__ import annotations
+
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from safelane.config import (
+    ENV_PRESETS,
+    ConfigError,
+    build_config,
+    config_to_dict,
+    load_config,
+    parse_set,
+    preset_path,
+)
+
+
+def error_of(**kwargs: object) -> str:
+    """The message of the ConfigError that ``load_config(**kwargs)`` raises (asserted one line)."""
+    with pytest.raises(ConfigError) as info:
+        load_config(**kwargs)  # type: ignore[arg-type]
+    message = str(info.value)
+    assert "\n" not in message
+    return message
+
+
+# --- presets ---------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("name", ENV_PRESETS)
+def test_presets_load_with_the_papers_traffic(name: str) -> None:
+    cfg = load_config(name)
+    assert cfg.preset == name
+    assert preset_path(name).exists()
+    assert cfg.env["lanes_count"] == 4
+    assert cfg.env["vehicles_count"] == 50
+    assert cfg.env["duration"] == 40
+    assert cfg.env["policy_frequency"] == 1
+    assert cfg.shield.mode == "none"
+
+
+def test_presets_pick_their_highway_env() -> None:
+    assert load_config("fast").env_id == "highway-fast-v0"
+    assert load_config("paper").env_id == "highway-v0"
+
+
+def test_config_round_trips_through_a_plain_dict() -> None:
+    cfg = load_config("fast", sets=["shield.mode=robust", "reward.c=3"])
+    assert build_config(config_to_dict(cfg)) == cfg
+
+
+# --- error messages ----------------------------------------------------------------------------------
+
+
+def test_unknown_top_level_key_lists_the_sections() -> None:
+    message = error_of(sets=["rewards.c=1"])
+    assert message.startswith("rewards: unknown key")
+    assert "env, reward, traffic, shield" in message
+
+
+def test_unknown_section_key_lists_the_sections_keys() -> None:
+    message = error_of(sets=["reward.d=1"])
+    assert message.startswith("reward.d: unknown key")
+    assert "b, c, v_min, v_max" in message
+
+
+def test_unknown_highway_env_key_names_it_and_the_allowed_keys() -> None:
+    message = error_of(sets=["env.lanes_countt=3"])
+    assert message.startswith("env.lanes_countt: unknown highway-env key for highway-fast-v0")
+    assert "lanes_count" in message.split("allowed:")[1]
+
+
+def test_wrong_type_for_a_highway_env_key_names_the_key() -> None:
+    message = error_of(sets=["env.lanes_count=banana"])
+    assert message.startswith("env.lanes_count:")
+    assert "positive integer" in message
+    assert "'banana'" in message
+
+
+@pytest.mark.parametrize(
+    ("assignment", "key"),
+    [
+        ("env.lanes_count=0", "env.lanes_count"),
+        ("env.lanes_count=2.5", "env.lanes_count"),
+        ("env.duration=true", "env.duration"),
+        ("env.offroad_terminal=1", "env.offroad_terminal"),
+        ("env.observation=Kinematics", "env.observation"),
+    ],
+)
+def test_wrong_highway_env_values_are_rejected(assignment: str, key: str) -> None:
+    assert error_of(sets=[assignment]).startswith(f"{key}: expected")
+
+
+def test_bad_shield_mode_lists_the_modes() -> None:
+    message = error_of(sets=["shield.mode=strict"])
+    assert message.startswith("shield.mode: got 'strict'")
+    for mode in ("none", "nominal", "robust"):
+        assert f"'{mode}'" in message
+
+
+@pytest.mark.parametrize("v_max", ["20", "10"])
+def test_reward_v_max_must_exceed_v_min(v_max: str) -> None:
+    message = error_of(sets=[f"reward.v_max={v_max}"])
+    assert message.startswith("reward.v_max: must be greater than reward.v_min (20.0)")
+    assert "Value error" not in message
+
+
+def test_negative_reward_weight_is_rejected() -> None:
+    assert error_of(sets=["reward.c=-1"]).startswith("reward.c: ")
+
+
+def test_unknown_preset_lists_the_presets() -> None:
+    assert error_of(preset="fastest") == "preset: unknown preset 'fastest'; allowed: fast, paper"
+
+
+def test_config_error_is_a_value_error() -> None:
+    assert issubclass(ConfigError, ValueError)
+
+
+def test_setting_a_value_below_a_value_is_an_error() -> None:
+    assert error_of(sets=["reward.c.x=1"]) == "reward.c.x: 'c' is a value, not a section"
+
+
+# --- --set parsing ---------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    ("assignment", "expected"),
+    [
+        ("env.lanes_count=5", ("env.lanes_count", 5)),
+        ("reward.c=2.5", ("reward.c", 2.5)),
+        ("shield.override=true", ("shield.override", True)),
+        ("shield.mode=robust", ("shield.mode", "robust")),
+        ("env.action.target_speeds=[10, 20]", ("env.action.target_speeds", [10, 20])),
+        (" env.duration = 7", ("env.duration", 7)),
+        ("env.duration=", ("env.duration", None)),
+        ("a=b=c", ("a", "b=c")),
+    ],
+)
+def test_parse_set(assignment: str, expected: tuple[str, object]) -> None:
+    assert parse_set(assignment) == expected
+
+
+@pytest.mark.parametrize(("assignment", "fragment"), [("env.lanes_count", "expected KEY=VALUE"), ("=5", "empty key")])
+def test_parse_set_errors(assignment: str, fragment: str) -> None:
+    with pytest.raises(ConfigError, match=fragment):
+        parse_set(assignment)
+
+
+@settings(max_examples=25, deadline=None)
+@given(st.integers(min_value=1, max_value=9), st.floats(min_value=0, max_value=100, allow_nan=False))
+def test_set_values_reach_the_config(lanes: int, c: float) -> None:
+    cfg = load_config("fast", sets=[f"env.lanes_count={lanes}", f"reward.c={c!r}"])
+    assert cfg.env["lanes_count"] == lanes
+    assert cfg.reward.c == c
+
+
+def test_nested_set_keeps_the_rest_of_the_section() -> None:
+    cfg = load_config("fast", sets=["env.action.target_speeds=[20, 25, 30]"])
+    assert cfg.env["action"] == {"type": "DiscreteMetaAction", "target_speeds": [20, 25, 30]}
+
+
+# --- Python overrides ----------------------------------------------------------------------------------
+
+
+def test_section_dict_override_merges_into_the_preset() -> None:
+    cfg = load_config("fast", overrides={"env": {"lanes_count": 5}, "reward": {"c": 3.0}})
+    assert cfg.env["lanes_count"] == 5
+    assert cfg.env["vehicles_count"] == 50  # untouched keys of the section stay
+    assert cfg.reward.c == 3.0
+    assert cfg.reward.v_max == 30.0
+
+
+def test_dotted_override_and_order_sets_then_overrides() -> None:
+    cfg = load_config("fast", sets=["shield.mode=nominal", "reward.b=2"], overrides={"shield.mode": "robust"})
+    assert cfg.shield.mode == "robust"  # Python overrides come last
+    assert cfg.reward.b == 2.0
+
+
+def test_overrides_are_validated_like_sets() -> None:
+    with pytest.raises(ConfigError, match=r"^env\.lanes_count: expected positive integer"):
+        load_config("fast", overrides={"env": {"lanes_count": "banana"}})
+
+
+def test_overrides_do_not_alias_the_callers_objects() -> None:
+    speeds = [20, 25, 30]
+    cfg = load_config("fast", overrides={"env.action.target_speeds": speeds})
+    speeds.append(35)
+    assert cfg.env["action"]["target_speeds"] == [20, 25, 30]

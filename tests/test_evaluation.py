@@ -1,0 +1,242 @@
+"""Evaluation: fixed policies, collision classification, episode records and their summary."""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Callable
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+import pytest
+
+from safelane.actions import FASTER, IDLE, LANE_LEFT, LANE_RIGHT, SLOWER
+from safelane.config import ConfigError, load_config
+from safelane.evaluation import (
+    COLLISION_KINDS,
+    FIXED_POLICIES,
+    EpisodeRecord,
+    classify_collision,
+    collision_kind,
+    evaluate_fixed,
+    fixed_policy,
+    run_episodes,
+    summarize,
+    watch_collisions,
+)
+
+MakeEnv = Callable[..., gym.Env]
+Scene = Callable[..., list[Any]]
+OBS = np.zeros(26, dtype=np.float32)
+
+# --- fixed policies ----------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(("name", "action"), [("idle", IDLE), ("faster", FASTER), ("slower", SLOWER)])
+def test_constant_policies(name: str, action: int) -> None:
+    policy = fixed_policy(name, seed=3)
+    assert {policy(OBS, {}) for _ in range(10)} == {action}
+
+
+def test_random_policy_is_seeded_and_uses_every_action() -> None:
+    first, second, other = fixed_policy("random", 1), fixed_policy("random", 1), fixed_policy("random", 2)
+    a = [first(OBS, {}) for _ in range(200)]
+    assert a == [second(OBS, {}) for _ in range(200)]
+    assert a != [other(OBS, {}) for _ in range(200)]
+    assert set(a) == {LANE_LEFT, IDLE, LANE_RIGHT, FASTER, SLOWER}
+
+
+def test_unknown_policy_lists_the_policies() -> None:
+    assert FIXED_POLICIES == ("random", "idle", "faster", "slower")
+    with pytest.raises(ConfigError, match=r"^policy: unknown policy 'fastest'; allowed: random, idle, faster, slower$"):
+        fixed_policy("fastest")
+
+
+# --- collision geometry (hand-worked offsets, other − ego, lane coordinates) -------------------------------
+
+HALF_LENGTH, HALF_WIDTH = 5.0, 2.0  # two 5 m × 2 m bodies, heading 0
+
+
+@pytest.mark.parametrize(
+    ("before", "after", "kind"),
+    [
+        ((6.0, 0.0), (4.9, 0.0), "ego_hit_front"),  # closing on the car ahead in the lane
+        ((5.8, -1.2), (4.7, -1.0), "ego_hit_front"),  # ahead, half a car off-centre: still its rear face
+        ((-6.0, 0.3), (-4.8, 0.3), "rear_ended"),  # a follower closing from behind
+        ((1.0, 3.0), (1.0, 1.9), "side"),  # alongside, lateral closing (a lane change)
+        ((-2.0, -2.6), (-2.1, -1.8), "side"),
+        ((5.5, 2.5), (4.8, 2.2), "side"),  # corner: longitudinal overlap first (t = 0.71), lateral last
+        ((5.6, 2.1), (4.6, 1.9), "ego_hit_front"),  # corner: lateral overlap at t = 0.5, longitudinal at 0.6
+        ((5.6, 2.1), (4.6, 2.0), "side"),  # corner: longitudinal at t = 0.6, lateral last at t = 1
+        ((4.0, -3.0), (4.2, -1.9), "side"),  # already overlapping along the lane
+    ],
+)
+def test_collision_kind_from_geometry(before: tuple[float, float], after: tuple[float, float], kind: str) -> None:
+    assert collision_kind(before, after, HALF_LENGTH, HALF_WIDTH) == kind
+
+
+def _crash(env: gym.Env, actions: list[int]) -> dict[str, Any]:
+    watch_collisions(env)
+    info: dict[str, Any] = {}
+    for action in actions:
+        _, _, terminated, truncated, info = env.step(action)
+        if terminated or truncated:
+            break
+    return info
+
+
+@pytest.mark.parametrize(
+    ("ego", "other", "actions", "kind"),
+    [
+        ((100.0, 1, 25.0), (112.0, 4.0, 0.0, 0.0), [IDLE], "ego_hit_front"),  # into a stopped car
+        ((100.0, 1, 0.0), (80.0, 4.0, 30.0, 0.0), [IDLE, IDLE], "rear_ended"),  # stopped ego, fast follower
+        ((100.0, 1, 25.0), (100.0, 8.0, 25.0, 0.0), [LANE_RIGHT, IDLE], "side"),  # change into a neighbour
+        ((100.0, 1, 25.0), (100.0, 0.0, 25.0, 0.0), [LANE_LEFT, IDLE], "side"),
+    ],
+)
+def test_classify_collision_on_hand_built_crashes(
+    make_fast_env: MakeEnv,
+    scene: Scene,
+    ego: tuple[float, int, float],
+    other: tuple[float, float, float, float],
+    actions: list[int],
+    kind: str,
+) -> None:
+    env = make_fast_env()
+    scene(env, ego=ego, others=[other])
+    info = _crash(env, actions)
+    assert info["collision"]
+    assert classify_collision(env) == kind
+
+
+def test_no_collision_no_kind(make_fast_env: MakeEnv, scene: Scene) -> None:
+    env = make_fast_env()
+    scene(env, ego=(100.0, 1, 25.0), others=[(140.0, 4.0, 25.0, 0.0)])
+    info = _crash(env, [IDLE, IDLE])
+    assert not info["collision"]
+    assert classify_collision(env) is None
+
+
+def test_classification_without_a_watch_uses_current_geometry(make_fast_env: MakeEnv, scene: Scene) -> None:
+    env = make_fast_env()
+    scene(env, ego=(100.0, 1, 25.0), others=[(112.0, 4.0, 0.0, 0.0)])
+    env.step(IDLE)
+    assert classify_collision(env) in COLLISION_KINDS
+
+
+# --- episodes -----------------------------------------------------------------------------------------------
+
+
+def test_same_seed_gives_identical_records(make_fast_env: MakeEnv) -> None:
+    env = make_fast_env(env={"duration": 12})
+    first = run_episodes(env, fixed_policy("random", 5), episodes=3, seed=5)
+    second = run_episodes(make_fast_env(env={"duration": 12}), fixed_policy("random", 5), episodes=3, seed=5)
+    assert first == second
+    assert [r.seed for r in first] == [5, 6, 7]
+    for r in first:
+        assert 1 <= r.length <= 12
+        assert sum(r.actions) == r.length
+        assert r.interventions == r.fallbacks == 0  # no shield
+
+
+def test_always_faster_unshielded_mostly_crashes(make_fast_env: MakeEnv) -> None:
+    records = run_episodes(make_fast_env(), fixed_policy("faster"), episodes=4, seed=0)
+    crashed = [r for r in records if r.collision]
+    assert len(crashed) >= 3
+    for r in crashed:
+        assert r.collision_kind in COLLISION_KINDS
+        assert r.time_to_collision is not None and 0 < r.time_to_collision <= 40
+        assert r.time_to_collision == pytest.approx(r.length)  # one decision per second
+        assert r.return_ <= r.length * 1.0 - 10.0 + 1e-9  # at most b = 1 per decision, minus c = 10
+    for r in records:
+        assert r.actions[FASTER] == r.length
+
+
+def test_progress_callback_sees_every_episode(make_fast_env: MakeEnv) -> None:
+    seen: list[tuple[int, int]] = []
+    records = run_episodes(
+        make_fast_env(env={"duration": 3}),
+        fixed_policy("idle"),
+        2,
+        seed=0,
+        progress=lambda i, r: seen.append((i, r.seed)),
+    )
+    assert seen == [(0, 0), (1, 1)]
+    assert len(records) == 2
+
+
+def test_run_episodes_needs_an_episode(make_fast_env: MakeEnv) -> None:
+    with pytest.raises(ValueError, match="episodes"):
+        run_episodes(make_fast_env(), fixed_policy("idle"), 0, seed=0)
+
+
+def test_shielded_always_faster_is_overridden(make_fast_env: MakeEnv) -> None:
+    env = make_fast_env(env={"duration": 10}, shield={"mode": "robust", "override": True})
+    (record,) = run_episodes(env, fixed_policy("faster"), 1, seed=0)
+    assert 0 < record.interventions <= record.length
+    assert record.actions[FASTER] < record.length  # executed actions, after the override
+
+
+# --- summary -------------------------------------------------------------------------------------------------
+
+
+def _record(seed: int, length: int, kind: str | None, speed: float, interventions: int = 0) -> EpisodeRecord:
+    return EpisodeRecord(
+        seed=seed,
+        return_=float(length) - (10.0 if kind else 0.0),
+        length=length,
+        collision=kind is not None,
+        time_to_collision=float(length) if kind else None,
+        mean_speed=speed,
+        interventions=interventions,
+        fallbacks=1 if interventions else 0,
+        collision_kind=kind,
+        actions=[0, length, 0, 0, 0],
+    )
+
+
+def test_summarize_hand_worked() -> None:
+    records = [
+        _record(0, 40, None, 20.0, interventions=4),
+        _record(1, 10, "side", 25.0),
+        _record(2, 30, "ego_hit_front", 27.0, interventions=2),
+        _record(3, 20, "side", 24.0),
+    ]
+    summary = summarize(records, policy="idle", shield="none", preset="fast", seed=0, wall_time_s=1.5)
+    assert summary["episodes"] == 4
+    assert summary["decisions"] == 100
+    assert summary["collisions"] == 3
+    assert summary["collision_rate"] == 0.75
+    assert summary["mean_speed"] == 24.0
+    assert summary["mean_length"] == 25.0
+    assert summary["mean_return"] == pytest.approx((40 + 0 + 20 + 10) / 4)
+    assert summary["time_to_collision"] == [None, 10.0, 30.0, 20.0]
+    assert summary["shield_intervention_rate"] == 0.06
+    assert summary["fallback_rate"] == 0.02
+    assert summary["collision_kinds"] == {"ego_hit_front": 1, "rear_ended": 0, "side": 2}
+    assert summary["actions"]["IDLE"] == 100
+    assert summary["policy"] == "idle" and summary["wall_time_s"] == 1.5
+    json.dumps(summary, allow_nan=False)
+
+
+def test_summarize_needs_records() -> None:
+    with pytest.raises(ValueError, match="no episodes"):
+        summarize([])
+
+
+def test_evaluate_fixed_adds_its_meta() -> None:
+    cfg = load_config("fast", sets=["env.duration=4"])
+    summary = evaluate_fixed(cfg, "slower", episodes=2, seed=3)
+    assert summary["policy"] == "slower"
+    assert summary["shield"] == "none" and summary["override"] is False
+    assert summary["preset"] == "fast" and summary["env_id"] == "highway-fast-v0"
+    assert summary["seed"] == 3 and summary["episodes"] == 2
+    assert summary["decisions"] == 8
+    assert summary["wall_time_s"] > 0
+    json.dumps(summary, allow_nan=False)
+
+
+@pytest.mark.parametrize(("episodes", "seed", "option"), [(0, 0, "--episodes"), (2, -1, "--seed")])
+def test_evaluate_fixed_validates_its_inputs(episodes: int, seed: int, option: str) -> None:
+    with pytest.raises(ConfigError, match=f"^{option}: must be >= "):
+        evaluate_fixed(load_config("fast"), "idle", episodes, seed)

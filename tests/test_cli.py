@@ -103,7 +103,7 @@ def test_env_show_preset_and_shield() -> None:
         (["evaluate", "--policy", "slower", "--seed", "-1"], "--seed: must be >= 0"),
         (["evaluate", "--policy", "fastest"], "--policy: unknown policy 'fastest'; allowed: random, idle, faster"),
         (["evaluate"], "evaluate: give --policy"),
-        (["evaluate", "runs/dqn", "--policy", "idle"], "evaluate RUN_DIR: trained runs are not supported yet"),
+        (["evaluate", "runs/dqn", "--policy", "idle"], "evaluate: give either RUN_DIR or --policy, not both"),
         (["evaluate", "--policy", "idle", "--set", "reward.v_max=10"], "reward.v_max: must be greater than"),
         (["bench", "--episodes", "0"], "--episodes: must be >= 1"),
         (["bench", "--shield", "none"], "--shield: bench measures a shield; allowed: nominal, robust"),

@@ -207,7 +207,7 @@ EVALUATE_UNITS = {
 @cli_errors
 def evaluate(
     run_dir: Path | None = typer.Argument(
-        None, help="A trained run to evaluate (not supported yet: use --policy).", metavar="RUN_DIR"
+        None, help="A trained run (safelane train --out) to evaluate greedily, instead of --policy.", metavar="RUN_DIR"
     ),
     policy: Annotated[
         str | None,
@@ -228,7 +228,16 @@ def evaluate(
     from safelane.evaluation import FIXED_POLICIES, evaluate_fixed
 
     if run_dir is not None:
-        raise ConfigError("evaluate RUN_DIR: trained runs are not supported yet")
+        if policy is not None:
+            raise ConfigError("evaluate: give either RUN_DIR or --policy, not both")
+        check_positive("--episodes", episodes)
+        check_seed(seed)
+        summary = evaluate_run(run_dir, episodes, seed, sets, shield)
+        if as_json:
+            print_json(summary)
+        else:
+            print_table(f"{summary['method']} run {run_dir}, shield {summary['shield']}", summary, EVALUATE_UNITS)
+        return
     if policy is None:
         raise ConfigError(f"evaluate: give --policy (one of {', '.join(FIXED_POLICIES)})")
     if policy not in FIXED_POLICIES:
@@ -281,6 +290,289 @@ def bench(
         print_json(result)
         return
     print_table(f"safelane bench: {result['preset']} preset, random policy, {shield} shield", result, BENCH_UNITS)
+
+
+def evaluate_run(run_dir: Path, episodes: int, seed: int, sets: list[str] | None, shield: str | None) -> dict[str, Any]:
+    """Evaluate a trained run's greedy policy on its own environment config (plus --set / --shield)."""
+    from safelane.config import build_config
+    from safelane.evaluation import run_episodes, summarize
+    from safelane.training import load_policy, load_run_config
+
+    run = load_run_config(run_dir)
+    data = config_to_dict(run.env)
+    from safelane.config import _assign, parse_set
+
+    for assignment in sets or []:
+        _assign(data, *parse_set(assignment))
+    if shield is not None:
+        if shield not in SHIELD_CHOICES:
+            raise ConfigError(f"--shield: unknown shield '{shield}'; allowed: {', '.join(SHIELD_CHOICES)}")
+        data["shield"]["mode"] = shield
+    cfg = build_config(data)
+    policy = load_policy(run_dir)
+    from safelane.env import make_env
+
+    env = make_env(cfg)
+    with episode_progress(f"evaluate {run_dir}", episodes) as advance:
+        records = run_episodes(env, policy, episodes, seed, advance)
+    env.close()
+    return summarize(
+        records,
+        method=run.train.method,
+        run_dir=str(run_dir),
+        shield=cfg.shield.mode,
+        override=cfg.shield.override,
+        preset=cfg.preset,
+        seed=seed,
+    )
+
+
+MethodOpt = Annotated[str, typer.Option("--method", "-m", help="dqn, constrained, qmask or robust.", metavar="METHOD")]
+
+
+@app.command()
+@cli_errors
+def train(
+    method: MethodOpt = "robust",
+    out: Annotated[Path, typer.Option("--out", "-o", help="Run directory (config, metrics, checkpoints).")] = Path(
+        "runs/train"
+    ),
+    episodes: EpisodesOpt = 200,
+    seed: SeedOpt = 0,
+    preset: PresetOpt = "fast",
+    agent_preset: Annotated[
+        str, typer.Option("--agent-preset", help="Agent hyper-parameters: paper or tuned.", metavar="NAME")
+    ] = "tuned",
+    sets: SetOpt = None,
+    resume: Annotated[bool, typer.Option("--resume", help="Continue from the run's last checkpoint.")] = False,
+    checkpoint_every: Annotated[int, typer.Option("--checkpoint-every", help="Episodes between checkpoints.")] = 10,
+) -> None:
+    """Train a DQN with one of the paper's four methods; Ctrl-C checkpoints, --resume continues."""
+    from rich.progress import Progress
+
+    from safelane.training import TrainingInterrupted, make_train_config
+    from safelane.training import train as run_training
+
+    check_positive("--episodes", episodes)
+    check_seed(seed)
+    cfg = make_train_config(
+        method=method,
+        agent_preset=agent_preset,
+        env_preset=preset,
+        episodes=episodes,
+        seed=seed,
+        sets=list(sets or []),
+        checkpoint_every=checkpoint_every,
+    )
+    columns = (
+        TextColumn("{task.description}"),
+        BarColumn(),
+        MofNCompleteColumn(),
+        TimeElapsedColumn(),
+        TextColumn("{task.fields[stats]}"),
+    )
+    with Progress(*columns, console=stderr, transient=False, disable=not stderr.is_terminal) as bar:
+        task = bar.add_task(f"train {method}", total=episodes, stats="")
+
+        def report(r: Any) -> None:
+            lam = f" λ {r.lam:.2f}" if r.lam is not None else ""
+            bar.update(
+                task,
+                completed=r.episode,
+                stats=f"return {r.episode_return:6.2f} collisions {r.collisions} ε {r.epsilon:.2f} "
+                f"{r.steps_per_s:.1f} steps/s{lam}",
+            )
+
+        try:
+            run_training(cfg, out, resume=resume, progress=report)
+        except TrainingInterrupted as stop:
+            typer.echo(str(stop), err=True)
+            raise typer.Exit(130) from None
+    typer.echo(f"trained {method} for {episodes} episodes: {out}/metrics.csv, {out}/checkpoint.pt")
+
+
+@app.command()
+@cli_errors
+def reproduce(
+    out: Annotated[
+        Path, typer.Option("--out", "-o", help="Output directory (report.md, figures, results.json).")
+    ] = Path("runs/reproduce"),
+    preset: PresetOpt = "fast",
+    seeds: Annotated[int, typer.Option("--seeds", help="Number of seeds (0..K-1).")] = 5,
+    episodes: Annotated[int, typer.Option("--episodes", help="Training episodes per run (paper: 200).")] = 200,
+    test_episodes: Annotated[int, typer.Option("--test-episodes", help="Held-out test episodes per run.")] = 20,
+    quick: Annotated[bool, typer.Option("--quick", help="A short run (2 seeds, 25 episodes): minutes.")] = False,
+    workers: Annotated[int | None, typer.Option("--workers", help="Parallel processes (default: cores).")] = None,
+    agent_preset: Annotated[str, typer.Option("--agent-preset", help="paper or tuned.")] = "tuned",
+    sets: SetOpt = None,
+    gifs: Annotated[bool, typer.Option("--gifs/--no-gifs", help="Render one episode GIF per method.")] = True,
+) -> None:
+    """Train every method × seed, evaluate on held-out episodes, write Table 4 / Fig. 6 / Fig. 7 and claims."""
+    from safelane.experiments import make_spec, run_experiment
+    from safelane.reporting import render_gifs, write_report
+
+    if quick:
+        seeds, episodes, test_episodes = min(seeds, 2), min(episodes, 25), min(test_episodes, 7)
+    check_positive("--seeds", seeds)
+    check_positive("--episodes", episodes)
+    check_positive("--test-episodes", test_episodes)
+    if workers is not None:
+        check_positive("--workers", workers)
+    spec = make_spec(
+        seeds=list(range(seeds)),
+        episodes=episodes,
+        test_episodes=test_episodes,
+        env_preset=preset,
+        agent_preset=agent_preset,
+        sets=list(sets or []),
+        quick=quick,
+    )
+    total = len(spec.methods) * len(spec.seeds)
+    with episode_progress("reproduce (runs)", total) as advance:
+        done = [0]
+
+        def tick(_: Any) -> None:
+            advance(done[0], None)
+            done[0] += 1
+
+        run_experiment(spec, out, workers=workers, progress=tick)
+    gif_paths = render_gifs(out, max_steps=20 if quick else 40) if gifs else None
+    report = write_report(out, gif_paths)
+    typer.echo(f"report: {report}")
+
+
+@app.command()
+@cli_errors
+def stress(
+    run_dir: Path | None = typer.Argument(None, help="A trained run, instead of --policy.", metavar="RUN_DIR"),
+    policy: Annotated[str | None, typer.Option("--policy", help="Fixed policy: random, idle, faster, slower.")] = None,
+    shield: ShieldOpt = None,
+    episodes: EpisodesOpt = 20,
+    conditions: Annotated[
+        Path | None, typer.Option("--conditions", help="YAML list of conditions (default: the shipped suite).")
+    ] = None,
+    only: Annotated[list[str] | None, typer.Option("--only", help="Run only these condition names.")] = None,
+    sets: SetOpt = None,
+    as_json: JsonOpt = False,
+) -> None:
+    """Run the stress suite: collisions (classified), 95 % CI, speed and interventions per condition."""
+    from safelane.evaluation import FIXED_POLICIES, fixed_policy
+    from safelane.stress import load_conditions, run_stress
+
+    check_positive("--episodes", episodes)
+    conds = load_conditions(conditions)
+    if only:
+        names = {c.name for c in conds}
+        unknown = [o for o in only if o not in names]
+        if unknown:
+            raise ConfigError(f"--only: unknown condition '{unknown[0]}'; allowed: {', '.join(sorted(names))}")
+        conds = [c for c in conds if c.name in only]
+    if shield is not None and shield not in SHIELD_CHOICES:
+        raise ConfigError(f"--shield: unknown shield '{shield}'; allowed: {', '.join(SHIELD_CHOICES)}")
+    if run_dir is not None:
+        from safelane.training import load_policy, load_run_config
+
+        run = load_run_config(run_dir)
+        mode, override = shield or run.env.shield.mode, False
+        trained = load_policy(run_dir)
+
+        def factory() -> Any:
+            return trained
+    else:
+        if policy is None or policy not in FIXED_POLICIES:
+            raise ConfigError(f"--policy: give one of {', '.join(FIXED_POLICIES)} (or a RUN_DIR)")
+        mode, override = shield or "robust", True
+
+        def factory() -> Any:
+            return fixed_policy(policy, 0)
+
+    rows: list[dict[str, Any]] = []
+    with episode_progress("stress (conditions)", len(conds)) as advance:
+        result = run_stress(
+            factory,
+            episodes,
+            mode,
+            override,
+            conds,
+            sets,
+            on_condition=lambda r: (rows.append(r), advance(len(rows) - 1, None)),
+        )
+    if as_json:
+        print_json(result)
+        return
+    table = Table(title=f"stress: {run_dir or policy}, shield {mode}, {episodes} episodes per condition")
+    for col in ("condition", "collisions", "rate [95% CI]", "speed m/s", "interventions", "kinds"):
+        table.add_column(col)
+    for r in result["conditions"]:
+        lo, hi = r["collision_rate_ci95"]
+        name = r["name"] + (" (adversarial)" if r["adversarial"] else "")
+        kinds = ", ".join(f"{k} {v}" for k, v in r["collision_kinds"].items() if v)
+        table.add_row(
+            name,
+            f"{r['collisions']}/{r['episodes']}",
+            f"{r['collision_rate']:.3f} [{lo:.3f}, {hi:.3f}]",
+            f"{r['mean_speed']:.2f}",
+            f"{r['shield_intervention_rate']:.3f}",
+            kinds or "-",
+        )
+    stdout.print(table)
+
+
+@app.command()
+@cli_errors
+def render(
+    run_dir: Path | None = typer.Argument(None, help="A trained run, instead of --policy.", metavar="RUN_DIR"),
+    policy: Annotated[str | None, typer.Option("--policy", help="Fixed policy: random, idle, faster, slower.")] = None,
+    out: Annotated[Path, typer.Option("--out", "-o", help="Output file (.gif, or .mp4 with imageio-ffmpeg).")] = Path(
+        "episode.gif"
+    ),
+    seed: SeedOpt = 0,
+    preset: PresetOpt = "fast",
+    sets: SetOpt = None,
+    shield: ShieldOpt = None,
+    max_steps: Annotated[int | None, typer.Option("--max-steps", help="Stop after this many decisions.")] = None,
+) -> None:
+    """Render one episode offscreen with the action mask and the chosen action drawn on each frame."""
+    from safelane.env import make_env
+    from safelane.evaluation import FIXED_POLICIES, fixed_policy
+    from safelane.render import render_episode
+
+    if run_dir is not None:
+        from safelane.training import load_policy, load_run_config
+
+        cfg = load_run_config(run_dir).env
+        if shield is not None:
+            cfg = resolve_config(cfg.preset, sets, shield)
+        act = load_policy(run_dir)
+    else:
+        if policy is None or policy not in FIXED_POLICIES:
+            raise ConfigError(f"--policy: give one of {', '.join(FIXED_POLICIES)} (or a RUN_DIR)")
+        cfg = resolve_config(preset, sets, shield)
+        if cfg.shield.mode != "none":
+            cfg = resolve_config(preset, sets, shield, overrides={"shield.override": True})
+        act = fixed_policy(policy, seed)
+    env = make_env(cfg, render_mode="rgb_array")
+    result = render_episode(env, act, seed, out, max_steps=max_steps)
+    env.close()
+    typer.echo(f"wrote {result.path} ({result.frames} frames)")
+
+
+@app.command()
+@cli_errors
+def plot(
+    run_dirs: Annotated[list[Path], typer.Argument(help="One or more run directories.", metavar="RUN_DIR...")],
+    out: Annotated[Path, typer.Option("--out", "-o", help="Output PNG.")] = Path("training_curves.png"),
+    scaled: Annotated[bool, typer.Option("--scaled", help="Scale each curve to [0, 1] (paper Fig. 7).")] = False,
+) -> None:
+    """Plot training curves (smoothed return, ε) of one or several runs."""
+    from safelane.plots import plot_training_curves
+
+    for d in run_dirs:
+        if not (d / "metrics.csv").exists():
+            raise ConfigError(f"RUN_DIR {d}: no metrics.csv (not a training run)")
+    fig = plot_training_curves(run_dirs, scaled=scaled)
+    fig.savefig(out, dpi=110)
+    typer.echo(f"wrote {out}")
 
 
 if __name__ == "__main__":  # pragma: no cover

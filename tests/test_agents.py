@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from collections.abc import Iterator
+
 import numpy as np
 import pytest
 import torch
@@ -28,6 +30,15 @@ from safelane.agents import (
 from safelane.config import ConfigError
 
 T, F_ = True, False
+
+
+@pytest.fixture(autouse=True)
+def _one_torch_thread() -> Iterator[None]:
+    """Training runs torch single-threaded; under load, 2 intra-op threads make tiny updates ~40x slower."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
 
 
 def constant_net(net: nn.Module, values: list[float]) -> None:
@@ -178,7 +189,7 @@ def test_q_shaping_loss_hand_computed() -> None:
 
 def test_robust_agent_loss_matches_hand_computation_from_network_outputs() -> None:
     values = [1.0, 3.0, -2.0, 0.5, 4.0]
-    agent = agent_with_constant_q("robust", values, gamma=0.9, shaping_weight=1.0)
+    agent = agent_with_constant_q("robust", values, gamma=0.9, shaping_weight=1.0, shaping_floor="all_actions")
     assert isinstance(agent, RobustAgent)
     batch = batch_of(
         2,
@@ -193,15 +204,48 @@ def test_robust_agent_loss_matches_hand_computation_from_network_outputs() -> No
     # TD: ((3 - 4.6)² + (0.5 + 10)²) / 2 = (2.56 + 110.25) / 2 = 56.405
     # unsafe pairs of row 0 → floor -3: (-2 + 3)² = 1, (4 + 3)² = 49 → mean 25
     assert agent.loss(batch).item() == pytest.approx(56.405 + 25.0)
+    # with the floor over safe actions: row 0 min safe = 0.5 → floor -0.5: (−1.5)² = 2.25, 4.5² = 20.25
+    agent.cfg.shaping_floor = "safe_actions"
+    assert agent.td_target(batch).tolist() == pytest.approx([4.6, -10.0])  # the max is the same
+    assert agent.loss(batch).item() == pytest.approx(56.405 + 11.25)
+
+
+def _mask_of(obs: np.ndarray) -> np.ndarray:
+    """A state-dependent mask, as a shield gives: FASTER unsafe when obs[0] > 0, LANE_LEFT when obs[1] > 0.5."""
+    mask = np.ones(5, dtype=bool)
+    mask[3], mask[0] = obs[0] <= 0, obs[1] <= 0.5
+    return mask
+
+
+@pytest.mark.parametrize(("floor", "bounded"), [("safe_actions", True), ("all_actions", False)])
+def test_shaping_floor_over_all_actions_diverges(floor: str, bounded: bool) -> None:
+    """Rewards in [0, 1], γ = 0.9: true values ≈ 5. The safe floor stays near them; eq. 14's min over
+    all actions, used as a regression target, has no fixed point and runs away."""
+    cfg = load_agent_config("tuned", "robust", {"shaping_floor": floor, "lr": 1e-3})
+    agent = make_agent(cfg, seed=0)
+    rng = np.random.default_rng(0)
+    buf = ReplayBuffer(2000)
+    for _ in range(2000):
+        obs, nxt = rng.uniform(-1, 1, (2, 26)).astype(np.float32)
+        mask = _mask_of(obs)
+        buf.add(obs, int(rng.choice(np.flatnonzero(mask))), float(rng.random()), 0.0, nxt, False, mask, _mask_of(nxt))
+    for step in range(1, 1501):
+        agent.update(buf.sample(64, agent.rng))
+        if step % 200 == 0:
+            agent.sync_target()
+    with torch.no_grad():
+        q = agent.q_net(torch.from_numpy(buf.obs))
+    assert bool(q.min() > -20) is bounded
 
 
 def test_robust_regression_lowers_unsafe_values_below_safe_ones() -> None:
-    agent = make_agent(load_agent_config("tuned", "robust", {"lr": 1e-2, "shaping_floor": "safe_actions"}), 0)
+    agent = make_agent(load_agent_config("tuned", "robust", {"lr": 1e-2}), 0)
     rng = np.random.default_rng(0)
     obs = torch.from_numpy(rng.uniform(-1, 1, (32, 26)).astype(np.float32))
     mask = torch.tensor([[T, T, T, F_, T]] * 32)
-    batch = Batch(obs, torch.ones(32, dtype=torch.int64), torch.zeros(32), torch.zeros(32), obs,
-                  torch.ones(32), mask, mask)
+    batch = Batch(
+        obs, torch.ones(32, dtype=torch.int64), torch.zeros(32), torch.zeros(32), obs, torch.ones(32), mask, mask
+    )
     constant_net(agent.q_net, BEST_UNSAFE)
     for _ in range(300):
         agent.update(batch)
@@ -258,9 +302,16 @@ def test_update_reduces_the_loss_and_state_round_trips(method: str) -> None:
     for _ in range(64):
         mask = rng.random(5) > 0.3
         mask[1] = True
-        buf.add(rng.uniform(-1, 1, 26).astype(np.float32), int(rng.integers(5)), float(rng.random()),
-                float(rng.random() < 0.2), rng.uniform(-1, 1, 26).astype(np.float32), bool(rng.random() < 0.1),
-                mask, mask)
+        buf.add(
+            rng.uniform(-1, 1, 26).astype(np.float32),
+            int(rng.integers(5)),
+            float(rng.random()),
+            float(rng.random() < 0.2),
+            rng.uniform(-1, 1, 26).astype(np.float32),
+            bool(rng.random() < 0.1),
+            mask,
+            mask,
+        )
     batch = buf.sample(64, rng)
     first = agent.loss(batch).item()
     for _ in range(50):

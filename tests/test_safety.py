@@ -22,6 +22,8 @@ def mask_of(*actions: int) -> list[bool]:
 EXPECTED = {
     # A leader 25 m ahead at 15 m/s: too close to stop behind under full braking even with SLOWER;
     # the right lane is blocked by a car beside-ahead; escaping left is the only safe move.
+    # Robust: the leader may also swerve into the left lane while braking (it cannot see the ego
+    # entering it), so nothing is safe and the least-bad escape is flagged as a fallback.
     "leader_braking": {"nominal": mask_of(L), "robust": mask_of(L)},
     # A stopped car 60 m ahead: braking 5 m/s per decision from 25 m/s does not stop in time.
     "stopped_car_ahead": {"nominal": mask_of(L, R), "robust": mask_of(L, R)},
@@ -44,7 +46,7 @@ EXPECTED = {
 def test_scenario_masks(name: str, mode: str) -> None:
     scene = scenarios.SCENARIOS[name](mode=mode)
     assert scene.mask.tolist() == EXPECTED[name][mode]
-    assert scene.result.fallback == (name == "dense_jam")
+    assert scene.result.fallback == (name == "dense_jam" or (name, mode) == ("leader_braking", "robust"))
     available = scene.env.unwrapped.action_type.get_available_actions()
     assert set(np.flatnonzero(scene.mask)) <= set(available)
 

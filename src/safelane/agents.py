@@ -63,12 +63,8 @@ class AgentConfig(BaseModel):
     learning_starts: int = Field(200, ge=0, description="Environment steps collected before the first update.")
     train_freq: int = Field(1, ge=1, description="Environment steps between updates.")
     gradient_steps: int = Field(1, ge=1, description="Gradient steps per update.")
-    target_update_interval: int = Field(
-        200, ge=1, description="Environment steps between target-network updates."
-    )
-    tau: float = Field(
-        1.0, gt=0, le=1, description="Target update weight: 1 = copy (hard), < 1 = Polyak average."
-    )
+    target_update_interval: int = Field(200, ge=1, description="Environment steps between target-network updates.")
+    tau: float = Field(1.0, gt=0, le=1, description="Target update weight: 1 = copy (hard), < 1 = Polyak average.")
     eps_start: float = Field(1.0, ge=0, le=1, description="Exploration rate ε at step 0.")
     eps_end: float = Field(0.05, ge=0, le=1, description="Final exploration rate ε.")
     eps_decay_steps: int = Field(
@@ -93,10 +89,12 @@ class AgentConfig(BaseModel):
     shaping_weight: float = Field(
         1.0, ge=0, description="robust: weight of the unsafe-pair regression (Q-shaping) in the loss."
     )
-    shaping_floor: Literal["all_actions", "safe_actions"] = Field(
-        "all_actions",
-        description="robust: the minimum in eq. 14 is over all actions (the paper) or over safe actions "
-        "only (a fixed point exists: unsafe values settle at min_safe − 1 instead of drifting down).",
+    shaping_floor: Literal["safe_actions", "all_actions"] = Field(
+        "safe_actions",
+        description="robust: the minimum of eq. 14 over the safe actions, or over all actions as printed. "
+        "Acting and bootstrapping are the same either way; as the regression target of unsafe pairs, "
+        "all_actions has no fixed point (an unsafe value that is the minimum chases itself − 1) and "
+        "diverges; safe_actions settles unsafe values at min_safe − 1.",
     )
 
 
@@ -181,7 +179,14 @@ class ReplayBuffer:
     """Fixed-capacity circular experience replay in preallocated numpy arrays."""
 
     FIELDS: ClassVar[tuple[str, ...]] = (
-        "obs", "actions", "rewards", "costs", "next_obs", "dones", "masks", "next_masks"
+        "obs",
+        "actions",
+        "rewards",
+        "costs",
+        "next_obs",
+        "dones",
+        "masks",
+        "next_masks",
     )
 
     def __init__(self, capacity: int, obs_size: int = OBS_SIZE, n_actions: int = N_ACTIONS) -> None:
@@ -552,8 +557,13 @@ class RobustAgent(DQNAgent):
         """:func:`q_shaping_loss` with the configured weight, loss kind and floor."""
         cfg = self.cfg
         return q_shaping_loss(
-            self.q_net(batch.obs), batch.actions, self.td_target(batch), batch.masks,
-            weight=cfg.shaping_weight, kind=cfg.loss, over=cfg.shaping_floor,
+            self.q_net(batch.obs),
+            batch.actions,
+            self.td_target(batch),
+            batch.masks,
+            weight=cfg.shaping_weight,
+            kind=cfg.loss,
+            over=cfg.shaping_floor,
         )
 
 

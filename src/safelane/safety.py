@@ -336,17 +336,19 @@ def _occupancy(state: RoadState, dyn: Dynamics, mode: Mode, near: np.ndarray) ->
 
 def _cut_in_candidates(
     state: RoadState, dyn: Dynamics, near: np.ndarray, ego_x_end: float, ego_v_end: float, ego_target: float
-) -> np.ndarray:
-    """Vehicles whose own lane-change rule lets them cut in front of the ego now or by the period's end.
+) -> tuple[np.ndarray, np.ndarray]:
+    """Vehicles ahead that may cut in: (into a lane the ego is in, into a lane the ego is entering).
 
-    MOBIL's safety criterion (highway-env): a vehicle changes lane only if the IDM acceleration it
-    predicts for its new follower stays ≥ −LANE_CHANGE_MAX_BRAKING_IMPOSED. The ego is taken as that
-    follower (conservative and independent of the other vehicles, which keeps the model monotone).
-    Only vehicles ahead of the ego qualify; the criterion is checked now and at the end of the
-    decision period (others at constant speed, the ego on the action's trajectory).
+    Into a lane the ego already occupies, a vehicle changes lane only if its own rule allows it:
+    MOBIL's safety criterion (highway-env) requires the IDM acceleration it predicts for its new
+    follower — the ego — to stay ≥ −LANE_CHANGE_MAX_BRAKING_IMPOSED. The ego is taken as that follower
+    (conservative and independent of the other vehicles, which keeps the model monotone); the
+    criterion is checked now and at the end of the decision period (others at constant speed, the ego
+    on the action's trajectory). Into a lane the ego is only *entering*, the other driver cannot see the
+    ego there when it decides, so any moving vehicle ahead may cut in.
     """
     if near.size == 0:
-        return np.zeros(0, dtype=bool)
+        return np.zeros(0, dtype=bool), np.zeros(0, dtype=bool)
     can = state.can_change_lane[near] & (np.abs(state.vx[near]) >= 1.0)
     target = np.clip(ego_target, 0.0, state.speed_limit)
     d_now = state.x[near] - state.ego_x
@@ -359,7 +361,7 @@ def _cut_in_candidates(
     )
     limit = -state.max_braking_imposed[near]
     ahead = (d_now > 0) | (d_end > 0)
-    return can & ahead & ((a_now >= limit) | (a_end >= limit))
+    return can & ahead & ((a_now >= limit) | (a_end >= limit)), can & ahead
 
 
 def evaluate(state: RoadState, dyn: Dynamics, mode: Mode = "robust", formula: Formula = "kinematic") -> SafetyResult:
@@ -407,8 +409,8 @@ def evaluate(state: RoadState, dyn: Dynamics, mode: Mode = "robust", formula: Fo
         ego_lanes = _action_lanes(state, dyn, a)
         vehicles, lanes_v, starts, nominal_flags = occ.vehicle, occ.lane, occ.start, occ.nominal
         if mode == "robust":
-            used = {lane for lane, _ in ego_lanes}
-            cands = _cut_in_candidates(
+            occupied = {state.ego_lane, state.ego_target_lane}
+            permitted, unfiltered = _cut_in_candidates(
                 state,
                 dyn,
                 near,
@@ -417,11 +419,11 @@ def evaluate(state: RoadState, dyn: Dynamics, mode: Mode = "robust", formula: Fo
                 float(targets[a]),
             )
             extra_v, extra_l = [], []
-            for j in np.flatnonzero(cands):
-                for lane in used:
-                    if abs(int(lanes_near[j]) - lane) == 1:
-                        extra_v.append(int(near[j]))
-                        extra_l.append(lane)
+            for lane, _ in ego_lanes:
+                cands = permitted if lane in occupied else unfiltered
+                for j in np.flatnonzero(cands & (np.abs(lanes_near - lane) == 1)):
+                    extra_v.append(int(near[j]))
+                    extra_l.append(lane)
             vehicles = vehicles + extra_v
             lanes_v = lanes_v + extra_l
             starts = starts + [dyn.cut_in_time] * len(extra_v)

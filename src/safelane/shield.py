@@ -160,7 +160,7 @@ def road_state(env: gym.Env, dyn: Dynamics) -> RoadState:
         ),
         can_change_lane=np.array(
             [
-                idm and bool(getattr(o, "enable_lane_change", False)) and o.lane_index == o.target_lane_index
+                idm and bool(getattr(o, "enable_lane_change", False))
                 for o, idm in zip(others, is_idm, strict=True)
             ],
             dtype=bool,

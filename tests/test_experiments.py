@@ -1,0 +1,95 @@
+"""Experiment runner, report and stress suite on tiny budgets (real highway-env, real torch)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+from safelane.config import ConfigError
+from safelane.evaluation import fixed_policy
+from safelane.experiments import make_spec, run_dir_of, run_experiment
+from safelane.reporting import write_report
+from safelane.stress import load_conditions, run_condition
+
+TINY = ["env.duration=4", "env.vehicles_count=15"]
+
+
+def tiny_spec(**kw: object) -> object:
+    fields = dict(methods=["qmask", "robust"], seeds=[0], episodes=2, test_episodes=2, sets=TINY, quick=True)
+    fields.update(kw)
+    return make_spec(**fields)
+
+
+def test_reproduce_writes_report_and_resumes_without_duplicates(tmp_path: Path) -> None:
+    spec = tiny_spec()
+    first = run_experiment(spec, tmp_path, workers=1)
+    assert set(first["methods"]) == {"qmask", "robust"}
+    assert len(first["episodes"]) == 2 * 2
+    report = write_report(tmp_path)
+    text = report.read_text()
+    assert "Table 4" in text and "claims" in text
+    for fig in ("fig6.png", "fig7.png", "speed_vs_safety.png"):
+        assert (tmp_path / fig).stat().st_size > 1000
+    # A crash after one run finished: its evaluation is kept, the other run is redone, nothing doubles.
+    (run_dir_of(tmp_path, "robust", 0) / "eval.json").unlink()
+    (tmp_path / "results.json").unlink()
+    kept = (run_dir_of(tmp_path, "qmask", 0) / "eval.json").read_text()
+    second = run_experiment(spec, tmp_path, workers=1)
+    assert (run_dir_of(tmp_path, "qmask", 0) / "eval.json").read_text() == kept
+    assert len(second["episodes"]) == len(first["episodes"])
+    strip = [{k: v for k, v in e.items()} for e in second["episodes"]]
+    assert sorted(json.dumps(e, sort_keys=True) for e in strip) == sorted(
+        json.dumps(e, sort_keys=True) for e in first["episodes"]
+    )
+
+
+def test_unwritable_output_is_one_clear_error(tmp_path: Path) -> None:
+    blocker = tmp_path / "file"
+    blocker.write_text("x")
+    with pytest.raises(ConfigError, match="not writable"):
+        run_experiment(tiny_spec(), blocker / "out", workers=1)
+
+
+def test_spec_rejects_bad_input() -> None:
+    with pytest.raises(ConfigError, match="episodes"):
+        make_spec(episodes=0)
+    with pytest.raises(ConfigError, match="methods"):
+        make_spec(methods=["dqn", "magic"])
+
+
+def test_stress_suite_has_enough_conditions() -> None:
+    conditions = load_conditions()
+    assert len([c for c in conditions if not c.adversarial]) >= 10
+    assert {c.name for c in conditions if c.adversarial} >= {
+        "adversary_hard_brake",
+        "adversary_cut_in",
+        "adversary_stopped_car",
+    }
+
+
+def test_stress_condition_record(tmp_path: Path) -> None:
+    rec = run_condition("vehicles_behind_15", fixed_policy("faster"), 1, shield="robust", sets=["env.duration=4"])
+    for key in (
+        "name",
+        "adversarial",
+        "episodes",
+        "collisions",
+        "collision_rate",
+        "collision_rate_ci95",
+        "mean_speed",
+        "shield_intervention_rate",
+        "collision_kinds",
+    ):
+        assert key in rec
+    assert rec["episodes"] == 1 and rec["collision_rate_ci95"][0] == 0.0
+
+
+def test_stress_bad_conditions_file(tmp_path: Path) -> None:
+    bad = tmp_path / "c.yaml"
+    bad.write_text("- name: x\n  preset: fast\n  sets: {}\n  colour: red\n")
+    with pytest.raises(ConfigError, match="item 0"):
+        load_conditions(bad)
+    with pytest.raises(ConfigError, match="unknown 'nope'"):
+        run_condition("nope", fixed_policy("idle"), 1)

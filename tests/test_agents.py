@@ -26,6 +26,7 @@ from safelane.agents import (
     make_agent,
     q_shaping_loss,
     shaped_q,
+    shaping_target,
 )
 from safelane.config import ConfigError
 
@@ -166,30 +167,29 @@ def test_exploration_covers_every_safe_action_and_only_those() -> None:
 def test_shaped_q_puts_unsafe_pairs_below_every_safe_one() -> None:
     q = torch.tensor([[1.0, 3.0, -2.0, 0.5, 4.0]])
     mask = torch.tensor([[T, T, F_, T, F_]])
-    assert shaped_q(q, mask).tolist() == [[1.0, 3.0, -3.0, 0.5, -3.0]]  # min over all = -2, minus 1
-    assert shaped_q(q, mask, "safe_actions").tolist() == [[1.0, 3.0, -0.5, 0.5, -0.5]]  # min safe = 0.5
+    assert shaped_q(q, mask).tolist() == [[1.0, 3.0, -3.0, 0.5, -3.0]]  # eq. 14: min over all = -2, minus 1
 
 
-def test_q_shaping_loss_hand_computed() -> None:
-    q = torch.tensor([[1.0, 3.0, -2.0, 0.5, 4.0], [2.0, 2.0, 2.0, 2.0, 2.0]], requires_grad=True)
-    mask = torch.tensor([[T, T, F_, T, F_], [T, T, T, T, F_]])
-    actions = torch.tensor([1, 0])
-    target = torch.tensor([2.5, 1.0])
-    # TD: ((3 - 2.5)² + (2 - 1)²) / 2 = (0.25 + 1) / 2 = 0.625
-    # floors: row 0 min -2 → -3; row 1 min 2 → 1
-    # unsafe pairs: (0,2): (-2 - -3)² = 1; (0,4): (4 - -3)² = 49; (1,4): (2 - 1)² = 1 → mean 51/3 = 17
-    loss = q_shaping_loss(q, actions, target, mask, weight=0.5, kind="mse")
-    assert loss.item() == pytest.approx(0.625 + 0.5 * 17.0)
-    loss.backward()
-    # stop-gradient: the floor carries no gradient, so safe untaken pairs get none
-    assert q.grad[0, 0] == 0 and q.grad[0, 3] == 0
-    assert q.grad[0, 4].item() == pytest.approx(0.5 * 2 * 7 / 3)  # weight · 2·(q − floor) / n_unsafe
-    assert q.grad[0, 1].item() == pytest.approx(2 * 0.5 / 2)  # 2·(q − y) / B
+def test_shaping_targets_hand_computed() -> None:
+    q = torch.tensor([[1.0, 3.0, -2.0, 0.5, 4.0]])
+    mask = torch.tensor([[T, T, F_, T, F_]])
+    taken = torch.tensor([1])
+    assert shaping_target(q, mask, taken, "all_min").item() == -3.0  # min all −2, − 1
+    assert shaping_target(q, mask, taken, "safe_min").item() == -0.5  # min safe 0.5, − 1
+    assert shaping_target(q, mask, taken, "taken_action").item() == 2.0  # Q(s, 1) = 3, − 1
 
 
-def test_robust_agent_loss_matches_hand_computation_from_network_outputs() -> None:
-    values = [1.0, 3.0, -2.0, 0.5, 4.0]
-    agent = agent_with_constant_q("robust", values, gamma=0.9, shaping_weight=1.0, shaping_floor="all_actions")
+@pytest.mark.parametrize(
+    ("target", "unsafe_mean"),
+    [
+        ("all_min", ((-2 + 3) ** 2 + (4 + 3) ** 2) / 2),  # target −3 → (1 + 49) / 2 = 25
+        ("safe_min", ((-2 + 0.5) ** 2 + (4 + 0.5) ** 2) / 2),  # target −0.5 → (2.25 + 20.25) / 2 = 11.25
+        ("taken_action", ((-2 - 2) ** 2 + (4 - 2) ** 2) / 2),  # target 3 − 1 = 2 → (16 + 4) / 2 = 10
+    ],
+)
+def test_robust_agent_loss_matches_hand_computation_from_network_outputs(target: str, unsafe_mean: float) -> None:
+    values = [1.0, 3.0, -2.0, 0.5, 4.0]  # every state: last layer weights 0, bias = values
+    agent = agent_with_constant_q("robust", values, gamma=0.9, shaping_weight=0.5, shaping_target=target)
     assert isinstance(agent, RobustAgent)
     batch = batch_of(
         2,
@@ -199,37 +199,55 @@ def test_robust_agent_loss_matches_hand_computation_from_network_outputs() -> No
         rewards=[1.0, -10.0],
         dones=[0.0, 1.0],
     )
-    # y0 = 1 + 0.9 · max(safe next) = 1 + 0.9 · 4 = 4.6; y1 = -10 (terminal)
+    # y0 = 1 + 0.9 · max over safe next actions {3, −2, 4} = 4.6; y1 = −10 (terminal, no bootstrap)
     assert agent.td_target(batch).tolist() == pytest.approx([4.6, -10.0])
-    # TD: ((3 - 4.6)² + (0.5 + 10)²) / 2 = (2.56 + 110.25) / 2 = 56.405
-    # unsafe pairs of row 0 → floor -3: (-2 + 3)² = 1, (4 + 3)² = 49 → mean 25
-    assert agent.loss(batch).item() == pytest.approx(56.405 + 25.0)
-    # with the floor over safe actions: row 0 min safe = 0.5 → floor -0.5: (−1.5)² = 2.25, 4.5² = 20.25
-    agent.cfg.shaping_floor = "safe_actions"
-    assert agent.td_target(batch).tolist() == pytest.approx([4.6, -10.0])  # the max is the same
-    assert agent.loss(batch).item() == pytest.approx(56.405 + 11.25)
+    # TD (mse): ((3 − 4.6)² + (0.5 + 10)²) / 2 = (2.56 + 110.25) / 2 = 56.405; row 1 has no unsafe pair
+    assert agent.loss(batch).item() == pytest.approx(56.405 + 0.5 * unsafe_mean)
 
 
-def _mask_of(obs: np.ndarray) -> np.ndarray:
-    """A state-dependent mask, as a shield gives: FASTER unsafe when obs[0] > 0, LANE_LEFT when obs[1] > 0.5."""
+def test_q_shaping_loss_gradient_stops_at_the_target() -> None:
+    q = torch.tensor([[1.0, 3.0, -2.0, 0.5, 4.0], [2.0, 2.0, 2.0, 2.0, 2.0]], requires_grad=True)
+    mask = torch.tensor([[T, T, F_, T, F_], [T, T, T, T, F_]])
+    actions = torch.tensor([1, 0])
+    y = torch.tensor([2.5, 1.0])
+    # TD: ((3 − 2.5)² + (2 − 1)²) / 2 = 0.625; targets: row 0: 3 − 1 = 2, row 1: 2 − 1 = 1
+    # unsafe pairs: (0,2): (−2 − 2)² = 16; (0,4): (4 − 2)² = 4; (1,4): (2 − 1)² = 1 → mean 7
+    loss = q_shaping_loss(q, actions, y, mask, weight=0.5, kind="mse", target="taken_action")
+    assert loss.item() == pytest.approx(0.625 + 0.5 * 7.0)
+    loss.backward()
+    assert q.grad is not None
+    assert q.grad[0, 0] == 0 and q.grad[0, 3] == 0  # safe, not taken: no gradient
+    assert q.grad[0, 1].item() == pytest.approx(2 * 0.5 / 2)  # TD only: the target is detached
+    assert q.grad[0, 4].item() == pytest.approx(0.5 * 2 * 2 / 3)  # weight · 2·(q − t) / n_unsafe
+
+
+def _edge_mask(obs: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """FASTER unsafe when obs[0] > 0 (observable); LANE_LEFT or LANE_RIGHT unsafe at random, like a road
+    edge, which safelane's state does not show."""
     mask = np.ones(5, dtype=bool)
-    mask[3], mask[0] = obs[0] <= 0, obs[1] <= 0.5
+    mask[3] = obs[0] <= 0
+    edge = rng.random()
+    if edge < 0.25:
+        mask[0] = False
+    elif edge < 0.5:
+        mask[2] = False
     return mask
 
 
-@pytest.mark.parametrize(("floor", "bounded"), [("safe_actions", True), ("all_actions", False)])
-def test_shaping_floor_over_all_actions_diverges(floor: str, bounded: bool) -> None:
-    """Rewards in [0, 1], γ = 0.9: true values ≈ 5. The safe floor stays near them; eq. 14's min over
-    all actions, used as a regression target, has no fixed point and runs away."""
-    cfg = load_agent_config("tuned", "robust", {"shaping_floor": floor, "lr": 1e-3})
-    agent = make_agent(cfg, seed=0)
+@pytest.mark.parametrize(("target", "bounded"), [("taken_action", True), ("safe_min", False), ("all_min", False)])
+def test_only_the_taken_action_target_keeps_q_bounded(target: str, bounded: bool) -> None:
+    """Rewards in [0, 1], γ = 0.9, IDLE taken 90 %: true values ≤ 10. Regressing unsafe pairs to eq. 14's
+    minimum (over all or over safe actions) has no fixed point: LANE_LEFT and LANE_RIGHT drag each other
+    down through their untrained safe values. The taken action's value is anchored by its TD target."""
+    agent = make_agent(load_agent_config("tuned", "robust", {"shaping_target": target, "lr": 1e-3}), seed=0)
     rng = np.random.default_rng(0)
     buf = ReplayBuffer(2000)
     for _ in range(2000):
         obs, nxt = rng.uniform(-1, 1, (2, 26)).astype(np.float32)
-        mask = _mask_of(obs)
-        buf.add(obs, int(rng.choice(np.flatnonzero(mask))), float(rng.random()), 0.0, nxt, False, mask, _mask_of(nxt))
-    for step in range(1, 1501):
+        mask = _edge_mask(obs, rng)
+        action = 1 if rng.random() < 0.9 else int(rng.choice(np.flatnonzero(mask)))
+        buf.add(obs, action, float(rng.random()), 0.0, nxt, False, mask, _edge_mask(nxt, rng))
+    for step in range(1, 501):
         agent.update(buf.sample(64, agent.rng))
         if step % 200 == 0:
             agent.sync_target()

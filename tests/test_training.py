@@ -23,6 +23,7 @@ from safelane.training import (
     CHECKPOINT_FILE,
     METRIC_COLUMNS,
     EpisodeReport,
+    TrainConfig,
     TrainingInterrupted,
     load_checkpoint,
     load_policy,
@@ -53,8 +54,8 @@ def _torch_threads_restored() -> Iterator[None]:
     assert torch.get_num_threads() == threads  # train() restores what it changes
 
 
-def small(method: str, episodes: int = 4, seed: int = 0, **fields: object) -> object:
-    return make_train_config(method=method, episodes=episodes, seed=seed, checkpoint_every=2, sets=SMALL, **fields)
+def small(method: str, episodes: int = 4, seed: int = 0) -> TrainConfig:
+    return make_train_config(method=method, episodes=episodes, seed=seed, checkpoint_every=2, sets=SMALL)
 
 
 def read_metrics(run_dir: Path) -> list[dict[str, str]]:

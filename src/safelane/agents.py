@@ -89,12 +89,12 @@ class AgentConfig(BaseModel):
     shaping_weight: float = Field(
         1.0, ge=0, description="robust: weight of the unsafe-pair regression (Q-shaping) in the loss."
     )
-    shaping_floor: Literal["safe_actions", "all_actions"] = Field(
-        "safe_actions",
-        description="robust: the minimum of eq. 14 over the safe actions, or over all actions as printed. "
-        "Acting and bootstrapping are the same either way; as the regression target of unsafe pairs, "
-        "all_actions has no fixed point (an unsafe value that is the minimum chases itself − 1) and "
-        "diverges; safe_actions settles unsafe values at min_safe − 1.",
+    shaping_target: Literal["taken_action", "safe_min", "all_min"] = Field(
+        "taken_action",
+        description="robust: what an unsafe pair of s is regressed to, minus 1: the (detached) value of the "
+        "action taken in s (anchored by its TD target), the minimum over safe actions, or eq. 14's minimum "
+        "over all actions. Only taken_action has a fixed point in practice: all_min chases itself − 1, "
+        "safe_min cascades through rarely taken safe actions (see q_shaping_loss).",
     )
 
 
@@ -264,27 +264,36 @@ def masked_max(q: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
     return q.masked_fill(~mask, float("-inf")).max(dim=1).values
 
 
-def shaping_floor(q: torch.Tensor, mask: torch.Tensor, over: str = "all_actions") -> torch.Tensor:
-    """``min_a Q_θ(s, a) − 1`` per row, shape (B, 1): the value eq. 14 gives an unsafe pair.
-
-    ``over = "all_actions"`` takes the minimum over all actions as printed in eq. 14;
-    ``"safe_actions"`` over the safe ones only.
-    """
-    source = q if over == "all_actions" else q.masked_fill(~mask, float("inf"))
-    return source.min(dim=1, keepdim=True).values - SHAPING_MARGIN
-
-
-def shaped_q(q: torch.Tensor, mask: torch.Tensor, over: str = "all_actions") -> torch.Tensor:
+def shaped_q(q: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
     """Q-shaping (eqs. 13–14): ``Q(s, a) = Q_θ(s, a) + Q_u(s, a)``.
 
     Eq. 14 sets ``Q_u = 0`` on safe pairs. On an unsafe pair it writes ``Q_u = min_a Q_θ(s, a) − 1``;
     read as an additive correction that makes the *sum* ``Q_θ + Q_u`` equal ``min_a Q_θ(s, ·) − 1``
     (the paper's stated intent: "the Q of an unsafe pair will be less than the minimum of the safe
     pairs"), ``Q_u = (min_a Q_θ(s, ·) − 1) − Q_θ(s, a)``. So the shaped value is ``Q_θ(s, a)`` for a
-    safe pair and ``min_a Q_θ(s, ·) − 1`` for an unsafe one, strictly below every safe value: the
-    argmax and the max of shaped Q are those over safe actions only.
+    safe pair and ``min_a Q_θ(s, ·) − 1`` (minimum over all actions) for an unsafe one, strictly below
+    every safe value: the argmax and the max of shaped Q are those over safe actions only.
     """
-    return torch.where(mask, q, shaping_floor(q, mask, over))
+    floor = q.min(dim=1, keepdim=True).values - SHAPING_MARGIN
+    return torch.where(mask, q, floor)
+
+
+def shaping_target(
+    q: torch.Tensor, mask: torch.Tensor, actions: torch.Tensor, kind: str = "taken_action"
+) -> torch.Tensor:
+    """The (detached) value an unsafe pair of each row is regressed to, shape (B, 1).
+
+    ``all_min``: ``min_a Q_θ(s, a) − 1``, eq. 14 as printed; ``safe_min``: the minimum over safe
+    actions − 1; ``taken_action``: ``Q_θ(s, a_taken) − 1`` (the taken action is safe and anchored by
+    its TD target). See :func:`q_shaping_loss` for why the default is ``taken_action``.
+    """
+    if kind == "all_min":
+        ref = q.min(dim=1, keepdim=True).values
+    elif kind == "safe_min":
+        ref = q.masked_fill(~mask, float("inf")).min(dim=1, keepdim=True).values
+    else:
+        ref = q.gather(1, actions.unsqueeze(1))
+    return ref.detach() - SHAPING_MARGIN
 
 
 def q_shaping_loss(
@@ -294,21 +303,29 @@ def q_shaping_loss(
     mask: torch.Tensor,
     weight: float = 1.0,
     kind: str = "mse",
-    over: str = "all_actions",
+    target: str = "taken_action",
 ) -> torch.Tensor:
     """Robust Q-masking loss: TD loss of the taken actions + ``weight`` × unsafe-pair regression.
 
     ``TD = mean_b ℓ(Q_θ(s_b, a_b), y_b)``; ``shaping = mean over unsafe pairs (b, a) of
-    ℓ(Q_θ(s_b, a), stopgrad(min_a' Q_θ(s_b, a') − 1))`` (0 when the batch has no unsafe pair);
-    ``loss = TD + weight · shaping``. ``ℓ`` is the squared error (mse) or smooth L1 (huber). The
-    regression teaches the network itself the low value of unsafe pairs, so it generalises to nearby
-    states instead of staying high as under Q-masking.
+    ℓ(Q_θ(s_b, a), t_b)`` with ``t_b`` = :func:`shaping_target` (no gradient; 0 when the batch has no
+    unsafe pair); ``loss = TD + weight · shaping``. ``ℓ`` is the squared error (mse) or smooth L1
+    (huber). The regression teaches the network itself the low value of unsafe pairs, so it
+    generalises to nearby states instead of staying high as under Q-masking.
+
+    Why the target is anchored to the taken action: with eq. 14's minimum over all actions an unsafe
+    value that is the minimum is pulled to itself − 1 at every step (no fixed point; two unsafe actions
+    leapfrog) and Q diverges within a few thousand updates. With the minimum over safe actions the
+    chase goes through safe actions that are rarely taken (no TD anchor): in safelane's state the
+    road edge is not observed, so LANE_LEFT (unsafe at the left edge) and LANE_RIGHT (unsafe at the
+    right edge) push each other down, and after 20 000 decisions their values reached −5·10⁴. The
+    taken action's value is tied to rewards by its own TD target, so the regression has a fixed point.
     """
     q_taken = q.gather(1, actions.unsqueeze(1)).squeeze(1)
     td = elementwise_loss(kind, q_taken, td_target).mean()
     unsafe = ~mask
-    target = shaping_floor(q, mask, over).detach().expand_as(q)
-    per_pair = elementwise_loss(kind, q, target) * unsafe
+    goal = shaping_target(q, mask, actions, target).expand_as(q)
+    per_pair = elementwise_loss(kind, q, goal) * unsafe
     shaping = per_pair.sum() / unsafe.sum().clamp(min=1)
     return td + weight * shaping
 
@@ -533,7 +550,9 @@ class RobustAgent(DQNAgent):
     Acting maximises the shaped Q (:func:`shaped_q`), so unsafe actions are never chosen; exploration
     picks among safe actions. The TD target bootstraps from the shaped target Q of ``s'`` (its max is
     the max over safe actions). The loss (:func:`q_shaping_loss`) adds a regression of every unsafe
-    pair of ``s`` toward its shaped value, so the network learns the low value and generalises it.
+    pair of ``s`` toward a value 1 below a reference (``shaping_target``: by default the taken action's
+    value; eq. 14's minimum diverges as a target), so the network learns the low value and
+    generalises it.
     """
 
     method: ClassVar[str] = "robust"
@@ -545,16 +564,16 @@ class RobustAgent(DQNAgent):
 
     def action_values(self, obs: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
         """Shaped Q (eqs. 13–14)."""
-        return shaped_q(self.q_net(obs), mask, self.cfg.shaping_floor)
+        return shaped_q(self.q_net(obs), mask)
 
     def td_target(self, batch: Batch) -> torch.Tensor:
         """``r + γ·max_a' Q_shaped^tgt(s', a')·(1 − done)``."""
         with torch.no_grad():
-            shaped = shaped_q(self.targets["q"](batch.next_obs), batch.next_masks, self.cfg.shaping_floor)
+            shaped = shaped_q(self.targets["q"](batch.next_obs), batch.next_masks)
             return batch.rewards + self.cfg.gamma * shaped.max(dim=1).values * (1.0 - batch.dones)
 
     def loss(self, batch: Batch) -> torch.Tensor:
-        """:func:`q_shaping_loss` with the configured weight, loss kind and floor."""
+        """:func:`q_shaping_loss` with the configured weight, loss kind and regression target."""
         cfg = self.cfg
         return q_shaping_loss(
             self.q_net(batch.obs),
@@ -563,7 +582,7 @@ class RobustAgent(DQNAgent):
             batch.masks,
             weight=cfg.shaping_weight,
             kind=cfg.loss,
-            over=cfg.shaping_floor,
+            target=cfg.shaping_target,
         )
 
 

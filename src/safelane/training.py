@@ -18,6 +18,7 @@ run killed at any moment and resumed from its checkpoint ends exactly as an unin
 from __future__ import annotations
 
 import contextlib
+import copy
 import csv
 import io
 import os
@@ -45,7 +46,15 @@ from safelane.agents import (
     make_agent,
     sanitize_mask,
 )
-from safelane.config import ENV_PRESETS, ConfigError, SafelaneConfig, build_config, config_to_dict, parse_set
+from safelane.config import (
+    ENV_PRESETS,
+    ConfigError,
+    SafelaneConfig,
+    build_config,
+    config_to_dict,
+    load_config,
+    parse_set,
+)
 from safelane.env import make_env
 
 CONFIG_FILE = "config.yaml"
@@ -183,19 +192,13 @@ def resolve(cfg: TrainConfig) -> RunConfig:
         else:
             allowed = ", ".join(("agent", *ENV_SECTIONS))
             raise ConfigError(f"--set {key}: unknown section '{head}'; allowed: {allowed}")
-    env_cfg = _load_env_config(cfg.env_preset, env_sets)
+    env_cfg = load_config(cfg.env_preset, sets=env_sets)
     if cfg.method in ("qmask", "robust") and env_cfg.shield.mode == "none":
         raise ConfigError(f"shield.mode: {cfg.method} acts on the shield's mask; use nominal or robust, not none")
     if env_cfg.shield.override:
         raise ConfigError("shield.override: must be false for training (the agent learns from its own action)")
     agent_cfg = load_agent_config(cfg.agent_preset, cfg.method, agent_overrides)
     return RunConfig(cfg, agent_cfg, env_cfg)
-
-
-def _load_env_config(preset: str, sets: list[str]) -> SafelaneConfig:
-    from safelane.config import load_config
-
-    return load_config(preset, sets=sets)
 
 
 def run_config_dict(run: RunConfig) -> dict[str, Any]:
@@ -305,8 +308,6 @@ def _snapshot(
     wall_time_s: float,
 ) -> dict[str, Any]:
     """A self-contained copy of the training state at an episode boundary."""
-    import copy
-
     return {
         "format": CHECKPOINT_FORMAT,
         "config": run_config_dict(run),

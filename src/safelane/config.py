@@ -186,13 +186,13 @@ def validate_env_keys(env_id: str, env: dict[str, Any]) -> None:
             raise ConfigError(f"env.{key}: expected {want} (like {default!r}), got {value!r}")
 
 
-def _first_error(err: ValidationError) -> str:
+def validation_message(err: ValidationError, model: Any = None, prefix: str = "") -> str:
+    """One line for the first error of a pydantic validation: the key, what was given, what is allowed."""
     e = err.errors()[0]
-    loc = ".".join(str(p) for p in e["loc"])
+    loc = prefix + ".".join(str(p) for p in e["loc"])
     msg = e["msg"]
-    if e["type"] == "extra_forbidden":
+    if e["type"] == "extra_forbidden" and model is not None:
         section = e["loc"][:-1]
-        model: Any = SafelaneConfig
         for part in section:
             model = model.model_fields[str(part)].annotation
         allowed = ", ".join(model.model_fields)
@@ -209,7 +209,7 @@ def build_config(data: dict[str, Any]) -> SafelaneConfig:
     try:
         cfg = SafelaneConfig.model_validate(data)
     except ValidationError as err:
-        raise ConfigError(_first_error(err)) from None
+        raise ConfigError(validation_message(err, SafelaneConfig)) from None
     validate_env_keys(cfg.env_id, cfg.env)
     return cfg
 

@@ -20,7 +20,7 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
-from safelane.config import ConfigError
+from safelane.config import ConfigError, validation_message
 
 METHODS: tuple[str, ...] = ("dqn", "constrained", "qmask", "robust")
 TEST_SEED_BASE = 2_000_000_000
@@ -52,9 +52,7 @@ def make_spec(**fields: Any) -> ExperimentSpec:
     try:
         return ExperimentSpec(**fields)
     except ValidationError as err:
-        e = err.errors()[0]
-        key = ".".join(str(p) for p in e["loc"])
-        raise ConfigError(f"reproduce.{key}: {e['msg']} (got {e.get('input')!r})") from None
+        raise ConfigError(validation_message(err, ExperimentSpec, "reproduce.")) from None
 
 
 def atomic_write_text(path: Path, text: str) -> None:

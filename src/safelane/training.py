@@ -54,6 +54,7 @@ from safelane.config import (
     config_to_dict,
     load_config,
     parse_set,
+    validation_message,
 )
 from safelane.env import make_env
 
@@ -124,9 +125,7 @@ def make_train_config(**fields: Any) -> TrainConfig:
     try:
         return TrainConfig(**fields)
     except ValidationError as err:
-        e = err.errors()[0]
-        key = ".".join(str(p) for p in e["loc"])
-        raise ConfigError(f"train.{key}: {e['msg']} (got {e.get('input')!r})") from None
+        raise ConfigError(validation_message(err, TrainConfig, "train.")) from None
 
 
 class RunConfig(NamedTuple):

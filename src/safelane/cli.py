@@ -81,7 +81,7 @@ def fail(message: str) -> NoReturn:
 
 
 def cli_errors(fn: F) -> F:
-    """Turn ConfigError / ValueError raised by a command into one ``error:`` line and exit code 2."""
+    """Turn ConfigError / ValueError / OSError raised by a command into one ``error:`` line and exit code 2."""
 
     @functools.wraps(fn)
     def wrapper(*args: Any, **kwargs: Any) -> Any:
@@ -89,6 +89,9 @@ def cli_errors(fn: F) -> F:
             return fn(*args, **kwargs)
         except (ConfigError, ValueError) as err:
             fail(str(err))
+        except OSError as err:  # full disk, unwritable directory…: earlier files are left intact
+            where = f"{err.filename}: " if err.filename else ""
+            fail(f"{where}{err.strerror or err} (nothing written; earlier checkpoints and results are intact)")
 
     return wrapper  # type: ignore[return-value]
 

@@ -23,13 +23,14 @@ def tiny_spec(**kw: object) -> object:
 
 
 def test_reproduce_writes_report_and_resumes_without_duplicates(tmp_path: Path) -> None:
-    spec = tiny_spec()
+    spec = tiny_spec(stress_conditions=["vehicles_behind_15"], stress_episodes=1)
     first = run_experiment(spec, tmp_path, workers=1)
     assert set(first["methods"]) == {"qmask", "robust"}
     assert len(first["episodes"]) == 2 * 2
     report = write_report(tmp_path)
     text = report.read_text()
     assert "Table 4" in text and "claims" in text
+    assert "Generalisation" in text and "vehicles_behind_15" in text
     for fig in ("fig6.png", "fig7.png", "speed_vs_safety.png"):
         assert (tmp_path / fig).stat().st_size > 1000
     # A crash after one run finished: its evaluation is kept, the other run is redone, nothing doubles.

@@ -409,6 +409,12 @@ def reproduce(
     agent_preset: Annotated[str, typer.Option("--agent-preset", help="paper or tuned.")] = "tuned",
     sets: SetOpt = None,
     gifs: Annotated[bool, typer.Option("--gifs/--no-gifs", help="Render one episode GIF per method.")] = True,
+    stress_episodes: Annotated[
+        int, typer.Option("--stress-episodes", help="Also evaluate every run on the stress conditions (0: skip).")
+    ] = 0,
+    stress_only: Annotated[
+        list[str] | None, typer.Option("--stress-only", help="Stress conditions to use (default: all).")
+    ] = None,
 ) -> None:
     """Train every method × seed, evaluate on held-out episodes, write Table 4 / Fig. 6 / Fig. 7 and claims."""
     from safelane.experiments import make_spec, run_experiment
@@ -421,7 +427,18 @@ def reproduce(
     check_positive("--test-episodes", test_episodes)
     if workers is not None:
         check_positive("--workers", workers)
+    stress_names: list[str] = []
+    if stress_episodes > 0:
+        from safelane.stress import load_conditions
+
+        names = [c.name for c in load_conditions()]
+        unknown = [n for n in stress_only or [] if n not in names]
+        if unknown:
+            raise ConfigError(f"--stress-only: unknown condition '{unknown[0]}'; allowed: {', '.join(names)}")
+        stress_names = list(stress_only or names)
     spec = make_spec(
+        stress_conditions=stress_names,
+        stress_episodes=max(stress_episodes, 1),
         seeds=list(range(seeds)),
         episodes=episodes,
         test_episodes=test_episodes,

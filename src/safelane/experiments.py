@@ -126,7 +126,13 @@ def _task(out_dir: str, spec_json: str, method: str, seed: int) -> dict[str, Any
         for name in spec.stress_conditions:
             stress.append(
                 run_condition(
-                    name, policy, spec.stress_episodes, shield=run.env.shield.mode, base=run.env, override=False
+                    name,
+                    policy,
+                    spec.stress_episodes,
+                    shield=run.env.shield.mode,
+                    override=False,
+                    sets=spec.sets,
+                    base=run.env,
                 )
             )
     summary = summarize(records, method=method, seed=seed)

@@ -104,7 +104,7 @@ def test_env_show_preset_and_shield() -> None:
         (["evaluate", "--policy", "fastest"], "--policy: unknown policy 'fastest'; allowed: random, idle, faster"),
         (["evaluate"], "evaluate: give --policy"),
         (["evaluate", "runs/dqn", "--policy", "idle"], "evaluate: give either RUN_DIR or --policy, not both"),
-        (["evaluate", "--policy", "idle", "--set", "reward.v_max=10"], "reward.v_max: must be greater than"),
+        (["evaluate", "--policy", "idle", "--set", "reward.v_max=-10"], "reward.v_max: must be greater than"),
         (["bench", "--episodes", "0"], "--episodes: must be >= 1"),
         (["bench", "--shield", "none"], "--shield: bench measures a shield; allowed: nominal, robust"),
     ],

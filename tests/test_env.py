@@ -160,12 +160,12 @@ def test_paper_state_with_an_empty_road(make_fast_env: MakeEnv, scene: Callable[
 @pytest.mark.parametrize(
     ("speed", "collision", "reward"),
     [
-        (25.0, False, 0.5),  # halfway between v_min 20 and v_max 30
-        (20.0, False, 0.0),
-        (10.0, False, 0.0),  # clipped below
+        (15.0, False, 0.5),  # halfway between v_min 0 and v_max 30
+        (0.0, False, 0.0),
+        (-2.0, False, 0.0),  # clipped below (reversing)
         (30.0, False, 1.0),
         (38.0, False, 1.0),  # clipped above
-        (25.0, True, 0.5 - 10.0),  # c = 10
+        (15.0, True, 0.5 - 10.0),  # c = 10
         (0.0, True, -10.0),
     ],
 )

@@ -40,7 +40,12 @@ class RewardConfig(_Section):
         description="Collision penalty. A crash also ends the episode, which already costs the "
         "future speed reward; c adds an explicit penalty on top (the paper grid-searched it).",
     )
-    v_min: float = Field(20.0, description="Speed [m/s] that earns 0 speed reward (clipped below).")
+    v_min: float = Field(
+        0.0,
+        description="Speed [m/s] that earns 0 speed reward (clipped below). 0 = the ego's lowest set-point: "
+        "every metre per second counts, so surviving slowly still beats crashing (with highway-env's 20, "
+        "speeds below 20 m/s all earn 0 and an agent that has slowed down gets no signal to speed up).",
+    )
     v_max: float = Field(30.0, description="Speed [m/s] that earns the full speed reward b (clipped above).")
 
     @field_validator("v_max")

@@ -298,7 +298,7 @@ def bench(
 def evaluate_run(run_dir: Path, episodes: int, seed: int, sets: list[str] | None, shield: str | None) -> dict[str, Any]:
     """Evaluate a trained run's greedy policy on its own environment config (plus --set / --shield)."""
     from safelane.config import build_config
-    from safelane.evaluation import run_episodes, summarize
+    from safelane.evaluation import run_config, summarize
     from safelane.training import load_policy, load_run_config
 
     run = load_run_config(run_dir)
@@ -313,12 +313,8 @@ def evaluate_run(run_dir: Path, episodes: int, seed: int, sets: list[str] | None
         data["shield"]["mode"] = shield
     cfg = build_config(data)
     policy = load_policy(run_dir)
-    from safelane.env import make_env
-
-    env = make_env(cfg)
     with episode_progress(f"evaluate {run_dir}", episodes) as advance:
-        records = run_episodes(env, policy, episodes, seed, advance)
-    env.close()
+        records = run_config(cfg, policy, episodes, seed, advance)
     return summarize(
         records,
         method=run.train.method,

@@ -306,6 +306,23 @@ def summarize(records: list[EpisodeRecord], **meta: Any) -> dict[str, Any]:
     return summary
 
 
+def run_config(
+    config: SafelaneConfig,
+    policy: Policy,
+    episodes: int,
+    seed: int,
+    progress: ProgressCallback | None = None,
+) -> list[EpisodeRecord]:
+    """Build the environment of ``config``, play :func:`run_episodes` on it, and close it."""
+    from safelane.env import make_env
+
+    env = make_env(config)
+    try:
+        return run_episodes(env, policy, episodes, seed, progress)
+    finally:
+        env.close()
+
+
 def evaluate_fixed(
     config: SafelaneConfig,
     policy: str,
@@ -317,7 +334,6 @@ def evaluate_fixed(
     :func:`summarize` with ``policy``, ``shield``, ``override``, ``preset``, ``env_id``, ``backend``, ``seed`` and
     ``wall_time_s`` added. With a shield the config should set ``shield.override`` (a fixed policy
     cannot read the mask)."""
-    from safelane.env import make_env
 
     if episodes < 1:
         raise ConfigError(f"--episodes: must be >= 1 (got {episodes})")
@@ -325,11 +341,7 @@ def evaluate_fixed(
         raise ConfigError(f"--seed: must be >= 0 (got {seed})")
     act = fixed_policy(policy, seed)
     start = time.perf_counter()
-    env = make_env(config)
-    try:
-        records = run_episodes(env, act, episodes, seed, progress)
-    finally:
-        env.close()
+    records = run_config(config, act, episodes, seed, progress)
     return summarize(
         records,
         policy=policy,

@@ -79,8 +79,7 @@ def _task(out_dir: str, spec_json: str, method: str, seed: int) -> dict[str, Any
     """Train (or resume) one run and evaluate it; returns its evaluation record (also on disk)."""
     import torch
 
-    from safelane.env import make_env
-    from safelane.evaluation import run_episodes, summarize
+    from safelane.evaluation import run_config, summarize
     from safelane.training import load_policy, load_run_config, make_train_config, train
 
     torch.set_num_threads(1)
@@ -104,10 +103,8 @@ def _task(out_dir: str, spec_json: str, method: str, seed: int) -> dict[str, Any
     train_time = time.perf_counter() - start
     run = load_run_config(run_dir)
     policy = load_policy(run_dir)
-    env = make_env(run.env)
     reward_c = run.env.reward.c
-    records = run_episodes(env, policy, spec.test_episodes, TEST_SEED_BASE)
-    env.close()
+    records = run_config(run.env, policy, spec.test_episodes, TEST_SEED_BASE)
     episodes = []
     for k, r in enumerate(records):
         d = r.to_dict()

@@ -81,8 +81,7 @@ def run_condition(
 ) -> dict[str, Any]:
     """Evaluate ``policy`` on one condition; the per-condition JSON record of ``safelane stress``."""
     from safelane import stats
-    from safelane.env import make_env
-    from safelane.evaluation import run_episodes, summarize
+    from safelane.evaluation import run_config, summarize
 
     if isinstance(condition, str):
         matches = [c for c in load_conditions() if c.name == condition]
@@ -97,11 +96,7 @@ def run_condition(
         # Trained agents keep their own reward and shield settings; only the traffic changes.
         cfg = cfg.model_copy(update={"reward": base.reward})
     start = time.perf_counter()
-    env = make_env(cfg)
-    try:
-        records = run_episodes(env, policy, episodes, STRESS_SEED_BASE, progress)
-    finally:
-        env.close()
+    records = run_config(cfg, policy, episodes, STRESS_SEED_BASE, progress)
     s = summarize(records)
     return {
         "name": condition.name,

@@ -450,6 +450,11 @@ def evaluate(state: RoadState, dyn: Dynamics, mode: Mode = "robust", formula: Fo
                         nominal_ok[a] = False
     best_gap = np.where(available, joint_gap.max(axis=1), -np.inf)
     safe = ((best_gap >= dyn.margin) if mode == "robust" else nominal_ok) & available
+    if not math.isfinite(dyn.ego_leave_time):
+        # Too slow to move sideways: the ego would straddle two lanes indefinitely, unseen by the
+        # new lane's followers (highway-env's IDM only sees a car within 3 m of its lane centre).
+        safe[[LANE_LEFT, LANE_RIGHT]] = False
+        nominal_ok[[LANE_LEFT, LANE_RIGHT]] = False
     if safe.any():
         return SafetyResult(safe.copy(), safe, available, False, best_gap)
     # Least-bad choice. Robust picks among the nominally safe actions when there are some (so that

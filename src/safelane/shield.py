@@ -45,7 +45,9 @@ def lane_change_timing(simulation_frequency: float, speed: float) -> tuple[float
     """
     network = RoadNetwork.straight_road_network(2, speed_limit=40)
     road = Road(network=network, np_random=np.random.default_rng(0))
-    vehicle = ControlledVehicle(road, network.get_lane(("0", "1", 0)).position(0, 0), speed=max(speed, 0.5))
+    if speed <= 0.0:
+        return math.inf, math.inf  # a car at a standstill does not move sideways
+    vehicle = ControlledVehicle(road, network.get_lane(("0", "1", 0)).position(0, 0), speed=speed)
     vehicle.target_lane_index = ("0", "1", 1)
     road.vehicles.append(vehicle)
     width, half_len = vehicle.WIDTH, vehicle.LENGTH / 2
@@ -205,10 +207,13 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
         if self.dynamics is None:
             self.dynamics = dynamics_from_env(self.env)
         state = road_state(self.env, self.dynamics)
-        # The ego leaves its old lane more slowly at low speed: time it at the current speed
-        # (rounded to 1 m/s so the simulation is cached), plus one frame because the lane change
-        # only starts at the next physics frame.
-        speed = float(np.clip(np.ceil(state.ego_speed), 5.0, 40.0))
+        # The ego leaves its old lane more slowly at low speed (the steering turns the car in
+        # proportion to its speed; at a standstill it never leaves). Time it at the lowest speed
+        # the ego may have while still changing lane — its speed or set-point, minus what a
+        # fallback SLOWER removes in the next second (4.5 m/s) — rounded down to 0.5 m/s so the
+        # simulation is cached, plus one frame because the change starts at the next physics frame.
+        slowest = min(state.ego_speed, state.ego_target_speed) - 4.5
+        speed = float(np.clip(np.floor(slowest * 2) / 2, 0.0, 40.0))
         leave, _ = lane_change_timing(1.0 / self.dynamics.frame_dt, speed)
         dyn = dataclasses.replace(self.dynamics, ego_leave_time=leave + self.dynamics.frame_dt)
         return evaluate(state, dyn, self.mode, self.formula)

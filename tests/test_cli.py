@@ -170,8 +170,15 @@ def test_bench_json() -> None:
     result = runner.invoke(app, ["bench", "--episodes", "1", "--json"])
     assert result.exit_code == 0, result.output
     out = json.loads(result.stdout)
-    for key in ("env_steps_per_s", "shielded_env_steps_per_s", "shield_mask_us_median", "obs_us_median"):
+    for key in (
+        "env_steps_per_s",
+        "shielded_env_steps_per_s",
+        "shield_mask_us_median",
+        "obs_us_median",
+        "highway_env_steps_per_s",
+    ):
         assert out[key] > 0
+    assert out["backend_speedup"] == pytest.approx(out["env_steps_per_s"] / out["highway_env_steps_per_s"])
     assert out["shield_overhead_ratio"] == pytest.approx(out["shielded_env_steps_per_s"] / out["env_steps_per_s"])
     assert out["preset"] == "fast" and out["shield"] == "robust"
 

@@ -58,7 +58,9 @@ def run_bench(
     * ``shielded_env_steps_per_s``: decisions per second with the ``shield`` (nominal or robust) [1/s];
     * ``shield_overhead_ratio``: shielded ÷ raw (≤ 1; 1 means the shield is free);
     * ``shield_mask_us_median``: one ``SafetyShield.compute_mask()`` [µs], median over decisions;
-    * ``obs_us_median``: one paper observation ``paper_state`` (eq. 3) [µs], median over decisions.
+    * ``obs_us_median``: one paper observation ``paper_state`` (eq. 3) [µs], median over decisions;
+    * ``highway_env_steps_per_s``: raw decisions per second with highway-env's own neighbour search
+      (``backend=highway-env``; identical episodes) and ``backend_speedup`` = raw ÷ that.
     """
     if episodes < 1:
         raise ConfigError(f"--episodes: must be >= 1 (got {episodes})")
@@ -67,6 +69,7 @@ def run_bench(
     start = time.perf_counter()
     raw = make_env(BENCH_PRESET)
     shielded = make_env(BENCH_PRESET, **{"shield.mode": shield})
+    original = make_env(BENCH_PRESET, backend="highway-env")
     mask_us: list[float] = []
     obs_us: list[float] = []
 
@@ -80,8 +83,8 @@ def run_bench(
         mask_us.append((t1 - t0) * 1e6)
         obs_us.append((t2 - t1) * 1e6)
 
-    raw_n = shield_n = 0
-    raw_s = shield_s = 0.0
+    raw_n = shield_n = orig_n = 0
+    raw_s = shield_s = orig_s = 0.0
     try:
         for i in range(episodes):
             # Alternate which of the pair runs first, so warm-up and drifts favour neither.
@@ -92,11 +95,14 @@ def run_bench(
                 else:
                     n, s = _play(raw, seed + i)
                     raw_n, raw_s = raw_n + n, raw_s + s
+            n, s = _play(original, seed + i)
+            orig_n, orig_s = orig_n + n, orig_s + s
             if progress is not None:
                 progress(i)
     finally:
         raw.close()
         shielded.close()
+        original.close()
     raw_rate = raw_n / raw_s
     shield_rate = shield_n / shield_s
     return {
@@ -111,6 +117,8 @@ def run_bench(
         "shield_overhead_ratio": shield_rate / raw_rate,
         "shield_mask_us_median": float(np.median(mask_us)),
         "obs_us_median": float(np.median(obs_us)),
+        "highway_env_steps_per_s": orig_n / orig_s,
+        "backend_speedup": raw_rate / (orig_n / orig_s),
         "python": platform.python_version(),
         "wall_time_s": time.perf_counter() - start,
     }

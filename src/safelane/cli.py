@@ -266,6 +266,8 @@ BENCH_UNITS = {
     "shield_overhead_ratio": "shielded ÷ raw",
     "shield_mask_us_median": "µs",
     "obs_us_median": "µs",
+    "highway_env_steps_per_s": "decisions/s",
+    "backend_speedup": "vectorized ÷ highway-env",
     "wall_time_s": "s",
 }
 

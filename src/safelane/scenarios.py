@@ -54,10 +54,14 @@ class Scene:
     @property
     def shield(self) -> SafetyShield:
         """The :class:`SafetyShield` layer of the environment."""
-        env = self.env
-        while not isinstance(env, SafetyShield):
-            env = env.env  # type: ignore[attr-defined]
-        return env
+        return find_shield(self.env)
+
+
+def find_shield(env: gym.Env) -> SafetyShield:
+    """The :class:`SafetyShield` layer of a wrapped environment."""
+    while not isinstance(env, SafetyShield):
+        env = env.env  # type: ignore[attr-defined]
+    return env
 
 
 def build_scene(
@@ -104,8 +108,7 @@ def build_scene(
         v.check_collisions = True
         road.vehicles.append(v)
         placed.append(v)
-    shield = Scene(env, None, placed).shield  # type: ignore[arg-type]
-    result = shield.refresh()
+    result = find_shield(env).refresh()
     return Scene(env, result, placed)
 
 

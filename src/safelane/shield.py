@@ -32,8 +32,6 @@ from highway_env.vehicle.controller import ControlledVehicle
 
 from safelane.safety import OVERRIDE_ORDER, Dynamics, Formula, Mode, RoadState, SafetyResult, evaluate
 
-SHIELD_MODES = ("none", "nominal", "robust")
-
 
 @functools.lru_cache(maxsize=64)
 def lane_change_timing(simulation_frequency: float, speed: float) -> tuple[float, float]:

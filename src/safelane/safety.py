@@ -428,26 +428,33 @@ def evaluate(state: RoadState, dyn: Dynamics, mode: Mode = "robust", formula: Fo
             lanes_v = lanes_v + extra_l
             starts = starts + [dyn.cut_in_time] * len(extra_v)
             nominal_flags = nominal_flags + [False] * len(extra_v)
-        for vi, lane, start, is_nominal in zip(vehicles, lanes_v, starts, nominal_flags, strict=True):
-            for ego_lane, until in ego_lanes:
-                if ego_lane != lane:
-                    continue
-                window = (t >= start) & (t <= until)
-                if not window.any():
-                    continue
-                r = row_of[vi]
-                sign = 1.0 if ahead[vi] else -1.0
-                gap = sign * (other_x[r] - ego_x[a]) - half[vi]  # (F, T)
-                worst = np.where(window, gap, np.inf).min(axis=-1)  # (F,)
-                joint_gap[a] = np.minimum(joint_gap[a], worst)
-                if ahead[vi]:
-                    ahead_gap[a] = np.minimum(ahead_gap[a], worst)
-                if is_nominal:
-                    nominal_joint[a] = np.minimum(nominal_joint[a], worst)
-                    if ahead[vi]:
-                        nominal_ahead[a] = np.minimum(nominal_ahead[a], worst)
-                    if worst.max() < dyn.margin:
-                        nominal_ok[a] = False
+        # Every (vehicle, lane) pair that shares a lane with the ego, with the window in which both do.
+        pairs = [
+            (row_of[vi], start, until, is_nominal)
+            for vi, lane, start, is_nominal in zip(vehicles, lanes_v, starts, nominal_flags, strict=True)
+            for ego_lane, until in ego_lanes
+            if ego_lane == lane
+        ]
+        if not pairs:
+            continue
+        rows = np.array([p[0] for p in pairs])
+        window = (t[None, :] >= np.array([p[1] for p in pairs])[:, None]) & (
+            t[None, :] <= np.array([p[2] for p in pairs])[:, None]
+        )  # (c, T)
+        is_nominal = np.array([p[3] for p in pairs], dtype=bool)
+        vehicle = near[rows]
+        sign = np.where(ahead[vehicle], 1.0, -1.0)
+        gap = sign[:, None, None] * (other_x[rows][:, None, :] - ego_x[a][None]) - half[vehicle][:, None, None]
+        worst = np.where(window[:, None, :], gap, np.inf).min(axis=-1)  # (c, F) worst gap per fallback
+        is_ahead = ahead[vehicle]
+        joint_gap[a] = worst.min(axis=0)
+        if is_ahead.any():
+            ahead_gap[a] = worst[is_ahead].min(axis=0)
+        if is_nominal.any():
+            nominal_joint[a] = worst[is_nominal].min(axis=0)
+            if (is_nominal & is_ahead).any():
+                nominal_ahead[a] = worst[is_nominal & is_ahead].min(axis=0)
+            nominal_ok[a] = bool((worst[is_nominal].max(axis=1) >= dyn.margin).all())
     best_gap = np.where(available, joint_gap.max(axis=1), -np.inf)
     safe = ((best_gap >= dyn.margin) if mode == "robust" else nominal_ok) & available
     if not math.isfinite(dyn.ego_leave_time):

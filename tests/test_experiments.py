@@ -94,3 +94,51 @@ def test_stress_bad_conditions_file(tmp_path: Path) -> None:
         load_conditions(bad)
     with pytest.raises(ConfigError, match="unknown 'nope'"):
         run_condition("nope", fixed_policy("idle"), 1)
+
+
+def test_reproduce_killed_mid_run_resumes_without_loss_or_duplicates(tmp_path: Path) -> None:
+    """SIGKILL the real CLI after its first run finished, run it again: nothing lost, nothing twice."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    out = tmp_path / "rep"
+    exe = Path(sys.executable).with_name("safelane")
+    args = [
+        str(exe),
+        "reproduce",
+        "--seeds",
+        "1",
+        "--episodes",
+        "2",
+        "--test-episodes",
+        "2",
+        "--workers",
+        "1",
+        "--no-gifs",
+        "--out",
+        str(out),
+        "--set",
+        "env.duration=3",
+        "--set",
+        "env.vehicles_count=10",
+    ]
+    env = {**os.environ, "SDL_VIDEODRIVER": "dummy"}
+    proc = subprocess.Popen(args, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    first = run_dir_of(out, "dqn", 0) / "eval.json"
+    deadline = time.time() + 240
+    while not first.exists() and proc.poll() is None and time.time() < deadline:
+        time.sleep(0.2)
+    assert first.exists()
+    proc.send_signal(signal.SIGKILL)
+    proc.wait()
+    kept = first.read_text()
+    assert not (out / "results.json").exists()
+    done = subprocess.run(args, env=env, capture_output=True, text=True, timeout=600, check=False)
+    assert done.returncode == 0, done.stderr
+    results = json.loads((out / "results.json").read_text())
+    assert first.read_text() == kept
+    keys = [(e["method"], e["seed"], e["test_episode"]) for e in results["episodes"]]
+    assert sorted(keys) == sorted({(m, 0, k) for m in ("dqn", "constrained", "qmask", "robust") for k in range(2)})

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import tempfile
 import time
 from collections.abc import Callable
@@ -99,6 +100,9 @@ def _task(out_dir: str, spec_json: str, method: str, seed: int) -> dict[str, Any
         checkpoint_every=max(1, min(25, spec.episodes // 4)),
     )
     resume = (run_dir / "checkpoint.pt").exists()
+    if not resume and run_dir.exists():
+        # Killed before its first checkpoint: nothing to resume, the partial files are redone.
+        shutil.rmtree(run_dir)
     train(cfg, run_dir, resume=resume)
     train_time = time.perf_counter() - start
     run = load_run_config(run_dir)

@@ -230,13 +230,19 @@ def load_config(
     data["preset"] = preset
     for assignment in sets or []:
         _assign(data, *parse_set(assignment))
-    for key, value in (overrides or {}).items():
+    apply_overrides(data, overrides or {})
+    return build_config(data)
+
+
+def apply_overrides(data: dict[str, Any], overrides: dict[str, Any]) -> None:
+    """Apply Python overrides to a config dict in place: dotted keys (``"env.lanes_count"``) or section
+    dicts (``env={"lanes_count": 5}``, merged into the section rather than replacing it)."""
+    for key, value in overrides.items():
         if isinstance(value, dict) and "." not in key and isinstance(data.get(key), dict):
             for sub, v in value.items():
                 _assign(data, f"{key}.{sub}", copy.deepcopy(v))
         else:
             _assign(data, key, copy.deepcopy(value))
-    return build_config(data)
 
 
 def config_to_dict(cfg: SafelaneConfig) -> dict[str, Any]:

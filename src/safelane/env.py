@@ -20,7 +20,7 @@ from highway_env import utils as hw_utils
 
 from safelane import fastsim
 from safelane.adversaries import add_adversary
-from safelane.config import ConfigError, SafelaneConfig, load_config
+from safelane.config import ConfigError, SafelaneConfig, apply_overrides, build_config, load_config
 
 # --- observation normalisation: every scale in one place, with units --------------------------
 OBSERVED_VEHICLES = 4
@@ -35,16 +35,6 @@ REL_SPEED_SCALE = 20.0  # [m/s] relative velocity mapped to ±1
 HEADING_SCALE = math.pi / 2  # [rad] heading mapped to ±1
 EGO_SPEED_SCALE = 40.0  # [m/s] highway-env's Vehicle.MAX_SPEED
 PERCEPTION_DISTANCE = 200.0  # [m] vehicles farther than this are absent (highway-env's own range)
-
-
-def vehicle_arrays(road: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Positions [m] (n, 2), velocities [m/s] (n, 2) and headings [rad] (n,) of all road vehicles."""
-    vehicles = road.vehicles
-    pos = np.array([v.position for v in vehicles], dtype=float).reshape(-1, 2)
-    heading = np.array([v.heading for v in vehicles], dtype=float)
-    speed = np.array([v.speed for v in vehicles], dtype=float)
-    vel = np.stack([speed * np.cos(heading), speed * np.sin(heading)], axis=1)
-    return pos, vel, heading
 
 
 def paper_state(ego: Any, road: Any) -> np.ndarray:
@@ -218,14 +208,7 @@ def make_env(
         cfg = config
         if overrides:
             data = cfg.model_dump()
-            from safelane.config import _assign, build_config
-
-            for key, value in overrides.items():
-                if isinstance(value, dict) and "." not in key:
-                    for sub, v in value.items():
-                        _assign(data, f"{key}.{sub}", v)
-                else:
-                    _assign(data, key, value)
+            apply_overrides(data, overrides)
             cfg = build_config(data)
     try:
         env = gym.make(cfg.env_id, config=dict(cfg.env), render_mode=render_mode)

@@ -229,7 +229,7 @@ def collect(out_dir: Path, spec: ExperimentSpec) -> dict[str, Any]:
             agg[key] = {
                 "mean": stats.mean(values),
                 "iqm": stats.iqm(values),
-                "ci95": list(stats.bootstrap_ci(values, seed=0)) if len(values) > 1 else [values[0], values[0]],
+                "ci95": list(stats.bootstrap_ci(values, seed=0)),  # one seed: [value, value]
             }
         collisions = sum(v["collisions"] for v in per_seed.values())
         n = sum(v["episodes"] for v in per_seed.values())

@@ -27,12 +27,6 @@ def _fmt(x: float, digits: int = 2) -> str:
     return f"{x:.{digits}f}"
 
 
-def _ci(values: list[float]) -> tuple[float, float]:
-    if len(values) < 2:
-        return (values[0], values[0]) if values else (float("nan"), float("nan"))
-    return stats.bootstrap_ci(values, seed=0)
-
-
 def training_curves(out_dir: Path, spec: ExperimentSpec) -> dict[str, list[dict[str, np.ndarray]]]:
     """Per method, the metrics.csv columns (return, epsilon, collision) of every seed's run."""
     curves: dict[str, list[dict[str, np.ndarray]]] = {}
@@ -158,7 +152,7 @@ def claims(methods: dict[str, Any], convergence: dict[str, list[int]]) -> list[t
         )
         out.append(("Constrained Q collides less than traditional DQN", _verdict(v), ev))
     if "robust" in convergence and len(convergence) > 1:
-        cis = {m: _ci([float(e) for e in eps]) for m, eps in convergence.items()}
+        cis = {m: stats.bootstrap_ci([float(e) for e in eps], seed=0) for m, eps in convergence.items()}
         others = [m for m in convergence if m != "robust"]
         faster = all(cis["robust"][1] < cis[m][0] for m in others)
         slower = any(cis["robust"][0] > cis[m][1] for m in others)
@@ -257,7 +251,7 @@ def write_report(out_dir: str | Path, gifs: dict[str, str] | None = None) -> Pat
         "|---|---|",
     ]
     for m, eps in convergence.items():
-        lo, hi = _ci([float(e) for e in eps])
+        lo, hi = stats.bootstrap_ci([float(e) for e in eps], seed=0)
         lines.append(f"| {LABELS[m]} | {np.mean(eps):.1f} [{lo:.1f}, {hi:.1f}] |")
     lines += ["", "## Speed vs safety", "", "![speed](speed_vs_safety.png)", ""]
     stress_rows = [(m, s) for m, d in methods.items() for p in d["per_seed"].values() for s in p.get("stress", [])]

@@ -74,6 +74,12 @@ def iqm(x: ArrayLike) -> float:
 # --- interval estimates ----------------------------------------------------------------------------
 
 
+def _check_bootstrap(alpha: float, reps: int) -> None:
+    _check_alpha(alpha)
+    if reps < 1:
+        raise ValueError(f"reps: must be at least 1, got {reps}")
+
+
 def _percentile_interval(draws: np.ndarray, alpha: float) -> tuple[float, float]:
     low, high = np.percentile(draws, [100 * alpha / 2, 100 * (1 - alpha / 2)])
     return float(low), float(high)
@@ -93,9 +99,7 @@ def bootstrap_ci(
     the ``reps`` bootstrap statistics. Deterministic for a given ``seed``.
     """
     arr = _scores(scores)
-    _check_alpha(alpha)
-    if reps < 1:
-        raise ValueError(f"reps: must be at least 1, got {reps}")
+    _check_bootstrap(alpha, reps)
     rng = np.random.default_rng(seed)
     idx = rng.integers(0, arr.shape[0], size=(reps, arr.shape[0]))
     draws = np.array([statistic(arr[i]) for i in idx])
@@ -119,9 +123,7 @@ def stratified_bootstrap_ci(
     arr = _scores(scores)
     if arr.ndim == 1:
         arr = arr[:, None]
-    _check_alpha(alpha)
-    if reps < 1:
-        raise ValueError(f"reps: must be at least 1, got {reps}")
+    _check_bootstrap(alpha, reps)
     runs, tasks = arr.shape
     rng = np.random.default_rng(seed)
     idx = rng.integers(0, runs, size=(reps, runs, tasks))

@@ -344,3 +344,12 @@ def test_update_reduces_the_loss_and_state_round_trips(method: str) -> None:
         make_agent(load_agent_config("tuned", "dqn" if method != "dqn" else "qmask"), 0).load_state_dict(
             agent.state_dict()
         )
+
+
+def test_epsilon_per_episode_schedule_ignores_steps() -> None:
+    cfg = load_agent_config(
+        "tuned", overrides={"eps_start": 1.0, "eps_end": 0.1, "eps_decay_steps": 100, "eps_decay_episodes": 10}
+    )
+    assert linear_epsilon(10_000, cfg, episode=0) == 1.0  # steps do not matter any more
+    assert linear_epsilon(0, cfg, episode=5) == pytest.approx(0.55)
+    assert linear_epsilon(0, cfg, episode=10) == 0.1 and linear_epsilon(0, cfg, episode=99) == 0.1

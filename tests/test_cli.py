@@ -176,8 +176,10 @@ def test_bench_json() -> None:
         "shield_mask_us_median",
         "obs_us_median",
         "highway_env_steps_per_s",
+        "agent_ms_per_decision",
     ):
         assert out[key] > 0
+    assert 0 < out["agent_overhead_fraction"] < 1
     assert out["backend_speedup"] == pytest.approx(out["env_steps_per_s"] / out["highway_env_steps_per_s"])
     assert out["shield_overhead_ratio"] == pytest.approx(out["shielded_env_steps_per_s"] / out["env_steps_per_s"])
     assert out["preset"] == "fast" and out["shield"] == "robust"

@@ -68,7 +68,17 @@ class AgentConfig(BaseModel):
     eps_start: float = Field(1.0, ge=0, le=1, description="Exploration rate ε at step 0.")
     eps_end: float = Field(0.05, ge=0, le=1, description="Final exploration rate ε.")
     eps_decay_steps: int = Field(
-        3200, ge=0, description="Environment steps over which ε decays linearly from eps_start to eps_end."
+        3200,
+        ge=0,
+        description="Environment steps over which ε decays linearly from eps_start to eps_end (used when "
+        "eps_decay_episodes is null).",
+    )
+    eps_decay_episodes: int | None = Field(
+        None,
+        ge=1,
+        description="If set, ε decays linearly over this many *episodes* instead (constant within an "
+        "episode). Crashing episodes are short, so a per-step schedule explores far longer for a method "
+        "that crashes (dqn) than for a shielded one; a per-episode schedule gives every method the same.",
     )
     loss: Literal["mse", "huber"] = Field(
         "huber", description="TD loss: mse (the paper's quadratic cost, eq. 15) or huber (smooth L1, δ = 1)."
@@ -129,11 +139,17 @@ def load_agent_config(
     return build_agent_config(data)
 
 
-def linear_epsilon(step: int, cfg: AgentConfig) -> float:
-    """ε after ``step`` environment steps: linear from ``eps_start`` to ``eps_end``, then constant."""
-    if cfg.eps_decay_steps <= 0 or step >= cfg.eps_decay_steps:
+def linear_epsilon(step: int, cfg: AgentConfig, episode: int = 0) -> float:
+    """ε at environment step ``step`` of 0-based episode ``episode``: linear from ``eps_start`` to
+    ``eps_end`` over ``eps_decay_episodes`` episodes if set, else over ``eps_decay_steps`` steps; then
+    constant."""
+    if cfg.eps_decay_episodes is not None:
+        progress, span = episode, cfg.eps_decay_episodes
+    else:
+        progress, span = step, cfg.eps_decay_steps
+    if span <= 0 or progress >= span:
         return cfg.eps_end
-    return cfg.eps_start + (cfg.eps_end - cfg.eps_start) * step / cfg.eps_decay_steps
+    return cfg.eps_start + (cfg.eps_end - cfg.eps_start) * progress / span
 
 
 # --- network and replay -------------------------------------------------------------------------

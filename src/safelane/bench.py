@@ -17,9 +17,11 @@ from typing import Any
 
 import numpy as np
 
+from safelane.agents import ReplayBuffer, load_agent_config, make_agent, sanitize_mask
 from safelane.config import ConfigError
 from safelane.env import make_env, paper_state
 from safelane.evaluation import fixed_policy
+from safelane.training import deterministic_torch
 
 BENCH_PRESET = "fast"
 BENCH_SHIELDS = ("nominal", "robust")
@@ -45,6 +47,34 @@ def _play(env: Any, seed: int, on_decision: Callable[[], None] | None = None) ->
     return decisions, stepping
 
 
+def _play_learning(env: Any, agent: Any, buffer: Any, seed: int, batch_size: int) -> tuple[int, float, float]:
+    """One training episode's per-decision work: (decisions, seconds in ``env.step``, seconds in the agent).
+
+    The agent's share is what :func:`safelane.training.train` adds to every decision: ε-greedy
+    acting, storing the transition, sampling a mini-batch and one gradient step."""
+    obs, info = env.reset(seed=seed)
+    mask = sanitize_mask(info.get("action_mask"))
+    decisions, stepping, learning = 0, 0.0, 0.0
+    done = False
+    while not done:
+        t0 = time.perf_counter()
+        action = agent.act(obs, mask, 0.1)
+        t1 = time.perf_counter()
+        next_obs, reward, terminated, truncated, info = env.step(action)
+        t2 = time.perf_counter()
+        next_mask = sanitize_mask(info.get("action_mask"))
+        buffer.add(obs, action, reward, 0.0, next_obs, terminated, mask, next_mask)
+        if len(buffer) >= batch_size:
+            agent.update(buffer.sample(batch_size, agent.rng))
+        t3 = time.perf_counter()
+        stepping += t2 - t1
+        learning += (t1 - t0) + (t3 - t2)
+        decisions += 1
+        obs, mask = next_obs, next_mask
+        done = terminated or truncated
+    return decisions, stepping, learning
+
+
 def run_bench(
     episodes: int = 10,
     seed: int = 0,
@@ -60,7 +90,11 @@ def run_bench(
     * ``shield_mask_us_median``: one ``SafetyShield.compute_mask()`` [µs], median over decisions;
     * ``obs_us_median``: one paper observation ``paper_state`` (eq. 3) [µs], median over decisions;
     * ``highway_env_steps_per_s``: raw decisions per second with highway-env's own neighbour search
-      (``backend=highway-env``; identical episodes) and ``backend_speedup`` = raw ÷ that.
+      (``backend=highway-env``; identical episodes) and ``backend_speedup`` = raw ÷ that;
+    * ``agent_ms_per_decision``: what training adds to a decision (the ``robust`` agent of the
+      ``tuned`` preset acting, storing, and one gradient step, single-threaded as in training) [ms],
+      and ``agent_overhead_fraction`` = agent time ÷ (agent + shielded ``env.step`` time) in the same
+      episodes (the share of training wall time that is not the simulator; 0 = free).
     """
     if episodes < 1:
         raise ConfigError(f"--episodes: must be >= 1 (got {episodes})")
@@ -70,6 +104,10 @@ def run_bench(
     raw = make_env(BENCH_PRESET)
     shielded = make_env(BENCH_PRESET, **{"shield.mode": shield})
     original = make_env(BENCH_PRESET, backend="highway-env")
+    learner_env = make_env(BENCH_PRESET, **{"shield.mode": shield})
+    agent_cfg = load_agent_config("tuned", "robust")
+    agent = make_agent(agent_cfg, seed=seed)
+    buffer = ReplayBuffer(agent_cfg.buffer_size)
     mask_us: list[float] = []
     obs_us: list[float] = []
 
@@ -85,6 +123,7 @@ def run_bench(
 
     raw_n = shield_n = orig_n = 0
     raw_s = shield_s = orig_s = 0.0
+    learn_n, learn_env_s, learn_agent_s = 0, 0.0, 0.0
     try:
         for i in range(episodes):
             # Alternate which of the pair runs first, so warm-up and drifts favour neither.
@@ -97,12 +136,16 @@ def run_bench(
                     raw_n, raw_s = raw_n + n, raw_s + s
             n, s = _play(original, seed + i)
             orig_n, orig_s = orig_n + n, orig_s + s
+            with deterministic_torch():
+                n, s, a = _play_learning(learner_env, agent, buffer, seed + i, agent_cfg.batch_size)
+            learn_n, learn_env_s, learn_agent_s = learn_n + n, learn_env_s + s, learn_agent_s + a
             if progress is not None:
                 progress(i)
     finally:
         raw.close()
         shielded.close()
         original.close()
+        learner_env.close()
     raw_rate = raw_n / raw_s
     shield_rate = shield_n / shield_s
     return {
@@ -119,6 +162,8 @@ def run_bench(
         "obs_us_median": float(np.median(obs_us)),
         "highway_env_steps_per_s": orig_n / orig_s,
         "backend_speedup": raw_rate / (orig_n / orig_s),
+        "agent_ms_per_decision": 1e3 * learn_agent_s / learn_n,
+        "agent_overhead_fraction": learn_agent_s / (learn_agent_s + learn_env_s),
         "python": platform.python_version(),
         "wall_time_s": time.perf_counter() - start,
     }

@@ -67,7 +67,7 @@ ShieldOpt = Annotated[
     ),
 ]
 EpisodesOpt = Annotated[int, typer.Option("--episodes", "-n", help="Number of episodes (>= 1).")]
-SeedOpt = Annotated[int, typer.Option("--seed", help="Seed of the first episode; episode i uses seed + i.")]
+SeedOpt = Annotated[int, typer.Option("--seed", help="Random seed: the same seed gives the same numbers.")]
 JsonOpt = Annotated[bool, typer.Option("--json", help="Print one JSON object on stdout instead of a table.")]
 
 F = TypeVar("F", bound=Callable[..., Any])
@@ -268,6 +268,8 @@ BENCH_UNITS = {
     "obs_us_median": "µs",
     "highway_env_steps_per_s": "decisions/s",
     "backend_speedup": "vectorized ÷ highway-env",
+    "agent_ms_per_decision": "ms",
+    "agent_overhead_fraction": "agent ÷ (agent + shielded env)",
     "wall_time_s": "s",
 }
 

@@ -339,7 +339,7 @@ def load_checkpoint(run_dir: str | Path) -> dict[str, Any]:
 
 
 @contextlib.contextmanager
-def _deterministic_torch() -> Iterator[None]:
+def deterministic_torch() -> Iterator[None]:
     """Single-threaded, deterministic torch for the duration of training (restored afterwards)."""
     threads = torch.get_num_threads()
     deterministic = torch.are_deterministic_algorithms_enabled()
@@ -421,7 +421,7 @@ def train(
     steps0 = global_step
     snapshot = state if state is not None else _snapshot(run, agent, buffer, 0, 0, rows, 0.0)
     try:
-        with _deterministic_torch(), open(metrics_path, "a", newline="") as metrics_file:
+        with deterministic_torch(), open(metrics_path, "a", newline="") as metrics_file:
             writer = csv.DictWriter(metrics_file, fieldnames=METRIC_COLUMNS, lineterminator="\n")
             while episode < cfg.episodes:
                 # --- one episode -------------------------------------------------------------
@@ -431,7 +431,7 @@ def train(
                 interventions, fallbacks, loss_sum, n_losses = 0, 0, 0.0, 0
                 eps, collision, done = acfg.eps_start, False, False
                 while not done:
-                    eps = linear_epsilon(global_step, acfg)
+                    eps = linear_epsilon(global_step, acfg, episode)
                     action = agent.act(obs, mask, eps)
                     next_obs, reward, terminated, truncated, info = env.step(action)
                     next_mask = _mask_of(info)

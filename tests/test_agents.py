@@ -353,3 +353,17 @@ def test_epsilon_per_episode_schedule_ignores_steps() -> None:
     assert linear_epsilon(10_000, cfg, episode=0) == 1.0  # steps do not matter any more
     assert linear_epsilon(0, cfg, episode=5) == pytest.approx(0.55)
     assert linear_epsilon(0, cfg, episode=10) == 0.1 and linear_epsilon(0, cfg, episode=99) == 0.1
+
+
+def test_hinge_shaping_only_penalises_unsafe_values_above_the_target() -> None:
+    q = torch.tensor([[1.0, 3.0, -2.0, 0.5, 4.0]], requires_grad=True)
+    mask = torch.tensor([[T, T, F_, T, F_]])
+    actions = torch.tensor([1])
+    y = torch.tensor([3.0])  # TD error 0
+    # target 3 − 1 = 2: unsafe pair 2 (−2) is already below → 0; pair 4 (4) exceeds by 2 → 4; mean over 2 → 2
+    loss = q_shaping_loss(q, actions, y, mask, weight=1.0, kind="mse", target="taken_action", one_sided=True)
+    assert loss.item() == pytest.approx(2.0)
+    loss.backward()
+    assert q.grad is not None
+    assert q.grad[0, 2] == 0  # below the target: left alone (regression would pull it up to 2)
+    assert q.grad[0, 4].item() == pytest.approx(2 * 2 / 2)

@@ -106,6 +106,13 @@ class AgentConfig(BaseModel):
         "over all actions. Only taken_action has a fixed point in practice: all_min chases itself − 1, "
         "safe_min cascades through rarely taken safe actions (see q_shaping_loss).",
     )
+    shaping_loss: Literal["regression", "hinge"] = Field(
+        "regression",
+        description="robust: regression pulls every unsafe pair onto its target (both ways); hinge only "
+        "pushes an unsafe pair down while it is above its target — the inequality the paper asks for "
+        "(unsafe below the safe values) without dragging already-low values, so less of the 'unsafe is "
+        "bad' signal leaks into neighbouring states where the action is safe.",
+    )
 
 
 def agent_preset_path(name: str) -> Path:
@@ -320,13 +327,15 @@ def q_shaping_loss(
     weight: float = 1.0,
     kind: str = "mse",
     target: str = "taken_action",
+    one_sided: bool = False,
 ) -> torch.Tensor:
     """Robust Q-masking loss: TD loss of the taken actions + ``weight`` × unsafe-pair regression.
 
     ``TD = mean_b ℓ(Q_θ(s_b, a_b), y_b)``; ``shaping = mean over unsafe pairs (b, a) of
     ℓ(Q_θ(s_b, a), t_b)`` with ``t_b`` = :func:`shaping_target` (no gradient; 0 when the batch has no
     unsafe pair); ``loss = TD + weight · shaping``. ``ℓ`` is the squared error (mse) or smooth L1
-    (huber). The regression teaches the network itself the low value of unsafe pairs, so it
+    (huber); with ``one_sided`` (hinge) only the excess ``max(0, Q_θ(s_b, a) − t_b)`` is penalised.
+    The regression teaches the network itself the low value of unsafe pairs, so it
     generalises to nearby states instead of staying high as under Q-masking.
 
     Why the target is anchored to the taken action: with eq. 14's minimum over all actions an unsafe
@@ -341,7 +350,11 @@ def q_shaping_loss(
     td = elementwise_loss(kind, q_taken, td_target).mean()
     unsafe = ~mask
     goal = shaping_target(q, mask, actions, target).expand_as(q)
-    per_pair = elementwise_loss(kind, q, goal) * unsafe
+    if one_sided:
+        excess = torch.clamp(q - goal, min=0.0)
+        per_pair = elementwise_loss(kind, excess, torch.zeros_like(excess)) * unsafe
+    else:
+        per_pair = elementwise_loss(kind, q, goal) * unsafe
     shaping = per_pair.sum() / unsafe.sum().clamp(min=1)
     return td + weight * shaping
 
@@ -599,6 +612,7 @@ class RobustAgent(DQNAgent):
             weight=cfg.shaping_weight,
             kind=cfg.loss,
             target=cfg.shaping_target,
+            one_sided=cfg.shaping_loss == "hinge",
         )
 
 

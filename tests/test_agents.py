@@ -367,3 +367,10 @@ def test_hinge_shaping_only_penalises_unsafe_values_above_the_target() -> None:
     assert q.grad is not None
     assert q.grad[0, 2] == 0  # below the target: left alone (regression would pull it up to 2)
     assert q.grad[0, 4].item() == pytest.approx(2 * 2 / 2)
+
+
+def test_shaping_margin_sets_how_far_below_the_reference() -> None:
+    q = torch.tensor([[1.0, 3.0, -2.0, 0.5, 4.0]])
+    mask = torch.tensor([[T, T, F_, T, F_]])
+    taken = torch.tensor([1])
+    assert shaping_target(q, mask, taken, "taken_action", margin=0.25).item() == 2.75  # Q(s, 1) = 3, − 0.25

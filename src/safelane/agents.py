@@ -106,6 +106,13 @@ class AgentConfig(BaseModel):
         "over all actions. Only taken_action has a fixed point in practice: all_min chases itself − 1, "
         "safe_min cascades through rarely taken safe actions (see q_shaping_loss).",
     )
+    shaping_margin: float = Field(
+        SHAPING_MARGIN,
+        gt=0,
+        description="robust: how far below its reference an unsafe pair is regressed (eq. 14's 1). In "
+        "reward units: with rewards in [0, 1] per decision the gaps between actions' values are ≈ 0.1, so "
+        "a margin of 1 also teaches 'this action is much worse' to neighbouring states where it is safe.",
+    )
     shaping_loss: Literal["regression", "hinge"] = Field(
         "regression",
         description="robust: regression pulls every unsafe pair onto its target (both ways); hinge only "
@@ -302,13 +309,18 @@ def shaped_q(q: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
 
 
 def shaping_target(
-    q: torch.Tensor, mask: torch.Tensor, actions: torch.Tensor, kind: str = "taken_action"
+    q: torch.Tensor,
+    mask: torch.Tensor,
+    actions: torch.Tensor,
+    kind: str = "taken_action",
+    margin: float = SHAPING_MARGIN,
 ) -> torch.Tensor:
     """The (detached) value an unsafe pair of each row is regressed to, shape (B, 1).
 
     ``all_min``: ``min_a Q_θ(s, a) − 1``, eq. 14 as printed; ``safe_min``: the minimum over safe
     actions − 1; ``taken_action``: ``Q_θ(s, a_taken) − 1`` (the taken action is safe and anchored by
-    its TD target). See :func:`q_shaping_loss` for why the default is ``taken_action``.
+    its TD target). ``margin`` replaces the 1 (``shaping_margin``). See :func:`q_shaping_loss` for why
+    the default is ``taken_action``.
     """
     if kind == "all_min":
         ref = q.min(dim=1, keepdim=True).values
@@ -316,7 +328,7 @@ def shaping_target(
         ref = q.masked_fill(~mask, float("inf")).min(dim=1, keepdim=True).values
     else:
         ref = q.gather(1, actions.unsqueeze(1))
-    return ref.detach() - SHAPING_MARGIN
+    return ref.detach() - margin
 
 
 def q_shaping_loss(
@@ -328,6 +340,7 @@ def q_shaping_loss(
     kind: str = "mse",
     target: str = "taken_action",
     one_sided: bool = False,
+    margin: float = SHAPING_MARGIN,
 ) -> torch.Tensor:
     """Robust Q-masking loss: TD loss of the taken actions + ``weight`` × unsafe-pair regression.
 
@@ -349,7 +362,7 @@ def q_shaping_loss(
     q_taken = q.gather(1, actions.unsqueeze(1)).squeeze(1)
     td = elementwise_loss(kind, q_taken, td_target).mean()
     unsafe = ~mask
-    goal = shaping_target(q, mask, actions, target).expand_as(q)
+    goal = shaping_target(q, mask, actions, target, margin).expand_as(q)
     if one_sided:
         excess = torch.clamp(q - goal, min=0.0)
         per_pair = elementwise_loss(kind, excess, torch.zeros_like(excess)) * unsafe
@@ -613,6 +626,7 @@ class RobustAgent(DQNAgent):
             kind=cfg.loss,
             target=cfg.shaping_target,
             one_sided=cfg.shaping_loss == "hinge",
+            margin=cfg.shaping_margin,
         )
 
 

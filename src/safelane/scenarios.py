@@ -184,3 +184,42 @@ SCENARIOS: dict[str, Callable[..., Scene]] = {
     "adjacent_car_ahead": adjacent_car_ahead,
 }
 """Every scenario by name."""
+
+
+def min_safe_gap(
+    ego_speed: float,
+    leader_speed: float,
+    action: int,
+    *,
+    mode: Mode = "robust",
+    resolution: float = 0.5,
+    max_gap: float = 400.0,
+    **kw: Any,
+) -> float:
+    """Smallest centre-to-centre distance [m] to a leader in the ego's lane at which ``action`` is safe.
+
+    The ego (lane 1, at ``ego_speed`` [m/s], set-point the nearest target speed) follows one leader at
+    ``leader_speed`` [m/s]; bisection to ``resolution`` [m] on the real shield (a farther leader is never
+    less safe). ``inf`` if the action is unsafe even ``max_gap`` m behind it. This is the room the
+    shield asks for, so it bounds how densely — and so how fast through traffic — any policy can drive.
+    """
+
+    def safe(gap: float) -> bool:
+        scene = build_scene(1, ego_speed, [VehicleSpec(1, gap, leader_speed)], mode=mode, **kw)
+        try:
+            return bool(scene.result.safe[action])
+        finally:
+            scene.env.close()
+
+    low, high = 5.0, max_gap
+    if not safe(high):
+        return float("inf")
+    if safe(low):
+        return low
+    while high - low > resolution:
+        mid = 0.5 * (low + high)
+        if safe(mid):
+            high = mid
+        else:
+            low = mid
+    return high

@@ -51,7 +51,9 @@ def constant_net(net: nn.Module, values: list[float]) -> None:
 
 
 def agent_with_constant_q(method: str, values: list[float], **cfg: object) -> DQNAgent:
-    agent = make_agent(load_agent_config("tuned", method, {"grad_clip": None, "loss": "mse", **cfg}), seed=0)
+    agent = make_agent(
+        load_agent_config("tuned", method, {"grad_clip": None, "loss": "mse", "shaping_margin": 1.0, **cfg}), seed=0
+    )
     constant_net(agent.q_net, values)
     agent.sync_target()
     return agent
@@ -101,7 +103,9 @@ def test_replay_buffer_is_circular_and_samples_typed_batches() -> None:
 
 
 def test_epsilon_decays_linearly_then_stays() -> None:
-    cfg = load_agent_config("tuned", overrides={"eps_start": 1.0, "eps_end": 0.1, "eps_decay_steps": 100})
+    cfg = load_agent_config(
+        "tuned", overrides={"eps_start": 1.0, "eps_end": 0.1, "eps_decay_steps": 100, "eps_decay_episodes": None}
+    )
     assert linear_epsilon(0, cfg) == 1.0
     assert linear_epsilon(50, cfg) == pytest.approx(0.55)
     assert linear_epsilon(100, cfg) == 0.1 and linear_epsilon(10_000, cfg) == 0.1
@@ -239,7 +243,12 @@ def test_only_the_taken_action_target_keeps_q_bounded(target: str, bounded: bool
     """Rewards in [0, 1], γ = 0.9, IDLE taken 90 %: true values ≤ 10. Regressing unsafe pairs to eq. 14's
     minimum (over all or over safe actions) has no fixed point: LANE_LEFT and LANE_RIGHT drag each other
     down through their untrained safe values. The taken action's value is anchored by its TD target."""
-    agent = make_agent(load_agent_config("tuned", "robust", {"shaping_target": target, "lr": 1e-3}), seed=0)
+    agent = make_agent(
+        load_agent_config(
+            "tuned", "robust", {"shaping_target": target, "lr": 1e-3, "loss": "huber", "shaping_margin": 1.0}
+        ),
+        seed=0,
+    )
     rng = np.random.default_rng(0)
     buf = ReplayBuffer(2000)
     for _ in range(2000):
@@ -257,7 +266,7 @@ def test_only_the_taken_action_target_keeps_q_bounded(target: str, bounded: bool
 
 
 def test_robust_regression_lowers_unsafe_values_below_safe_ones() -> None:
-    agent = make_agent(load_agent_config("tuned", "robust", {"lr": 1e-2}), 0)
+    agent = make_agent(load_agent_config("tuned", "robust", {"lr": 1e-2, "loss": "huber", "shaping_margin": 1.0}), 0)
     rng = np.random.default_rng(0)
     obs = torch.from_numpy(rng.uniform(-1, 1, (32, 26)).astype(np.float32))
     mask = torch.tensor([[T, T, T, F_, T]] * 32)

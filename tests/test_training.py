@@ -43,7 +43,7 @@ SMALL = [
     "agent.batch_size=8",
     "agent.buffer_size=10",  # smaller than a run: the circular overwrite is exercised and checkpointed
     "agent.target_update_interval=5",
-    "agent.eps_decay_steps=20",
+    "agent.eps_decay_episodes=2",
 ]
 
 

@@ -249,3 +249,16 @@ def test_policy_of_a_masking_method_respects_any_mask(tmp_path: Path) -> None:
         if not mask.any():
             continue
         assert mask[policy(rng.uniform(-1, 1, 26).astype(np.float32), {"action_mask": mask})]
+
+
+def test_tensorboard_logs_every_episode_of_metrics_csv(tmp_path: Path) -> None:
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    out = train(small("dqn", episodes=3), tmp_path / "tb", tensorboard=True)
+    events = EventAccumulator(str(out / "tensorboard"))
+    events.Reload()
+    returns = [e.value for e in events.Scalars("train/return")]
+    rows = read_metrics(out)
+    assert [e.step for e in events.Scalars("train/return")] == [1, 2, 3]
+    assert returns == pytest.approx([float(r["return"]) for r in rows])
+    assert [e.value for e in events.Scalars("train/length")] == [float(r["length"]) for r in rows]

@@ -349,6 +349,9 @@ def train(
     sets: SetOpt = None,
     resume: Annotated[bool, typer.Option("--resume", help="Continue from the run's last checkpoint.")] = False,
     checkpoint_every: Annotated[int, typer.Option("--checkpoint-every", help="Episodes between checkpoints.")] = 10,
+    tensorboard: Annotated[
+        bool, typer.Option("--tensorboard", help="Also log every metrics.csv column to RUN_DIR/tensorboard.")
+    ] = False,
 ) -> None:
     """Train a DQN with one of the paper's four methods; Ctrl-C checkpoints, --resume continues."""
     from rich.progress import Progress
@@ -387,7 +390,7 @@ def train(
             )
 
         try:
-            run_training(cfg, out, resume=resume, progress=report)
+            run_training(cfg, out, resume=resume, progress=report, tensorboard=tensorboard)
         except TrainingInterrupted as stop:
             typer.echo(str(stop), err=True)
             raise typer.Exit(130) from None

@@ -6,6 +6,7 @@ agent (:mod:`safelane.agents`). A run directory holds:
 
 * ``config.yaml`` — the fully resolved train, agent and environment configuration;
 * ``metrics.csv`` — one row per episode (:data:`METRIC_COLUMNS`);
+* ``tensorboard/`` — with ``tensorboard=True``, the same per-episode numbers as TensorBoard scalars;
 * ``checkpoint.pt`` — networks, targets, optimizer, λ, replay buffer, counters, every RNG state and
   the metrics rows so far, written atomically (temporary file + ``os.replace``).
 
@@ -62,6 +63,7 @@ CONFIG_FILE = "config.yaml"
 METRICS_FILE = "metrics.csv"
 CHECKPOINT_FILE = "checkpoint.pt"
 CHECKPOINT_FORMAT = 1
+TENSORBOARD_DIR = "tensorboard"
 EPISODE_SEED_STRIDE = 100003
 """Episode ``i`` of a run with seed ``s`` is reset with seed ``s·EPISODE_SEED_STRIDE + i``."""
 
@@ -84,6 +86,8 @@ METRIC_COLUMNS: tuple[str, ...] = (
     "wall_time_s",  # [s] cumulative training wall time at the end of the episode
     "env_steps",  # cumulative environment decisions
 )
+TENSORBOARD_SCALARS: tuple[str, ...] = tuple(c for c in METRIC_COLUMNS if c not in ("episode", "wall_time_s"))
+"""Columns logged with ``--tensorboard`` (per episode; wall time is TensorBoard's own axis)."""
 
 
 class TrainConfig(BaseModel):
@@ -379,6 +383,17 @@ def _prepare_run_dir(out: Path, run: RunConfig, resume: bool) -> dict[str, Any] 
     return state
 
 
+def _summary_writer_class() -> Any:
+    """torch's TensorBoard ``SummaryWriter``, or a one-line :class:`ConfigError` if not installed."""
+    try:
+        from torch.utils.tensorboard import SummaryWriter
+    except ImportError:
+        raise ConfigError(
+            "--tensorboard: the tensorboard package is not installed (pip install 'safelane[tensorboard]')"
+        ) from None
+    return SummaryWriter
+
+
 def _mask_of(info: dict[str, Any]) -> np.ndarray:
     return sanitize_mask(info.get("action_mask"))
 
@@ -389,15 +404,18 @@ def train(
     out_dir: str | Path,
     resume: bool = False,
     progress: Callable[[EpisodeReport], None] | None = None,
+    tensorboard: bool = False,
 ) -> Path:
     """Train ``cfg.method`` for ``cfg.episodes`` episodes into ``out_dir``; return ``out_dir``.
 
     With ``resume`` the run continues from ``out_dir/checkpoint.pt`` (rows of ``metrics.csv`` past it
     are dropped) and ends exactly as an uninterrupted run would. ``progress`` is called after every
     episode with an :class:`EpisodeReport`. Ctrl-C checkpoints the last completed episode and raises
-    :class:`TrainingInterrupted`.
+    :class:`TrainingInterrupted`. With ``tensorboard`` every numeric ``metrics.csv`` column is also
+    logged to ``out_dir/tensorboard`` (needs the ``tensorboard`` package: ``safelane[tensorboard]``).
     """
     run = resolve(cfg)
+    summary_writer_class = _summary_writer_class() if tensorboard else None
     acfg = run.agent
     out = Path(out_dir)
     state = _prepare_run_dir(out, run, resume)
@@ -417,6 +435,10 @@ def train(
     collisions = sum(int(r["collision"]) for r in rows)
 
     env = make_env(run.env)
+    board = None
+    if summary_writer_class is not None:
+        # purge_step drops events a killed run logged past its checkpoint, as metrics.csv does.
+        board = summary_writer_class(str(out / TENSORBOARD_DIR), purge_step=episode + 1)
     t0 = time.perf_counter()
     steps0 = global_step
     snapshot = state if state is not None else _snapshot(run, agent, buffer, 0, 0, rows, 0.0)
@@ -481,6 +503,10 @@ def train(
                 rows.append(row)
                 writer.writerow(_format_row(row))
                 metrics_file.flush()
+                if board is not None:
+                    for key in TENSORBOARD_SCALARS:
+                        if row[key] is not None:
+                            board.add_scalar(f"train/{key}", float(row[key]), episode)
                 snapshot = _snapshot(run, agent, buffer, episode, global_step, rows, wall_before + elapsed)
                 if episode % cfg.checkpoint_every == 0 or episode == cfg.episodes:
                     _save_checkpoint(checkpoint_path, snapshot)
@@ -506,6 +532,8 @@ def train(
         raise TrainingInterrupted(int(snapshot["episode"]), checkpoint_path) from None
     finally:
         env.close()
+        if board is not None:
+            board.close()
     return out
 
 

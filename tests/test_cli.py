@@ -177,6 +177,7 @@ def test_bench_json() -> None:
         "obs_us_median",
         "highway_env_steps_per_s",
         "agent_ms_per_decision",
+        "train_steps_per_s",
     ):
         assert out[key] > 0
     assert 0 < out["agent_overhead_fraction"] < 1

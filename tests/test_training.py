@@ -22,6 +22,7 @@ from safelane.env import make_env
 from safelane.training import (
     CHECKPOINT_FILE,
     METRIC_COLUMNS,
+    TIMING_COLUMNS,
     EpisodeReport,
     TrainConfig,
     TrainingInterrupted,
@@ -64,7 +65,7 @@ def read_metrics(run_dir: Path) -> list[dict[str, str]]:
 
 
 def without_wall_time(rows: list[dict[str, str]]) -> list[dict[str, str]]:
-    return [{k: v for k, v in r.items() if k != "wall_time_s"} for r in rows]
+    return [{k: v for k, v in r.items() if k not in TIMING_COLUMNS} for r in rows]
 
 
 def network_weights(run_dir: Path) -> dict[str, torch.Tensor]:
@@ -262,3 +263,12 @@ def test_tensorboard_logs_every_episode_of_metrics_csv(tmp_path: Path) -> None:
     assert [e.step for e in events.Scalars("train/return")] == [1, 2, 3]
     assert returns == pytest.approx([float(r["return"]) for r in rows])
     assert [e.value for e in events.Scalars("train/length")] == [float(r["length"]) for r in rows]
+
+
+def test_env_time_is_the_simulators_share_of_wall_time(tmp_path: Path) -> None:
+    """env_time_s grows every episode and stays below wall_time_s: the difference is the agent's cost."""
+    rows = read_metrics(train(small("robust", episodes=3), tmp_path / "timed"))
+    env_times = [float(r["env_time_s"]) for r in rows]
+    walls = [float(r["wall_time_s"]) for r in rows]
+    assert all(0 < e < w for e, w in zip(env_times, walls, strict=True))
+    assert env_times == sorted(env_times) and len(set(env_times)) == 3

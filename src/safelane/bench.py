@@ -5,23 +5,26 @@ random actions, so both drive identical trajectories and machine noise hits both
 shielded env differs only by the mask computed at every reset and step, and
 ``shield_overhead_ratio`` (shielded ÷ raw decisions/s, 1.0 = free) isolates its cost. Only
 ``env.step`` calls are timed (resets are not decisions). On a busy machine the ratio can come out
-slightly above 1: that is noise, run more episodes.
+slightly above 1: that is noise, run more episodes. The agent's cost comes from a short real training
+run timed by its own clocks (:func:`measure_training`), so it too is a ratio within one run.
 """
 
 from __future__ import annotations
 
+import csv
 import platform
+import tempfile
 import time
 from collections.abc import Callable
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from safelane.agents import ReplayBuffer, load_agent_config, make_agent, sanitize_mask
 from safelane.config import ConfigError
 from safelane.env import make_env, paper_state
 from safelane.evaluation import fixed_policy
-from safelane.training import deterministic_torch
+from safelane.training import METRICS_FILE, make_train_config, train
 
 BENCH_PRESET = "fast"
 BENCH_SHIELDS = ("nominal", "robust")
@@ -47,32 +50,24 @@ def _play(env: Any, seed: int, on_decision: Callable[[], None] | None = None) ->
     return decisions, stepping
 
 
-def _play_learning(env: Any, agent: Any, buffer: Any, seed: int, batch_size: int) -> tuple[int, float, float]:
-    """One training episode's per-decision work: (decisions, seconds in ``env.step``, seconds in the agent).
-
-    The agent's share is what :func:`safelane.training.train` adds to every decision: ε-greedy
-    acting, storing the transition, sampling a mini-batch and one gradient step."""
-    obs, info = env.reset(seed=seed)
-    mask = sanitize_mask(info.get("action_mask"))
-    decisions, stepping, learning = 0, 0.0, 0.0
-    done = False
-    while not done:
-        t0 = time.perf_counter()
-        action = agent.act(obs, mask, 0.1)
-        t1 = time.perf_counter()
-        next_obs, reward, terminated, truncated, info = env.step(action)
-        t2 = time.perf_counter()
-        next_mask = sanitize_mask(info.get("action_mask"))
-        buffer.add(obs, action, reward, 0.0, next_obs, terminated, mask, next_mask)
-        if len(buffer) >= batch_size:
-            agent.update(buffer.sample(batch_size, agent.rng))
-        t3 = time.perf_counter()
-        stepping += t2 - t1
-        learning += (t1 - t0) + (t3 - t2)
-        decisions += 1
-        obs, mask = next_obs, next_mask
-        done = terminated or truncated
-    return decisions, stepping, learning
+def measure_training(episodes: int, seed: int, shield: str) -> dict[str, float]:
+    """Train the ``robust`` method (``tuned`` preset, ``fast`` env with ``shield``) for ``episodes``
+    episodes in a temporary directory with the real loop of :func:`safelane.training.train`, and read its
+    own clocks: decisions per second of training, and the share of its wall time spent outside the
+    environment (acting, storing, gradient steps, bookkeeping, checkpoints)."""
+    with tempfile.TemporaryDirectory(prefix="safelane-bench-") as tmp:
+        # Learning starts after one batch, so nearly every timed decision carries a gradient step.
+        sets = [f"shield.mode={shield}", "agent.learning_starts=64"]
+        cfg = make_train_config(method="robust", episodes=episodes, seed=seed, sets=sets)
+        out = train(cfg, Path(tmp) / "run")
+        with open(out / METRICS_FILE, newline="") as f:
+            last = list(csv.DictReader(f))[-1]
+    wall, env_time, steps = float(last["wall_time_s"]), float(last["env_time_s"]), int(last["env_steps"])
+    return {
+        "train_steps_per_s": steps / wall,
+        "agent_ms_per_decision": 1e3 * (wall - env_time) / steps,
+        "agent_overhead_fraction": (wall - env_time) / wall,
+    }
 
 
 def run_bench(
@@ -91,10 +86,10 @@ def run_bench(
     * ``obs_us_median``: one paper observation ``paper_state`` (eq. 3) [µs], median over decisions;
     * ``highway_env_steps_per_s``: raw decisions per second with highway-env's own neighbour search
       (``backend=highway-env``; identical episodes) and ``backend_speedup`` = raw ÷ that;
-    * ``agent_ms_per_decision``: what training adds to a decision (the ``robust`` agent of the
-      ``tuned`` preset acting, storing, and one gradient step, single-threaded as in training) [ms],
-      and ``agent_overhead_fraction`` = agent time ÷ (agent + shielded ``env.step`` time) in the same
-      episodes (the share of training wall time that is not the simulator; 0 = free).
+    * ``train_steps_per_s``: decisions per second of a real ``robust`` training run of ``episodes``
+      episodes (:func:`measure_training`), ``agent_ms_per_decision`` [ms] what training adds to a
+      decision, and ``agent_overhead_fraction`` the share of training wall time outside the
+      environment, from the run's own clocks (``metrics.csv``: ``wall_time_s``, ``env_time_s``).
     """
     if episodes < 1:
         raise ConfigError(f"--episodes: must be >= 1 (got {episodes})")
@@ -104,10 +99,6 @@ def run_bench(
     raw = make_env(BENCH_PRESET)
     shielded = make_env(BENCH_PRESET, **{"shield.mode": shield})
     original = make_env(BENCH_PRESET, backend="highway-env")
-    learner_env = make_env(BENCH_PRESET, **{"shield.mode": shield})
-    agent_cfg = load_agent_config("tuned", "robust")
-    agent = make_agent(agent_cfg, seed=seed)
-    buffer = ReplayBuffer(agent_cfg.buffer_size)
     mask_us: list[float] = []
     obs_us: list[float] = []
 
@@ -123,7 +114,6 @@ def run_bench(
 
     raw_n = shield_n = orig_n = 0
     raw_s = shield_s = orig_s = 0.0
-    learn_n, learn_env_s, learn_agent_s = 0, 0.0, 0.0
     try:
         for i in range(episodes):
             # Alternate which of the pair runs first, so warm-up and drifts favour neither.
@@ -136,16 +126,13 @@ def run_bench(
                     raw_n, raw_s = raw_n + n, raw_s + s
             n, s = _play(original, seed + i)
             orig_n, orig_s = orig_n + n, orig_s + s
-            with deterministic_torch():
-                n, s, a = _play_learning(learner_env, agent, buffer, seed + i, agent_cfg.batch_size)
-            learn_n, learn_env_s, learn_agent_s = learn_n + n, learn_env_s + s, learn_agent_s + a
             if progress is not None:
                 progress(i)
     finally:
         raw.close()
         shielded.close()
         original.close()
-        learner_env.close()
+    training = measure_training(episodes, seed, shield)
     raw_rate = raw_n / raw_s
     shield_rate = shield_n / shield_s
     return {
@@ -162,8 +149,7 @@ def run_bench(
         "obs_us_median": float(np.median(obs_us)),
         "highway_env_steps_per_s": orig_n / orig_s,
         "backend_speedup": raw_rate / (orig_n / orig_s),
-        "agent_ms_per_decision": 1e3 * learn_agent_s / learn_n,
-        "agent_overhead_fraction": learn_agent_s / (learn_agent_s + learn_env_s),
+        **training,
         "python": platform.python_version(),
         "wall_time_s": time.perf_counter() - start,
     }

@@ -268,8 +268,9 @@ BENCH_UNITS = {
     "obs_us_median": "µs",
     "highway_env_steps_per_s": "decisions/s",
     "backend_speedup": "vectorized ÷ highway-env",
+    "train_steps_per_s": "decisions/s",
     "agent_ms_per_decision": "ms",
-    "agent_overhead_fraction": "agent ÷ (agent + shielded env)",
+    "agent_overhead_fraction": "non-env share of training time",
     "wall_time_s": "s",
 }
 

@@ -84,9 +84,12 @@ METRIC_COLUMNS: tuple[str, ...] = (
     "lambda",  # constrained: λ after the episode's dual update (empty for other methods)
     "cost",  # constrained's episode cost: decisions that were unsafe or ended in a collision
     "wall_time_s",  # [s] cumulative training wall time at the end of the episode
+    "env_time_s",  # [s] of it spent inside env.reset / env.step (simulator + shield); the rest is the agent's
     "env_steps",  # cumulative environment decisions
 )
-TENSORBOARD_SCALARS: tuple[str, ...] = tuple(c for c in METRIC_COLUMNS if c not in ("episode", "wall_time_s"))
+TIMING_COLUMNS = ("wall_time_s", "env_time_s")
+"""Columns that measure time: they vary between identical runs."""
+TENSORBOARD_SCALARS: tuple[str, ...] = tuple(c for c in METRIC_COLUMNS if c not in ("episode", *TIMING_COLUMNS))
 """Columns logged with ``--tensorboard`` (per episode; wall time is TensorBoard's own axis)."""
 
 
@@ -268,7 +271,7 @@ def _format_row(row: dict[str, Any]) -> dict[str, str]:
         if value is None:
             out[key] = ""
         elif isinstance(value, float):
-            out[key] = f"{value:.3f}" if key == "wall_time_s" else repr(value)
+            out[key] = f"{value:.3f}" if key in TIMING_COLUMNS else repr(value)
         else:
             out[key] = str(value)
     return out
@@ -343,7 +346,7 @@ def load_checkpoint(run_dir: str | Path) -> dict[str, Any]:
 
 
 @contextlib.contextmanager
-def deterministic_torch() -> Iterator[None]:
+def _deterministic_torch() -> Iterator[None]:
     """Single-threaded, deterministic torch for the duration of training (restored afterwards)."""
     threads = torch.get_num_threads()
     deterministic = torch.are_deterministic_algorithms_enabled()
@@ -424,13 +427,14 @@ def train(
     agent = make_agent(acfg, seed=cfg.seed)
     buffer = ReplayBuffer(acfg.buffer_size)
     rows: list[dict[str, Any]] = []
-    episode, global_step, wall_before = 0, 0, 0.0
+    episode, global_step, wall_before, env_time = 0, 0, 0.0, 0.0
     if state is not None:
         agent.load_state_dict(state["agent"])
         buffer.load_state_dict(state["buffer"])
         _restore_rng_states(state["rng"])
         episode, global_step = int(state["episode"]), int(state["global_step"])
         rows, wall_before = [dict(r) for r in state["rows"]], float(state["wall_time_s"])
+        env_time = float(rows[-1].get("env_time_s") or 0.0) if rows else 0.0
     _write_metrics(metrics_path, rows)  # truncates rows past the checkpoint
     collisions = sum(int(r["collision"]) for r in rows)
 
@@ -443,11 +447,13 @@ def train(
     steps0 = global_step
     snapshot = state if state is not None else _snapshot(run, agent, buffer, 0, 0, rows, 0.0)
     try:
-        with deterministic_torch(), open(metrics_path, "a", newline="") as metrics_file:
+        with _deterministic_torch(), open(metrics_path, "a", newline="") as metrics_file:
             writer = csv.DictWriter(metrics_file, fieldnames=METRIC_COLUMNS, lineterminator="\n")
             while episode < cfg.episodes:
                 # --- one episode -------------------------------------------------------------
+                t_env = time.perf_counter()
                 obs, info = env.reset(seed=episode_seed(cfg.seed, episode))
+                env_time += time.perf_counter() - t_env
                 mask = _mask_of(info)
                 ep_return, length, speed_sum, ep_cost = 0.0, 0, 0.0, 0.0
                 interventions, fallbacks, loss_sum, n_losses = 0, 0, 0.0, 0
@@ -455,7 +461,9 @@ def train(
                 while not done:
                     eps = linear_epsilon(global_step, acfg, episode)
                     action = agent.act(obs, mask, eps)
+                    t_env = time.perf_counter()
                     next_obs, reward, terminated, truncated, info = env.step(action)
+                    env_time += time.perf_counter() - t_env
                     next_mask = _mask_of(info)
                     collision = bool(info.get("collision", False))
                     unsafe = not mask[action]
@@ -498,6 +506,7 @@ def train(
                     "lambda": lam,
                     "cost": ep_cost,
                     "wall_time_s": wall_before + elapsed,
+                    "env_time_s": env_time,
                     "env_steps": global_step,
                 }
                 rows.append(row)

@@ -25,6 +25,7 @@ SUMMARY_FIELDS = {
     "mean_length",
     "time_to_collision",
     "shield_intervention_rate",
+    "unsafe_action_rate",
     "fallback_rate",
     "collision_kinds",
     "policy",
@@ -146,6 +147,8 @@ def test_evaluate_with_a_shield_overrides_a_fixed_policy() -> None:
     assert summary["shield"] == "robust" and summary["override"] is True
     assert 0.0 < summary["shield_intervention_rate"] <= 1.0
     assert 0.0 <= summary["fallback_rate"] <= 1.0
+    # With the override on, every unsafe choice is replaced: the two rates agree.
+    assert summary["unsafe_action_rate"] == summary["shield_intervention_rate"]
 
 
 def test_evaluate_respects_an_explicit_override_setting() -> None:

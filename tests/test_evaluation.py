@@ -191,6 +191,7 @@ def _record(seed: int, length: int, kind: str | None, speed: float, intervention
         interventions=interventions,
         fallbacks=1 if interventions else 0,
         collision_kind=kind,
+        unsafe_actions=2 * interventions,
         actions=[0, length, 0, 0, 0],
     )
 
@@ -213,6 +214,7 @@ def test_summarize_hand_worked() -> None:
     assert summary["time_to_collision"] == [None, 10.0, 30.0, 20.0]
     assert summary["shield_intervention_rate"] == 0.06
     assert summary["fallback_rate"] == 0.02
+    assert summary["unsafe_action_rate"] == 0.12
     assert summary["collision_kinds"] == {"ego_hit_front": 1, "rear_ended": 0, "side": 2}
     assert summary["actions"]["IDLE"] == 100
     assert summary["policy"] == "idle" and summary["wall_time_s"] == 1.5

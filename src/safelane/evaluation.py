@@ -201,6 +201,8 @@ class EpisodeRecord:
     interventions: int
     fallbacks: int
     collision_kind: str | None
+    unsafe_actions: int = 0
+    """Decisions whose *chosen* action the shield's mask marked unsafe (overridden or not)."""
     actions: list[int] = field(default_factory=lambda: [0] * N_ACTIONS)
     """Histogram of the executed actions (after a shield's override), indexed like ACTION_NAMES."""
 
@@ -219,7 +221,7 @@ def run_episode(env: gym.Env, policy: Policy, seed: int) -> EpisodeRecord:
     watch_collisions(env)
     total_reward = 0.0
     speeds: list[float] = []
-    interventions = fallbacks = 0
+    interventions = fallbacks = unsafe_actions = 0
     actions = [0] * N_ACTIONS
     time_to_collision: float | None = None
     collision = False
@@ -233,6 +235,7 @@ def run_episode(env: gym.Env, policy: Policy, seed: int) -> EpisodeRecord:
         speeds.append(float(info["speed"]))
         interventions += bool(info.get("shield_intervened", False))
         fallbacks += bool(info.get("fallback", False))
+        unsafe_actions += bool(info.get("unsafe_action", False))
         actions[int(info.get("executed_action", action))] += 1
         if info.get("collision", False) and not collision:
             collision = True
@@ -248,6 +251,7 @@ def run_episode(env: gym.Env, policy: Policy, seed: int) -> EpisodeRecord:
         interventions=interventions,
         fallbacks=fallbacks,
         collision_kind=classify_collision(env) if collision else None,
+        unsafe_actions=unsafe_actions,
         actions=actions,
     )
 
@@ -299,6 +303,7 @@ def summarize(records: list[EpisodeRecord], **meta: Any) -> dict[str, Any]:
         "time_to_collision": [r.time_to_collision for r in records],
         "shield_intervention_rate": sum(r.interventions for r in records) / max(decisions, 1),
         "fallback_rate": sum(r.fallbacks for r in records) / max(decisions, 1),
+        "unsafe_action_rate": sum(r.unsafe_actions for r in records) / max(decisions, 1),
         "collision_kinds": kinds,
         "actions": dict(zip(ACTION_NAMES, actions, strict=True)),
     }

@@ -216,6 +216,7 @@ def collect(out_dir: Path, spec: ExperimentSpec) -> dict[str, Any]:
                     sum(e["return_before_collision"] for e in rec["episodes"]) / len(rec["episodes"])
                 ),
                 "shield_intervention_rate": s["shield_intervention_rate"],
+                "unsafe_action_rate": s["unsafe_action_rate"],
                 "fallback_rate": s["fallback_rate"],
                 "collision_kinds": s["collision_kinds"],
                 "train_wall_time_s": rec["train_wall_time_s"],

@@ -218,7 +218,7 @@ def write_report(out_dir: str | Path, gifs: dict[str, str] | None = None) -> Pat
         "What the paper could not show — all test episodes, all seeds:",
         "",
         "| method | collisions / episodes | collision rate (mean over seeds, 95 % bootstrap CI) | mean speed [m/s] "
-        "| reward before collision | shield interventions / decision | no-safe-action rate |",
+        "| reward before collision | unsafe choices / decision | no-safe-action rate |",
         "|---|---|---|---|---|---|---|",
     ]
     for m, data in methods.items():
@@ -228,13 +228,15 @@ def write_report(out_dir: str | Path, gifs: dict[str, str] | None = None) -> Pat
             f"| {LABELS[m]} | {a['collisions']} / {a['test_episodes']} | {_fmt(a['collision_rate']['mean'], 3)} "
             f"{_ci_str(a['collision_rate'])} | {_fmt(a['mean_speed']['mean'])} {_ci_str(a['mean_speed'], 2)} | "
             f"{_fmt(a['return_before_collision']['mean'], 1)} | "
-            f"{np.mean([p['shield_intervention_rate'] for p in per]):.3f} | "
+            f"{np.mean([p['unsafe_action_rate'] for p in per]):.3f} | "
             f"{np.mean([p['fallback_rate'] for p in per]):.4f} |"
         )
     lines += [
         "",
-        "Shield interventions count decisions whose chosen action the training-time safety model marks unsafe "
-        "(for DQN and constrained Q: would have been masked).",
+        "Unsafe choices count test decisions whose chosen action the run's own safety model (robust for "
+        "robust Q-masking, nominal for the others) marks unsafe: DQN and constrained Q act without the mask, "
+        "so these are the actions a shield would have masked; the masked methods choose among safe actions "
+        "(0 unless no action was safe).",
         "",
         "## Fig. 6 — total reward before collision",
         "",

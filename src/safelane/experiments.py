@@ -81,7 +81,8 @@ def _task(out_dir: str, spec_json: str, method: str, seed: int) -> dict[str, Any
     import torch
 
     from safelane.evaluation import run_config, summarize
-    from safelane.training import load_policy, load_run_config, make_train_config, train
+    from safelane.plots import read_metrics
+    from safelane.training import METRICS_FILE, load_policy, load_run_config, make_train_config, train
 
     torch.set_num_threads(1)
     spec = ExperimentSpec.model_validate_json(spec_json)
@@ -89,7 +90,6 @@ def _task(out_dir: str, spec_json: str, method: str, seed: int) -> dict[str, Any
     eval_path = run_dir / "eval.json"
     if eval_path.exists():
         return json.loads(eval_path.read_text())
-    start = time.perf_counter()
     cfg = make_train_config(
         method=method,
         agent_preset=spec.agent_preset,
@@ -104,7 +104,9 @@ def _task(out_dir: str, spec_json: str, method: str, seed: int) -> dict[str, Any
         # Killed before its first checkpoint: nothing to resume, the partial files are redone.
         shutil.rmtree(run_dir)
     train(cfg, run_dir, resume=resume)
-    train_time = time.perf_counter() - start
+    # The run's own clock: cumulative over resumes (a perf_counter here would count only the last part).
+    train_time = float(read_metrics(run_dir / METRICS_FILE, ["wall_time_s"])["wall_time_s"][-1])
+    eval_start = time.perf_counter()
     run = load_run_config(run_dir)
     policy = load_policy(run_dir)
     reward_c = run.env.reward.c
@@ -144,7 +146,7 @@ def _task(out_dir: str, spec_json: str, method: str, seed: int) -> dict[str, Any
         "episodes": episodes,
         "stress": stress,
         "train_wall_time_s": train_time,
-        "eval_wall_time_s": time.perf_counter() - start - train_time,
+        "eval_wall_time_s": time.perf_counter() - eval_start,
     }
     atomic_write_text(eval_path, json.dumps(record))
     return record

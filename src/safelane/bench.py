@@ -11,7 +11,6 @@ run timed by its own clocks (:func:`measure_training`), so it too is a ratio wit
 
 from __future__ import annotations
 
-import csv
 import platform
 import tempfile
 import time
@@ -24,6 +23,7 @@ import numpy as np
 from safelane.config import ConfigError
 from safelane.env import make_env, paper_state
 from safelane.evaluation import fixed_policy
+from safelane.plots import read_metrics
 from safelane.training import METRICS_FILE, make_train_config, train
 
 BENCH_PRESET = "fast"
@@ -60,9 +60,8 @@ def measure_training(episodes: int, seed: int, shield: str) -> dict[str, float]:
         sets = [f"shield.mode={shield}", "agent.learning_starts=64"]
         cfg = make_train_config(method="robust", episodes=episodes, seed=seed, sets=sets)
         out = train(cfg, Path(tmp) / "run")
-        with open(out / METRICS_FILE, newline="") as f:
-            last = list(csv.DictReader(f))[-1]
-    wall, env_time, steps = float(last["wall_time_s"]), float(last["env_time_s"]), int(last["env_steps"])
+        clocks = read_metrics(out / METRICS_FILE, ["wall_time_s", "env_time_s", "env_steps"])
+    wall, env_time, steps = (float(clocks[c][-1]) for c in ("wall_time_s", "env_time_s", "env_steps"))
     return {
         "train_steps_per_s": steps / wall,
         "agent_ms_per_decision": 1e3 * (wall - env_time) / steps,

@@ -233,10 +233,11 @@ def write_report(out_dir: str | Path, gifs: dict[str, str] | None = None) -> Pat
         )
     lines += [
         "",
-        "Unsafe choices count test decisions whose chosen action the run's own safety model (robust for "
-        "robust Q-masking, nominal for the others) marks unsafe: DQN and constrained Q act without the mask, "
-        "so these are the actions a shield would have masked; the masked methods choose among safe actions "
-        "(0 unless no action was safe).",
+        "Unsafe choices count test decisions whose chosen action is outside the run's own mask (robust for "
+        "robust Q-masking, nominal for the others): DQN and constrained Q act without the mask, so these are "
+        "the actions a shield would have masked — including lane changes off the road edge, which the mask "
+        "excludes and highway-env turns into IDLE; the masked methods choose inside the mask (0 by "
+        "construction).",
         "",
         "## Fig. 6 — total reward before collision",
         "",

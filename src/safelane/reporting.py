@@ -23,6 +23,11 @@ TABLE4_EPISODES = 7
 CONVERGENCE_WINDOW = 10
 
 
+def _training_time(methods: dict[str, Any]) -> float:
+    """Seconds of training over every run of ``methods`` (results.json's per-seed ``train_wall_time_s``)."""
+    return float(sum(p["train_wall_time_s"] for data in methods.values() for p in data["per_seed"].values()))
+
+
 def _fmt(x: float, digits: int = 2) -> str:
     return f"{x:.{digits}f}"
 
@@ -197,7 +202,8 @@ def write_report(out_dir: str | Path, gifs: dict[str, str] | None = None) -> Pat
         f"seeds {spec.seeds}, {spec.episodes} training episodes per run, {spec.test_episodes} held-out test "
         f"episodes per run"
         + (" — **quick mode: too few seeds and episodes for conclusions**" if spec.quick else "")
-        + f". Wall time: {results.get('wall_time_s', float('nan')):.0f} s.",
+        + f". Training time summed over runs: {_training_time(methods):.0f} s (each run's own clock, resumes "
+        f"included); this invocation: {results.get('wall_time_s', float('nan')):.0f} s.",
         "",
         f"## Table 4 — time to collision [s] in the first 7 test episodes (seed {spec.seeds[0]}; – = no collision)",
         "",

@@ -227,6 +227,8 @@ def evaluate(
 
     A fixed policy cannot read the shield's mask, so with a shield it runs with
     shield.override=true (unsafe actions replaced by the closest safe one) unless --set says otherwise.
+    A trained RUN_DIR runs under the shield it was trained with; --shield none evaluates a masked
+    method's raw Q-network (what its values learned about unsafe actions, without the mask).
     """
     from safelane.evaluation import FIXED_POLICIES, evaluate_fixed
 

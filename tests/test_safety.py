@@ -97,9 +97,7 @@ def test_ego_trajectory_matches_highway_env(preset: str) -> None:
 
 
 def test_dynamics_are_read_from_highway_env() -> None:
-    scene = scenarios.ego_leftmost_lane(
-        mode="robust", **{"env.policy_frequency": 2, "env.simulation_frequency": 10}
-    )
+    scene = scenarios.ego_leftmost_lane(mode="robust", **{"env.policy_frequency": 2, "env.simulation_frequency": 10})
     dyn = scene.shield.dynamics
     from highway_env.vehicle.controller import ControlledVehicle
 
@@ -184,9 +182,7 @@ def road(draw: st.DrawFn, extreme: bool = False) -> tuple[RoadState, Dynamics, l
     idx = draw(st.integers(0, len(SPEEDS) - 1))
     cars = draw(st.lists(vehicle(lanes, extreme), max_size=10))
     ego_x = 200.0
-    state = make_state(
-        ego_x, ego_lane, target_lane, draw(st.floats(0.0, 40.0 if extreme else 32.0)), idx, cars
-    )
+    state = make_state(ego_x, ego_lane, target_lane, draw(st.floats(0.0, 40.0 if extreme else 32.0)), idx, cars)
     return state, dynamics(lanes, sim_hz), cars
 
 
@@ -282,3 +278,32 @@ def test_empty_road_everything_available_is_safe() -> None:
 def test_invalid_mode_is_a_clear_error() -> None:
     with pytest.raises(ValueError, match="mode"):
         evaluate(make_state(0.0, 0, 0, 25.0, 5, []), dynamics(2, 5), "paranoid")  # type: ignore[arg-type]
+
+
+def test_road_state_keeps_exactly_the_vehicles_evaluate_considers() -> None:
+    """road_state snapshots only vehicles within RELEVANCE_RANGE along the road (what evaluate reads),
+    and moving a far vehicle around beyond that range changes neither the snapshot nor the mask."""
+    from safelane.safety import RELEVANCE_RANGE
+    from safelane.shield import road_state
+
+    specs = [
+        scenarios.VehicleSpec(2, 30.0, 20.0),
+        scenarios.VehicleSpec(0, 40.0, 22.0),
+        scenarios.VehicleSpec(1, 60.0, 0.0),
+    ]
+    scene = scenarios.build_scene(1, 25.0, specs, mode="robust")
+    base = scene.env.unwrapped
+    ego = base.vehicle
+    others = [v for v in base.road.vehicles if v is not ego]
+    far, near = others[0], others[-1]
+    far.position = np.array([ego.position[0] + RELEVANCE_RANGE + 5.0, far.position[1]])
+    near.position = np.array([ego.position[0] + RELEVANCE_RANGE - 5.0, near.position[1]])
+    state = road_state(scene.shield.env, scene.shield.dynamics)
+    dx = state.x - state.ego_x
+    assert state.n == sum(abs(v.position[0] - ego.position[0]) < RELEVANCE_RANGE for v in others)
+    assert np.all(np.abs(dx) < RELEVANCE_RANGE)
+    assert np.isclose(dx, RELEVANCE_RANGE - 5.0).sum() == 1  # the near one is in
+    before = evaluate(state, scene.shield.dynamics, "robust")
+    far.position = np.array([ego.position[0] + 2 * RELEVANCE_RANGE, far.position[1]])
+    after = evaluate(road_state(scene.shield.env, scene.shield.dynamics), scene.shield.dynamics, "robust")
+    assert np.array_equal(before.mask, after.mask) and np.array_equal(before.min_gap, after.min_gap)

@@ -204,18 +204,25 @@ def ego_trajectories(state: RoadState, dyn: Dynamics) -> tuple[np.ndarray, np.nd
     xs[..., 0], vs[..., 0] = x, v
     decay = 1.0 - dyn.ego_kp * dyn.frame_dt
     powers = decay ** np.arange(frames + 1)  # v_k = target + (v_0 - target)·decay^k
+    # Distance covered since the decision's start: 0, then the running sum of v·dt (written in place:
+    # this runs at every decision of every episode, so no temporaries beyond the ones numpy needs).
+    covered = np.zeros((*shape, frames + 1))
+    top = len(ts) - 1
     for d in range(dyn.horizon_decisions):
         if d >= 1:
-            braking = np.broadcast_to(d > hold, shape)
-            slower = ts[np.maximum(speed_to_index(v, dyn.target_speeds) - 1, 0)]
-            target = np.where(braking, slower, target)
-        v_frames = target[..., None] + (v - target)[..., None] * powers  # (5, n_fb, frames+1)
-        x_frames = x[..., None] + dyn.frame_dt * np.concatenate(
-            [np.zeros((*shape, 1)), np.cumsum(v_frames[..., :-1], axis=-1)], axis=-1
-        )
+            # SLOWER: one set-point below the current speed's index (speed_to_index, inlined).
+            index = np.round((v - ts[0]) / (ts[-1] - ts[0]) * top)
+            slower = ts[np.clip(index, 1, top).astype(int) - 1]
+            target = np.where(d > hold, slower, target)
         sl = slice(d * frames, (d + 1) * frames + 1)
-        xs[..., sl], vs[..., sl] = x_frames, v_frames
-        x, v = x_frames[..., -1], v_frames[..., -1]
+        # Consecutive decisions share a frame: decision d+1's first frame overwrites d's last, as before.
+        v_frames, x_frames = vs[..., sl], xs[..., sl]
+        np.multiply((v - target)[..., None], powers, out=v_frames)
+        v_frames += target[..., None]
+        np.cumsum(v_frames[..., :-1], axis=-1, out=covered[..., 1:])
+        np.multiply(covered, dyn.frame_dt, out=x_frames)
+        x_frames += x[..., None]
+        x, v = x_frames[..., -1].copy(), v_frames[..., -1].copy()
     # Beyond the horizon the ego still creeps towards its final set-point: credit the remaining
     # distance of the exponential approach to the last frame so a stopped leader is not missed.
     tail = np.maximum(vs[..., -1] - 0.0, 0.0) / dyn.ego_kp
@@ -403,6 +410,7 @@ def evaluate(state: RoadState, dyn: Dynamics, mode: Mode = "robust", formula: Fo
     nominal_ahead = np.full((N_ACTIONS, n_fb), np.inf)
     nominal_ok = np.ones(N_ACTIONS, dtype=bool)  # every nominal conflict has *some* good fallback
     lanes_near = state.lane_of(state.y[near], dyn.lanes_count, dyn.lane_width)
+    cut_ins: dict[tuple[float, float, float], tuple[np.ndarray, np.ndarray]] = {}
     for a in range(N_ACTIONS):
         if not available[a]:
             continue
@@ -410,14 +418,11 @@ def evaluate(state: RoadState, dyn: Dynamics, mode: Mode = "robust", formula: Fo
         vehicles, lanes_v, starts, nominal_flags = occ.vehicle, occ.lane, occ.start, occ.nominal
         if mode == "robust":
             occupied = {state.ego_lane, state.ego_target_lane}
-            permitted, unfiltered = _cut_in_candidates(
-                state,
-                dyn,
-                near,
-                float(ego_x[a, 0, frames]),
-                float(ego_v[a, 0, frames]),
-                float(targets[a]),
-            )
+            # IDLE and the lane changes share one longitudinal trajectory: compute their cut-ins once.
+            key = (float(ego_x[a, 0, frames]), float(ego_v[a, 0, frames]), float(targets[a]))
+            if key not in cut_ins:
+                cut_ins[key] = _cut_in_candidates(state, dyn, near, *key)
+            permitted, unfiltered = cut_ins[key]
             extra_v, extra_l = [], []
             for lane, _ in ego_lanes:
                 cands = permitted if lane in occupied else unfiltered

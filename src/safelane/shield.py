@@ -30,7 +30,7 @@ from highway_env.road.road import Road, RoadNetwork
 from highway_env.vehicle.behavior import IDMVehicle
 from highway_env.vehicle.controller import ControlledVehicle
 
-from safelane.safety import OVERRIDE_ORDER, Dynamics, Formula, Mode, RoadState, SafetyResult, evaluate
+from safelane.safety import OVERRIDE_ORDER, RELEVANCE_RANGE, Dynamics, Formula, Mode, RoadState, SafetyResult, evaluate
 
 
 @functools.lru_cache(maxsize=64)
@@ -105,8 +105,48 @@ def dynamics_from_env(env: gym.Env) -> Dynamics:
     )
 
 
+def _vehicle_record(o: Any) -> tuple[Any, ...]:
+    """The per-vehicle attributes the safety model needs, read in one pass (instance, then class)."""
+    idm_formula = type(o).acceleration is IDMVehicle.acceleration
+    comfort_acc = float(getattr(o, "COMFORT_ACC_MAX", IDMVehicle.COMFORT_ACC_MAX))
+    acc_max = float(getattr(o, "ACC_MAX", IDMVehicle.ACC_MAX))
+    return (
+        float(getattr(o, "LENGTH", 5.0)),
+        bool(getattr(o, "crashed", False)),
+        acc_max,
+        comfort_acc if idm_formula else acc_max,
+        isinstance(o, IDMVehicle) and bool(getattr(o, "enable_lane_change", False)),
+        float(getattr(o, "DELTA", IDMVehicle.DELTA)),
+        comfort_acc,
+        float(getattr(o, "COMFORT_ACC_MIN", IDMVehicle.COMFORT_ACC_MIN)),
+        float(getattr(o, "DISTANCE_WANTED", IDMVehicle.DISTANCE_WANTED)),
+        float(getattr(o, "TIME_WANTED", IDMVehicle.TIME_WANTED)),
+        float(getattr(o, "LANE_CHANGE_MAX_BRAKING_IMPOSED", 2.0)) if idm_formula else np.inf,
+    )
+
+
+_RECORD_FIELDS = (
+    "length",
+    "crashed",
+    "brake_max",
+    "accel_max",
+    "can_change_lane",
+    "idm_delta",
+    "idm_comfort_acc",
+    "idm_comfort_dec",
+    "idm_distance_wanted",
+    "idm_time_wanted",
+    "max_braking_imposed",
+)
+
+
 def road_state(env: gym.Env, dyn: Dynamics) -> RoadState:
-    """Snapshot of the road around the ego in lane coordinates (metres, m/s) for the safety model."""
+    """Snapshot of the road around the ego in lane coordinates (metres, m/s) for the safety model.
+
+    Only vehicles within :data:`safelane.safety.RELEVANCE_RANGE` [m] of the ego along the road are
+    included — the ones :func:`safelane.safety.evaluate` considers; their attributes are read in one
+    pass, so the snapshot costs what the nearby traffic costs, not the whole road.
+    """
     base = env.unwrapped
     ego = base.vehicle
     road = base.road
@@ -116,25 +156,22 @@ def road_state(env: gym.Env, dyn: Dynamics) -> RoadState:
     others += [o for o in getattr(road, "objects", []) if getattr(o, "collidable", True)]
     n = len(others)
     pos = np.array([o.position for o in others], dtype=float).reshape(n, 2) - start
-    heading = np.array([o.heading for o in others], dtype=float) - lane_heading
-    speed = np.array([o.speed for o in others], dtype=float)
     ego_rel = np.asarray(ego.position, dtype=float) - start
+    ego_x = float(ego_rel @ direction)
+    x_all = pos @ direction if n else np.zeros(0)
+    near = np.flatnonzero((np.abs(x_all - ego_x) < RELEVANCE_RANGE) & np.isfinite(x_all))
+    nearby = [others[i] for i in near]
+    heading = np.array([o.heading for o in nearby], dtype=float) - lane_heading
+    speed = np.array([o.speed for o in nearby], dtype=float)
     ego_heading = ego.heading - lane_heading
-
-    def cls_attr(o: Any, name: str, default: float) -> float:
-        return float(getattr(o, name, default))
-
-    idm_formula = [type(o).acceleration is IDMVehicle.acceleration for o in others]
-    is_idm = [isinstance(o, IDMVehicle) for o in others]
-    braking_imposed = np.array(
-        [
-            cls_attr(o, "LANE_CHANGE_MAX_BRAKING_IMPOSED", 2.0) if formula else np.inf
-            for o, formula in zip(others, idm_formula, strict=True)
-        ]
-    )
+    records = [_vehicle_record(o) for o in nearby]
+    columns = {
+        name: np.array([r[k] for r in records], dtype=bool if name in ("crashed", "can_change_lane") else float)
+        for k, name in enumerate(_RECORD_FIELDS)
+    }
     lane = getattr(ego, "lane", None)
     return RoadState(
-        ego_x=float(ego_rel @ direction),
+        ego_x=ego_x,
         ego_y=float(ego_rel @ lateral),
         ego_speed=float(ego.speed * math.cos(ego_heading)),
         ego_lane=int(ego.lane_index[2]),
@@ -142,38 +179,13 @@ def road_state(env: gym.Env, dyn: Dynamics) -> RoadState:
         ego_target_speed=float(getattr(ego, "target_speed", ego.speed)),
         ego_speed_index=int(getattr(ego, "speed_index", 0)),
         ego_length=float(ego.LENGTH),
-        x=pos @ direction if n else np.zeros(0),
-        y=pos @ lateral if n else np.zeros(0),
+        x=x_all[near],
+        y=(pos @ lateral)[near] if n else np.zeros(0),
         vx=speed * np.cos(heading),
         vy=speed * np.sin(heading),
         heading=np.arctan2(np.sin(heading), np.cos(heading)),
-        length=np.array([cls_attr(o, "LENGTH", 5.0) for o in others]),
-        crashed=np.array([bool(getattr(o, "crashed", False)) for o in others], dtype=bool),
-        brake_max=np.array([cls_attr(o, "ACC_MAX", IDMVehicle.ACC_MAX) for o in others]),
-        accel_max=np.array(
-            [
-                cls_attr(o, "COMFORT_ACC_MAX", IDMVehicle.COMFORT_ACC_MAX)
-                if formula
-                else cls_attr(o, "ACC_MAX", IDMVehicle.ACC_MAX)
-                for o, formula in zip(others, idm_formula, strict=True)
-            ]
-        ),
-        can_change_lane=np.array(
-            [
-                idm and bool(getattr(o, "enable_lane_change", False))
-                for o, idm in zip(others, is_idm, strict=True)
-            ],
-            dtype=bool,
-        ),
-        idm_delta=np.array([cls_attr(o, "DELTA", IDMVehicle.DELTA) for o in others]),
-        idm_comfort_acc=np.array([cls_attr(o, "COMFORT_ACC_MAX", IDMVehicle.COMFORT_ACC_MAX) for o in others]),
-        idm_comfort_dec=np.array([cls_attr(o, "COMFORT_ACC_MIN", IDMVehicle.COMFORT_ACC_MIN) for o in others]),
-        idm_distance_wanted=np.array(
-            [cls_attr(o, "DISTANCE_WANTED", IDMVehicle.DISTANCE_WANTED) for o in others]
-        ),
-        idm_time_wanted=np.array([cls_attr(o, "TIME_WANTED", IDMVehicle.TIME_WANTED) for o in others]),
-        max_braking_imposed=braking_imposed,
         speed_limit=float(lane.speed_limit) if lane is not None and lane.speed_limit is not None else np.inf,
+        **columns,
     )
 
 

@@ -14,9 +14,7 @@ from safelane.stats import smooth
 
 def write_metrics(run_dir: Path, returns: list[float], epsilon: bool = True) -> None:
     run_dir.mkdir(parents=True)
-    header = (
-        "episode,return,epsilon,collision,mean_speed" if epsilon else "episode,return,collision,mean_speed"
-    )
+    header = "episode,return,epsilon,collision,mean_speed" if epsilon else "episode,return,collision,mean_speed"
     lines = [header]
     for i, r in enumerate(returns):
         eps = f"{max(0.05, 1.0 - 0.1 * i):.2f}," if epsilon else ""

@@ -112,4 +112,3 @@ def add_adversary(road: Any, ego: Any, kind: str) -> Vehicle | None:
     vehicle.check_collisions = others[0].check_collisions if others else True
     road.vehicles.append(vehicle)
     return vehicle
-

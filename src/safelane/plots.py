@@ -22,9 +22,7 @@ METRICS_FILE = "metrics.csv"
 _BOOLEANS = {"true": 1.0, "false": 0.0}
 
 
-def read_metrics(
-    path: str | Path, columns: Sequence[str], optional: Sequence[str] = ()
-) -> dict[str, np.ndarray]:
+def read_metrics(path: str | Path, columns: Sequence[str], optional: Sequence[str] = ()) -> dict[str, np.ndarray]:
     """The numeric ``columns`` (required) and ``optional`` columns (when present) of a metrics CSV.
 
     Values become float arrays (``True``/``False`` → 1/0, an empty cell → NaN, as training writes
@@ -92,9 +90,7 @@ def plot_training_curves(
             any_eps = True
 
     ax.set_xlabel("episode")
-    ax.set_ylabel(
-        f"return (scaled to [0, 1], {window}-episode mean)" if scaled else f"return ({window}-episode mean)"
-    )
+    ax.set_ylabel(f"return (scaled to [0, 1], {window}-episode mean)" if scaled else f"return ({window}-episode mean)")
     if any_eps:
         ax_eps.set_ylabel("ε (dashed)")
         ax_eps.set_ylim(0.0, 1.05)

@@ -274,8 +274,8 @@ def idm_acceleration_behind(
     free = acc * (1 - np.power(np.maximum(ego_speed, 0.0) / np.abs(target), state.idm_delta[who]))
     ab = -acc * state.idm_comfort_dec[who]
     dv = ego_speed - state.vx[who]
-    d_star = state.idm_distance_wanted[who] + ego_speed * state.idm_time_wanted[who] + ego_speed * dv / (
-        2 * np.sqrt(ab)
+    d_star = (
+        state.idm_distance_wanted[who] + ego_speed * state.idm_time_wanted[who] + ego_speed * dv / (2 * np.sqrt(ab))
     )
     d = np.where(np.abs(gap_centres) < 1e-2, 1e-2, gap_centres)
     return free - acc * (d_star / d) ** 2
@@ -359,13 +359,9 @@ def _cut_in_candidates(
     can = state.can_change_lane[near] & (np.abs(state.vx[near]) >= 1.0)
     target = np.clip(ego_target, 0.0, state.speed_limit)
     d_now = state.x[near] - state.ego_x
-    a_now = idm_acceleration_behind(
-        state, near, d_now, np.full(near.size, state.ego_speed), np.full(near.size, target)
-    )
+    a_now = idm_acceleration_behind(state, near, d_now, np.full(near.size, state.ego_speed), np.full(near.size, target))
     d_end = state.x[near] + state.vx[near] * dyn.decision_period - ego_x_end
-    a_end = idm_acceleration_behind(
-        state, near, d_end, np.full(near.size, ego_v_end), np.full(near.size, target)
-    )
+    a_end = idm_acceleration_behind(state, near, d_end, np.full(near.size, ego_v_end), np.full(near.size, target))
     limit = -state.max_braking_imposed[near]
     ahead = (d_now > 0) | (d_end > 0)
     return can & ahead & ((a_now >= limit) | (a_end >= limit)), can & ahead

@@ -118,9 +118,7 @@ def build_scene(
 def leader_braking(mode: Mode = "robust", gap: float = 25.0, **kw: Any) -> Scene:
     """A leader ``gap`` m ahead (centre to centre) in the ego lane, 10 m/s slower and braking hard;
     the lane to the left is free, a slow truck blocks the right."""
-    return build_scene(
-        1, 25.0, [VehicleSpec(1, gap, 15.0), VehicleSpec(2, 8.0, 25.0)], mode=mode, **kw
-    )
+    return build_scene(1, 25.0, [VehicleSpec(1, gap, 15.0), VehicleSpec(2, 8.0, 25.0)], mode=mode, **kw)
 
 
 def stopped_car_ahead(mode: Mode = "robust", distance: float = 60.0, **kw: Any) -> Scene:

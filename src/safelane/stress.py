@@ -56,9 +56,7 @@ def load_conditions(path: str | Path | None = None) -> list[Condition]:
     return out
 
 
-def condition_config(
-    cond: Condition, shield: str, override: bool, sets: list[str] | None = None
-) -> SafelaneConfig:
+def condition_config(cond: Condition, shield: str, override: bool, sets: list[str] | None = None) -> SafelaneConfig:
     """The environment config of a condition, with the shield mode and extra ``--set`` applied on top."""
     overrides: dict[str, Any] = dict(cond.sets)
     overrides["shield.mode"] = shield

@@ -252,3 +252,29 @@ def test_vehicles_behind_moves_traffic_behind_the_ego(make_fast_env: MakeEnv) ->
     obs_a, _ = first.reset(seed=9)
     obs_b, _ = again.reset(seed=9)
     np.testing.assert_array_equal(obs_a, obs_b)
+
+
+def test_discarding_highway_envs_own_observation_leaves_episodes_unchanged(monkeypatch: pytest.MonkeyPatch) -> None:
+    """PaperObservation swaps highway-env's (discarded) Kinematics observation for a constant; the
+    episode — states, rewards, speeds — is the same as with highway-env computing it every step."""
+
+    def episode() -> list[tuple[np.ndarray, float, float]]:
+        env = make_env("fast")
+        rng = np.random.default_rng(3)
+        env.reset(seed=11)
+        steps, done = [], False
+        while not done and len(steps) < 15:
+            obs, reward, terminated, truncated, info = env.step(int(rng.integers(5)))
+            steps.append((obs, reward, info["speed"]))
+            done = terminated or truncated
+        assert isinstance(env.unwrapped.observation_type, safelane_env.DiscardedObservation) == swapped
+        return steps
+
+    swapped = True
+    with_swap = episode()
+    monkeypatch.setattr(PaperObservation, "reset", gym.ObservationWrapper.reset)
+    swapped = False
+    without = episode()
+    assert len(with_swap) == len(without) > 3
+    for (o1, r1, v1), (o2, r2, v2) in zip(with_swap, without, strict=True):
+        assert np.array_equal(o1, o2) and r1 == r2 and v1 == v2

@@ -17,6 +17,7 @@ import gymnasium as gym
 import highway_env  # noqa: F401  (registers highway-v0 / highway-fast-v0)
 import numpy as np
 from highway_env import utils as hw_utils
+from highway_env.envs.common.observation import KinematicObservation, ObservationType
 
 from safelane import fastsim
 from safelane.adversaries import add_adversary
@@ -72,13 +73,48 @@ def paper_state(ego: Any, road: Any) -> np.ndarray:
     return obs
 
 
+class DiscardedObservation(ObservationType):
+    """Stands in for highway-env's own observation once :class:`PaperObservation` replaces it.
+
+    highway-env builds its Kinematics observation through pandas at every step (≈ 5 % of a
+    ``highway-fast-v0`` decision); safelane throws it away, so this returns a constant array of the
+    original space's shape instead. The original is read-only and draws no random numbers (order
+    ``sorted``), so the episodes are unchanged.
+    """
+
+    def __init__(self, env: Any, space: gym.spaces.Space) -> None:
+        super().__init__(env)
+        self._space = space
+        self._constant = np.zeros(space.shape, dtype=space.dtype)
+
+    def space(self) -> gym.spaces.Space:
+        """The replaced observation's space."""
+        return self._space
+
+    def observe(self) -> np.ndarray:
+        """Zeros of the replaced observation's shape."""
+        return self._constant.copy()  # a new array each call, as gymnasium expects
+
+
 class PaperObservation(gym.ObservationWrapper, gym.utils.RecordConstructorArgs):
-    """Replace highway-env's observation by the paper's 26-number state (eq. 3)."""
+    """Replace highway-env's observation by the paper's 26-number state (eq. 3).
+
+    After every reset highway-env's own observation is swapped for a :class:`DiscardedObservation`
+    (highway-env rebuilds it at each reset), unless it draws random numbers (``order: shuffled``).
+    """
 
     def __init__(self, env: gym.Env) -> None:
         gym.utils.RecordConstructorArgs.__init__(self)
         super().__init__(env)
         self.observation_space = gym.spaces.Box(-1.0, 1.0, shape=(OBS_SIZE,), dtype=np.float32)
+
+    def reset(self, **kwargs: Any) -> tuple[np.ndarray, dict[str, Any]]:
+        obs, info = super().reset(**kwargs)
+        base = self.env.unwrapped
+        observer = getattr(base, "observation_type", None)
+        if getattr(observer, "order", "sorted") == "sorted" and isinstance(observer, KinematicObservation):
+            base.observation_type = DiscardedObservation(base, base.observation_space)
+        return obs, info
 
     def observation(self, observation: Any) -> np.ndarray:
         base = self.env.unwrapped

@@ -207,12 +207,9 @@ def ego_trajectories(state: RoadState, dyn: Dynamics) -> tuple[np.ndarray, np.nd
     # Distance covered since the decision's start: 0, then the running sum of v·dt (written in place:
     # this runs at every decision of every episode, so no temporaries beyond the ones numpy needs).
     covered = np.zeros((*shape, frames + 1))
-    top = len(ts) - 1
     for d in range(dyn.horizon_decisions):
         if d >= 1:
-            # SLOWER: one set-point below the current speed's index (speed_to_index, inlined).
-            index = np.round((v - ts[0]) / (ts[-1] - ts[0]) * top)
-            slower = ts[np.clip(index, 1, top).astype(int) - 1]
+            slower = ts[np.maximum(speed_to_index(v, dyn.target_speeds) - 1, 0)]
             target = np.where(d > hold, slower, target)
         sl = slice(d * frames, (d + 1) * frames + 1)
         # Consecutive decisions share a frame: decision d+1's first frame overwrites d's last, as before.

@@ -193,6 +193,7 @@ def _record(seed: int, length: int, kind: str | None, speed: float, intervention
         collision_kind=kind,
         unsafe_actions=2 * interventions,
         actions=[0, length, 0, 0, 0],
+        vehicles_passed=seed - 1,
     )
 
 
@@ -215,6 +216,7 @@ def test_summarize_hand_worked() -> None:
     assert summary["shield_intervention_rate"] == 0.06
     assert summary["fallback_rate"] == 0.02
     assert summary["unsafe_action_rate"] == 0.12
+    assert summary["mean_vehicles_passed"] == 0.5  # (-1 + 0 + 1 + 2) / 4
     assert summary["collision_kinds"] == {"ego_hit_front": 1, "rear_ended": 0, "side": 2}
     assert summary["actions"]["IDLE"] == 100
     assert summary["policy"] == "idle" and summary["wall_time_s"] == 1.5
@@ -242,3 +244,20 @@ def test_evaluate_fixed_adds_its_meta() -> None:
 def test_evaluate_fixed_validates_its_inputs(episodes: int, seed: int, option: str) -> None:
     with pytest.raises(ConfigError, match=f"^{option}: must be >= "):
         evaluate_fixed(load_config("fast"), "idle", episodes, seed)
+
+
+def test_vehicles_ahead_counts_overtakes_on_the_real_road() -> None:
+    """The ego (25 m/s) passes a slow car (15 m/s, 10 m ahead, next lane) and is passed by a fast one
+    (35 m/s, 20 m behind, other lane): net overtakes 1 − 1 = 0, as the episode record computes it."""
+    from safelane import scenarios
+    from safelane.evaluation import vehicles_ahead
+
+    specs = [scenarios.VehicleSpec(2, 10.0, 15.0), scenarios.VehicleSpec(0, -20.0, 35.0)]
+    scene = scenarios.build_scene(1, 25.0, specs, mode="robust")
+    assert vehicles_ahead(scene.env) == 1
+    for _ in range(3):
+        scene.env.step(IDLE)
+    assert vehicles_ahead(scene.env) == 1  # passed the slow one, passed by the fast one
+    slow, fast = (v for v in scene.env.unwrapped.road.vehicles if v is not scene.env.unwrapped.vehicle)
+    ego_x = scene.env.unwrapped.vehicle.position[0]
+    assert slow.position[0] < ego_x < fast.position[0]

@@ -202,6 +202,8 @@ EVALUATE_UNITS = {
     "time_to_collision": "s",
     "shield_intervention_rate": "per decision",
     "fallback_rate": "per decision",
+    "unsafe_action_rate": "per decision",
+    "mean_vehicles_passed": "net overtakes per episode",
     "wall_time_s": "s",
 }
 

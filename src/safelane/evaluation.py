@@ -205,6 +205,8 @@ class EpisodeRecord:
     """Decisions whose *chosen* action the shield's mask marked unsafe (overridden or not)."""
     actions: list[int] = field(default_factory=lambda: [0] * N_ACTIONS)
     """Histogram of the executed actions (after a shield's override), indexed like ACTION_NAMES."""
+    vehicles_passed: int = 0
+    """Net overtakes: vehicles ahead of the ego (along the road) at the start minus at the end."""
 
     def to_dict(self) -> dict[str, Any]:
         """A JSON-ready dict of the record."""
@@ -215,10 +217,18 @@ ProgressCallback = Callable[[int, EpisodeRecord], None]
 """Called as ``progress(episode_index, record)`` after each episode."""
 
 
+def vehicles_ahead(env: gym.Env) -> int:
+    """Number of other vehicles ahead of the ego along the road (x; highway-env's roads are straight)."""
+    base = env.unwrapped
+    ego = base.vehicle
+    return sum(1 for v in base.road.vehicles if v is not ego and v.position[0] > ego.position[0])
+
+
 def run_episode(env: gym.Env, policy: Policy, seed: int) -> EpisodeRecord:
     """Play one episode reset with ``seed`` until it terminates or is truncated."""
     obs, info = env.reset(seed=seed)
     watch_collisions(env)
+    ahead_at_start = vehicles_ahead(env)
     total_reward = 0.0
     speeds: list[float] = []
     interventions = fallbacks = unsafe_actions = 0
@@ -253,6 +263,7 @@ def run_episode(env: gym.Env, policy: Policy, seed: int) -> EpisodeRecord:
         collision_kind=classify_collision(env) if collision else None,
         unsafe_actions=unsafe_actions,
         actions=actions,
+        vehicles_passed=ahead_at_start - vehicles_ahead(env),
     )
 
 
@@ -278,8 +289,9 @@ def run_episodes(
 def summarize(records: list[EpisodeRecord], **meta: Any) -> dict[str, Any]:
     """Aggregate records into one JSON-ready dict; ``meta`` (policy, shield, preset…) is merged in.
 
-    ``mean_speed`` [m/s] is the mean over episodes of each episode's mean speed; the
-    intervention and fallback rates are per decision; ``time_to_collision`` lists one entry per
+    ``mean_speed`` [m/s] is the mean over episodes of each episode's mean speed;
+    ``mean_vehicles_passed`` the mean net overtakes per episode; the intervention and fallback rates
+    are per decision; ``time_to_collision`` lists one entry per
     episode (seconds, or None without a collision).
     """
     if not records:
@@ -304,6 +316,7 @@ def summarize(records: list[EpisodeRecord], **meta: Any) -> dict[str, Any]:
         "shield_intervention_rate": sum(r.interventions for r in records) / max(decisions, 1),
         "fallback_rate": sum(r.fallbacks for r in records) / max(decisions, 1),
         "unsafe_action_rate": sum(r.unsafe_actions for r in records) / max(decisions, 1),
+        "mean_vehicles_passed": float(np.mean([r.vehicles_passed for r in records])),
         "collision_kinds": kinds,
         "actions": dict(zip(ACTION_NAMES, actions, strict=True)),
     }

@@ -218,8 +218,9 @@ def collect(out_dir: Path, spec: ExperimentSpec) -> dict[str, Any]:
                     sum(e["return_before_collision"] for e in rec["episodes"]) / len(rec["episodes"])
                 ),
                 "shield_intervention_rate": s["shield_intervention_rate"],
-                # NaN for eval.json written before safelane counted unsafe choices (shown as "nan").
+                # NaN for eval.json written before safelane counted these (shown as "nan").
                 "unsafe_action_rate": s.get("unsafe_action_rate", float("nan")),
+                "vehicles_passed": s.get("mean_vehicles_passed", float("nan")),
                 "fallback_rate": s["fallback_rate"],
                 "collision_kinds": s["collision_kinds"],
                 "train_wall_time_s": rec["train_wall_time_s"],

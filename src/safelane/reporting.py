@@ -224,8 +224,9 @@ def write_report(out_dir: str | Path, gifs: dict[str, str] | None = None) -> Pat
         "What the paper could not show — all test episodes, all seeds:",
         "",
         "| method | collisions / episodes | collision rate (mean over seeds, 95 % bootstrap CI) | mean speed [m/s] "
-        "| reward before collision | unsafe choices / decision | no-safe-action rate |",
-        "|---|---|---|---|---|---|---|",
+        "| net vehicles passed / episode | reward before collision | unsafe choices / decision "
+        "| no-safe-action rate |",
+        "|---|---|---|---|---|---|---|---|",
     ]
     for m, data in methods.items():
         a = data["aggregate"]
@@ -233,11 +234,15 @@ def write_report(out_dir: str | Path, gifs: dict[str, str] | None = None) -> Pat
         lines.append(
             f"| {LABELS[m]} | {a['collisions']} / {a['test_episodes']} | {_fmt(a['collision_rate']['mean'], 3)} "
             f"{_ci_str(a['collision_rate'])} | {_fmt(a['mean_speed']['mean'])} {_ci_str(a['mean_speed'], 2)} | "
+            f"{np.mean([p['vehicles_passed'] for p in per]):.1f} | "
             f"{_fmt(a['return_before_collision']['mean'], 1)} | "
             f"{np.mean([p['unsafe_action_rate'] for p in per]):.3f} | "
             f"{np.mean([p['fallback_rate'] for p in per]):.4f} |"
         )
     lines += [
+        "",
+        "Net vehicles passed: vehicles ahead of the ego at an episode's start minus at its end (overtakes "
+        "minus being overtaken; the ego spawns behind all traffic).",
         "",
         "Unsafe choices count test decisions whose chosen action is outside the run's own mask (robust for "
         "robust Q-masking, nominal for the others): DQN and constrained Q act without the mask, so these are "

@@ -1,0 +1,90 @@
+"""How fast can any policy drive under the shield? A FASTER-first overtaking heuristic that reads the
+simulator directly (an upper-bound probe, not a learner).
+
+Each decision: FASTER when the mask allows it; else a lane change allowed by the mask into a lane whose
+next car ahead is more than 10 m farther than in the ego's lane (the farther one); else IDLE; else the
+last allowed action (SLOWER first). Episodes are reset with seeds ``seed … seed + episodes − 1``.
+
+    python examples/shield_ceiling.py --shield robust --episodes 10 --policy-frequency 2
+
+prints one JSON line: collisions, mean speed [m/s], fallback rate. ``--policy-frequency F`` runs F
+decisions per second with physics at 5·F Hz (the ``fast`` preset has F = 1).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from typing import Any
+
+import numpy as np
+
+from safelane.actions import FASTER, IDLE, LANE_LEFT, LANE_RIGHT
+from safelane.env import make_env
+
+FREE_ROAD = 1e9  # [m] distance reported for a lane with no car ahead
+
+
+def room_ahead(base: Any, lane: int) -> float:
+    """Distance [m] along the road from the ego to the next car ahead in ``lane``."""
+    ego = base.vehicle
+    gaps = [
+        v.position[0] - ego.position[0]
+        for v in base.road.vehicles
+        if v is not ego and v.lane_index[2] == lane and v.position[0] > ego.position[0]
+    ]
+    return min(gaps, default=FREE_ROAD)
+
+
+def choose(base: Any, mask: np.ndarray) -> int:
+    """The heuristic's action for the current road and shield mask."""
+    if mask[FASTER]:
+        return FASTER
+    lane = base.vehicle.lane_index[2]
+    own = room_ahead(base, lane)
+    options = [(room_ahead(base, lane + (-1 if a == LANE_LEFT else 1)), a) for a in (LANE_LEFT, LANE_RIGHT) if mask[a]]
+    better = [o for o in options if o[0] > own + 10.0]
+    if better:
+        return max(better)[1]
+    if mask[IDLE]:
+        return IDLE
+    return int(np.flatnonzero(mask)[-1])
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--shield", choices=["nominal", "robust"], default="robust")
+    parser.add_argument("--episodes", type=int, default=10)
+    parser.add_argument("--seed", type=int, default=5000)
+    parser.add_argument("--policy-frequency", type=int, default=1)
+    args = parser.parse_args()
+    pf = args.policy_frequency
+    env = make_env(
+        "fast", **{"shield.mode": args.shield, "env.policy_frequency": pf, "env.simulation_frequency": 5 * pf}
+    )
+    collisions, speeds, fallbacks = 0, [], 0
+    for k in range(args.episodes):
+        _, info = env.reset(seed=args.seed + k)
+        done = False
+        while not done:
+            _, _, terminated, truncated, info = env.step(choose(env.unwrapped, info["action_mask"]))
+            speeds.append(info["speed"])
+            fallbacks += bool(info["fallback"])
+            done = terminated or truncated
+        collisions += bool(info["collision"])
+    print(
+        json.dumps(
+            {
+                "shield": args.shield,
+                "policy_frequency": pf,
+                "episodes": args.episodes,
+                "collisions": collisions,
+                "mean_speed": float(np.mean(speeds)),
+                "fallback_rate": fallbacks / len(speeds),
+            }
+        )
+    )
+
+
+if __name__ == "__main__":
+    main()

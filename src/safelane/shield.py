@@ -21,7 +21,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 import math
-from typing import Any
+from typing import Any, NamedTuple
 
 import gymnasium as gym
 import numpy as np
@@ -105,39 +105,40 @@ def dynamics_from_env(env: gym.Env) -> Dynamics:
     )
 
 
-def _vehicle_record(o: Any) -> tuple[Any, ...]:
-    """The per-vehicle attributes the safety model needs, read in one pass (instance, then class)."""
+class _VehicleRecord(NamedTuple):
+    """What the safety model needs of one other vehicle (the :class:`RoadState` array of the same name)."""
+
+    length: float
+    crashed: bool
+    brake_max: float
+    accel_max: float
+    can_change_lane: bool
+    idm_delta: float
+    idm_comfort_acc: float
+    idm_comfort_dec: float
+    idm_distance_wanted: float
+    idm_time_wanted: float
+    max_braking_imposed: float
+
+
+def _vehicle_record(o: Any) -> _VehicleRecord:
+    """Read one vehicle's attributes in one pass (instance first, then class; IDM's values as defaults)."""
     idm_formula = type(o).acceleration is IDMVehicle.acceleration
     comfort_acc = float(getattr(o, "COMFORT_ACC_MAX", IDMVehicle.COMFORT_ACC_MAX))
     acc_max = float(getattr(o, "ACC_MAX", IDMVehicle.ACC_MAX))
-    return (
-        float(getattr(o, "LENGTH", 5.0)),
-        bool(getattr(o, "crashed", False)),
-        acc_max,
-        comfort_acc if idm_formula else acc_max,
-        isinstance(o, IDMVehicle) and bool(getattr(o, "enable_lane_change", False)),
-        float(getattr(o, "DELTA", IDMVehicle.DELTA)),
-        comfort_acc,
-        float(getattr(o, "COMFORT_ACC_MIN", IDMVehicle.COMFORT_ACC_MIN)),
-        float(getattr(o, "DISTANCE_WANTED", IDMVehicle.DISTANCE_WANTED)),
-        float(getattr(o, "TIME_WANTED", IDMVehicle.TIME_WANTED)),
-        float(getattr(o, "LANE_CHANGE_MAX_BRAKING_IMPOSED", 2.0)) if idm_formula else np.inf,
+    return _VehicleRecord(
+        length=float(getattr(o, "LENGTH", 5.0)),
+        crashed=bool(getattr(o, "crashed", False)),
+        brake_max=acc_max,
+        accel_max=comfort_acc if idm_formula else acc_max,
+        can_change_lane=isinstance(o, IDMVehicle) and bool(getattr(o, "enable_lane_change", False)),
+        idm_delta=float(getattr(o, "DELTA", IDMVehicle.DELTA)),
+        idm_comfort_acc=comfort_acc,
+        idm_comfort_dec=float(getattr(o, "COMFORT_ACC_MIN", IDMVehicle.COMFORT_ACC_MIN)),
+        idm_distance_wanted=float(getattr(o, "DISTANCE_WANTED", IDMVehicle.DISTANCE_WANTED)),
+        idm_time_wanted=float(getattr(o, "TIME_WANTED", IDMVehicle.TIME_WANTED)),
+        max_braking_imposed=float(getattr(o, "LANE_CHANGE_MAX_BRAKING_IMPOSED", 2.0)) if idm_formula else np.inf,
     )
-
-
-_RECORD_FIELDS = (
-    "length",
-    "crashed",
-    "brake_max",
-    "accel_max",
-    "can_change_lane",
-    "idm_delta",
-    "idm_comfort_acc",
-    "idm_comfort_dec",
-    "idm_distance_wanted",
-    "idm_time_wanted",
-    "max_braking_imposed",
-)
 
 
 def road_state(env: gym.Env, dyn: Dynamics) -> RoadState:
@@ -167,7 +168,7 @@ def road_state(env: gym.Env, dyn: Dynamics) -> RoadState:
     records = [_vehicle_record(o) for o in nearby]
     columns = {
         name: np.array([r[k] for r in records], dtype=bool if name in ("crashed", "can_change_lane") else float)
-        for k, name in enumerate(_RECORD_FIELDS)
+        for k, name in enumerate(_VehicleRecord._fields)
     }
     lane = getattr(ego, "lane", None)
     return RoadState(

@@ -160,7 +160,7 @@ def _fmt(value: Any) -> str:
 def print_table(title: str, rows: dict[str, Any], units: dict[str, str] | None = None) -> None:
     """A two-column (metric, value) rich table on stdout."""
     table = Table(title=title)
-    table.add_column("metric", style="bold")
+    table.add_column("metric", style="bold", no_wrap=True)
     table.add_column("value", justify="right")
     table.add_column("unit")
     for key, value in rows.items():
@@ -203,7 +203,7 @@ EVALUATE_UNITS = {
     "shield_intervention_rate": "per decision",
     "fallback_rate": "per decision",
     "unsafe_action_rate": "per decision",
-    "mean_vehicles_passed": "net overtakes per episode",
+    "mean_vehicles_passed": "vehicles / episode",
     "wall_time_s": "s",
 }
 

@@ -7,8 +7,9 @@ last allowed action (SLOWER first). Episodes are reset with seeds ``seed … see
 
     python examples/shield_ceiling.py --shield robust --episodes 10 --policy-frequency 2
 
-prints one JSON line: collisions, mean speed [m/s], fallback rate. ``--policy-frequency F`` runs F
-decisions per second with physics at 5·F Hz (the ``fast`` preset has F = 1).
+prints one JSON line: collisions, mean speed over all decisions [m/s], fallback rate (per decision).
+``--policy-frequency F`` runs F decisions per second with physics at 5·F Hz (the ``fast`` preset has
+F = 1).
 """
 
 from __future__ import annotations

@@ -112,7 +112,7 @@ class PaperObservation(gym.ObservationWrapper, gym.utils.RecordConstructorArgs):
         obs, info = super().reset(**kwargs)
         base = self.env.unwrapped
         observer = getattr(base, "observation_type", None)
-        if getattr(observer, "order", "sorted") == "sorted" and isinstance(observer, KinematicObservation):
+        if isinstance(observer, KinematicObservation) and observer.order == "sorted":
             base.observation_type = DiscardedObservation(base, base.observation_space)
         return obs, info
 

@@ -290,9 +290,9 @@ def summarize(records: list[EpisodeRecord], **meta: Any) -> dict[str, Any]:
     """Aggregate records into one JSON-ready dict; ``meta`` (policy, shield, preset…) is merged in.
 
     ``mean_speed`` [m/s] is the mean over episodes of each episode's mean speed;
-    ``mean_vehicles_passed`` the mean net overtakes per episode; the intervention and fallback rates
-    are per decision; ``time_to_collision`` lists one entry per
-    episode (seconds, or None without a collision).
+    ``mean_vehicles_passed`` the mean net overtakes per episode; the intervention, fallback and
+    unsafe-choice rates are per decision; ``time_to_collision`` lists one entry per episode (seconds,
+    or None without a collision).
     """
     if not records:
         raise ValueError("summarize: no episodes")

@@ -292,11 +292,22 @@ def test_qmask_bootstraps_over_safe_actions_only() -> None:
     assert dqn.td_target(batch).item() == pytest.approx(1 + 0.5 * 10.0)
 
 
-def test_constrained_acts_and_bootstraps_on_the_lagrangian() -> None:
-    agent = agent_with_constant_q("constrained", [1.0, 2.0, 3.0, 0.0, 0.0], gamma=0.5)
-    assert isinstance(agent, ConstrainedAgent)
-    constant_net(agent.networks["cost"], [0.0, 0.0, 5.0, 0.0, 0.0])
+def constant_reward_and_cost(agent: ConstrainedAgent, reward: list[float], cost: list[float]) -> None:
+    """Make both of the agent's Q estimates constant, whichever way they are represented."""
+    if agent.cfg.cost_network == "shared":
+        constant_net(agent.networks["q_cost"], reward + cost)
+    else:
+        constant_net(agent.networks["q"], reward)
+        constant_net(agent.networks["cost"], cost)
     agent.sync_target()
+
+
+@pytest.mark.parametrize("cost_network", ["separate", "shared"])
+def test_constrained_acts_and_bootstraps_on_the_lagrangian(cost_network: str) -> None:
+    cfg = load_agent_config("tuned", "constrained", {"gamma": 0.5, "cost_network": cost_network})
+    agent = make_agent(cfg, seed=0)
+    assert isinstance(agent, ConstrainedAgent)
+    constant_reward_and_cost(agent, [1.0, 2.0, 3.0, 0.0, 0.0], [0.0, 0.0, 5.0, 0.0, 0.0])
     obs = np.zeros(26, np.float32)
     agent.lam = 0.0
     assert agent.greedy(obs) == 2
@@ -305,6 +316,20 @@ def test_constrained_acts_and_bootstraps_on_the_lagrangian() -> None:
     batch = batch_of(1, masks=[[T] * 5], next_masks=[[T] * 5], rewards=[1.0], costs=[1.0])
     y_r, y_c = agent._targets(batch)  # a* = 1: y_r = 1 + 0.5·2, y_c = 1 + 0.5·0
     assert (y_r.item(), y_c.item()) == pytest.approx((2.0, 1.0))
+
+
+def test_constrained_shared_trunk_is_the_papers_network_with_a_cost_head() -> None:
+    shared = make_agent(load_agent_config("tuned", "constrained", {"cost_network": "shared"}), seed=0)
+    separate = make_agent(load_agent_config("tuned", "constrained", {"cost_network": "separate"}), seed=0)
+    assert list(shared.networks) == ["q_cost"] and sorted(separate.networks) == ["cost", "q"]
+    sizes = [tuple(p.shape) for p in shared.networks["q_cost"].parameters()]
+    assert sizes == [(100, 26), (100,), (100, 100), (100,), (10, 100), (10,)]
+    # Half the parameters of two networks: the trunk is shared, only the last layer doubles.
+    n_shared = sum(p.numel() for p in shared.networks["q_cost"].parameters())
+    n_separate = sum(p.numel() for net in separate.networks.values() for p in net.parameters())
+    assert n_shared == 2700 + 10100 + 1010 and n_separate == 2 * (2700 + 10100 + 505)
+    with pytest.raises(ValueError, match="networks"):
+        separate.load_state_dict(shared.state_dict())
 
 
 def test_constrained_lambda_dual_ascent() -> None:

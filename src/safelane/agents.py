@@ -96,6 +96,13 @@ class AgentConfig(BaseModel):
         0.02, ge=0, description="constrained: dual-ascent step for λ per episode, per unit of excess cost."
     )
     lambda_init: float = Field(0.0, ge=0, description="constrained: initial Lagrange multiplier λ.")
+    cost_network: Literal["separate", "shared"] = Field(
+        "separate",
+        description="constrained: how Q_c is represented. separate = a second network like the paper's "
+        "(26 → 100 → 100 → 5); shared = one trunk with 10 outputs, the reward head and the cost head "
+        "(26 → 100 → 100 → 5 + 5): half the arithmetic per decision, and the cost head learns from the same "
+        "features as the reward head.",
+    )
     shaping_weight: float = Field(
         1.0, ge=0, description="robust: weight of the unsafe-pair regression (Q-shaping) in the loss."
     )
@@ -495,6 +502,8 @@ class DQNAgent:
         """Restore :meth:`state_dict` (raises ValueError on a different method or network)."""
         if state.get("method") != self.method:
             raise ValueError(f"checkpoint is for method {state.get('method')!r}, not {self.method!r}")
+        if sorted(state["networks"]) != sorted(self.networks):
+            raise ValueError(f"checkpoint has networks {sorted(state['networks'])}, not {sorted(self.networks)}")
         for k, net in self.networks.items():
             net.load_state_dict(state["networks"][k])
             self.targets[k].load_state_dict(state["targets"][k])
@@ -506,8 +515,9 @@ class DQNAgent:
 class ConstrainedAgent(DQNAgent):
     """Lagrangian constrained Q-learning (eq. 7) with a per-episode cost budget ``C``.
 
-    A second network learns the cost value ``Q_c`` (cost 1 per step whose action the shield marked
-    unsafe, or that ended in a collision) by its own TD target. Acting and bootstrapping maximise the
+    A second network — or, with ``cost_network: shared``, a second head on the reward network's trunk —
+    learns the cost value ``Q_c`` (cost 1 per step whose action the shield marked unsafe, or that ended
+    in a collision) by its own TD target. Acting and bootstrapping maximise the
     Lagrangian ``Q_r − λ·Q_c``: ``a* = argmax_a' (Q_r^tgt − λ·Q_c^tgt)(s', a')``,
     ``y_r = r + γ·Q_r^tgt(s', a*)``, ``y_c = c + γ·Q_c^tgt(s', a*)``. λ ≥ 0 follows dual ascent after each
     episode: ``λ ← max(0, λ + lambda_lr·(episode_cost − C))``.
@@ -521,17 +531,27 @@ class ConstrainedAgent(DQNAgent):
         """The Lagrange multiplier λ ≥ 0 (reward units per unit of cost)."""
 
     def build_networks(self, obs_size: int) -> dict[str, nn.Module]:
-        """Reward and cost Q-networks, same architecture."""
+        """Reward and cost Q: two networks (``q``, ``cost``) or one with both heads (``q_cost``)."""
+        if self.cfg.cost_network == "shared":
+            return {"q_cost": QNetwork(obs_size, 2 * N_ACTIONS)}
         return {"q": QNetwork(obs_size, N_ACTIONS), "cost": QNetwork(obs_size, N_ACTIONS)}
+
+    def reward_and_cost(self, obs: torch.Tensor, target: bool = False) -> tuple[torch.Tensor, torch.Tensor]:
+        """``(Q_r, Q_c)``, each (B, A), from the online networks or (``target=True``) the target ones."""
+        nets = self.targets if target else self.networks
+        if "q_cost" in nets:
+            both = nets["q_cost"](obs)
+            return both[:, : self.n_actions], both[:, self.n_actions :]
+        return nets["q"](obs), nets["cost"](obs)
 
     def action_values(self, obs: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
         """``Q_r − λ·Q_c``."""
-        return self.q_net(obs) - self.lam * self.networks["cost"](obs)
+        q_r, q_c = self.reward_and_cost(obs)
+        return q_r - self.lam * q_c
 
     def _targets(self, batch: Batch) -> tuple[torch.Tensor, torch.Tensor]:
         with torch.no_grad():
-            next_r = self.targets["q"](batch.next_obs)
-            next_c = self.targets["cost"](batch.next_obs)
+            next_r, next_c = self.reward_and_cost(batch.next_obs, target=True)
             best = (next_r - self.lam * next_c).argmax(dim=1, keepdim=True)
             not_done = 1.0 - batch.dones
             y_r = batch.rewards + self.cfg.gamma * next_r.gather(1, best).squeeze(1) * not_done
@@ -546,8 +566,8 @@ class ConstrainedAgent(DQNAgent):
         """TD loss of ``Q_r`` toward ``y_r`` plus TD loss of ``Q_c`` toward ``y_c``."""
         y_r, y_c = self._targets(batch)
         a = batch.actions.unsqueeze(1)
-        q_r = self.q_net(batch.obs).gather(1, a).squeeze(1)
-        q_c = self.networks["cost"](batch.obs).gather(1, a).squeeze(1)
+        q_r_all, q_c_all = self.reward_and_cost(batch.obs)
+        q_r, q_c = q_r_all.gather(1, a).squeeze(1), q_c_all.gather(1, a).squeeze(1)
         kind = self.cfg.loss
         return elementwise_loss(kind, q_r, y_r).mean() + elementwise_loss(kind, q_c, y_c).mean()
 

@@ -108,6 +108,7 @@ def test_env_show_preset_and_shield() -> None:
         (["evaluate", "--policy", "idle", "--set", "reward.v_max=-10"], "reward.v_max: must be greater than"),
         (["bench", "--episodes", "0"], "--episodes: must be >= 1"),
         (["bench", "--shield", "none"], "--shield: bench measures a shield; allowed: nominal, robust"),
+        (["bench", "--methods", "dqn,ppo"], "--methods: got 'dqn,ppo'; allowed: dqn, constrained, qmask, robust"),
     ],
 )
 def test_bad_input_is_one_error_line(args: list[str], starts: str) -> None:
@@ -170,9 +171,11 @@ def test_evaluate_prints_a_table_without_json() -> None:
 
 
 def test_bench_json() -> None:
-    result = runner.invoke(app, ["bench", "--episodes", "1", "--json"])
+    result = runner.invoke(app, ["bench", "--episodes", "1", "--methods", "robust,constrained", "--json"])
     assert result.exit_code == 0, result.output
     out = json.loads(result.stdout)
+    assert out["train_method"] == "robust" and "agent_overhead_fraction_robust" not in out
+    assert 0 < out["agent_overhead_fraction_constrained"] < 1 and out["agent_ms_per_decision_constrained"] > 0
     for key in (
         "env_steps_per_s",
         "shielded_env_steps_per_s",

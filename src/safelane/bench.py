@@ -14,12 +14,13 @@ from __future__ import annotations
 import platform
 import tempfile
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from safelane.agents import METHODS
 from safelane.config import ConfigError
 from safelane.env import make_env, paper_state
 from safelane.evaluation import fixed_policy
@@ -50,15 +51,23 @@ def _play(env: Any, seed: int, on_decision: Callable[[], None] | None = None) ->
     return decisions, stepping
 
 
-def measure_training(episodes: int, seed: int, shield: str) -> dict[str, float]:
-    """Train the ``robust`` method (``tuned`` preset, ``fast`` env with ``shield``) for ``episodes``
+def parse_methods(text: str) -> tuple[str, ...]:
+    """``all`` or a comma-separated list of methods → the methods (a one-line ConfigError otherwise)."""
+    methods = METHODS if text.strip() == "all" else tuple(m.strip() for m in text.split(","))
+    if any(m not in METHODS for m in methods):
+        raise ConfigError(f"--methods: got {text!r}; allowed: {', '.join(METHODS)} (comma-separated) or all")
+    return methods
+
+
+def measure_training(episodes: int, seed: int, shield: str, method: str = "robust") -> dict[str, float]:
+    """Train ``method`` (``tuned`` preset, ``fast`` env with ``shield``) for ``episodes``
     episodes in a temporary directory with the real loop of :func:`safelane.training.train`, and read its
     own clocks: decisions per second of training, and the share of its wall time spent outside the
     environment (acting, storing, gradient steps, bookkeeping, checkpoints)."""
     with tempfile.TemporaryDirectory(prefix="safelane-bench-") as tmp:
         # Learning starts after one batch, so nearly every timed decision carries a gradient step.
         sets = [f"shield.mode={shield}", "agent.learning_starts=64"]
-        cfg = make_train_config(method="robust", episodes=episodes, seed=seed, sets=sets)
+        cfg = make_train_config(method=method, episodes=episodes, seed=seed, sets=sets)
         out = train(cfg, Path(tmp) / "run")
         clocks = read_metrics(out / METRICS_FILE, ["wall_time_s", "env_time_s", "env_steps"])
     wall, env_time, steps = (float(clocks[c][-1]) for c in ("wall_time_s", "env_time_s", "env_steps"))
@@ -74,6 +83,7 @@ def run_bench(
     seed: int = 0,
     shield: str = "robust",
     progress: Callable[[int], None] | None = None,
+    methods: Sequence[str] = ("robust",),
 ) -> dict[str, Any]:
     """Measure, on the ``fast`` preset with a random policy, interleaving raw and shielded episodes
     (pair ``i`` uses seed ``seed + i``; ``progress(i)`` is called after each pair):
@@ -85,15 +95,18 @@ def run_bench(
     * ``obs_us_median``: one paper observation ``paper_state`` (eq. 3) [µs], median over decisions;
     * ``highway_env_steps_per_s``: raw decisions per second with highway-env's own neighbour search
       (``backend=highway-env``; identical episodes) and ``backend_speedup`` = raw ÷ that;
-    * ``train_steps_per_s``: decisions per second of a real ``robust`` training run of ``episodes``
-      episodes (:func:`measure_training`), ``agent_ms_per_decision`` [ms] what training adds to a
-      decision, and ``agent_overhead_fraction`` the share of training wall time outside the
-      environment, from the run's own clocks (``metrics.csv``: ``wall_time_s``, ``env_time_s``).
+    * ``train_steps_per_s``: decisions per second of a real training run of ``episodes`` episodes of
+      ``methods[0]`` (``train_method``; :func:`measure_training`), ``agent_ms_per_decision`` [ms] what
+      training adds to a decision, and ``agent_overhead_fraction`` the share of training wall time
+      outside the environment, from the run's own clocks (``metrics.csv``: ``wall_time_s``,
+      ``env_time_s``); each further method of ``methods`` adds the same three figures with the suffix
+      ``_METHOD`` (e.g. ``agent_overhead_fraction_constrained``).
     """
     if episodes < 1:
         raise ConfigError(f"--episodes: must be >= 1 (got {episodes})")
     if shield not in BENCH_SHIELDS:
         raise ConfigError(f"--shield: bench measures a shield; allowed: {', '.join(BENCH_SHIELDS)}")
+    methods = parse_methods(",".join(methods))
     start = time.perf_counter()
     raw = make_env(BENCH_PRESET)
     shielded = make_env(BENCH_PRESET, **{"shield.mode": shield})
@@ -131,7 +144,10 @@ def run_bench(
         raw.close()
         shielded.close()
         original.close()
-    training = measure_training(episodes, seed, shield)
+    training: dict[str, Any] = {"train_method": methods[0], **measure_training(episodes, seed, shield, methods[0])}
+    for method in methods[1:]:
+        figures = measure_training(episodes, seed, shield, method)
+        training.update({f"{key}_{method}": value for key, value in figures.items()})
     raw_rate = raw_n / raw_s
     shield_rate = shield_n / shield_s
     return {

@@ -277,6 +277,7 @@ BENCH_UNITS = {
     "agent_overhead_fraction": "non-env share of training time",
     "wall_time_s": "s",
 }
+TRAINING_FIGURES = ("train_steps_per_s", "agent_ms_per_decision", "agent_overhead_fraction")
 
 
 @app.command()
@@ -287,21 +288,34 @@ def bench(
     shield: Annotated[
         str, typer.Option("--shield", help="Shield to measure: nominal or robust.", metavar="MODE")
     ] = "robust",
+    methods: Annotated[
+        str,
+        typer.Option(
+            "--methods",
+            help="Methods whose training cost to measure, comma-separated, or all (the first gives the "
+            "unsuffixed figures).",
+            metavar="LIST",
+        ),
+    ] = "robust",
     as_json: JsonOpt = False,
 ) -> None:
-    """Measure decisions/s raw and shielded (interleaved episodes), mask and observation cost."""
-    from safelane.bench import BENCH_SHIELDS, run_bench
+    """Measure decisions/s raw and shielded (interleaved episodes), mask, observation and training cost."""
+    from safelane.bench import BENCH_SHIELDS, parse_methods, run_bench
 
     check_positive("--episodes", episodes)
     check_seed(seed)
     if shield not in BENCH_SHIELDS:
         raise ConfigError(f"--shield: bench measures a shield; allowed: {', '.join(BENCH_SHIELDS)}")
+    train_methods = parse_methods(methods)
     with episode_progress("bench", episodes) as advance:
-        result = run_bench(episodes, seed, shield=shield, progress=lambda i: advance(i, None))
+        result = run_bench(episodes, seed, shield=shield, progress=lambda i: advance(i, None), methods=train_methods)
     if as_json:
         print_json(result)
         return
-    print_table(f"safelane bench: {result['preset']} preset, random policy, {shield} shield", result, BENCH_UNITS)
+    units = dict(BENCH_UNITS)
+    for method in train_methods[1:]:
+        units.update({f"{key}_{method}": units[key] for key in TRAINING_FIGURES})
+    print_table(f"safelane bench: {result['preset']} preset, random policy, {shield} shield", result, units)
 
 
 def evaluate_run(run_dir: Path, episodes: int, seed: int, sets: list[str] | None, shield: str | None) -> dict[str, Any]:

@@ -15,7 +15,7 @@ from gymnasium.utils.env_checker import check_env
 
 from safelane import env as safelane_env
 from safelane.config import ConfigError, load_config
-from safelane.env import OBS_SIZE, PaperObservation, PaperReward, make_env, paper_state
+from safelane.env import OBS_SIZE, PaperObservation, PaperReward, lane_state, make_env, paper_state
 
 MakeEnv = Callable[..., gym.Env]
 
@@ -152,6 +152,70 @@ def test_paper_state_with_an_empty_road(make_fast_env: MakeEnv, scene: Callable[
     state = paper_state(ego, env.unwrapped.road)
     assert state[:24].tolist() == [0.0] * 24
     assert state[24] == pytest.approx(0.75)
+
+
+def test_lane_state_on_a_hand_built_road(make_fast_env: MakeEnv, scene: Callable[..., list[Any]]) -> None:
+    env = make_fast_env(state="lanes")
+    # Ego in lane 1 of 4 (y = 4 m) at x = 100 m, 25 m/s, set-point 25 m/s.
+    ego, *_ = scene(
+        env,
+        ego=(100.0, 1, 25.0),
+        others=[
+            (130.0, 4.0, 20.0, 0.0),  # own lane, 30 m ahead, 5 m/s slower: first leader
+            (200.0, 4.0, 25.0, 0.0),  # own lane, 100 m ahead: second leader
+            (240.0, 4.0, 25.0, 0.0),  # own lane, third ahead: not in the state
+            (100.0, 0.0, 25.0, 0.0),  # lane 0 (left), alongside: a leader at gap 0
+            (90.0, 8.0, 30.0, 0.1),  # lane 2 (right), 10 m behind, forward speed 30·cos(0.1)
+            (350.0, 8.0, 25.0, 0.0),  # lane 2, 250 m ahead: beyond 150 m, absent
+        ],
+    )
+    expected = np.array(
+        [
+            # left lane: exists, leader at gap 0 with δv 0, no second leader, no follower
+            1.0, 0.0, 0.0, 1.0, 0.0, 1.0, 0.0,
+            # own lane: leaders at 30 m (−5 m/s) and 100 m (0), no follower
+            1.0, 30 / 150, -5 / 20, 100 / 150, 0.0, 1.0, 0.0,
+            # right lane: nothing ahead within 150 m, follower 10 m behind
+            1.0, 1.0, 0.0, 1.0, 0.0, 10 / 150, (30 * math.cos(0.1) - 25) / 20,
+            # ego: 25 m/s, heading 0, lane 1 of 0..3, on the lane centre, set-point 25 m/s
+            25 / 40, 0.0, 1 / 3, 0.0, 25 / 40,
+        ],
+        dtype=np.float32,
+    )  # fmt: skip
+    np.testing.assert_allclose(lane_state(ego, env.unwrapped.road), expected, atol=1e-6)
+    np.testing.assert_allclose(env.observation(None), expected, atol=1e-6)  # the wrapper uses it
+
+
+def test_lane_state_at_the_road_edge(make_fast_env: MakeEnv, scene: Callable[..., list[Any]]) -> None:
+    env = make_fast_env(state="lanes")
+    ego, *_ = scene(env, ego=(50.0, 0, 20.0), others=[(45.0, 4.0, 22.0, 0.0)])
+    ego.position[1] += 1.0  # 1 m off its lane centre, towards lane 1
+    state = lane_state(ego, env.unwrapped.road)
+    assert state[:7].tolist() == [0.0] * 7  # no lane left of lane 0
+    np.testing.assert_allclose(state[7:14], [1, 1, 0, 1, 0, 1, 0])  # own lane empty
+    np.testing.assert_allclose(state[14:21], [1, 1, 0, 1, 0, 5 / 150, 2 / 20], atol=1e-6)
+    np.testing.assert_allclose(state[21:], [0.5, 0.0, 0.0, 0.25, 0.5], atol=1e-6)
+
+
+def test_lane_state_episodes_are_valid_and_deterministic(make_fast_env: MakeEnv) -> None:
+    def rollout() -> np.ndarray:
+        env = make_fast_env(state="lanes")
+        obs, _ = env.reset(seed=11)
+        states = [obs]
+        for action in [1, 3, 0, 1, 2, 4, 1, 1]:
+            obs, *_ = env.step(action)
+            states.append(obs)
+        return np.array(states)
+
+    a, b = rollout(), rollout()
+    assert a.shape == (9, OBS_SIZE) and a.dtype == np.float32
+    assert np.all(np.abs(a) <= 1.0) and np.array_equal(a, b)
+    assert set(a[:, 0::7][:, :3].ravel()) <= {0.0, 1.0}  # the lane-exists flags
+
+
+def test_unknown_state_is_a_one_line_error() -> None:
+    with pytest.raises(ConfigError, match="state"):
+        make_env("fast", state="pixels")
 
 
 # --- reward (eq. 6) and info ---------------------------------------------------------------------------

@@ -98,6 +98,12 @@ class SafelaneConfig(_Section):
         description="'vectorized': highway-env with safelane.fastsim's numpy neighbour search (identical "
         "episodes, ≈2x faster); 'highway-env': the simulator untouched.",
     )
+    state: Literal["paper", "lanes"] = Field(
+        "paper",
+        description="The agent's 26-number state: 'paper' (eq. 3: the 4 nearest vehicles, ego speed and "
+        "heading) or 'lanes' (left, own and right lane: two leaders and the follower each, plus the ego's "
+        "lane, offset and set-point; safelane.env.lane_state). Beyond the paper: for overtaking.",
+    )
     env: dict[str, Any] = Field(default_factory=dict)
     reward: RewardConfig = Field(default_factory=RewardConfig)
     traffic: TrafficConfig = Field(default_factory=TrafficConfig)

@@ -4,7 +4,7 @@
 
 1. :class:`TrafficLayout` — safelane's traffic options (``traffic.vehicles_behind``);
 2. :class:`PaperReward` — eq. 6 and the ``collision`` / ``speed`` info fields;
-3. :class:`PaperObservation` — the paper's 26-number state (eq. 3);
+3. :class:`PaperObservation` — the paper's 26-number state (eq. 3), or the ``lanes`` state;
 4. :class:`safelane.shield.SafetyShield` — only when ``shield.mode`` is not ``none``.
 """
 
@@ -36,6 +36,11 @@ REL_SPEED_SCALE = 20.0  # [m/s] relative velocity mapped to ±1
 HEADING_SCALE = math.pi / 2  # [rad] heading mapped to ±1
 EGO_SPEED_SCALE = 40.0  # [m/s] highway-env's Vehicle.MAX_SPEED
 PERCEPTION_DISTANCE = 200.0  # [m] vehicles farther than this are absent (highway-env's own range)
+# --- the "lanes" state (an alternative to eq. 3 of the same size) ------------------------------
+LANE_GAP_SCALE = 150.0  # [m] a gap this long or longer reads as 1 (a free lane)
+LANE_FEATURES = 7
+"""Per lane: exists, two leaders (gap, δv) and the follower (gap, δv)."""
+LANE_WIDTH = 4.0  # [m] highway-env's StraightLane.DEFAULT_WIDTH: the ego's lateral offset is scaled by it
 
 
 def paper_state(ego: Any, road: Any) -> np.ndarray:
@@ -73,6 +78,61 @@ def paper_state(ego: Any, road: Any) -> np.ndarray:
     return obs
 
 
+def lane_state(ego: Any, road: Any) -> np.ndarray:
+    """A lane-by-lane state of the same size as eq. 3 (26 numbers in [-1, 1]): what an overtaking
+    decision needs, which the paper's 4 nearest vehicles often miss in dense traffic (they are mostly
+    alongside, and the ego's own lane is not in eq. 3).
+
+    Layout: for the lane left of the ego, its own lane and the lane right of it (7 numbers each):
+    ``[exists, gap₁, δv₁, gap₂, δv₂, gap_behind, δv_behind]`` — the two nearest vehicles ahead
+    (longitudinal centre distance ≥ 0 [m] / LANE_GAP_SCALE) with their forward speed minus the ego's
+    [m/s] / REL_SPEED_SCALE, then the nearest vehicle behind; a vehicle LANE_GAP_SCALE or farther away
+    is absent (gap 1, δv 0); a lane that does not exist is all zeros. Then the ego:
+    ``[v/EGO_SPEED_SCALE, ψ/HEADING_SCALE, lane index/(lanes − 1), lateral offset from the lane
+    centre/LANE_WIDTH, target speed/EGO_SPEED_SCALE]``.
+    A vehicle belongs to the lane highway-env assigns it (``lane_index``), also while it changes lanes.
+    """
+    obs = np.zeros(OBS_SIZE, dtype=np.float32)
+    n_lanes = len(road.network.all_side_lanes(ego.lane_index))
+    ego_lane = ego.lane_index[2]
+    others = [v for v in road.vehicles if v is not ego]
+    if others:
+        dx = np.array([v.position[0] for v in others], dtype=float) - ego.position[0]
+        lane = np.array([v.lane_index[2] for v in others])
+        forward = np.array([v.speed * math.cos(v.heading) for v in others], dtype=float)
+        dv = forward - ego.speed * math.cos(ego.heading)
+    for slot, offset in enumerate((-1, 0, 1)):
+        target = ego_lane + offset
+        if not 0 <= target < n_lanes:
+            continue
+        base = slot * LANE_FEATURES
+        obs[base : base + LANE_FEATURES] = (1.0, 1.0, 0.0, 1.0, 0.0, 1.0, 0.0)
+        if not others:
+            continue
+        in_lane = (lane == target) & (np.abs(dx) < LANE_GAP_SCALE)
+        ahead = np.flatnonzero(in_lane & (dx >= 0))
+        for k, i in enumerate(ahead[np.argsort(dx[ahead], kind="stable")][:2]):
+            obs[base + 1 + 2 * k : base + 3 + 2 * k] = (dx[i] / LANE_GAP_SCALE, dv[i] / REL_SPEED_SCALE)
+        behind = np.flatnonzero(in_lane & (dx < 0))
+        if behind.size:
+            i = behind[np.argmax(dx[behind])]
+            obs[base + 5 : base + 7] = (-dx[i] / LANE_GAP_SCALE, dv[i] / REL_SPEED_SCALE)
+    lateral = ego.lane.local_coordinates(ego.position)[1]
+    obs[-5:] = (
+        ego.speed / EGO_SPEED_SCALE,
+        hw_utils.wrap_to_pi(ego.heading) / HEADING_SCALE,
+        ego_lane / (n_lanes - 1) if n_lanes > 1 else 0.0,
+        lateral / LANE_WIDTH,
+        getattr(ego, "target_speed", ego.speed) / EGO_SPEED_SCALE,
+    )
+    np.clip(obs, -1.0, 1.0, out=obs)
+    return obs
+
+
+STATE_FUNCTIONS = {"paper": paper_state, "lanes": lane_state}
+"""The agent's state by ``SafelaneConfig.state`` name."""
+
+
 class DiscardedObservation(ObservationType):
     """Stands in for highway-env's own observation once :class:`PaperObservation` replaces it.
 
@@ -97,15 +157,19 @@ class DiscardedObservation(ObservationType):
 
 
 class PaperObservation(gym.ObservationWrapper, gym.utils.RecordConstructorArgs):
-    """Replace highway-env's observation by the paper's 26-number state (eq. 3).
+    """Replace highway-env's observation by the paper's 26-number state (eq. 3), or with
+    ``state="lanes"`` by :func:`lane_state` (same size).
 
     After every reset highway-env's own observation is swapped for a :class:`DiscardedObservation`
     (highway-env rebuilds it at each reset), unless it draws random numbers (``order: shuffled``).
     """
 
-    def __init__(self, env: gym.Env) -> None:
-        gym.utils.RecordConstructorArgs.__init__(self)
+    def __init__(self, env: gym.Env, state: str = "paper") -> None:
+        gym.utils.RecordConstructorArgs.__init__(self, state=state)
         super().__init__(env)
+        if state not in STATE_FUNCTIONS:
+            raise ConfigError(f"state: got {state!r}; allowed: {', '.join(STATE_FUNCTIONS)}")
+        self.state_of = STATE_FUNCTIONS[state]
         self.observation_space = gym.spaces.Box(-1.0, 1.0, shape=(OBS_SIZE,), dtype=np.float32)
 
     def reset(self, **kwargs: Any) -> tuple[np.ndarray, dict[str, Any]]:
@@ -118,7 +182,7 @@ class PaperObservation(gym.ObservationWrapper, gym.utils.RecordConstructorArgs):
 
     def observation(self, observation: Any) -> np.ndarray:
         base = self.env.unwrapped
-        return paper_state(base.vehicle, base.road)
+        return self.state_of(base.vehicle, base.road)
 
 
 class PaperReward(gym.Wrapper, gym.utils.RecordConstructorArgs):
@@ -254,7 +318,7 @@ def make_env(
         env, cfg.traffic.vehicles_behind, vectorized=cfg.backend == "vectorized", adversary=cfg.traffic.adversary
     )
     env = PaperReward(env, cfg.reward.b, cfg.reward.c, cfg.reward.v_min, cfg.reward.v_max)
-    env = PaperObservation(env)
+    env = PaperObservation(env, cfg.state)
     if cfg.shield.mode != "none":
         from safelane.shield import SafetyShield
 

@@ -69,7 +69,8 @@ EPISODE_SEED_STRIDE = 100003
 
 TRAIN_SHIELD_MODE: dict[str, str] = {"dqn": "nominal", "constrained": "nominal", "qmask": "nominal", "robust": "robust"}
 """Shield mode of the training env per method (masks are recorded for all; only qmask/robust act on them)."""
-ENV_SECTIONS = ("env", "reward", "traffic", "shield", "env_id")
+ENV_SECTIONS: tuple[str, ...] = tuple(key for key in SafelaneConfig.model_fields if key != "preset")
+"""Top-level environment config keys a ``--set`` may start with (``preset`` is chosen by ``--preset``)."""
 
 METRIC_COLUMNS: tuple[str, ...] = (
     "episode",  # 1-based episode number

@@ -24,6 +24,7 @@ from safelane.agents import (
     linear_epsilon,
     load_agent_config,
     make_agent,
+    parse_methods,
     q_shaping_loss,
     shaped_q,
     shaping_target,
@@ -76,6 +77,13 @@ def batch_of(n: int, masks: list[list[bool]], next_masks: list[list[bool]], **fi
 
 
 # --- network, buffer, schedule -------------------------------------------------------------------
+def test_parse_methods() -> None:
+    assert parse_methods("all") == METHODS
+    assert parse_methods("robust, qmask,robust") == ("robust", "qmask")
+    with pytest.raises(ConfigError, match="--methods: got 'dqn,'; allowed: dqn, constrained, qmask, robust"):
+        parse_methods("dqn,")
+
+
 def test_q_network_is_the_papers_table_3() -> None:
     net = QNetwork()
     linears = [m for m in net.modules() if isinstance(m, nn.Linear)]

@@ -99,6 +99,7 @@ def test_not_a_run_dir(tmp_path: Path) -> None:
         (["evaluate", "--policy", "idle", "--set", "env.lanes_count=banana"], "env.lanes_count"),
         (["stress", "--policy", "random", "--only", "moonbase"], "moonbase"),
         (["reproduce", "--seeds", "0"], "--seeds"),
+        (["reproduce", "--methods", "robust,ppo"], "--methods: got 'robust,ppo'; allowed: dqn, constrained"),
     ],
 )
 def test_bad_arguments(args: list[str], needle: str) -> None:

@@ -45,6 +45,14 @@ METHODS: tuple[str, ...] = ("dqn", "constrained", "qmask", "robust")
 AGENT_PRESETS: tuple[str, ...] = ("paper", "tuned")
 
 
+def parse_methods(text: str) -> tuple[str, ...]:
+    """``all`` or a comma-separated list of methods → the methods (a one-line ConfigError otherwise)."""
+    methods = METHODS if text.strip() == "all" else tuple(dict.fromkeys(m.strip() for m in text.split(",")))
+    if any(m not in METHODS for m in methods):
+        raise ConfigError(f"--methods: got {text!r}; allowed: {', '.join(METHODS)} (comma-separated) or all")
+    return methods
+
+
 # --- configuration ------------------------------------------------------------------------------
 class AgentConfig(BaseModel):
     """Every learning setting of an agent. Units: steps are environment decisions (1 s each)."""

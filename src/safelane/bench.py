@@ -20,7 +20,7 @@ from typing import Any
 
 import numpy as np
 
-from safelane.agents import METHODS
+from safelane.agents import parse_methods
 from safelane.config import ConfigError
 from safelane.env import make_env, paper_state
 from safelane.evaluation import fixed_policy
@@ -49,14 +49,6 @@ def _play(env: Any, seed: int, on_decision: Callable[[], None] | None = None) ->
         decisions += 1
         done = terminated or truncated
     return decisions, stepping
-
-
-def parse_methods(text: str) -> tuple[str, ...]:
-    """``all`` or a comma-separated list of methods → the methods (a one-line ConfigError otherwise)."""
-    methods = METHODS if text.strip() == "all" else tuple(m.strip() for m in text.split(","))
-    if any(m not in METHODS for m in methods):
-        raise ConfigError(f"--methods: got {text!r}; allowed: {', '.join(METHODS)} (comma-separated) or all")
-    return methods
 
 
 def measure_training(episodes: int, seed: int, shield: str, method: str = "robust") -> dict[str, float]:

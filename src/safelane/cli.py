@@ -300,7 +300,8 @@ def bench(
     as_json: JsonOpt = False,
 ) -> None:
     """Measure decisions/s raw and shielded (interleaved episodes), mask, observation and training cost."""
-    from safelane.bench import BENCH_SHIELDS, parse_methods, run_bench
+    from safelane.agents import parse_methods
+    from safelane.bench import BENCH_SHIELDS, run_bench
 
     check_positive("--episodes", episodes)
     check_seed(seed)
@@ -437,8 +438,12 @@ def reproduce(
     stress_only: Annotated[
         list[str] | None, typer.Option("--stress-only", help="Stress conditions to use (default: all).")
     ] = None,
+    methods: Annotated[
+        str, typer.Option("--methods", help="Methods to run, comma-separated, or all.", metavar="LIST")
+    ] = "all",
 ) -> None:
     """Train every method × seed, evaluate on held-out episodes, write Table 4 / Fig. 6 / Fig. 7 and claims."""
+    from safelane.agents import parse_methods
     from safelane.experiments import make_spec, run_experiment
     from safelane.reporting import render_gifs, write_report
 
@@ -459,6 +464,7 @@ def reproduce(
             raise ConfigError(f"--stress-only: unknown condition '{unknown[0]}'; allowed: {', '.join(names)}")
         stress_names = list(stress_only or names)
     spec = make_spec(
+        methods=list(parse_methods(methods)),
         stress_conditions=stress_names,
         stress_episodes=max(stress_episodes, 1),
         seeds=list(range(seeds)),

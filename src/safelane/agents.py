@@ -55,7 +55,7 @@ def parse_methods(text: str) -> tuple[str, ...]:
 
 # --- configuration ------------------------------------------------------------------------------
 class AgentConfig(BaseModel):
-    """Every learning setting of an agent. Units: steps are environment decisions (1 s each)."""
+    """Every learning setting of an agent. Units: steps are environment decisions (1 s each at the paper's rate)."""
 
     model_config = ConfigDict(extra="forbid", validate_assignment=True)
 

@@ -23,8 +23,8 @@ from typing import Any
 import gymnasium as gym
 import yaml
 
-import safelane.training as training
-from safelane.evaluation import classify_collision
+import safelane.running.training as training
+from safelane.running.evaluation import classify_collision
 
 NEAR = 80.0  # [m] vehicles logged around the ego, along the road
 

@@ -20,8 +20,8 @@ from typing import Any
 
 import numpy as np
 
-from safelane.actions import FASTER, IDLE, LANE_LEFT, LANE_RIGHT
-from safelane.env import make_env
+from safelane.core.spaces import FASTER, IDLE, LANE_LEFT, LANE_RIGHT
+from safelane.env.factory import make_env
 
 FREE_ROAD = 1e9  # [m] distance reported for a lane with no car ahead
 

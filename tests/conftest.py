@@ -22,7 +22,7 @@ REPO_ROOT = Path(__file__).resolve().parents[1]
 @pytest.fixture
 def make_fast_env() -> Iterator[Callable[..., gym.Env]]:
     """Factory of ``fast``-preset environments (``make_env`` keyword overrides); all closed after the test."""
-    from safelane.env import make_env
+    from safelane.env.factory import make_env
 
     envs: list[gym.Env] = []
 

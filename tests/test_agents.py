@@ -11,7 +11,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from torch import nn
 
-from safelane.agents import (
+from safelane.agents.dqn import (
     AGENT_PRESETS,
     METHODS,
     Batch,

@@ -13,9 +13,9 @@ import numpy as np
 import pytest
 from gymnasium.utils.env_checker import check_env
 
-from safelane import env as safelane_env
 from safelane.config import ConfigError, load_config
-from safelane.env import OBS_SIZE, PaperObservation, PaperReward, lane_state, make_env, paper_state
+from safelane.env import factory as safelane_env
+from safelane.env.factory import OBS_SIZE, PaperObservation, PaperReward, lane_state, make_env, paper_state
 
 MakeEnv = Callable[..., gym.Env]
 

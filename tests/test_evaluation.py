@@ -10,9 +10,9 @@ import gymnasium as gym
 import numpy as np
 import pytest
 
-from safelane.actions import FASTER, IDLE, LANE_LEFT, LANE_RIGHT, SLOWER
 from safelane.config import ConfigError, load_config
-from safelane.evaluation import (
+from safelane.core.spaces import FASTER, IDLE, LANE_LEFT, LANE_RIGHT, SLOWER
+from safelane.running.evaluation import (
     COLLISION_KINDS,
     FIXED_POLICIES,
     EpisodeRecord,
@@ -249,8 +249,8 @@ def test_evaluate_fixed_validates_its_inputs(episodes: int, seed: int, option: s
 def test_vehicles_ahead_counts_overtakes_on_the_real_road() -> None:
     """The ego (25 m/s) passes a slow car (15 m/s, 10 m ahead, next lane) and is passed by a fast one
     (35 m/s, 20 m behind, other lane): net overtakes 1 − 1 = 0, as the episode record computes it."""
-    from safelane import scenarios
-    from safelane.evaluation import vehicles_ahead
+    from safelane.env import scenarios
+    from safelane.running.evaluation import vehicles_ahead
 
     specs = [scenarios.VehicleSpec(2, 10.0, 15.0), scenarios.VehicleSpec(0, -20.0, 35.0)]
     scene = scenarios.build_scene(1, 25.0, specs, mode="robust")

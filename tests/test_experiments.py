@@ -8,10 +8,10 @@ from pathlib import Path
 import pytest
 
 from safelane.config import ConfigError
-from safelane.evaluation import fixed_policy
-from safelane.experiments import make_spec, run_dir_of, run_experiment
-from safelane.reporting import write_report
-from safelane.stress import load_conditions, run_condition
+from safelane.reporting.report import write_report
+from safelane.running.evaluation import fixed_policy
+from safelane.running.experiments import make_spec, run_dir_of, run_experiment
+from safelane.running.stress import load_conditions, run_condition
 
 TINY = ["env.duration=4", "env.vehicles_count=15"]
 

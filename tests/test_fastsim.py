@@ -1,11 +1,11 @@
-"""safelane.fastsim must give the same episodes as highway-env, bit for bit."""
+"""safelane.sim.neighbours must give the same episodes as highway-env, bit for bit."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from safelane.env import make_env
+from safelane.env.factory import make_env
 
 
 def trajectory(backend: str, preset: str, seed: int, policy: str, steps: int) -> list[np.ndarray]:

@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 from matplotlib.figure import Figure
 
-from safelane.plots import plot_training_curves, read_metrics
-from safelane.stats import smooth
+from safelane.reporting.plots import plot_training_curves, read_metrics
+from safelane.reporting.stats import smooth
 
 
 def write_metrics(run_dir: Path, returns: list[float], epsilon: bool = True) -> None:

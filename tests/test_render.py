@@ -13,9 +13,10 @@ import imageio.v3 as iio
 import numpy as np
 import pytest
 
-from safelane import ConfigError, make_env, render
-from safelane.actions import FASTER, IDLE, LANE_LEFT, LANE_RIGHT, SLOWER
-from safelane.render import (
+from safelane import ConfigError, make_env
+from safelane.core.spaces import FASTER, IDLE, LANE_LEFT, LANE_RIGHT, SLOWER
+from safelane.reporting import render
+from safelane.reporting.render import (
     BOX_GAP,
     CHOSEN_COLOUR,
     CHOSEN_UNSAFE_COLOUR,

@@ -7,9 +7,9 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from safelane import scenarios
-from safelane.actions import FASTER, IDLE, LANE_LEFT, LANE_RIGHT, SLOWER
-from safelane.safety import Dynamics, RoadState, ego_trajectories, evaluate
+from safelane.core.spaces import FASTER, IDLE, LANE_LEFT, LANE_RIGHT, SLOWER
+from safelane.env import scenarios
+from safelane.safety.model import Dynamics, RoadState, ego_trajectories, evaluate
 
 L, I, R, F, S = LANE_LEFT, IDLE, LANE_RIGHT, FASTER, SLOWER  # noqa: E741
 
@@ -81,7 +81,7 @@ def test_ego_trajectory_matches_highway_env(preset: str) -> None:
     for action, hold in ((SLOWER, 0), (FASTER, 1)):
         scene = scenarios.ego_leftmost_lane(mode="robust", preset=preset, ego_target_speed=20.0)
         shield = scene.shield
-        from safelane.shield import road_state
+        from safelane.safety.shield import road_state
 
         state = road_state(shield.env, shield.dynamics)
         dyn = shield.dynamics
@@ -118,7 +118,7 @@ def test_override_makes_unsafe_action_safe() -> None:
 
 def test_shield_on_real_traffic_nests_masks() -> None:
     """robust ⊆ nominal ⊆ get_available_actions() on states visited by a random policy."""
-    from safelane.env import make_env
+    from safelane.env.factory import make_env
 
     env = make_env("fast", seed=3, **{"shield.mode": "robust"})
     shield = env
@@ -283,8 +283,8 @@ def test_invalid_mode_is_a_clear_error() -> None:
 def test_road_state_keeps_exactly_the_vehicles_evaluate_considers() -> None:
     """road_state snapshots only vehicles within RELEVANCE_RANGE along the road (what evaluate reads),
     and moving a far vehicle around beyond that range changes neither the snapshot nor the mask."""
-    from safelane.safety import RELEVANCE_RANGE
-    from safelane.shield import road_state
+    from safelane.safety.model import RELEVANCE_RANGE
+    from safelane.safety.shield import road_state
 
     specs = [
         scenarios.VehicleSpec(2, 30.0, 20.0),

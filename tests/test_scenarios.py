@@ -2,8 +2,8 @@
 
 from __future__ import annotations
 
-from safelane.actions import FASTER, IDLE
-from safelane.scenarios import VehicleSpec, build_scene, min_safe_gap
+from safelane.core.spaces import FASTER, IDLE
+from safelane.env.scenarios import VehicleSpec, build_scene, min_safe_gap
 
 
 def test_min_safe_gap_grows_with_speed_and_with_a_slower_leader() -> None:

@@ -9,7 +9,7 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from safelane import stats
+from safelane.reporting import stats
 
 # --- point estimates -----------------------------------------------------------------------------
 

@@ -16,10 +16,10 @@ import numpy as np
 import pytest
 import torch
 
-from safelane.agents import METHODS
+from safelane.agents.dqn import METHODS
 from safelane.config import ConfigError
-from safelane.env import make_env
-from safelane.training import (
+from safelane.env.factory import make_env
+from safelane.running.training import (
     CHECKPOINT_FILE,
     METRIC_COLUMNS,
     TIMING_COLUMNS,
@@ -153,7 +153,7 @@ def test_ctrl_c_checkpoints_the_last_episode_and_resume_is_identical(tmp_path: P
 SCRIPT = textwrap.dedent(
     """
     import sys, time, pathlib
-    from safelane.training import make_train_config, train
+    from safelane.running.training import make_train_config, train
     out, marker = pathlib.Path(sys.argv[1]), pathlib.Path(sys.argv[2])
 
     def progress(report):

@@ -14,7 +14,7 @@ except PackageNotFoundError:  # pragma: no cover - running from a source tree
     __version__ = "0.0.0"
 
 from safelane.config import ConfigError, SafelaneConfig, load_config
-from safelane.env import make_env
-from safelane.shield import SafetyShield
+from safelane.env.factory import make_env
+from safelane.safety.shield import SafetyShield
 
 __all__ = ["ConfigError", "SafelaneConfig", "SafetyShield", "__version__", "load_config", "make_env"]

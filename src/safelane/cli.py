@@ -1,7 +1,7 @@
 """The ``safelane`` command line: parse, call the library, print.
 
-Every command is a thin layer over a library function (:mod:`safelane.evaluation`,
-:mod:`safelane.bench`, :mod:`safelane.config`). Progress goes to stderr, results to stdout (a rich
+Every command is a thin layer over a library function (:mod:`safelane.running.evaluation`,
+:mod:`safelane.running.bench`, :mod:`safelane.config`). Progress goes to stderr, results to stdout (a rich
 table, or one JSON object with ``--json``). A bad input (:class:`safelane.config.ConfigError` or
 ``ValueError``) prints one line ``error: <message>`` on stderr and exits with code 2.
 """
@@ -232,7 +232,7 @@ def evaluate(
     A trained RUN_DIR runs under the shield it was trained with; --shield none evaluates a masked
     method's raw Q-network (what its values learned about unsafe actions, without the mask).
     """
-    from safelane.evaluation import FIXED_POLICIES, evaluate_fixed
+    from safelane.running.evaluation import FIXED_POLICIES, evaluate_fixed
 
     if run_dir is not None:
         if policy is not None:
@@ -300,8 +300,8 @@ def bench(
     as_json: JsonOpt = False,
 ) -> None:
     """Measure decisions/s raw and shielded (interleaved episodes), mask, observation and training cost."""
-    from safelane.agents import parse_methods
-    from safelane.bench import BENCH_SHIELDS, run_bench
+    from safelane.agents.dqn import parse_methods
+    from safelane.running.bench import BENCH_SHIELDS, run_bench
 
     check_positive("--episodes", episodes)
     check_seed(seed)
@@ -322,8 +322,8 @@ def bench(
 def evaluate_run(run_dir: Path, episodes: int, seed: int, sets: list[str] | None, shield: str | None) -> dict[str, Any]:
     """Evaluate a trained run's greedy policy on its own environment config (plus --set / --shield)."""
     from safelane.config import build_config
-    from safelane.evaluation import run_config, summarize
-    from safelane.training import load_policy, load_run_config
+    from safelane.running.evaluation import run_config, summarize
+    from safelane.running.training import load_policy, load_run_config
 
     run = load_run_config(run_dir)
     data = config_to_dict(run.env)
@@ -376,8 +376,8 @@ def train(
     """Train a DQN with one of the paper's four methods; Ctrl-C checkpoints, --resume continues."""
     from rich.progress import Progress
 
-    from safelane.training import TrainingInterrupted, make_train_config
-    from safelane.training import train as run_training
+    from safelane.running.training import TrainingInterrupted, make_train_config
+    from safelane.running.training import train as run_training
 
     check_positive("--episodes", episodes)
     check_seed(seed)
@@ -443,9 +443,9 @@ def reproduce(
     ] = "all",
 ) -> None:
     """Train every method × seed, evaluate on held-out episodes, write Table 4 / Fig. 6 / Fig. 7 and claims."""
-    from safelane.agents import parse_methods
-    from safelane.experiments import make_spec, run_experiment
-    from safelane.reporting import render_gifs, write_report
+    from safelane.agents.dqn import parse_methods
+    from safelane.reporting.report import render_gifs, write_report
+    from safelane.running.experiments import make_spec, run_experiment
 
     if quick:
         seeds, episodes, test_episodes = min(seeds, 2), min(episodes, 25), min(test_episodes, 7)
@@ -456,7 +456,7 @@ def reproduce(
         check_positive("--workers", workers)
     stress_names: list[str] = []
     if stress_episodes > 0:
-        from safelane.stress import load_conditions
+        from safelane.running.stress import load_conditions
 
         names = [c.name for c in load_conditions()]
         unknown = [n for n in stress_only or [] if n not in names]
@@ -504,8 +504,8 @@ def stress(
     as_json: JsonOpt = False,
 ) -> None:
     """Run the stress suite: collisions (classified), 95 % CI, speed and interventions per condition."""
-    from safelane.evaluation import FIXED_POLICIES, fixed_policy
-    from safelane.stress import load_conditions, run_stress
+    from safelane.running.evaluation import FIXED_POLICIES, fixed_policy
+    from safelane.running.stress import load_conditions, run_stress
 
     check_positive("--episodes", episodes)
     conds = load_conditions(conditions)
@@ -518,7 +518,7 @@ def stress(
     if shield is not None and shield not in SHIELD_CHOICES:
         raise ConfigError(f"--shield: unknown shield '{shield}'; allowed: {', '.join(SHIELD_CHOICES)}")
     if run_dir is not None:
-        from safelane.training import load_policy, load_run_config
+        from safelane.running.training import load_policy, load_run_config
 
         run = load_run_config(run_dir)
         mode, override = shield or run.env.shield.mode, False
@@ -581,12 +581,12 @@ def render(
     max_steps: Annotated[int | None, typer.Option("--max-steps", help="Stop after this many decisions.")] = None,
 ) -> None:
     """Render one episode offscreen with the action mask and the chosen action drawn on each frame."""
-    from safelane.env import make_env
-    from safelane.evaluation import FIXED_POLICIES, fixed_policy
-    from safelane.render import render_episode
+    from safelane.env.factory import make_env
+    from safelane.reporting.render import render_episode
+    from safelane.running.evaluation import FIXED_POLICIES, fixed_policy
 
     if run_dir is not None:
-        from safelane.training import load_policy, load_run_config
+        from safelane.running.training import load_policy, load_run_config
 
         cfg = load_run_config(run_dir).env
         if shield is not None:
@@ -613,7 +613,7 @@ def plot(
     scaled: Annotated[bool, typer.Option("--scaled", help="Scale each curve to [0, 1] (paper Fig. 7).")] = False,
 ) -> None:
     """Plot training curves (smoothed return, ε) of one or several runs."""
-    from safelane.plots import plot_training_curves
+    from safelane.reporting.plots import plot_training_curves
 
     for d in run_dirs:
         if not (d / "metrics.csv").exists():

@@ -68,7 +68,7 @@ class TrafficConfig(_Section):
     )
     adversary: Literal["none", "brake", "cut_in", "stopped"] = Field(
         "none",
-        description="A scripted adversary placed near the ego at reset (safelane.adversaries): a leader "
+        description="A scripted adversary placed near the ego at reset (safelane.sim.adversaries): a leader "
         "that brakes at full ACC_MAX at a random time, a car that cuts in ignoring MOBIL, a stopped car.",
     )
 
@@ -95,14 +95,14 @@ class SafelaneConfig(_Section):
     env_id: Literal["highway-v0", "highway-fast-v0"] = "highway-fast-v0"
     backend: Literal["vectorized", "highway-env"] = Field(
         "vectorized",
-        description="'vectorized': highway-env with safelane.fastsim's numpy neighbour search (identical "
+        description="'vectorized': highway-env with safelane.sim.neighbours's numpy neighbour search (identical "
         "episodes, ≈2x faster); 'highway-env': the simulator untouched.",
     )
     state: Literal["paper", "lanes"] = Field(
         "paper",
         description="The agent's 26-number state: 'paper' (eq. 3: the 4 nearest vehicles, ego speed and "
         "heading) or 'lanes' (left, own and right lane: two leaders and the follower each, plus the ego's "
-        "lane, offset and set-point; safelane.env.lane_state). Beyond the paper: for overtaking.",
+        "lane, offset and set-point; safelane.env.factory.lane_state). Beyond the paper: for overtaking.",
     )
     env: dict[str, Any] = Field(default_factory=dict)
     reward: RewardConfig = Field(default_factory=RewardConfig)

@@ -78,8 +78,8 @@ def run_condition(
     progress: Callable[[int, Any], None] | None = None,
 ) -> dict[str, Any]:
     """Evaluate ``policy`` on one condition; the per-condition JSON record of ``safelane stress``."""
-    from safelane import stats
-    from safelane.evaluation import run_config, summarize
+    from safelane.reporting import stats
+    from safelane.running.evaluation import run_config, summarize
 
     if isinstance(condition, str):
         matches = [c for c in load_conditions() if c.name == condition]

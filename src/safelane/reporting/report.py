@@ -1,7 +1,7 @@
 """The reproduction report: Table 4, Fig. 6, Fig. 7, speed vs safety, and the paper's claims, from data.
 
 ``write_report(out_dir)`` reads ``results.json`` and every run's ``metrics.csv`` written by
-:mod:`safelane.experiments` and writes ``report.md`` with PNG figures beside it. Verdicts on the
+:mod:`safelane.running.experiments` and writes ``report.md`` with PNG figures beside it. Verdicts on the
 paper's claims are computed from the numbers (never written by hand).
 """
 
@@ -14,9 +14,9 @@ from typing import Any
 import numpy as np
 from matplotlib.figure import Figure
 
-from safelane import stats
-from safelane.experiments import ExperimentSpec, run_dir_of
-from safelane.plots import read_metrics
+from safelane.reporting import stats
+from safelane.reporting.plots import read_metrics
+from safelane.running.experiments import ExperimentSpec, run_dir_of
 
 LABELS = {"dqn": "Traditional DQN", "constrained": "Constrained Q", "qmask": "Q-masking", "robust": "Robust Q-masking"}
 TABLE4_EPISODES = 7
@@ -44,7 +44,7 @@ def training_curves(out_dir: Path, spec: ExperimentSpec) -> dict[str, list[dict[
 
 
 def convergence_episodes(curves: dict[str, list[dict[str, np.ndarray]]]) -> dict[str, list[int]]:
-    """Convergence episode of each run (:func:`safelane.stats.convergence_episode` on its return)."""
+    """Convergence episode of each run (:func:`safelane.reporting.stats.convergence_episode` on its return)."""
     out: dict[str, list[int]] = {}
     for method, runs in curves.items():
         eps = []
@@ -292,7 +292,7 @@ def write_report(out_dir: str | Path, gifs: dict[str, str] | None = None) -> Pat
         for m, path in gifs.items():
             lines += [f"### {LABELS[m]}", "", f"![{m}]({path})", ""]
     report = out / "report.md"
-    from safelane.experiments import atomic_write_text
+    from safelane.running.experiments import atomic_write_text
 
     atomic_write_text(report, "\n".join(lines) + "\n")
     return report
@@ -300,10 +300,10 @@ def write_report(out_dir: str | Path, gifs: dict[str, str] | None = None) -> Pat
 
 def render_gifs(out_dir: str | Path, max_steps: int = 40) -> dict[str, str]:
     """One GIF per method: the first seed's greedy policy on the first test episode."""
-    from safelane.env import make_env
-    from safelane.experiments import TEST_SEED_BASE
-    from safelane.render import render_episode
-    from safelane.training import load_policy, load_run_config
+    from safelane.env.factory import make_env
+    from safelane.reporting.render import render_episode
+    from safelane.running.experiments import TEST_SEED_BASE
+    from safelane.running.training import load_policy, load_run_config
 
     out = Path(out_dir)
     spec = ExperimentSpec.model_validate(json.loads((out / "results.json").read_text())["spec"])

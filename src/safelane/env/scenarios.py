@@ -20,9 +20,9 @@ import gymnasium as gym
 import numpy as np
 from highway_env.vehicle.behavior import IDMVehicle
 
-from safelane.env import make_env
-from safelane.safety import Mode, SafetyResult
-from safelane.shield import SafetyShield
+from safelane.env.factory import make_env
+from safelane.safety.model import Mode, SafetyResult
+from safelane.safety.shield import SafetyShield
 
 
 @dataclass(frozen=True)

@@ -2,7 +2,7 @@
 
 :func:`render_episode` plays one episode with highway-env's ``render_mode="rgb_array"`` (offscreen,
 ``SDL_VIDEODRIVER=dummy``), one frame per decision, and appends to every frame a legend bar of the
-five meta-actions (:data:`safelane.actions.ACTION_NAMES`):
+five meta-actions (:data:`safelane.core.spaces.ACTION_NAMES`):
 
 * a safe action is green, an unsafe one (``info["action_mask"][a]`` false) is grey;
 * the action the policy chose in that state is blue, or red if it was unsafe;
@@ -25,8 +25,8 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-from safelane.actions import ACTION_NAMES, N_ACTIONS
 from safelane.config import ConfigError, SafelaneConfig
+from safelane.core.spaces import ACTION_NAMES, N_ACTIONS
 
 Policy = Callable[[np.ndarray, dict[str, Any]], int]
 """``policy(obs, info) -> action``: ``info`` is the one returned with ``obs`` (it holds the mask)."""
@@ -197,7 +197,7 @@ def _check_out_path(out_path: Path) -> None:
 def _open_env(env: Any) -> tuple[Any, bool]:
     """The rgb_array env to render and whether this module owns (and must close) it."""
     if isinstance(env, SafelaneConfig | str):
-        from safelane.env import make_env
+        from safelane.env.factory import make_env
 
         return make_env(env, render_mode="rgb_array"), True
     if hasattr(env, "step") and hasattr(env, "reset"):

@@ -5,7 +5,7 @@
 1. :class:`TrafficLayout` — safelane's traffic options (``traffic.vehicles_behind``);
 2. :class:`PaperReward` — eq. 6 and the ``collision`` / ``speed`` info fields;
 3. :class:`PaperObservation` — the paper's 26-number state (eq. 3), or the ``lanes`` state;
-4. :class:`safelane.shield.SafetyShield` — only when ``shield.mode`` is not ``none``.
+4. :class:`safelane.safety.shield.SafetyShield` — only when ``shield.mode`` is not ``none``.
 """
 
 from __future__ import annotations
@@ -19,9 +19,9 @@ import numpy as np
 from highway_env import utils as hw_utils
 from highway_env.envs.common.observation import KinematicObservation, ObservationType
 
-from safelane import fastsim
-from safelane.adversaries import add_adversary
 from safelane.config import ConfigError, SafelaneConfig, apply_overrides, build_config, load_config
+from safelane.sim import neighbours as fastsim
+from safelane.sim.adversaries import add_adversary
 
 # --- observation normalisation: every scale in one place, with units --------------------------
 OBSERVED_VEHICLES = 4
@@ -226,7 +226,7 @@ class PaperReward(gym.Wrapper, gym.utils.RecordConstructorArgs):
 class TrafficLayout(gym.Wrapper, gym.utils.RecordConstructorArgs):
     """safelane traffic options applied right after highway-env builds its scene.
 
-    Also switches the road to :mod:`safelane.fastsim`'s vectorised neighbour search when
+    Also switches the road to :mod:`safelane.sim.neighbours`'s vectorised neighbour search when
     ``vectorized`` (config ``backend``), which gives identical episodes, faster.
 
     ``vehicles_behind = N`` removes the N vehicles farthest ahead and spawns N vehicles *behind* the
@@ -320,7 +320,7 @@ def make_env(
     env = PaperReward(env, cfg.reward.b, cfg.reward.c, cfg.reward.v_min, cfg.reward.v_max)
     env = PaperObservation(env, cfg.state)
     if cfg.shield.mode != "none":
-        from safelane.shield import SafetyShield
+        from safelane.safety.shield import SafetyShield
 
         env = SafetyShield(env, mode=cfg.shield.mode, formula=cfg.shield.formula, override=cfg.shield.override)
     env.safelane_config = cfg  # type: ignore[attr-defined]

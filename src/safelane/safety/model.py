@@ -1,7 +1,7 @@
 """The safety model: which of the 5 meta-actions are safe, from kinematics alone (paper Section IV).
 
 Pure maths over a road snapshot in SI units (metres, m/s, seconds). It imports nothing from
-highway-env, the agents or training: :mod:`safelane.shield` reads the snapshot and the dynamics
+highway-env, the agents or training: :mod:`safelane.safety.shield` reads the snapshot and the dynamics
 constants from highway-env and calls :func:`evaluate`.
 
 The rule (derivation in ``docs/safety.md``): an action is **safe** when, after executing it for one
@@ -44,7 +44,7 @@ from typing import Literal
 
 import numpy as np
 
-from safelane.actions import FASTER, IDLE, LANE_LEFT, LANE_RIGHT, N_ACTIONS, SLOWER
+from safelane.core.spaces import FASTER, IDLE, LANE_LEFT, LANE_RIGHT, N_ACTIONS, SLOWER
 
 Mode = Literal["nominal", "robust"]
 Formula = Literal["kinematic", "paper"]

@@ -1,14 +1,14 @@
 """The safety shield: a gymnasium wrapper that exposes the safety model's mask to any agent.
 
 ``SafetyShield(env, mode="robust")`` reads the road from ``env.unwrapped`` (highway-env) after every
-reset and step, turns it into a :class:`safelane.safety.RoadState` (SI units, lane coordinates) and
-asks :func:`safelane.safety.evaluate` which of the 5 meta-actions are safe:
+reset and step, turns it into a :class:`safelane.safety.model.RoadState` (SI units, lane coordinates) and
+asks :func:`safelane.safety.model.evaluate` which of the 5 meta-actions are safe:
 
 * ``action_masks()`` returns the mask (sb3-contrib's convention, so ``MaskablePPO`` uses it as is);
 * ``info["action_mask"]``, ``info["fallback"]`` (no action was safe, the least-bad one is allowed)
   and ``info["shield_intervened"]`` (the override replaced the chosen action) are added;
 * with ``override=True`` an unsafe action is replaced by the closest safe one
-  (:data:`safelane.safety.OVERRIDE_ORDER`), so any agent — SB3's DQN, a random policy, a human —
+  (:data:`safelane.safety.model.OVERRIDE_ORDER`), so any agent — SB3's DQN, a random policy, a human —
   drives safely.
 
 Every constant of the dynamics is read from highway-env's classes at run time (``KP_A``,
@@ -30,7 +30,16 @@ from highway_env.road.road import Road, RoadNetwork
 from highway_env.vehicle.behavior import IDMVehicle
 from highway_env.vehicle.controller import ControlledVehicle
 
-from safelane.safety import OVERRIDE_ORDER, RELEVANCE_RANGE, Dynamics, Formula, Mode, RoadState, SafetyResult, evaluate
+from safelane.safety.model import (
+    OVERRIDE_ORDER,
+    RELEVANCE_RANGE,
+    Dynamics,
+    Formula,
+    Mode,
+    RoadState,
+    SafetyResult,
+    evaluate,
+)
 
 
 @functools.lru_cache(maxsize=64)
@@ -144,8 +153,8 @@ def _vehicle_record(o: Any) -> _VehicleRecord:
 def road_state(env: gym.Env, dyn: Dynamics) -> RoadState:
     """Snapshot of the road around the ego in lane coordinates (metres, m/s) for the safety model.
 
-    Only vehicles within :data:`safelane.safety.RELEVANCE_RANGE` [m] of the ego along the road are
-    included — the ones :func:`safelane.safety.evaluate` considers; their attributes are read in one
+    Only vehicles within :data:`safelane.safety.model.RELEVANCE_RANGE` [m] of the ego along the road are
+    included — the ones :func:`safelane.safety.model.evaluate` considers; their attributes are read in one
     pass, so the snapshot costs what the nearby traffic costs, not the whole road.
     """
     base = env.unwrapped

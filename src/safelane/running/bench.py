@@ -20,12 +20,12 @@ from typing import Any
 
 import numpy as np
 
-from safelane.agents import parse_methods
+from safelane.agents.dqn import parse_methods
 from safelane.config import ConfigError
-from safelane.env import make_env, paper_state
-from safelane.evaluation import fixed_policy
-from safelane.plots import read_metrics
-from safelane.training import METRICS_FILE, make_train_config, train
+from safelane.env.factory import make_env, paper_state
+from safelane.reporting.plots import read_metrics
+from safelane.running.evaluation import fixed_policy
+from safelane.running.training import METRICS_FILE, make_train_config, train
 
 BENCH_PRESET = "fast"
 BENCH_SHIELDS = ("nominal", "robust")
@@ -53,7 +53,7 @@ def _play(env: Any, seed: int, on_decision: Callable[[], None] | None = None) ->
 
 def measure_training(episodes: int, seed: int, shield: str, method: str = "robust") -> dict[str, float]:
     """Train ``method`` (``tuned`` preset, ``fast`` env with ``shield``) for ``episodes``
-    episodes in a temporary directory with the real loop of :func:`safelane.training.train`, and read its
+    episodes in a temporary directory with the real loop of :func:`safelane.running.training.train`, and read its
     own clocks: decisions per second of training, and the share of its wall time spent outside the
     environment (acting, storing, gradient steps, bookkeeping, checkpoints)."""
     with tempfile.TemporaryDirectory(prefix="safelane-bench-") as tmp:

@@ -80,9 +80,9 @@ def _task(out_dir: str, spec_json: str, method: str, seed: int) -> dict[str, Any
     """Train (or resume) one run and evaluate it; returns its evaluation record (also on disk)."""
     import torch
 
-    from safelane.evaluation import run_config, summarize
-    from safelane.plots import read_metrics
-    from safelane.training import METRICS_FILE, load_policy, load_run_config, make_train_config, train
+    from safelane.reporting.plots import read_metrics
+    from safelane.running.evaluation import run_config, summarize
+    from safelane.running.training import METRICS_FILE, load_policy, load_run_config, make_train_config, train
 
     torch.set_num_threads(1)
     spec = ExperimentSpec.model_validate_json(spec_json)
@@ -124,7 +124,7 @@ def _task(out_dir: str, spec_json: str, method: str, seed: int) -> dict[str, Any
         episodes.append(d)
     stress: list[dict[str, Any]] = []
     if spec.stress_conditions:
-        from safelane.stress import run_condition
+        from safelane.running.stress import run_condition
 
         for name in spec.stress_conditions:
             stress.append(
@@ -195,7 +195,7 @@ def run_experiment(
 
 def collect(out_dir: Path, spec: ExperimentSpec) -> dict[str, Any]:
     """Gather every run's evaluation into one dict: per-episode records and per-method aggregates."""
-    from safelane import stats
+    from safelane.reporting import stats
 
     methods: dict[str, Any] = {}
     all_episodes: list[dict[str, Any]] = []

@@ -2,7 +2,7 @@
 
 ``train(cfg, out_dir)`` reads top to bottom: reset → act (ε-greedy) → step → store → sample →
 update → target sync → per-episode bookkeeping → checkpoint. The methods differ only inside the
-agent (:mod:`safelane.agents`). A run directory holds:
+agent (:mod:`safelane.agents.dqn`). A run directory holds:
 
 * ``config.yaml`` — the fully resolved train, agent and environment configuration;
 * ``metrics.csv`` — one row per episode (:data:`METRIC_COLUMNS`);
@@ -36,7 +36,7 @@ import torch
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 
-from safelane.agents import (
+from safelane.agents.dqn import (
     AGENT_PRESETS,
     AgentConfig,
     DQNAgent,
@@ -57,7 +57,7 @@ from safelane.config import (
     parse_set,
     validation_message,
 )
-from safelane.env import make_env
+from safelane.env.factory import make_env
 
 CONFIG_FILE = "config.yaml"
 METRICS_FILE = "metrics.csv"

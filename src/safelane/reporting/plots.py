@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 from matplotlib.figure import Figure
 
-from safelane.stats import scale_01, smooth
+from safelane.reporting.stats import scale_01, smooth
 
 METRICS_FILE = "metrics.csv"
 """Per-episode training metrics in a run directory (columns ``episode``, ``return``, ``epsilon``…)."""
@@ -59,7 +59,7 @@ def plot_training_curves(
     """Smoothed episode return vs episode for each run, with ε on a twin axis (dashed).
 
     Reads ``run_dir/metrics.csv`` (columns ``episode`` and ``return``; ``epsilon`` is drawn when
-    present). Returns are smoothed with :func:`safelane.stats.smooth` (trailing ``window``-episode
+    present). Returns are smoothed with :func:`safelane.reporting.stats.smooth` (trailing ``window``-episode
     mean). ``scaled=True`` min–max scales each smoothed return curve to [0, 1] as in the paper's
     Fig. 7, to compare convergence speed regardless of final level. ``labels`` default to the run
     directories' names.

@@ -1,6 +1,6 @@
 """Run policies on the environment and summarise what happened: collisions, speed, shield activity.
 
-A policy is any callable ``policy(obs, info) -> action index`` (0..4, :mod:`safelane.actions`).
+A policy is any callable ``policy(obs, info) -> action index`` (0..4, :mod:`safelane.core.spaces`).
 :func:`run_episodes` plays seeded episodes (episode ``i`` is reset with ``seed + i``) and returns one
 :class:`EpisodeRecord` per episode; :func:`summarize` turns records into one JSON-ready dict. The CLI's
 ``safelane evaluate`` is a thin layer over :func:`evaluate_fixed`.
@@ -24,8 +24,8 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 
-from safelane.actions import ACTION_NAMES, FASTER, IDLE, N_ACTIONS, SLOWER
 from safelane.config import ConfigError, SafelaneConfig
+from safelane.core.spaces import ACTION_NAMES, FASTER, IDLE, N_ACTIONS, SLOWER
 
 Policy = Callable[[np.ndarray, dict[str, Any]], int]
 """``policy(obs, info) -> action index`` (0..4: LANE_LEFT, IDLE, LANE_RIGHT, FASTER, SLOWER)."""
@@ -332,7 +332,7 @@ def run_config(
     progress: ProgressCallback | None = None,
 ) -> list[EpisodeRecord]:
     """Build the environment of ``config``, play :func:`run_episodes` on it, and close it."""
-    from safelane.env import make_env
+    from safelane.env.factory import make_env
 
     env = make_env(config)
     try:

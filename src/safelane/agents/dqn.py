@@ -13,7 +13,7 @@ highway-env or the safety model. The pieces, from the bottom up:
 * :class:`RobustAgent` — robust Q-masking with Q-shaping (eqs. 13–14).
 
 The subclasses override only ``action_values`` (what acting maximises), ``allowed`` (which actions
-may be taken), ``td_target`` and ``loss``; the training loop (:mod:`safelane.training`) is shared.
+may be taken), ``td_target`` and ``loss``; the training loop (:mod:`safelane.running.training`) is shared.
 """
 
 from __future__ import annotations
@@ -30,8 +30,8 @@ import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 from torch import nn
 
-from safelane.actions import N_ACTIONS
 from safelane.config import ConfigError
+from safelane.core.spaces import N_ACTIONS
 
 OBS_SIZE = 26
 """Input size: the paper's state, eq. 3 (4 vehicles × 6 features + ego speed + ego heading)."""

@@ -1,0 +1,1 @@
+"""Reporting: statistics, the reproduction report, plots, rendered episodes."""

@@ -1,0 +1,1 @@
+"""Running things: training, evaluation, experiments, the stress suite, the benchmark."""

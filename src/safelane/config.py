@@ -19,9 +19,7 @@ from typing import Any, Literal
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 
-
-class ConfigError(ValueError):
-    """A configuration problem, described in one line (key, value, what is allowed)."""
+from safelane.core.errors import ConfigError
 
 
 class _Section(BaseModel):
@@ -93,10 +91,11 @@ class SafelaneConfig(_Section):
 
     preset: str = "fast"
     env_id: Literal["highway-v0", "highway-fast-v0"] = "highway-fast-v0"
-    backend: Literal["vectorized", "highway-env"] = Field(
-        "vectorized",
-        description="'vectorized': highway-env with safelane.sim.neighbours's numpy neighbour search (identical "
-        "episodes, ≈2x faster); 'highway-env': the simulator untouched.",
+    neighbour_search: Literal["numpy", "highway-env"] = Field(
+        "numpy",
+        description="How highway-env finds each vehicle's leader and follower: 'numpy' (safelane.sim.neighbours, "
+        "identical episodes, ≈2x faster) or 'highway-env' (its own Python loop, the simulator untouched). "
+        "Not the choice of simulator.",
     )
     state: Literal["paper", "lanes"] = Field(
         "paper",
@@ -215,8 +214,18 @@ def validation_message(err: ValidationError, model: Any = None, prefix: str = ""
     return f"{loc}: {msg} (got {e.get('input')!r})"
 
 
+RENAMED_KEYS: dict[str, tuple[str, dict[Any, Any]]] = {
+    "backend": ("neighbour_search", {"vectorized": "numpy", "highway-env": "highway-env"}),
+}
+"""Keys of older run configs: old name → (new name, old value → new value). Read, never written."""
+
+
 def build_config(data: dict[str, Any]) -> SafelaneConfig:
     """Validate a plain dict into a :class:`SafelaneConfig` (raises :class:`ConfigError`)."""
+    for old, (new, values) in RENAMED_KEYS.items():
+        if old in data and new not in data:
+            data = {**data, new: values.get(data[old], data[old])}
+            del data[old]
     try:
         cfg = SafelaneConfig.model_validate(data)
     except ValidationError as err:

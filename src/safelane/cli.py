@@ -322,21 +322,12 @@ def bench(
 
 def evaluate_run(run_dir: Path, episodes: int, seed: int, sets: list[str] | None, shield: str | None) -> dict[str, Any]:
     """Evaluate a trained run's greedy policy on its own environment config (plus --set / --shield)."""
-    from safelane.config import build_config
     from safelane.running.evaluation import run_config, summarize
+    from safelane.running.runs import run_env_config
     from safelane.running.training import load_policy, load_run_config
 
     run = load_run_config(run_dir)
-    data = config_to_dict(run.env)
-    from safelane.config import _assign, parse_set
-
-    for assignment in sets or []:
-        _assign(data, *parse_set(assignment))
-    if shield is not None:
-        if shield not in SHIELD_CHOICES:
-            raise ConfigError(f"--shield: unknown shield '{shield}'; allowed: {', '.join(SHIELD_CHOICES)}")
-        data["shield"]["mode"] = shield
-    cfg = build_config(data)
+    cfg = run_env_config(run_dir, sets=sets, shield=shield)
     policy = load_policy(run_dir)
     with episode_progress(f"evaluate {run_dir}", episodes) as advance:
         records = run_config(cfg, policy, episodes, seed, advance)
@@ -518,11 +509,12 @@ def stress(
         conds = [c for c in conds if c.name in only]
     if shield is not None and shield not in SHIELD_CHOICES:
         raise ConfigError(f"--shield: unknown shield '{shield}'; allowed: {', '.join(SHIELD_CHOICES)}")
+    run = None
     if run_dir is not None:
         from safelane.running.training import load_policy, load_run_config
 
         run = load_run_config(run_dir)
-        mode, override = shield or run.env.shield.mode, False
+        mode, override = shield, None  # the run's own shield unless --shield says otherwise
         trained = load_policy(run_dir)
 
         def factory() -> Any:
@@ -545,16 +537,20 @@ def stress(
             conds,
             sets,
             on_condition=lambda r: (rows.append(r), advance(len(rows) - 1, None)),
+            run=run,
         )
     if as_json:
         print_json(result)
         return
-    table = Table(title=f"stress: {run_dir or policy}, shield {mode}, {episodes} episodes per condition")
+    table = Table(title=f"stress: {run_dir or policy}, shield {result['shield']}, {episodes} episodes per condition")
     for col in ("condition", "collisions", "rate [95% CI]", "speed m/s", "interventions", "kinds"):
         table.add_column(col)
     for r in result["conditions"]:
-        lo, hi = r["collision_rate_ci95"]
         name = r["name"] + (" (adversarial)" if r["adversarial"] else "")
+        if "skipped" in r:
+            table.add_row(name, "skipped", r["skipped"], "", "", "")
+            continue
+        lo, hi = r["collision_rate_ci95"]
         kinds = ", ".join(f"{k} {v}" for k, v in r["collision_kinds"].items() if v)
         table.add_row(
             name,
@@ -587,11 +583,10 @@ def render(
     from safelane.running.evaluation import FIXED_POLICIES, fixed_policy
 
     if run_dir is not None:
-        from safelane.running.training import load_policy, load_run_config
+        from safelane.running.runs import run_env_config
+        from safelane.running.training import load_policy
 
-        cfg = load_run_config(run_dir).env
-        if shield is not None:
-            cfg = resolve_config(cfg.preset, sets, shield)
+        cfg = run_env_config(run_dir, sets=sets, shield=shield)
         act = load_policy(run_dir)
     else:
         if policy is None or policy not in FIXED_POLICIES:

@@ -147,7 +147,8 @@ def _assign(tree: dict[str, Any], dotted: str, value: Any) -> None:
     node[parts[-1]] = value
 
 
-def _highway_env_defaults(env_id: str) -> dict[str, Any]:
+def highway_env_defaults(env_id: str) -> dict[str, Any]:
+    """highway-env's ``default_config()`` of the environment class registered as ``env_id``."""
     import gymnasium as gym
     import highway_env  # noqa: F401  (registers the environments)
 
@@ -167,7 +168,7 @@ def _type_name(value: Any) -> str:
 
 def validate_env_keys(env_id: str, env: dict[str, Any]) -> None:
     """Check highway-env keys against the env class's ``default_config()``: names and value types."""
-    defaults = _highway_env_defaults(env_id)
+    defaults = highway_env_defaults(env_id)
     for key, value in env.items():
         if key not in defaults:
             allowed = ", ".join(sorted(defaults))

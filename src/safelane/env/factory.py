@@ -14,17 +14,74 @@
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, NamedTuple
 
 import gymnasium as gym
 import highway_env  # noqa: F401  (registers highway-v0 / highway-fast-v0)
+from highway_env.vehicle.controller import MDPVehicle
 
-from safelane.config import ConfigError, SafelaneConfig, apply_overrides, build_config, load_config
+from safelane.config import (
+    ConfigError,
+    SafelaneConfig,
+    apply_overrides,
+    build_config,
+    highway_env_defaults,
+    load_config,
+)
+from safelane.core.snapshot import RoadSnapshot
 from safelane.env.observations import PaperObservation
 from safelane.env.reward import PaperReward
 from safelane.safety.shield import SafetyShield
 from safelane.sim.highway import HighwayEnvAdapter
 from safelane.sim.traffic import TrafficLayout
+
+
+class EnvInterface(NamedTuple):
+    """What a trained policy depends on: the state it reads, how often it decides, what its actions mean."""
+
+    state: str
+    """``paper`` (eq. 3) or ``lanes``."""
+    policy_frequency: float
+    """[Hz] decisions per second."""
+    target_speeds: tuple[float, ...]
+    """[m/s] the ego's set-points, which FASTER and SLOWER step through."""
+
+    def describe(self) -> str:
+        """One-line description, e.g. ``state 'paper', 1 decisions/s, target speeds [20, 25, 30] m/s``."""
+        speeds = ", ".join(f"{s:g}" for s in self.target_speeds)
+        return f"state '{self.state}', {self.policy_frequency:g} decisions/s, target speeds [{speeds}] m/s"
+
+
+def env_interface(cfg: SafelaneConfig) -> EnvInterface:
+    """The :class:`EnvInterface` an environment built from ``cfg`` presents (highway-env's defaults filled in)."""
+    defaults = highway_env_defaults(cfg.env_id)
+    action = {**defaults.get("action", {}), **cfg.env.get("action", {})}
+    speeds = action.get("target_speeds")
+    if speeds is None:
+        speeds = MDPVehicle.DEFAULT_TARGET_SPEEDS
+    return EnvInterface(
+        state=cfg.state,
+        policy_frequency=float(cfg.env.get("policy_frequency", defaults["policy_frequency"])),
+        target_speeds=tuple(float(s) for s in speeds),
+    )
+
+
+def interface_of(info: dict[str, Any]) -> EnvInterface | None:
+    """The :class:`EnvInterface` of a running environment, from a step's ``info`` (None if it lacks one)."""
+    snap: RoadSnapshot | None = info.get("snapshot")
+    state = info.get("state")
+    if snap is None or state is None:
+        return None
+    return EnvInterface(state, snap.policy_frequency, snap.ego_target_speeds)
+
+
+def check_same_interface(trained: EnvInterface, actual: EnvInterface, source: str = "the run") -> None:
+    """Raise a one-line :class:`ConfigError` naming both interfaces unless they are equal."""
+    if trained != actual:
+        raise ConfigError(
+            f"environment: {actual.describe()}, but {source} was trained with {trained.describe()}; "
+            "a trained policy only drives the state kind, decision rate and action set it learned"
+        )
 
 
 def resolve_env_config(config: SafelaneConfig | str | None = None, **overrides: Any) -> SafelaneConfig:

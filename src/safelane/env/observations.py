@@ -131,7 +131,8 @@ STATE_FUNCTIONS: dict[str, Callable[[RoadSnapshot], np.ndarray]] = {"paper": pap
 
 class PaperObservation(gym.Wrapper, gym.utils.RecordConstructorArgs):
     """Replace the simulator's observation by the paper's 26-number state (eq. 3), or with
-    ``state="lanes"`` by :func:`lane_state` (same size), computed from ``info["snapshot"]``."""
+    ``state="lanes"`` by :func:`lane_state` (same size), computed from ``info["snapshot"]``; ``info``
+    gains ``state`` (the state's name), so a trained policy can check it reads what it learned on."""
 
     def __init__(self, env: gym.Env, state: str = "paper") -> None:
         gym.utils.RecordConstructorArgs.__init__(self, state=state)
@@ -140,11 +141,14 @@ class PaperObservation(gym.Wrapper, gym.utils.RecordConstructorArgs):
             raise ConfigError(f"state: got {state!r}; allowed: {', '.join(STATE_FUNCTIONS)}")
         self.state_of = STATE_FUNCTIONS[state]
         self.observation_space = gym.spaces.Box(-1.0, 1.0, shape=(OBS_SIZE,), dtype=np.float32)
+        self.state = state
 
     def reset(self, **kwargs: Any) -> tuple[np.ndarray, dict[str, Any]]:
         _, info = self.env.reset(**kwargs)
+        info["state"] = self.state
         return self.state_of(info["snapshot"]), info
 
     def step(self, action: Any) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
         _, reward, terminated, truncated, info = self.env.step(action)
+        info["state"] = self.state
         return self.state_of(info["snapshot"]), reward, terminated, truncated, info

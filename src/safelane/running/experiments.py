@@ -82,6 +82,7 @@ def _task(out_dir: str, spec_json: str, method: str, seed: int) -> dict[str, Any
 
     from safelane.reporting.plots import read_metrics
     from safelane.running.evaluation import run_config, summarize
+    from safelane.running.runs import run_env_config
     from safelane.running.training import METRICS_FILE, load_policy, load_run_config, make_train_config, train
 
     torch.set_num_threads(1)
@@ -110,7 +111,7 @@ def _task(out_dir: str, spec_json: str, method: str, seed: int) -> dict[str, Any
     run = load_run_config(run_dir)
     policy = load_policy(run_dir)
     reward_c = run.env.reward.c
-    records = run_config(run.env, policy, spec.test_episodes, TEST_SEED_BASE)
+    records = run_config(run_env_config(run), policy, spec.test_episodes, TEST_SEED_BASE)
     episodes = []
     for k, r in enumerate(records):
         d = r.to_dict()
@@ -127,17 +128,7 @@ def _task(out_dir: str, spec_json: str, method: str, seed: int) -> dict[str, Any
         from safelane.running.stress import run_condition
 
         for name in spec.stress_conditions:
-            stress.append(
-                run_condition(
-                    name,
-                    policy,
-                    spec.stress_episodes,
-                    shield=run.env.shield.mode,
-                    override=False,
-                    sets=spec.sets,
-                    base=run.env,
-                )
-            )
+            stress.append(run_condition(name, policy, spec.stress_episodes, shield=None, override=None, run=run))
     summary = summarize(records, method=method, seed=seed)
     record = {
         "method": method,

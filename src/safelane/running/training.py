@@ -57,7 +57,7 @@ from safelane.config import (
     parse_set,
     validation_message,
 )
-from safelane.env.factory import make_env
+from safelane.env.factory import check_same_interface, env_interface, interface_of, make_env
 
 CONFIG_FILE = "config.yaml"
 METRICS_FILE = "metrics.csv"
@@ -552,15 +552,23 @@ class GreedyPolicy:
     """The greedy policy of a trained run: ``policy(obs, info) -> action``.
 
     qmask and robust choose among ``info["action_mask"]`` (all actions if the env has no shield);
-    dqn and constrained ignore the mask.
+    dqn and constrained ignore the mask. It refuses (one-line :class:`ConfigError`) to drive an
+    environment whose state kind, decision rate or target speeds differ from the ones it was trained
+    on, as ``info`` reports them.
     """
 
-    def __init__(self, agent: DQNAgent, run: RunConfig) -> None:
+    def __init__(self, agent: DQNAgent, run: RunConfig, name: str = "the run") -> None:
         self.agent = agent
         self.run = run
         self.method = agent.method
+        self.name = name
+        self.interface = env_interface(run.env)
 
     def __call__(self, obs: np.ndarray, info: dict[str, Any] | None = None) -> int:
+        if info is not None:
+            actual = interface_of(info)
+            if actual is not None and actual != self.interface:
+                check_same_interface(self.interface, actual, self.name)
         mask = info.get("action_mask") if (info is not None and self.agent.uses_mask) else None
         return self.agent.greedy(obs, mask)
 
@@ -580,4 +588,4 @@ def load_agent(run_dir: str | Path) -> DQNAgent:
 
 def load_policy(run_dir: str | Path) -> Callable[[np.ndarray, dict[str, Any]], int]:
     """The greedy policy of a trained run (see :class:`GreedyPolicy`)."""
-    return GreedyPolicy(load_agent(run_dir), load_run_config(run_dir))
+    return GreedyPolicy(load_agent(run_dir), load_run_config(run_dir), f"run {run_dir}")

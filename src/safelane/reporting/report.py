@@ -14,6 +14,7 @@ from typing import Any
 import numpy as np
 from matplotlib.figure import Figure
 
+from safelane.core.files import atomic_write_text
 from safelane.reporting import stats
 from safelane.reporting.plots import read_metrics
 from safelane.running.experiments import ExperimentSpec, run_dir_of
@@ -292,8 +293,6 @@ def write_report(out_dir: str | Path, gifs: dict[str, str] | None = None) -> Pat
         for m, path in gifs.items():
             lines += [f"### {LABELS[m]}", "", f"![{m}]({path})", ""]
     report = out / "report.md"
-    from safelane.running.experiments import atomic_write_text
-
     atomic_write_text(report, "\n".join(lines) + "\n")
     return report
 

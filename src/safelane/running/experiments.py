@@ -12,7 +12,6 @@ from __future__ import annotations
 import json
 import os
 import shutil
-import tempfile
 import time
 from collections.abc import Callable
 from concurrent.futures import ProcessPoolExecutor, as_completed
@@ -22,6 +21,7 @@ from typing import Any, Literal
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from safelane.config import ConfigError, validation_message
+from safelane.core.files import atomic_write_text
 
 METHODS: tuple[str, ...] = ("dqn", "constrained", "qmask", "robust")
 TEST_SEED_BASE = 2_000_000_000
@@ -54,21 +54,6 @@ def make_spec(**fields: Any) -> ExperimentSpec:
         return ExperimentSpec(**fields)
     except ValidationError as err:
         raise ConfigError(validation_message(err, ExperimentSpec, "reproduce.")) from None
-
-
-def atomic_write_text(path: Path, text: str) -> None:
-    """Write ``text`` to ``path`` via a temporary file and a rename (never a truncated file)."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "w") as f:
-            f.write(text)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
 
 
 def run_dir_of(out_dir: Path, method: str, seed: int) -> Path:

@@ -308,3 +308,27 @@ def test_road_state_keeps_exactly_the_vehicles_evaluate_considers() -> None:
     far.position = np.array([ego.position[0] + 2 * RELEVANCE_RANGE, far.position[1]])
     after = evaluate(road_state(snapshot_of(base)), scene.shield.dynamics, "robust")
     assert np.array_equal(before.mask, after.mask) and np.array_equal(before.min_gap, after.min_gap)
+
+
+def test_the_shield_wraps_a_plain_highway_env_environment() -> None:
+    """The README's quickstart: SafetyShield on gym.make("highway-fast-v0") reads the scene through the
+    highway-env adapter it inserts itself, and with override=True the mask is obeyed."""
+    import gymnasium as gym
+    import highway_env  # noqa: F401
+
+    from safelane.safety.shield import SafetyShield
+
+    raw = gym.make(
+        "highway-fast-v0",
+        config={"action": {"type": "DiscreteMetaAction", "target_speeds": [0, 5, 10, 15, 20, 25, 30]}},
+    )
+    safe = SafetyShield(raw, mode="robust", override=True)
+    _, info = safe.reset(seed=0)
+    assert info["snapshot"].n == len(safe.unwrapped.road.vehicles)
+    for _ in range(5):
+        mask = safe.action_masks()
+        _, _, terminated, truncated, info = safe.step(FASTER)
+        assert mask[info["executed_action"]]
+        if terminated or truncated:
+            break
+    safe.close()

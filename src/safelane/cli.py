@@ -66,6 +66,14 @@ ShieldOpt = Annotated[
         metavar="MODE",
     ),
 ]
+SimulatorOpt = Annotated[
+    str | None,
+    typer.Option(
+        "--simulator",
+        help="Simulator (sets simulator=): highway-env, the reference, or fast (default: the config's).",
+        metavar="SIM",
+    ),
+]
 EpisodesOpt = Annotated[int, typer.Option("--episodes", "-n", help="Number of episodes (>= 1).")]
 SeedOpt = Annotated[int, typer.Option("--seed", help="Random seed: the same seed gives the same numbers.")]
 JsonOpt = Annotated[bool, typer.Option("--json", help="Print one JSON object on stdout instead of a table.")]
@@ -94,6 +102,11 @@ def cli_errors(fn: F) -> F:
             fail(f"{where}{err.strerror or err} (nothing written; earlier checkpoints and results are intact)")
 
     return wrapper  # type: ignore[return-value]
+
+
+def with_simulator(sets: list[str] | None, simulator: str | None) -> list[str]:
+    """``sets`` with ``simulator=SIM`` appended when ``--simulator`` was given (validated by the config)."""
+    return [*(sets or []), *([f"simulator={simulator}"] if simulator is not None else [])]
 
 
 def check_positive(option: str, value: int) -> None:
@@ -223,6 +236,7 @@ def evaluate(
     preset: PresetOpt = "fast",
     sets: SetOpt = None,
     shield: ShieldOpt = None,
+    simulator: SimulatorOpt = None,
     as_json: JsonOpt = False,
 ) -> None:
     """Evaluate a policy: collisions, speed, return, time to collision, shield activity.
@@ -233,6 +247,8 @@ def evaluate(
     method's raw Q-network (what its values learned about unsafe actions, without the mask).
     """
     from safelane.running.evaluation import FIXED_POLICIES, evaluate_fixed
+
+    sets = with_simulator(sets, simulator)
 
     if run_dir is not None:
         if policy is not None:
@@ -338,6 +354,7 @@ def evaluate_run(run_dir: Path, episodes: int, seed: int, sets: list[str] | None
         shield=cfg.shield.mode,
         override=cfg.shield.override,
         preset=cfg.preset,
+        simulator=cfg.simulator,
         seed=seed,
     )
 
@@ -359,6 +376,7 @@ def train(
         str, typer.Option("--agent-preset", help="Agent hyper-parameters: paper or tuned.", metavar="NAME")
     ] = "tuned",
     sets: SetOpt = None,
+    simulator: SimulatorOpt = None,
     resume: Annotated[bool, typer.Option("--resume", help="Continue from the run's last checkpoint.")] = False,
     checkpoint_every: Annotated[int, typer.Option("--checkpoint-every", help="Episodes between checkpoints.")] = 10,
     tensorboard: Annotated[
@@ -371,6 +389,7 @@ def train(
     from safelane.running.training import TrainingInterrupted, make_train_config
     from safelane.running.training import train as run_training
 
+    sets = with_simulator(sets, simulator)
     check_positive("--episodes", episodes)
     check_seed(seed)
     cfg = make_train_config(
@@ -423,6 +442,7 @@ def reproduce(
     workers: Annotated[int | None, typer.Option("--workers", help="Parallel processes (default: cores).")] = None,
     agent_preset: Annotated[str, typer.Option("--agent-preset", help="paper or tuned.")] = "tuned",
     sets: SetOpt = None,
+    simulator: SimulatorOpt = None,
     gifs: Annotated[bool, typer.Option("--gifs/--no-gifs", help="Render one episode GIF per method.")] = True,
     stress_episodes: Annotated[
         int, typer.Option("--stress-episodes", help="Also evaluate every run on the stress conditions (0: skip).")
@@ -439,6 +459,7 @@ def reproduce(
     from safelane.reporting.report import render_gifs, write_report
     from safelane.running.experiments import make_spec, run_experiment
 
+    sets = with_simulator(sets, simulator)
     if quick:
         seeds, episodes, test_episodes = min(seeds, 2), min(episodes, 25), min(test_episodes, 7)
     check_positive("--seeds", seeds)
@@ -487,6 +508,7 @@ def stress(
     run_dir: Path | None = typer.Argument(None, help="A trained run, instead of --policy.", metavar="RUN_DIR"),
     policy: Annotated[str | None, typer.Option("--policy", help="Fixed policy: random, idle, faster, slower.")] = None,
     shield: ShieldOpt = None,
+    simulator: SimulatorOpt = None,
     episodes: EpisodesOpt = 20,
     conditions: Annotated[
         Path | None, typer.Option("--conditions", help="YAML list of conditions (default: the shipped suite).")
@@ -499,6 +521,7 @@ def stress(
     from safelane.running.evaluation import FIXED_POLICIES, fixed_policy
     from safelane.running.stress import load_conditions, run_stress
 
+    sets = with_simulator(sets, simulator)
     check_positive("--episodes", episodes)
     conds = load_conditions(conditions)
     if only:

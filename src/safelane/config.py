@@ -91,6 +91,11 @@ class SafelaneConfig(_Section):
 
     preset: str = "fast"
     env_id: Literal["highway-v0", "highway-fast-v0"] = "highway-fast-v0"
+    simulator: Literal["highway-env", "fast"] = Field(
+        "highway-env",
+        description="Which simulator runs env_id: 'highway-env' (the reference) or 'fast' (safelane.sim.fast: "
+        "highway-env's highway on compiled arrays, checked against it by `safelane sim check`).",
+    )
     neighbour_search: Literal["numpy", "highway-env"] = Field(
         "numpy",
         description="How highway-env finds each vehicle's leader and follower: 'numpy' (safelane.sim.neighbours, "

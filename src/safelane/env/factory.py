@@ -95,21 +95,8 @@ def resolve_env_config(config: SafelaneConfig | str | None = None, **overrides: 
     return build_config(data)
 
 
-def make_env(
-    config: SafelaneConfig | str | None = None,
-    *,
-    seed: int | None = None,
-    render_mode: str | None = None,
-    **overrides: Any,
-) -> gym.Env:
-    """Build the paper's environment on highway-env.
-
-    ``config``: a :class:`SafelaneConfig`, a preset name (``"fast"``, default, or ``"paper"``) or None.
-    ``overrides``: dotted keys or section dicts applied on top, e.g. ``make_env(env={"lanes_count": 5})``
-    or ``make_env(**{"shield.mode": "robust"})``. With ``seed`` the env is reset once with that seed
-    (gymnasium's seeding) and its action space is seeded, so the same seed gives the same episodes.
-    """
-    cfg = resolve_env_config(config, **overrides)
+def _highway_env(cfg: SafelaneConfig, render_mode: str | None) -> gym.Env:
+    """highway-env itself, with safelane's traffic options and the snapshot adapter."""
     try:
         env = gym.make(cfg.env_id, config=dict(cfg.env), render_mode=render_mode)
     except (TypeError, ValueError, KeyError, AttributeError, ImportError) as err:
@@ -120,7 +107,43 @@ def make_env(
         vectorized=cfg.neighbour_search == "numpy",
         adversary=cfg.traffic.adversary,
     )
-    env = HighwayEnvAdapter(env)
+    return HighwayEnvAdapter(env)
+
+
+def _fast_simulator(cfg: SafelaneConfig, render_mode: str | None) -> gym.Env:
+    """safelane's compiled simulator of the same highway (it produces the snapshot itself)."""
+    if render_mode is not None:
+        raise ConfigError("simulator: fast does not render; use simulator=highway-env to render an episode")
+    if cfg.traffic.vehicles_behind:
+        raise ConfigError("traffic.vehicles_behind: not supported by simulator=fast; allowed there: 0")
+    if cfg.traffic.adversary != "none":
+        adversary = cfg.traffic.adversary
+        raise ConfigError(f"traffic.adversary: '{adversary}' not supported by simulator=fast; allowed there: none")
+    from safelane.sim.fast.env import FastHighwayEnv
+
+    try:
+        return FastHighwayEnv(dict(cfg.env), cfg.env_id)
+    except ValueError as err:
+        raise ConfigError(str(err)) from None
+
+
+def make_env(
+    config: SafelaneConfig | str | None = None,
+    *,
+    seed: int | None = None,
+    render_mode: str | None = None,
+    **overrides: Any,
+) -> gym.Env:
+    """Build the paper's environment on highway-env (``simulator: highway-env``) or on safelane's compiled
+    simulator of the same highway (``simulator: fast``).
+
+    ``config``: a :class:`SafelaneConfig`, a preset name (``"fast"``, default, or ``"paper"``) or None.
+    ``overrides``: dotted keys or section dicts applied on top, e.g. ``make_env(env={"lanes_count": 5})``
+    or ``make_env(**{"shield.mode": "robust"})``. With ``seed`` the env is reset once with that seed
+    (gymnasium's seeding) and its action space is seeded, so the same seed gives the same episodes.
+    """
+    cfg = resolve_env_config(config, **overrides)
+    env = _fast_simulator(cfg, render_mode) if cfg.simulator == "fast" else _highway_env(cfg, render_mode)
     env = PaperReward(env, cfg.reward.b, cfg.reward.c, cfg.reward.v_min, cfg.reward.v_max)
     env = PaperObservation(env, cfg.state)
     if cfg.shield.mode != "none":

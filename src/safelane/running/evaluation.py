@@ -303,9 +303,9 @@ def evaluate_fixed(
     progress: ProgressCallback | None = None,
 ) -> dict[str, Any]:
     """Evaluate a fixed policy (:data:`FIXED_POLICIES`) on ``config``: the summary dict of
-    :func:`summarize` with ``policy``, ``shield``, ``override``, ``preset``, ``env_id``, ``neighbour_search``,
-    ``seed`` and ``wall_time_s`` added. With a shield the config should set ``shield.override`` (a fixed policy
-    cannot read the mask)."""
+    :func:`summarize` with ``policy``, ``shield``, ``override``, ``preset``, ``env_id``, ``simulator``,
+    ``neighbour_search``, ``seed`` and ``wall_time_s`` added. With a shield the config should set
+    ``shield.override`` (a fixed policy cannot read the mask)."""
 
     if episodes < 1:
         raise ConfigError(f"--episodes: must be >= 1 (got {episodes})")
@@ -321,6 +321,7 @@ def evaluate_fixed(
         override=config.shield.override,
         preset=config.preset,
         env_id=config.env_id,
+        simulator=config.simulator,
         neighbour_search=config.neighbour_search,
         seed=seed,
         wall_time_s=time.perf_counter() - start,

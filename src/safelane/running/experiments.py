@@ -114,7 +114,7 @@ def _task(out_dir: str, spec_json: str, method: str, seed: int) -> dict[str, Any
 
         for name in spec.stress_conditions:
             stress.append(run_condition(name, policy, spec.stress_episodes, shield=None, override=None, run=run))
-    summary = summarize(records, method=method, seed=seed)
+    summary = summarize(records, method=method, seed=seed, simulator=run.env.simulator)
     record = {
         "method": method,
         "seed": seed,

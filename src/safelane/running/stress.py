@@ -109,6 +109,7 @@ def run_condition(
     return {
         "name": condition.name,
         "adversarial": condition.adversarial,
+        "simulator": cfg.simulator,
         "episodes": s["episodes"],
         "collisions": s["collisions"],
         "collision_rate": s["collision_rate"],

@@ -40,6 +40,8 @@ app = typer.Typer(
 )
 env_app = typer.Typer(help="Inspect environment configurations.", no_args_is_help=True)
 app.add_typer(env_app, name="env")
+sim_app = typer.Typer(help="Check the fast simulator against highway-env.", no_args_is_help=True)
+app.add_typer(sim_app, name="sim")
 
 stdout = Console()
 stderr = Console(stderr=True)
@@ -206,6 +208,56 @@ def env_show(preset: PresetOpt = "fast", sets: SetOpt = None, shield: ShieldOpt 
     """Print the resolved environment configuration as YAML."""
     cfg = resolve_config(preset, sets, shield)
     sys.stdout.write(yaml.safe_dump(config_to_dict(cfg), sort_keys=False))
+
+
+@sim_app.command("check")
+@cli_errors
+def sim_check(
+    preset: PresetOpt = "fast",
+    sets: SetOpt = None,
+    episodes: EpisodesOpt = 20,
+    seed: SeedOpt = 0,
+    stat_episodes: Annotated[
+        int,
+        typer.Option(
+            "--stat-episodes",
+            help="Episodes per policy and simulator for the statistical tests (0: trajectories only).",
+        ),
+    ] = 0,
+    as_json: JsonOpt = False,
+) -> None:
+    """Compare the fast simulator with highway-env on a configuration: trajectories and statistics."""
+    from safelane.running.simcheck import run_sim_check
+
+    check_positive("--episodes", episodes)
+    check_seed(seed)
+    if stat_episodes < 0:
+        raise ConfigError(f"--stat-episodes: must be >= 0 (got {stat_episodes})")
+    cfg = resolve_config(preset, sets)
+    with episode_progress("sim check", episodes) as advance:
+        count = [0]
+
+        def tick(_: str) -> None:
+            advance(count[0], None)
+            count[0] += 1
+
+        result = run_sim_check(cfg, episodes, seed, stat_episodes=stat_episodes, progress=tick)
+    if as_json:
+        print_json(result)
+        return
+    stdout.print(
+        f"trajectories: {result['trajectory_match_fraction']:.3f} of {episodes} episodes matched within "
+        f"{result['tolerance']:g} (m, m/s, rad)"
+    )
+    for d in result["divergences"]:
+        stdout.print(f"  seed {d['seed']} ({d['policy']}): step {d['first_step']}: {d['cause']}")
+    if result["tests"]:
+        table = Table(title=f"{stat_episodes} episodes per policy and simulator")
+        for col in ("policy", "metric", "highway-env", "fast", "p-value"):
+            table.add_column(col)
+        for t in result["tests"]:
+            table.add_row(t["policy"], t["metric"], f"{t['highway_env']:.4g}", f"{t['fast']:.4g}", f"{t['p_value']:.3g}")
+        stdout.print(table)
 
 
 EVALUATE_UNITS = {

@@ -256,7 +256,8 @@ def sim_check(
         for col in ("policy", "metric", "highway-env", "fast", "p-value"):
             table.add_column(col)
         for t in result["tests"]:
-            table.add_row(t["policy"], t["metric"], f"{t['highway_env']:.4g}", f"{t['fast']:.4g}", f"{t['p_value']:.3g}")
+            values = (f"{t['highway_env']:.4g}", f"{t['fast']:.4g}", f"{t['p_value']:.3g}")
+            table.add_row(t["policy"], t["metric"], *values)
         stdout.print(table)
 
 

@@ -158,7 +158,8 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
         return self.result
 
     def compute_mask(self) -> np.ndarray:
-        """The mask of safe actions in the current state, recomputed (bool, shape (5,))."""
+        """The mask of safe actions, recomputed on the last snapshot (bool, shape (5,)); after editing the
+        scene by hand call :meth:`refresh`, which re-reads it."""
         return self.compute_result().mask
 
     def action_masks(self) -> np.ndarray:

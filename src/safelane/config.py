@@ -352,7 +352,7 @@ def _check_observation(obs: dict[str, Any]) -> None:
             raise ConfigError(f"{name}: unknown key; allowed: {', '.join(allowed_keys)}")
         if key == "vehicles_count":
             _check_int(name, value, 1)
-        elif key == "features":
+        elif key == "features" and value is not None:  # None: highway-env's default features
             ok = (
                 isinstance(value, list)
                 and value

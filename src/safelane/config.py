@@ -3,7 +3,11 @@
 A configuration has one section per concern. highway-env's own config dict passes through
 untouched under ``env`` (highway-env's ``default_config()`` pattern), but every key and value type
 is checked against the chosen highway-env class's defaults, so a typo fails with one line instead of
-being silently ignored by highway-env.
+being silently ignored by highway-env; then every value is checked against what highway-env and
+safelane can run (:func:`validate_env_keys`: ranges, whole physics frames per decision, the nested
+``observation`` and ``action`` dicts), so a bad value fails here rather than deep inside a reset.
+The checks run whenever a :class:`SafelaneConfig` is built, so ``load_config``, ``build_config`` and
+``make_env`` all reject the same values. Numbers must be finite, and not booleans or strings.
 
 Errors are :class:`ConfigError` (a ``ValueError``) whose message is a single line naming the key and
 the allowed values; the CLI prints it without a traceback.

@@ -246,6 +246,7 @@ def test_presets_are_valid(name: str) -> None:
         ["env.initial_lane_id=3"],
         ["env.initial_lane_id=null"],
         ["env.observation.order=shuffled", "env.observation.features=[presence, x, vx]"],
+        ["env.observation.features=null", "env.observation.features_range=null", "env.action.target_speeds=null"],
         ["env.other_vehicles_type=highway_env.vehicle.behavior.AggressiveVehicle"],
         ["traffic.vehicles_behind=50", "traffic.adversary=cut_in"],
         ["reward.v_min=-5", "reward.b=0", "reward.c=1e-3"],

@@ -356,15 +356,15 @@ def _check_observation(obs: dict[str, Any]) -> None:
             raise ConfigError(f"{name}: unknown key; allowed: {', '.join(allowed_keys)}")
         if key == "vehicles_count":
             _check_int(name, value, 1)
-        elif key == "features" and value is not None:  # None: highway-env's default features
-            ok = (
+        elif key == "features":
+            ok = value is None or (  # None: highway-env's default features
                 isinstance(value, list)
                 and value
                 and all(isinstance(f, str) and f in KINEMATICS_FEATURES for f in value)
             )
-            if not ok or len(set(value)) != len(value):
+            if not ok or (value is not None and len(set(value)) != len(value)):
                 raise ConfigError(
-                    f"{name}: expected a non-empty list of distinct feature names from "
+                    f"{name}: expected null or a non-empty list of distinct feature names from "
                     f"{', '.join(KINEMATICS_FEATURES)}; got {value!r}"
                 )
         elif key == "features_range":

@@ -9,6 +9,8 @@ from __future__ import annotations
 
 import json
 import math
+import os
+import subprocess
 from pathlib import Path
 from typing import Any
 
@@ -33,6 +35,8 @@ from safelane.config import (
 )
 
 runner = CliRunner()
+SRC = Path(__file__).resolve().parents[1] / "src"
+"""This checkout's package, for the installed script run in a subprocess."""
 
 EVALUATE = ("evaluate", "--policy", "random", "--episodes", "1")
 SHOW = ("env", "show")
@@ -84,6 +88,18 @@ def test_render_to_an_unwritable_place_is_one_error_line() -> None:
     )
     assert "/proc" in line
     assert not Path("/proc/x.gif").exists()
+
+
+def test_script_render_to_an_unwritable_place_prints_no_traceback(safelane_exe: Path) -> None:
+    """The installed script, in its own process: nothing may print a traceback at exit either."""
+    env = {**os.environ, "SDL_VIDEODRIVER": "dummy", "PYTHONPATH": str(SRC)}
+    args = ["render", "--policy", "random", "--out", "/proc/x.gif", "--max-steps", "1", "--set", "env.duration=2"]
+    proc = subprocess.run([str(safelane_exe), *args], capture_output=True, text=True, env=env, timeout=120, check=False)
+    assert proc.returncode == 2, proc.stderr
+    assert proc.stdout == ""
+    lines = proc.stderr.splitlines()
+    assert len(lines) == 1 and lines[0].startswith("error: out_path: "), proc.stderr
+    assert "Traceback" not in proc.stderr
 
 
 def test_render_next_to_a_file_is_one_error_line(tmp_path: Path) -> None:

@@ -21,11 +21,13 @@ demo: $(STAMP)
 	SDL_VIDEODRIVER=dummy $(BIN)/safelane reproduce --quick --out $(DEMO_OUT)
 
 test: $(STAMP)
-	$(BIN)/ruff check src tests
+	$(BIN)/ruff check src tests examples
+	$(BIN)/lint-imports
 	SDL_VIDEODRIVER=dummy $(BIN)/python -m pytest -q -m "not slow"
 
 lint: $(STAMP)
-	$(BIN)/ruff check src tests
+	$(BIN)/ruff check src tests examples
+	$(BIN)/lint-imports
 
 bench: $(STAMP)
 	$(BIN)/safelane bench

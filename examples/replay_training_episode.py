@@ -3,8 +3,8 @@
 Training is deterministic, so re-training a run's config up to episode N reproduces episode N exactly;
 this wraps the environment to record, for that episode, every decision's action, the shield's mask of
 the state it was taken in, whether the next state was a fallback (no safe action), the ego after the
-decision and the vehicles within 80 m before it, and writes the last ``--keep`` decisions as JSON with
-highway-env's crash classification.
+decision and the vehicles within 80 m before it (all read from the road snapshots), and writes the last
+``--keep`` decisions as JSON with the crash classification.
 
     python examples/replay_training_episode.py runs/beyond3/runs/robust-s2 --episode 199 --out crash.json
 
@@ -41,27 +41,32 @@ class EpisodeLogger(gym.Wrapper):
     def reset(self, **kwargs: Any) -> Any:
         self.episode += 1
         self.log = []
-        return self.env.reset(**kwargs)
+        obs, info = self.env.reset(**kwargs)
+        self.snapshot = info["snapshot"]
+        return obs, info
 
     def step(self, action: Any) -> Any:
         if self.episode != self.target:
-            return self.env.step(action)
-        base = self.env.unwrapped
-        ego = base.vehicle
+            obs, reward, terminated, truncated, info = self.env.step(action)
+            self.snapshot = info["snapshot"]
+            return obs, reward, terminated, truncated, info
+        before = self.snapshot
+        e = before.ego
         near = [
             {
-                "dx": float(v.position[0] - ego.position[0]),
-                "y": float(v.position[1]),
-                "speed": float(v.speed),
-                "heading": float(v.heading),
-                "lane": int(v.lane_index[2]),
-                "target_lane": int(v.target_lane_index[2]) if getattr(v, "target_lane_index", None) else None,
+                "dx": float(before.position[i, 0] - before.position[e, 0]),
+                "y": float(before.position[i, 1]),
+                "speed": float(before.speed[i]),
+                "heading": float(before.heading[i]),
+                "lane": int(before.lane[i]),
+                "target_lane": int(before.target_lane[i]),
             }
-            for v in base.road.vehicles
-            if v is not ego and abs(v.position[0] - ego.position[0]) < NEAR
+            for i in before.others()
+            if abs(before.position[i, 0] - before.position[e, 0]) < NEAR
         ]
         mask = self.env.action_masks() if hasattr(self.env, "action_masks") else None
         obs, reward, terminated, truncated, info = self.env.step(action)
+        after = self.snapshot = info["snapshot"]
         self.log.append(
             {
                 "decision": len(self.log),
@@ -69,19 +74,19 @@ class EpisodeLogger(gym.Wrapper):
                 "mask": None if mask is None else [bool(m) for m in mask],
                 "next_state_fallback": bool(info.get("fallback", False)),
                 "ego_after": {
-                    "x": float(ego.position[0]),
-                    "y": float(ego.position[1]),
-                    "speed": float(ego.speed),
-                    "lane": int(ego.lane_index[2]),
-                    "target_lane": int(ego.target_lane_index[2]),
-                    "target_speed": float(ego.target_speed),
+                    "x": float(after.position[after.ego, 0]),
+                    "y": float(after.position[after.ego, 1]),
+                    "speed": after.ego_speed,
+                    "lane": int(after.lane[after.ego]),
+                    "target_lane": int(after.target_lane[after.ego]),
+                    "target_speed": after.ego_target_speed,
                 },
                 "near_before": near,
                 "collision": bool(info.get("collision", False)),
             }
         )
         if terminated or truncated:
-            kind = classify_collision(self.env) if info.get("collision") else None
+            kind = classify_collision(after) if info.get("collision") else None
             record = {"episode": self.target, "collision_kind": kind, "decisions": self.log[-self.keep :]}
             self.out.write_text(json.dumps(record, indent=1))
         return obs, reward, terminated, truncated, info

@@ -1,5 +1,5 @@
 """How fast can any policy drive under the shield? A FASTER-first overtaking heuristic that reads the
-simulator directly (an upper-bound probe, not a learner).
+whole road snapshot (an upper-bound probe with full knowledge of the scene, not a learner).
 
 Each decision: FASTER when the mask allows it; else a lane change allowed by the mask into a lane whose
 next car ahead is more than 10 m farther than in the ego's lane (the farther one); else IDLE; else the
@@ -16,34 +16,31 @@ from __future__ import annotations
 
 import argparse
 import json
-from typing import Any
 
 import numpy as np
 
+from safelane.core.snapshot import RoadSnapshot
 from safelane.core.spaces import FASTER, IDLE, LANE_LEFT, LANE_RIGHT
 from safelane.env.factory import make_env
 
 FREE_ROAD = 1e9  # [m] distance reported for a lane with no car ahead
 
 
-def room_ahead(base: Any, lane: int) -> float:
+def room_ahead(snap: RoadSnapshot, lane: int) -> float:
     """Distance [m] along the road from the ego to the next car ahead in ``lane``."""
-    ego = base.vehicle
-    gaps = [
-        v.position[0] - ego.position[0]
-        for v in base.road.vehicles
-        if v is not ego and v.lane_index[2] == lane and v.position[0] > ego.position[0]
-    ]
-    return min(gaps, default=FREE_ROAD)
+    others = snap.others()
+    dx = snap.position[others, 0] - snap.position[snap.ego, 0]
+    ahead = dx[(snap.lane[others] == lane) & (dx > 0)]
+    return float(ahead.min()) if ahead.size else FREE_ROAD
 
 
-def choose(base: Any, mask: np.ndarray) -> int:
+def choose(snap: RoadSnapshot, mask: np.ndarray) -> int:
     """The heuristic's action for the current road and shield mask."""
     if mask[FASTER]:
         return FASTER
-    lane = base.vehicle.lane_index[2]
-    own = room_ahead(base, lane)
-    options = [(room_ahead(base, lane + (-1 if a == LANE_LEFT else 1)), a) for a in (LANE_LEFT, LANE_RIGHT) if mask[a]]
+    lane = int(snap.lane[snap.ego])
+    own = room_ahead(snap, lane)
+    options = [(room_ahead(snap, lane + (-1 if a == LANE_LEFT else 1)), a) for a in (LANE_LEFT, LANE_RIGHT) if mask[a]]
     better = [o for o in options if o[0] > own + 10.0]
     if better:
         return max(better)[1]
@@ -68,7 +65,7 @@ def main() -> None:
         _, info = env.reset(seed=args.seed + k)
         done = False
         while not done:
-            _, _, terminated, truncated, info = env.step(choose(env.unwrapped, info["action_mask"]))
+            _, _, terminated, truncated, info = env.step(choose(info["snapshot"], info["action_mask"]))
             speeds.append(info["speed"])
             fallbacks += bool(info["fallback"])
             done = terminated or truncated

@@ -12,6 +12,7 @@ from hypothesis import strategies as st
 from torch import nn
 
 from safelane.agents.dqn import (
+    AGENT_CLASSES,
     AGENT_PRESETS,
     METHODS,
     Batch,
@@ -26,6 +27,7 @@ from safelane.agents.dqn import (
     make_agent,
     parse_methods,
     q_shaping_loss,
+    sanitize_mask,
     shaped_q,
     shaping_target,
 )
@@ -416,3 +418,51 @@ def test_shaping_margin_sets_how_far_below_the_reference() -> None:
     mask = torch.tensor([[T, T, F_, T, F_]])
     taken = torch.tensor([1])
     assert shaping_target(q, mask, taken, "taken_action", margin=0.25).item() == 2.75  # Q(s, 1) = 3, − 0.25
+
+
+def test_shaped_q_uses_the_configured_margin() -> None:
+    q = torch.tensor([[1.0, 3.0, -2.0, 0.5, 4.0]])
+    mask = torch.tensor([[T, T, F_, T, F_]])
+    assert shaped_q(q, mask, margin=0.1)[0].tolist() == pytest.approx([1.0, 3.0, -2.1, 0.5, -2.1])
+    agent = agent_with_constant_q("robust", [1.0, 3.0, -2.0, 0.5, 4.0], shaping_margin=0.25)
+    values = agent.action_values(torch.zeros(1, 26), mask)
+    assert values[0].tolist() == pytest.approx([1.0, 3.0, -2.25, 0.5, -2.25])
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    q=st.lists(st.floats(-50, 50, allow_nan=False), min_size=5, max_size=5),
+    mask=st.lists(st.booleans(), min_size=5, max_size=5),
+    next_mask=st.lists(st.booleans(), min_size=5, max_size=5),
+    margin=st.floats(0.01, 5.0),
+    done=st.booleans(),
+)
+def test_robust_acts_and_bootstraps_exactly_like_qmask(
+    q: list[float], mask: list[bool], next_mask: list[bool], margin: float, done: bool
+) -> None:
+    """RobustAgent derives acting and its TD target from QMaskAgent: same network, same greedy action
+    over the safe actions and the same target (the max of the shaped target Q is the max over safe
+    actions). Only the loss (Q-shaping's regression) differs."""
+    assert issubclass(RobustAgent, QMaskAgent) and RobustAgent.td_target is QMaskAgent.td_target
+    robust = agent_with_constant_q("robust", q, shaping_margin=margin, gamma=0.9)
+    qmask = agent_with_constant_q("qmask", q, gamma=0.9)
+    m = sanitize_mask(np.array(mask))
+    assert robust.greedy(np.zeros(26, np.float32), m) == qmask.greedy(np.zeros(26, np.float32), m)
+    nm = sanitize_mask(np.array(next_mask))
+    batch = batch_of(1, masks=[m.tolist()], next_masks=[nm.tolist()], rewards=[0.5], dones=[float(done)])
+    shaped_next = shaped_q(robust.targets["q"](batch.next_obs), batch.next_masks, margin).max(dim=1).values
+    expected = batch.rewards + 0.9 * shaped_next * (1.0 - batch.dones)  # eq. 13's bootstrap, written out
+    assert torch.equal(robust.td_target(batch), expected)
+    assert torch.equal(robust.td_target(batch), qmask.td_target(batch))
+
+
+def test_method_properties_live_on_the_agent_classes() -> None:
+    from safelane.running.training import TRAIN_SHIELD_MODE
+
+    assert {m: (c.uses_mask, c.needs_cost, c.train_shield) for m, c in AGENT_CLASSES.items()} == {
+        "dqn": (False, False, "nominal"),
+        "constrained": (False, True, "nominal"),
+        "qmask": (True, False, "nominal"),
+        "robust": (True, False, "robust"),
+    }
+    assert {m: c.train_shield for m, c in AGENT_CLASSES.items()} == TRAIN_SHIELD_MODE

@@ -187,7 +187,7 @@ def test_bench_json() -> None:
     ):
         assert out[key] > 0
     assert 0 < out["agent_overhead_fraction"] < 1
-    assert out["backend_speedup"] == pytest.approx(out["env_steps_per_s"] / out["highway_env_steps_per_s"])
+    assert out["neighbour_search_speedup"] == pytest.approx(out["env_steps_per_s"] / out["highway_env_steps_per_s"])
     assert out["shield_overhead_ratio"] == pytest.approx(out["shielded_env_steps_per_s"] / out["env_steps_per_s"])
     assert out["preset"] == "fast" and out["shield"] == "robust"
 

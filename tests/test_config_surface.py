@@ -180,7 +180,8 @@ def test_render_into_a_new_directory_still_works(tmp_path: Path) -> None:
         ("shield.override=1", "shield.override"),
         ("shield.mode=true", "shield.mode"),
         ("state=pixels", "state"),
-        ("backend=gpu", "backend"),
+        ("neighbour_search=gpu", "neighbour_search"),
+        ("simulator=warp", "simulator"),
         ("env_id=highway-v9", "env_id"),
         ("preset=moon", "preset"),
     ],
@@ -304,8 +305,9 @@ def _preset_keys() -> dict[str, Any]:
         keys[section] = {}
         for field, info in model.model_fields.items():
             keys[f"{section}.{field}"] = info.default
-    for field in ("state", "backend", "env_id"):
-        keys[field] = SafelaneConfig.model_fields[field].default
+    for field, info in SafelaneConfig.model_fields.items():  # env_id, state, simulator…: the scalar fields
+        if field not in keys and field != "preset":
+            keys[field] = info.default
     return dict(sorted(keys.items()))
 
 
@@ -429,5 +431,6 @@ def test_the_property_covers_every_key_the_presets_set() -> None:
     for name in ENV_PRESETS:
         for key in _leaves(yaml.safe_load(preset_path(name).read_text())):
             assert key in PRESET_KEYS
-    for key in ("env.action.target_speeds", "env.observation.type", "traffic.vehicles_behind", "shield.override"):
+    expected = ("env.action.target_speeds", "env.observation.type", "traffic.vehicles_behind", "shield.override", "state")
+    for key in expected:
         assert key in PRESET_KEYS

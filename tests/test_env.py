@@ -14,8 +14,12 @@ import pytest
 from gymnasium.utils.env_checker import check_env
 
 from safelane.config import ConfigError, load_config
-from safelane.env import factory as safelane_env
-from safelane.env.factory import OBS_SIZE, PaperObservation, PaperReward, lane_state, make_env, paper_state
+from safelane.core.spaces import OBS_SIZE
+from safelane.env import observations as safelane_env
+from safelane.env.factory import make_env
+from safelane.env.observations import PaperObservation, lane_state, paper_state
+from safelane.env.reward import PaperReward
+from safelane.sim.highway import DiscardedObservation, HighwayEnvAdapter, snapshot_of
 
 MakeEnv = Callable[..., gym.Env]
 
@@ -46,10 +50,13 @@ def test_observation_is_26_float32_numbers_in_the_space(make_fast_env: MakeEnv) 
     assert obs.shape == (OBS_SIZE,) == (26,)
     assert obs.dtype == np.float32
     assert env.observation_space.contains(obs)
-    obs, *_ = env.step(1)
+    obs, *_, info = env.step(1)
     assert obs.shape == (26,) and obs.dtype == np.float32
     assert env.observation_space.contains(obs)
     assert env.action_space.n == 5
+    # The observation is eq. 3 of the step's own road snapshot, which is the scene highway-env holds.
+    np.testing.assert_array_equal(obs, paper_state(info["snapshot"]))
+    np.testing.assert_array_equal(info["snapshot"].position, snapshot_of(env.unwrapped).position)
 
 
 def test_same_seed_gives_identical_first_50_observations(make_fast_env: MakeEnv) -> None:
@@ -94,7 +101,7 @@ def test_documented_scales() -> None:
 def test_paper_state_on_a_hand_built_road(make_fast_env: MakeEnv, scene: Callable[..., list[Any]]) -> None:
     env = make_fast_env()
     # Ego in lane 1 (y = 4 m) at x = 100 m, 25 m/s, heading 0.
-    ego, *_ = scene(
+    scene(
         env,
         ego=(100.0, 1, 25.0),
         others=[
@@ -121,16 +128,14 @@ def test_paper_state_on_a_hand_built_road(make_fast_env: MakeEnv, scene: Callabl
         ],
         dtype=np.float32,
     )  # fmt: skip
-    state = paper_state(ego, env.unwrapped.road)
+    state = paper_state(snapshot_of(env.unwrapped))
     assert state.dtype == np.float32
     np.testing.assert_allclose(state, expected, atol=1e-6)
-    # The wrapper's observation is the same function of the road.
-    np.testing.assert_allclose(env.observation(None), expected, atol=1e-6)
 
 
 def test_paper_state_zeroes_absent_vehicles(make_fast_env: MakeEnv, scene: Callable[..., list[Any]]) -> None:
     env = make_fast_env()
-    ego, *_ = scene(
+    scene(
         env,
         ego=(50.0, 2, 20.0),
         others=[
@@ -138,7 +143,7 @@ def test_paper_state_zeroes_absent_vehicles(make_fast_env: MakeEnv, scene: Calla
             (42.0, 12.0, 22.0, 0.0),  # lane 3, 8 m behind, 2 m/s faster
         ],
     )
-    state = paper_state(ego, env.unwrapped.road)
+    state = paper_state(snapshot_of(env.unwrapped))
     expected = np.zeros(26, dtype=np.float32)
     expected[:6] = [-0.08, 4 / 12, 0.1, 0.0, 0.0, 1.0]
     expected[-2:] = [0.5, 0.0]
@@ -148,8 +153,8 @@ def test_paper_state_zeroes_absent_vehicles(make_fast_env: MakeEnv, scene: Calla
 
 def test_paper_state_with_an_empty_road(make_fast_env: MakeEnv, scene: Callable[..., list[Any]]) -> None:
     env = make_fast_env()
-    ego, *_ = scene(env, ego=(10.0, 0, 30.0), others=[])
-    state = paper_state(ego, env.unwrapped.road)
+    scene(env, ego=(10.0, 0, 30.0), others=[])
+    state = paper_state(snapshot_of(env.unwrapped))
     assert state[:24].tolist() == [0.0] * 24
     assert state[24] == pytest.approx(0.75)
 
@@ -157,7 +162,7 @@ def test_paper_state_with_an_empty_road(make_fast_env: MakeEnv, scene: Callable[
 def test_lane_state_on_a_hand_built_road(make_fast_env: MakeEnv, scene: Callable[..., list[Any]]) -> None:
     env = make_fast_env(state="lanes")
     # Ego in lane 1 of 4 (y = 4 m) at x = 100 m, 25 m/s, set-point 25 m/s.
-    ego, *_ = scene(
+    scene(
         env,
         ego=(100.0, 1, 25.0),
         others=[
@@ -182,15 +187,14 @@ def test_lane_state_on_a_hand_built_road(make_fast_env: MakeEnv, scene: Callable
         ],
         dtype=np.float32,
     )  # fmt: skip
-    np.testing.assert_allclose(lane_state(ego, env.unwrapped.road), expected, atol=1e-6)
-    np.testing.assert_allclose(env.observation(None), expected, atol=1e-6)  # the wrapper uses it
+    np.testing.assert_allclose(lane_state(snapshot_of(env.unwrapped)), expected, atol=1e-6)
 
 
 def test_lane_state_at_the_road_edge(make_fast_env: MakeEnv, scene: Callable[..., list[Any]]) -> None:
     env = make_fast_env(state="lanes")
     ego, *_ = scene(env, ego=(50.0, 0, 20.0), others=[(45.0, 4.0, 22.0, 0.0)])
     ego.position[1] += 1.0  # 1 m off its lane centre, towards lane 1
-    state = lane_state(ego, env.unwrapped.road)
+    state = lane_state(snapshot_of(env.unwrapped))
     assert state[:7].tolist() == [0.0] * 7  # no lane left of lane 0
     np.testing.assert_allclose(state[7:14], [1, 1, 0, 1, 0, 1, 0])  # own lane empty
     np.testing.assert_allclose(state[14:21], [1, 1, 0, 1, 0, 5 / 150, 2 / 20], atol=1e-6)
@@ -319,7 +323,7 @@ def test_vehicles_behind_moves_traffic_behind_the_ego(make_fast_env: MakeEnv) ->
 
 
 def test_discarding_highway_envs_own_observation_leaves_episodes_unchanged(monkeypatch: pytest.MonkeyPatch) -> None:
-    """PaperObservation swaps highway-env's (discarded) Kinematics observation for a constant; the
+    """The adapter swaps highway-env's (discarded) Kinematics observation for a constant; the
     episode — states, rewards, speeds — is the same as with highway-env computing it every step."""
 
     def episode() -> list[tuple[np.ndarray, float, float]]:
@@ -331,12 +335,12 @@ def test_discarding_highway_envs_own_observation_leaves_episodes_unchanged(monke
             obs, reward, terminated, truncated, info = env.step(int(rng.integers(5)))
             steps.append((obs, reward, info["speed"]))
             done = terminated or truncated
-        assert isinstance(env.unwrapped.observation_type, safelane_env.DiscardedObservation) == swapped
+        assert isinstance(env.unwrapped.observation_type, DiscardedObservation) == swapped
         return steps
 
     swapped = True
     with_swap = episode()
-    monkeypatch.setattr(PaperObservation, "reset", gym.ObservationWrapper.reset)
+    monkeypatch.setattr(HighwayEnvAdapter, "_discard_own_observation", staticmethod(lambda base: None))
     swapped = False
     without = episode()
     assert len(with_swap) == len(without) > 3

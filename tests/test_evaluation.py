@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from collections.abc import Callable
 from typing import Any
@@ -22,7 +23,6 @@ from safelane.running.evaluation import (
     fixed_policy,
     run_episodes,
     summarize,
-    watch_collisions,
 )
 
 MakeEnv = Callable[..., gym.Env]
@@ -76,7 +76,6 @@ def test_collision_kind_from_geometry(before: tuple[float, float], after: tuple[
 
 
 def _crash(env: gym.Env, actions: list[int]) -> dict[str, Any]:
-    watch_collisions(env)
     info: dict[str, Any] = {}
     for action in actions:
         _, _, terminated, truncated, info = env.step(action)
@@ -106,7 +105,8 @@ def test_classify_collision_on_hand_built_crashes(
     scene(env, ego=ego, others=[other])
     info = _crash(env, actions)
     assert info["collision"]
-    assert classify_collision(env) == kind
+    assert info["snapshot"].impact_before is not None
+    assert classify_collision(info["snapshot"]) == kind
 
 
 def test_no_collision_no_kind(make_fast_env: MakeEnv, scene: Scene) -> None:
@@ -114,14 +114,15 @@ def test_no_collision_no_kind(make_fast_env: MakeEnv, scene: Scene) -> None:
     scene(env, ego=(100.0, 1, 25.0), others=[(140.0, 4.0, 25.0, 0.0)])
     info = _crash(env, [IDLE, IDLE])
     assert not info["collision"]
-    assert classify_collision(env) is None
+    assert classify_collision(info["snapshot"]) is None
 
 
-def test_classification_without_a_watch_uses_current_geometry(make_fast_env: MakeEnv, scene: Scene) -> None:
+def test_classification_without_an_impact_frame_uses_current_geometry(make_fast_env: MakeEnv, scene: Scene) -> None:
     env = make_fast_env()
     scene(env, ego=(100.0, 1, 25.0), others=[(112.0, 4.0, 0.0, 0.0)])
-    env.step(IDLE)
-    assert classify_collision(env) in COLLISION_KINDS
+    _, _, _, _, info = env.step(IDLE)
+    snap = dataclasses.replace(info["snapshot"], impact_before=None, impact_after=None)
+    assert classify_collision(snap) in COLLISION_KINDS
 
 
 # --- episodes -----------------------------------------------------------------------------------------------
@@ -254,10 +255,10 @@ def test_vehicles_ahead_counts_overtakes_on_the_real_road() -> None:
 
     specs = [scenarios.VehicleSpec(2, 10.0, 15.0), scenarios.VehicleSpec(0, -20.0, 35.0)]
     scene = scenarios.build_scene(1, 25.0, specs, mode="robust")
-    assert vehicles_ahead(scene.env) == 1
+    assert vehicles_ahead(scene.shield.snapshot) == 1
     for _ in range(3):
-        scene.env.step(IDLE)
-    assert vehicles_ahead(scene.env) == 1  # passed the slow one, passed by the fast one
+        *_, info = scene.env.step(IDLE)
+    assert vehicles_ahead(info["snapshot"]) == 1  # passed the slow one, passed by the fast one
     slow, fast = (v for v in scene.env.unwrapped.road.vehicles if v is not scene.env.unwrapped.vehicle)
     ego_x = scene.env.unwrapped.vehicle.position[0]
     assert slow.position[0] < ego_x < fast.position[0]

@@ -83,7 +83,7 @@ def test_ego_trajectory_matches_highway_env(preset: str) -> None:
         shield = scene.shield
         from safelane.safety.shield import road_state
 
-        state = road_state(shield.env, shield.dynamics)
+        state = road_state(shield.snapshot)
         dyn = shield.dynamics
         xs, vs = ego_trajectories(state, dyn)
         ego = scene.env.unwrapped.vehicle
@@ -285,6 +285,7 @@ def test_road_state_keeps_exactly_the_vehicles_evaluate_considers() -> None:
     and moving a far vehicle around beyond that range changes neither the snapshot nor the mask."""
     from safelane.safety.model import RELEVANCE_RANGE
     from safelane.safety.shield import road_state
+    from safelane.sim.highway import snapshot_of
 
     specs = [
         scenarios.VehicleSpec(2, 30.0, 20.0),
@@ -298,12 +299,36 @@ def test_road_state_keeps_exactly_the_vehicles_evaluate_considers() -> None:
     far, near = others[0], others[-1]
     far.position = np.array([ego.position[0] + RELEVANCE_RANGE + 5.0, far.position[1]])
     near.position = np.array([ego.position[0] + RELEVANCE_RANGE - 5.0, near.position[1]])
-    state = road_state(scene.shield.env, scene.shield.dynamics)
+    state = road_state(snapshot_of(base))
     dx = state.x - state.ego_x
     assert state.n == sum(abs(v.position[0] - ego.position[0]) < RELEVANCE_RANGE for v in others)
     assert np.all(np.abs(dx) < RELEVANCE_RANGE)
     assert np.isclose(dx, RELEVANCE_RANGE - 5.0).sum() == 1  # the near one is in
     before = evaluate(state, scene.shield.dynamics, "robust")
     far.position = np.array([ego.position[0] + 2 * RELEVANCE_RANGE, far.position[1]])
-    after = evaluate(road_state(scene.shield.env, scene.shield.dynamics), scene.shield.dynamics, "robust")
+    after = evaluate(road_state(snapshot_of(base)), scene.shield.dynamics, "robust")
     assert np.array_equal(before.mask, after.mask) and np.array_equal(before.min_gap, after.min_gap)
+
+
+def test_the_shield_wraps_a_plain_highway_env_environment() -> None:
+    """The README's quickstart: SafetyShield on gym.make("highway-fast-v0") reads the scene through the
+    highway-env adapter it inserts itself, and with override=True the mask is obeyed."""
+    import gymnasium as gym
+    import highway_env  # noqa: F401
+
+    from safelane.safety.shield import SafetyShield
+
+    raw = gym.make(
+        "highway-fast-v0",
+        config={"action": {"type": "DiscreteMetaAction", "target_speeds": [0, 5, 10, 15, 20, 25, 30]}},
+    )
+    safe = SafetyShield(raw, mode="robust", override=True)
+    _, info = safe.reset(seed=0)
+    assert info["snapshot"].n == len(safe.unwrapped.road.vehicles)
+    for _ in range(5):
+        mask = safe.action_masks()
+        _, _, terminated, truncated, info = safe.step(FASTER)
+        assert mask[info["executed_action"]]
+        if terminated or truncated:
+            break
+    safe.close()

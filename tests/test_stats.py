@@ -199,3 +199,29 @@ def test_convergence_episode_rejects_degenerate_input() -> None:
         stats.convergence_episode([0.0, math.nan])
     with pytest.raises(ValueError, match="frac"):
         stats.convergence_episode([0.0, 1.0], frac=0.0)
+
+
+# --- two-sample tests ----------------------------------------------------------------------------------
+
+
+def test_fisher_exact_test_hand_worked() -> None:
+    from safelane.reporting.stats import fisher_exact_test
+
+    assert fisher_exact_test(1, 2, 1, 2) == pytest.approx(1.0)
+    assert fisher_exact_test(3, 3, 0, 3) == pytest.approx(0.1)  # 2 of C(6,3) = 20 splits are as extreme
+    assert fisher_exact_test(8, 10, 2, 10) == pytest.approx(0.023014, abs=1e-6)  # R: fisher.test
+    assert fisher_exact_test(0, 1000, 0, 1000) == 1.0
+    assert fisher_exact_test(20, 1000, 60, 1000) < 1e-4
+    with pytest.raises(ValueError, match="k1"):
+        fisher_exact_test(3, 2, 0, 2)
+
+
+def test_permutation_test_separates_shifted_samples_and_not_equal_ones() -> None:
+    from safelane.reporting.stats import permutation_test
+
+    rng = np.random.default_rng(0)
+    same = permutation_test(rng.normal(20, 3, 300), rng.normal(20, 3, 300), reps=2000, seed=1)
+    shifted = permutation_test(rng.normal(20, 3, 300), rng.normal(21.5, 3, 300), reps=2000, seed=1)
+    assert same > 0.05
+    assert shifted == pytest.approx(1 / 2001)  # no relabelling reaches a 1.5 m/s gap: the smallest p-value
+    assert permutation_test([1.0, 2.0], [1.0, 2.0], reps=100) == 1.0

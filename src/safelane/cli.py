@@ -40,6 +40,8 @@ app = typer.Typer(
 )
 env_app = typer.Typer(help="Inspect environment configurations.", no_args_is_help=True)
 app.add_typer(env_app, name="env")
+sim_app = typer.Typer(help="Check the fast simulator against highway-env.", no_args_is_help=True)
+app.add_typer(sim_app, name="sim")
 
 stdout = Console()
 stderr = Console(stderr=True)
@@ -64,6 +66,14 @@ ShieldOpt = Annotated[
         "--shield",
         help=f"Safety shield, sets shield.mode: {', '.join(SHIELD_CHOICES)} (default: the config's).",
         metavar="MODE",
+    ),
+]
+SimulatorOpt = Annotated[
+    str | None,
+    typer.Option(
+        "--simulator",
+        help="Simulator (sets simulator=): highway-env, the reference, or fast (default: the config's).",
+        metavar="SIM",
     ),
 ]
 EpisodesOpt = Annotated[int, typer.Option("--episodes", "-n", help="Number of episodes (>= 1).")]
@@ -94,6 +104,11 @@ def cli_errors(fn: F) -> F:
             fail(f"{where}{err.strerror or err} (nothing written; earlier checkpoints and results are intact)")
 
     return wrapper  # type: ignore[return-value]
+
+
+def with_simulator(sets: list[str] | None, simulator: str | None) -> list[str]:
+    """``sets`` with ``simulator=SIM`` appended when ``--simulator`` was given (validated by the config)."""
+    return [*(sets or []), *([f"simulator={simulator}"] if simulator is not None else [])]
 
 
 def check_positive(option: str, value: int) -> None:
@@ -195,6 +210,57 @@ def env_show(preset: PresetOpt = "fast", sets: SetOpt = None, shield: ShieldOpt 
     sys.stdout.write(yaml.safe_dump(config_to_dict(cfg), sort_keys=False))
 
 
+@sim_app.command("check")
+@cli_errors
+def sim_check(
+    preset: PresetOpt = "fast",
+    sets: SetOpt = None,
+    episodes: EpisodesOpt = 20,
+    seed: SeedOpt = 0,
+    stat_episodes: Annotated[
+        int,
+        typer.Option(
+            "--stat-episodes",
+            help="Episodes per policy and simulator for the statistical tests (0: trajectories only).",
+        ),
+    ] = 0,
+    as_json: JsonOpt = False,
+) -> None:
+    """Compare the fast simulator with highway-env on a configuration: trajectories and statistics."""
+    from safelane.running.simcheck import run_sim_check
+
+    check_positive("--episodes", episodes)
+    check_seed(seed)
+    if stat_episodes < 0:
+        raise ConfigError(f"--stat-episodes: must be >= 0 (got {stat_episodes})")
+    cfg = resolve_config(preset, sets)
+    with episode_progress("sim check", episodes) as advance:
+        count = [0]
+
+        def tick(_: str) -> None:
+            advance(count[0], None)
+            count[0] += 1
+
+        result = run_sim_check(cfg, episodes, seed, stat_episodes=stat_episodes, progress=tick)
+    if as_json:
+        print_json(result)
+        return
+    stdout.print(
+        f"trajectories: {result['trajectory_match_fraction']:.3f} of {episodes} episodes matched within "
+        f"{result['tolerance']:g} (m, m/s, rad)"
+    )
+    for d in result["divergences"]:
+        stdout.print(f"  seed {d['seed']} ({d['policy']}): step {d['first_step']}: {d['cause']}")
+    if result["tests"]:
+        table = Table(title=f"{stat_episodes} episodes per policy and simulator")
+        for col in ("policy", "metric", "highway-env", "fast", "p-value"):
+            table.add_column(col)
+        for t in result["tests"]:
+            values = (f"{t['highway_env']:.4g}", f"{t['fast']:.4g}", f"{t['p_value']:.3g}")
+            table.add_row(t["policy"], t["metric"], *values)
+        stdout.print(table)
+
+
 EVALUATE_UNITS = {
     "collision_rate": "per episode",
     "mean_speed": "m/s",
@@ -223,6 +289,7 @@ def evaluate(
     preset: PresetOpt = "fast",
     sets: SetOpt = None,
     shield: ShieldOpt = None,
+    simulator: SimulatorOpt = None,
     as_json: JsonOpt = False,
 ) -> None:
     """Evaluate a policy: collisions, speed, return, time to collision, shield activity.
@@ -233,6 +300,8 @@ def evaluate(
     method's raw Q-network (what its values learned about unsafe actions, without the mask).
     """
     from safelane.running.evaluation import FIXED_POLICIES, evaluate_fixed
+
+    sets = with_simulator(sets, simulator)
 
     if run_dir is not None:
         if policy is not None:
@@ -268,10 +337,11 @@ BENCH_UNITS = {
     "env_steps_per_s": "decisions/s",
     "shielded_env_steps_per_s": "decisions/s",
     "shield_overhead_ratio": "shielded ÷ raw",
+    "snapshot_us_median": "µs",
     "shield_mask_us_median": "µs",
     "obs_us_median": "µs",
     "highway_env_steps_per_s": "decisions/s",
-    "backend_speedup": "vectorized ÷ highway-env",
+    "neighbour_search_speedup": "numpy ÷ highway-env search",
     "train_steps_per_s": "decisions/s",
     "agent_ms_per_decision": "ms",
     "agent_overhead_fraction": "non-env share of training time",
@@ -321,21 +391,12 @@ def bench(
 
 def evaluate_run(run_dir: Path, episodes: int, seed: int, sets: list[str] | None, shield: str | None) -> dict[str, Any]:
     """Evaluate a trained run's greedy policy on its own environment config (plus --set / --shield)."""
-    from safelane.config import build_config
     from safelane.running.evaluation import run_config, summarize
+    from safelane.running.runs import run_env_config
     from safelane.running.training import load_policy, load_run_config
 
     run = load_run_config(run_dir)
-    data = config_to_dict(run.env)
-    from safelane.config import _assign, parse_set
-
-    for assignment in sets or []:
-        _assign(data, *parse_set(assignment))
-    if shield is not None:
-        if shield not in SHIELD_CHOICES:
-            raise ConfigError(f"--shield: unknown shield '{shield}'; allowed: {', '.join(SHIELD_CHOICES)}")
-        data["shield"]["mode"] = shield
-    cfg = build_config(data)
+    cfg = run_env_config(run_dir, sets=sets, shield=shield)
     policy = load_policy(run_dir)
     with episode_progress(f"evaluate {run_dir}", episodes) as advance:
         records = run_config(cfg, policy, episodes, seed, advance)
@@ -346,6 +407,7 @@ def evaluate_run(run_dir: Path, episodes: int, seed: int, sets: list[str] | None
         shield=cfg.shield.mode,
         override=cfg.shield.override,
         preset=cfg.preset,
+        simulator=cfg.simulator,
         seed=seed,
     )
 
@@ -367,6 +429,7 @@ def train(
         str, typer.Option("--agent-preset", help="Agent hyper-parameters: paper or tuned.", metavar="NAME")
     ] = "tuned",
     sets: SetOpt = None,
+    simulator: SimulatorOpt = None,
     resume: Annotated[bool, typer.Option("--resume", help="Continue from the run's last checkpoint.")] = False,
     checkpoint_every: Annotated[int, typer.Option("--checkpoint-every", help="Episodes between checkpoints.")] = 10,
     tensorboard: Annotated[
@@ -379,6 +442,7 @@ def train(
     from safelane.running.training import TrainingInterrupted, make_train_config
     from safelane.running.training import train as run_training
 
+    sets = with_simulator(sets, simulator)
     check_positive("--episodes", episodes)
     check_seed(seed)
     cfg = make_train_config(
@@ -431,6 +495,7 @@ def reproduce(
     workers: Annotated[int | None, typer.Option("--workers", help="Parallel processes (default: cores).")] = None,
     agent_preset: Annotated[str, typer.Option("--agent-preset", help="paper or tuned.")] = "tuned",
     sets: SetOpt = None,
+    simulator: SimulatorOpt = None,
     gifs: Annotated[bool, typer.Option("--gifs/--no-gifs", help="Render one episode GIF per method.")] = True,
     stress_episodes: Annotated[
         int, typer.Option("--stress-episodes", help="Also evaluate every run on the stress conditions (0: skip).")
@@ -447,6 +512,7 @@ def reproduce(
     from safelane.reporting.report import render_gifs, write_report
     from safelane.running.experiments import make_spec, run_experiment
 
+    sets = with_simulator(sets, simulator)
     if quick:
         seeds, episodes, test_episodes = min(seeds, 2), min(episodes, 25), min(test_episodes, 7)
     check_positive("--seeds", seeds)
@@ -495,6 +561,7 @@ def stress(
     run_dir: Path | None = typer.Argument(None, help="A trained run, instead of --policy.", metavar="RUN_DIR"),
     policy: Annotated[str | None, typer.Option("--policy", help="Fixed policy: random, idle, faster, slower.")] = None,
     shield: ShieldOpt = None,
+    simulator: SimulatorOpt = None,
     episodes: EpisodesOpt = 20,
     conditions: Annotated[
         Path | None, typer.Option("--conditions", help="YAML list of conditions (default: the shipped suite).")
@@ -507,6 +574,7 @@ def stress(
     from safelane.running.evaluation import FIXED_POLICIES, fixed_policy
     from safelane.running.stress import load_conditions, run_stress
 
+    sets = with_simulator(sets, simulator)
     check_positive("--episodes", episodes)
     conds = load_conditions(conditions)
     if only:
@@ -517,11 +585,12 @@ def stress(
         conds = [c for c in conds if c.name in only]
     if shield is not None and shield not in SHIELD_CHOICES:
         raise ConfigError(f"--shield: unknown shield '{shield}'; allowed: {', '.join(SHIELD_CHOICES)}")
+    run = None
     if run_dir is not None:
         from safelane.running.training import load_policy, load_run_config
 
         run = load_run_config(run_dir)
-        mode, override = shield or run.env.shield.mode, False
+        mode, override = shield, None  # the run's own shield unless --shield says otherwise
         trained = load_policy(run_dir)
 
         def factory() -> Any:
@@ -544,16 +613,20 @@ def stress(
             conds,
             sets,
             on_condition=lambda r: (rows.append(r), advance(len(rows) - 1, None)),
+            run=run,
         )
     if as_json:
         print_json(result)
         return
-    table = Table(title=f"stress: {run_dir or policy}, shield {mode}, {episodes} episodes per condition")
+    table = Table(title=f"stress: {run_dir or policy}, shield {result['shield']}, {episodes} episodes per condition")
     for col in ("condition", "collisions", "rate [95% CI]", "speed m/s", "interventions", "kinds"):
         table.add_column(col)
     for r in result["conditions"]:
-        lo, hi = r["collision_rate_ci95"]
         name = r["name"] + (" (adversarial)" if r["adversarial"] else "")
+        if "skipped" in r:
+            table.add_row(name, "skipped", r["skipped"], "", "", "")
+            continue
+        lo, hi = r["collision_rate_ci95"]
         kinds = ", ".join(f"{k} {v}" for k, v in r["collision_kinds"].items() if v)
         table.add_row(
             name,
@@ -586,11 +659,10 @@ def render(
     from safelane.running.evaluation import FIXED_POLICIES, fixed_policy
 
     if run_dir is not None:
-        from safelane.running.training import load_policy, load_run_config
+        from safelane.running.runs import run_env_config
+        from safelane.running.training import load_policy
 
-        cfg = load_run_config(run_dir).env
-        if shield is not None:
-            cfg = resolve_config(cfg.preset, sets, shield)
+        cfg = run_env_config(run_dir, sets=sets, shield=shield)
         act = load_policy(run_dir)
     else:
         if policy is None or policy not in FIXED_POLICIES:

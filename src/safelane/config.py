@@ -28,9 +28,7 @@ from typing import Any, Literal
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
-
-class ConfigError(ValueError):
-    """A configuration problem, described in one line (key, value, what is allowed)."""
+from safelane.core.errors import ConfigError
 
 
 class _Section(BaseModel):
@@ -108,10 +106,16 @@ class SafelaneConfig(_Section):
 
     preset: str = "fast"
     env_id: Literal["highway-v0", "highway-fast-v0"] = "highway-fast-v0"
-    backend: Literal["vectorized", "highway-env"] = Field(
-        "vectorized",
-        description="'vectorized': highway-env with safelane.sim.neighbours's numpy neighbour search (identical "
-        "episodes, ≈2x faster); 'highway-env': the simulator untouched.",
+    simulator: Literal["highway-env", "fast"] = Field(
+        "highway-env",
+        description="Which simulator runs env_id: 'highway-env' (the reference) or 'fast' (safelane.sim.fast: "
+        "highway-env's highway on compiled arrays, checked against it by `safelane sim check`).",
+    )
+    neighbour_search: Literal["numpy", "highway-env"] = Field(
+        "numpy",
+        description="How highway-env finds each vehicle's leader and follower: 'numpy' (safelane.sim.neighbours, "
+        "identical episodes, ≈2x faster) or 'highway-env' (its own Python loop, the simulator untouched). "
+        "Not the choice of simulator.",
     )
     state: Literal["paper", "lanes"] = Field(
         "paper",
@@ -135,7 +139,7 @@ class SafelaneConfig(_Section):
     def _consistent(self) -> SafelaneConfig:
         """highway-env keys (:func:`validate_env_keys`) and the checks that span sections."""
         validate_env_keys(self.env_id, self.env)
-        env = {**_highway_env_defaults(self.env_id), **self.env}
+        env = {**highway_env_defaults(self.env_id), **self.env}
         if self.traffic.vehicles_behind > env["vehicles_count"]:
             raise ConfigError(
                 f"traffic.vehicles_behind: must be at most env.vehicles_count ({env['vehicles_count']}), "
@@ -203,8 +207,8 @@ def _highway_env_class(env_id: str) -> type:
     return getattr(__import__(module, fromlist=[name]), name)
 
 
-def _highway_env_defaults(env_id: str) -> dict[str, Any]:
-    """A fresh copy of the highway-env class's ``default_config()``."""
+def highway_env_defaults(env_id: str) -> dict[str, Any]:
+    """highway-env's ``default_config()`` of the environment class registered as ``env_id`` (a fresh dict)."""
     return _highway_env_class(env_id).default_config()
 
 
@@ -433,7 +437,7 @@ def _check_env_values(env: dict[str, Any]) -> None:
 def validate_env_keys(env_id: str, env: dict[str, Any]) -> None:
     """Check highway-env keys against the env class's ``default_config()`` (names and value types), then
     their allowed values (ranges, consistency between keys, the nested ``observation`` / ``action``)."""
-    defaults = _highway_env_defaults(env_id)
+    defaults = highway_env_defaults(env_id)
     for key, value in env.items():
         if key not in defaults:
             allowed = ", ".join(sorted(defaults))
@@ -486,8 +490,18 @@ def validation_message(err: ValidationError, model: Any = None, prefix: str = ""
     return f"{loc}: {msg} (got {e.get('input')!r})"
 
 
+RENAMED_KEYS: dict[str, tuple[str, dict[Any, Any]]] = {
+    "backend": ("neighbour_search", {"vectorized": "numpy", "highway-env": "highway-env"}),
+}
+"""Keys of older run configs: old name → (new name, old value → new value). Read, never written."""
+
+
 def build_config(data: dict[str, Any]) -> SafelaneConfig:
     """Validate a plain dict into a :class:`SafelaneConfig` (raises :class:`ConfigError`)."""
+    for old, (new, values) in RENAMED_KEYS.items():
+        if old in data and new not in data:
+            data = {**data, new: values.get(data[old], data[old])}
+            del data[old]
     try:
         cfg = SafelaneConfig.model_validate(data)
     except ValidationError as err:

@@ -30,11 +30,9 @@ import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 from torch import nn
 
-from safelane.config import ConfigError
-from safelane.core.spaces import N_ACTIONS
+from safelane.core.errors import ConfigError
+from safelane.core.spaces import N_ACTIONS, OBS_SIZE
 
-OBS_SIZE = 26
-"""Input size: the paper's state, eq. 3 (4 vehicles × 6 features + ego speed + ego heading)."""
 HIDDEN_SIZES = (100, 100)
 """Two hidden layers of 100 neurons (Table 3); fixed by the paper, not a setting."""
 SHAPING_MARGIN = 1.0
@@ -309,7 +307,7 @@ def masked_max(q: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
     return q.masked_fill(~mask, float("-inf")).max(dim=1).values
 
 
-def shaped_q(q: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+def shaped_q(q: torch.Tensor, mask: torch.Tensor, margin: float = SHAPING_MARGIN) -> torch.Tensor:
     """Q-shaping (eqs. 13–14): ``Q(s, a) = Q_θ(s, a) + Q_u(s, a)``.
 
     Eq. 14 sets ``Q_u = 0`` on safe pairs. On an unsafe pair it writes ``Q_u = min_a Q_θ(s, a) − 1``;
@@ -317,9 +315,10 @@ def shaped_q(q: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
     (the paper's stated intent: "the Q of an unsafe pair will be less than the minimum of the safe
     pairs"), ``Q_u = (min_a Q_θ(s, ·) − 1) − Q_θ(s, a)``. So the shaped value is ``Q_θ(s, a)`` for a
     safe pair and ``min_a Q_θ(s, ·) − 1`` (minimum over all actions) for an unsafe one, strictly below
-    every safe value: the argmax and the max of shaped Q are those over safe actions only.
+    every safe value: the argmax and the max of shaped Q are those over safe actions only. ``margin``
+    replaces eq. 14's 1 (``AgentConfig.shaping_margin``).
     """
-    floor = q.min(dim=1, keepdim=True).values - SHAPING_MARGIN
+    floor = q.min(dim=1, keepdim=True).values - margin
     return torch.where(mask, q, floor)
 
 
@@ -398,6 +397,11 @@ class DQNAgent:
     method: ClassVar[str] = "dqn"
     uses_mask: ClassVar[bool] = False
     """True when the safe-action mask restricts acting (and bootstrapping)."""
+    train_shield: ClassVar[str] = "nominal"
+    """Shield mode of the training environment: the masks every method records (only mask users act on
+    them; constrained counts their violations as cost)."""
+    needs_cost: ClassVar[bool] = False
+    """True when the agent learns from a per-step cost (constrained's eq. 7)."""
 
     def __init__(self, cfg: AgentConfig, seed: int = 0, obs_size: int = OBS_SIZE) -> None:
         self.cfg = cfg
@@ -532,6 +536,7 @@ class ConstrainedAgent(DQNAgent):
     """
 
     method: ClassVar[str] = "constrained"
+    needs_cost: ClassVar[bool] = True
 
     def __init__(self, cfg: AgentConfig, seed: int = 0, obs_size: int = OBS_SIZE) -> None:
         super().__init__(cfg, seed, obs_size)
@@ -614,33 +619,25 @@ class QMaskAgent(DQNAgent):
             return batch.rewards + self.cfg.gamma * next_v * (1.0 - batch.dones)
 
 
-class RobustAgent(DQNAgent):
+class RobustAgent(QMaskAgent):
     """Robust Q-masking with Q-shaping (Section IV.4, eqs. 13–14); masks come from the robust shield.
 
-    Acting maximises the shaped Q (:func:`shaped_q`), so unsafe actions are never chosen; exploration
-    picks among safe actions. The TD target bootstraps from the shaped target Q of ``s'`` (its max is
-    the max over safe actions). The loss (:func:`q_shaping_loss`) adds a regression of every unsafe
-    pair of ``s`` toward a value 1 below a reference (``shaping_target``: by default the taken action's
-    value; eq. 14's minimum diverges as a target), so the network learns the low value and
-    generalises it.
+    It *acts and bootstraps exactly as Q-masking* does, so it derives from :class:`QMaskAgent`: the shaped
+    Q (:func:`shaped_q`) equals Q_θ on safe pairs and lies below every safe value on unsafe ones, so its
+    argmax over the allowed (safe) actions is Q-masking's, and the max of the shaped target Q of ``s'`` is
+    the max over the safe actions of ``s'`` — Q-masking's TD target (masks are never empty:
+    :func:`sanitize_mask`). ``tests/test_agents.py`` keeps this equivalence. What differs is the mask (the
+    robust shield's) and the loss (:func:`q_shaping_loss`): a regression of every unsafe pair of ``s``
+    toward a value ``shaping_margin`` below a reference (``shaping_target``: by default the taken action's
+    value; eq. 14's minimum diverges as a target), so the network learns the low value and generalises it.
     """
 
     method: ClassVar[str] = "robust"
-    uses_mask: ClassVar[bool] = True
-
-    def allowed(self, mask: np.ndarray) -> np.ndarray:
-        """The safe actions."""
-        return mask
+    train_shield: ClassVar[str] = "robust"
 
     def action_values(self, obs: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
-        """Shaped Q (eqs. 13–14)."""
-        return shaped_q(self.q_net(obs), mask)
-
-    def td_target(self, batch: Batch) -> torch.Tensor:
-        """``r + γ·max_a' Q_shaped^tgt(s', a')·(1 − done)``."""
-        with torch.no_grad():
-            shaped = shaped_q(self.targets["q"](batch.next_obs), batch.next_masks)
-            return batch.rewards + self.cfg.gamma * shaped.max(dim=1).values * (1.0 - batch.dones)
+        """Shaped Q (eqs. 13–14) with the configured margin; its argmax over safe actions is Q-masking's."""
+        return shaped_q(self.q_net(obs), mask, self.cfg.shaping_margin)
 
     def loss(self, batch: Batch) -> torch.Tensor:
         """:func:`q_shaping_loss` with the configured weight, loss kind and regression target."""

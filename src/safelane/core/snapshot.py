@@ -17,7 +17,7 @@ Snapshots are read-only: consumers never modify the arrays.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 
 import numpy as np
 
@@ -120,6 +120,21 @@ class RoadSnapshot:
     crash yet, or the simulator did not record it)."""
     impact_after: np.ndarray | None = None
     """(N, 2) [m] positions at the end of that frame, bodies still overlapping."""
+
+    def __eq__(self, other: object) -> bool:
+        """Field-by-field equality, arrays compared exactly (NaN equal to NaN): same scene, same snapshot."""
+        if not isinstance(other, RoadSnapshot):
+            return NotImplemented
+        for f in fields(self):
+            a, b = getattr(self, f.name), getattr(other, f.name)
+            if isinstance(a, np.ndarray) or isinstance(b, np.ndarray):
+                if a is None or b is None or not np.array_equal(a, b, equal_nan=a.dtype.kind == "f"):
+                    return False
+            elif a != b:
+                return False
+        return True
+
+    __hash__ = None  # type: ignore[assignment]  # mutable arrays inside: not hashable
 
     @property
     def n(self) -> int:

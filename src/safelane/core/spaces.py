@@ -1,7 +1,8 @@
-"""The five meta-actions of highway-env's ``DiscreteMetaAction`` (paper Table 2), by index.
+"""The sizes every tier agrees on: the five meta-actions (paper Table 2, highway-env's
+``DiscreteMetaAction`` order) and the 26-number state (eq. 3).
 
-Kept apart so that the safety model and the agents share the numbering without importing
-highway-env.
+Kept apart so that the simulator, the safety model and the agents share them without importing each
+other.
 """
 
 from __future__ import annotations
@@ -9,3 +10,10 @@ from __future__ import annotations
 LANE_LEFT, IDLE, LANE_RIGHT, FASTER, SLOWER = range(5)
 ACTION_NAMES: tuple[str, ...] = ("LANE_LEFT", "IDLE", "LANE_RIGHT", "FASTER", "SLOWER")
 N_ACTIONS = len(ACTION_NAMES)
+
+OBSERVED_VEHICLES = 4
+"""Nearest vehicles in the paper's state (Section III.A)."""
+FEATURES_PER_VEHICLE = 6
+"""δx, δy, δvx, δvy, heading, presence flag."""
+OBS_SIZE = OBSERVED_VEHICLES * FEATURES_PER_VEHICLE + 2
+"""26: four vehicles plus ego speed and ego heading (the ``lanes`` state has the same size)."""

@@ -14,6 +14,7 @@ from typing import Any
 import numpy as np
 from matplotlib.figure import Figure
 
+from safelane.core.files import atomic_write_text
 from safelane.reporting import stats
 from safelane.reporting.plots import read_metrics
 from safelane.running.experiments import ExperimentSpec, run_dir_of
@@ -292,8 +293,6 @@ def write_report(out_dir: str | Path, gifs: dict[str, str] | None = None) -> Pat
         for m, path in gifs.items():
             lines += [f"### {LABELS[m]}", "", f"![{m}]({path})", ""]
     report = out / "report.md"
-    from safelane.running.experiments import atomic_write_text
-
     atomic_write_text(report, "\n".join(lines) + "\n")
     return report
 
@@ -303,7 +302,8 @@ def render_gifs(out_dir: str | Path, max_steps: int = 40) -> dict[str, str]:
     from safelane.env.factory import make_env
     from safelane.reporting.render import render_episode
     from safelane.running.experiments import TEST_SEED_BASE
-    from safelane.running.training import load_policy, load_run_config
+    from safelane.running.runs import run_env_config
+    from safelane.running.training import load_policy
 
     out = Path(out_dir)
     spec = ExperimentSpec.model_validate(json.loads((out / "results.json").read_text())["spec"])
@@ -312,8 +312,7 @@ def render_gifs(out_dir: str | Path, max_steps: int = 40) -> dict[str, str]:
         run_dir = run_dir_of(out, m, spec.seeds[0])
         if not (run_dir / "checkpoint.pt").exists():
             continue
-        run = load_run_config(run_dir)
-        env = make_env(run.env, render_mode="rgb_array")
+        env = make_env(run_env_config(run_dir), render_mode="rgb_array")
         render_episode(env, load_policy(run_dir), TEST_SEED_BASE, out / f"episode_{m}.gif", max_steps=max_steps)
         env.close()
         gifs[m] = f"episode_{m}.gif"

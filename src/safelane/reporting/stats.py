@@ -178,6 +178,56 @@ def binomial_ci(successes: int, n: int, alpha: float = 0.05) -> tuple[float, flo
     return low, high
 
 
+# --- two-sample tests (is one simulator's outcome distribution the other's?) -------------------------
+
+
+def fisher_exact_test(k1: int, n1: int, k2: int, n2: int) -> float:
+    """Two-sided p-value of Fisher's exact test that ``k1 / n1`` and ``k2 / n2`` are one rate.
+
+    Conditioned on the total ``k1 + k2`` the first count is hypergeometric; the p-value sums the
+    probabilities of every table no more likely than the observed one (R's and SciPy's convention, with
+    a relative tolerance of 1e-7 for ties). E.g. ``fisher_exact_test(1, 2, 1, 2) == 1`` and
+    ``fisher_exact_test(3, 3, 0, 3) == 0.1`` (2 of the 20 equally likely splits are that extreme).
+    """
+    for name, k, n in (("k1", k1, n1), ("k2", k2, n2)):
+        if n <= 0 or not 0 <= k <= n:
+            raise ValueError(f"{name}: must be in [0, n] with n > 0, got {k} of {n}")
+    total = k1 + k2
+    lo, hi = max(0, total - n2), min(total, n1)
+    # log-probabilities for numerical range at thousands of episodes
+    log_norm = _log_comb(n1 + n2, total)
+    logp = {k: _log_comb(n1, k) + _log_comb(n2, total - k) - log_norm for k in range(lo, hi + 1)}
+    observed = logp[k1]
+    tol = math.log1p(1e-7)
+    return float(min(1.0, sum(math.exp(v) for v in logp.values() if v <= observed + tol)))
+
+
+def _log_comb(n: int, k: int) -> float:
+    return math.lgamma(n + 1) - math.lgamma(k + 1) - math.lgamma(n - k + 1)
+
+
+def permutation_test(x: ArrayLike, y: ArrayLike, reps: int = 10_000, seed: int = 0) -> float:
+    """Two-sided p-value that samples ``x`` and ``y`` have the same mean, by random relabelling.
+
+    The statistic is ``|mean(x) − mean(y)|``; the p-value is ``(1 + #{relabelled ≥ observed}) / (1 + reps)``
+    (never 0), from ``reps`` random splits of the pooled sample drawn with ``seed``. No distributional
+    assumption: speeds of crashing and non-crashing episodes are far from normal.
+    """
+    a, b = _scores(x, "x", 1), _scores(y, "y", 1)
+    if a.size == 0 or b.size == 0:
+        raise ValueError("x and y: need at least one value each")
+    if reps < 1:
+        raise ValueError(f"reps: must be >= 1, got {reps}")
+    pooled = np.concatenate([a, b])
+    observed = abs(a.mean() - b.mean())
+    rng = np.random.default_rng(seed)
+    hits = 0
+    for _ in range(reps):
+        perm = rng.permutation(pooled)
+        hits += abs(perm[: a.size].mean() - perm[a.size :].mean()) >= observed - 1e-12
+    return (1 + hits) / (1 + reps)
+
+
 # --- learning curves -------------------------------------------------------------------------------
 
 

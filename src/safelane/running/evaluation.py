@@ -10,7 +10,7 @@ Collisions are classified from geometry at the moment of impact (:func:`classify
 drove into the ego) or ``side`` (lateral contact, i.e. during a lane change). highway-env marks both
 vehicles ``crashed`` but records nobody's fault, and after the impact it pushes the two bodies apart
 and lets the ego slide on, so the geometry at the end of a decision step is unreliable;
-:func:`watch_collisions` keeps the positions of the physics frame around the impact instead.
+the simulator records the positions of the physics frame around the impact in the road snapshot instead.
 """
 
 from __future__ import annotations
@@ -25,6 +25,7 @@ import gymnasium as gym
 import numpy as np
 
 from safelane.config import ConfigError, SafelaneConfig
+from safelane.core.snapshot import RoadSnapshot
 from safelane.core.spaces import ACTION_NAMES, FASTER, IDLE, N_ACTIONS, SLOWER
 
 Policy = Callable[[np.ndarray, dict[str, Any]], int]
@@ -65,54 +66,6 @@ def fixed_policy(name: str, seed: int = 0) -> Policy:
 # --- collision classification -----------------------------------------------------------------
 
 
-def _bodies(road: Any) -> list[Any]:
-    """Everything the ego can crash into: vehicles and collidable objects (obstacles)."""
-    return [*road.vehicles, *(o for o in getattr(road, "objects", []) if getattr(o, "collidable", True))]
-
-
-def _positions(road: Any) -> list[tuple[Any, np.ndarray]]:
-    return [(v, np.array(v.position, dtype=float)) for v in _bodies(road)]
-
-
-class _CrashWatch:
-    """Replaces one road's ``step`` (one physics frame) to keep the positions around the ego's first
-    crash: ``before`` (start of the impact frame) and ``after`` (end of it, bodies still overlapping,
-    before highway-env applies its separating impulse on the next frame).
-
-    Holds the road and the wrapped bound method as attributes, so a ``deepcopy`` of the road gets a
-    watch of its own (the bound method is re-bound to the copy).
-    """
-
-    def __init__(self, road: Any, ego: Any) -> None:
-        self.road = road
-        self.ego = ego
-        self.inner = road.step
-        self.before: list[tuple[Any, np.ndarray]] | None = None
-        self.after: list[tuple[Any, np.ndarray]] | None = None
-
-    def __call__(self, dt: float) -> None:
-        if self.before is not None or self.ego.crashed:
-            self.inner(dt)
-            return
-        snapshot = _positions(self.road)
-        self.inner(dt)
-        if self.ego.crashed:
-            self.before = snapshot
-            self.after = _positions(self.road)
-
-
-def watch_collisions(env: gym.Env) -> None:
-    """Record the impact frame of the ego's next crash on the current road (call after each reset).
-
-    Costs one copy of the vehicle positions per physics frame (tens of µs). Without it,
-    :func:`classify_collision` falls back to the (post-impact) geometry at the time of the call.
-    """
-    base = env.unwrapped
-    road = base.road
-    if not isinstance(road.__dict__.get("step"), _CrashWatch):
-        road.step = _CrashWatch(road, base.vehicle)
-
-
 def collision_kind(
     before: tuple[float, float],
     after: tuple[float, float],
@@ -142,46 +95,49 @@ def collision_kind(
     return "ego_hit_front" if s0 > 0 else "rear_ended"
 
 
-def _extents(vehicle: Any, lane_heading: float) -> tuple[float, float]:
-    """(longitudinal, lateral) half-extents [m] of a vehicle's body, rotated by its heading."""
-    length, width = float(vehicle.LENGTH), float(vehicle.WIDTH)
-    h = float(vehicle.heading) - lane_heading
-    c, s = abs(math.cos(h)), abs(math.sin(h))
+def _extents(length: float, width: float, heading: float) -> tuple[float, float]:
+    """(longitudinal, lateral) half-extents [m] of a ``length`` × ``width`` body at ``heading`` [rad]
+    relative to the lane."""
+    c, s = abs(math.cos(heading)), abs(math.sin(heading))
     return length / 2 * c + width / 2 * s, length / 2 * s + width / 2 * c
 
 
-def classify_collision(env: gym.Env) -> str | None:
+def _lane_coordinates(snap: RoadSnapshot, lane: int, position: np.ndarray) -> tuple[float, float]:
+    """(along, across) [m] of ``position`` in ``lane``'s own frame (highway-env's ``local_coordinates``)."""
+    start = snap.lane_origin + snap.lane_lateral * (lane * snap.lane_width)
+    delta = position - start
+    return float(np.dot(delta, snap.lane_direction)), float(np.dot(delta, snap.lane_lateral))
+
+
+def classify_collision(snap: RoadSnapshot) -> str | None:
     """The kind of the ego's crash (one of :data:`COLLISION_KINDS`), or None if it has not crashed.
 
-    The partner is the crashed vehicle nearest to the ego at the impact; offsets are taken in the
-    ego lane's local coordinates (the road is straight along x). Uses the impact frame recorded by
-    :func:`watch_collisions` when there is one, else the current geometry.
+    The partner is the crashed body nearest to the ego at the impact; offsets are taken in the ego
+    lane's local coordinates (the road is straight along x). Uses the impact frame the simulator
+    recorded in the snapshot when there is one, else the current geometry.
     """
-    base = env.unwrapped
-    ego, road = base.vehicle, base.road
-    if not ego.crashed:
+    if not snap.ego_crashed:
         return None
-    watch = road.__dict__.get("step")
-    if isinstance(watch, _CrashWatch) and watch.before is not None and watch.after is not None:
-        before = {id(v): p for v, p in watch.before}
-        after = {id(v): p for v, p in watch.after}
+    e = snap.ego
+    if snap.impact_before is not None and snap.impact_after is not None:
+        before, after = snap.impact_before, snap.impact_after
     else:
-        before = after = {id(v): p for v, p in _positions(road)}
-    lane = ego.lane
-    candidates = [v for v in _bodies(road) if v is not ego and getattr(v, "crashed", False) and id(v) in after]
+        before = after = snap.position
+    candidates = [i for i in range(min(snap.n, after.shape[0])) if i != e and snap.crashed[i]]
     if not candidates:
         return "side"  # no partner found (not produced by highway-env's straight roads)
-    ego_after = after[id(ego)]
-    other = min(candidates, key=lambda v: float(np.hypot(*(after[id(v)] - ego_after))))
+    # The first of equally near partners, as Python's min() picks.
+    other = min(candidates, key=lambda i: float(np.hypot(*(after[i] - after[e]))))
+    lane = int(snap.lane[e])
 
-    def offset(positions: dict[int, np.ndarray]) -> tuple[float, float]:
-        s_e, r_e = lane.local_coordinates(positions[id(ego)])
-        s_o, r_o = lane.local_coordinates(positions[id(other)])
-        return float(s_o - s_e), float(r_o - r_e)
+    def offset(positions: np.ndarray) -> tuple[float, float]:
+        s_e, r_e = _lane_coordinates(snap, lane, positions[e])
+        s_o, r_o = _lane_coordinates(snap, lane, positions[other])
+        return s_o - s_e, r_o - r_e
 
-    lane_heading = float(lane.heading_at(lane.local_coordinates(ego_after)[0]))
-    ego_long, ego_lat = _extents(ego, lane_heading)
-    other_long, other_lat = _extents(other, lane_heading)
+    lane_heading = math.atan2(snap.lane_direction[1], snap.lane_direction[0])
+    ego_long, ego_lat = _extents(snap.length[e], snap.width[e], float(snap.heading[e]) - lane_heading)
+    other_long, other_lat = _extents(snap.length[other], snap.width[other], float(snap.heading[other]) - lane_heading)
     return collision_kind(offset(before), offset(after), ego_long + other_long, ego_lat + other_lat)
 
 
@@ -217,18 +173,16 @@ ProgressCallback = Callable[[int, EpisodeRecord], None]
 """Called as ``progress(episode_index, record)`` after each episode."""
 
 
-def vehicles_ahead(env: gym.Env) -> int:
-    """Number of other vehicles ahead of the ego along the road (x; highway-env's roads are straight)."""
-    base = env.unwrapped
-    ego = base.vehicle
-    return sum(1 for v in base.road.vehicles if v is not ego and v.position[0] > ego.position[0])
+def vehicles_ahead(snap: RoadSnapshot) -> int:
+    """Number of other vehicles ahead of the ego along the road (x; the roads are straight)."""
+    others = snap.others()
+    return int(np.count_nonzero(snap.position[others, 0] > snap.position[snap.ego, 0]))
 
 
 def run_episode(env: gym.Env, policy: Policy, seed: int) -> EpisodeRecord:
     """Play one episode reset with ``seed`` until it terminates or is truncated."""
     obs, info = env.reset(seed=seed)
-    watch_collisions(env)
-    ahead_at_start = vehicles_ahead(env)
+    ahead_at_start = vehicles_ahead(info["snapshot"])
     total_reward = 0.0
     speeds: list[float] = []
     interventions = fallbacks = unsafe_actions = 0
@@ -249,7 +203,7 @@ def run_episode(env: gym.Env, policy: Policy, seed: int) -> EpisodeRecord:
         actions[int(info.get("executed_action", action))] += 1
         if info.get("collision", False) and not collision:
             collision = True
-            time_to_collision = float(env.unwrapped.time)
+            time_to_collision = info["snapshot"].time
         done = terminated or truncated
     return EpisodeRecord(
         seed=seed,
@@ -257,13 +211,13 @@ def run_episode(env: gym.Env, policy: Policy, seed: int) -> EpisodeRecord:
         length=steps,
         collision=collision,
         time_to_collision=time_to_collision,
-        mean_speed=float(np.mean(speeds)) if speeds else float(env.unwrapped.vehicle.speed),
+        mean_speed=float(np.mean(speeds)),
         interventions=interventions,
         fallbacks=fallbacks,
-        collision_kind=classify_collision(env) if collision else None,
+        collision_kind=classify_collision(info["snapshot"]) if collision else None,
         unsafe_actions=unsafe_actions,
         actions=actions,
-        vehicles_passed=ahead_at_start - vehicles_ahead(env),
+        vehicles_passed=ahead_at_start - vehicles_ahead(info["snapshot"]),
     )
 
 
@@ -349,9 +303,9 @@ def evaluate_fixed(
     progress: ProgressCallback | None = None,
 ) -> dict[str, Any]:
     """Evaluate a fixed policy (:data:`FIXED_POLICIES`) on ``config``: the summary dict of
-    :func:`summarize` with ``policy``, ``shield``, ``override``, ``preset``, ``env_id``, ``backend``, ``seed`` and
-    ``wall_time_s`` added. With a shield the config should set ``shield.override`` (a fixed policy
-    cannot read the mask)."""
+    :func:`summarize` with ``policy``, ``shield``, ``override``, ``preset``, ``env_id``, ``simulator``,
+    ``neighbour_search``, ``seed`` and ``wall_time_s`` added. With a shield the config should set
+    ``shield.override`` (a fixed policy cannot read the mask)."""
 
     if episodes < 1:
         raise ConfigError(f"--episodes: must be >= 1 (got {episodes})")
@@ -367,7 +321,8 @@ def evaluate_fixed(
         override=config.shield.override,
         preset=config.preset,
         env_id=config.env_id,
-        backend=config.backend,
+        simulator=config.simulator,
+        neighbour_search=config.neighbour_search,
         seed=seed,
         wall_time_s=time.perf_counter() - start,
     )

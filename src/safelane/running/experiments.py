@@ -12,7 +12,6 @@ from __future__ import annotations
 import json
 import os
 import shutil
-import tempfile
 import time
 from collections.abc import Callable
 from concurrent.futures import ProcessPoolExecutor, as_completed
@@ -22,6 +21,7 @@ from typing import Any, Literal
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from safelane.config import ConfigError, validation_message
+from safelane.core.files import atomic_write_text
 
 METHODS: tuple[str, ...] = ("dqn", "constrained", "qmask", "robust")
 TEST_SEED_BASE = 2_000_000_000
@@ -56,21 +56,6 @@ def make_spec(**fields: Any) -> ExperimentSpec:
         raise ConfigError(validation_message(err, ExperimentSpec, "reproduce.")) from None
 
 
-def atomic_write_text(path: Path, text: str) -> None:
-    """Write ``text`` to ``path`` via a temporary file and a rename (never a truncated file)."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "w") as f:
-            f.write(text)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-
-
 def run_dir_of(out_dir: Path, method: str, seed: int) -> Path:
     """Directory of the (method, seed) run."""
     return out_dir / "runs" / f"{method}-s{seed}"
@@ -82,6 +67,7 @@ def _task(out_dir: str, spec_json: str, method: str, seed: int) -> dict[str, Any
 
     from safelane.reporting.plots import read_metrics
     from safelane.running.evaluation import run_config, summarize
+    from safelane.running.runs import run_env_config
     from safelane.running.training import METRICS_FILE, load_policy, load_run_config, make_train_config, train
 
     torch.set_num_threads(1)
@@ -110,7 +96,7 @@ def _task(out_dir: str, spec_json: str, method: str, seed: int) -> dict[str, Any
     run = load_run_config(run_dir)
     policy = load_policy(run_dir)
     reward_c = run.env.reward.c
-    records = run_config(run.env, policy, spec.test_episodes, TEST_SEED_BASE)
+    records = run_config(run_env_config(run), policy, spec.test_episodes, TEST_SEED_BASE)
     episodes = []
     for k, r in enumerate(records):
         d = r.to_dict()
@@ -127,18 +113,8 @@ def _task(out_dir: str, spec_json: str, method: str, seed: int) -> dict[str, Any
         from safelane.running.stress import run_condition
 
         for name in spec.stress_conditions:
-            stress.append(
-                run_condition(
-                    name,
-                    policy,
-                    spec.stress_episodes,
-                    shield=run.env.shield.mode,
-                    override=False,
-                    sets=spec.sets,
-                    base=run.env,
-                )
-            )
-    summary = summarize(records, method=method, seed=seed)
+            stress.append(run_condition(name, policy, spec.stress_episodes, shield=None, override=None, run=run))
+    summary = summarize(records, method=method, seed=seed, simulator=run.env.simulator)
     record = {
         "method": method,
         "seed": seed,

@@ -12,12 +12,15 @@ import time
 from collections.abc import Callable
 from importlib import resources
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from safelane.config import ConfigError, SafelaneConfig, load_config
+
+if TYPE_CHECKING:
+    from safelane.running.training import RunConfig
 
 STRESS_SEED_BASE = 3_000_000_000
 """Stress episodes are reset with ``STRESS_SEED_BASE + k`` (never used in training or testing)."""
@@ -71,13 +74,18 @@ def run_condition(
     condition: Condition | str,
     policy: Callable[..., int],
     episodes: int,
-    shield: str = "robust",
-    override: bool = True,
+    shield: str | None = "robust",
+    override: bool | None = True,
     sets: list[str] | None = None,
-    base: SafelaneConfig | None = None,
+    run: RunConfig | None = None,
     progress: Callable[[int, Any], None] | None = None,
 ) -> dict[str, Any]:
-    """Evaluate ``policy`` on one condition; the per-condition JSON record of ``safelane stress``."""
+    """Evaluate ``policy`` on one condition; the per-condition JSON record of ``safelane stress``.
+
+    For a trained ``run`` the environment is the run's own (:func:`safelane.running.runs.run_env_config`)
+    with the condition on top, and ``shield`` / ``override`` of None keep the run's shield; a condition
+    that changes what the policy reads or how often it decides is refused with a one-line error.
+    """
     from safelane.reporting import stats
     from safelane.running.evaluation import run_config, summarize
 
@@ -89,21 +97,25 @@ def run_condition(
         condition = matches[0]
     if episodes < 1:
         raise ConfigError(f"--episodes: must be >= 1 (got {episodes})")
-    cfg = condition_config(condition, shield, override, sets)
-    if base is not None:
-        # Trained agents keep their own reward and shield settings; only the traffic changes.
-        cfg = cfg.model_copy(update={"reward": base.reward})
+    if run is not None:
+        from safelane.running.runs import run_env_config
+
+        cfg = run_env_config(run, sets=sets, shield=shield, override=override, condition=condition)
+    else:
+        cfg = condition_config(condition, shield or "robust", bool(override), sets)
     start = time.perf_counter()
     records = run_config(cfg, policy, episodes, STRESS_SEED_BASE, progress)
     s = summarize(records)
     return {
         "name": condition.name,
         "adversarial": condition.adversarial,
+        "simulator": cfg.simulator,
         "episodes": s["episodes"],
         "collisions": s["collisions"],
         "collision_rate": s["collision_rate"],
         "collision_rate_ci95": list(stats.binomial_ci(s["collisions"], s["episodes"])),
         "mean_speed": s["mean_speed"],
+        "mean_length": s["mean_length"],
         "shield_intervention_rate": s["shield_intervention_rate"],
         "fallback_rate": s["fallback_rate"],
         "collision_kinds": s["collision_kinds"],
@@ -114,17 +126,28 @@ def run_condition(
 def run_stress(
     policy_factory: Callable[[], Callable[..., int]],
     episodes: int,
-    shield: str = "robust",
-    override: bool = True,
+    shield: str | None = "robust",
+    override: bool | None = True,
     conditions: list[Condition] | None = None,
     sets: list[str] | None = None,
     on_condition: Callable[[dict[str, Any]], None] | None = None,
+    run: RunConfig | None = None,
 ) -> dict[str, Any]:
-    """Run every condition; ``policy_factory`` gives a fresh policy per condition (same seeds each)."""
+    """Run every condition; ``policy_factory`` gives a fresh policy per condition (same seeds each).
+
+    With a trained ``run``, conditions the policy cannot drive (another decision rate, state or action
+    set) are recorded as ``{"name", "adversarial", "skipped": reason}`` instead of failing the suite.
+    """
     results = []
     for cond in conditions or load_conditions():
-        rec = run_condition(cond, policy_factory(), episodes, shield, override, sets)
+        try:
+            rec = run_condition(cond, policy_factory(), episodes, shield, override, sets, run=run)
+        except ConfigError as err:
+            if run is None or not str(err).startswith("environment:"):
+                raise
+            rec = {"name": cond.name, "adversarial": cond.adversarial, "skipped": str(err)}
         results.append(rec)
         if on_condition:
             on_condition(rec)
-    return {"shield": shield, "override": override, "episodes_per_condition": episodes, "conditions": results}
+    mode = shield if shield is not None or run is None else run.env.shield.mode
+    return {"shield": mode, "override": override, "episodes_per_condition": episodes, "conditions": results}

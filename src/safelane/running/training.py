@@ -22,9 +22,7 @@ import contextlib
 import copy
 import csv
 import io
-import os
 import random
-import tempfile
 import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
@@ -37,8 +35,10 @@ import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 
 from safelane.agents.dqn import (
+    AGENT_CLASSES,
     AGENT_PRESETS,
     AgentConfig,
+    ConstrainedAgent,
     DQNAgent,
     ReplayBuffer,
     build_agent_config,
@@ -57,7 +57,8 @@ from safelane.config import (
     parse_set,
     validation_message,
 )
-from safelane.env.factory import make_env
+from safelane.core.files import atomic_write
+from safelane.env.factory import check_same_interface, env_interface, interface_of, make_env
 
 CONFIG_FILE = "config.yaml"
 METRICS_FILE = "metrics.csv"
@@ -67,8 +68,9 @@ TENSORBOARD_DIR = "tensorboard"
 EPISODE_SEED_STRIDE = 100003
 """Episode ``i`` of a run with seed ``s`` is reset with seed ``s·EPISODE_SEED_STRIDE + i``."""
 
-TRAIN_SHIELD_MODE: dict[str, str] = {"dqn": "nominal", "constrained": "nominal", "qmask": "nominal", "robust": "robust"}
-"""Shield mode of the training env per method (masks are recorded for all; only qmask/robust act on them)."""
+TRAIN_SHIELD_MODE: dict[str, str] = {method: cls.train_shield for method, cls in AGENT_CLASSES.items()}
+"""Shield mode of the training env per method (``train_shield`` of its agent class; masks are recorded for
+all methods, only mask users act on them)."""
 ENV_SECTIONS: tuple[str, ...] = tuple(key for key in SafelaneConfig.model_fields if key != "preset")
 """Top-level environment config keys a ``--set`` may start with (``preset`` is chosen by ``--preset``)."""
 
@@ -200,8 +202,14 @@ def resolve(cfg: TrainConfig) -> RunConfig:
             allowed = ", ".join(("agent", *ENV_SECTIONS))
             raise ConfigError(f"--set {key}: unknown section '{head}'; allowed: {allowed}")
     env_cfg = load_config(cfg.env_preset, sets=env_sets)
-    if cfg.method in ("qmask", "robust") and env_cfg.shield.mode == "none":
+    agent_class = AGENT_CLASSES[cfg.method]
+    if agent_class.uses_mask and env_cfg.shield.mode == "none":
         raise ConfigError(f"shield.mode: {cfg.method} acts on the shield's mask; use nominal or robust, not none")
+    if agent_class.needs_cost and env_cfg.shield.mode == "none":
+        raise ConfigError(
+            f"shield.mode: {cfg.method}'s cost counts actions outside the shield's mask; "
+            "use nominal or robust, not none"
+        )
     if env_cfg.shield.override:
         raise ConfigError("shield.override: must be false for training (the agent learns from its own action)")
     agent_cfg = load_agent_config(cfg.agent_preset, cfg.method, agent_overrides)
@@ -250,21 +258,6 @@ def load_run_config(run_dir: str | Path) -> RunConfig:
 
 
 # --- files ----------------------------------------------------------------------------------------
-def _atomic_write(path: Path, write: Callable[[io.BufferedWriter], None]) -> None:
-    """Write ``path`` through a temporary file in the same directory, then ``os.replace``."""
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            write(f)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        with contextlib.suppress(OSError):
-            os.unlink(tmp)
-        raise
-
-
 def _format_row(row: dict[str, Any]) -> dict[str, str]:
     out: dict[str, str] = {}
     for key in METRIC_COLUMNS:
@@ -286,7 +279,7 @@ def _write_metrics(path: Path, rows: list[dict[str, Any]]) -> None:
         writer.writerows(_format_row(r) for r in rows)
         f.write(text.getvalue().encode())
 
-    _atomic_write(path, write)
+    atomic_write(path, write)
 
 
 def _rng_states() -> dict[str, Any]:
@@ -329,7 +322,7 @@ def _snapshot(
 
 
 def _save_checkpoint(path: Path, state: dict[str, Any]) -> None:
-    _atomic_write(path, lambda f: torch.save(state, f))
+    atomic_write(path, lambda f: torch.save(state, f))
 
 
 def load_checkpoint(run_dir: str | Path) -> dict[str, Any]:
@@ -383,7 +376,7 @@ def _prepare_run_dir(out: Path, run: RunConfig, resume: bool) -> dict[str, Any] 
                 raise ConfigError(f"--resume: checkpoint method differs from {run.agent.method}")
     elif (out / CHECKPOINT_FILE).exists() or (out / METRICS_FILE).exists():
         raise ConfigError(f"{out}: already holds a training run; pass --resume to continue it or choose another --out")
-    _atomic_write(config_path, lambda f: f.write(yaml.safe_dump(wanted, sort_keys=False).encode()))
+    atomic_write(config_path, lambda f: f.write(yaml.safe_dump(wanted, sort_keys=False).encode()))
     return state
 
 
@@ -492,7 +485,7 @@ def train(
                 agent.end_episode(ep_cost)
                 episode += 1
                 collisions += int(collision)
-                lam = getattr(agent, "lam", None)
+                lam = agent.lam if isinstance(agent, ConstrainedAgent) else None
                 elapsed = time.perf_counter() - t0
                 row = {
                     "episode": episode,
@@ -552,15 +545,23 @@ class GreedyPolicy:
     """The greedy policy of a trained run: ``policy(obs, info) -> action``.
 
     qmask and robust choose among ``info["action_mask"]`` (all actions if the env has no shield);
-    dqn and constrained ignore the mask.
+    dqn and constrained ignore the mask. It refuses (one-line :class:`ConfigError`) to drive an
+    environment whose state kind, decision rate or target speeds differ from the ones it was trained
+    on, as ``info`` reports them.
     """
 
-    def __init__(self, agent: DQNAgent, run: RunConfig) -> None:
+    def __init__(self, agent: DQNAgent, run: RunConfig, name: str = "the run") -> None:
         self.agent = agent
         self.run = run
         self.method = agent.method
+        self.name = name
+        self.interface = env_interface(run.env)
 
     def __call__(self, obs: np.ndarray, info: dict[str, Any] | None = None) -> int:
+        if info is not None:
+            actual = interface_of(info)
+            if actual is not None and actual != self.interface:
+                check_same_interface(self.interface, actual, self.name)
         mask = info.get("action_mask") if (info is not None and self.agent.uses_mask) else None
         return self.agent.greedy(obs, mask)
 
@@ -580,4 +581,4 @@ def load_agent(run_dir: str | Path) -> DQNAgent:
 
 def load_policy(run_dir: str | Path) -> Callable[[np.ndarray, dict[str, Any]], int]:
     """The greedy policy of a trained run (see :class:`GreedyPolicy`)."""
-    return GreedyPolicy(load_agent(run_dir), load_run_config(run_dir))
+    return GreedyPolicy(load_agent(run_dir), load_run_config(run_dir), f"run {run_dir}")

@@ -8,8 +8,8 @@ import pytest
 from safelane.env.factory import make_env
 
 
-def trajectory(backend: str, preset: str, seed: int, policy: str, steps: int) -> list[np.ndarray]:
-    env = make_env(preset, **{"backend": backend, "traffic.vehicles_behind": 5})
+def trajectory(search: str, preset: str, seed: int, policy: str, steps: int) -> list[np.ndarray]:
+    env = make_env(preset, **{"neighbour_search": search, "traffic.vehicles_behind": 5})
     env.reset(seed=seed)
     rng = np.random.default_rng(seed)
     out = []
@@ -27,9 +27,9 @@ def trajectory(backend: str, preset: str, seed: int, policy: str, steps: int) ->
     ("preset", "seed", "policy", "steps"),
     [("fast", 0, "slower", 12), ("fast", 1, "random", 12), ("paper", 2, "slower", 4)],
 )
-def test_vectorized_backend_is_identical(preset: str, seed: int, policy: str, steps: int) -> None:
+def test_numpy_neighbour_search_is_identical(preset: str, seed: int, policy: str, steps: int) -> None:
     original = trajectory("highway-env", preset, seed, policy, steps)
-    vectorized = trajectory("vectorized", preset, seed, policy, steps)
+    vectorized = trajectory("numpy", preset, seed, policy, steps)
     assert len(original) == len(vectorized)
     for a, b in zip(original, vectorized, strict=True):
         assert np.array_equal(a, b)

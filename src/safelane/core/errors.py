@@ -1,0 +1,8 @@
+"""The one error type of bad input: a :class:`ConfigError` says, in one line, which key is wrong and what is
+allowed. The CLI prints it without a traceback and exits with code 2."""
+
+from __future__ import annotations
+
+
+class ConfigError(ValueError):
+    """A configuration problem, described in one line (key, value, what is allowed)."""

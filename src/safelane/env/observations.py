@@ -1,0 +1,154 @@
+"""The agent's state, computed from a :class:`~safelane.core.snapshot.RoadSnapshot`: eq. 3 or the lanes state.
+
+Both are 26 numbers in [-1, 1] (:data:`safelane.core.spaces.OBS_SIZE`). :class:`PaperObservation`
+replaces the simulator's own observation by one of them, reading ``info["snapshot"]``.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+
+from safelane.core.errors import ConfigError
+from safelane.core.geometry import wrap_to_pi
+from safelane.core.snapshot import RoadSnapshot
+from safelane.core.spaces import FEATURES_PER_VEHICLE, OBS_SIZE, OBSERVED_VEHICLES
+
+# --- observation normalisation: every scale in one place, with units --------------------------
+X_SCALE = 100.0  # [m] longitudinal offset mapped to ±1
+Y_SCALE = 12.0  # [m] lateral offset mapped to ±1 (three 4 m lanes)
+REL_SPEED_SCALE = 20.0  # [m/s] relative velocity mapped to ±1
+HEADING_SCALE = math.pi / 2  # [rad] heading mapped to ±1
+EGO_SPEED_SCALE = 40.0  # [m/s] highway-env's Vehicle.MAX_SPEED
+PERCEPTION_DISTANCE = 200.0  # [m] vehicles farther than this are absent (highway-env's own range)
+# --- the "lanes" state (an alternative to eq. 3 of the same size) ------------------------------
+LANE_GAP_SCALE = 150.0  # [m] a gap this long or longer reads as 1 (a free lane)
+LANE_FEATURES = 7
+"""Per lane: exists, two leaders (gap, δv) and the follower (gap, δv)."""
+
+
+def paper_state(snap: RoadSnapshot) -> np.ndarray:
+    """The paper's state (eq. 3) of the scene ``snap``, normalised and clipped to [-1, 1].
+
+    Layout: for the 4 nearest vehicles (Euclidean distance, nearest first)
+    ``[δx/X_SCALE, δy/Y_SCALE, δvx/REL_SPEED_SCALE, δvy/REL_SPEED_SCALE, ψ/HEADING_SCALE, flag]``,
+    then ``[v_ego/EGO_SPEED_SCALE, ψ_ego/HEADING_SCALE]``. Absent vehicles are all zeros, flag 0.
+    """
+    obs = np.zeros(OBS_SIZE, dtype=np.float32)
+    e = snap.ego
+    ego_speed, ego_heading = snap.speed[e], snap.heading[e]
+    others = snap.others()
+    if others.size:
+        pos = snap.position[others]
+        heading = snap.heading[others]
+        speed = snap.speed[others]
+        rel = pos - snap.position[e]
+        dist = np.hypot(rel[:, 0], rel[:, 1])
+        near = np.argsort(dist, kind="stable")[:OBSERVED_VEHICLES]
+        near = near[dist[near] < PERCEPTION_DISTANCE]
+        # The ego's velocity as highway-env computes it (speed · [cos ψ, sin ψ] through numpy).
+        ego_vel = ego_speed * np.array([np.cos(ego_heading), np.sin(ego_heading)])
+        for slot, i in enumerate(near):
+            dv = speed[i] * np.array([math.cos(heading[i]), math.sin(heading[i])]) - ego_vel
+            base = slot * FEATURES_PER_VEHICLE
+            obs[base : base + FEATURES_PER_VEHICLE] = (
+                rel[i, 0] / X_SCALE,
+                rel[i, 1] / Y_SCALE,
+                dv[0] / REL_SPEED_SCALE,
+                dv[1] / REL_SPEED_SCALE,
+                wrap_to_pi(heading[i]) / HEADING_SCALE,
+                1.0,
+            )
+    obs[-2] = ego_speed / EGO_SPEED_SCALE
+    obs[-1] = wrap_to_pi(ego_heading) / HEADING_SCALE
+    np.clip(obs, -1.0, 1.0, out=obs)
+    return obs
+
+
+def lane_state(snap: RoadSnapshot) -> np.ndarray:
+    """A lane-by-lane state of the same size as eq. 3 (26 numbers in [-1, 1]): what an overtaking
+    decision needs, which the paper's 4 nearest vehicles often miss in dense traffic (they are mostly
+    alongside, and the ego's own lane is not in eq. 3).
+
+    Layout: for the lane left of the ego, its own lane and the lane right of it (7 numbers each):
+    ``[exists, gap₁, δv₁, gap₂, δv₂, gap_behind, δv_behind]`` — the two nearest vehicles ahead
+    (longitudinal centre distance ≥ 0 [m] / LANE_GAP_SCALE) with their forward speed minus the ego's
+    [m/s] / REL_SPEED_SCALE, then the nearest vehicle behind; a vehicle LANE_GAP_SCALE or farther away
+    is absent (gap 1, δv 0); a lane that does not exist is all zeros. Then the ego:
+    ``[v/EGO_SPEED_SCALE, ψ/HEADING_SCALE, lane index/(lanes − 1), lateral offset from the lane
+    centre/lane width, target speed/EGO_SPEED_SCALE]``.
+    A vehicle belongs to the lane the simulator assigns it (``lane``), also while it changes lanes.
+    """
+    obs = np.zeros(OBS_SIZE, dtype=np.float32)
+    n_lanes = snap.lanes_count
+    e = snap.ego
+    ego_lane = int(snap.lane[e])
+    ego_speed, ego_heading = float(snap.speed[e]), float(snap.heading[e])
+    others = snap.others()
+    if others.size:
+        dx = snap.position[others, 0] - snap.position[e, 0]
+        lane = snap.lane[others]
+        # math.cos per vehicle, as before the snapshot existed: numpy's vectorised cos may differ in the last bit.
+        forward = np.array(
+            [s * math.cos(h) for s, h in zip(snap.speed[others].tolist(), snap.heading[others].tolist(), strict=True)],
+            dtype=float,
+        )
+        dv = forward - ego_speed * math.cos(ego_heading)
+    for slot, offset in enumerate((-1, 0, 1)):
+        target = ego_lane + offset
+        if not 0 <= target < n_lanes:
+            continue
+        base = slot * LANE_FEATURES
+        obs[base : base + LANE_FEATURES] = (1.0, 1.0, 0.0, 1.0, 0.0, 1.0, 0.0)
+        if not others.size:
+            continue
+        in_lane = (lane == target) & (np.abs(dx) < LANE_GAP_SCALE)
+        ahead = np.flatnonzero(in_lane & (dx >= 0))
+        for k, i in enumerate(ahead[np.argsort(dx[ahead], kind="stable")][:2]):
+            obs[base + 1 + 2 * k : base + 3 + 2 * k] = (dx[i] / LANE_GAP_SCALE, dv[i] / REL_SPEED_SCALE)
+        behind = np.flatnonzero(in_lane & (dx < 0))
+        if behind.size:
+            i = behind[np.argmax(dx[behind])]
+            obs[base + 5 : base + 7] = (-dx[i] / LANE_GAP_SCALE, dv[i] / REL_SPEED_SCALE)
+    obs[-5:] = (
+        ego_speed / EGO_SPEED_SCALE,
+        wrap_to_pi(ego_heading) / HEADING_SCALE,
+        ego_lane / (n_lanes - 1) if n_lanes > 1 else 0.0,
+        snap.ego_lane_offset / snap.lane_width,
+        snap.ego_target_speed / EGO_SPEED_SCALE,
+    )
+    np.clip(obs, -1.0, 1.0, out=obs)
+    return obs
+
+
+STATE_FUNCTIONS: dict[str, Callable[[RoadSnapshot], np.ndarray]] = {"paper": paper_state, "lanes": lane_state}
+"""The agent's state by ``SafelaneConfig.state`` name."""
+
+
+class PaperObservation(gym.Wrapper, gym.utils.RecordConstructorArgs):
+    """Replace the simulator's observation by the paper's 26-number state (eq. 3), or with
+    ``state="lanes"`` by :func:`lane_state` (same size), computed from ``info["snapshot"]``; ``info``
+    gains ``state`` (the state's name), so a trained policy can check it reads what it learned on."""
+
+    def __init__(self, env: gym.Env, state: str = "paper") -> None:
+        gym.utils.RecordConstructorArgs.__init__(self, state=state)
+        super().__init__(env)
+        if state not in STATE_FUNCTIONS:
+            raise ConfigError(f"state: got {state!r}; allowed: {', '.join(STATE_FUNCTIONS)}")
+        self.state_of = STATE_FUNCTIONS[state]
+        self.observation_space = gym.spaces.Box(-1.0, 1.0, shape=(OBS_SIZE,), dtype=np.float32)
+        self.state = state
+
+    def reset(self, **kwargs: Any) -> tuple[np.ndarray, dict[str, Any]]:
+        _, info = self.env.reset(**kwargs)
+        info["state"] = self.state
+        return self.state_of(info["snapshot"]), info
+
+    def step(self, action: Any) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
+        _, reward, terminated, truncated, info = self.env.step(action)
+        info["state"] = self.state
+        return self.state_of(info["snapshot"]), reward, terminated, truncated, info

@@ -431,6 +431,7 @@ def test_the_property_covers_every_key_the_presets_set() -> None:
     for name in ENV_PRESETS:
         for key in _leaves(yaml.safe_load(preset_path(name).read_text())):
             assert key in PRESET_KEYS
-    expected = ("env.action.target_speeds", "env.observation.type", "traffic.vehicles_behind", "shield.override", "state")
-    for key in expected:
+    assert {"state", "env_id", "simulator"} <= set(PRESET_KEYS)
+    for key in ("env.action.target_speeds", "env.observation.type", "traffic.vehicles_behind", "shield.override"):
         assert key in PRESET_KEYS
+    assert {"state", "env_id", "simulator"} <= set(PRESET_KEYS)

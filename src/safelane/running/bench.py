@@ -18,10 +18,11 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
+import gymnasium as gym
 import numpy as np
 
 from safelane.agents.dqn import parse_methods
-from safelane.config import ConfigError
+from safelane.config import ConfigError, load_config
 from safelane.env.factory import make_env
 from safelane.env.observations import paper_state
 from safelane.reporting.plots import read_metrics
@@ -30,6 +31,8 @@ from safelane.running.training import METRICS_FILE, make_train_config, train
 
 BENCH_PRESET = "fast"
 BENCH_SHIELDS = ("nominal", "robust")
+FAST_REPEATS = 5
+"""The fast simulator plays each benchmark episode this many times (it takes milliseconds)."""
 
 
 def _play(env: Any, seed: int, on_decision: Callable[[], None] | None = None) -> tuple[int, float]:
@@ -89,6 +92,11 @@ def run_bench(
     * ``obs_us_median``: one paper observation ``paper_state`` (eq. 3) [µs], median over decisions;
     * ``highway_env_steps_per_s``: raw decisions per second with highway-env's own neighbour search
       (``neighbour_search=highway-env``; identical episodes) and ``neighbour_search_speedup`` = raw ÷ that;
+    * ``highway_env_decisions_per_s``: stock highway-env (``gym.make`` with the preset's config: its own
+      neighbour search and observation, no safelane layer), same seeds and actions;
+    * ``fast_decisions_per_s``: the fast simulator through safelane's gymnasium stack (paper observation
+      and reward, no shield), same seeds and actions, each episode played :data:`FAST_REPEATS` times;
+      ``fast_raw_speedup`` = that ÷ stock highway-env;
     * ``train_steps_per_s``: decisions per second of a real training run of ``episodes`` episodes of
       ``methods[0]`` (``train_method``; :func:`measure_training`), ``agent_ms_per_decision`` [ms] what
       training adds to a decision, and ``agent_overhead_fraction`` the share of training wall time
@@ -122,8 +130,14 @@ def run_bench(
         mask_us.append((t2 - t1) * 1e6)
         obs_us.append((t3 - t2) * 1e6)
 
-    raw_n = shield_n = orig_n = 0
-    raw_s = shield_s = orig_s = 0.0
+    raw_n = shield_n = orig_n = stock_n = fast_n = 0
+    raw_s = shield_s = orig_s = stock_s = fast_s = 0.0
+    # Stock highway-env (its own neighbour search and observation, no safelane layer) and the fast
+    # simulator through safelane's whole gymnasium stack (paper observation, reward; no shield).
+    preset_cfg = load_config(BENCH_PRESET)
+    stock = gym.make(preset_cfg.env_id, config=dict(preset_cfg.env))
+    fast = make_env(BENCH_PRESET, simulator="fast")
+    _play(fast, seed)  # compiles (or loads) the numba kernels outside the timed episodes
     try:
         for i in range(episodes):
             # Alternate which of the pair runs first, so warm-up and drifts favour neither.
@@ -136,12 +150,19 @@ def run_bench(
                     raw_n, raw_s = raw_n + n, raw_s + s
             n, s = _play(original, seed + i)
             orig_n, orig_s = orig_n + n, orig_s + s
+            n, s = _play(stock, seed + i)
+            stock_n, stock_s = stock_n + n, stock_s + s
+            for _ in range(FAST_REPEATS):  # the same episode again: milliseconds each, so time several
+                n, s = _play(fast, seed + i)
+                fast_n, fast_s = fast_n + n, fast_s + s
             if progress is not None:
                 progress(i)
     finally:
         raw.close()
         shielded.close()
         original.close()
+        stock.close()
+        fast.close()
     training: dict[str, Any] = {"train_method": methods[0], **measure_training(episodes, seed, shield, methods[0])}
     for method in methods[1:]:
         figures = measure_training(episodes, seed, shield, method)
@@ -163,6 +184,9 @@ def run_bench(
         "obs_us_median": float(np.median(obs_us)),
         "highway_env_steps_per_s": orig_n / orig_s,
         "neighbour_search_speedup": raw_rate / (orig_n / orig_s),
+        "highway_env_decisions_per_s": stock_n / stock_s,
+        "fast_decisions_per_s": fast_n / fast_s,
+        "fast_raw_speedup": (fast_n / fast_s) / (stock_n / stock_s),
         **training,
         "python": platform.python_version(),
         "wall_time_s": time.perf_counter() - start,

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import importlib.util
 import os
+import tempfile
 from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any, NamedTuple
@@ -187,11 +188,31 @@ def _write_video(frames: list[np.ndarray], out_path: Path, fps: float) -> None:
 
 
 def _check_out_path(out_path: Path) -> None:
+    """Fail early, in one line, unless a video can be written at ``out_path``.
+
+    Checks the extension, then creates the directory (as the write would) and writes a temporary
+    probe file in it, so an unwritable place (``/proc``, a read-only mount, a file in the way) is a
+    :class:`ConfigError` before the episode is played rather than an error while saving.
+    """
     suffix = out_path.suffix.lower()
     if suffix not in VIDEO_EXTENSIONS:
         raise ConfigError(f"out_path: unsupported video extension {suffix!r}; use .gif (or .mp4)")
     if suffix == ".mp4" and not mp4_writer_available():
         raise ConfigError("out_path: .mp4 needs the imageio-ffmpeg package, not installed; use .gif")
+    if out_path.is_dir():
+        raise ConfigError(f"out_path: {out_path} is a directory; give a file name ending in {suffix}")
+    directory = out_path.parent
+    if directory.exists() and not directory.is_dir():
+        raise ConfigError(f"out_path: {directory} is a file, not a directory; choose a writable directory")
+    try:
+        directory.mkdir(parents=True, exist_ok=True)
+        with tempfile.TemporaryFile(dir=directory):
+            pass
+    except OSError as err:
+        reason = err.strerror or type(err).__name__
+        raise ConfigError(
+            f"out_path: cannot write a file in {directory} ({reason}); choose a writable directory"
+        ) from None
 
 
 def _open_env(env: Any) -> tuple[Any, bool]:

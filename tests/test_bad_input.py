@@ -54,7 +54,7 @@ def test_full_disk_while_saving_keeps_the_last_good_checkpoint(
     def no_space(fd: int) -> None:
         raise OSError(errno.ENOSPC, "No space left on device")
 
-    monkeypatch.setattr("safelane.running.training.os.fsync", no_space)
+    monkeypatch.setattr("safelane.core.files.os.fsync", no_space)
     code, output = invoke(
         "train", "--method", "qmask", "--episodes", "4", "--out", str(run), "--resume", "--checkpoint-every", "1", *TINY
     )

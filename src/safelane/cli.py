@@ -657,7 +657,6 @@ def render(
     max_steps: Annotated[int | None, typer.Option("--max-steps", help="Stop after this many decisions.")] = None,
 ) -> None:
     """Render one episode offscreen with the action mask and the chosen action drawn on each frame."""
-    from safelane.env.factory import make_env
     from safelane.reporting.render import render_episode
     from safelane.running.evaluation import FIXED_POLICIES, fixed_policy
 
@@ -674,9 +673,7 @@ def render(
         if cfg.shield.mode != "none":
             cfg = resolve_config(preset, sets, shield, overrides={"shield.override": True})
         act = fixed_policy(policy, seed)
-    env = make_env(cfg, render_mode="rgb_array")
-    result = render_episode(env, act, seed, out, max_steps=max_steps)
-    env.close()
+    result = render_episode(cfg, act, seed, out, max_steps=max_steps)  # checks --out, then builds and closes the env
     typer.echo(f"wrote {result.path} ({result.frames} frames)")
 
 

@@ -108,10 +108,13 @@ def compare_episode(
     tol: float = 1e-6,
     oracle: Any = None,
     fast: FastHighwayEnv | None = None,
+    stop_at_end: bool = True,
 ) -> Alignment:
     """Run ``actions`` from ``reset(seed=seed)`` in both simulators and report the first divergence.
 
     ``oracle`` / ``fast``: envs to reuse (made from ``config`` / ``env_id`` when None).
+    ``stop_at_end``: stop at the oracle's termination / truncation (False: play every action, which
+    also checks the crashed ego and the traffic after the episode would have ended).
     """
     oracle = oracle if oracle is not None else make_oracle(config, env_id)
     fast = fast if fast is not None else FastHighwayEnv(config, env_id)
@@ -135,14 +138,47 @@ def compare_episode(
             cause = "info speed"
         if cause is not None:
             return Alignment(seed, steps, t, cause, max_err, bitwise)
-        if term_o or trunc_o:
+        if stop_at_end and (term_o or trunc_o):
             break
     return Alignment(seed, steps, None, None, max_err, bitwise)
 
 
 def random_actions(seed: int, n: int = 40) -> list[int]:
+    """Uniform random meta-actions (reproducible from ``seed``)."""
     return [int(a) for a in np.random.default_rng(10_000 + seed).integers(0, 5, size=n)]
 
 
-__all__ = ["Alignment", "compare_episode", "compare_states", "make_oracle", "oracle_state", "random_actions"]
+POLICIES = ("random", "faster", "idle", "slower", "weave", "cautious")
+
+
+def policy_actions(policy: str, seed: int, n: int = 40) -> list[int]:
+    """Action sequences for the checks: ``random``; always ``faster``; always ``idle``; ``slower``
+    (SLOWER to a standstill, then IDLE); ``weave`` (LEFT, IDLE, RIGHT, IDLE ...); ``cautious`` (random,
+    mostly IDLE / SLOWER)."""
+    rng = np.random.default_rng(20_000 + seed)
+    if policy == "random":
+        return random_actions(seed, n)
+    if policy == "faster":
+        return [3] * n
+    if policy == "idle":
+        return [1] * n
+    if policy == "slower":
+        return [4] * 8 + [1] * (n - 8)
+    if policy == "weave":
+        return [(0, 1, 2, 1)[i % 4] for i in range(n)]
+    if policy == "cautious":
+        return [int(a) for a in rng.choice(5, size=n, p=[0.1, 0.45, 0.1, 0.1, 0.25])]
+    raise ValueError(f"policy: {policy!r} is not supported; allowed: {', '.join(POLICIES)}")
+
+
+__all__ = [
+    "POLICIES",
+    "Alignment",
+    "compare_episode",
+    "compare_states",
+    "make_oracle",
+    "oracle_state",
+    "policy_actions",
+    "random_actions",
+]
 _ = K  # kernels' column names are used by FastHighwayEnv.state()

@@ -131,10 +131,11 @@ def _is_reachable(x, y, lane, P):
 
 
 @njit(cache=True)
-def _neighbours(F, n, j, lane, P):
-    """Road.neighbour_vehicles(vehicle j, lane): (front, rear) indices, -1 for none.
+def _neighbours_scan(F, n, j, lane, P):
+    """Road.neighbour_vehicles(vehicle j, lane), literally: (front, rear) indices, -1 for none.
 
     Ties: the last of equal leaders (``s_v <= s_front``), the first of equal followers (``s_v > s_rear``).
+    (Reference implementation; the kernels use the equivalent :func:`_neighbours` on the lane index.)
     """
     s = F[j, X]
     front = -1
@@ -153,6 +154,67 @@ def _neighbours(F, n, j, lane, P):
         if s_v < s and (rear < 0 or s_v > s_rear):
             s_rear = s_v
             rear = k
+    return front, rear
+
+
+@njit(cache=True)
+def build_lane_index(F, n_lanes, P, members, mx, cnt):
+    """Per lane, the vehicles ``on_lane(margin=1)`` sorted by (x, index): ``members[L, :cnt[L]]``, x in ``mx``.
+
+    Built once per ``Road.act`` phase (no vehicle moves during it), it answers
+    ``Road.neighbour_vehicles`` by binary search with the same result and tie rules as the scan.
+    """
+    n = F.shape[0]
+    order = np.argsort(F[:, X], kind="mergesort")  # stable: equal x stay in index order
+    for L in range(n_lanes):
+        cnt[L] = 0
+    for r in range(n):
+        k = order[r]
+        x = F[k, X]
+        y = F[k, Y]
+        for L in range(n_lanes):
+            if _on_lane(x, y, L, 1.0, P):
+                c = cnt[L]
+                members[L, c] = k
+                mx[L, c] = x
+                cnt[L] = c + 1
+
+
+@njit(cache=True)
+def _neighbours(F, j, lane, members, mx, cnt):
+    """Road.neighbour_vehicles(vehicle j, lane) from the lane index: (front, rear), -1 for none.
+
+    front: the smallest x >= x_j among the lane's vehicles other than j, the last (highest index) of
+    equal ones; rear: the largest x < x_j, the first (lowest index) of equal ones.
+    """
+    s = F[j, X]
+    c = cnt[lane]
+    lo = 0
+    hi = c
+    while lo < hi:  # first position with mx >= s
+        mid = (lo + hi) // 2
+        if mx[lane, mid] < s:
+            lo = mid + 1
+        else:
+            hi = mid
+    p = lo
+    front = -1
+    q = p
+    while q < c and members[lane, q] == j:
+        q += 1
+    if q < c:
+        xm = mx[lane, q]
+        while q < c and mx[lane, q] == xm:
+            if members[lane, q] != j:
+                front = members[lane, q]
+            q += 1
+    rear = -1
+    if p > 0:
+        q = p - 1
+        xr = mx[lane, q]
+        while q >= 0 and mx[lane, q] == xr:
+            rear = members[lane, q]
+            q -= 1
     return front, rear
 
 
@@ -238,14 +300,14 @@ def _act_ego(F, I, E, ts, action, n_lanes, P):
 
 
 @njit(cache=True)
-def _mobil(F, I, n, j, lane, P):
+def _mobil(F, I, n, j, lane, P, members, mx, cnt):
     delta = F[j, DELTA]
-    new_preceding, new_following = _neighbours(F, n, j, lane, P)
+    new_preceding, new_following = _neighbours(F, j, lane, members, mx, cnt)
     new_following_a = _acceleration(F, new_following, new_preceding, delta, P)
     new_following_pred_a = _acceleration(F, new_following, j, delta, P)
     if new_following_pred_a < -P[P_MAX_BRAKING_IMPOSED]:
         return False
-    old_preceding, old_following = _neighbours(F, n, j, I[j, LANE], P)
+    old_preceding, old_following = _neighbours(F, j, I[j, LANE], members, mx, cnt)
     self_pred_a = _acceleration(F, j, new_preceding, delta, P)
     self_a = _acceleration(F, j, old_preceding, delta, P)
     old_following_a = _acceleration(F, old_following, j, delta, P)
@@ -259,7 +321,7 @@ def _mobil(F, I, n, j, lane, P):
 
 
 @njit(cache=True)
-def _change_lane_policy(F, I, n, j, n_lanes, P):
+def _change_lane_policy(F, I, n, j, n_lanes, P, members, mx, cnt):
     if I[j, LANE] != I[j, TLANE]:
         tl = I[j, TLANE]
         for k in range(n):
@@ -282,24 +344,24 @@ def _change_lane_policy(F, I, n, j, n_lanes, P):
             continue
         if abs(F[j, V]) < 1:
             continue
-        if _mobil(F, I, n, j, cand, P):
+        if _mobil(F, I, n, j, cand, P, members, mx, cnt):
             I[j, TLANE] = cand
 
 
 @njit(cache=True)
-def _act_idm(F, I, n, j, n_lanes, P):
+def _act_idm(F, I, n, j, n_lanes, P, members, mx, cnt):
     """IDMVehicle.act()."""
     if I[j, CRASHED]:
         return
     if I[j, ELC]:
-        _change_lane_policy(F, I, n, j, n_lanes, P)
+        _change_lane_policy(F, I, n, j, n_lanes, P, members, mx, cnt)
     steer = _steering_control(F, j, I[j, TLANE], P)
     F[j, STEER] = _clip(steer, -P[P_MAX_STEERING], P[P_MAX_STEERING])
     delta = F[j, DELTA]
-    front, _rear = _neighbours(F, n, j, I[j, LANE], P)
+    front, _rear = _neighbours(F, j, I[j, LANE], members, mx, cnt)
     acc = _acceleration(F, j, front, delta, P)
     if I[j, LANE] != I[j, TLANE]:
-        front2, _rear2 = _neighbours(F, n, j, I[j, TLANE], P)
+        front2, _rear2 = _neighbours(F, j, I[j, TLANE], members, mx, cnt)
         acc2 = _acceleration(F, j, front2, delta, P)
         if acc2 < acc:
             acc = acc2
@@ -479,6 +541,10 @@ def simulate(F, I, E, ts, P, action, frames, dt, n_lanes, before, after, rec):
     pa = np.empty((5, 2))
     pb = np.empty((5, 2))
     res = np.zeros(2)
+    members = np.empty((n_lanes, n), dtype=np.int64)
+    mx = np.empty((n_lanes, n))
+    cnt = np.zeros(n_lanes, dtype=np.int64)
+    reach = (P[P_DIAGONAL] + P[P_DIAGONAL]) / 2 + (P[P_MAX_SPEED] + 1.0) * dt + 1.0
     for frame in range(frames):
         was_crashed = I[0, CRASHED]
         if rec[0] == 0 and not was_crashed:
@@ -486,17 +552,26 @@ def simulate(F, I, E, ts, P, action, frames, dt, n_lanes, before, after, rec):
                 before[k, 0] = F[k, X]
                 before[k, 1] = F[k, Y]
         # Road.act (the ego's meta-action first, at the decision's first frame)
+        build_lane_index(F, n_lanes, P, members, mx, cnt)
         for k in range(n):
             if I[k, IDM]:
-                _act_idm(F, I, n, k, n_lanes, P)
+                _act_idm(F, I, n, k, n_lanes, P, members, mx, cnt)
             else:
                 _act_ego(F, I, E, ts, action if frame == 0 else -1, n_lanes, P)
         # Road.step
         for k in range(n):
             _step_vehicle(F, I, k, dt, n_lanes, P)
         for i in range(n):
-            for j in range(i + 1, n):
-                _handle_collisions(F, I, i, j, dt, P, pa, pb, res)
+            ci = I[i, CHECK]
+            xi = F[i, X]
+            # |dx| > reach (> the pre-check's radius + |speed|·dt + 1 m) implies the pre-check rejects
+            if abs(F[i, V]) <= P[P_MAX_SPEED] + 1.0:
+                for j in range(i + 1, n):
+                    if (ci or I[j, CHECK]) and abs(F[j, X] - xi) <= reach:
+                        _handle_collisions(F, I, i, j, dt, P, pa, pb, res)
+            else:
+                for j in range(i + 1, n):
+                    _handle_collisions(F, I, i, j, dt, P, pa, pb, res)
         if rec[0] == 0 and not was_crashed and I[0, CRASHED]:
             rec[0] = 1
             for k in range(n):

@@ -1,0 +1,184 @@
+"""Alignment check: step :class:`FastHighwayEnv` and stock highway-env side by side and compare every vehicle.
+
+``compare_episode(config, env_id, seed, actions)`` resets both with ``seed``, compares the scene, then
+after every decision compares each vehicle's position, speed, heading (tolerance ``tol``, in m, m/s, rad),
+lane, target lane and crashed flag, the ego's target speed / speed index, and the terminated / truncated
+flags. It returns an :class:`Alignment` holding the first divergent step (``None``: the whole episode
+matched) and why, plus the largest difference seen and whether everything matched bit for bit.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from safelane.sim.fast import kernels as K
+from safelane.sim.fast.env import FastHighwayEnv
+
+
+@dataclass
+class Alignment:
+    seed: int
+    steps: int
+    """Decisions compared (the episode ends at the oracle's termination / truncation or the actions' end)."""
+    divergent_step: int | None
+    """First decision after which the two differ (0: the reset scene); None: none did."""
+    cause: str | None
+    max_abs_error: float
+    """Largest |difference| of a continuous field over the compared steps."""
+    bitwise: bool
+    """Every continuous field was bit-identical at every compared step."""
+
+    @property
+    def matched(self) -> bool:
+        return self.divergent_step is None
+
+
+def make_oracle(config: dict[str, Any], env_id: str) -> Any:
+    """Stock highway-env, as the project makes it: ``gym.make(env_id, config=config)``."""
+    import gymnasium as gym
+    import highway_env  # noqa: F401  (registers the envs)
+
+    return gym.make(env_id, config=config)
+
+
+def oracle_state(env: Any) -> dict[str, np.ndarray]:
+    """The same fields as :meth:`FastHighwayEnv.state` read from highway-env's ``road.vehicles``."""
+    base = env.unwrapped
+    vs = base.road.vehicles
+    ego = base.vehicle
+    return {
+        "x": np.array([float(v.position[0]) for v in vs]),
+        "y": np.array([float(v.position[1]) for v in vs]),
+        "heading": np.array([float(v.heading) for v in vs]),
+        "speed": np.array([float(v.speed) for v in vs]),
+        "target_speed": np.array([float(v.target_speed) for v in vs]),
+        "lane": np.array([int(v.lane_index[2]) for v in vs]),
+        "target_lane": np.array([int(v.target_lane_index[2]) for v in vs]),
+        "crashed": np.array([bool(v.crashed) for v in vs]),
+        "speed_index": np.array([int(ego.speed_index)]),
+        "is_ego_first": np.array([vs[0] is ego]),
+        "delta": np.array([float(getattr(v, "DELTA", np.nan)) for v in vs[1:]]),
+        "timer": np.array([float(getattr(v, "timer", np.nan)) for v in vs[1:]]),
+    }
+
+
+_CONT = ("x", "y", "heading", "speed", "target_speed")
+_DISC = ("lane", "target_lane", "crashed", "speed_index")
+
+
+def compare_states(fast: dict[str, np.ndarray], ref: dict[str, np.ndarray], tol: float, full: bool = False):
+    """(cause or None, max abs error, bitwise) comparing two state dicts."""
+    if not ref["is_ego_first"][0]:
+        return "highway-env's ego is not road.vehicles[0]", np.inf, False
+    if fast["x"].shape != ref["x"].shape:
+        return f"vehicle count {fast['x'].shape[0]} != {ref['x'].shape[0]}", np.inf, False
+    fields = _CONT + (("delta", "timer") if full else ())
+    err = 0.0
+    bitwise = True
+    cause = None
+    for f in fields:
+        a = fast[f][1:] if f in ("delta", "timer") else fast[f]
+        b = ref[f]
+        d = np.abs(a - b)
+        if d.size:
+            e = float(np.max(d))
+            err = max(err, e)
+            if not np.array_equal(a, b):
+                bitwise = False
+            if cause is None and e > tol:
+                i = int(np.argmax(d))
+                cause = f"{f} of vehicle {i + (1 if f in ('delta', 'timer') else 0)}: {a[i]!r} vs {b[i]!r}"
+    for f in _DISC:
+        a, b = fast[f], ref[f]
+        if cause is None and not np.array_equal(a, b):
+            i = int(np.flatnonzero(a != b)[0])
+            cause = f"{f} of vehicle {i}: {a[i]!r} vs {b[i]!r}"
+    return cause, err, bitwise
+
+
+def compare_episode(
+    config: dict[str, Any],
+    env_id: str,
+    seed: int,
+    actions: Sequence[int],
+    tol: float = 1e-6,
+    oracle: Any = None,
+    fast: FastHighwayEnv | None = None,
+    stop_at_end: bool = True,
+) -> Alignment:
+    """Run ``actions`` from ``reset(seed=seed)`` in both simulators and report the first divergence.
+
+    ``oracle`` / ``fast``: envs to reuse (made from ``config`` / ``env_id`` when None).
+    ``stop_at_end``: stop at the oracle's termination / truncation (False: play every action, which
+    also checks the crashed ego and the traffic after the episode would have ended).
+    """
+    oracle = oracle if oracle is not None else make_oracle(config, env_id)
+    fast = fast if fast is not None else FastHighwayEnv(config, env_id)
+    oracle.reset(seed=seed)
+    fast.reset(seed=seed)
+    cause, err, bitwise = compare_states(fast.state(), oracle_state(oracle), tol, full=True)
+    if cause is not None:
+        return Alignment(seed, 0, 0, "reset: " + cause, err, bitwise)
+    max_err = err
+    steps = 0
+    for t, a in enumerate(actions, start=1):
+        _, _, term_o, trunc_o, info_o = oracle.step(int(a))
+        _, _, term_f, trunc_f, info_f = fast.step(int(a))
+        steps = t
+        cause, err, bw = compare_states(fast.state(), oracle_state(oracle), tol)
+        max_err = max(max_err, err)
+        bitwise = bitwise and bw
+        if cause is None and (bool(term_o), bool(trunc_o)) != (term_f, trunc_f):
+            cause = f"terminated/truncated {(term_f, trunc_f)} vs {(bool(term_o), bool(trunc_o))}"
+        if cause is None and abs(info_f["speed"] - float(info_o["speed"])) > tol:
+            cause = "info speed"
+        if cause is not None:
+            return Alignment(seed, steps, t, cause, max_err, bitwise)
+        if stop_at_end and (term_o or trunc_o):
+            break
+    return Alignment(seed, steps, None, None, max_err, bitwise)
+
+
+def random_actions(seed: int, n: int = 40) -> list[int]:
+    """Uniform random meta-actions (reproducible from ``seed``)."""
+    return [int(a) for a in np.random.default_rng(10_000 + seed).integers(0, 5, size=n)]
+
+
+POLICIES = ("random", "faster", "idle", "slower", "weave", "cautious")
+
+
+def policy_actions(policy: str, seed: int, n: int = 40) -> list[int]:
+    """Action sequences for the checks: ``random``; always ``faster``; always ``idle``; ``slower``
+    (SLOWER to a standstill, then IDLE); ``weave`` (LEFT, IDLE, RIGHT, IDLE ...); ``cautious`` (random,
+    mostly IDLE / SLOWER)."""
+    rng = np.random.default_rng(20_000 + seed)
+    if policy == "random":
+        return random_actions(seed, n)
+    if policy == "faster":
+        return [3] * n
+    if policy == "idle":
+        return [1] * n
+    if policy == "slower":
+        return [4] * 8 + [1] * (n - 8)
+    if policy == "weave":
+        return [(0, 1, 2, 1)[i % 4] for i in range(n)]
+    if policy == "cautious":
+        return [int(a) for a in rng.choice(5, size=n, p=[0.1, 0.45, 0.1, 0.1, 0.25])]
+    raise ValueError(f"policy: {policy!r} is not supported; allowed: {', '.join(POLICIES)}")
+
+
+__all__ = [
+    "POLICIES",
+    "Alignment",
+    "compare_episode",
+    "compare_states",
+    "make_oracle",
+    "oracle_state",
+    "policy_actions",
+    "random_actions",
+]
+_ = K  # kernels' column names are used by FastHighwayEnv.state()

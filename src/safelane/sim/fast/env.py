@@ -1,0 +1,208 @@
+"""``FastHighwayEnv``: highway-env's ``highway-v0`` / ``highway-fast-v0`` on arrays, one numba call a decision.
+
+Reward: highway-env's reward is not reproduced; :meth:`FastHighwayEnv.step` returns ``0.0`` (safelane
+computes its own reward from ``info["snapshot"]``). Observation: a placeholder ``zeros((2,), float32)``
+(safelane builds its observations from the snapshot as well).
+
+Everything else follows highway-env: ``reset(seed)`` builds the same scene from the same random draws
+(:mod:`safelane.sim.fast.scene`), ``step(action)`` runs ``int(simulation_frequency // policy_frequency)``
+frames exactly as ``AbstractEnv._simulate`` (:func:`safelane.sim.fast.kernels.simulate`), ``time``
+advances by ``1 / policy_frequency`` a step, ``terminated`` = ego crashed (or off-road when
+``offroad_terminal``), ``truncated`` = ``time >= duration``.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+from gymnasium import spaces
+from highway_env.vehicle.behavior import IDMVehicle
+from highway_env.vehicle.controller import ControlledVehicle
+
+from safelane.core.snapshot import RoadSnapshot
+from safelane.sim.fast import kernels as K
+from safelane.sim.fast.scene import SPEED_LIMIT, build_scene, make_rng, params, resolve_config
+
+ACTIONS = {0: "LANE_LEFT", 1: "IDLE", 2: "LANE_RIGHT", 3: "FASTER", 4: "SLOWER"}
+
+
+class FastHighwayEnv:
+    """A gymnasium-style env reproducing highway-env's straight highway (see the module docstring).
+
+    ``state()`` gives every vehicle's arrays (row 0: the ego, then highway-env's ``road.vehicles`` order).
+    """
+
+    metadata: dict[str, Any] = {"render_modes": []}
+
+    def __init__(self, config: dict[str, Any] | None = None, env_id: str = "highway-fast-v0") -> None:
+        self.env_id = env_id
+        self.sim = resolve_config(config, env_id)
+        self.config = self.sim.config
+        self.action_space = spaces.Discrete(5)
+        self.observation_space = spaces.Box(-np.inf, np.inf, shape=(2,), dtype=np.float32)
+        self.P = params()
+        self._rng: np.random.Generator | None = None
+        self._obs = np.zeros(2, dtype=np.float32)
+        n = 1 + self.sim.vehicles_count
+        self._before = np.zeros((n, 2))
+        self._after = np.zeros((n, 2))
+        self._rec = np.zeros(1, dtype=np.int64)
+        self._static_cache()
+        self.time = 0.0
+        self.steps = 0
+
+    # --- static per-body arrays, built once -------------------------------------------------------
+    def _static_cache(self) -> None:
+        n = 1 + self.sim.vehicles_count
+        from highway_env.vehicle.kinematics import Vehicle
+
+        self._length = np.full(n, float(Vehicle.LENGTH))
+        self._width = np.full(n, float(Vehicle.WIDTH))
+        self._is_vehicle = np.ones(n, dtype=bool)
+        idm = np.ones(n, dtype=bool)
+        idm[0] = False
+        self._can_change_lane = idm.copy()
+        acc_max = float(IDMVehicle.ACC_MAX)
+        self._brake_max = np.full(n, acc_max)
+        self._accel_max = np.where(idm, float(IDMVehicle.COMFORT_ACC_MAX), acc_max)
+        self._comfort_acc = np.full(n, float(IDMVehicle.COMFORT_ACC_MAX))
+        self._comfort_dec = np.full(n, float(IDMVehicle.COMFORT_ACC_MIN))
+        self._distance_wanted = np.full(n, float(IDMVehicle.DISTANCE_WANTED))
+        self._time_wanted = np.full(n, float(IDMVehicle.TIME_WANTED))
+        self._max_braking = np.where(idm, float(IDMVehicle.LANE_CHANGE_MAX_BRAKING_IMPOSED), np.inf)
+        for a in (
+            self._length,
+            self._width,
+            self._is_vehicle,
+            self._can_change_lane,
+            self._brake_max,
+            self._accel_max,
+            self._comfort_acc,
+            self._comfort_dec,
+            self._distance_wanted,
+            self._time_wanted,
+            self._max_braking,
+        ):
+            a.flags.writeable = False
+        self._origin = np.zeros(2)
+        self._direction = np.array([1.0, 0.0])
+        self._lateral = np.array([0.0, 1.0])
+        self._ts_tuple = tuple(float(s) for s in self.sim.target_speeds)
+        self._delta: np.ndarray | None = None
+
+    # --- gymnasium API -----------------------------------------------------------------------------
+    @property
+    def np_random(self) -> np.random.Generator:
+        if self._rng is None:
+            self._rng = make_rng(None)
+        return self._rng
+
+    def reset(self, *, seed: int | None = None, options: dict | None = None) -> tuple[np.ndarray, dict]:
+        if options:
+            raise ValueError("reset(options=...) is not supported by the fast simulator")
+        if seed is not None:
+            self._rng = make_rng(seed)
+        self.F, self.I, self.E = build_scene(self.np_random, self.sim, self.P)
+        self.time = 0.0
+        self.steps = 0
+        self._rec[0] = 0
+        self._delta = self.F[:, K.DELTA].copy()
+        self._delta.flags.writeable = False
+        return self._obs.copy(), self._info()
+
+    def step(self, action: int) -> tuple[np.ndarray, float, bool, bool, dict]:
+        a = int(action)
+        if not 0 <= a < 5:
+            raise ValueError(f"action {action!r} not in Discrete(5)")
+        sc = self.sim
+        self.time += 1 / sc.policy_frequency
+        K.simulate(
+            self.F, self.I, self.E, sc.target_speeds, self.P, a, sc.frames, sc.dt, sc.lanes_count,
+            self._before, self._after, self._rec,
+        )  # fmt: skip
+        self.steps += sc.frames
+        terminated = bool(self.I[0, K.CRASHED]) or (sc.offroad_terminal and not self.on_road)
+        truncated = bool(self.time >= sc.duration)
+        return self._obs.copy(), 0.0, terminated, truncated, self._info()
+
+    def close(self) -> None:
+        pass
+
+    @property
+    def unwrapped(self) -> FastHighwayEnv:
+        return self
+
+    # --- state ---------------------------------------------------------------------------------------
+    @property
+    def on_road(self) -> bool:
+        """``ego.on_road``: on its (closest) lane, no margin."""
+        lane = int(self.I[0, K.LANE])
+        return bool(K._on_lane(self.F[0, K.X], self.F[0, K.Y], lane, 0.0, self.P))
+
+    def state(self) -> dict[str, np.ndarray]:
+        """Copies of every vehicle's state (row 0: the ego)."""
+        F, I = self.F, self.I
+        return {
+            "x": F[:, K.X].copy(),
+            "y": F[:, K.Y].copy(),
+            "heading": F[:, K.H].copy(),
+            "speed": F[:, K.V].copy(),
+            "target_speed": F[:, K.TSPD].copy(),
+            "delta": F[:, K.DELTA].copy(),
+            "timer": F[:, K.TIMER].copy(),
+            "lane": I[:, K.LANE].copy(),
+            "target_lane": I[:, K.TLANE].copy(),
+            "crashed": I[:, K.CRASHED].astype(bool),
+            "speed_index": self.E.copy(),
+        }
+
+    def _info(self) -> dict[str, Any]:
+        return {
+            "speed": float(self.F[0, K.V]),
+            "crashed": bool(self.I[0, K.CRASHED]),
+            "snapshot": self.snapshot(),
+        }
+
+    def snapshot(self) -> RoadSnapshot:
+        F, I, sc = self.F, self.I, self.sim
+        lane_w = float(self.P[K.P_LANE_WIDTH])
+        ego_lane = int(I[0, K.LANE])
+        crashed_once = bool(self._rec[0])
+        return RoadSnapshot(
+            time=float(self.time),
+            policy_frequency=float(sc.policy_frequency),
+            simulation_frequency=float(sc.simulation_frequency),
+            lanes_count=sc.lanes_count,
+            lane_width=lane_w,
+            lane_origin=self._origin,
+            lane_direction=self._direction,
+            lane_lateral=self._lateral,
+            speed_limit=float(SPEED_LIMIT),
+            ego=0,
+            ego_target_speed=float(F[0, K.TSPD]),
+            ego_speed_index=int(self.E[0]),
+            ego_target_speeds=self._ts_tuple,
+            ego_kp=float(ControlledVehicle.KP_A),
+            ego_lane_offset=float(F[0, K.Y] - ego_lane * lane_w),
+            position=F[:, K.X : K.Y + 1].copy(),
+            speed=F[:, K.V].copy(),
+            heading=F[:, K.H].copy(),
+            lane=I[:, K.LANE].copy(),
+            target_lane=I[:, K.TLANE].copy(),
+            length=self._length,
+            width=self._width,
+            crashed=I[:, K.CRASHED].astype(bool),
+            is_vehicle=self._is_vehicle,
+            brake_max=self._brake_max,
+            accel_max=self._accel_max,
+            can_change_lane=self._can_change_lane,
+            idm_delta=self._delta,
+            idm_comfort_acc=self._comfort_acc,
+            idm_comfort_dec=self._comfort_dec,
+            idm_distance_wanted=self._distance_wanted,
+            idm_time_wanted=self._time_wanted,
+            max_braking_imposed=self._max_braking,
+            impact_before=self._before.copy() if crashed_once else None,
+            impact_after=self._after.copy() if crashed_once else None,
+        )

@@ -1,0 +1,579 @@
+"""Numba kernels: one whole decision (``frames`` physics frames) of highway-env's straight highway.
+
+Every function mirrors one highway-env method, operation by operation and in the same order, so that
+the IEEE-754 arithmetic (no fastmath) gives the same bits as highway-env's numpy scalars:
+
+* ``Road.act``   -> :func:`_act_ego` / :func:`_act_idm` for every vehicle, in ``road.vehicles`` order
+  (vehicle ``k`` sees the target lanes the vehicles before it chose in the same pass);
+* ``Road.step``  -> :func:`_step_vehicle` for every vehicle, then the pairwise collision checks
+  (:func:`_handle_collisions`, ``i < j``, skipped when neither vehicle checks collisions).
+
+The road is ``RoadNetwork.straight_road_network``: lane ``i`` runs from ``(0, i·w)`` to ``(L, i·w)``
+with direction exactly ``(1, 0)``, so highway-env's ``local_coordinates`` are exactly
+``(x, y - i·w)`` and every lane's heading is ``0.0``.
+
+State layout (``ego`` is row 0, the others follow in highway-env's order):
+
+``F[n, NF]`` float64 columns X, Y, H (heading), V (speed), TSPD (target speed), DELTA (IDM exponent),
+TIMER (MOBIL timer), IMPX, IMPY (pending impact), STEER, ACC (last action).
+``I[n, NI]`` int64 columns LANE, TLANE (target lane), CRASHED, HASIMP (impact pending), CHECK
+(check_collisions), ELC (enable_lane_change), IDM (1: IDM driver, 0: the ego MDPVehicle).
+``E`` int64 (1,): the ego's speed index.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+# float columns
+X, Y, H, V, TSPD, DELTA, TIMER, IMPX, IMPY, STEER, ACC = range(11)
+NF = 11
+# int columns
+LANE, TLANE, CRASHED, HASIMP, CHECK, ELC, IDM = range(7)
+NI = 7
+
+# Parameter vector P (float64), filled by the env from highway-env's class constants.
+(
+    P_LANE_WIDTH,
+    P_LANE_LENGTH,
+    P_VEHICLE_LENGTH_LANE,  # AbstractLane.VEHICLE_LENGTH (on_lane / is_reachable_from margins)
+    P_SPEED_LIMIT,
+    P_LENGTH,  # Vehicle.LENGTH
+    P_WIDTH,  # Vehicle.WIDTH
+    P_DIAGONAL,
+    P_MAX_SPEED,
+    P_MIN_SPEED,
+    P_TAU_PURSUIT,
+    P_KP_A,
+    P_KP_HEADING,
+    P_KP_LATERAL,
+    P_MAX_STEERING,
+    P_ACC_MAX,
+    P_COMFORT_ACC_MAX,
+    P_COMFORT_ACC_MIN,
+    P_DISTANCE_WANTED,
+    P_TIME_WANTED,
+    P_POLITENESS,
+    P_MIN_ACC_GAIN,
+    P_MAX_BRAKING_IMPOSED,
+    P_LANE_CHANGE_DELAY,
+) = range(23)
+NP = 23
+
+# Ego meta-actions (DiscreteMetaAction.ACTIONS_ALL)
+LANE_LEFT, IDLE, LANE_RIGHT, FASTER, SLOWER = 0, 1, 2, 3, 4
+
+
+@njit(cache=True)
+def _not_zero(x, eps=1e-2):
+    if abs(x) > eps:
+        return x
+    elif x >= 0:
+        return eps
+    else:
+        return -eps
+
+
+@njit(cache=True)
+def _wrap_to_pi(x):
+    # ((x + pi) % (2 pi)) - pi with Python/numpy floor-mod semantics
+    return ((x + np.pi) % (2 * np.pi)) - np.pi
+
+
+@njit(cache=True)
+def _clip(x, lo, hi):
+    if x < lo:
+        return lo
+    if x > hi:
+        return hi
+    return x
+
+
+@njit(cache=True)
+def closest_lane(x, y, heading, n_lanes, P):
+    """RoadNetwork.get_closest_lane_index: argmin of StraightLane.distance_with_heading (first minimum)."""
+    length = P[P_LANE_LENGTH]
+    w = P[P_LANE_WIDTH]
+    best = 0
+    best_d = 0.0
+    angle = abs(_wrap_to_pi(heading - 0.0))
+    for i in range(n_lanes):
+        s = x
+        r = y - i * w
+        a = s - length
+        if not (a > 0.0):
+            a = 0.0
+        b = 0.0 - s
+        if not (b > 0.0):
+            b = 0.0
+        d = abs(r) + a + b + 1.0 * angle
+        if i == 0 or d < best_d:
+            best_d = d
+            best = i
+    return best
+
+
+@njit(cache=True)
+def _on_lane(x, y, lane, margin, P):
+    lat = y - lane * P[P_LANE_WIDTH]
+    return (abs(lat) <= P[P_LANE_WIDTH] / 2 + margin) and (
+        -P[P_VEHICLE_LENGTH_LANE] <= x < P[P_LANE_LENGTH] + P[P_VEHICLE_LENGTH_LANE]
+    )
+
+
+@njit(cache=True)
+def _is_reachable(x, y, lane, P):
+    lat = y - lane * P[P_LANE_WIDTH]
+    return (abs(lat) <= 2 * P[P_LANE_WIDTH]) and (0 <= x < P[P_LANE_LENGTH] + P[P_VEHICLE_LENGTH_LANE])
+
+
+@njit(cache=True)
+def _neighbours_scan(F, n, j, lane, P):
+    """Road.neighbour_vehicles(vehicle j, lane), literally: (front, rear) indices, -1 for none.
+
+    Ties: the last of equal leaders (``s_v <= s_front``), the first of equal followers (``s_v > s_rear``).
+    (Reference implementation; the kernels use the equivalent :func:`_neighbours` on the lane index.)
+    """
+    s = F[j, X]
+    front = -1
+    rear = -1
+    s_front = 0.0
+    s_rear = 0.0
+    for k in range(n):
+        if k == j:
+            continue
+        s_v = F[k, X]
+        if not _on_lane(s_v, F[k, Y], lane, 1.0, P):
+            continue
+        if s <= s_v and (front < 0 or s_v <= s_front):
+            s_front = s_v
+            front = k
+        if s_v < s and (rear < 0 or s_v > s_rear):
+            s_rear = s_v
+            rear = k
+    return front, rear
+
+
+@njit(cache=True)
+def build_lane_index(F, n_lanes, P, members, mx, cnt):
+    """Per lane, the vehicles ``on_lane(margin=1)`` sorted by (x, index): ``members[L, :cnt[L]]``, x in ``mx``.
+
+    Built once per ``Road.act`` phase (no vehicle moves during it), it answers
+    ``Road.neighbour_vehicles`` by binary search with the same result and tie rules as the scan.
+    """
+    n = F.shape[0]
+    order = np.argsort(F[:, X], kind="mergesort")  # stable: equal x stay in index order
+    for L in range(n_lanes):
+        cnt[L] = 0
+    for r in range(n):
+        k = order[r]
+        x = F[k, X]
+        y = F[k, Y]
+        for L in range(n_lanes):
+            if _on_lane(x, y, L, 1.0, P):
+                c = cnt[L]
+                members[L, c] = k
+                mx[L, c] = x
+                cnt[L] = c + 1
+
+
+@njit(cache=True)
+def _neighbours(F, j, lane, members, mx, cnt):
+    """Road.neighbour_vehicles(vehicle j, lane) from the lane index: (front, rear), -1 for none.
+
+    front: the smallest x >= x_j among the lane's vehicles other than j, the last (highest index) of
+    equal ones; rear: the largest x < x_j, the first (lowest index) of equal ones.
+    """
+    s = F[j, X]
+    c = cnt[lane]
+    lo = 0
+    hi = c
+    while lo < hi:  # first position with mx >= s
+        mid = (lo + hi) // 2
+        if mx[lane, mid] < s:
+            lo = mid + 1
+        else:
+            hi = mid
+    p = lo
+    front = -1
+    q = p
+    while q < c and members[lane, q] == j:
+        q += 1
+    if q < c:
+        xm = mx[lane, q]
+        while q < c and mx[lane, q] == xm:
+            if members[lane, q] != j:
+                front = members[lane, q]
+            q += 1
+    rear = -1
+    if p > 0:
+        q = p - 1
+        xr = mx[lane, q]
+        while q >= 0 and mx[lane, q] == xr:
+            rear = members[lane, q]
+            q -= 1
+    return front, rear
+
+
+@njit(cache=True)
+def _desired_gap(F, j, k, P):
+    """IDMVehicle.desired_gap(ego_vehicle=j, front_vehicle=k), projected."""
+    d0 = P[P_DISTANCE_WANTED]
+    tau = P[P_TIME_WANTED]
+    ab = -P[P_COMFORT_ACC_MAX] * P[P_COMFORT_ACC_MIN]
+    cj = math.cos(F[j, H])
+    sj = math.sin(F[j, H])
+    ck = math.cos(F[k, H])
+    sk = math.sin(F[k, H])
+    vjx = F[j, V] * cj
+    vjy = F[j, V] * sj
+    vkx = F[k, V] * ck
+    vky = F[k, V] * sk
+    dv = (vjx - vkx) * cj + (vjy - vky) * sj
+    return d0 + F[j, V] * tau + F[j, V] * dv / (2 * math.sqrt(ab))
+
+
+@njit(cache=True)
+def _acceleration(F, j, k, delta, P):
+    """IDMVehicle.acceleration(ego_vehicle=j, front_vehicle=k) with the *caller's* DELTA; j < 0: 0."""
+    if j < 0:
+        return 0.0
+    tgt = _clip(F[j, TSPD], 0.0, P[P_SPEED_LIMIT])
+    sp = F[j, V]
+    if not (sp > 0.0):
+        sp = 0.0
+    acc = P[P_COMFORT_ACC_MAX] * (1 - math.pow(sp / abs(_not_zero(tgt)), delta))
+    if k >= 0:
+        d = F[k, X] - F[j, X]
+        acc -= P[P_COMFORT_ACC_MAX] * math.pow(_desired_gap(F, j, k, P) / _not_zero(d), 2.0)
+    return acc
+
+
+@njit(cache=True)
+def _steering_control(F, j, target_lane, P):
+    """ControlledVehicle.steering_control on a straight lane (heading 0)."""
+    lat = F[j, Y] - target_lane * P[P_LANE_WIDTH]
+    sp = F[j, V]
+    lane_future_heading = 0.0
+    lateral_speed_command = -P[P_KP_LATERAL] * lat
+    heading_command = math.asin(_clip(lateral_speed_command / _not_zero(sp), -1.0, 1.0))
+    heading_ref = lane_future_heading + _clip(heading_command, -np.pi / 4, np.pi / 4)
+    heading_rate_command = P[P_KP_HEADING] * _wrap_to_pi(heading_ref - F[j, H])
+    slip_angle = math.asin(_clip(P[P_LENGTH] / 2 / _not_zero(sp) * heading_rate_command, -1.0, 1.0))
+    steering_angle = math.atan(2 * math.tan(slip_angle))
+    return _clip(steering_angle, -P[P_MAX_STEERING], P[P_MAX_STEERING])
+
+
+@njit(cache=True)
+def _speed_to_index(speed, ts):
+    m = ts.size
+    x = (speed - ts[0]) / (ts[m - 1] - ts[0])
+    r = np.rint(x * (m - 1))
+    return int(_clip(r, 0.0, float(m - 1)))
+
+
+@njit(cache=True)
+def _act_ego(F, I, E, ts, action, n_lanes, P):
+    """MDPVehicle.act(action) (action < 0: act(None)), then ControlledVehicle's controllers."""
+    if action == FASTER or action == SLOWER:
+        si = _speed_to_index(F[0, V], ts) + (1 if action == FASTER else -1)
+        if si < 0:
+            si = 0
+        if si > ts.size - 1:
+            si = ts.size - 1
+        E[0] = si
+        F[0, TSPD] = ts[si]
+    elif action == LANE_RIGHT or action == LANE_LEFT:
+        cand = I[0, TLANE] + (1 if action == LANE_RIGHT else -1)
+        if cand < 0:
+            cand = 0
+        if cand > n_lanes - 1:
+            cand = n_lanes - 1
+        if _is_reachable(F[0, X], F[0, Y], cand, P):
+            I[0, TLANE] = cand
+    steer = _steering_control(F, 0, I[0, TLANE], P)
+    F[0, STEER] = _clip(steer, -P[P_MAX_STEERING], P[P_MAX_STEERING])
+    F[0, ACC] = P[P_KP_A] * (F[0, TSPD] - F[0, V])
+
+
+@njit(cache=True)
+def _mobil(F, I, n, j, lane, P, members, mx, cnt):
+    delta = F[j, DELTA]
+    new_preceding, new_following = _neighbours(F, j, lane, members, mx, cnt)
+    new_following_a = _acceleration(F, new_following, new_preceding, delta, P)
+    new_following_pred_a = _acceleration(F, new_following, j, delta, P)
+    if new_following_pred_a < -P[P_MAX_BRAKING_IMPOSED]:
+        return False
+    old_preceding, old_following = _neighbours(F, j, I[j, LANE], members, mx, cnt)
+    self_pred_a = _acceleration(F, j, new_preceding, delta, P)
+    self_a = _acceleration(F, j, old_preceding, delta, P)
+    old_following_a = _acceleration(F, old_following, j, delta, P)
+    old_following_pred_a = _acceleration(F, old_following, old_preceding, delta, P)
+    jerk = self_pred_a - self_a + P[P_POLITENESS] * (
+        new_following_pred_a - new_following_a + old_following_pred_a - old_following_a
+    )
+    if jerk < P[P_MIN_ACC_GAIN]:
+        return False
+    return True
+
+
+@njit(cache=True)
+def _change_lane_policy(F, I, n, j, n_lanes, P, members, mx, cnt):
+    if I[j, LANE] != I[j, TLANE]:
+        tl = I[j, TLANE]
+        for k in range(n):
+            if k != j and I[k, LANE] != tl and I[k, TLANE] == tl:
+                d = F[k, X] - F[j, X]
+                d_star = _desired_gap(F, j, k, P)
+                if 0 < d < d_star:
+                    I[j, TLANE] = I[j, LANE]
+                    break
+        return
+    if not (P[P_LANE_CHANGE_DELAY] < F[j, TIMER]):
+        return
+    F[j, TIMER] = 0.0
+    lane = I[j, LANE]
+    for side in range(2):
+        cand = lane - 1 if side == 0 else lane + 1
+        if cand < 0 or cand > n_lanes - 1:
+            continue
+        if not _is_reachable(F[j, X], F[j, Y], cand, P):
+            continue
+        if abs(F[j, V]) < 1:
+            continue
+        if _mobil(F, I, n, j, cand, P, members, mx, cnt):
+            I[j, TLANE] = cand
+
+
+@njit(cache=True)
+def _act_idm(F, I, n, j, n_lanes, P, members, mx, cnt):
+    """IDMVehicle.act()."""
+    if I[j, CRASHED]:
+        return
+    if I[j, ELC]:
+        _change_lane_policy(F, I, n, j, n_lanes, P, members, mx, cnt)
+    steer = _steering_control(F, j, I[j, TLANE], P)
+    F[j, STEER] = _clip(steer, -P[P_MAX_STEERING], P[P_MAX_STEERING])
+    delta = F[j, DELTA]
+    front, _rear = _neighbours(F, j, I[j, LANE], members, mx, cnt)
+    acc = _acceleration(F, j, front, delta, P)
+    if I[j, LANE] != I[j, TLANE]:
+        front2, _rear2 = _neighbours(F, j, I[j, TLANE], members, mx, cnt)
+        acc2 = _acceleration(F, j, front2, delta, P)
+        if acc2 < acc:
+            acc = acc2
+    F[j, ACC] = _clip(acc, -P[P_ACC_MAX], P[P_ACC_MAX])
+
+
+@njit(cache=True)
+def _step_vehicle(F, I, j, dt, n_lanes, P):
+    """(IDMVehicle timer +) Vehicle.step(dt): clip_actions, bicycle model, impact, lane update."""
+    if I[j, IDM]:
+        F[j, TIMER] += dt
+    # clip_actions
+    if I[j, CRASHED]:
+        F[j, STEER] = 0.0
+        F[j, ACC] = -1.0 * F[j, V]
+    sp = F[j, V]
+    if sp > P[P_MAX_SPEED]:
+        lim = 1.0 * (P[P_MAX_SPEED] - sp)
+        if lim < F[j, ACC]:
+            F[j, ACC] = lim
+    elif sp < P[P_MIN_SPEED]:
+        lim = 1.0 * (P[P_MIN_SPEED] - sp)
+        if lim > F[j, ACC]:
+            F[j, ACC] = lim
+    delta_f = F[j, STEER]
+    beta = math.atan(1 / 2 * math.tan(delta_f))
+    vx = sp * math.cos(F[j, H] + beta)
+    vy = sp * math.sin(F[j, H] + beta)
+    F[j, X] += vx * dt
+    F[j, Y] += vy * dt
+    if I[j, HASIMP]:
+        F[j, X] += F[j, IMPX]
+        F[j, Y] += F[j, IMPY]
+        I[j, CRASHED] = 1
+        I[j, HASIMP] = 0
+    F[j, H] += sp * math.sin(beta) / (P[P_LENGTH] / 2) * dt
+    F[j, V] += F[j, ACC] * dt
+    I[j, LANE] = closest_lane(F[j, X], F[j, Y], F[j, H], n_lanes, P)
+
+
+@njit(cache=True)
+def _polygon(F, j, P, out):
+    """RoadObject.polygon(): 4 corners + the first again, rotated then translated."""
+    hl = P[P_LENGTH] / 2
+    hw = P[P_WIDTH] / 2
+    c = math.cos(F[j, H])
+    s = math.sin(F[j, H])
+    px0 = -hl
+    py0 = -hw
+    px1 = -hl
+    py1 = +hw
+    px2 = +hl
+    py2 = +hw
+    px3 = +hl
+    py3 = -hw
+    out[0, 0] = c * px0 + (-s) * py0 + F[j, X]
+    out[0, 1] = s * px0 + c * py0 + F[j, Y]
+    out[1, 0] = c * px1 + (-s) * py1 + F[j, X]
+    out[1, 1] = s * px1 + c * py1 + F[j, Y]
+    out[2, 0] = c * px2 + (-s) * py2 + F[j, X]
+    out[2, 1] = s * px2 + c * py2 + F[j, Y]
+    out[3, 0] = c * px3 + (-s) * py3 + F[j, X]
+    out[3, 1] = s * px3 + c * py3 + F[j, Y]
+    out[4, 0] = out[0, 0]
+    out[4, 1] = out[0, 1]
+
+
+@njit(cache=True)
+def _interval_distance(min_a, max_a, min_b, max_b):
+    return min_b - max_a if min_a < min_b else min_a - max_b
+
+
+@njit(cache=True)
+def _project(poly, nx, ny):
+    mn = poly[0, 0] * nx + poly[0, 1] * ny
+    mx = mn
+    for p in range(1, 5):
+        v = poly[p, 0] * nx + poly[p, 1] * ny
+        if v < mn:
+            mn = v
+        if v > mx:
+            mx = v
+    return mn, mx
+
+
+@njit(cache=True)
+def _polygons_intersecting(a, b, dax, day, dbx, dby, res):
+    """utils.are_polygons_intersecting; res = (translation_x, translation_y). Returns (intersecting, will)."""
+    intersecting = True
+    will_intersect = True
+    min_distance = np.inf
+    tax = 0.0
+    tay = 0.0
+    done = False
+    for which in range(2):
+        poly = a if which == 0 else b
+        for e in range(4):
+            nx = -poly[e + 1, 1] + poly[e, 1]
+            ny = poly[e + 1, 0] - poly[e, 0]
+            nrm = math.sqrt(nx * nx + ny * ny)
+            nx /= nrm
+            ny /= nrm
+            min_a, max_a = _project(a, nx, ny)
+            min_b, max_b = _project(b, nx, ny)
+            if _interval_distance(min_a, max_a, min_b, max_b) > 0:
+                intersecting = False
+            velocity_projection = nx * (dax - dbx) + ny * (day - dby)
+            if velocity_projection < 0:
+                min_a += velocity_projection
+            else:
+                max_a += velocity_projection
+            distance = _interval_distance(min_a, max_a, min_b, max_b)
+            if distance > 0:
+                will_intersect = False
+            if not intersecting and not will_intersect:
+                done = True
+                break
+            if abs(distance) < min_distance:
+                min_distance = abs(distance)
+                # center difference: mean of the 4 corners (numpy adds rows in order), then / 4
+                cax = ((a[0, 0] + a[1, 0]) + a[2, 0]) + a[3, 0]
+                cay = ((a[0, 1] + a[1, 1]) + a[2, 1]) + a[3, 1]
+                cbx = ((b[0, 0] + b[1, 0]) + b[2, 0]) + b[3, 0]
+                cby = ((b[0, 1] + b[1, 1]) + b[2, 1]) + b[3, 1]
+                dx = cax / 4 - cbx / 4
+                dy = cay / 4 - cby / 4
+                if dx * nx + dy * ny > 0:
+                    tax = nx
+                    tay = ny
+                else:
+                    tax = -nx
+                    tay = -ny
+        if done:
+            break
+    if will_intersect:
+        res[0] = min_distance * tax
+        res[1] = min_distance * tay
+    return intersecting, will_intersect
+
+
+@njit(cache=True)
+def _handle_collisions(F, I, i, j, dt, P, pa, pb, res):
+    """RoadObject.handle_collisions(self=i, other=j, dt) between two solid vehicles."""
+    if not (I[i, CHECK] or I[j, CHECK]):
+        return
+    dx = F[j, X] - F[i, X]
+    dy = F[j, Y] - F[i, Y]
+    if math.sqrt(dx * dx + dy * dy) > (P[P_DIAGONAL] + P[P_DIAGONAL]) / 2 + F[i, V] * dt:
+        return
+    _polygon(F, i, P, pa)
+    _polygon(F, j, P, pb)
+    dax = F[i, V] * math.cos(F[i, H]) * dt
+    day = F[i, V] * math.sin(F[i, H]) * dt
+    dbx = F[j, V] * math.cos(F[j, H]) * dt
+    dby = F[j, V] * math.sin(F[j, H]) * dt
+    intersecting, will = _polygons_intersecting(pa, pb, dax, day, dbx, dby, res)
+    if will:
+        F[i, IMPX] = res[0] / 2
+        F[i, IMPY] = res[1] / 2
+        I[i, HASIMP] = 1
+        F[j, IMPX] = -res[0] / 2
+        F[j, IMPY] = -res[1] / 2
+        I[j, HASIMP] = 1
+    if intersecting:
+        I[i, CRASHED] = 1
+        I[j, CRASHED] = 1
+
+
+@njit(cache=True)
+def simulate(F, I, E, ts, P, action, frames, dt, n_lanes, before, after, rec):
+    """AbstractEnv._simulate(action): ``frames`` x (act [+ the meta-action at frame 0], step, collisions).
+
+    ``rec[0]`` is set to 1 (and ``before``/``after`` filled with the positions at the start and end of
+    that frame) in the frame in which the ego first becomes crashed, if ``rec[0]`` was 0.
+    """
+    n = F.shape[0]
+    pa = np.empty((5, 2))
+    pb = np.empty((5, 2))
+    res = np.zeros(2)
+    members = np.empty((n_lanes, n), dtype=np.int64)
+    mx = np.empty((n_lanes, n))
+    cnt = np.zeros(n_lanes, dtype=np.int64)
+    reach = (P[P_DIAGONAL] + P[P_DIAGONAL]) / 2 + (P[P_MAX_SPEED] + 1.0) * dt + 1.0
+    for frame in range(frames):
+        was_crashed = I[0, CRASHED]
+        if rec[0] == 0 and not was_crashed:
+            for k in range(n):
+                before[k, 0] = F[k, X]
+                before[k, 1] = F[k, Y]
+        # Road.act (the ego's meta-action first, at the decision's first frame)
+        build_lane_index(F, n_lanes, P, members, mx, cnt)
+        for k in range(n):
+            if I[k, IDM]:
+                _act_idm(F, I, n, k, n_lanes, P, members, mx, cnt)
+            else:
+                _act_ego(F, I, E, ts, action if frame == 0 else -1, n_lanes, P)
+        # Road.step
+        for k in range(n):
+            _step_vehicle(F, I, k, dt, n_lanes, P)
+        for i in range(n):
+            ci = I[i, CHECK]
+            xi = F[i, X]
+            # |dx| > reach (> the pre-check's radius + |speed|·dt + 1 m) implies the pre-check rejects
+            if abs(F[i, V]) <= P[P_MAX_SPEED] + 1.0:
+                for j in range(i + 1, n):
+                    if (ci or I[j, CHECK]) and abs(F[j, X] - xi) <= reach:
+                        _handle_collisions(F, I, i, j, dt, P, pa, pb, res)
+            else:
+                for j in range(i + 1, n):
+                    _handle_collisions(F, I, i, j, dt, P, pa, pb, res)
+        if rec[0] == 0 and not was_crashed and I[0, CRASHED]:
+            rec[0] = 1
+            for k in range(n):
+                after[k, 0] = F[k, X]
+                after[k, 1] = F[k, Y]

@@ -1,0 +1,286 @@
+"""Configuration and reset: highway-env's ``HighwayEnv._create_vehicles`` replayed draw for draw.
+
+The scene is built in Python from the same ``numpy.random.Generator`` highway-env uses
+(``gymnasium.utils.seeding.np_random(seed)``, the env's ``np_random``, which ``HighwayEnv._create_road``
+hands to the ``Road``), making the same calls in the same order with the same arguments:
+
+* ego: ``Vehicle.create_random(road, speed=25, lane_id=initial_lane_id, spacing=ego_spacing)`` ->
+  ``choice(["0"])``, ``choice(["1"])`` (one-element choices draw nothing, checked at import),
+  ``choice(lanes_count)`` unless ``initial_lane_id`` is set, ``uniform(0.9, 1.1)``;
+  then ``MDPVehicle(road, position, heading, speed)``;
+* each other vehicle: ``IDMVehicle.create_random(road, spacing=1/vehicles_density)`` ->
+  ``choice(lanes_count)``, ``uniform(0.7·30, 0.8·30)``, ``uniform(0.9, 1.1)``; then
+  ``randomize_behavior()`` -> ``uniform(3.5, 4.5)`` (DELTA).
+
+The arithmetic is the same expressions in the same order, so positions, speeds, timers and DELTAs are
+bit-identical to highway-env's.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from gymnasium.utils import seeding
+from highway_env.road.lane import AbstractLane, StraightLane
+from highway_env.vehicle.behavior import IDMVehicle
+from highway_env.vehicle.controller import ControlledVehicle, MDPVehicle
+from highway_env.vehicle.kinematics import Vehicle
+
+from safelane.sim.fast import kernels as K
+
+ENV_IDS = ("highway-v0", "highway-fast-v0")
+IDM_PATH = "highway_env.vehicle.behavior.IDMVehicle"
+SPEED_LIMIT = 30  # RoadNetwork.straight_road_network(..., speed_limit=30) in HighwayEnv._create_road
+LANE_LENGTH = 10000.0  # straight_road_network's default length
+
+# Config keys that do not change the dynamics (rendering, reward, observation: this simulator's reward
+# is 0.0 and its observation a placeholder; safelane computes both from the snapshot).
+_NO_DYNAMICS_KEYS = frozenset(
+    {
+        "observation",
+        "screen_width",
+        "screen_height",
+        "centering_position",
+        "scaling",
+        "show_trajectories",
+        "render_agent",
+        "offscreen_rendering",
+        "real_time_rendering",
+        "collision_reward",
+        "right_lane_reward",
+        "high_speed_reward",
+        "lane_change_reward",
+        "reward_speed_range",
+        "normalize_reward",
+        # on a single straight road there are no connected lane segments: the search is the same
+        "neighbour_vehicles_connected_lanes",
+    }
+)
+_DYNAMICS_KEYS = frozenset(
+    {
+        "action",
+        "simulation_frequency",
+        "policy_frequency",
+        "other_vehicles_type",
+        "manual_control",
+        "lanes_count",
+        "vehicles_count",
+        "controlled_vehicles",
+        "initial_lane_id",
+        "duration",
+        "ego_spacing",
+        "vehicles_density",
+        "offroad_terminal",
+    }
+)
+
+
+def default_config(env_id: str) -> dict[str, Any]:
+    """highway-env's default config for ``env_id`` (``HighwayEnv`` / ``HighwayEnvFast.default_config``)."""
+    from highway_env.envs.highway_env import HighwayEnv, HighwayEnvFast
+
+    if env_id == "highway-v0":
+        return HighwayEnv.default_config()
+    if env_id == "highway-fast-v0":
+        return HighwayEnvFast.default_config()
+    raise ValueError(f"env_id: {env_id!r} is not supported; allowed: {', '.join(ENV_IDS)}")
+
+
+@dataclass(frozen=True)
+class SimConfig:
+    """The resolved settings the kernels need."""
+
+    env_id: str
+    lanes_count: int
+    vehicles_count: int
+    duration: float
+    ego_spacing: float
+    vehicles_density: float
+    policy_frequency: float
+    simulation_frequency: float
+    frames: int
+    dt: float
+    initial_lane_id: int | None
+    offroad_terminal: bool
+    others_check_collisions: bool
+    target_speeds: np.ndarray
+    config: dict[str, Any]
+
+
+def resolve_config(config: dict[str, Any] | None, env_id: str) -> SimConfig:
+    """Merge ``config`` into highway-env's defaults as ``AbstractEnv.configure`` does (a shallow update)
+    and check that every setting is one this simulator reproduces; anything else raises ValueError."""
+    cfg = default_config(env_id)
+    if config:
+        cfg.update(config)
+    unknown = sorted(set(cfg) - _NO_DYNAMICS_KEYS - _DYNAMICS_KEYS)
+    if unknown:
+        raise ValueError(f"config keys not supported by the fast simulator: {unknown}")
+    if cfg["other_vehicles_type"] != IDM_PATH:
+        raise ValueError(f"other_vehicles_type: {cfg['other_vehicles_type']!r} is not supported; allowed: {IDM_PATH}")
+    if int(cfg["controlled_vehicles"]) != 1:
+        raise ValueError(f"controlled_vehicles: {cfg['controlled_vehicles']!r} is not supported; allowed: 1")
+    if cfg["manual_control"]:
+        raise ValueError("manual_control: True is not supported; allowed: False")
+    action = dict(cfg["action"])
+    if action.get("type") != "DiscreteMetaAction":
+        raise ValueError(f"action.type: {action.get('type')!r} is not supported; allowed: DiscreteMetaAction")
+    for flag in ("longitudinal", "lateral"):
+        if not action.get(flag, True):
+            raise ValueError(f"action.{flag}: False is not supported; allowed: True")
+    extra = sorted(set(action) - {"type", "longitudinal", "lateral", "target_speeds"})
+    if extra:
+        raise ValueError(f"action keys not supported by the fast simulator: {extra}")
+    ts = action.get("target_speeds")
+    target_speeds = np.array(ts if ts is not None else MDPVehicle.DEFAULT_TARGET_SPEEDS, dtype=np.float64)
+    if target_speeds.ndim != 1 or target_speeds.size < 2 or target_speeds[-1] == target_speeds[0]:
+        raise ValueError(
+            f"action.target_speeds: {ts!r} is not supported; allowed: 2 or more speeds, last != first"
+        )
+    sim_f = cfg["simulation_frequency"]
+    pol_f = cfg["policy_frequency"]
+    lanes = int(cfg["lanes_count"])
+    if lanes < 1:
+        raise ValueError(f"lanes_count: {lanes} is not supported; allowed: >= 1")
+    init_lane = cfg["initial_lane_id"]
+    if init_lane is not None and not 0 <= int(init_lane) < lanes:
+        raise ValueError(f"initial_lane_id: {init_lane!r} is not supported; allowed: None or 0..{lanes - 1}")
+    return SimConfig(
+        env_id=env_id,
+        lanes_count=lanes,
+        vehicles_count=int(cfg["vehicles_count"]),
+        duration=cfg["duration"],
+        ego_spacing=cfg["ego_spacing"],
+        vehicles_density=cfg["vehicles_density"],
+        policy_frequency=pol_f,
+        simulation_frequency=sim_f,
+        frames=int(sim_f // pol_f),
+        dt=1 / sim_f,
+        initial_lane_id=None if init_lane is None else int(init_lane),
+        offroad_terminal=bool(cfg["offroad_terminal"]),
+        others_check_collisions=env_id != "highway-fast-v0",
+        target_speeds=target_speeds,
+        config=cfg,
+    )
+
+
+def params() -> np.ndarray:
+    """The kernels' parameter vector, read from highway-env's class constants."""
+    P = np.zeros(K.NP)
+    P[K.P_LANE_WIDTH] = StraightLane.DEFAULT_WIDTH
+    P[K.P_LANE_LENGTH] = LANE_LENGTH
+    P[K.P_VEHICLE_LENGTH_LANE] = AbstractLane.VEHICLE_LENGTH
+    P[K.P_SPEED_LIMIT] = SPEED_LIMIT
+    P[K.P_LENGTH] = Vehicle.LENGTH
+    P[K.P_WIDTH] = Vehicle.WIDTH
+    P[K.P_DIAGONAL] = np.sqrt(Vehicle.LENGTH**2 + Vehicle.WIDTH**2)
+    P[K.P_MAX_SPEED] = Vehicle.MAX_SPEED
+    P[K.P_MIN_SPEED] = Vehicle.MIN_SPEED
+    P[K.P_TAU_PURSUIT] = ControlledVehicle.TAU_PURSUIT
+    P[K.P_KP_A] = ControlledVehicle.KP_A
+    P[K.P_KP_HEADING] = ControlledVehicle.KP_HEADING
+    P[K.P_KP_LATERAL] = ControlledVehicle.KP_LATERAL
+    P[K.P_MAX_STEERING] = ControlledVehicle.MAX_STEERING_ANGLE
+    P[K.P_ACC_MAX] = IDMVehicle.ACC_MAX
+    P[K.P_COMFORT_ACC_MAX] = IDMVehicle.COMFORT_ACC_MAX
+    P[K.P_COMFORT_ACC_MIN] = IDMVehicle.COMFORT_ACC_MIN
+    P[K.P_DISTANCE_WANTED] = IDMVehicle.DISTANCE_WANTED
+    P[K.P_TIME_WANTED] = IDMVehicle.TIME_WANTED
+    P[K.P_POLITENESS] = IDMVehicle.POLITENESS
+    P[K.P_MIN_ACC_GAIN] = IDMVehicle.LANE_CHANGE_MIN_ACC_GAIN
+    P[K.P_MAX_BRAKING_IMPOSED] = IDMVehicle.LANE_CHANGE_MAX_BRAKING_IMPOSED
+    P[K.P_LANE_CHANGE_DELAY] = IDMVehicle.LANE_CHANGE_DELAY
+    return P
+
+
+def _one_element_choice_draws_nothing() -> bool:
+    rng = np.random.default_rng(12345)
+    before = rng.bit_generator.state
+    rng.choice(["0"])
+    return rng.bit_generator.state == before
+
+
+_SKIP_NODE_CHOICES = _one_element_choice_draws_nothing()
+
+
+def make_rng(seed: int | None) -> np.random.Generator:
+    """gymnasium's ``Env.reset(seed=...)`` generator."""
+    rng, _ = seeding.np_random(seed)
+    return rng
+
+
+def build_scene(rng: np.random.Generator, sc: SimConfig, P: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``HighwayEnv._create_vehicles`` on arrays: returns (F, I, E) in kernels' layout."""
+    n_lanes = sc.lanes_count
+    n = 1 + sc.vehicles_count
+    F = np.zeros((n, K.NF))
+    I = np.zeros((n, K.NI), dtype=np.int64)
+    E = np.zeros(1, dtype=np.int64)
+    width = float(P[K.P_LANE_WIDTH])
+    lanes_factor = np.exp(-5 / 40 * n_lanes)
+    uniform = rng.uniform
+    choice = rng.choice
+
+    # --- the ego: Vehicle.create_random(road, speed=25.0, lane_id=initial_lane_id, spacing=ego_spacing)
+    if not _SKIP_NODE_CHOICES:
+        choice(["0"])
+        choice(["1"])
+    lane_id = sc.initial_lane_id if sc.initial_lane_id is not None else choice(n_lanes)
+    speed = 25.0
+    default_spacing = 12 + 1.0 * speed
+    offset = sc.ego_spacing * default_spacing * lanes_factor
+    x0 = 3 * offset
+    x0 += offset * uniform(0.9, 1.1)
+    x, y = float(x0), float(lane_id * width)
+    # MDPVehicle(road, position, heading, speed)
+    F[0, K.X] = x
+    F[0, K.Y] = y
+    F[0, K.H] = 0.0
+    F[0, K.V] = speed
+    lane = K.closest_lane(x, y, 0.0, n_lanes, P)
+    I[0, K.LANE] = lane
+    I[0, K.TLANE] = lane
+    I[0, K.CHECK] = 1
+    I[0, K.IDM] = 0
+    ts = sc.target_speeds
+    si = K._speed_to_index(speed, ts)
+    E[0] = si
+    F[0, K.TSPD] = ts[si]
+    F[0, K.DELTA] = IDMVehicle.DELTA
+    x_max = x
+
+    # --- the others: IDMVehicle.create_random(road, spacing=1 / vehicles_density); randomize_behavior()
+    spacing = 1 / sc.vehicles_density
+    lo, hi = 0.7 * SPEED_LIMIT, 0.8 * SPEED_LIMIT
+    d_lo, d_hi = IDMVehicle.DELTA_RANGE
+    delay = IDMVehicle.LANE_CHANGE_DELAY
+    check = 1 if sc.others_check_collisions else 0
+    for k in range(1, n):
+        if not _SKIP_NODE_CHOICES:
+            choice(["0"])
+            choice(["1"])
+        lane_id = choice(n_lanes)
+        speed = uniform(lo, hi)
+        default_spacing = 12 + 1.0 * speed
+        offset = spacing * default_spacing * lanes_factor
+        x0 = x_max
+        x0 += offset * uniform(0.9, 1.1)
+        x, y = float(x0), float(lane_id * width)
+        F[k, K.X] = x
+        F[k, K.Y] = y
+        F[k, K.H] = 0.0
+        F[k, K.V] = speed
+        F[k, K.TSPD] = speed
+        F[k, K.TIMER] = ((x + y) * np.pi) % delay
+        F[k, K.DELTA] = uniform(low=d_lo, high=d_hi)
+        lane = K.closest_lane(x, y, 0.0, n_lanes, P)
+        I[k, K.LANE] = lane
+        I[k, K.TLANE] = lane
+        I[k, K.CHECK] = check
+        I[k, K.ELC] = 1
+        I[k, K.IDM] = 1
+        if x > x_max:
+            x_max = x
+    return F, I, E

@@ -1,0 +1,207 @@
+"""The fast simulator (safelane.sim.fast) against stock highway-env, vehicle by vehicle.
+
+Fast suite: reset scenes for 10 seeds per preset, three whole episodes, determinism, config checks.
+``-m slow``: 100 reset scenes per preset and 6 policies x several seeds of whole episodes per preset.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+
+import safelane
+from safelane.core.snapshot import DRIVER_FIELDS, RoadSnapshot
+from safelane.sim.fast import FastHighwayEnv
+from safelane.sim.fast.check import (
+    POLICIES,
+    compare_episode,
+    compare_states,
+    make_oracle,
+    oracle_state,
+    policy_actions,
+)
+
+TOL = 1e-6
+PRESETS = ("fast", "paper")
+
+
+def _preset(name: str) -> tuple[dict, str]:
+    data = yaml.safe_load((Path(safelane.__file__).parent / "presets" / f"{name}.yaml").read_text())
+    return data["env"], data["env_id"]
+
+
+_ORACLES: dict[str, object] = {}
+
+
+def _oracle(name: str):
+    if name not in _ORACLES:
+        cfg, env_id = _preset(name)
+        _ORACLES[name] = make_oracle(cfg, env_id)
+    return _ORACLES[name]
+
+
+def _check_resets(name: str, seeds) -> None:
+    cfg, env_id = _preset(name)
+    oracle = _oracle(name)
+    fast = FastHighwayEnv(cfg, env_id)
+    for seed in seeds:
+        oracle.reset(seed=seed)
+        fast.reset(seed=seed)
+        cause, err, bitwise = compare_states(fast.state(), oracle_state(oracle), TOL, full=True)
+        assert cause is None, f"{name} seed {seed}: {cause}"
+        assert bitwise, f"{name} seed {seed}: reset scene not bit-identical (max error {err})"
+
+
+@pytest.mark.parametrize("name", PRESETS)
+def test_reset_scene_matches_highway_env(name: str) -> None:
+    _check_resets(name, range(10))
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", PRESETS)
+def test_reset_scene_matches_highway_env_100_seeds(name: str) -> None:
+    _check_resets(name, range(100, 200))
+
+
+def _check_episode(name: str, seed: int, policy: str, stop_at_end: bool = True) -> None:
+    cfg, env_id = _preset(name)
+    r = compare_episode(
+        cfg, env_id, seed, policy_actions(policy, seed), tol=TOL, oracle=_oracle(name), stop_at_end=stop_at_end
+    )
+    assert r.matched, f"{name} seed {seed} {policy}: diverged after decision {r.divergent_step}: {r.cause}"
+    assert r.max_abs_error <= TOL
+
+
+@pytest.mark.parametrize(
+    ("name", "seed", "policy", "stop_at_end"),
+    [
+        ("fast", 0, "faster", False),  # 40 decisions, the ego crashes on the way: post-crash physics too
+        ("fast", 3, "random", False),
+        ("paper", 1, "cautious", False),
+    ],
+)
+def test_whole_episode_matches_highway_env(name: str, seed: int, policy: str, stop_at_end: bool) -> None:
+    _check_episode(name, seed, policy, stop_at_end)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("policy", POLICIES)
+@pytest.mark.parametrize("name", PRESETS)
+def test_episodes_match_highway_env_slow(name: str, policy: str) -> None:
+    for seed in range(10, 14):
+        _check_episode(name, seed, policy, stop_at_end=False)
+
+
+def _rollout(env: FastHighwayEnv, seed: int, actions) -> list[np.ndarray]:
+    env.reset(seed=seed)
+    out = [np.stack([env.state()[k] for k in ("x", "y", "heading", "speed")])]
+    for a in actions:
+        env.step(a)
+        out.append(np.stack([env.state()[k] for k in ("x", "y", "heading", "speed")]))
+    return out
+
+
+@pytest.mark.parametrize("name", PRESETS)
+def test_determinism(name: str) -> None:
+    cfg, env_id = _preset(name)
+    actions = policy_actions("random", 7)
+    a = _rollout(FastHighwayEnv(cfg, env_id), 7, actions)
+    env = FastHighwayEnv(cfg, env_id)
+    _rollout(env, 8, actions)  # another episode in between must not matter
+    b = _rollout(env, 7, actions)
+    assert all(np.array_equal(x, y) for x, y in zip(a, b, strict=True))
+    c = _rollout(env, 9, actions)
+    assert not np.array_equal(a[0], c[0])
+    assert not all(np.array_equal(x, y) for x, y in zip(a, c, strict=True))
+
+
+def test_reset_without_seed_continues_the_generator() -> None:
+    cfg, env_id = _preset("fast")
+    env = FastHighwayEnv(cfg, env_id)
+    env.reset(seed=5)
+    first = env.state()["x"]
+    env.reset()
+    assert not np.array_equal(first, env.state()["x"])
+
+
+def test_snapshot_and_info() -> None:
+    cfg, env_id = _preset("fast")
+    env = FastHighwayEnv(cfg, env_id)
+    obs, info = env.reset(seed=0)
+    assert obs.shape == (2,) and obs.dtype == np.float32
+    assert env.action_space.n == 5
+    for _ in range(3):
+        obs, reward, terminated, truncated, info = env.step(3)
+    snap = info["snapshot"]
+    assert isinstance(snap, RoadSnapshot)
+    n = 1 + cfg["vehicles_count"]
+    assert snap.n == n and snap.ego == 0
+    assert snap.position.shape == (n, 2)
+    assert info["speed"] == snap.ego_speed and info["crashed"] == snap.ego_crashed
+    assert reward == 0.0
+    assert snap.ego_target_speeds == tuple(float(s) for s in cfg["action"]["target_speeds"])
+    assert snap.ego_target_speed == snap.ego_target_speeds[snap.ego_speed_index]
+    assert snap.time == 3.0 and snap.simulation_frequency == 5.0 and snap.policy_frequency == 1.0
+    for f in DRIVER_FIELDS:
+        assert getattr(snap, f).shape == (n,)
+    assert not snap.can_change_lane[0] and snap.can_change_lane[1:].all()
+    assert np.isinf(snap.max_braking_imposed[0]) and (snap.max_braking_imposed[1:] == 2.0).all()
+    assert (snap.brake_max == 6.0).all() and snap.accel_max[0] == 6.0 and (snap.accel_max[1:] == 3.0).all()
+    assert ((snap.idm_delta[1:] >= 3.5) & (snap.idm_delta[1:] <= 4.5)).all()
+    assert snap.ego_lane_offset == pytest.approx(snap.position[0, 1] - snap.lane[0] * snap.lane_width)
+
+
+def test_snapshot_records_the_impact() -> None:
+    cfg, env_id = _preset("fast")
+    env = FastHighwayEnv(cfg, env_id)
+    env.reset(seed=0)
+    for _ in range(40):
+        *_, terminated, truncated, info = env.step(3)
+        if terminated or truncated:
+            break
+    snap = info["snapshot"]
+    assert snap.ego_crashed
+    assert snap.impact_before is not None and snap.impact_after is not None
+    assert snap.impact_before.shape == snap.position.shape
+
+
+@pytest.mark.parametrize(
+    ("override", "word"),
+    [
+        ({"other_vehicles_type": "highway_env.vehicle.behavior.AggressiveVehicle"}, "other_vehicles_type"),
+        ({"controlled_vehicles": 2}, "controlled_vehicles"),
+        ({"action": {"type": "ContinuousAction"}}, "action.type"),
+        ({"some_unknown_key": 1}, "some_unknown_key"),
+        ({"manual_control": True}, "manual_control"),
+    ],
+)
+def test_unsupported_config_is_rejected(override: dict, word: str) -> None:
+    cfg, env_id = _preset("fast")
+    with pytest.raises(ValueError, match=word):
+        FastHighwayEnv({**cfg, **override}, env_id)
+
+
+def test_unknown_env_id_is_rejected() -> None:
+    cfg, _ = _preset("fast")
+    with pytest.raises(ValueError, match="env_id"):
+        FastHighwayEnv(cfg, "merge-v0")
+
+
+def test_other_settings_match_highway_env() -> None:
+    """Other lane counts, densities, frequencies, the default target speeds and initial_lane_id."""
+    cfg = {
+        "lanes_count": 3,
+        "vehicles_count": 15,
+        "vehicles_density": 1.5,
+        "ego_spacing": 1.5,
+        "simulation_frequency": 10,
+        "policy_frequency": 2,
+        "duration": 6,
+        "initial_lane_id": 1,
+    }
+    for env_id in ("highway-fast-v0", "highway-v0"):
+        r = compare_episode(cfg, env_id, 4, policy_actions("random", 4, 12), tol=TOL, stop_at_end=False)
+        assert r.matched, f"{env_id}: {r.divergent_step}: {r.cause}"

@@ -119,10 +119,10 @@ def _fast_simulator(cfg: SafelaneConfig, render_mode: str | None) -> gym.Env:
     if cfg.traffic.adversary != "none":
         adversary = cfg.traffic.adversary
         raise ConfigError(f"traffic.adversary: '{adversary}' not supported by simulator=fast; allowed there: none")
-    from safelane.sim.fast.env import FastHighwayEnv
+    from safelane.sim.fast.gym_env import FastSimulatorEnv
 
     try:
-        return FastHighwayEnv(dict(cfg.env), cfg.env_id)
+        return FastSimulatorEnv(dict(cfg.env), cfg.env_id)
     except ValueError as err:
         raise ConfigError(str(err)) from None
 

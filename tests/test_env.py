@@ -346,3 +346,38 @@ def test_discarding_highway_envs_own_observation_leaves_episodes_unchanged(monke
     assert len(with_swap) == len(without) > 3
     for (o1, r1, v1), (o2, r2, v2) in zip(with_swap, without, strict=True):
         assert np.array_equal(o1, o2) and r1 == r2 and v1 == v2
+
+
+@pytest.mark.parametrize("simulator", ["highway-env", "fast"])
+def test_compiled_states_equal_the_numpy_reference_bit_for_bit(simulator: str) -> None:
+    """The environment uses the numba forms of eq. 3 and the lanes state; the numpy functions stay as the
+    readable specification and must give the same float32 numbers on every state of real episodes."""
+    from safelane.env.observations import lane_state_compiled, paper_state_compiled
+    from safelane.running.evaluation import fixed_policy
+
+    env = make_env("fast", simulator=simulator, **{"env.lanes_count": 3})
+    states = 0
+    for seed in range(3):
+        policy = fixed_policy("random", seed)
+        obs, info = env.reset(seed=seed)
+        done = False
+        while not done:
+            snap = info["snapshot"]
+            np.testing.assert_array_equal(paper_state_compiled(snap), paper_state(snap))
+            np.testing.assert_array_equal(lane_state_compiled(snap), lane_state(snap))
+            states += 1
+            obs, _, terminated, truncated, info = env.step(policy(obs, info))
+            done = terminated or truncated
+    assert states > 10
+    env.close()
+
+
+def test_compiled_states_on_hand_built_roads(make_fast_env: MakeEnv, scene: Callable[..., list[Any]]) -> None:
+    from safelane.env.observations import lane_state_compiled, paper_state_compiled
+
+    env = make_fast_env()
+    for others in ([], [(130.0, 4.0, 20.0, 0.0), (130.0, 8.0, 20.0, 0.0), (70.0, 4.0, 30.0, 0.2)]):
+        scene(env, ego=(100.0, 1, 25.0), others=others)
+        snap = snapshot_of(env.unwrapped)
+        np.testing.assert_array_equal(paper_state_compiled(snap), paper_state(snap))
+        np.testing.assert_array_equal(lane_state_compiled(snap), lane_state(snap))

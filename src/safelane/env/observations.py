@@ -11,6 +11,7 @@ from collections.abc import Callable
 from typing import Any
 
 import gymnasium as gym
+import numba
 import numpy as np
 
 from safelane.core.errors import ConfigError
@@ -125,8 +126,141 @@ def lane_state(snap: RoadSnapshot) -> np.ndarray:
     return obs
 
 
-STATE_FUNCTIONS: dict[str, Callable[[RoadSnapshot], np.ndarray]] = {"paper": paper_state, "lanes": lane_state}
-"""The agent's state by ``SafelaneConfig.state`` name."""
+# --- compiled versions: the same arithmetic, one numba call a decision ---------------------------------
+
+
+@numba.njit(cache=True)
+def _wrap(angle: float) -> float:
+    return ((angle + np.pi) % (2 * np.pi)) - np.pi
+
+
+@numba.njit(cache=True)
+def _paper_state_kernel(
+    position: np.ndarray, speed: np.ndarray, heading: np.ndarray, is_vehicle: np.ndarray, ego: int, obs: np.ndarray
+) -> None:
+    ex, ey = position[ego, 0], position[ego, 1]
+    ev, eh = speed[ego], heading[ego]
+    evx, evy = ev * np.cos(eh), ev * np.sin(eh)
+    near = np.full(OBSERVED_VEHICLES, -1)
+    near_d = np.full(OBSERVED_VEHICLES, np.inf)
+    for i in range(speed.shape[0]):  # the 4 nearest, the first of equals first (a stable argsort)
+        if i == ego or not is_vehicle[i]:
+            continue
+        d = np.hypot(position[i, 0] - ex, position[i, 1] - ey)
+        slot = OBSERVED_VEHICLES
+        while slot > 0 and d < near_d[slot - 1]:
+            slot -= 1
+        if slot < OBSERVED_VEHICLES:
+            for k in range(OBSERVED_VEHICLES - 1, slot, -1):
+                near[k], near_d[k] = near[k - 1], near_d[k - 1]
+            near[slot], near_d[slot] = i, d
+    obs[:] = 0.0
+    for slot in range(OBSERVED_VEHICLES):
+        i = near[slot]
+        if i < 0 or not near_d[slot] < PERCEPTION_DISTANCE:
+            break
+        h, v = heading[i], speed[i]
+        base = slot * FEATURES_PER_VEHICLE
+        obs[base] = (position[i, 0] - ex) / X_SCALE
+        obs[base + 1] = (position[i, 1] - ey) / Y_SCALE
+        obs[base + 2] = (v * math.cos(h) - evx) / REL_SPEED_SCALE
+        obs[base + 3] = (v * math.sin(h) - evy) / REL_SPEED_SCALE
+        obs[base + 4] = _wrap(h) / HEADING_SCALE
+        obs[base + 5] = 1.0
+    obs[OBS_SIZE - 2] = ev / EGO_SPEED_SCALE
+    obs[OBS_SIZE - 1] = _wrap(eh) / HEADING_SCALE
+    for k in range(OBS_SIZE):
+        obs[k] = min(max(obs[k], -1.0), 1.0)
+
+
+def paper_state_compiled(snap: RoadSnapshot) -> np.ndarray:
+    """:func:`paper_state` in one numba call: the same numbers, bit for bit (``tests/test_env.py``)."""
+    obs = np.empty(OBS_SIZE, dtype=np.float32)
+    _paper_state_kernel(snap.position, snap.speed, snap.heading, snap.is_vehicle, snap.ego, obs)
+    return obs
+
+
+@numba.njit(cache=True)
+def _lane_state_kernel(
+    position: np.ndarray,
+    speed: np.ndarray,
+    heading: np.ndarray,
+    lane: np.ndarray,
+    is_vehicle: np.ndarray,
+    ego: int,
+    lanes_count: int,
+    lane_offset_scaled: float,
+    ego_target_speed: float,
+    obs: np.ndarray,
+) -> None:
+    ego_lane = lane[ego]
+    ev, eh = speed[ego], heading[ego]
+    ego_forward = ev * math.cos(eh)
+    ex = position[ego, 0]
+    obs[:] = 0.0
+    for slot in range(3):
+        target = ego_lane + slot - 1
+        if not 0 <= target < lanes_count:
+            continue
+        base = slot * LANE_FEATURES
+        obs[base], obs[base + 1], obs[base + 3], obs[base + 5] = 1.0, 1.0, 1.0, 1.0
+        # the two nearest ahead (the first of equals first) and the nearest behind (the first of equals)
+        a0 = a1 = b0 = -1
+        d0 = d1 = np.inf
+        db = -np.inf
+        for i in range(speed.shape[0]):
+            if i == ego or not is_vehicle[i] or lane[i] != target:
+                continue
+            dx = position[i, 0] - ex
+            if not abs(dx) < LANE_GAP_SCALE:
+                continue
+            if dx >= 0:
+                if dx < d0:
+                    a1, d1, a0, d0 = a0, d0, i, dx
+                elif dx < d1:
+                    a1, d1 = i, dx
+            elif dx > db:
+                b0, db = i, dx
+        for k, i in enumerate((a0, a1)):
+            if i >= 0:
+                dx = position[i, 0] - ex
+                obs[base + 1 + 2 * k] = dx / LANE_GAP_SCALE
+                obs[base + 2 + 2 * k] = (speed[i] * math.cos(heading[i]) - ego_forward) / REL_SPEED_SCALE
+        if b0 >= 0:
+            obs[base + 5] = -(position[b0, 0] - ex) / LANE_GAP_SCALE
+            obs[base + 6] = (speed[b0] * math.cos(heading[b0]) - ego_forward) / REL_SPEED_SCALE
+    obs[OBS_SIZE - 5] = ev / EGO_SPEED_SCALE
+    obs[OBS_SIZE - 4] = _wrap(eh) / HEADING_SCALE
+    obs[OBS_SIZE - 3] = ego_lane / (lanes_count - 1) if lanes_count > 1 else 0.0
+    obs[OBS_SIZE - 2] = lane_offset_scaled
+    obs[OBS_SIZE - 1] = ego_target_speed / EGO_SPEED_SCALE
+    for k in range(OBS_SIZE):
+        obs[k] = min(max(obs[k], -1.0), 1.0)
+
+
+def lane_state_compiled(snap: RoadSnapshot) -> np.ndarray:
+    """:func:`lane_state` in one numba call: the same numbers, bit for bit (``tests/test_env.py``)."""
+    obs = np.empty(OBS_SIZE, dtype=np.float32)
+    _lane_state_kernel(
+        snap.position,
+        snap.speed,
+        snap.heading,
+        snap.lane,
+        snap.is_vehicle,
+        snap.ego,
+        snap.lanes_count,
+        snap.ego_lane_offset / snap.lane_width,
+        snap.ego_target_speed,
+        obs,
+    )
+    return obs
+
+
+STATE_FUNCTIONS: dict[str, Callable[[RoadSnapshot], np.ndarray]] = {
+    "paper": paper_state_compiled,
+    "lanes": lane_state_compiled,
+}
+"""The agent's state by ``SafelaneConfig.state`` name (the compiled form where one exists)."""
 
 
 class PaperObservation(gym.Wrapper, gym.utils.RecordConstructorArgs):

@@ -345,6 +345,7 @@ BENCH_UNITS = {
     "highway_env_decisions_per_s": "decisions/s",
     "fast_decisions_per_s": "decisions/s",
     "fast_raw_speedup": "fast ÷ stock highway-env",
+    "envpool_decisions_per_s": "decisions/s",
     "train_steps_per_s": "decisions/s",
     "agent_ms_per_decision": "ms",
     "agent_overhead_fraction": "non-env share of training time",

@@ -55,6 +55,42 @@ def _play(env: Any, seed: int, on_decision: Callable[[], None] | None = None) ->
     return decisions, stepping
 
 
+def measure_envpool(cfg: dict[str, Any], decisions: int, seed: int) -> float | None:
+    """Decisions per second of EnvPool's C++ ``HighwayFast-v0`` (1 env, 1 thread, the same traffic as
+    ``cfg``: lanes, vehicles, duration, frequencies, spacing, density; random actions), or None when the
+    optional ``envpool`` package is not installed. Its ego keeps EnvPool's fixed target speeds
+    [20, 25, 30] m/s: EnvPool cannot be configured otherwise."""
+    try:
+        import envpool  # type: ignore[import-not-found]
+    except ImportError:
+        return None
+    env = envpool.make(
+        "HighwayFast-v0",
+        env_type="gymnasium",
+        num_envs=1,
+        batch_size=1,
+        num_threads=1,
+        seed=seed,
+        lanes_count=int(cfg["lanes_count"]),
+        vehicles_count=int(cfg["vehicles_count"]),
+        duration=int(cfg["duration"]),
+        max_episode_steps=int(cfg["duration"] * cfg["policy_frequency"]),
+        simulation_frequency=int(cfg["simulation_frequency"]),
+        policy_frequency=int(cfg["policy_frequency"]),
+        ego_spacing=float(cfg["ego_spacing"]),
+        vehicles_density=float(cfg["vehicles_density"]),
+    )
+    rng = np.random.default_rng(seed)
+    actions = rng.integers(5, size=(decisions, 1))
+    env.reset()
+    start = time.perf_counter()
+    for a in actions:  # EnvPool resets finished episodes by itself
+        env.step(a)
+    rate = decisions / (time.perf_counter() - start)
+    env.close()
+    return rate
+
+
 def measure_training(episodes: int, seed: int, shield: str, method: str = "robust") -> dict[str, float]:
     """Train ``method`` (``tuned`` preset, ``fast`` env with ``shield``) for ``episodes``
     episodes in a temporary directory with the real loop of :func:`safelane.running.training.train`, and read its
@@ -97,6 +133,8 @@ def run_bench(
     * ``fast_decisions_per_s``: the fast simulator through safelane's gymnasium stack (paper observation
       and reward, no shield), same seeds and actions, each episode played :data:`FAST_REPEATS` times;
       ``fast_raw_speedup`` = that ÷ stock highway-env;
+    * ``envpool_decisions_per_s``: the peer, EnvPool's C++ port (:func:`measure_envpool`), only when the
+      optional ``envpool`` extra is installed;
     * ``train_steps_per_s``: decisions per second of a real training run of ``episodes`` episodes of
       ``methods[0]`` (``train_method``; :func:`measure_training`), ``agent_ms_per_decision`` [ms] what
       training adds to a decision, and ``agent_overhead_fraction`` the share of training wall time
@@ -163,6 +201,7 @@ def run_bench(
         original.close()
         stock.close()
         fast.close()
+    envpool_rate = measure_envpool(dict(preset_cfg.env), max(fast_n, 1000), seed)
     training: dict[str, Any] = {"train_method": methods[0], **measure_training(episodes, seed, shield, methods[0])}
     for method in methods[1:]:
         figures = measure_training(episodes, seed, shield, method)
@@ -187,6 +226,7 @@ def run_bench(
         "highway_env_decisions_per_s": stock_n / stock_s,
         "fast_decisions_per_s": fast_n / fast_s,
         "fast_raw_speedup": (fast_n / fast_s) / (stock_n / stock_s),
+        **({"envpool_decisions_per_s": envpool_rate} if envpool_rate is not None else {}),
         **training,
         "python": platform.python_version(),
         "wall_time_s": time.perf_counter() - start,

@@ -25,6 +25,14 @@ from safelane.sim.fast import kernels as K
 from safelane.sim.fast.scene import SPEED_LIMIT, build_scene, make_rng, params, resolve_config
 
 ACTIONS = {0: "LANE_LEFT", 1: "IDLE", 2: "LANE_RIGHT", 3: "FASTER", 4: "SLOWER"}
+_SNAPSHOT_FIELDS = (
+    "time", "policy_frequency", "simulation_frequency", "lanes_count", "lane_width", "lane_origin",
+    "lane_direction", "lane_lateral", "speed_limit", "ego", "ego_target_speed", "ego_speed_index",
+    "ego_target_speeds", "ego_kp", "ego_lane_offset", "position", "speed", "heading", "lane", "target_lane",
+    "length", "width", "crashed", "is_vehicle", "brake_max", "accel_max", "can_change_lane", "idm_delta",
+    "idm_comfort_acc", "idm_comfort_dec", "idm_distance_wanted", "idm_time_wanted", "max_braking_imposed",
+    "impact_before", "impact_after",
+)  # fmt: skip
 
 
 class FastHighwayEnv:
@@ -48,6 +56,7 @@ class FastHighwayEnv:
         self._before = np.zeros((n, 2))
         self._after = np.zeros((n, 2))
         self._rec = np.zeros(1, dtype=np.int64)
+        self._buffers = (np.zeros((n, K.NF)), np.zeros((n, K.NI), dtype=np.int64), np.zeros(1, dtype=np.int64))
         self._static_cache()
         self.time = 0.0
         self.steps = 0
@@ -90,6 +99,11 @@ class FastHighwayEnv:
         self._lateral = np.array([0.0, 1.0])
         self._ts_tuple = tuple(float(s) for s in self.sim.target_speeds)
         self._delta: np.ndarray | None = None
+        self._lane_w = float(self.P[K.P_LANE_WIDTH])
+        self._pol_f = float(self.sim.policy_frequency)
+        self._sim_f = float(self.sim.simulation_frequency)
+        self._kp = float(ControlledVehicle.KP_A)
+        assert set(RoadSnapshot.__dataclass_fields__) == set(_SNAPSHOT_FIELDS), "RoadSnapshot changed"
 
     # --- gymnasium API -----------------------------------------------------------------------------
     @property
@@ -103,7 +117,7 @@ class FastHighwayEnv:
             raise ValueError("reset(options=...) is not supported by the fast simulator")
         if seed is not None:
             self._rng = make_rng(seed)
-        self.F, self.I, self.E = build_scene(self.np_random, self.sim, self.P)
+        self.F, self.I, self.E = build_scene(self.np_random, self.sim, self.P, self._buffers)
         self.time = 0.0
         self.steps = 0
         self._rec[0] = 0
@@ -165,44 +179,52 @@ class FastHighwayEnv:
         }
 
     def snapshot(self) -> RoadSnapshot:
+        """The scene as a :class:`RoadSnapshot` (fresh per-step arrays; the static ones are shared, read-only)."""
         F, I, sc = self.F, self.I, self.sim
-        lane_w = float(self.P[K.P_LANE_WIDTH])
-        ego_lane = int(I[0, K.LANE])
+        lane_w = self._lane_w
+        kin = F[:, : K.V + 1].T.copy()  # rows x, y, heading, speed
+        ints = I[:, : K.CRASHED + 1].T.copy()  # rows lane, target lane, crashed
+        ego_lane = int(ints[0, 0])
         crashed_once = bool(self._rec[0])
-        return RoadSnapshot(
-            time=float(self.time),
-            policy_frequency=float(sc.policy_frequency),
-            simulation_frequency=float(sc.simulation_frequency),
-            lanes_count=sc.lanes_count,
-            lane_width=lane_w,
-            lane_origin=self._origin,
-            lane_direction=self._direction,
-            lane_lateral=self._lateral,
-            speed_limit=float(SPEED_LIMIT),
-            ego=0,
-            ego_target_speed=float(F[0, K.TSPD]),
-            ego_speed_index=int(self.E[0]),
-            ego_target_speeds=self._ts_tuple,
-            ego_kp=float(ControlledVehicle.KP_A),
-            ego_lane_offset=float(F[0, K.Y] - ego_lane * lane_w),
-            position=F[:, K.X : K.Y + 1].copy(),
-            speed=F[:, K.V].copy(),
-            heading=F[:, K.H].copy(),
-            lane=I[:, K.LANE].copy(),
-            target_lane=I[:, K.TLANE].copy(),
-            length=self._length,
-            width=self._width,
-            crashed=I[:, K.CRASHED].astype(bool),
-            is_vehicle=self._is_vehicle,
-            brake_max=self._brake_max,
-            accel_max=self._accel_max,
-            can_change_lane=self._can_change_lane,
-            idm_delta=self._delta,
-            idm_comfort_acc=self._comfort_acc,
-            idm_comfort_dec=self._comfort_dec,
-            idm_distance_wanted=self._distance_wanted,
-            idm_time_wanted=self._time_wanted,
-            max_braking_imposed=self._max_braking,
-            impact_before=self._before.copy() if crashed_once else None,
-            impact_after=self._after.copy() if crashed_once else None,
-        )
+        fields = {
+            "time": float(self.time),
+            "policy_frequency": self._pol_f,
+            "simulation_frequency": self._sim_f,
+            "lanes_count": sc.lanes_count,
+            "lane_width": lane_w,
+            "lane_origin": self._origin,
+            "lane_direction": self._direction,
+            "lane_lateral": self._lateral,
+            "speed_limit": float(SPEED_LIMIT),
+            "ego": 0,
+            "ego_target_speed": float(F[0, K.TSPD]),
+            "ego_speed_index": int(self.E[0]),
+            "ego_target_speeds": self._ts_tuple,
+            "ego_kp": self._kp,
+            "ego_lane_offset": float(kin[1, 0] - ego_lane * lane_w),
+            "position": kin[: K.Y + 1].T,
+            "speed": kin[K.V],
+            "heading": kin[K.H],
+            "lane": ints[K.LANE],
+            "target_lane": ints[K.TLANE],
+            "length": self._length,
+            "width": self._width,
+            "crashed": ints[K.CRASHED].astype(bool),
+            "is_vehicle": self._is_vehicle,
+            "brake_max": self._brake_max,
+            "accel_max": self._accel_max,
+            "can_change_lane": self._can_change_lane,
+            "idm_delta": self._delta,
+            "idm_comfort_acc": self._comfort_acc,
+            "idm_comfort_dec": self._comfort_dec,
+            "idm_distance_wanted": self._distance_wanted,
+            "idm_time_wanted": self._time_wanted,
+            "max_braking_imposed": self._max_braking,
+            "impact_before": self._before.copy() if crashed_once else None,
+            "impact_after": self._after.copy() if crashed_once else None,
+        }
+        # RoadSnapshot is a frozen dataclass without __post_init__: filling its __dict__ is what its
+        # __init__ does, minus one object.__setattr__ per field.
+        snap = object.__new__(RoadSnapshot)
+        snap.__dict__.update(fields)
+        return snap

@@ -15,7 +15,12 @@ with direction exactly ``(1, 0)``, so highway-env's ``local_coordinates`` are ex
 State layout (``ego`` is row 0, the others follow in highway-env's order):
 
 ``F[n, NF]`` float64 columns X, Y, H (heading), V (speed), TSPD (target speed), DELTA (IDM exponent),
-TIMER (MOBIL timer), IMPX, IMPY (pending impact), STEER, ACC (last action).
+TIMER (MOBIL timer), IMPX, IMPY (pending impact), STEER, ACC (last action), COSH, SINH (cos / sin of
+the heading, refreshed at the start of every ``Road.act`` phase, during which no heading changes).
+
+Trigonometric calls go through ``_sin`` & co., which return IEEE's exact values at ``±0`` without
+calling libm (``sin(±0) = ±0``, ``cos(±0) = 1``...): most vehicles drive with heading and steering
+exactly ``0.0``, and those calls would otherwise dominate.
 ``I[n, NI]`` int64 columns LANE, TLANE (target lane), CRASHED, HASIMP (impact pending), CHECK
 (check_collisions), ELC (enable_lane_change), IDM (1: IDM driver, 0: the ego MDPVehicle).
 ``E`` int64 (1,): the ego's speed index.
@@ -28,9 +33,9 @@ import math
 import numpy as np
 from numba import njit
 
-# float columns
-X, Y, H, V, TSPD, DELTA, TIMER, IMPX, IMPY, STEER, ACC = range(11)
-NF = 11
+# float columns (COSH, SINH: cos / sin of the heading, cached for each Road.act phase)
+X, Y, H, V, TSPD, DELTA, TIMER, IMPX, IMPY, STEER, ACC, COSH, SINH = range(13)
+NF = 13
 # int columns
 LANE, TLANE, CRASHED, HASIMP, CHECK, ELC, IDM = range(7)
 NI = 7
@@ -65,6 +70,31 @@ NP = 23
 
 # Ego meta-actions (DiscreteMetaAction.ACTIONS_ALL)
 LANE_LEFT, IDLE, LANE_RIGHT, FASTER, SLOWER = 0, 1, 2, 3, 4
+
+
+@njit(cache=True, inline="always")
+def _sin(x):
+    return x if x == 0.0 else math.sin(x)
+
+
+@njit(cache=True, inline="always")
+def _cos(x):
+    return 1.0 if x == 0.0 else math.cos(x)
+
+
+@njit(cache=True, inline="always")
+def _tan(x):
+    return x if x == 0.0 else math.tan(x)
+
+
+@njit(cache=True, inline="always")
+def _atan(x):
+    return x if x == 0.0 else math.atan(x)
+
+
+@njit(cache=True, inline="always")
+def _asin(x):
+    return x if x == 0.0 else math.asin(x)
 
 
 @njit(cache=True)
@@ -161,7 +191,7 @@ def _neighbours_scan(F, n, j, lane, P):
 def build_lane_index(F, n_lanes, P, members, mx, cnt):
     """Per lane, the vehicles ``on_lane(margin=1)`` sorted by (x, index): ``members[L, :cnt[L]]``, x in ``mx``.
 
-    Built once per ``Road.act`` phase (no vehicle moves during it), it answers
+    Also refreshes the COSH / SINH columns. Built once per ``Road.act`` phase (no vehicle moves during it), it answers
     ``Road.neighbour_vehicles`` by binary search with the same result and tie rules as the scan.
     """
     n = F.shape[0]
@@ -172,6 +202,8 @@ def build_lane_index(F, n_lanes, P, members, mx, cnt):
         k = order[r]
         x = F[k, X]
         y = F[k, Y]
+        F[k, COSH] = _cos(F[k, H])
+        F[k, SINH] = _sin(F[k, H])
         for L in range(n_lanes):
             if _on_lane(x, y, L, 1.0, P):
                 c = cnt[L]
@@ -224,10 +256,10 @@ def _desired_gap(F, j, k, P):
     d0 = P[P_DISTANCE_WANTED]
     tau = P[P_TIME_WANTED]
     ab = -P[P_COMFORT_ACC_MAX] * P[P_COMFORT_ACC_MIN]
-    cj = math.cos(F[j, H])
-    sj = math.sin(F[j, H])
-    ck = math.cos(F[k, H])
-    sk = math.sin(F[k, H])
+    cj = F[j, COSH]
+    sj = F[j, SINH]
+    ck = F[k, COSH]
+    sk = F[k, SINH]
     vjx = F[j, V] * cj
     vjy = F[j, V] * sj
     vkx = F[k, V] * ck
@@ -259,11 +291,11 @@ def _steering_control(F, j, target_lane, P):
     sp = F[j, V]
     lane_future_heading = 0.0
     lateral_speed_command = -P[P_KP_LATERAL] * lat
-    heading_command = math.asin(_clip(lateral_speed_command / _not_zero(sp), -1.0, 1.0))
+    heading_command = _asin(_clip(lateral_speed_command / _not_zero(sp), -1.0, 1.0))
     heading_ref = lane_future_heading + _clip(heading_command, -np.pi / 4, np.pi / 4)
     heading_rate_command = P[P_KP_HEADING] * _wrap_to_pi(heading_ref - F[j, H])
-    slip_angle = math.asin(_clip(P[P_LENGTH] / 2 / _not_zero(sp) * heading_rate_command, -1.0, 1.0))
-    steering_angle = math.atan(2 * math.tan(slip_angle))
+    slip_angle = _asin(_clip(P[P_LENGTH] / 2 / _not_zero(sp) * heading_rate_command, -1.0, 1.0))
+    steering_angle = _atan(2 * _tan(slip_angle))
     return _clip(steering_angle, -P[P_MAX_STEERING], P[P_MAX_STEERING])
 
 
@@ -387,9 +419,10 @@ def _step_vehicle(F, I, j, dt, n_lanes, P):
         if lim > F[j, ACC]:
             F[j, ACC] = lim
     delta_f = F[j, STEER]
-    beta = math.atan(1 / 2 * math.tan(delta_f))
-    vx = sp * math.cos(F[j, H] + beta)
-    vy = sp * math.sin(F[j, H] + beta)
+    beta = _atan(1 / 2 * _tan(delta_f))
+    hb = F[j, H] + beta
+    vx = sp * _cos(hb)
+    vy = sp * _sin(hb)
     F[j, X] += vx * dt
     F[j, Y] += vy * dt
     if I[j, HASIMP]:
@@ -397,7 +430,7 @@ def _step_vehicle(F, I, j, dt, n_lanes, P):
         F[j, Y] += F[j, IMPY]
         I[j, CRASHED] = 1
         I[j, HASIMP] = 0
-    F[j, H] += sp * math.sin(beta) / (P[P_LENGTH] / 2) * dt
+    F[j, H] += sp * _sin(beta) / (P[P_LENGTH] / 2) * dt
     F[j, V] += F[j, ACC] * dt
     I[j, LANE] = closest_lane(F[j, X], F[j, Y], F[j, H], n_lanes, P)
 
@@ -407,8 +440,8 @@ def _polygon(F, j, P, out):
     """RoadObject.polygon(): 4 corners + the first again, rotated then translated."""
     hl = P[P_LENGTH] / 2
     hw = P[P_WIDTH] / 2
-    c = math.cos(F[j, H])
-    s = math.sin(F[j, H])
+    c = _cos(F[j, H])
+    s = _sin(F[j, H])
     px0 = -hl
     py0 = -hw
     px1 = -hl
@@ -513,10 +546,10 @@ def _handle_collisions(F, I, i, j, dt, P, pa, pb, res):
         return
     _polygon(F, i, P, pa)
     _polygon(F, j, P, pb)
-    dax = F[i, V] * math.cos(F[i, H]) * dt
-    day = F[i, V] * math.sin(F[i, H]) * dt
-    dbx = F[j, V] * math.cos(F[j, H]) * dt
-    dby = F[j, V] * math.sin(F[j, H]) * dt
+    dax = F[i, V] * _cos(F[i, H]) * dt
+    day = F[i, V] * _sin(F[i, H]) * dt
+    dbx = F[j, V] * _cos(F[j, H]) * dt
+    dby = F[j, V] * _sin(F[j, H]) * dt
     intersecting, will = _polygons_intersecting(pa, pb, dax, day, dbx, dby, res)
     if will:
         F[i, IMPX] = res[0] / 2
@@ -577,3 +610,111 @@ def simulate(F, I, E, ts, P, action, frames, dt, n_lanes, before, after, rec):
             for k in range(n):
                 after[k, 0] = F[k, X]
                 after[k, 1] = F[k, Y]
+
+
+# --- reset: HighwayEnv._create_vehicles from the generator's raw 64-bit outputs -------------------
+# numpy's Generator on PCG64: ``uniform(lo, hi) = lo + (hi - lo) * next_double`` with
+# ``next_double = (raw >> 11) / 2**53``; ``choice(n)`` = ``integers(0, n)`` = Lemire's bounded draw on
+# ``next_uint32``, which takes the low half of a raw output and keeps the high half in the bit
+# generator's ``has_uint32`` / ``uinteger`` buffer for the next call. ``st`` = [raws used, has_uint32,
+# uinteger]; ``st[0] < 0`` flags that ``raws`` ran out (draw more and replay).
+
+
+@njit(cache=True)
+def _next_uint32(raws, st):
+    if st[1]:
+        st[1] = 0
+        return np.uint64(st[2])
+    if st[0] < 0 or st[0] >= raws.size:
+        st[0] = -1
+        return np.uint64(0)
+    r = raws[st[0]]
+    st[0] += 1
+    st[1] = 1
+    st[2] = np.int64(r >> np.uint64(32))
+    return r & np.uint64(0xFFFFFFFF)
+
+
+@njit(cache=True)
+def _integers(raws, st, n):
+    """Generator.integers(0, n) (== choice(n)) for int64, n <= 2**32."""
+    rng = n - 1
+    if rng == 0:
+        return 0
+    excl = np.uint64(rng + 1)
+    m = _next_uint32(raws, st) * excl
+    left = m & np.uint64(0xFFFFFFFF)
+    if left < excl:
+        thr = (np.uint64(0xFFFFFFFF) - np.uint64(rng)) % excl
+        while left < thr:
+            m = _next_uint32(raws, st) * excl
+            left = m & np.uint64(0xFFFFFFFF)
+    return np.int64(m >> np.uint64(32))
+
+
+@njit(cache=True)
+def _uniform(raws, st, lo, hi):
+    if st[0] < 0 or st[0] >= raws.size:
+        st[0] = -1
+        return lo
+    r = raws[st[0]]
+    st[0] += 1
+    return lo + (hi - lo) * ((r >> np.uint64(11)) * (1.0 / 9007199254740992.0))
+
+
+@njit(cache=True)
+def spawn(raws, st, ego_lane, ego_spacing, spacing, lanes_factor, lo, hi, d_lo, d_hi, delay, ego_delta,
+          check_others, ts, n_lanes, P, F, I, E):  # fmt: skip
+    """The scene of HighwayEnv._create_vehicles (see scene.build_scene_python, its line-by-line twin).
+
+    Returns False when ``raws`` ran out (``st[0] == -1``)."""
+    n = F.shape[0]
+    width = P[P_LANE_WIDTH]
+    lane_id = ego_lane if ego_lane >= 0 else _integers(raws, st, n_lanes)
+    speed = 25.0
+    default_spacing = 12 + 1.0 * speed
+    offset = ego_spacing * default_spacing * lanes_factor
+    x0 = 3 * offset
+    x0 += offset * _uniform(raws, st, 0.9, 1.1)
+    x = x0
+    y = lane_id * width
+    F[0, :] = 0.0
+    I[0, :] = 0
+    F[0, X] = x
+    F[0, Y] = y
+    F[0, V] = speed
+    lane = closest_lane(x, y, 0.0, n_lanes, P)
+    I[0, LANE] = lane
+    I[0, TLANE] = lane
+    I[0, CHECK] = 1
+    si = _speed_to_index(speed, ts)
+    E[0] = si
+    F[0, TSPD] = ts[si]
+    F[0, DELTA] = ego_delta
+    x_max = x
+    for k in range(1, n):
+        lane_id = _integers(raws, st, n_lanes)
+        speed = _uniform(raws, st, lo, hi)
+        default_spacing = 12 + 1.0 * speed
+        offset = spacing * default_spacing * lanes_factor
+        x0 = x_max
+        x0 += offset * _uniform(raws, st, 0.9, 1.1)
+        x = x0
+        y = lane_id * width
+        F[k, :] = 0.0
+        I[k, :] = 0
+        F[k, X] = x
+        F[k, Y] = y
+        F[k, V] = speed
+        F[k, TSPD] = speed
+        F[k, TIMER] = ((x + y) * np.pi) % delay
+        F[k, DELTA] = _uniform(raws, st, d_lo, d_hi)
+        lane = closest_lane(x, y, 0.0, n_lanes, P)
+        I[k, LANE] = lane
+        I[k, TLANE] = lane
+        I[k, CHECK] = check_others
+        I[k, ELC] = 1
+        I[k, IDM] = 1
+        if x > x_max:
+            x_max = x
+    return st[0] >= 0

@@ -211,8 +211,56 @@ def make_rng(seed: int | None) -> np.random.Generator:
     return rng
 
 
-def build_scene(rng: np.random.Generator, sc: SimConfig, P: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """``HighwayEnv._create_vehicles`` on arrays: returns (F, I, E) in kernels' layout."""
+def build_scene(
+    rng: np.random.Generator, sc: SimConfig, P: np.ndarray, out: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``HighwayEnv._create_vehicles`` on arrays: returns (F, I, E) in kernels' layout (written into ``out``).
+
+    On PCG64 (gymnasium's generator) the draws are replayed from the generator's raw outputs in one numba
+    call (:func:`safelane.sim.fast.kernels.spawn`), leaving the generator in exactly the state the
+    ``choice`` / ``uniform`` calls would; other bit generators take :func:`build_scene_python`.
+    """
+    bg = rng.bit_generator
+    if type(bg) is not np.random.PCG64:
+        return build_scene_python(rng, sc, P)
+    n = 1 + sc.vehicles_count
+    if out is None:
+        out = (np.zeros((n, K.NF)), np.zeros((n, K.NI), dtype=np.int64), np.zeros(1, dtype=np.int64))
+    F, I, E = out
+    state = bg.state
+    has = int(state["has_uint32"])
+    st0 = np.array([0, has, int(state["uinteger"])], dtype=np.int64)
+    n_int = sc.vehicles_count + (1 if sc.initial_lane_id is None else 0) if sc.lanes_count > 1 else 0
+    n_dbl = 1 + 3 * sc.vehicles_count
+    need = n_dbl + (max(n_int - has, 0) + 1) // 2  # the fewest raw outputs the draws can take
+    raws = bg.random_raw(need)
+    ego_lane = -1 if sc.initial_lane_id is None else sc.initial_lane_id
+    lanes_factor = float(np.exp(-5 / 40 * sc.lanes_count))
+    d_lo, d_hi = IDMVehicle.DELTA_RANGE
+    while True:
+        st = st0.copy()
+        ok = K.spawn(
+            raws, st, ego_lane, float(sc.ego_spacing), float(1 / sc.vehicles_density), lanes_factor,
+            0.7 * SPEED_LIMIT, 0.8 * SPEED_LIMIT, float(d_lo), float(d_hi), float(IDMVehicle.LANE_CHANGE_DELAY),
+            float(IDMVehicle.DELTA), 1 if sc.others_check_collisions else 0, sc.target_speeds, sc.lanes_count,
+            P, F, I, E,
+        )  # fmt: skip
+        if ok:
+            break
+        raws = np.concatenate([raws, bg.random_raw(1)])  # a rejected bounded draw: one more output
+    assert st[0] == raws.size, (st, raws.size, need, has)
+    if int(st[1]) != has or int(st[2]) != int(state["uinteger"]):
+        state = bg.state
+        state["has_uint32"] = int(st[1])
+        state["uinteger"] = int(st[2])
+        bg.state = state
+    return F, I, E
+
+
+def build_scene_python(
+    rng: np.random.Generator, sc: SimConfig, P: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``HighwayEnv._create_vehicles`` with the generator's own calls (the reference for :func:`build_scene`)."""
     n_lanes = sc.lanes_count
     n = 1 + sc.vehicles_count
     F = np.zeros((n, K.NF))
@@ -227,7 +275,7 @@ def build_scene(rng: np.random.Generator, sc: SimConfig, P: np.ndarray) -> tuple
     if not _SKIP_NODE_CHOICES:
         choice(["0"])
         choice(["1"])
-    lane_id = sc.initial_lane_id if sc.initial_lane_id is not None else choice(n_lanes)
+    lane_id = sc.initial_lane_id if sc.initial_lane_id is not None else choice(n_lanes)  # noqa
     speed = 25.0
     default_spacing = 12 + 1.0 * speed
     offset = sc.ego_spacing * default_spacing * lanes_factor

@@ -205,3 +205,26 @@ def test_other_settings_match_highway_env() -> None:
     for env_id in ("highway-fast-v0", "highway-v0"):
         r = compare_episode(cfg, env_id, 4, policy_actions("random", 4, 12), tol=TOL, stop_at_end=False)
         assert r.matched, f"{env_id}: {r.divergent_step}: {r.cause}"
+
+
+def test_lane_index_neighbours_equal_the_scan_with_ties() -> None:
+    """The binary-searched neighbour query equals highway-env's linear scan, ties and lane edges included."""
+    from safelane.sim.fast import kernels as K
+    from safelane.sim.fast.scene import params
+
+    P = params()
+    rng = np.random.default_rng(0)
+    n_lanes = 4
+    members = np.empty((n_lanes, 40), dtype=np.int64)
+    mx = np.empty((n_lanes, 40))
+    cnt = np.zeros(n_lanes, dtype=np.int64)
+    for _ in range(300):
+        n = int(rng.integers(1, 40))
+        F = np.zeros((n, K.NF))
+        F[:, K.X] = rng.choice([-6.0, -5.0, 0.0, 10.0, 10.0, 12.5, 30.0, 10004.0, 10005.0], size=n)
+        F[:, K.X] += rng.choice([0.0, 0.0, 1e-9], size=n)
+        F[:, K.Y] = rng.choice([-3.0, -3.5, 0.0, 1.0, 3.0, 4.0, 7.0, 9.0, 12.0, 15.0, 15.5], size=n)
+        K.build_lane_index(F, n_lanes, P, members, mx, cnt)
+        for j in range(n):
+            for lane in range(n_lanes):
+                assert K._neighbours(F, j, lane, members, mx, cnt) == K._neighbours_scan(F, n, j, lane, P)

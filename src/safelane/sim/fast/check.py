@@ -129,7 +129,7 @@ def compare_episode(
         _, _, term_o, trunc_o, info_o = oracle.step(int(a))
         _, _, term_f, trunc_f, info_f = fast.step(int(a))
         steps = t
-        cause, err, bw = compare_states(fast.state(), oracle_state(oracle), tol)
+        cause, err, bw = compare_states(fast.state(), oracle_state(oracle), tol, full=True)
         max_err = max(max_err, err)
         bitwise = bitwise and bw
         if cause is None and (bool(term_o), bool(trunc_o)) != (term_f, trunc_f):

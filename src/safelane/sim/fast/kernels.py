@@ -109,8 +109,12 @@ def _not_zero(x, eps=1e-2):
 
 @njit(cache=True)
 def _wrap_to_pi(x):
-    # ((x + pi) % (2 pi)) - pi with Python/numpy floor-mod semantics
-    return ((x + np.pi) % (2 * np.pi)) - np.pi
+    # ((x + pi) % (2 pi)) - pi with Python/numpy floor-mod semantics; for 0 <= x + pi < 2 pi the
+    # remainder is x + pi itself (exactly), so the fmod call is skipped.
+    t = x + np.pi
+    if t >= 0.0 and t < 2 * np.pi:
+        return t - np.pi
+    return (t % (2 * np.pi)) - np.pi
 
 
 @njit(cache=True)
@@ -269,15 +273,27 @@ def _desired_gap(F, j, k, P):
 
 
 @njit(cache=True)
-def _acceleration(F, j, k, delta, P):
-    """IDMVehicle.acceleration(ego_vehicle=j, front_vehicle=k) with the *caller's* DELTA; j < 0: 0."""
-    if j < 0:
-        return 0.0
+def _free_road(F, j, delta, P):
+    """IDM's free-road term ``COMFORT_ACC_MAX * (1 - (v / v0)**delta)`` of vehicle j with exponent delta."""
     tgt = _clip(F[j, TSPD], 0.0, P[P_SPEED_LIMIT])
     sp = F[j, V]
     if not (sp > 0.0):
         sp = 0.0
-    acc = P[P_COMFORT_ACC_MAX] * (1 - math.pow(sp / abs(_not_zero(tgt)), delta))
+    return P[P_COMFORT_ACC_MAX] * (1 - math.pow(sp / abs(_not_zero(tgt)), delta))
+
+
+@njit(cache=True)
+def _acceleration(F, j, k, delta, P):
+    """IDMVehicle.acceleration(ego_vehicle=j, front_vehicle=k) with the *caller's* DELTA; j < 0: 0."""
+    if j < 0:
+        return 0.0
+    return _acceleration_free(F, j, k, _free_road(F, j, delta, P), P)
+
+
+@njit(cache=True)
+def _acceleration_free(F, j, k, free, P):
+    """:func:`_acceleration` given j's free-road term (the same for every call of one act phase)."""
+    acc = free
     if k >= 0:
         d = F[k, X] - F[j, X]
         acc -= P[P_COMFORT_ACC_MAX] * math.pow(_desired_gap(F, j, k, P) / _not_zero(d), 2.0)
@@ -332,7 +348,7 @@ def _act_ego(F, I, E, ts, action, n_lanes, P):
 
 
 @njit(cache=True)
-def _mobil(F, I, n, j, lane, P, members, mx, cnt):
+def _mobil(F, I, n, j, lane, P, members, mx, cnt, free_j):
     delta = F[j, DELTA]
     new_preceding, new_following = _neighbours(F, j, lane, members, mx, cnt)
     new_following_a = _acceleration(F, new_following, new_preceding, delta, P)
@@ -340,8 +356,8 @@ def _mobil(F, I, n, j, lane, P, members, mx, cnt):
     if new_following_pred_a < -P[P_MAX_BRAKING_IMPOSED]:
         return False
     old_preceding, old_following = _neighbours(F, j, I[j, LANE], members, mx, cnt)
-    self_pred_a = _acceleration(F, j, new_preceding, delta, P)
-    self_a = _acceleration(F, j, old_preceding, delta, P)
+    self_pred_a = _acceleration_free(F, j, new_preceding, free_j, P)
+    self_a = _acceleration_free(F, j, old_preceding, free_j, P)
     old_following_a = _acceleration(F, old_following, j, delta, P)
     old_following_pred_a = _acceleration(F, old_following, old_preceding, delta, P)
     jerk = self_pred_a - self_a + P[P_POLITENESS] * (
@@ -353,7 +369,7 @@ def _mobil(F, I, n, j, lane, P, members, mx, cnt):
 
 
 @njit(cache=True)
-def _change_lane_policy(F, I, n, j, n_lanes, P, members, mx, cnt):
+def _change_lane_policy(F, I, n, j, n_lanes, P, members, mx, cnt, free_j):
     if I[j, LANE] != I[j, TLANE]:
         tl = I[j, TLANE]
         for k in range(n):
@@ -376,7 +392,7 @@ def _change_lane_policy(F, I, n, j, n_lanes, P, members, mx, cnt):
             continue
         if abs(F[j, V]) < 1:
             continue
-        if _mobil(F, I, n, j, cand, P, members, mx, cnt):
+        if _mobil(F, I, n, j, cand, P, members, mx, cnt, free_j):
             I[j, TLANE] = cand
 
 
@@ -385,16 +401,17 @@ def _act_idm(F, I, n, j, n_lanes, P, members, mx, cnt):
     """IDMVehicle.act()."""
     if I[j, CRASHED]:
         return
+    delta = F[j, DELTA]
+    free_j = _free_road(F, j, delta, P)  # speed and target speed do not change during act
     if I[j, ELC]:
-        _change_lane_policy(F, I, n, j, n_lanes, P, members, mx, cnt)
+        _change_lane_policy(F, I, n, j, n_lanes, P, members, mx, cnt, free_j)
     steer = _steering_control(F, j, I[j, TLANE], P)
     F[j, STEER] = _clip(steer, -P[P_MAX_STEERING], P[P_MAX_STEERING])
-    delta = F[j, DELTA]
     front, _rear = _neighbours(F, j, I[j, LANE], members, mx, cnt)
-    acc = _acceleration(F, j, front, delta, P)
+    acc = _acceleration_free(F, j, front, free_j, P)
     if I[j, LANE] != I[j, TLANE]:
         front2, _rear2 = _neighbours(F, j, I[j, TLANE], members, mx, cnt)
-        acc2 = _acceleration(F, j, front2, delta, P)
+        acc2 = _acceleration_free(F, j, front2, free_j, P)
         if acc2 < acc:
             acc = acc2
     F[j, ACC] = _clip(acc, -P[P_ACC_MAX], P[P_ACC_MAX])
@@ -564,6 +581,53 @@ def _handle_collisions(F, I, i, j, dt, P, pa, pb, res):
 
 
 @njit(cache=True)
+def _collisions(F, I, dt, P, pa, pb, res, reach, cand):
+    """Road.step's pairwise checks: ``vehicles[i].handle_collisions(vehicles[j])`` for i < j, in that order.
+
+    Pairs whose |dx| exceeds ``reach`` (the pre-check's radius + (MAX_SPEED + 1)·dt + 1 m) cannot pass
+    highway-env's distance pre-check, so only the pairs near in x (found from the x order) are examined,
+    still for i ascending and, for each i, j ascending; a vehicle faster than MAX_SPEED + 1 checks all.
+    """
+    n = F.shape[0]
+    order = np.argsort(F[:, X], kind="mergesort")
+    rank = np.empty(n, dtype=np.int64)
+    for r in range(n):
+        rank[order[r]] = r
+    for i in range(n):
+        ci = I[i, CHECK]
+        xi = F[i, X]
+        if abs(F[i, V]) > P[P_MAX_SPEED] + 1.0:
+            for j in range(i + 1, n):
+                _handle_collisions(F, I, i, j, dt, P, pa, pb, res)
+            continue
+        m = 0
+        r = rank[i] - 1
+        while r >= 0 and xi - F[order[r], X] <= reach:
+            j = order[r]
+            if j > i and (ci or I[j, CHECK]):
+                cand[m] = j
+                m += 1
+            r -= 1
+        r = rank[i] + 1
+        while r < n and F[order[r], X] - xi <= reach:
+            j = order[r]
+            if j > i and (ci or I[j, CHECK]):
+                cand[m] = j
+                m += 1
+            r += 1
+        # ascending j (insertion sort: a handful of candidates)
+        for a in range(1, m):
+            v = cand[a]
+            b = a - 1
+            while b >= 0 and cand[b] > v:
+                cand[b + 1] = cand[b]
+                b -= 1
+            cand[b + 1] = v
+        for a in range(m):
+            _handle_collisions(F, I, i, cand[a], dt, P, pa, pb, res)
+
+
+@njit(cache=True)
 def simulate(F, I, E, ts, P, action, frames, dt, n_lanes, before, after, rec):
     """AbstractEnv._simulate(action): ``frames`` x (act [+ the meta-action at frame 0], step, collisions).
 
@@ -578,6 +642,7 @@ def simulate(F, I, E, ts, P, action, frames, dt, n_lanes, before, after, rec):
     mx = np.empty((n_lanes, n))
     cnt = np.zeros(n_lanes, dtype=np.int64)
     reach = (P[P_DIAGONAL] + P[P_DIAGONAL]) / 2 + (P[P_MAX_SPEED] + 1.0) * dt + 1.0
+    cand = np.empty(n, dtype=np.int64)
     for frame in range(frames):
         was_crashed = I[0, CRASHED]
         if rec[0] == 0 and not was_crashed:
@@ -594,17 +659,7 @@ def simulate(F, I, E, ts, P, action, frames, dt, n_lanes, before, after, rec):
         # Road.step
         for k in range(n):
             _step_vehicle(F, I, k, dt, n_lanes, P)
-        for i in range(n):
-            ci = I[i, CHECK]
-            xi = F[i, X]
-            # |dx| > reach (> the pre-check's radius + |speed|·dt + 1 m) implies the pre-check rejects
-            if abs(F[i, V]) <= P[P_MAX_SPEED] + 1.0:
-                for j in range(i + 1, n):
-                    if (ci or I[j, CHECK]) and abs(F[j, X] - xi) <= reach:
-                        _handle_collisions(F, I, i, j, dt, P, pa, pb, res)
-            else:
-                for j in range(i + 1, n):
-                    _handle_collisions(F, I, i, j, dt, P, pa, pb, res)
+        _collisions(F, I, dt, P, pa, pb, res, reach, cand)
         if rec[0] == 0 and not was_crashed and I[0, CRASHED]:
             rec[0] = 1
             for k in range(n):

@@ -118,12 +118,22 @@ def test_determinism(name: str) -> None:
     assert not all(np.array_equal(x, y) for x, y in zip(a, c, strict=True))
 
 
-def test_reset_without_seed_continues_the_generator() -> None:
+def test_reset_without_seed_continues_the_generator_as_highway_env() -> None:
+    """reset(seed) then reset() twice (the generator carries on, with steps in between) == highway-env."""
     cfg, env_id = _preset("fast")
     env = FastHighwayEnv(cfg, env_id)
+    oracle = _oracle("fast")
     env.reset(seed=5)
+    oracle.reset(seed=5)
     first = env.state()["x"]
-    env.reset()
+    for _ in range(2):
+        for a in (3, 1, 0):
+            env.step(a)
+            oracle.step(a)
+        env.reset()
+        oracle.reset()
+        cause, _, bitwise = compare_states(env.state(), oracle_state(oracle), TOL, full=True)
+        assert cause is None and bitwise, cause
     assert not np.array_equal(first, env.state()["x"])
 
 

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 from typing import Any
 
+import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 from highway_env.vehicle.behavior import IDMVehicle
@@ -22,7 +23,7 @@ from highway_env.vehicle.controller import ControlledVehicle
 
 from safelane.core.snapshot import RoadSnapshot
 from safelane.sim.fast import kernels as K
-from safelane.sim.fast.scene import SPEED_LIMIT, build_scene, make_rng, params, resolve_config
+from safelane.sim.fast.scene import SPEED_LIMIT, build_scene, params, resolve_config
 
 ACTIONS = {0: "LANE_LEFT", 1: "IDLE", 2: "LANE_RIGHT", 3: "FASTER", 4: "SLOWER"}
 _SNAPSHOT_FIELDS = (
@@ -35,10 +36,11 @@ _SNAPSHOT_FIELDS = (
 )  # fmt: skip
 
 
-class FastHighwayEnv:
+class FastHighwayEnv(gym.Env):
     """A gymnasium-style env reproducing highway-env's straight highway (see the module docstring).
 
     ``state()`` gives every vehicle's arrays (row 0: the ego, then highway-env's ``road.vehicles`` order).
+    Seeding is gymnasium's (``Env.reset(seed=...)`` -> ``self.np_random``), as in highway-env.
     """
 
     metadata: dict[str, Any] = {"render_modes": []}
@@ -50,7 +52,6 @@ class FastHighwayEnv:
         self.action_space = spaces.Discrete(5)
         self.observation_space = spaces.Box(-np.inf, np.inf, shape=(2,), dtype=np.float32)
         self.P = params()
-        self._rng: np.random.Generator | None = None
         self._obs = np.zeros(2, dtype=np.float32)
         n = 1 + self.sim.vehicles_count
         self._before = np.zeros((n, 2))
@@ -106,17 +107,10 @@ class FastHighwayEnv:
         assert set(RoadSnapshot.__dataclass_fields__) == set(_SNAPSHOT_FIELDS), "RoadSnapshot changed"
 
     # --- gymnasium API -----------------------------------------------------------------------------
-    @property
-    def np_random(self) -> np.random.Generator:
-        if self._rng is None:
-            self._rng = make_rng(None)
-        return self._rng
-
     def reset(self, *, seed: int | None = None, options: dict | None = None) -> tuple[np.ndarray, dict]:
         if options:
             raise ValueError("reset(options=...) is not supported by the fast simulator")
-        if seed is not None:
-            self._rng = make_rng(seed)
+        super().reset(seed=seed)
         self.F, self.I, self.E = build_scene(self.np_random, self.sim, self.P, self._buffers)
         self.time = 0.0
         self.steps = 0
@@ -139,13 +133,6 @@ class FastHighwayEnv:
         terminated = bool(self.I[0, K.CRASHED]) or (sc.offroad_terminal and not self.on_road)
         truncated = bool(self.time >= sc.duration)
         return self._obs.copy(), 0.0, terminated, truncated, self._info()
-
-    def close(self) -> None:
-        pass
-
-    @property
-    def unwrapped(self) -> FastHighwayEnv:
-        return self
 
     # --- state ---------------------------------------------------------------------------------------
     @property

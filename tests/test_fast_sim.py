@@ -144,7 +144,7 @@ def test_snapshot_and_info() -> None:
     assert obs.shape == (2,) and obs.dtype == np.float32
     assert env.action_space.n == 5
     for _ in range(3):
-        obs, reward, terminated, truncated, info = env.step(3)
+        obs, reward, _, _, info = env.step(3)
     snap = info["snapshot"]
     assert isinstance(snap, RoadSnapshot)
     n = 1 + cfg["vehicles_count"]

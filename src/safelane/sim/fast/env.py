@@ -13,7 +13,7 @@ advances by ``1 / policy_frequency`` a step, ``terminated`` = ego crashed (or of
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, ClassVar
 
 import gymnasium as gym
 import numpy as np
@@ -43,7 +43,7 @@ class FastHighwayEnv(gym.Env):
     Seeding is gymnasium's (``Env.reset(seed=...)`` -> ``self.np_random``), as in highway-env.
     """
 
-    metadata: dict[str, Any] = {"render_modes": []}
+    metadata: ClassVar[dict[str, Any]] = {"render_modes": []}
 
     def __init__(self, config: dict[str, Any] | None = None, env_id: str = "highway-fast-v0") -> None:
         self.env_id = env_id
@@ -111,7 +111,7 @@ class FastHighwayEnv(gym.Env):
         if options:
             raise ValueError("reset(options=...) is not supported by the fast simulator")
         super().reset(seed=seed)
-        self.F, self.I, self.E = build_scene(self.np_random, self.sim, self.P, self._buffers)
+        self.F, self.G, self.E = build_scene(self.np_random, self.sim, self.P, self._buffers)
         self.time = 0.0
         self.steps = 0
         self._rec[0] = 0
@@ -126,11 +126,11 @@ class FastHighwayEnv(gym.Env):
         sc = self.sim
         self.time += 1 / sc.policy_frequency
         K.simulate(
-            self.F, self.I, self.E, sc.target_speeds, self.P, a, sc.frames, sc.dt, sc.lanes_count,
+            self.F, self.G, self.E, sc.target_speeds, self.P, a, sc.frames, sc.dt, sc.lanes_count,
             self._before, self._after, self._rec,
         )  # fmt: skip
         self.steps += sc.frames
-        terminated = bool(self.I[0, K.CRASHED]) or (sc.offroad_terminal and not self.on_road)
+        terminated = bool(self.G[0, K.CRASHED]) or (sc.offroad_terminal and not self.on_road)
         truncated = bool(self.time >= sc.duration)
         return self._obs.copy(), 0.0, terminated, truncated, self._info()
 
@@ -138,12 +138,12 @@ class FastHighwayEnv(gym.Env):
     @property
     def on_road(self) -> bool:
         """``ego.on_road``: on its (closest) lane, no margin."""
-        lane = int(self.I[0, K.LANE])
+        lane = int(self.G[0, K.LANE])
         return bool(K._on_lane(self.F[0, K.X], self.F[0, K.Y], lane, 0.0, self.P))
 
     def state(self) -> dict[str, np.ndarray]:
         """Copies of every vehicle's state (row 0: the ego)."""
-        F, I = self.F, self.I
+        F, G = self.F, self.G
         return {
             "x": F[:, K.X].copy(),
             "y": F[:, K.Y].copy(),
@@ -152,25 +152,25 @@ class FastHighwayEnv(gym.Env):
             "target_speed": F[:, K.TSPD].copy(),
             "delta": F[:, K.DELTA].copy(),
             "timer": F[:, K.TIMER].copy(),
-            "lane": I[:, K.LANE].copy(),
-            "target_lane": I[:, K.TLANE].copy(),
-            "crashed": I[:, K.CRASHED].astype(bool),
+            "lane": G[:, K.LANE].copy(),
+            "target_lane": G[:, K.TLANE].copy(),
+            "crashed": G[:, K.CRASHED].astype(bool),
             "speed_index": self.E.copy(),
         }
 
     def _info(self) -> dict[str, Any]:
         return {
             "speed": float(self.F[0, K.V]),
-            "crashed": bool(self.I[0, K.CRASHED]),
+            "crashed": bool(self.G[0, K.CRASHED]),
             "snapshot": self.snapshot(),
         }
 
     def snapshot(self) -> RoadSnapshot:
         """The scene as a :class:`RoadSnapshot` (fresh per-step arrays; the static ones are shared, read-only)."""
-        F, I, sc = self.F, self.I, self.sim
+        F, G, sc = self.F, self.G, self.sim
         lane_w = self._lane_w
         kin = F[:, : K.V + 1].T.copy()  # rows x, y, heading, speed
-        ints = I[:, : K.CRASHED + 1].T.copy()  # rows lane, target lane, crashed
+        ints = G[:, : K.CRASHED + 1].T.copy()  # rows lane, target lane, crashed
         ego_lane = int(ints[0, 0])
         crashed_once = bool(self._rec[0])
         fields = {

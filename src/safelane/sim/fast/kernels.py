@@ -21,7 +21,7 @@ the heading, refreshed at the start of every ``Road.act`` phase, during which no
 Trigonometric calls go through ``_sin`` & co., which return IEEE's exact values at ``±0`` without
 calling libm (``sin(±0) = ±0``, ``cos(±0) = 1``...): most vehicles drive with heading and steering
 exactly ``0.0``, and those calls would otherwise dominate.
-``I[n, NI]`` int64 columns LANE, TLANE (target lane), CRASHED, HASIMP (impact pending), CHECK
+``G[n, NI]`` int64 columns LANE, TLANE (target lane), CRASHED, HASIMP (impact pending), CHECK
 (check_collisions), ELC (enable_lane_change), IDM (1: IDM driver, 0: the ego MDPVehicle).
 ``E`` int64 (1,): the ego's speed index.
 """
@@ -324,9 +324,9 @@ def _speed_to_index(speed, ts):
 
 
 @njit(cache=True)
-def _act_ego(F, I, E, ts, action, n_lanes, P):
+def _act_ego(F, G, E, ts, action, n_lanes, P):
     """MDPVehicle.act(action) (action < 0: act(None)), then ControlledVehicle's controllers."""
-    if action == FASTER or action == SLOWER:
+    if action in (FASTER, SLOWER):
         si = _speed_to_index(F[0, V], ts) + (1 if action == FASTER else -1)
         if si < 0:
             si = 0
@@ -334,56 +334,56 @@ def _act_ego(F, I, E, ts, action, n_lanes, P):
             si = ts.size - 1
         E[0] = si
         F[0, TSPD] = ts[si]
-    elif action == LANE_RIGHT or action == LANE_LEFT:
-        cand = I[0, TLANE] + (1 if action == LANE_RIGHT else -1)
+    elif action in (LANE_RIGHT, LANE_LEFT):
+        cand = G[0, TLANE] + (1 if action == LANE_RIGHT else -1)
         if cand < 0:
             cand = 0
         if cand > n_lanes - 1:
             cand = n_lanes - 1
         if _is_reachable(F[0, X], F[0, Y], cand, P):
-            I[0, TLANE] = cand
-    steer = _steering_control(F, 0, I[0, TLANE], P)
+            G[0, TLANE] = cand
+    steer = _steering_control(F, 0, G[0, TLANE], P)
     F[0, STEER] = _clip(steer, -P[P_MAX_STEERING], P[P_MAX_STEERING])
     F[0, ACC] = P[P_KP_A] * (F[0, TSPD] - F[0, V])
 
 
 @njit(cache=True)
-def _mobil(F, I, n, j, lane, P, members, mx, cnt, free_j):
+def _mobil(F, G, n, j, lane, P, members, mx, cnt, free_j):
     delta = F[j, DELTA]
     new_preceding, new_following = _neighbours(F, j, lane, members, mx, cnt)
     new_following_a = _acceleration(F, new_following, new_preceding, delta, P)
     new_following_pred_a = _acceleration(F, new_following, j, delta, P)
     if new_following_pred_a < -P[P_MAX_BRAKING_IMPOSED]:
         return False
-    old_preceding, old_following = _neighbours(F, j, I[j, LANE], members, mx, cnt)
+    old_preceding, old_following = _neighbours(F, j, G[j, LANE], members, mx, cnt)
     self_pred_a = _acceleration_free(F, j, new_preceding, free_j, P)
     self_a = _acceleration_free(F, j, old_preceding, free_j, P)
     old_following_a = _acceleration(F, old_following, j, delta, P)
     old_following_pred_a = _acceleration(F, old_following, old_preceding, delta, P)
-    jerk = self_pred_a - self_a + P[P_POLITENESS] * (
-        new_following_pred_a - new_following_a + old_following_pred_a - old_following_a
+    jerk = (
+        self_pred_a
+        - self_a
+        + P[P_POLITENESS] * (new_following_pred_a - new_following_a + old_following_pred_a - old_following_a)
     )
-    if jerk < P[P_MIN_ACC_GAIN]:
-        return False
-    return True
+    return not jerk < P[P_MIN_ACC_GAIN]
 
 
 @njit(cache=True)
-def _change_lane_policy(F, I, n, j, n_lanes, P, members, mx, cnt, free_j):
-    if I[j, LANE] != I[j, TLANE]:
-        tl = I[j, TLANE]
+def _change_lane_policy(F, G, n, j, n_lanes, P, members, mx, cnt, free_j):
+    if G[j, LANE] != G[j, TLANE]:
+        tl = G[j, TLANE]
         for k in range(n):
-            if k != j and I[k, LANE] != tl and I[k, TLANE] == tl:
+            if k != j and G[k, LANE] != tl and G[k, TLANE] == tl:
                 d = F[k, X] - F[j, X]
                 d_star = _desired_gap(F, j, k, P)
                 if 0 < d < d_star:
-                    I[j, TLANE] = I[j, LANE]
+                    G[j, TLANE] = G[j, LANE]
                     break
         return
     if not (P[P_LANE_CHANGE_DELAY] < F[j, TIMER]):
         return
     F[j, TIMER] = 0.0
-    lane = I[j, LANE]
+    lane = G[j, LANE]
     for side in range(2):
         cand = lane - 1 if side == 0 else lane + 1
         if cand < 0 or cand > n_lanes - 1:
@@ -392,25 +392,25 @@ def _change_lane_policy(F, I, n, j, n_lanes, P, members, mx, cnt, free_j):
             continue
         if abs(F[j, V]) < 1:
             continue
-        if _mobil(F, I, n, j, cand, P, members, mx, cnt, free_j):
-            I[j, TLANE] = cand
+        if _mobil(F, G, n, j, cand, P, members, mx, cnt, free_j):
+            G[j, TLANE] = cand
 
 
 @njit(cache=True)
-def _act_idm(F, I, n, j, n_lanes, P, members, mx, cnt):
+def _act_idm(F, G, n, j, n_lanes, P, members, mx, cnt):
     """IDMVehicle.act()."""
-    if I[j, CRASHED]:
+    if G[j, CRASHED]:
         return
     delta = F[j, DELTA]
     free_j = _free_road(F, j, delta, P)  # speed and target speed do not change during act
-    if I[j, ELC]:
-        _change_lane_policy(F, I, n, j, n_lanes, P, members, mx, cnt, free_j)
-    steer = _steering_control(F, j, I[j, TLANE], P)
+    if G[j, ELC]:
+        _change_lane_policy(F, G, n, j, n_lanes, P, members, mx, cnt, free_j)
+    steer = _steering_control(F, j, G[j, TLANE], P)
     F[j, STEER] = _clip(steer, -P[P_MAX_STEERING], P[P_MAX_STEERING])
-    front, _rear = _neighbours(F, j, I[j, LANE], members, mx, cnt)
+    front, _rear = _neighbours(F, j, G[j, LANE], members, mx, cnt)
     acc = _acceleration_free(F, j, front, free_j, P)
-    if I[j, LANE] != I[j, TLANE]:
-        front2, _rear2 = _neighbours(F, j, I[j, TLANE], members, mx, cnt)
+    if G[j, LANE] != G[j, TLANE]:
+        front2, _rear2 = _neighbours(F, j, G[j, TLANE], members, mx, cnt)
         acc2 = _acceleration_free(F, j, front2, free_j, P)
         if acc2 < acc:
             acc = acc2
@@ -418,12 +418,12 @@ def _act_idm(F, I, n, j, n_lanes, P, members, mx, cnt):
 
 
 @njit(cache=True)
-def _step_vehicle(F, I, j, dt, n_lanes, P):
+def _step_vehicle(F, G, j, dt, n_lanes, P):
     """(IDMVehicle timer +) Vehicle.step(dt): clip_actions, bicycle model, impact, lane update."""
-    if I[j, IDM]:
+    if G[j, IDM]:
         F[j, TIMER] += dt
     # clip_actions
-    if I[j, CRASHED]:
+    if G[j, CRASHED]:
         F[j, STEER] = 0.0
         F[j, ACC] = -1.0 * F[j, V]
     sp = F[j, V]
@@ -442,14 +442,14 @@ def _step_vehicle(F, I, j, dt, n_lanes, P):
     vy = sp * _sin(hb)
     F[j, X] += vx * dt
     F[j, Y] += vy * dt
-    if I[j, HASIMP]:
+    if G[j, HASIMP]:
         F[j, X] += F[j, IMPX]
         F[j, Y] += F[j, IMPY]
-        I[j, CRASHED] = 1
-        I[j, HASIMP] = 0
+        G[j, CRASHED] = 1
+        G[j, HASIMP] = 0
     F[j, H] += sp * _sin(beta) / (P[P_LENGTH] / 2) * dt
     F[j, V] += F[j, ACC] * dt
-    I[j, LANE] = closest_lane(F[j, X], F[j, Y], F[j, H], n_lanes, P)
+    G[j, LANE] = closest_lane(F[j, X], F[j, Y], F[j, H], n_lanes, P)
 
 
 @njit(cache=True)
@@ -553,9 +553,9 @@ def _polygons_intersecting(a, b, dax, day, dbx, dby, res):
 
 
 @njit(cache=True)
-def _handle_collisions(F, I, i, j, dt, P, pa, pb, res):
+def _handle_collisions(F, G, i, j, dt, P, pa, pb, res):
     """RoadObject.handle_collisions(self=i, other=j, dt) between two solid vehicles."""
-    if not (I[i, CHECK] or I[j, CHECK]):
+    if not (G[i, CHECK] or G[j, CHECK]):
         return
     dx = F[j, X] - F[i, X]
     dy = F[j, Y] - F[i, Y]
@@ -571,17 +571,17 @@ def _handle_collisions(F, I, i, j, dt, P, pa, pb, res):
     if will:
         F[i, IMPX] = res[0] / 2
         F[i, IMPY] = res[1] / 2
-        I[i, HASIMP] = 1
+        G[i, HASIMP] = 1
         F[j, IMPX] = -res[0] / 2
         F[j, IMPY] = -res[1] / 2
-        I[j, HASIMP] = 1
+        G[j, HASIMP] = 1
     if intersecting:
-        I[i, CRASHED] = 1
-        I[j, CRASHED] = 1
+        G[i, CRASHED] = 1
+        G[j, CRASHED] = 1
 
 
 @njit(cache=True)
-def _collisions(F, I, dt, P, pa, pb, res, reach, cand):
+def _collisions(F, G, dt, P, pa, pb, res, reach, cand):
     """Road.step's pairwise checks: ``vehicles[i].handle_collisions(vehicles[j])`` for i < j, in that order.
 
     Pairs whose |dx| exceeds ``reach`` (the pre-check's radius + (MAX_SPEED + 1)·dt + 1 m) cannot pass
@@ -594,24 +594,24 @@ def _collisions(F, I, dt, P, pa, pb, res, reach, cand):
     for r in range(n):
         rank[order[r]] = r
     for i in range(n):
-        ci = I[i, CHECK]
+        ci = G[i, CHECK]
         xi = F[i, X]
         if abs(F[i, V]) > P[P_MAX_SPEED] + 1.0:
             for j in range(i + 1, n):
-                _handle_collisions(F, I, i, j, dt, P, pa, pb, res)
+                _handle_collisions(F, G, i, j, dt, P, pa, pb, res)
             continue
         m = 0
         r = rank[i] - 1
         while r >= 0 and xi - F[order[r], X] <= reach:
             j = order[r]
-            if j > i and (ci or I[j, CHECK]):
+            if j > i and (ci or G[j, CHECK]):
                 cand[m] = j
                 m += 1
             r -= 1
         r = rank[i] + 1
         while r < n and F[order[r], X] - xi <= reach:
             j = order[r]
-            if j > i and (ci or I[j, CHECK]):
+            if j > i and (ci or G[j, CHECK]):
                 cand[m] = j
                 m += 1
             r += 1
@@ -624,11 +624,11 @@ def _collisions(F, I, dt, P, pa, pb, res, reach, cand):
                 b -= 1
             cand[b + 1] = v
         for a in range(m):
-            _handle_collisions(F, I, i, cand[a], dt, P, pa, pb, res)
+            _handle_collisions(F, G, i, cand[a], dt, P, pa, pb, res)
 
 
 @njit(cache=True)
-def simulate(F, I, E, ts, P, action, frames, dt, n_lanes, before, after, rec):
+def simulate(F, G, E, ts, P, action, frames, dt, n_lanes, before, after, rec):
     """AbstractEnv._simulate(action): ``frames`` x (act [+ the meta-action at frame 0], step, collisions).
 
     ``rec[0]`` is set to 1 (and ``before``/``after`` filled with the positions at the start and end of
@@ -644,7 +644,7 @@ def simulate(F, I, E, ts, P, action, frames, dt, n_lanes, before, after, rec):
     reach = (P[P_DIAGONAL] + P[P_DIAGONAL]) / 2 + (P[P_MAX_SPEED] + 1.0) * dt + 1.0
     cand = np.empty(n, dtype=np.int64)
     for frame in range(frames):
-        was_crashed = I[0, CRASHED]
+        was_crashed = G[0, CRASHED]
         if rec[0] == 0 and not was_crashed:
             for k in range(n):
                 before[k, 0] = F[k, X]
@@ -652,15 +652,15 @@ def simulate(F, I, E, ts, P, action, frames, dt, n_lanes, before, after, rec):
         # Road.act (the ego's meta-action first, at the decision's first frame)
         build_lane_index(F, n_lanes, P, members, mx, cnt)
         for k in range(n):
-            if I[k, IDM]:
-                _act_idm(F, I, n, k, n_lanes, P, members, mx, cnt)
+            if G[k, IDM]:
+                _act_idm(F, G, n, k, n_lanes, P, members, mx, cnt)
             else:
-                _act_ego(F, I, E, ts, action if frame == 0 else -1, n_lanes, P)
+                _act_ego(F, G, E, ts, action if frame == 0 else -1, n_lanes, P)
         # Road.step
         for k in range(n):
-            _step_vehicle(F, I, k, dt, n_lanes, P)
-        _collisions(F, I, dt, P, pa, pb, res, reach, cand)
-        if rec[0] == 0 and not was_crashed and I[0, CRASHED]:
+            _step_vehicle(F, G, k, dt, n_lanes, P)
+        _collisions(F, G, dt, P, pa, pb, res, reach, cand)
+        if rec[0] == 0 and not was_crashed and G[0, CRASHED]:
             rec[0] = 1
             for k in range(n):
                 after[k, 0] = F[k, X]
@@ -719,7 +719,7 @@ def _uniform(raws, st, lo, hi):
 
 @njit(cache=True)
 def spawn(raws, st, ego_lane, ego_spacing, spacing, lanes_factor, lo, hi, d_lo, d_hi, delay, ego_delta,
-          check_others, ts, n_lanes, P, F, I, E):  # fmt: skip
+          check_others, ts, n_lanes, P, F, G, E):  # fmt: skip
     """The scene of HighwayEnv._create_vehicles (see scene.build_scene_python, its line-by-line twin).
 
     Returns False when ``raws`` ran out (``st[0] == -1``)."""
@@ -734,14 +734,14 @@ def spawn(raws, st, ego_lane, ego_spacing, spacing, lanes_factor, lo, hi, d_lo, 
     x = x0
     y = lane_id * width
     F[0, :] = 0.0
-    I[0, :] = 0
+    G[0, :] = 0
     F[0, X] = x
     F[0, Y] = y
     F[0, V] = speed
     lane = closest_lane(x, y, 0.0, n_lanes, P)
-    I[0, LANE] = lane
-    I[0, TLANE] = lane
-    I[0, CHECK] = 1
+    G[0, LANE] = lane
+    G[0, TLANE] = lane
+    G[0, CHECK] = 1
     si = _speed_to_index(speed, ts)
     E[0] = si
     F[0, TSPD] = ts[si]
@@ -757,7 +757,7 @@ def spawn(raws, st, ego_lane, ego_spacing, spacing, lanes_factor, lo, hi, d_lo, 
         x = x0
         y = lane_id * width
         F[k, :] = 0.0
-        I[k, :] = 0
+        G[k, :] = 0
         F[k, X] = x
         F[k, Y] = y
         F[k, V] = speed
@@ -765,11 +765,11 @@ def spawn(raws, st, ego_lane, ego_spacing, spacing, lanes_factor, lo, hi, d_lo, 
         F[k, TIMER] = ((x + y) * np.pi) % delay
         F[k, DELTA] = _uniform(raws, st, d_lo, d_hi)
         lane = closest_lane(x, y, 0.0, n_lanes, P)
-        I[k, LANE] = lane
-        I[k, TLANE] = lane
-        I[k, CHECK] = check_others
-        I[k, ELC] = 1
-        I[k, IDM] = 1
+        G[k, LANE] = lane
+        G[k, TLANE] = lane
+        G[k, CHECK] = check_others
+        G[k, ELC] = 1
+        G[k, IDM] = 1
         if x > x_max:
             x_max = x
     return st[0] >= 0

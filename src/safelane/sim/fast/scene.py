@@ -136,9 +136,7 @@ def resolve_config(config: dict[str, Any] | None, env_id: str) -> SimConfig:
     ts = action.get("target_speeds")
     target_speeds = np.array(ts if ts is not None else MDPVehicle.DEFAULT_TARGET_SPEEDS, dtype=np.float64)
     if target_speeds.ndim != 1 or target_speeds.size < 2 or target_speeds[-1] == target_speeds[0]:
-        raise ValueError(
-            f"action.target_speeds: {ts!r} is not supported; allowed: 2 or more speeds, last != first"
-        )
+        raise ValueError(f"action.target_speeds: {ts!r} is not supported; allowed: 2 or more speeds, last != first")
     sim_f = cfg["simulation_frequency"]
     pol_f = cfg["policy_frequency"]
     lanes = int(cfg["lanes_count"])
@@ -214,7 +212,7 @@ def make_rng(seed: int | None) -> np.random.Generator:
 def build_scene(
     rng: np.random.Generator, sc: SimConfig, P: np.ndarray, out: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """``HighwayEnv._create_vehicles`` on arrays: returns (F, I, E) in kernels' layout (written into ``out``).
+    """``HighwayEnv._create_vehicles`` on arrays: returns (F, G, E) in kernels' layout (written into ``out``).
 
     On PCG64 (gymnasium's generator) the draws are replayed from the generator's raw outputs in one numba
     call (:func:`safelane.sim.fast.kernels.spawn`), leaving the generator in exactly the state the
@@ -226,7 +224,7 @@ def build_scene(
     n = 1 + sc.vehicles_count
     if out is None:
         out = (np.zeros((n, K.NF)), np.zeros((n, K.NI), dtype=np.int64), np.zeros(1, dtype=np.int64))
-    F, I, E = out
+    F, G, E = out
     state = bg.state
     has = int(state["has_uint32"])
     st0 = np.array([0, has, int(state["uinteger"])], dtype=np.int64)
@@ -243,7 +241,7 @@ def build_scene(
             raws, st, ego_lane, float(sc.ego_spacing), float(1 / sc.vehicles_density), lanes_factor,
             0.7 * SPEED_LIMIT, 0.8 * SPEED_LIMIT, float(d_lo), float(d_hi), float(IDMVehicle.LANE_CHANGE_DELAY),
             float(IDMVehicle.DELTA), 1 if sc.others_check_collisions else 0, sc.target_speeds, sc.lanes_count,
-            P, F, I, E,
+            P, F, G, E,
         )  # fmt: skip
         if ok:
             break
@@ -254,7 +252,7 @@ def build_scene(
         state["has_uint32"] = int(st[1])
         state["uinteger"] = int(st[2])
         bg.state = state
-    return F, I, E
+    return F, G, E
 
 
 def build_scene_python(
@@ -264,7 +262,7 @@ def build_scene_python(
     n_lanes = sc.lanes_count
     n = 1 + sc.vehicles_count
     F = np.zeros((n, K.NF))
-    I = np.zeros((n, K.NI), dtype=np.int64)
+    G = np.zeros((n, K.NI), dtype=np.int64)
     E = np.zeros(1, dtype=np.int64)
     width = float(P[K.P_LANE_WIDTH])
     lanes_factor = np.exp(-5 / 40 * n_lanes)
@@ -275,7 +273,7 @@ def build_scene_python(
     if not _SKIP_NODE_CHOICES:
         choice(["0"])
         choice(["1"])
-    lane_id = sc.initial_lane_id if sc.initial_lane_id is not None else choice(n_lanes)  # noqa
+    lane_id = sc.initial_lane_id if sc.initial_lane_id is not None else choice(n_lanes)
     speed = 25.0
     default_spacing = 12 + 1.0 * speed
     offset = sc.ego_spacing * default_spacing * lanes_factor
@@ -288,10 +286,10 @@ def build_scene_python(
     F[0, K.H] = 0.0
     F[0, K.V] = speed
     lane = K.closest_lane(x, y, 0.0, n_lanes, P)
-    I[0, K.LANE] = lane
-    I[0, K.TLANE] = lane
-    I[0, K.CHECK] = 1
-    I[0, K.IDM] = 0
+    G[0, K.LANE] = lane
+    G[0, K.TLANE] = lane
+    G[0, K.CHECK] = 1
+    G[0, K.IDM] = 0
     ts = sc.target_speeds
     si = K._speed_to_index(speed, ts)
     E[0] = si
@@ -324,11 +322,11 @@ def build_scene_python(
         F[k, K.TIMER] = ((x + y) * np.pi) % delay
         F[k, K.DELTA] = uniform(low=d_lo, high=d_hi)
         lane = K.closest_lane(x, y, 0.0, n_lanes, P)
-        I[k, K.LANE] = lane
-        I[k, K.TLANE] = lane
-        I[k, K.CHECK] = check
-        I[k, K.ELC] = 1
-        I[k, K.IDM] = 1
+        G[k, K.LANE] = lane
+        G[k, K.TLANE] = lane
+        G[k, K.CHECK] = check
+        G[k, K.ELC] = 1
+        G[k, K.IDM] = 1
         if x > x_max:
             x_max = x
-    return F, I, E
+    return F, G, E

@@ -181,7 +181,7 @@ def test_snapshot_records_the_impact() -> None:
 @pytest.mark.parametrize(
     ("override", "word"),
     [
-        ({"other_vehicles_type": "highway_env.vehicle.behavior.AggressiveVehicle"}, "other_vehicles_type"),
+        ({"other_vehicles_type": "highway_env.vehicle.kinematics.Vehicle"}, "other_vehicles_type"),
         ({"controlled_vehicles": 2}, "controlled_vehicles"),
         ({"action": {"type": "ContinuousAction"}}, "action.type"),
         ({"some_unknown_key": 1}, "some_unknown_key"),
@@ -238,3 +238,49 @@ def test_lane_index_neighbours_equal_the_scan_with_ties() -> None:
         for j in range(n):
             for lane in range(n_lanes):
                 assert K._neighbours(F, j, lane, members, mx, cnt) == K._neighbours_scan(F, n, j, lane, P)
+
+
+LINEAR_TYPES = ("LinearVehicle", "AggressiveVehicle", "DefensiveVehicle")
+
+
+@pytest.mark.parametrize("typ", LINEAR_TYPES)
+def test_linear_vehicle_scenes_match_highway_env(typ: str) -> None:
+    """LinearVehicle & subclasses: their randomize_behavior draws; the replay equals the Python twin."""
+    from safelane.sim.fast.scene import build_scene, build_scene_python, make_rng, params, resolve_config
+
+    cfg, env_id = _preset("fast")
+    cfg = {**cfg, "other_vehicles_type": f"highway_env.vehicle.behavior.{typ}"}
+    sc, P = resolve_config(cfg, env_id), params()
+    for seed in range(5):
+        r1, r2 = make_rng(seed), make_rng(seed)
+        a, b = build_scene(r1, sc, P), build_scene_python(r2, sc, P)
+        assert all(np.array_equal(x, y) for x, y in zip(a, b, strict=True))
+        assert r1.bit_generator.state == r2.bit_generator.state
+    oracle, fast = make_oracle(cfg, env_id), FastHighwayEnv(cfg, env_id)
+    for seed in range(3):
+        oracle.reset(seed=seed)
+        fast.reset(seed=seed)
+        cause, _, bitwise = compare_states(fast.state(), oracle_state(oracle), TOL, full=True)
+        assert cause is None and bitwise, cause
+        ref = oracle.unwrapped.road.vehicles[1]
+        assert np.array_equal(fast.F[1, 15:18], ref.ACCELERATION_PARAMETERS)
+        assert np.array_equal(fast.F[1, 18:20], ref.STEERING_PARAMETERS)
+
+
+def test_linear_vehicle_episode_matches_highway_env() -> None:
+    cfg, env_id = _preset("fast")
+    cfg = {**cfg, "other_vehicles_type": "highway_env.vehicle.behavior.AggressiveVehicle"}
+    r = compare_episode(cfg, env_id, 1, policy_actions("random", 1), tol=TOL, stop_at_end=False)
+    assert r.matched, f"{r.divergent_step}: {r.cause}"
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("typ", LINEAR_TYPES)
+@pytest.mark.parametrize("name", PRESETS)
+def test_linear_vehicle_episodes_match_highway_env_slow(name: str, typ: str) -> None:
+    cfg, env_id = _preset(name)
+    cfg = {**cfg, "other_vehicles_type": f"highway_env.vehicle.behavior.{typ}"}
+    oracle = make_oracle(cfg, env_id)
+    for seed, policy in ((20, "random"), (21, "faster"), (22, "weave")):
+        r = compare_episode(cfg, env_id, seed, policy_actions(policy, seed), tol=TOL, oracle=oracle, stop_at_end=False)
+        assert r.matched, f"{name} {typ} seed {seed} {policy}: {r.divergent_step}: {r.cause}"

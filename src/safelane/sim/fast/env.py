@@ -72,15 +72,21 @@ class FastHighwayEnv(gym.Env):
         self._is_vehicle = np.ones(n, dtype=bool)
         idm = np.ones(n, dtype=bool)
         idm[0] = False
+        cls = self.sim.other_class
+        # IDMVehicle.acceleration (IDM formula) or LinearVehicle's model, as safelane's shield reads them
+        idm_formula = cls.acceleration is IDMVehicle.acceleration
         self._can_change_lane = idm.copy()
-        acc_max = float(IDMVehicle.ACC_MAX)
+        acc_max = float(getattr(cls, "ACC_MAX", IDMVehicle.ACC_MAX))
         self._brake_max = np.full(n, acc_max)
-        self._accel_max = np.where(idm, float(IDMVehicle.COMFORT_ACC_MAX), acc_max)
-        self._comfort_acc = np.full(n, float(IDMVehicle.COMFORT_ACC_MAX))
-        self._comfort_dec = np.full(n, float(IDMVehicle.COMFORT_ACC_MIN))
-        self._distance_wanted = np.full(n, float(IDMVehicle.DISTANCE_WANTED))
-        self._time_wanted = np.full(n, float(IDMVehicle.TIME_WANTED))
-        self._max_braking = np.where(idm, float(IDMVehicle.LANE_CHANGE_MAX_BRAKING_IMPOSED), np.inf)
+        self._brake_max[0] = float(IDMVehicle.ACC_MAX)
+        others_accel = float(cls.COMFORT_ACC_MAX) if idm_formula else acc_max
+        self._accel_max = np.where(idm, others_accel, float(IDMVehicle.ACC_MAX))
+        self._comfort_acc = np.where(idm, float(cls.COMFORT_ACC_MAX), float(IDMVehicle.COMFORT_ACC_MAX))
+        self._comfort_dec = np.where(idm, float(cls.COMFORT_ACC_MIN), float(IDMVehicle.COMFORT_ACC_MIN))
+        self._distance_wanted = np.where(idm, float(cls.DISTANCE_WANTED), float(IDMVehicle.DISTANCE_WANTED))
+        self._time_wanted = np.where(idm, float(cls.TIME_WANTED), float(IDMVehicle.TIME_WANTED))
+        others_mbi = float(cls.LANE_CHANGE_MAX_BRAKING_IMPOSED) if idm_formula else np.inf
+        self._max_braking = np.where(idm, others_mbi, np.inf)
         for a in (
             self._length,
             self._width,

@@ -22,7 +22,8 @@ Trigonometric calls go through ``_sin`` & co., which return IEEE's exact values 
 calling libm (``sin(±0) = ±0``, ``cos(±0) = 1``...): most vehicles drive with heading and steering
 exactly ``0.0``, and those calls would otherwise dominate.
 ``G[n, NI]`` int64 columns LANE, TLANE (target lane), CRASHED, HASIMP (impact pending), CHECK
-(check_collisions), ELC (enable_lane_change), IDM (1: IDM driver, 0: the ego MDPVehicle).
+(check_collisions), ELC (enable_lane_change), IDM (1: IDM-family driver, 0: the ego MDPVehicle), LIN
+(1: LinearVehicle's models).
 ``E`` int64 (1,): the ego's speed index.
 """
 
@@ -35,10 +36,13 @@ from numba import njit
 
 # float columns (COSH, SINH: cos / sin of the heading, cached for each Road.act phase)
 X, Y, H, V, TSPD, DELTA, TIMER, IMPX, IMPY, STEER, ACC, COSH, SINH = range(13)
-NF = 13
+# per-vehicle driver constants: TW (TIME_WANTED), GAIN (LANE_CHANGE_MIN_ACC_GAIN), LinearVehicle's
+# ACCELERATION_PARAMETERS (AP0..2) and STEERING_PARAMETERS (SP0, SP1)
+TW, GAIN, AP0, AP1, AP2, SP0, SP1 = range(13, 20)
+NF = 20
 # int columns
-LANE, TLANE, CRASHED, HASIMP, CHECK, ELC, IDM = range(7)
-NI = 7
+LANE, TLANE, CRASHED, HASIMP, CHECK, ELC, IDM, LIN = range(8)
+NI = 8
 
 # Parameter vector P (float64), filled by the env from highway-env's class constants.
 (
@@ -255,10 +259,10 @@ def _neighbours(F, j, lane, members, mx, cnt):
 
 
 @njit(cache=True)
-def _desired_gap(F, j, k, P):
-    """IDMVehicle.desired_gap(ego_vehicle=j, front_vehicle=k), projected."""
+def _desired_gap(F, c, j, k, P):
+    """``c.desired_gap(ego_vehicle=j, front_vehicle=k)``, projected (c's TIME_WANTED)."""
     d0 = P[P_DISTANCE_WANTED]
-    tau = P[P_TIME_WANTED]
+    tau = F[c, TW]
     ab = -P[P_COMFORT_ACC_MAX] * P[P_COMFORT_ACC_MIN]
     cj = F[j, COSH]
     sj = F[j, SINH]
@@ -283,21 +287,49 @@ def _free_road(F, j, delta, P):
 
 
 @njit(cache=True)
-def _acceleration(F, j, k, delta, P):
-    """IDMVehicle.acceleration(ego_vehicle=j, front_vehicle=k) with the *caller's* DELTA; j < 0: 0."""
-    if j < 0:
-        return 0.0
-    return _acceleration_free(F, j, k, _free_road(F, j, delta, P), P)
+def _linear_acceleration(F, c, j, k, P):
+    """``LinearVehicle.acceleration`` of caller c for ego_vehicle j (>= 0), front k: params · features."""
+    vt = F[j, TSPD] - F[j, V]
+    sp = F[j, V]
+    m = sp if sp >= 0.0 else 0.0
+    d_safe = P[P_DISTANCE_WANTED] + m * F[c, TW]
+    dv = 0.0
+    dp = 0.0
+    if k >= 0:
+        d = F[k, X] - F[j, X]
+        a = F[k, V] - F[j, V]
+        dv = 0.0 if a > 0 else a  # min(a, 0)
+        b = d - d_safe
+        dp = 0.0 if b > 0 else b
+    return (F[c, AP0] * vt + F[c, AP1] * dv) + F[c, AP2] * dp
 
 
 @njit(cache=True)
-def _acceleration_free(F, j, k, free, P):
-    """:func:`_acceleration` given j's free-road term (the same for every call of one act phase)."""
+def _acceleration(F, G, c, j, k, P):
+    """``c.acceleration(ego_vehicle=j, front_vehicle=k)``: c's model and parameters; j < 0: 0."""
+    if j < 0:
+        return 0.0
+    if G[c, LIN]:
+        return _linear_acceleration(F, c, j, k, P)
+    return _acceleration_free(F, c, j, k, _free_road(F, j, F[c, DELTA], P), P)
+
+
+@njit(cache=True)
+def _acceleration_free(F, c, j, k, free, P):
+    """IDM acceleration of caller c for j given j's free-road term with c's DELTA."""
     acc = free
     if k >= 0:
         d = F[k, X] - F[j, X]
-        acc -= P[P_COMFORT_ACC_MAX] * math.pow(_desired_gap(F, j, k, P) / _not_zero(d), 2.0)
+        acc -= P[P_COMFORT_ACC_MAX] * math.pow(_desired_gap(F, c, j, k, P) / _not_zero(d), 2.0)
     return acc
+
+
+@njit(cache=True)
+def _own_acceleration(F, G, j, k, free_j, P):
+    """``j.acceleration(ego_vehicle=j, front_vehicle=k)`` (free_j: j's IDM free-road term, unused if linear)."""
+    if G[j, LIN]:
+        return _linear_acceleration(F, j, j, k, P)
+    return _acceleration_free(F, j, j, k, free_j, P)
 
 
 @njit(cache=True)
@@ -313,6 +345,16 @@ def _steering_control(F, j, target_lane, P):
     slip_angle = _asin(_clip(P[P_LENGTH] / 2 / _not_zero(sp) * heading_rate_command, -1.0, 1.0))
     steering_angle = _atan(2 * _tan(slip_angle))
     return _clip(steering_angle, -P[P_MAX_STEERING], P[P_MAX_STEERING])
+
+
+@njit(cache=True)
+def _linear_steering(F, j, target_lane, P):
+    """LinearVehicle.steering_control: STEERING_PARAMETERS · steering_features (not clipped here)."""
+    lat = F[j, Y] - target_lane * P[P_LANE_WIDTH]
+    nz = _not_zero(F[j, V])
+    f0 = _wrap_to_pi(0.0 - F[j, H]) * P[P_LENGTH] / nz
+    f1 = -lat * P[P_LENGTH] / (nz * nz)
+    return F[j, SP0] * f0 + F[j, SP1] * f1
 
 
 @njit(cache=True)
@@ -349,23 +391,22 @@ def _act_ego(F, G, E, ts, action, n_lanes, P):
 
 @njit(cache=True)
 def _mobil(F, G, n, j, lane, P, members, mx, cnt, free_j):
-    delta = F[j, DELTA]
     new_preceding, new_following = _neighbours(F, j, lane, members, mx, cnt)
-    new_following_a = _acceleration(F, new_following, new_preceding, delta, P)
-    new_following_pred_a = _acceleration(F, new_following, j, delta, P)
+    new_following_a = _acceleration(F, G, j, new_following, new_preceding, P)
+    new_following_pred_a = _acceleration(F, G, j, new_following, j, P)
     if new_following_pred_a < -P[P_MAX_BRAKING_IMPOSED]:
         return False
     old_preceding, old_following = _neighbours(F, j, G[j, LANE], members, mx, cnt)
-    self_pred_a = _acceleration_free(F, j, new_preceding, free_j, P)
-    self_a = _acceleration_free(F, j, old_preceding, free_j, P)
-    old_following_a = _acceleration(F, old_following, j, delta, P)
-    old_following_pred_a = _acceleration(F, old_following, old_preceding, delta, P)
+    self_pred_a = _own_acceleration(F, G, j, new_preceding, free_j, P)
+    self_a = _own_acceleration(F, G, j, old_preceding, free_j, P)
+    old_following_a = _acceleration(F, G, j, old_following, j, P)
+    old_following_pred_a = _acceleration(F, G, j, old_following, old_preceding, P)
     jerk = (
         self_pred_a
         - self_a
         + P[P_POLITENESS] * (new_following_pred_a - new_following_a + old_following_pred_a - old_following_a)
     )
-    return not jerk < P[P_MIN_ACC_GAIN]
+    return not jerk < F[j, GAIN]
 
 
 @njit(cache=True)
@@ -375,7 +416,7 @@ def _change_lane_policy(F, G, n, j, n_lanes, P, members, mx, cnt, free_j):
         for k in range(n):
             if k != j and G[k, LANE] != tl and G[k, TLANE] == tl:
                 d = F[k, X] - F[j, X]
-                d_star = _desired_gap(F, j, k, P)
+                d_star = _desired_gap(F, j, j, k, P)
                 if 0 < d < d_star:
                     G[j, TLANE] = G[j, LANE]
                     break
@@ -398,20 +439,21 @@ def _change_lane_policy(F, G, n, j, n_lanes, P, members, mx, cnt, free_j):
 
 @njit(cache=True)
 def _act_idm(F, G, n, j, n_lanes, P, members, mx, cnt):
-    """IDMVehicle.act()."""
+    """IDMVehicle.act() (LinearVehicle's: the same with its acceleration and steering models)."""
     if G[j, CRASHED]:
         return
-    delta = F[j, DELTA]
-    free_j = _free_road(F, j, delta, P)  # speed and target speed do not change during act
+    # j's IDM free-road term: speed and target speed do not change during act
+    free_j = 0.0 if G[j, LIN] else _free_road(F, j, F[j, DELTA], P)
     if G[j, ELC]:
         _change_lane_policy(F, G, n, j, n_lanes, P, members, mx, cnt, free_j)
-    steer = _steering_control(F, j, G[j, TLANE], P)
+    lin = G[j, LIN]
+    steer = _linear_steering(F, j, G[j, TLANE], P) if lin else _steering_control(F, j, G[j, TLANE], P)
     F[j, STEER] = _clip(steer, -P[P_MAX_STEERING], P[P_MAX_STEERING])
     front, _rear = _neighbours(F, j, G[j, LANE], members, mx, cnt)
-    acc = _acceleration_free(F, j, front, free_j, P)
+    acc = _own_acceleration(F, G, j, front, free_j, P)
     if G[j, LANE] != G[j, TLANE]:
         front2, _rear2 = _neighbours(F, j, G[j, TLANE], members, mx, cnt)
-        acc2 = _acceleration_free(F, j, front2, free_j, P)
+        acc2 = _own_acceleration(F, G, j, front2, free_j, P)
         if acc2 < acc:
             acc = acc2
     F[j, ACC] = _clip(acc, -P[P_ACC_MAX], P[P_ACC_MAX])
@@ -719,8 +761,12 @@ def _uniform(raws, st, lo, hi):
 
 @njit(cache=True)
 def spawn(raws, st, ego_lane, ego_spacing, spacing, lanes_factor, lo, hi, d_lo, d_hi, delay, ego_delta,
-          check_others, ts, n_lanes, P, F, G, E):  # fmt: skip
+          drv, check_others, ts, n_lanes, P, F, G, E):  # fmt: skip
     """The scene of HighwayEnv._create_vehicles (see scene.build_scene_python, its line-by-line twin).
+
+    ``drv`` (see scene.driver_constants): [linear?, TIME_WANTED, LANE_CHANGE_MIN_ACC_GAIN,
+    ACCELERATION_RANGE (2 x 3), STEERING_RANGE (2 x 2), the ego's TIME_WANTED] of the other vehicles' class;
+    a LinearVehicle's randomize_behavior draws uniform(size=3), uniform(size=2) before DELTA.
 
     Returns False when ``raws`` ran out (``st[0] == -1``)."""
     n = F.shape[0]
@@ -746,6 +792,8 @@ def spawn(raws, st, ego_lane, ego_spacing, spacing, lanes_factor, lo, hi, d_lo, 
     E[0] = si
     F[0, TSPD] = ts[si]
     F[0, DELTA] = ego_delta
+    F[0, TW] = drv[13]
+    lin = drv[0] != 0.0
     x_max = x
     for k in range(1, n):
         lane_id = _integers(raws, st, n_lanes)
@@ -763,6 +811,20 @@ def spawn(raws, st, ego_lane, ego_spacing, spacing, lanes_factor, lo, hi, d_lo, 
         F[k, V] = speed
         F[k, TSPD] = speed
         F[k, TIMER] = ((x + y) * np.pi) % delay
+        F[k, TW] = drv[1]
+        F[k, GAIN] = drv[2]
+        if lin:
+            u0 = _uniform(raws, st, 0.0, 1.0)
+            u1 = _uniform(raws, st, 0.0, 1.0)
+            u2 = _uniform(raws, st, 0.0, 1.0)
+            F[k, AP0] = drv[3] + u0 * (drv[6] - drv[3])
+            F[k, AP1] = drv[4] + u1 * (drv[7] - drv[4])
+            F[k, AP2] = drv[5] + u2 * (drv[8] - drv[5])
+            v0 = _uniform(raws, st, 0.0, 1.0)
+            v1 = _uniform(raws, st, 0.0, 1.0)
+            F[k, SP0] = drv[9] + v0 * (drv[11] - drv[9])
+            F[k, SP1] = drv[10] + v1 * (drv[12] - drv[10])
+            G[k, LIN] = 1
         F[k, DELTA] = _uniform(raws, st, d_lo, d_hi)
         lane = closest_lane(x, y, 0.0, n_lanes, P)
         G[k, LANE] = lane

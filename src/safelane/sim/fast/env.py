@@ -9,6 +9,14 @@ Everything else follows highway-env: ``reset(seed)`` builds the same scene from 
 frames exactly as ``AbstractEnv._simulate`` (:func:`safelane.sim.fast.kernels.simulate`), ``time``
 advances by ``1 / policy_frequency`` a step, ``terminated`` = ego crashed (or off-road when
 ``offroad_terminal``), ``truncated`` = ``time >= duration``.
+
+Supported: any ``action.target_speeds`` (2 or more, last != first), ``lanes_count``, ``vehicles_count``,
+``vehicles_density``, ``ego_spacing``, ``initial_lane_id``, ``duration``, ``policy_frequency``,
+``simulation_frequency``, ``offroad_terminal``, ``other_vehicles_type`` in
+:data:`safelane.sim.fast.scene.OTHER_VEHICLE_TYPES` (IDMVehicle; LinearVehicle, AggressiveVehicle,
+DefensiveVehicle). Any other setting that changes the dynamics raises ValueError naming it
+(:func:`safelane.sim.fast.scene.resolve_config`); rendering, reward and observation settings are accepted
+and have no effect.
 """
 
 from __future__ import annotations

@@ -8,9 +8,10 @@ hands to the ``Road``), making the same calls in the same order with the same ar
   ``choice(["0"])``, ``choice(["1"])`` (one-element choices draw nothing, checked at import),
   ``choice(lanes_count)`` unless ``initial_lane_id`` is set, ``uniform(0.9, 1.1)``;
   then ``MDPVehicle(road, position, heading, speed)``;
-* each other vehicle: ``IDMVehicle.create_random(road, spacing=1/vehicles_density)`` ->
+* each other vehicle: ``<other_vehicles_type>.create_random(road, spacing=1/vehicles_density)`` ->
   ``choice(lanes_count)``, ``uniform(0.7·30, 0.8·30)``, ``uniform(0.9, 1.1)``; then
-  ``randomize_behavior()`` -> ``uniform(3.5, 4.5)`` (DELTA).
+  ``randomize_behavior()`` -> (LinearVehicle and subclasses: ``uniform(size=3)``, ``uniform(size=2)``
+  for ACCELERATION_ / STEERING_PARAMETERS, then) ``uniform(3.5, 4.5)`` (DELTA).
 
 The arithmetic is the same expressions in the same order, so positions, speeds, timers and DELTAs are
 bit-identical to highway-env's.

@@ -118,12 +118,22 @@ def test_determinism(name: str) -> None:
     assert not all(np.array_equal(x, y) for x, y in zip(a, c, strict=True))
 
 
-def test_reset_without_seed_continues_the_generator() -> None:
+def test_reset_without_seed_continues_the_generator_as_highway_env() -> None:
+    """reset(seed) then reset() twice (the generator carries on, with steps in between) == highway-env."""
     cfg, env_id = _preset("fast")
     env = FastHighwayEnv(cfg, env_id)
+    oracle = _oracle("fast")
     env.reset(seed=5)
+    oracle.reset(seed=5)
     first = env.state()["x"]
-    env.reset()
+    for _ in range(2):
+        for a in (3, 1, 0):
+            env.step(a)
+            oracle.step(a)
+        env.reset()
+        oracle.reset()
+        cause, _, bitwise = compare_states(env.state(), oracle_state(oracle), TOL, full=True)
+        assert cause is None and bitwise, cause
     assert not np.array_equal(first, env.state()["x"])
 
 
@@ -134,7 +144,7 @@ def test_snapshot_and_info() -> None:
     assert obs.shape == (2,) and obs.dtype == np.float32
     assert env.action_space.n == 5
     for _ in range(3):
-        obs, reward, terminated, truncated, info = env.step(3)
+        obs, reward, _, _, info = env.step(3)
     snap = info["snapshot"]
     assert isinstance(snap, RoadSnapshot)
     n = 1 + cfg["vehicles_count"]
@@ -171,7 +181,7 @@ def test_snapshot_records_the_impact() -> None:
 @pytest.mark.parametrize(
     ("override", "word"),
     [
-        ({"other_vehicles_type": "highway_env.vehicle.behavior.AggressiveVehicle"}, "other_vehicles_type"),
+        ({"other_vehicles_type": "highway_env.vehicle.kinematics.Vehicle"}, "other_vehicles_type"),
         ({"controlled_vehicles": 2}, "controlled_vehicles"),
         ({"action": {"type": "ContinuousAction"}}, "action.type"),
         ({"some_unknown_key": 1}, "some_unknown_key"),
@@ -205,3 +215,72 @@ def test_other_settings_match_highway_env() -> None:
     for env_id in ("highway-fast-v0", "highway-v0"):
         r = compare_episode(cfg, env_id, 4, policy_actions("random", 4, 12), tol=TOL, stop_at_end=False)
         assert r.matched, f"{env_id}: {r.divergent_step}: {r.cause}"
+
+
+def test_lane_index_neighbours_equal_the_scan_with_ties() -> None:
+    """The binary-searched neighbour query equals highway-env's linear scan, ties and lane edges included."""
+    from safelane.sim.fast import kernels as K
+    from safelane.sim.fast.scene import params
+
+    P = params()
+    rng = np.random.default_rng(0)
+    n_lanes = 4
+    members = np.empty((n_lanes, 40), dtype=np.int64)
+    mx = np.empty((n_lanes, 40))
+    cnt = np.zeros(n_lanes, dtype=np.int64)
+    for _ in range(300):
+        n = int(rng.integers(1, 40))
+        F = np.zeros((n, K.NF))
+        F[:, K.X] = rng.choice([-6.0, -5.0, 0.0, 10.0, 10.0, 12.5, 30.0, 10004.0, 10005.0], size=n)
+        F[:, K.X] += rng.choice([0.0, 0.0, 1e-9], size=n)
+        F[:, K.Y] = rng.choice([-3.0, -3.5, 0.0, 1.0, 3.0, 4.0, 7.0, 9.0, 12.0, 15.0, 15.5], size=n)
+        K.build_lane_index(F, n_lanes, P, members, mx, cnt)
+        for j in range(n):
+            for lane in range(n_lanes):
+                assert K._neighbours(F, j, lane, members, mx, cnt) == K._neighbours_scan(F, n, j, lane, P)
+
+
+LINEAR_TYPES = ("LinearVehicle", "AggressiveVehicle", "DefensiveVehicle")
+
+
+@pytest.mark.parametrize("typ", LINEAR_TYPES)
+def test_linear_vehicle_scenes_match_highway_env(typ: str) -> None:
+    """LinearVehicle & subclasses: their randomize_behavior draws; the replay equals the Python twin."""
+    from safelane.sim.fast.scene import build_scene, build_scene_python, make_rng, params, resolve_config
+
+    cfg, env_id = _preset("fast")
+    cfg = {**cfg, "other_vehicles_type": f"highway_env.vehicle.behavior.{typ}"}
+    sc, P = resolve_config(cfg, env_id), params()
+    for seed in range(5):
+        r1, r2 = make_rng(seed), make_rng(seed)
+        a, b = build_scene(r1, sc, P), build_scene_python(r2, sc, P)
+        assert all(np.array_equal(x, y) for x, y in zip(a, b, strict=True))
+        assert r1.bit_generator.state == r2.bit_generator.state
+    oracle, fast = make_oracle(cfg, env_id), FastHighwayEnv(cfg, env_id)
+    for seed in range(3):
+        oracle.reset(seed=seed)
+        fast.reset(seed=seed)
+        cause, _, bitwise = compare_states(fast.state(), oracle_state(oracle), TOL, full=True)
+        assert cause is None and bitwise, cause
+        ref = oracle.unwrapped.road.vehicles[1]
+        assert np.array_equal(fast.F[1, 15:18], ref.ACCELERATION_PARAMETERS)
+        assert np.array_equal(fast.F[1, 18:20], ref.STEERING_PARAMETERS)
+
+
+def test_linear_vehicle_episode_matches_highway_env() -> None:
+    cfg, env_id = _preset("fast")
+    cfg = {**cfg, "other_vehicles_type": "highway_env.vehicle.behavior.AggressiveVehicle"}
+    r = compare_episode(cfg, env_id, 1, policy_actions("random", 1), tol=TOL, stop_at_end=False)
+    assert r.matched, f"{r.divergent_step}: {r.cause}"
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("typ", LINEAR_TYPES)
+@pytest.mark.parametrize("name", PRESETS)
+def test_linear_vehicle_episodes_match_highway_env_slow(name: str, typ: str) -> None:
+    cfg, env_id = _preset(name)
+    cfg = {**cfg, "other_vehicles_type": f"highway_env.vehicle.behavior.{typ}"}
+    oracle = make_oracle(cfg, env_id)
+    for seed, policy in ((20, "random"), (21, "faster"), (22, "weave")):
+        r = compare_episode(cfg, env_id, seed, policy_actions(policy, seed), tol=TOL, oracle=oracle, stop_at_end=False)
+        assert r.matched, f"{name} {typ} seed {seed} {policy}: {r.divergent_step}: {r.cause}"

@@ -1,6 +1,6 @@
 """Speed: decisions/s of FastHighwayEnv vs stock highway-env, same config, same process, random policy.
 
-    PYTHONPATH=src python -m safelane.sim.fast.bench [--preset fast] [--stock-decisions 200] [--fast-decisions 50000]
+PYTHONPATH=src python -m safelane.sim.fast.bench [--preset fast] [--stock-decisions 200] [--fast-decisions 50000]
 """
 
 from __future__ import annotations

@@ -1,10 +1,14 @@
 """Alignment check: step :class:`FastHighwayEnv` and stock highway-env side by side and compare every vehicle.
 
 ``compare_episode(config, env_id, seed, actions)`` resets both with ``seed``, compares the scene, then
-after every decision compares each vehicle's position, speed, heading (tolerance ``tol``, in m, m/s, rad),
-lane, target lane and crashed flag, the ego's target speed / speed index, and the terminated / truncated
-flags. It returns an :class:`Alignment` holding the first divergent step (``None``: the whole episode
-matched) and why, plus the largest difference seen and whether everything matched bit for bit.
+after every decision compares each vehicle's position, speed, heading, target speed, IDM DELTA and MOBIL
+timer (tolerance ``tol``, in m, m/s, rad, s), lane, target lane and crashed flag, the ego's speed index,
+``info["speed"]`` and the terminated / truncated flags. It returns an :class:`Alignment` holding the
+first divergent step (``None``: the whole episode matched) and why, plus the largest difference seen and
+whether everything matched bit for bit.
+
+Command line (the future ``safelane sim check``): ``python -m safelane.sim.fast.check --preset all
+--seeds 0:5`` plays :data:`POLICIES` on both presets and exits 1 if any episode diverged.
 """
 
 from __future__ import annotations
@@ -129,7 +133,7 @@ def compare_episode(
         _, _, term_o, trunc_o, info_o = oracle.step(int(a))
         _, _, term_f, trunc_f, info_f = fast.step(int(a))
         steps = t
-        cause, err, bw = compare_states(fast.state(), oracle_state(oracle), tol)
+        cause, err, bw = compare_states(fast.state(), oracle_state(oracle), tol, full=True)
         max_err = max(max_err, err)
         bitwise = bitwise and bw
         if cause is None and (bool(term_o), bool(trunc_o)) != (term_f, trunc_f):
@@ -181,4 +185,53 @@ __all__ = [
     "policy_actions",
     "random_actions",
 ]
-_ = K  # kernels' column names are used by FastHighwayEnv.state()
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """``python -m safelane.sim.fast.check [--preset fast|paper|all] [--seeds 0:10] [--policies ...]``
+
+    Compares whole episodes against stock highway-env and prints one line per episode and a summary;
+    exit status 1 if any episode diverged.
+    """
+    import argparse
+    import json
+    from pathlib import Path
+
+    import yaml
+
+    import safelane
+
+    ap = argparse.ArgumentParser(prog="python -m safelane.sim.fast.check")
+    ap.add_argument("--preset", default="all", help="fast, paper or all")
+    ap.add_argument("--seeds", default="0:5", help="start:stop")
+    ap.add_argument("--policies", default=",".join(POLICIES))
+    ap.add_argument("--decisions", type=int, default=40)
+    ap.add_argument("--tol", type=float, default=1e-6)
+    ap.add_argument("--stop-at-end", action="store_true", help="stop at termination (default: play on)")
+    args = ap.parse_args(argv)
+    presets = ("fast", "paper") if args.preset == "all" else (args.preset,)
+    a, b = (int(v) for v in args.seeds.split(":"))
+    total = matched = bitwise = 0
+    for name in presets:
+        data = yaml.safe_load((Path(safelane.__file__).parent / "presets" / f"{name}.yaml").read_text())
+        cfg, env_id = data["env"], data["env_id"]
+        oracle, fast = make_oracle(cfg, env_id), FastHighwayEnv(cfg, env_id)
+        for seed in range(a, b):
+            for policy in args.policies.split(","):
+                r = compare_episode(
+                    cfg, env_id, seed, policy_actions(policy, seed, args.decisions), args.tol, oracle, fast,
+                    stop_at_end=args.stop_at_end,
+                )  # fmt: skip
+                total += 1
+                matched += r.matched
+                bitwise += r.matched and r.bitwise
+                row = {"preset": name, "seed": seed, "policy": policy, "steps": r.steps}
+                row.update(divergent_step=r.divergent_step, cause=r.cause, max_abs_error=r.max_abs_error)
+                row.update(bitwise=r.bitwise, ego_crashed=bool(fast.G[0, K.CRASHED]))
+                print(json.dumps(row), flush=True)
+    print(f"{matched}/{total} episodes matched within {args.tol}, {bitwise}/{total} bit for bit")
+    return 0 if matched == total else 1
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -9,12 +9,21 @@ Everything else follows highway-env: ``reset(seed)`` builds the same scene from 
 frames exactly as ``AbstractEnv._simulate`` (:func:`safelane.sim.fast.kernels.simulate`), ``time``
 advances by ``1 / policy_frequency`` a step, ``terminated`` = ego crashed (or off-road when
 ``offroad_terminal``), ``truncated`` = ``time >= duration``.
+
+Supported: any ``action.target_speeds`` (2 or more, last != first), ``lanes_count``, ``vehicles_count``,
+``vehicles_density``, ``ego_spacing``, ``initial_lane_id``, ``duration``, ``policy_frequency``,
+``simulation_frequency``, ``offroad_terminal``, ``other_vehicles_type`` in
+:data:`safelane.sim.fast.scene.OTHER_VEHICLE_TYPES` (IDMVehicle; LinearVehicle, AggressiveVehicle,
+DefensiveVehicle). Any other setting that changes the dynamics raises ValueError naming it
+(:func:`safelane.sim.fast.scene.resolve_config`); rendering, reward and observation settings are accepted
+and have no effect.
 """
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, ClassVar
 
+import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 from highway_env.vehicle.behavior import IDMVehicle
@@ -22,18 +31,27 @@ from highway_env.vehicle.controller import ControlledVehicle
 
 from safelane.core.snapshot import RoadSnapshot
 from safelane.sim.fast import kernels as K
-from safelane.sim.fast.scene import SPEED_LIMIT, build_scene, make_rng, params, resolve_config
+from safelane.sim.fast.scene import SPEED_LIMIT, build_scene, params, resolve_config
 
 ACTIONS = {0: "LANE_LEFT", 1: "IDLE", 2: "LANE_RIGHT", 3: "FASTER", 4: "SLOWER"}
+_SNAPSHOT_FIELDS = (
+    "time", "policy_frequency", "simulation_frequency", "lanes_count", "lane_width", "lane_origin",
+    "lane_direction", "lane_lateral", "speed_limit", "ego", "ego_target_speed", "ego_speed_index",
+    "ego_target_speeds", "ego_kp", "ego_lane_offset", "position", "speed", "heading", "lane", "target_lane",
+    "length", "width", "crashed", "is_vehicle", "brake_max", "accel_max", "can_change_lane", "idm_delta",
+    "idm_comfort_acc", "idm_comfort_dec", "idm_distance_wanted", "idm_time_wanted", "max_braking_imposed",
+    "impact_before", "impact_after",
+)  # fmt: skip
 
 
-class FastHighwayEnv:
+class FastHighwayEnv(gym.Env):
     """A gymnasium-style env reproducing highway-env's straight highway (see the module docstring).
 
     ``state()`` gives every vehicle's arrays (row 0: the ego, then highway-env's ``road.vehicles`` order).
+    Seeding is gymnasium's (``Env.reset(seed=...)`` -> ``self.np_random``), as in highway-env.
     """
 
-    metadata: dict[str, Any] = {"render_modes": []}
+    metadata: ClassVar[dict[str, Any]] = {"render_modes": []}
 
     def __init__(self, config: dict[str, Any] | None = None, env_id: str = "highway-fast-v0") -> None:
         self.env_id = env_id
@@ -42,12 +60,12 @@ class FastHighwayEnv:
         self.action_space = spaces.Discrete(5)
         self.observation_space = spaces.Box(-np.inf, np.inf, shape=(2,), dtype=np.float32)
         self.P = params()
-        self._rng: np.random.Generator | None = None
         self._obs = np.zeros(2, dtype=np.float32)
         n = 1 + self.sim.vehicles_count
         self._before = np.zeros((n, 2))
         self._after = np.zeros((n, 2))
         self._rec = np.zeros(1, dtype=np.int64)
+        self._buffers = (np.zeros((n, K.NF)), np.zeros((n, K.NI), dtype=np.int64), np.zeros(1, dtype=np.int64))
         self._static_cache()
         self.time = 0.0
         self.steps = 0
@@ -62,15 +80,21 @@ class FastHighwayEnv:
         self._is_vehicle = np.ones(n, dtype=bool)
         idm = np.ones(n, dtype=bool)
         idm[0] = False
+        cls = self.sim.other_class
+        # IDMVehicle.acceleration (IDM formula) or LinearVehicle's model, as safelane's shield reads them
+        idm_formula = cls.acceleration is IDMVehicle.acceleration
         self._can_change_lane = idm.copy()
-        acc_max = float(IDMVehicle.ACC_MAX)
+        acc_max = float(getattr(cls, "ACC_MAX", IDMVehicle.ACC_MAX))
         self._brake_max = np.full(n, acc_max)
-        self._accel_max = np.where(idm, float(IDMVehicle.COMFORT_ACC_MAX), acc_max)
-        self._comfort_acc = np.full(n, float(IDMVehicle.COMFORT_ACC_MAX))
-        self._comfort_dec = np.full(n, float(IDMVehicle.COMFORT_ACC_MIN))
-        self._distance_wanted = np.full(n, float(IDMVehicle.DISTANCE_WANTED))
-        self._time_wanted = np.full(n, float(IDMVehicle.TIME_WANTED))
-        self._max_braking = np.where(idm, float(IDMVehicle.LANE_CHANGE_MAX_BRAKING_IMPOSED), np.inf)
+        self._brake_max[0] = float(IDMVehicle.ACC_MAX)
+        others_accel = float(cls.COMFORT_ACC_MAX) if idm_formula else acc_max
+        self._accel_max = np.where(idm, others_accel, float(IDMVehicle.ACC_MAX))
+        self._comfort_acc = np.where(idm, float(cls.COMFORT_ACC_MAX), float(IDMVehicle.COMFORT_ACC_MAX))
+        self._comfort_dec = np.where(idm, float(cls.COMFORT_ACC_MIN), float(IDMVehicle.COMFORT_ACC_MIN))
+        self._distance_wanted = np.where(idm, float(cls.DISTANCE_WANTED), float(IDMVehicle.DISTANCE_WANTED))
+        self._time_wanted = np.where(idm, float(cls.TIME_WANTED), float(IDMVehicle.TIME_WANTED))
+        others_mbi = float(cls.LANE_CHANGE_MAX_BRAKING_IMPOSED) if idm_formula else np.inf
+        self._max_braking = np.where(idm, others_mbi, np.inf)
         for a in (
             self._length,
             self._width,
@@ -90,20 +114,18 @@ class FastHighwayEnv:
         self._lateral = np.array([0.0, 1.0])
         self._ts_tuple = tuple(float(s) for s in self.sim.target_speeds)
         self._delta: np.ndarray | None = None
+        self._lane_w = float(self.P[K.P_LANE_WIDTH])
+        self._pol_f = float(self.sim.policy_frequency)
+        self._sim_f = float(self.sim.simulation_frequency)
+        self._kp = float(ControlledVehicle.KP_A)
+        assert set(RoadSnapshot.__dataclass_fields__) == set(_SNAPSHOT_FIELDS), "RoadSnapshot changed"
 
     # --- gymnasium API -----------------------------------------------------------------------------
-    @property
-    def np_random(self) -> np.random.Generator:
-        if self._rng is None:
-            self._rng = make_rng(None)
-        return self._rng
-
     def reset(self, *, seed: int | None = None, options: dict | None = None) -> tuple[np.ndarray, dict]:
         if options:
             raise ValueError("reset(options=...) is not supported by the fast simulator")
-        if seed is not None:
-            self._rng = make_rng(seed)
-        self.F, self.I, self.E = build_scene(self.np_random, self.sim, self.P)
+        super().reset(seed=seed)
+        self.F, self.G, self.E = build_scene(self.np_random, self.sim, self.P, self._buffers)
         self.time = 0.0
         self.steps = 0
         self._rec[0] = 0
@@ -118,31 +140,24 @@ class FastHighwayEnv:
         sc = self.sim
         self.time += 1 / sc.policy_frequency
         K.simulate(
-            self.F, self.I, self.E, sc.target_speeds, self.P, a, sc.frames, sc.dt, sc.lanes_count,
+            self.F, self.G, self.E, sc.target_speeds, self.P, a, sc.frames, sc.dt, sc.lanes_count,
             self._before, self._after, self._rec,
         )  # fmt: skip
         self.steps += sc.frames
-        terminated = bool(self.I[0, K.CRASHED]) or (sc.offroad_terminal and not self.on_road)
+        terminated = bool(self.G[0, K.CRASHED]) or (sc.offroad_terminal and not self.on_road)
         truncated = bool(self.time >= sc.duration)
         return self._obs.copy(), 0.0, terminated, truncated, self._info()
-
-    def close(self) -> None:
-        pass
-
-    @property
-    def unwrapped(self) -> FastHighwayEnv:
-        return self
 
     # --- state ---------------------------------------------------------------------------------------
     @property
     def on_road(self) -> bool:
         """``ego.on_road``: on its (closest) lane, no margin."""
-        lane = int(self.I[0, K.LANE])
+        lane = int(self.G[0, K.LANE])
         return bool(K._on_lane(self.F[0, K.X], self.F[0, K.Y], lane, 0.0, self.P))
 
     def state(self) -> dict[str, np.ndarray]:
         """Copies of every vehicle's state (row 0: the ego)."""
-        F, I = self.F, self.I
+        F, G = self.F, self.G
         return {
             "x": F[:, K.X].copy(),
             "y": F[:, K.Y].copy(),
@@ -151,58 +166,66 @@ class FastHighwayEnv:
             "target_speed": F[:, K.TSPD].copy(),
             "delta": F[:, K.DELTA].copy(),
             "timer": F[:, K.TIMER].copy(),
-            "lane": I[:, K.LANE].copy(),
-            "target_lane": I[:, K.TLANE].copy(),
-            "crashed": I[:, K.CRASHED].astype(bool),
+            "lane": G[:, K.LANE].copy(),
+            "target_lane": G[:, K.TLANE].copy(),
+            "crashed": G[:, K.CRASHED].astype(bool),
             "speed_index": self.E.copy(),
         }
 
     def _info(self) -> dict[str, Any]:
         return {
             "speed": float(self.F[0, K.V]),
-            "crashed": bool(self.I[0, K.CRASHED]),
+            "crashed": bool(self.G[0, K.CRASHED]),
             "snapshot": self.snapshot(),
         }
 
     def snapshot(self) -> RoadSnapshot:
-        F, I, sc = self.F, self.I, self.sim
-        lane_w = float(self.P[K.P_LANE_WIDTH])
-        ego_lane = int(I[0, K.LANE])
+        """The scene as a :class:`RoadSnapshot` (fresh per-step arrays; the static ones are shared, read-only)."""
+        F, G, sc = self.F, self.G, self.sim
+        lane_w = self._lane_w
+        kin = F[:, : K.V + 1].T.copy()  # rows x, y, heading, speed
+        ints = G[:, : K.CRASHED + 1].T.copy()  # rows lane, target lane, crashed
+        ego_lane = int(ints[0, 0])
         crashed_once = bool(self._rec[0])
-        return RoadSnapshot(
-            time=float(self.time),
-            policy_frequency=float(sc.policy_frequency),
-            simulation_frequency=float(sc.simulation_frequency),
-            lanes_count=sc.lanes_count,
-            lane_width=lane_w,
-            lane_origin=self._origin,
-            lane_direction=self._direction,
-            lane_lateral=self._lateral,
-            speed_limit=float(SPEED_LIMIT),
-            ego=0,
-            ego_target_speed=float(F[0, K.TSPD]),
-            ego_speed_index=int(self.E[0]),
-            ego_target_speeds=self._ts_tuple,
-            ego_kp=float(ControlledVehicle.KP_A),
-            ego_lane_offset=float(F[0, K.Y] - ego_lane * lane_w),
-            position=F[:, K.X : K.Y + 1].copy(),
-            speed=F[:, K.V].copy(),
-            heading=F[:, K.H].copy(),
-            lane=I[:, K.LANE].copy(),
-            target_lane=I[:, K.TLANE].copy(),
-            length=self._length,
-            width=self._width,
-            crashed=I[:, K.CRASHED].astype(bool),
-            is_vehicle=self._is_vehicle,
-            brake_max=self._brake_max,
-            accel_max=self._accel_max,
-            can_change_lane=self._can_change_lane,
-            idm_delta=self._delta,
-            idm_comfort_acc=self._comfort_acc,
-            idm_comfort_dec=self._comfort_dec,
-            idm_distance_wanted=self._distance_wanted,
-            idm_time_wanted=self._time_wanted,
-            max_braking_imposed=self._max_braking,
-            impact_before=self._before.copy() if crashed_once else None,
-            impact_after=self._after.copy() if crashed_once else None,
-        )
+        fields = {
+            "time": float(self.time),
+            "policy_frequency": self._pol_f,
+            "simulation_frequency": self._sim_f,
+            "lanes_count": sc.lanes_count,
+            "lane_width": lane_w,
+            "lane_origin": self._origin,
+            "lane_direction": self._direction,
+            "lane_lateral": self._lateral,
+            "speed_limit": float(SPEED_LIMIT),
+            "ego": 0,
+            "ego_target_speed": float(F[0, K.TSPD]),
+            "ego_speed_index": int(self.E[0]),
+            "ego_target_speeds": self._ts_tuple,
+            "ego_kp": self._kp,
+            "ego_lane_offset": float(kin[1, 0] - ego_lane * lane_w),
+            "position": kin[: K.Y + 1].T,
+            "speed": kin[K.V],
+            "heading": kin[K.H],
+            "lane": ints[K.LANE],
+            "target_lane": ints[K.TLANE],
+            "length": self._length,
+            "width": self._width,
+            "crashed": ints[K.CRASHED].astype(bool),
+            "is_vehicle": self._is_vehicle,
+            "brake_max": self._brake_max,
+            "accel_max": self._accel_max,
+            "can_change_lane": self._can_change_lane,
+            "idm_delta": self._delta,
+            "idm_comfort_acc": self._comfort_acc,
+            "idm_comfort_dec": self._comfort_dec,
+            "idm_distance_wanted": self._distance_wanted,
+            "idm_time_wanted": self._time_wanted,
+            "max_braking_imposed": self._max_braking,
+            "impact_before": self._before.copy() if crashed_once else None,
+            "impact_after": self._after.copy() if crashed_once else None,
+        }
+        # RoadSnapshot is a frozen dataclass without __post_init__: filling its __dict__ is what its
+        # __init__ does, minus one object.__setattr__ per field.
+        snap = object.__new__(RoadSnapshot)
+        snap.__dict__.update(fields)
+        return snap

@@ -15,9 +15,15 @@ with direction exactly ``(1, 0)``, so highway-env's ``local_coordinates`` are ex
 State layout (``ego`` is row 0, the others follow in highway-env's order):
 
 ``F[n, NF]`` float64 columns X, Y, H (heading), V (speed), TSPD (target speed), DELTA (IDM exponent),
-TIMER (MOBIL timer), IMPX, IMPY (pending impact), STEER, ACC (last action).
-``I[n, NI]`` int64 columns LANE, TLANE (target lane), CRASHED, HASIMP (impact pending), CHECK
-(check_collisions), ELC (enable_lane_change), IDM (1: IDM driver, 0: the ego MDPVehicle).
+TIMER (MOBIL timer), IMPX, IMPY (pending impact), STEER, ACC (last action), COSH, SINH (cos / sin of
+the heading, refreshed at the start of every ``Road.act`` phase, during which no heading changes).
+
+Trigonometric calls go through ``_sin`` & co., which return IEEE's exact values at ``±0`` without
+calling libm (``sin(±0) = ±0``, ``cos(±0) = 1``...): most vehicles drive with heading and steering
+exactly ``0.0``, and those calls would otherwise dominate.
+``G[n, NI]`` int64 columns LANE, TLANE (target lane), CRASHED, HASIMP (impact pending), CHECK
+(check_collisions), ELC (enable_lane_change), IDM (1: IDM-family driver, 0: the ego MDPVehicle), LIN
+(1: LinearVehicle's models).
 ``E`` int64 (1,): the ego's speed index.
 """
 
@@ -28,12 +34,15 @@ import math
 import numpy as np
 from numba import njit
 
-# float columns
-X, Y, H, V, TSPD, DELTA, TIMER, IMPX, IMPY, STEER, ACC = range(11)
-NF = 11
+# float columns (COSH, SINH: cos / sin of the heading, cached for each Road.act phase)
+X, Y, H, V, TSPD, DELTA, TIMER, IMPX, IMPY, STEER, ACC, COSH, SINH = range(13)
+# per-vehicle driver constants: TW (TIME_WANTED), GAIN (LANE_CHANGE_MIN_ACC_GAIN), LinearVehicle's
+# ACCELERATION_PARAMETERS (AP0..2) and STEERING_PARAMETERS (SP0, SP1)
+TW, GAIN, AP0, AP1, AP2, SP0, SP1 = range(13, 20)
+NF = 20
 # int columns
-LANE, TLANE, CRASHED, HASIMP, CHECK, ELC, IDM = range(7)
-NI = 7
+LANE, TLANE, CRASHED, HASIMP, CHECK, ELC, IDM, LIN = range(8)
+NI = 8
 
 # Parameter vector P (float64), filled by the env from highway-env's class constants.
 (
@@ -67,6 +76,31 @@ NP = 23
 LANE_LEFT, IDLE, LANE_RIGHT, FASTER, SLOWER = 0, 1, 2, 3, 4
 
 
+@njit(cache=True, inline="always")
+def _sin(x):
+    return x if x == 0.0 else math.sin(x)
+
+
+@njit(cache=True, inline="always")
+def _cos(x):
+    return 1.0 if x == 0.0 else math.cos(x)
+
+
+@njit(cache=True, inline="always")
+def _tan(x):
+    return x if x == 0.0 else math.tan(x)
+
+
+@njit(cache=True, inline="always")
+def _atan(x):
+    return x if x == 0.0 else math.atan(x)
+
+
+@njit(cache=True, inline="always")
+def _asin(x):
+    return x if x == 0.0 else math.asin(x)
+
+
 @njit(cache=True)
 def _not_zero(x, eps=1e-2):
     if abs(x) > eps:
@@ -79,8 +113,12 @@ def _not_zero(x, eps=1e-2):
 
 @njit(cache=True)
 def _wrap_to_pi(x):
-    # ((x + pi) % (2 pi)) - pi with Python/numpy floor-mod semantics
-    return ((x + np.pi) % (2 * np.pi)) - np.pi
+    # ((x + pi) % (2 pi)) - pi with Python/numpy floor-mod semantics; for 0 <= x + pi < 2 pi the
+    # remainder is x + pi itself (exactly), so the fmod call is skipped.
+    t = x + np.pi
+    if t >= 0.0 and t < 2 * np.pi:
+        return t - np.pi
+    return (t % (2 * np.pi)) - np.pi
 
 
 @njit(cache=True)
@@ -161,7 +199,7 @@ def _neighbours_scan(F, n, j, lane, P):
 def build_lane_index(F, n_lanes, P, members, mx, cnt):
     """Per lane, the vehicles ``on_lane(margin=1)`` sorted by (x, index): ``members[L, :cnt[L]]``, x in ``mx``.
 
-    Built once per ``Road.act`` phase (no vehicle moves during it), it answers
+    Also refreshes the COSH / SINH columns. Built once per ``Road.act`` phase (no vehicle moves during it), it answers
     ``Road.neighbour_vehicles`` by binary search with the same result and tie rules as the scan.
     """
     n = F.shape[0]
@@ -172,6 +210,8 @@ def build_lane_index(F, n_lanes, P, members, mx, cnt):
         k = order[r]
         x = F[k, X]
         y = F[k, Y]
+        F[k, COSH] = _cos(F[k, H])
+        F[k, SINH] = _sin(F[k, H])
         for L in range(n_lanes):
             if _on_lane(x, y, L, 1.0, P):
                 c = cnt[L]
@@ -219,15 +259,15 @@ def _neighbours(F, j, lane, members, mx, cnt):
 
 
 @njit(cache=True)
-def _desired_gap(F, j, k, P):
-    """IDMVehicle.desired_gap(ego_vehicle=j, front_vehicle=k), projected."""
+def _desired_gap(F, c, j, k, P):
+    """``c.desired_gap(ego_vehicle=j, front_vehicle=k)``, projected (c's TIME_WANTED)."""
     d0 = P[P_DISTANCE_WANTED]
-    tau = P[P_TIME_WANTED]
+    tau = F[c, TW]
     ab = -P[P_COMFORT_ACC_MAX] * P[P_COMFORT_ACC_MIN]
-    cj = math.cos(F[j, H])
-    sj = math.sin(F[j, H])
-    ck = math.cos(F[k, H])
-    sk = math.sin(F[k, H])
+    cj = F[j, COSH]
+    sj = F[j, SINH]
+    ck = F[k, COSH]
+    sk = F[k, SINH]
     vjx = F[j, V] * cj
     vjy = F[j, V] * sj
     vkx = F[k, V] * ck
@@ -237,19 +277,59 @@ def _desired_gap(F, j, k, P):
 
 
 @njit(cache=True)
-def _acceleration(F, j, k, delta, P):
-    """IDMVehicle.acceleration(ego_vehicle=j, front_vehicle=k) with the *caller's* DELTA; j < 0: 0."""
-    if j < 0:
-        return 0.0
+def _free_road(F, j, delta, P):
+    """IDM's free-road term ``COMFORT_ACC_MAX * (1 - (v / v0)**delta)`` of vehicle j with exponent delta."""
     tgt = _clip(F[j, TSPD], 0.0, P[P_SPEED_LIMIT])
     sp = F[j, V]
     if not (sp > 0.0):
         sp = 0.0
-    acc = P[P_COMFORT_ACC_MAX] * (1 - math.pow(sp / abs(_not_zero(tgt)), delta))
+    return P[P_COMFORT_ACC_MAX] * (1 - math.pow(sp / abs(_not_zero(tgt)), delta))
+
+
+@njit(cache=True)
+def _linear_acceleration(F, c, j, k, P):
+    """``LinearVehicle.acceleration`` of caller c for ego_vehicle j (>= 0), front k: params · features."""
+    vt = F[j, TSPD] - F[j, V]
+    sp = F[j, V]
+    m = sp if sp >= 0.0 else 0.0
+    d_safe = P[P_DISTANCE_WANTED] + m * F[c, TW]
+    dv = 0.0
+    dp = 0.0
     if k >= 0:
         d = F[k, X] - F[j, X]
-        acc -= P[P_COMFORT_ACC_MAX] * math.pow(_desired_gap(F, j, k, P) / _not_zero(d), 2.0)
+        a = F[k, V] - F[j, V]
+        dv = 0.0 if a > 0 else a  # min(a, 0)
+        b = d - d_safe
+        dp = 0.0 if b > 0 else b
+    return (F[c, AP0] * vt + F[c, AP1] * dv) + F[c, AP2] * dp
+
+
+@njit(cache=True)
+def _acceleration(F, G, c, j, k, P):
+    """``c.acceleration(ego_vehicle=j, front_vehicle=k)``: c's model and parameters; j < 0: 0."""
+    if j < 0:
+        return 0.0
+    if G[c, LIN]:
+        return _linear_acceleration(F, c, j, k, P)
+    return _acceleration_free(F, c, j, k, _free_road(F, j, F[c, DELTA], P), P)
+
+
+@njit(cache=True)
+def _acceleration_free(F, c, j, k, free, P):
+    """IDM acceleration of caller c for j given j's free-road term with c's DELTA."""
+    acc = free
+    if k >= 0:
+        d = F[k, X] - F[j, X]
+        acc -= P[P_COMFORT_ACC_MAX] * math.pow(_desired_gap(F, c, j, k, P) / _not_zero(d), 2.0)
     return acc
+
+
+@njit(cache=True)
+def _own_acceleration(F, G, j, k, free_j, P):
+    """``j.acceleration(ego_vehicle=j, front_vehicle=k)`` (free_j: j's IDM free-road term, unused if linear)."""
+    if G[j, LIN]:
+        return _linear_acceleration(F, j, j, k, P)
+    return _acceleration_free(F, j, j, k, free_j, P)
 
 
 @njit(cache=True)
@@ -259,12 +339,22 @@ def _steering_control(F, j, target_lane, P):
     sp = F[j, V]
     lane_future_heading = 0.0
     lateral_speed_command = -P[P_KP_LATERAL] * lat
-    heading_command = math.asin(_clip(lateral_speed_command / _not_zero(sp), -1.0, 1.0))
+    heading_command = _asin(_clip(lateral_speed_command / _not_zero(sp), -1.0, 1.0))
     heading_ref = lane_future_heading + _clip(heading_command, -np.pi / 4, np.pi / 4)
     heading_rate_command = P[P_KP_HEADING] * _wrap_to_pi(heading_ref - F[j, H])
-    slip_angle = math.asin(_clip(P[P_LENGTH] / 2 / _not_zero(sp) * heading_rate_command, -1.0, 1.0))
-    steering_angle = math.atan(2 * math.tan(slip_angle))
+    slip_angle = _asin(_clip(P[P_LENGTH] / 2 / _not_zero(sp) * heading_rate_command, -1.0, 1.0))
+    steering_angle = _atan(2 * _tan(slip_angle))
     return _clip(steering_angle, -P[P_MAX_STEERING], P[P_MAX_STEERING])
+
+
+@njit(cache=True)
+def _linear_steering(F, j, target_lane, P):
+    """LinearVehicle.steering_control: STEERING_PARAMETERS · steering_features (not clipped here)."""
+    lat = F[j, Y] - target_lane * P[P_LANE_WIDTH]
+    nz = _not_zero(F[j, V])
+    f0 = _wrap_to_pi(0.0 - F[j, H]) * P[P_LENGTH] / nz
+    f1 = -lat * P[P_LENGTH] / (nz * nz)
+    return F[j, SP0] * f0 + F[j, SP1] * f1
 
 
 @njit(cache=True)
@@ -276,9 +366,9 @@ def _speed_to_index(speed, ts):
 
 
 @njit(cache=True)
-def _act_ego(F, I, E, ts, action, n_lanes, P):
+def _act_ego(F, G, E, ts, action, n_lanes, P):
     """MDPVehicle.act(action) (action < 0: act(None)), then ControlledVehicle's controllers."""
-    if action == FASTER or action == SLOWER:
+    if action in (FASTER, SLOWER):
         si = _speed_to_index(F[0, V], ts) + (1 if action == FASTER else -1)
         if si < 0:
             si = 0
@@ -286,56 +376,55 @@ def _act_ego(F, I, E, ts, action, n_lanes, P):
             si = ts.size - 1
         E[0] = si
         F[0, TSPD] = ts[si]
-    elif action == LANE_RIGHT or action == LANE_LEFT:
-        cand = I[0, TLANE] + (1 if action == LANE_RIGHT else -1)
+    elif action in (LANE_RIGHT, LANE_LEFT):
+        cand = G[0, TLANE] + (1 if action == LANE_RIGHT else -1)
         if cand < 0:
             cand = 0
         if cand > n_lanes - 1:
             cand = n_lanes - 1
         if _is_reachable(F[0, X], F[0, Y], cand, P):
-            I[0, TLANE] = cand
-    steer = _steering_control(F, 0, I[0, TLANE], P)
+            G[0, TLANE] = cand
+    steer = _steering_control(F, 0, G[0, TLANE], P)
     F[0, STEER] = _clip(steer, -P[P_MAX_STEERING], P[P_MAX_STEERING])
     F[0, ACC] = P[P_KP_A] * (F[0, TSPD] - F[0, V])
 
 
 @njit(cache=True)
-def _mobil(F, I, n, j, lane, P, members, mx, cnt):
-    delta = F[j, DELTA]
+def _mobil(F, G, n, j, lane, P, members, mx, cnt, free_j):
     new_preceding, new_following = _neighbours(F, j, lane, members, mx, cnt)
-    new_following_a = _acceleration(F, new_following, new_preceding, delta, P)
-    new_following_pred_a = _acceleration(F, new_following, j, delta, P)
+    new_following_a = _acceleration(F, G, j, new_following, new_preceding, P)
+    new_following_pred_a = _acceleration(F, G, j, new_following, j, P)
     if new_following_pred_a < -P[P_MAX_BRAKING_IMPOSED]:
         return False
-    old_preceding, old_following = _neighbours(F, j, I[j, LANE], members, mx, cnt)
-    self_pred_a = _acceleration(F, j, new_preceding, delta, P)
-    self_a = _acceleration(F, j, old_preceding, delta, P)
-    old_following_a = _acceleration(F, old_following, j, delta, P)
-    old_following_pred_a = _acceleration(F, old_following, old_preceding, delta, P)
-    jerk = self_pred_a - self_a + P[P_POLITENESS] * (
-        new_following_pred_a - new_following_a + old_following_pred_a - old_following_a
+    old_preceding, old_following = _neighbours(F, j, G[j, LANE], members, mx, cnt)
+    self_pred_a = _own_acceleration(F, G, j, new_preceding, free_j, P)
+    self_a = _own_acceleration(F, G, j, old_preceding, free_j, P)
+    old_following_a = _acceleration(F, G, j, old_following, j, P)
+    old_following_pred_a = _acceleration(F, G, j, old_following, old_preceding, P)
+    jerk = (
+        self_pred_a
+        - self_a
+        + P[P_POLITENESS] * (new_following_pred_a - new_following_a + old_following_pred_a - old_following_a)
     )
-    if jerk < P[P_MIN_ACC_GAIN]:
-        return False
-    return True
+    return not jerk < F[j, GAIN]
 
 
 @njit(cache=True)
-def _change_lane_policy(F, I, n, j, n_lanes, P, members, mx, cnt):
-    if I[j, LANE] != I[j, TLANE]:
-        tl = I[j, TLANE]
+def _change_lane_policy(F, G, n, j, n_lanes, P, members, mx, cnt, free_j):
+    if G[j, LANE] != G[j, TLANE]:
+        tl = G[j, TLANE]
         for k in range(n):
-            if k != j and I[k, LANE] != tl and I[k, TLANE] == tl:
+            if k != j and G[k, LANE] != tl and G[k, TLANE] == tl:
                 d = F[k, X] - F[j, X]
-                d_star = _desired_gap(F, j, k, P)
+                d_star = _desired_gap(F, j, j, k, P)
                 if 0 < d < d_star:
-                    I[j, TLANE] = I[j, LANE]
+                    G[j, TLANE] = G[j, LANE]
                     break
         return
     if not (P[P_LANE_CHANGE_DELAY] < F[j, TIMER]):
         return
     F[j, TIMER] = 0.0
-    lane = I[j, LANE]
+    lane = G[j, LANE]
     for side in range(2):
         cand = lane - 1 if side == 0 else lane + 1
         if cand < 0 or cand > n_lanes - 1:
@@ -344,37 +433,39 @@ def _change_lane_policy(F, I, n, j, n_lanes, P, members, mx, cnt):
             continue
         if abs(F[j, V]) < 1:
             continue
-        if _mobil(F, I, n, j, cand, P, members, mx, cnt):
-            I[j, TLANE] = cand
+        if _mobil(F, G, n, j, cand, P, members, mx, cnt, free_j):
+            G[j, TLANE] = cand
 
 
 @njit(cache=True)
-def _act_idm(F, I, n, j, n_lanes, P, members, mx, cnt):
-    """IDMVehicle.act()."""
-    if I[j, CRASHED]:
+def _act_idm(F, G, n, j, n_lanes, P, members, mx, cnt):
+    """IDMVehicle.act() (LinearVehicle's: the same with its acceleration and steering models)."""
+    if G[j, CRASHED]:
         return
-    if I[j, ELC]:
-        _change_lane_policy(F, I, n, j, n_lanes, P, members, mx, cnt)
-    steer = _steering_control(F, j, I[j, TLANE], P)
+    # j's IDM free-road term: speed and target speed do not change during act
+    free_j = 0.0 if G[j, LIN] else _free_road(F, j, F[j, DELTA], P)
+    if G[j, ELC]:
+        _change_lane_policy(F, G, n, j, n_lanes, P, members, mx, cnt, free_j)
+    lin = G[j, LIN]
+    steer = _linear_steering(F, j, G[j, TLANE], P) if lin else _steering_control(F, j, G[j, TLANE], P)
     F[j, STEER] = _clip(steer, -P[P_MAX_STEERING], P[P_MAX_STEERING])
-    delta = F[j, DELTA]
-    front, _rear = _neighbours(F, j, I[j, LANE], members, mx, cnt)
-    acc = _acceleration(F, j, front, delta, P)
-    if I[j, LANE] != I[j, TLANE]:
-        front2, _rear2 = _neighbours(F, j, I[j, TLANE], members, mx, cnt)
-        acc2 = _acceleration(F, j, front2, delta, P)
+    front, _rear = _neighbours(F, j, G[j, LANE], members, mx, cnt)
+    acc = _own_acceleration(F, G, j, front, free_j, P)
+    if G[j, LANE] != G[j, TLANE]:
+        front2, _rear2 = _neighbours(F, j, G[j, TLANE], members, mx, cnt)
+        acc2 = _own_acceleration(F, G, j, front2, free_j, P)
         if acc2 < acc:
             acc = acc2
     F[j, ACC] = _clip(acc, -P[P_ACC_MAX], P[P_ACC_MAX])
 
 
 @njit(cache=True)
-def _step_vehicle(F, I, j, dt, n_lanes, P):
+def _step_vehicle(F, G, j, dt, n_lanes, P):
     """(IDMVehicle timer +) Vehicle.step(dt): clip_actions, bicycle model, impact, lane update."""
-    if I[j, IDM]:
+    if G[j, IDM]:
         F[j, TIMER] += dt
     # clip_actions
-    if I[j, CRASHED]:
+    if G[j, CRASHED]:
         F[j, STEER] = 0.0
         F[j, ACC] = -1.0 * F[j, V]
     sp = F[j, V]
@@ -387,19 +478,20 @@ def _step_vehicle(F, I, j, dt, n_lanes, P):
         if lim > F[j, ACC]:
             F[j, ACC] = lim
     delta_f = F[j, STEER]
-    beta = math.atan(1 / 2 * math.tan(delta_f))
-    vx = sp * math.cos(F[j, H] + beta)
-    vy = sp * math.sin(F[j, H] + beta)
+    beta = _atan(1 / 2 * _tan(delta_f))
+    hb = F[j, H] + beta
+    vx = sp * _cos(hb)
+    vy = sp * _sin(hb)
     F[j, X] += vx * dt
     F[j, Y] += vy * dt
-    if I[j, HASIMP]:
+    if G[j, HASIMP]:
         F[j, X] += F[j, IMPX]
         F[j, Y] += F[j, IMPY]
-        I[j, CRASHED] = 1
-        I[j, HASIMP] = 0
-    F[j, H] += sp * math.sin(beta) / (P[P_LENGTH] / 2) * dt
+        G[j, CRASHED] = 1
+        G[j, HASIMP] = 0
+    F[j, H] += sp * _sin(beta) / (P[P_LENGTH] / 2) * dt
     F[j, V] += F[j, ACC] * dt
-    I[j, LANE] = closest_lane(F[j, X], F[j, Y], F[j, H], n_lanes, P)
+    G[j, LANE] = closest_lane(F[j, X], F[j, Y], F[j, H], n_lanes, P)
 
 
 @njit(cache=True)
@@ -407,8 +499,8 @@ def _polygon(F, j, P, out):
     """RoadObject.polygon(): 4 corners + the first again, rotated then translated."""
     hl = P[P_LENGTH] / 2
     hw = P[P_WIDTH] / 2
-    c = math.cos(F[j, H])
-    s = math.sin(F[j, H])
+    c = _cos(F[j, H])
+    s = _sin(F[j, H])
     px0 = -hl
     py0 = -hw
     px1 = -hl
@@ -503,9 +595,9 @@ def _polygons_intersecting(a, b, dax, day, dbx, dby, res):
 
 
 @njit(cache=True)
-def _handle_collisions(F, I, i, j, dt, P, pa, pb, res):
+def _handle_collisions(F, G, i, j, dt, P, pa, pb, res):
     """RoadObject.handle_collisions(self=i, other=j, dt) between two solid vehicles."""
-    if not (I[i, CHECK] or I[j, CHECK]):
+    if not (G[i, CHECK] or G[j, CHECK]):
         return
     dx = F[j, X] - F[i, X]
     dy = F[j, Y] - F[i, Y]
@@ -513,25 +605,72 @@ def _handle_collisions(F, I, i, j, dt, P, pa, pb, res):
         return
     _polygon(F, i, P, pa)
     _polygon(F, j, P, pb)
-    dax = F[i, V] * math.cos(F[i, H]) * dt
-    day = F[i, V] * math.sin(F[i, H]) * dt
-    dbx = F[j, V] * math.cos(F[j, H]) * dt
-    dby = F[j, V] * math.sin(F[j, H]) * dt
+    dax = F[i, V] * _cos(F[i, H]) * dt
+    day = F[i, V] * _sin(F[i, H]) * dt
+    dbx = F[j, V] * _cos(F[j, H]) * dt
+    dby = F[j, V] * _sin(F[j, H]) * dt
     intersecting, will = _polygons_intersecting(pa, pb, dax, day, dbx, dby, res)
     if will:
         F[i, IMPX] = res[0] / 2
         F[i, IMPY] = res[1] / 2
-        I[i, HASIMP] = 1
+        G[i, HASIMP] = 1
         F[j, IMPX] = -res[0] / 2
         F[j, IMPY] = -res[1] / 2
-        I[j, HASIMP] = 1
+        G[j, HASIMP] = 1
     if intersecting:
-        I[i, CRASHED] = 1
-        I[j, CRASHED] = 1
+        G[i, CRASHED] = 1
+        G[j, CRASHED] = 1
 
 
 @njit(cache=True)
-def simulate(F, I, E, ts, P, action, frames, dt, n_lanes, before, after, rec):
+def _collisions(F, G, dt, P, pa, pb, res, reach, cand):
+    """Road.step's pairwise checks: ``vehicles[i].handle_collisions(vehicles[j])`` for i < j, in that order.
+
+    Pairs whose |dx| exceeds ``reach`` (the pre-check's radius + (MAX_SPEED + 1)·dt + 1 m) cannot pass
+    highway-env's distance pre-check, so only the pairs near in x (found from the x order) are examined,
+    still for i ascending and, for each i, j ascending; a vehicle faster than MAX_SPEED + 1 checks all.
+    """
+    n = F.shape[0]
+    order = np.argsort(F[:, X], kind="mergesort")
+    rank = np.empty(n, dtype=np.int64)
+    for r in range(n):
+        rank[order[r]] = r
+    for i in range(n):
+        ci = G[i, CHECK]
+        xi = F[i, X]
+        if abs(F[i, V]) > P[P_MAX_SPEED] + 1.0:
+            for j in range(i + 1, n):
+                _handle_collisions(F, G, i, j, dt, P, pa, pb, res)
+            continue
+        m = 0
+        r = rank[i] - 1
+        while r >= 0 and xi - F[order[r], X] <= reach:
+            j = order[r]
+            if j > i and (ci or G[j, CHECK]):
+                cand[m] = j
+                m += 1
+            r -= 1
+        r = rank[i] + 1
+        while r < n and F[order[r], X] - xi <= reach:
+            j = order[r]
+            if j > i and (ci or G[j, CHECK]):
+                cand[m] = j
+                m += 1
+            r += 1
+        # ascending j (insertion sort: a handful of candidates)
+        for a in range(1, m):
+            v = cand[a]
+            b = a - 1
+            while b >= 0 and cand[b] > v:
+                cand[b + 1] = cand[b]
+                b -= 1
+            cand[b + 1] = v
+        for a in range(m):
+            _handle_collisions(F, G, i, cand[a], dt, P, pa, pb, res)
+
+
+@njit(cache=True)
+def simulate(F, G, E, ts, P, action, frames, dt, n_lanes, before, after, rec):
     """AbstractEnv._simulate(action): ``frames`` x (act [+ the meta-action at frame 0], step, collisions).
 
     ``rec[0]`` is set to 1 (and ``before``/``after`` filled with the positions at the start and end of
@@ -545,8 +684,9 @@ def simulate(F, I, E, ts, P, action, frames, dt, n_lanes, before, after, rec):
     mx = np.empty((n_lanes, n))
     cnt = np.zeros(n_lanes, dtype=np.int64)
     reach = (P[P_DIAGONAL] + P[P_DIAGONAL]) / 2 + (P[P_MAX_SPEED] + 1.0) * dt + 1.0
+    cand = np.empty(n, dtype=np.int64)
     for frame in range(frames):
-        was_crashed = I[0, CRASHED]
+        was_crashed = G[0, CRASHED]
         if rec[0] == 0 and not was_crashed:
             for k in range(n):
                 before[k, 0] = F[k, X]
@@ -554,26 +694,144 @@ def simulate(F, I, E, ts, P, action, frames, dt, n_lanes, before, after, rec):
         # Road.act (the ego's meta-action first, at the decision's first frame)
         build_lane_index(F, n_lanes, P, members, mx, cnt)
         for k in range(n):
-            if I[k, IDM]:
-                _act_idm(F, I, n, k, n_lanes, P, members, mx, cnt)
+            if G[k, IDM]:
+                _act_idm(F, G, n, k, n_lanes, P, members, mx, cnt)
             else:
-                _act_ego(F, I, E, ts, action if frame == 0 else -1, n_lanes, P)
+                _act_ego(F, G, E, ts, action if frame == 0 else -1, n_lanes, P)
         # Road.step
         for k in range(n):
-            _step_vehicle(F, I, k, dt, n_lanes, P)
-        for i in range(n):
-            ci = I[i, CHECK]
-            xi = F[i, X]
-            # |dx| > reach (> the pre-check's radius + |speed|·dt + 1 m) implies the pre-check rejects
-            if abs(F[i, V]) <= P[P_MAX_SPEED] + 1.0:
-                for j in range(i + 1, n):
-                    if (ci or I[j, CHECK]) and abs(F[j, X] - xi) <= reach:
-                        _handle_collisions(F, I, i, j, dt, P, pa, pb, res)
-            else:
-                for j in range(i + 1, n):
-                    _handle_collisions(F, I, i, j, dt, P, pa, pb, res)
-        if rec[0] == 0 and not was_crashed and I[0, CRASHED]:
+            _step_vehicle(F, G, k, dt, n_lanes, P)
+        _collisions(F, G, dt, P, pa, pb, res, reach, cand)
+        if rec[0] == 0 and not was_crashed and G[0, CRASHED]:
             rec[0] = 1
             for k in range(n):
                 after[k, 0] = F[k, X]
                 after[k, 1] = F[k, Y]
+
+
+# --- reset: HighwayEnv._create_vehicles from the generator's raw 64-bit outputs -------------------
+# numpy's Generator on PCG64: ``uniform(lo, hi) = lo + (hi - lo) * next_double`` with
+# ``next_double = (raw >> 11) / 2**53``; ``choice(n)`` = ``integers(0, n)`` = Lemire's bounded draw on
+# ``next_uint32``, which takes the low half of a raw output and keeps the high half in the bit
+# generator's ``has_uint32`` / ``uinteger`` buffer for the next call. ``st`` = [raws used, has_uint32,
+# uinteger]; ``st[0] < 0`` flags that ``raws`` ran out (draw more and replay).
+
+
+@njit(cache=True)
+def _next_uint32(raws, st):
+    if st[1]:
+        st[1] = 0
+        return np.uint64(st[2])
+    if st[0] < 0 or st[0] >= raws.size:
+        st[0] = -1
+        return np.uint64(0)
+    r = raws[st[0]]
+    st[0] += 1
+    st[1] = 1
+    st[2] = np.int64(r >> np.uint64(32))
+    return r & np.uint64(0xFFFFFFFF)
+
+
+@njit(cache=True)
+def _integers(raws, st, n):
+    """Generator.integers(0, n) (== choice(n)) for int64, n <= 2**32."""
+    rng = n - 1
+    if rng == 0:
+        return 0
+    excl = np.uint64(rng + 1)
+    m = _next_uint32(raws, st) * excl
+    left = m & np.uint64(0xFFFFFFFF)
+    if left < excl:
+        thr = (np.uint64(0xFFFFFFFF) - np.uint64(rng)) % excl
+        while left < thr:
+            m = _next_uint32(raws, st) * excl
+            left = m & np.uint64(0xFFFFFFFF)
+    return np.int64(m >> np.uint64(32))
+
+
+@njit(cache=True)
+def _uniform(raws, st, lo, hi):
+    if st[0] < 0 or st[0] >= raws.size:
+        st[0] = -1
+        return lo
+    r = raws[st[0]]
+    st[0] += 1
+    return lo + (hi - lo) * ((r >> np.uint64(11)) * (1.0 / 9007199254740992.0))
+
+
+@njit(cache=True)
+def spawn(raws, st, ego_lane, ego_spacing, spacing, lanes_factor, lo, hi, d_lo, d_hi, delay, ego_delta,
+          drv, check_others, ts, n_lanes, P, F, G, E):  # fmt: skip
+    """The scene of HighwayEnv._create_vehicles (see scene.build_scene_python, its line-by-line twin).
+
+    ``drv`` (see scene.driver_constants): [linear?, TIME_WANTED, LANE_CHANGE_MIN_ACC_GAIN,
+    ACCELERATION_RANGE (2 x 3), STEERING_RANGE (2 x 2), the ego's TIME_WANTED] of the other vehicles' class;
+    a LinearVehicle's randomize_behavior draws uniform(size=3), uniform(size=2) before DELTA.
+
+    Returns False when ``raws`` ran out (``st[0] == -1``)."""
+    n = F.shape[0]
+    width = P[P_LANE_WIDTH]
+    lane_id = ego_lane if ego_lane >= 0 else _integers(raws, st, n_lanes)
+    speed = 25.0
+    default_spacing = 12 + 1.0 * speed
+    offset = ego_spacing * default_spacing * lanes_factor
+    x0 = 3 * offset
+    x0 += offset * _uniform(raws, st, 0.9, 1.1)
+    x = x0
+    y = lane_id * width
+    F[0, :] = 0.0
+    G[0, :] = 0
+    F[0, X] = x
+    F[0, Y] = y
+    F[0, V] = speed
+    lane = closest_lane(x, y, 0.0, n_lanes, P)
+    G[0, LANE] = lane
+    G[0, TLANE] = lane
+    G[0, CHECK] = 1
+    si = _speed_to_index(speed, ts)
+    E[0] = si
+    F[0, TSPD] = ts[si]
+    F[0, DELTA] = ego_delta
+    F[0, TW] = drv[13]
+    lin = drv[0] != 0.0
+    x_max = x
+    for k in range(1, n):
+        lane_id = _integers(raws, st, n_lanes)
+        speed = _uniform(raws, st, lo, hi)
+        default_spacing = 12 + 1.0 * speed
+        offset = spacing * default_spacing * lanes_factor
+        x0 = x_max
+        x0 += offset * _uniform(raws, st, 0.9, 1.1)
+        x = x0
+        y = lane_id * width
+        F[k, :] = 0.0
+        G[k, :] = 0
+        F[k, X] = x
+        F[k, Y] = y
+        F[k, V] = speed
+        F[k, TSPD] = speed
+        F[k, TIMER] = ((x + y) * np.pi) % delay
+        F[k, TW] = drv[1]
+        F[k, GAIN] = drv[2]
+        if lin:
+            u0 = _uniform(raws, st, 0.0, 1.0)
+            u1 = _uniform(raws, st, 0.0, 1.0)
+            u2 = _uniform(raws, st, 0.0, 1.0)
+            F[k, AP0] = drv[3] + u0 * (drv[6] - drv[3])
+            F[k, AP1] = drv[4] + u1 * (drv[7] - drv[4])
+            F[k, AP2] = drv[5] + u2 * (drv[8] - drv[5])
+            v0 = _uniform(raws, st, 0.0, 1.0)
+            v1 = _uniform(raws, st, 0.0, 1.0)
+            F[k, SP0] = drv[9] + v0 * (drv[11] - drv[9])
+            F[k, SP1] = drv[10] + v1 * (drv[12] - drv[10])
+            G[k, LIN] = 1
+        F[k, DELTA] = _uniform(raws, st, d_lo, d_hi)
+        lane = closest_lane(x, y, 0.0, n_lanes, P)
+        G[k, LANE] = lane
+        G[k, TLANE] = lane
+        G[k, CHECK] = check_others
+        G[k, ELC] = 1
+        G[k, IDM] = 1
+        if x > x_max:
+            x_max = x
+    return st[0] >= 0

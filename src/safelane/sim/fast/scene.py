@@ -8,9 +8,10 @@ hands to the ``Road``), making the same calls in the same order with the same ar
   ``choice(["0"])``, ``choice(["1"])`` (one-element choices draw nothing, checked at import),
   ``choice(lanes_count)`` unless ``initial_lane_id`` is set, ``uniform(0.9, 1.1)``;
   then ``MDPVehicle(road, position, heading, speed)``;
-* each other vehicle: ``IDMVehicle.create_random(road, spacing=1/vehicles_density)`` ->
+* each other vehicle: ``<other_vehicles_type>.create_random(road, spacing=1/vehicles_density)`` ->
   ``choice(lanes_count)``, ``uniform(0.7·30, 0.8·30)``, ``uniform(0.9, 1.1)``; then
-  ``randomize_behavior()`` -> ``uniform(3.5, 4.5)`` (DELTA).
+  ``randomize_behavior()`` -> (LinearVehicle and subclasses: ``uniform(size=3)``, ``uniform(size=2)``
+  for ACCELERATION_ / STEERING_PARAMETERS, then) ``uniform(3.5, 4.5)`` (DELTA).
 
 The arithmetic is the same expressions in the same order, so positions, speeds, timers and DELTAs are
 bit-identical to highway-env's.
@@ -24,7 +25,8 @@ from typing import Any
 import numpy as np
 from gymnasium.utils import seeding
 from highway_env.road.lane import AbstractLane, StraightLane
-from highway_env.vehicle.behavior import IDMVehicle
+from highway_env.utils import class_from_path
+from highway_env.vehicle.behavior import IDMVehicle, LinearVehicle
 from highway_env.vehicle.controller import ControlledVehicle, MDPVehicle
 from highway_env.vehicle.kinematics import Vehicle
 
@@ -32,6 +34,12 @@ from safelane.sim.fast import kernels as K
 
 ENV_IDS = ("highway-v0", "highway-fast-v0")
 IDM_PATH = "highway_env.vehicle.behavior.IDMVehicle"
+OTHER_VEHICLE_TYPES = (
+    IDM_PATH,
+    "highway_env.vehicle.behavior.LinearVehicle",
+    "highway_env.vehicle.behavior.AggressiveVehicle",
+    "highway_env.vehicle.behavior.DefensiveVehicle",
+)
 SPEED_LIMIT = 30  # RoadNetwork.straight_road_network(..., speed_limit=30) in HighwayEnv._create_road
 LANE_LENGTH = 10000.0  # straight_road_network's default length
 
@@ -107,6 +115,9 @@ class SimConfig:
     others_check_collisions: bool
     target_speeds: np.ndarray
     config: dict[str, Any]
+    other_class: type
+    driver: np.ndarray
+    """scene.driver_constants(other_class)"""
 
 
 def resolve_config(config: dict[str, Any] | None, env_id: str) -> SimConfig:
@@ -118,8 +129,11 @@ def resolve_config(config: dict[str, Any] | None, env_id: str) -> SimConfig:
     unknown = sorted(set(cfg) - _NO_DYNAMICS_KEYS - _DYNAMICS_KEYS)
     if unknown:
         raise ValueError(f"config keys not supported by the fast simulator: {unknown}")
-    if cfg["other_vehicles_type"] != IDM_PATH:
-        raise ValueError(f"other_vehicles_type: {cfg['other_vehicles_type']!r} is not supported; allowed: {IDM_PATH}")
+    if cfg["other_vehicles_type"] not in OTHER_VEHICLE_TYPES:
+        raise ValueError(
+            f"other_vehicles_type: {cfg['other_vehicles_type']!r} is not supported; allowed: "
+            + ", ".join(OTHER_VEHICLE_TYPES)
+        )
     if int(cfg["controlled_vehicles"]) != 1:
         raise ValueError(f"controlled_vehicles: {cfg['controlled_vehicles']!r} is not supported; allowed: 1")
     if cfg["manual_control"]:
@@ -136,9 +150,7 @@ def resolve_config(config: dict[str, Any] | None, env_id: str) -> SimConfig:
     ts = action.get("target_speeds")
     target_speeds = np.array(ts if ts is not None else MDPVehicle.DEFAULT_TARGET_SPEEDS, dtype=np.float64)
     if target_speeds.ndim != 1 or target_speeds.size < 2 or target_speeds[-1] == target_speeds[0]:
-        raise ValueError(
-            f"action.target_speeds: {ts!r} is not supported; allowed: 2 or more speeds, last != first"
-        )
+        raise ValueError(f"action.target_speeds: {ts!r} is not supported; allowed: 2 or more speeds, last != first")
     sim_f = cfg["simulation_frequency"]
     pol_f = cfg["policy_frequency"]
     lanes = int(cfg["lanes_count"])
@@ -163,7 +175,24 @@ def resolve_config(config: dict[str, Any] | None, env_id: str) -> SimConfig:
         others_check_collisions=env_id != "highway-fast-v0",
         target_speeds=target_speeds,
         config=cfg,
+        other_class=class_from_path(cfg["other_vehicles_type"]),
+        driver=driver_constants(class_from_path(cfg["other_vehicles_type"])),
     )
+
+
+def driver_constants(cls: type) -> np.ndarray:
+    """[linear?, TIME_WANTED, LANE_CHANGE_MIN_ACC_GAIN, ACCELERATION_RANGE (2x3), STEERING_RANGE (2x2),
+    the ego's TIME_WANTED (IDM's, for the snapshot)] of the other vehicles' class."""
+    d = np.zeros(14)
+    lin = issubclass(cls, LinearVehicle)
+    d[0] = 1.0 if lin else 0.0
+    d[1] = cls.TIME_WANTED
+    d[2] = cls.LANE_CHANGE_MIN_ACC_GAIN
+    if lin:
+        d[3:9] = np.asarray(cls.ACCELERATION_RANGE, dtype=np.float64).reshape(6)
+        d[9:13] = np.asarray(cls.STEERING_RANGE, dtype=np.float64).reshape(4)
+    d[13] = IDMVehicle.TIME_WANTED
+    return d
 
 
 def params() -> np.ndarray:
@@ -211,12 +240,61 @@ def make_rng(seed: int | None) -> np.random.Generator:
     return rng
 
 
-def build_scene(rng: np.random.Generator, sc: SimConfig, P: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """``HighwayEnv._create_vehicles`` on arrays: returns (F, I, E) in kernels' layout."""
+def build_scene(
+    rng: np.random.Generator, sc: SimConfig, P: np.ndarray, out: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``HighwayEnv._create_vehicles`` on arrays: returns (F, G, E) in kernels' layout (written into ``out``).
+
+    On PCG64 (gymnasium's generator) the draws are replayed from the generator's raw outputs in one numba
+    call (:func:`safelane.sim.fast.kernels.spawn`), leaving the generator in exactly the state the
+    ``choice`` / ``uniform`` calls would; other bit generators take :func:`build_scene_python`.
+    """
+    bg = rng.bit_generator
+    if type(bg) is not np.random.PCG64:
+        return build_scene_python(rng, sc, P)
+    n = 1 + sc.vehicles_count
+    if out is None:
+        out = (np.zeros((n, K.NF)), np.zeros((n, K.NI), dtype=np.int64), np.zeros(1, dtype=np.int64))
+    F, G, E = out
+    state = bg.state
+    has = int(state["has_uint32"])
+    st0 = np.array([0, has, int(state["uinteger"])], dtype=np.int64)
+    n_int = sc.vehicles_count + (1 if sc.initial_lane_id is None else 0) if sc.lanes_count > 1 else 0
+    n_dbl = 1 + (8 if sc.driver[0] else 3) * sc.vehicles_count
+    need = n_dbl + (max(n_int - has, 0) + 1) // 2  # the fewest raw outputs the draws can take
+    raws = bg.random_raw(need)
+    ego_lane = -1 if sc.initial_lane_id is None else sc.initial_lane_id
+    lanes_factor = float(np.exp(-5 / 40 * sc.lanes_count))
+    d_lo, d_hi = sc.other_class.DELTA_RANGE
+    while True:
+        st = st0.copy()
+        ok = K.spawn(
+            raws, st, ego_lane, float(sc.ego_spacing), float(1 / sc.vehicles_density), lanes_factor,
+            0.7 * SPEED_LIMIT, 0.8 * SPEED_LIMIT, float(d_lo), float(d_hi), float(sc.other_class.LANE_CHANGE_DELAY),
+            float(IDMVehicle.DELTA), sc.driver, 1 if sc.others_check_collisions else 0, sc.target_speeds,
+            sc.lanes_count,
+            P, F, G, E,
+        )  # fmt: skip
+        if ok:
+            break
+        raws = np.concatenate([raws, bg.random_raw(1)])  # a rejected bounded draw: one more output
+    assert st[0] == raws.size, (st, raws.size, need, has)
+    if int(st[1]) != has or int(st[2]) != int(state["uinteger"]):
+        state = bg.state
+        state["has_uint32"] = int(st[1])
+        state["uinteger"] = int(st[2])
+        bg.state = state
+    return F, G, E
+
+
+def build_scene_python(
+    rng: np.random.Generator, sc: SimConfig, P: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``HighwayEnv._create_vehicles`` with the generator's own calls (the reference for :func:`build_scene`)."""
     n_lanes = sc.lanes_count
     n = 1 + sc.vehicles_count
     F = np.zeros((n, K.NF))
-    I = np.zeros((n, K.NI), dtype=np.int64)
+    G = np.zeros((n, K.NI), dtype=np.int64)
     E = np.zeros(1, dtype=np.int64)
     width = float(P[K.P_LANE_WIDTH])
     lanes_factor = np.exp(-5 / 40 * n_lanes)
@@ -240,22 +318,25 @@ def build_scene(rng: np.random.Generator, sc: SimConfig, P: np.ndarray) -> tuple
     F[0, K.H] = 0.0
     F[0, K.V] = speed
     lane = K.closest_lane(x, y, 0.0, n_lanes, P)
-    I[0, K.LANE] = lane
-    I[0, K.TLANE] = lane
-    I[0, K.CHECK] = 1
-    I[0, K.IDM] = 0
+    G[0, K.LANE] = lane
+    G[0, K.TLANE] = lane
+    G[0, K.CHECK] = 1
+    G[0, K.IDM] = 0
     ts = sc.target_speeds
     si = K._speed_to_index(speed, ts)
     E[0] = si
     F[0, K.TSPD] = ts[si]
     F[0, K.DELTA] = IDMVehicle.DELTA
+    F[0, K.TW] = IDMVehicle.TIME_WANTED
     x_max = x
 
     # --- the others: IDMVehicle.create_random(road, spacing=1 / vehicles_density); randomize_behavior()
+    cls = sc.other_class
+    lin = issubclass(cls, LinearVehicle)
     spacing = 1 / sc.vehicles_density
     lo, hi = 0.7 * SPEED_LIMIT, 0.8 * SPEED_LIMIT
-    d_lo, d_hi = IDMVehicle.DELTA_RANGE
-    delay = IDMVehicle.LANE_CHANGE_DELAY
+    d_lo, d_hi = cls.DELTA_RANGE
+    delay = cls.LANE_CHANGE_DELAY
     check = 1 if sc.others_check_collisions else 0
     for k in range(1, n):
         if not _SKIP_NODE_CHOICES:
@@ -274,13 +355,22 @@ def build_scene(rng: np.random.Generator, sc: SimConfig, P: np.ndarray) -> tuple
         F[k, K.V] = speed
         F[k, K.TSPD] = speed
         F[k, K.TIMER] = ((x + y) * np.pi) % delay
+        F[k, K.TW] = cls.TIME_WANTED
+        F[k, K.GAIN] = cls.LANE_CHANGE_MIN_ACC_GAIN
+        if lin:  # LinearVehicle.randomize_behavior, then IDMVehicle's
+            ar, sr = cls.ACCELERATION_RANGE, cls.STEERING_RANGE
+            ua = uniform(size=np.shape(cls.ACCELERATION_PARAMETERS))
+            F[k, K.AP0 : K.AP2 + 1] = ar[0] + ua * (ar[1] - ar[0])
+            ub = uniform(size=np.shape(cls.STEERING_PARAMETERS))
+            F[k, K.SP0 : K.SP1 + 1] = sr[0] + ub * (sr[1] - sr[0])
+            G[k, K.LIN] = 1
         F[k, K.DELTA] = uniform(low=d_lo, high=d_hi)
         lane = K.closest_lane(x, y, 0.0, n_lanes, P)
-        I[k, K.LANE] = lane
-        I[k, K.TLANE] = lane
-        I[k, K.CHECK] = check
-        I[k, K.ELC] = 1
-        I[k, K.IDM] = 1
+        G[k, K.LANE] = lane
+        G[k, K.TLANE] = lane
+        G[k, K.CHECK] = check
+        G[k, K.ELC] = 1
+        G[k, K.IDM] = 1
         if x > x_max:
             x_max = x
-    return F, I, E
+    return F, G, E

@@ -195,11 +195,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     """
     import argparse
     import json
+    from importlib import resources
     from pathlib import Path
 
     import yaml
-
-    import safelane
 
     ap = argparse.ArgumentParser(prog="python -m safelane.sim.fast.check")
     ap.add_argument("--preset", default="all", help="fast, paper or all")
@@ -213,7 +212,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     a, b = (int(v) for v in args.seeds.split(":"))
     total = matched = bitwise = 0
     for name in presets:
-        data = yaml.safe_load((Path(safelane.__file__).parent / "presets" / f"{name}.yaml").read_text())
+        data = yaml.safe_load((Path(str(resources.files("safelane"))) / "presets" / f"{name}.yaml").read_text())
         cfg, env_id = data["env"], data["env_id"]
         oracle, fast = make_oracle(cfg, env_id), FastHighwayEnv(cfg, env_id)
         for seed in range(a, b):

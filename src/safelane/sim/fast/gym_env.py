@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, ClassVar
 
 import gymnasium as gym
 import numpy as np
@@ -18,7 +18,7 @@ class FastSimulatorEnv(gym.Env):
     :class:`RoadSnapshot` in ``info["snapshot"]``.
     """
 
-    metadata: dict[str, Any] = {"render_modes": []}
+    metadata: ClassVar[dict[str, Any]] = {"render_modes": []}
 
     def __init__(self, config: dict[str, Any], env_id: str) -> None:
         self.simulator = FastHighwayEnv(config, env_id)

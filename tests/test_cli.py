@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import importlib.util
 import json
 import os
 import subprocess
@@ -184,12 +185,53 @@ def test_bench_json() -> None:
         "highway_env_steps_per_s",
         "agent_ms_per_decision",
         "train_steps_per_s",
+        "snapshot_us_median",
+        "highway_env_decisions_per_s",
+        "fast_decisions_per_s",
     ):
         assert out[key] > 0
     assert 0 < out["agent_overhead_fraction"] < 1
     assert out["neighbour_search_speedup"] == pytest.approx(out["env_steps_per_s"] / out["highway_env_steps_per_s"])
     assert out["shield_overhead_ratio"] == pytest.approx(out["shielded_env_steps_per_s"] / out["env_steps_per_s"])
     assert out["preset"] == "fast" and out["shield"] == "robust"
+    assert out["fast_raw_speedup"] == pytest.approx(out["fast_decisions_per_s"] / out["highway_env_decisions_per_s"])
+    assert out["fast_raw_speedup"] > 10  # measured ≈ 10² or more; a regression to Python speed fails here
+    assert ("envpool_decisions_per_s" in out) == (importlib.util.find_spec("envpool") is not None)
+
+
+# --- sim check ---------------------------------------------------------------------------------------------
+
+
+def test_sim_check_json_reports_trajectories_and_tests() -> None:
+    args = ["sim", "check", "--episodes", "3", "--stat-episodes", "2", "--seed", "5", "--json"]
+    result = runner.invoke(app, [*args, "--set", "env.duration=6"])
+    assert result.exit_code == 0, result.output
+    out = json.loads(result.stdout)
+    assert out["episodes"] == 3 and out["trajectory_match_fraction"] == 1.0 and out["divergences"] == []
+    policies = ("random", "idle", "slower", "faster", "robust_random")
+    metrics = ("collision_rate", "mean_speed")
+    assert {(t["policy"], t["metric"]) for t in out["tests"]} == {(p, m) for p in policies for m in metrics}
+    assert all(0 < t["p_value"] <= 1 for t in out["tests"])
+
+
+def test_sim_check_names_a_divergence(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A deliberately different configuration on the fast side (one vehicle fewer) is caught at the
+    reset: the check can fail."""
+    from safelane.config import load_config
+    from safelane.running import simcheck
+
+    cfg = load_config("fast", sets=["env.duration=3"])
+    original = simcheck.on_simulator
+
+    def skewed(c: object, sim: str, policy: str) -> object:  # the fast side gets one vehicle fewer
+        data = original(c, sim, policy)
+        if sim == "fast":
+            return data.model_copy(update={"env": {**data.env, "vehicles_count": 49}})
+        return data
+
+    monkeypatch.setattr(simcheck, "on_simulator", skewed)
+    found = simcheck.compare_episode(cfg, 0, "random")
+    assert found is not None and found.first_step == 0 and "bodies" in found.cause
 
 
 # --- the installed script, as a user runs it ---------------------------------------------------------------

@@ -6,7 +6,6 @@ import math
 from typing import Any
 
 import gymnasium as gym
-import numpy as np
 
 from safelane.core.snapshot import RoadSnapshot
 
@@ -26,7 +25,8 @@ class PaperReward(gym.Wrapper, gym.utils.RecordConstructorArgs):
 
     def reward_of(self, forward_speed: float, collision: bool) -> float:
         """Eq. 6 for a forward speed [m/s] and a collision flag."""
-        scaled = np.clip((forward_speed - self.v_min) / (self.v_max - self.v_min), 0.0, 1.0)
+        # min/max, not np.clip: the same double, without numpy's ≈ 50 µs per scalar call
+        scaled = min(max((forward_speed - self.v_min) / (self.v_max - self.v_min), 0.0), 1.0)
         return float(self.b * scaled - self.c * float(collision))
 
     @staticmethod

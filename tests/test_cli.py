@@ -266,3 +266,12 @@ def test_script_version(safelane_exe: Path) -> None:
     proc = _run(safelane_exe, "--version")
     assert proc.returncode == 0
     assert proc.stdout.strip() == f"safelane {__version__}"
+
+
+def test_stress_on_the_fast_simulator_skips_what_it_does_not_model() -> None:
+    args = ["stress", "--policy", "random", "--simulator", "fast", "--episodes", "1", "--json"]
+    result = runner.invoke(app, [*args, "--only", "training", "--only", "vehicles_behind_15"])
+    assert result.exit_code == 0, result.output
+    training, behind = json.loads(result.stdout)["conditions"]
+    assert training["simulator"] == "fast" and training["episodes"] == 1
+    assert "traffic.vehicles_behind: not supported by simulator=fast" in behind["skipped"]

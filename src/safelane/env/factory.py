@@ -28,6 +28,7 @@ from safelane.config import (
     highway_env_defaults,
     load_config,
 )
+from safelane.core.errors import NotSupported
 from safelane.core.snapshot import RoadSnapshot
 from safelane.env.observations import PaperObservation
 from safelane.env.reward import PaperReward
@@ -78,7 +79,7 @@ def interface_of(info: dict[str, Any]) -> EnvInterface | None:
 def check_same_interface(trained: EnvInterface, actual: EnvInterface, source: str = "the run") -> None:
     """Raise a one-line :class:`ConfigError` naming both interfaces unless they are equal."""
     if trained != actual:
-        raise ConfigError(
+        raise NotSupported(
             f"environment: {actual.describe()}, but {source} was trained with {trained.describe()}; "
             "a trained policy only drives the state kind, decision rate and action set it learned"
         )
@@ -113,18 +114,18 @@ def _highway_env(cfg: SafelaneConfig, render_mode: str | None) -> gym.Env:
 def _fast_simulator(cfg: SafelaneConfig, render_mode: str | None) -> gym.Env:
     """safelane's compiled simulator of the same highway (it produces the snapshot itself)."""
     if render_mode is not None:
-        raise ConfigError("simulator: fast does not render; use simulator=highway-env to render an episode")
+        raise NotSupported("simulator: fast does not render; use simulator=highway-env to render an episode")
     if cfg.traffic.vehicles_behind:
-        raise ConfigError("traffic.vehicles_behind: not supported by simulator=fast; allowed there: 0")
+        raise NotSupported("traffic.vehicles_behind: not supported by simulator=fast; allowed there: 0")
     if cfg.traffic.adversary != "none":
         adversary = cfg.traffic.adversary
-        raise ConfigError(f"traffic.adversary: '{adversary}' not supported by simulator=fast; allowed there: none")
+        raise NotSupported(f"traffic.adversary: '{adversary}' not supported by simulator=fast; allowed there: none")
     from safelane.sim.fast.gym_env import FastSimulatorEnv
 
     try:
         return FastSimulatorEnv(dict(cfg.env), cfg.env_id)
-    except ValueError as err:
-        raise ConfigError(str(err)) from None
+    except ValueError as err:  # a highway-env option the fast simulator does not model
+        raise NotSupported(str(err)) from None
 
 
 def make_env(

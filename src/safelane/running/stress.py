@@ -18,6 +18,7 @@ import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from safelane.config import ConfigError, SafelaneConfig, load_config
+from safelane.core.errors import NotSupported
 
 if TYPE_CHECKING:
     from safelane.running.training import RunConfig
@@ -135,16 +136,15 @@ def run_stress(
 ) -> dict[str, Any]:
     """Run every condition; ``policy_factory`` gives a fresh policy per condition (same seeds each).
 
-    With a trained ``run``, conditions the policy cannot drive (another decision rate, state or action
-    set) are recorded as ``{"name", "adversarial", "skipped": reason}`` instead of failing the suite.
+    Conditions that cannot run as asked — a trained ``run``'s policy in another decision rate, state or
+    action set, a traffic option the chosen simulator does not model — are recorded as
+    ``{"name", "adversarial", "skipped": reason}`` instead of failing the suite.
     """
     results = []
     for cond in conditions or load_conditions():
         try:
             rec = run_condition(cond, policy_factory(), episodes, shield, override, sets, run=run)
-        except ConfigError as err:
-            if run is None or not str(err).startswith("environment:"):
-                raise
+        except NotSupported as err:
             rec = {"name": cond.name, "adversarial": cond.adversarial, "skipped": str(err)}
         results.append(rec)
         if on_condition:

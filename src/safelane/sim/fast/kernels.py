@@ -390,27 +390,31 @@ def _act_ego(F, G, E, ts, action, n_lanes, P):
 
 
 @njit(cache=True)
-def _mobil(F, G, n, j, lane, P, members, mx, cnt, free_j):
-    new_preceding, new_following = _neighbours(F, j, lane, members, mx, cnt)
-    new_following_a = _acceleration(F, G, j, new_following, new_preceding, P)
-    new_following_pred_a = _acceleration(F, G, j, new_following, j, P)
-    if new_following_pred_a < -P[P_MAX_BRAKING_IMPOSED]:
-        return False
-    old_preceding, old_following = _neighbours(F, j, G[j, LANE], members, mx, cnt)
-    self_pred_a = _own_acceleration(F, G, j, new_preceding, free_j, P)
-    self_a = _own_acceleration(F, G, j, old_preceding, free_j, P)
-    old_following_a = _acceleration(F, G, j, old_following, j, P)
-    old_following_pred_a = _acceleration(F, G, j, old_following, old_preceding, P)
-    jerk = (
-        self_pred_a
-        - self_a
-        + P[P_POLITENESS] * (new_following_pred_a - new_following_a + old_following_pred_a - old_following_a)
-    )
-    return not jerk < F[j, GAIN]
+def _free_c(F, G, c, j, P):
+    """j's IDM free-road term with caller c's DELTA (0.0 when unused: no j, or c is linear)."""
+    if j < 0 or G[c, LIN]:
+        return 0.0
+    return _free_road(F, j, F[c, DELTA], P)
+
+
+@njit(cache=True)
+def _acc_c(F, G, c, j, k, free, P):
+    """``c.acceleration(ego_vehicle=j, front_vehicle=k)`` given ``free = _free_c(F, G, c, j, P)``."""
+    if j < 0:
+        return 0.0
+    if G[c, LIN]:
+        return _linear_acceleration(F, c, j, k, P)
+    return _acceleration_free(F, c, j, k, free, P)
 
 
 @njit(cache=True)
 def _change_lane_policy(F, G, n, j, n_lanes, P, members, mx, cnt, free_j):
+    """IDMVehicle.change_lane_policy, with ``mobil(lane)`` inlined.
+
+    The accelerations are pure functions of the (fixed during act) positions and speeds, so the
+    old-lane terms, the same for both candidate lanes, are computed once (when first needed), and each
+    follower's free-road term once for its two accelerations: the same values highway-env computes.
+    """
     if G[j, LANE] != G[j, TLANE]:
         tl = G[j, TLANE]
         for k in range(n):
@@ -425,6 +429,11 @@ def _change_lane_policy(F, G, n, j, n_lanes, P, members, mx, cnt, free_j):
         return
     F[j, TIMER] = 0.0
     lane = G[j, LANE]
+    old_done = False
+    old_preceding = -1
+    self_a = 0.0
+    old_following_a = 0.0
+    old_following_pred_a = 0.0
     for side in range(2):
         cand = lane - 1 if side == 0 else lane + 1
         if cand < 0 or cand > n_lanes - 1:
@@ -433,7 +442,27 @@ def _change_lane_policy(F, G, n, j, n_lanes, P, members, mx, cnt, free_j):
             continue
         if abs(F[j, V]) < 1:
             continue
-        if _mobil(F, G, n, j, cand, P, members, mx, cnt, free_j):
+        # --- mobil(cand)
+        new_preceding, new_following = _neighbours(F, j, cand, members, mx, cnt)
+        free_nf = _free_c(F, G, j, new_following, P)
+        new_following_a = _acc_c(F, G, j, new_following, new_preceding, free_nf, P)
+        new_following_pred_a = _acc_c(F, G, j, new_following, j, free_nf, P)
+        if new_following_pred_a < -P[P_MAX_BRAKING_IMPOSED]:
+            continue
+        if not old_done:
+            old_preceding, old_following = _neighbours(F, j, lane, members, mx, cnt)
+            self_a = _own_acceleration(F, G, j, old_preceding, free_j, P)
+            free_of = _free_c(F, G, j, old_following, P)
+            old_following_a = _acc_c(F, G, j, old_following, j, free_of, P)
+            old_following_pred_a = _acc_c(F, G, j, old_following, old_preceding, free_of, P)
+            old_done = True
+        self_pred_a = _own_acceleration(F, G, j, new_preceding, free_j, P)
+        jerk = (
+            self_pred_a
+            - self_a
+            + P[P_POLITENESS] * (new_following_pred_a - new_following_a + old_following_pred_a - old_following_a)
+        )
+        if not jerk < F[j, GAIN]:
             G[j, TLANE] = cand
 
 

@@ -196,14 +196,15 @@ def _neighbours_scan(F, n, j, lane, P):
 
 
 @njit(cache=True)
-def build_lane_index(F, n_lanes, P, members, mx, cnt):
+def build_lane_index(F, n_lanes, P, members, mx, cnt, order=None):
     """Per lane, the vehicles ``on_lane(margin=1)`` sorted by (x, index): ``members[L, :cnt[L]]``, x in ``mx``.
 
     Also refreshes the COSH / SINH columns. Built once per ``Road.act`` phase (no vehicle moves during it), it answers
     ``Road.neighbour_vehicles`` by binary search with the same result and tie rules as the scan.
     """
     n = F.shape[0]
-    order = np.argsort(F[:, X], kind="mergesort")  # stable: equal x stay in index order
+    if order is None:  # else: the stable x order of the current positions, from the last _collisions
+        order = np.argsort(F[:, X], kind="mergesort")  # stable: equal x stay in index order
     for L in range(n_lanes):
         cnt[L] = 0
     for r in range(n):
@@ -652,7 +653,7 @@ def _handle_collisions(F, G, i, j, dt, P, pa, pb, res):
 
 
 @njit(cache=True)
-def _collisions(F, G, dt, P, pa, pb, res, reach, cand):
+def _collisions(F, G, dt, P, pa, pb, res, reach, cand, order):
     """Road.step's pairwise checks: ``vehicles[i].handle_collisions(vehicles[j])`` for i < j, in that order.
 
     Pairs whose |dx| exceeds ``reach`` (the pre-check's radius + (MAX_SPEED + 1)·dt + 1 m) cannot pass
@@ -660,12 +661,17 @@ def _collisions(F, G, dt, P, pa, pb, res, reach, cand):
     still for i ascending and, for each i, j ascending; a vehicle faster than MAX_SPEED + 1 checks all.
     """
     n = F.shape[0]
-    order = np.argsort(F[:, X], kind="mergesort")
+    order[:] = np.argsort(F[:, X], kind="mergesort")
     rank = np.empty(n, dtype=np.int64)
+    last_checker = -1
     for r in range(n):
         rank[order[r]] = r
+        if G[r, CHECK]:
+            last_checker = r
     for i in range(n):
         ci = G[i, CHECK]
+        if not ci and i >= last_checker:
+            continue  # no vehicle j > i checks collisions, and i does not either
         xi = F[i, X]
         if abs(F[i, V]) > P[P_MAX_SPEED] + 1.0:
             for j in range(i + 1, n):
@@ -714,6 +720,7 @@ def simulate(F, G, E, ts, P, action, frames, dt, n_lanes, before, after, rec):
     cnt = np.zeros(n_lanes, dtype=np.int64)
     reach = (P[P_DIAGONAL] + P[P_DIAGONAL]) / 2 + (P[P_MAX_SPEED] + 1.0) * dt + 1.0
     cand = np.empty(n, dtype=np.int64)
+    order = np.empty(n, dtype=np.int64)
     for frame in range(frames):
         was_crashed = G[0, CRASHED]
         if rec[0] == 0 and not was_crashed:
@@ -721,7 +728,9 @@ def simulate(F, G, E, ts, P, action, frames, dt, n_lanes, before, after, rec):
                 before[k, 0] = F[k, X]
                 before[k, 1] = F[k, Y]
         # Road.act (the ego's meta-action first, at the decision's first frame)
-        build_lane_index(F, n_lanes, P, members, mx, cnt)
+        if frame == 0:
+            order[:] = np.argsort(F[:, X], kind="mergesort")
+        build_lane_index(F, n_lanes, P, members, mx, cnt, order)
         for k in range(n):
             if G[k, IDM]:
                 _act_idm(F, G, n, k, n_lanes, P, members, mx, cnt)
@@ -730,7 +739,7 @@ def simulate(F, G, E, ts, P, action, frames, dt, n_lanes, before, after, rec):
         # Road.step
         for k in range(n):
             _step_vehicle(F, G, k, dt, n_lanes, P)
-        _collisions(F, G, dt, P, pa, pb, res, reach, cand)
+        _collisions(F, G, dt, P, pa, pb, res, reach, cand, order)
         if rec[0] == 0 and not was_crashed and G[0, CRASHED]:
             rec[0] = 1
             for k in range(n):

@@ -196,14 +196,15 @@ def _neighbours_scan(F, n, j, lane, P):
 
 
 @njit(cache=True)
-def build_lane_index(F, n_lanes, P, members, mx, cnt):
+def build_lane_index(F, n_lanes, P, members, mx, cnt, order=None):
     """Per lane, the vehicles ``on_lane(margin=1)`` sorted by (x, index): ``members[L, :cnt[L]]``, x in ``mx``.
 
     Also refreshes the COSH / SINH columns. Built once per ``Road.act`` phase (no vehicle moves during it), it answers
     ``Road.neighbour_vehicles`` by binary search with the same result and tie rules as the scan.
     """
     n = F.shape[0]
-    order = np.argsort(F[:, X], kind="mergesort")  # stable: equal x stay in index order
+    if order is None:  # else: the stable x order of the current positions, from the last _collisions
+        order = np.argsort(F[:, X], kind="mergesort")  # stable: equal x stay in index order
     for L in range(n_lanes):
         cnt[L] = 0
     for r in range(n):
@@ -390,27 +391,31 @@ def _act_ego(F, G, E, ts, action, n_lanes, P):
 
 
 @njit(cache=True)
-def _mobil(F, G, n, j, lane, P, members, mx, cnt, free_j):
-    new_preceding, new_following = _neighbours(F, j, lane, members, mx, cnt)
-    new_following_a = _acceleration(F, G, j, new_following, new_preceding, P)
-    new_following_pred_a = _acceleration(F, G, j, new_following, j, P)
-    if new_following_pred_a < -P[P_MAX_BRAKING_IMPOSED]:
-        return False
-    old_preceding, old_following = _neighbours(F, j, G[j, LANE], members, mx, cnt)
-    self_pred_a = _own_acceleration(F, G, j, new_preceding, free_j, P)
-    self_a = _own_acceleration(F, G, j, old_preceding, free_j, P)
-    old_following_a = _acceleration(F, G, j, old_following, j, P)
-    old_following_pred_a = _acceleration(F, G, j, old_following, old_preceding, P)
-    jerk = (
-        self_pred_a
-        - self_a
-        + P[P_POLITENESS] * (new_following_pred_a - new_following_a + old_following_pred_a - old_following_a)
-    )
-    return not jerk < F[j, GAIN]
+def _free_c(F, G, c, j, P):
+    """j's IDM free-road term with caller c's DELTA (0.0 when unused: no j, or c is linear)."""
+    if j < 0 or G[c, LIN]:
+        return 0.0
+    return _free_road(F, j, F[c, DELTA], P)
+
+
+@njit(cache=True)
+def _acc_c(F, G, c, j, k, free, P):
+    """``c.acceleration(ego_vehicle=j, front_vehicle=k)`` given ``free = _free_c(F, G, c, j, P)``."""
+    if j < 0:
+        return 0.0
+    if G[c, LIN]:
+        return _linear_acceleration(F, c, j, k, P)
+    return _acceleration_free(F, c, j, k, free, P)
 
 
 @njit(cache=True)
 def _change_lane_policy(F, G, n, j, n_lanes, P, members, mx, cnt, free_j):
+    """IDMVehicle.change_lane_policy, with ``mobil(lane)`` inlined.
+
+    The accelerations are pure functions of the (fixed during act) positions and speeds, so the
+    old-lane terms, the same for both candidate lanes, are computed once (when first needed), and each
+    follower's free-road term once for its two accelerations: the same values highway-env computes.
+    """
     if G[j, LANE] != G[j, TLANE]:
         tl = G[j, TLANE]
         for k in range(n):
@@ -425,6 +430,11 @@ def _change_lane_policy(F, G, n, j, n_lanes, P, members, mx, cnt, free_j):
         return
     F[j, TIMER] = 0.0
     lane = G[j, LANE]
+    old_done = False
+    old_preceding = -1
+    self_a = 0.0
+    old_following_a = 0.0
+    old_following_pred_a = 0.0
     for side in range(2):
         cand = lane - 1 if side == 0 else lane + 1
         if cand < 0 or cand > n_lanes - 1:
@@ -433,7 +443,27 @@ def _change_lane_policy(F, G, n, j, n_lanes, P, members, mx, cnt, free_j):
             continue
         if abs(F[j, V]) < 1:
             continue
-        if _mobil(F, G, n, j, cand, P, members, mx, cnt, free_j):
+        # --- mobil(cand)
+        new_preceding, new_following = _neighbours(F, j, cand, members, mx, cnt)
+        free_nf = _free_c(F, G, j, new_following, P)
+        new_following_a = _acc_c(F, G, j, new_following, new_preceding, free_nf, P)
+        new_following_pred_a = _acc_c(F, G, j, new_following, j, free_nf, P)
+        if new_following_pred_a < -P[P_MAX_BRAKING_IMPOSED]:
+            continue
+        if not old_done:
+            old_preceding, old_following = _neighbours(F, j, lane, members, mx, cnt)
+            self_a = _own_acceleration(F, G, j, old_preceding, free_j, P)
+            free_of = _free_c(F, G, j, old_following, P)
+            old_following_a = _acc_c(F, G, j, old_following, j, free_of, P)
+            old_following_pred_a = _acc_c(F, G, j, old_following, old_preceding, free_of, P)
+            old_done = True
+        self_pred_a = _own_acceleration(F, G, j, new_preceding, free_j, P)
+        jerk = (
+            self_pred_a
+            - self_a
+            + P[P_POLITENESS] * (new_following_pred_a - new_following_a + old_following_pred_a - old_following_a)
+        )
+        if not jerk < F[j, GAIN]:
             G[j, TLANE] = cand
 
 
@@ -623,7 +653,7 @@ def _handle_collisions(F, G, i, j, dt, P, pa, pb, res):
 
 
 @njit(cache=True)
-def _collisions(F, G, dt, P, pa, pb, res, reach, cand):
+def _collisions(F, G, dt, P, pa, pb, res, reach, cand, order):
     """Road.step's pairwise checks: ``vehicles[i].handle_collisions(vehicles[j])`` for i < j, in that order.
 
     Pairs whose |dx| exceeds ``reach`` (the pre-check's radius + (MAX_SPEED + 1)·dt + 1 m) cannot pass
@@ -631,12 +661,17 @@ def _collisions(F, G, dt, P, pa, pb, res, reach, cand):
     still for i ascending and, for each i, j ascending; a vehicle faster than MAX_SPEED + 1 checks all.
     """
     n = F.shape[0]
-    order = np.argsort(F[:, X], kind="mergesort")
+    order[:] = np.argsort(F[:, X], kind="mergesort")
     rank = np.empty(n, dtype=np.int64)
+    last_checker = -1
     for r in range(n):
         rank[order[r]] = r
+        if G[r, CHECK]:
+            last_checker = r
     for i in range(n):
         ci = G[i, CHECK]
+        if not ci and i >= last_checker:
+            continue  # no vehicle j > i checks collisions, and i does not either
         xi = F[i, X]
         if abs(F[i, V]) > P[P_MAX_SPEED] + 1.0:
             for j in range(i + 1, n):
@@ -685,6 +720,7 @@ def simulate(F, G, E, ts, P, action, frames, dt, n_lanes, before, after, rec):
     cnt = np.zeros(n_lanes, dtype=np.int64)
     reach = (P[P_DIAGONAL] + P[P_DIAGONAL]) / 2 + (P[P_MAX_SPEED] + 1.0) * dt + 1.0
     cand = np.empty(n, dtype=np.int64)
+    order = np.empty(n, dtype=np.int64)
     for frame in range(frames):
         was_crashed = G[0, CRASHED]
         if rec[0] == 0 and not was_crashed:
@@ -692,7 +728,9 @@ def simulate(F, G, E, ts, P, action, frames, dt, n_lanes, before, after, rec):
                 before[k, 0] = F[k, X]
                 before[k, 1] = F[k, Y]
         # Road.act (the ego's meta-action first, at the decision's first frame)
-        build_lane_index(F, n_lanes, P, members, mx, cnt)
+        if frame == 0:
+            order[:] = np.argsort(F[:, X], kind="mergesort")
+        build_lane_index(F, n_lanes, P, members, mx, cnt, order)
         for k in range(n):
             if G[k, IDM]:
                 _act_idm(F, G, n, k, n_lanes, P, members, mx, cnt)
@@ -701,7 +739,7 @@ def simulate(F, G, E, ts, P, action, frames, dt, n_lanes, before, after, rec):
         # Road.step
         for k in range(n):
             _step_vehicle(F, G, k, dt, n_lanes, P)
-        _collisions(F, G, dt, P, pa, pb, res, reach, cand)
+        _collisions(F, G, dt, P, pa, pb, res, reach, cand, order)
         if rec[0] == 0 and not was_crashed and G[0, CRASHED]:
             rec[0] = 1
             for k in range(n):

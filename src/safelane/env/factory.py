@@ -120,10 +120,10 @@ def _fast_simulator(cfg: SafelaneConfig, render_mode: str | None) -> gym.Env:
     if cfg.traffic.adversary != "none":
         adversary = cfg.traffic.adversary
         raise NotSupported(f"traffic.adversary: '{adversary}' not supported by simulator=fast; allowed there: none")
-    from safelane.sim.fast.gym_env import FastSimulatorEnv
+    from safelane.sim.fast.env import FastHighwayEnv
 
     try:
-        return FastSimulatorEnv(dict(cfg.env), cfg.env_id)
+        return FastHighwayEnv(dict(cfg.env), cfg.env_id)
     except ValueError as err:  # a highway-env option the fast simulator does not model
         raise NotSupported(str(err)) from None
 

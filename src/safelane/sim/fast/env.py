@@ -179,6 +179,11 @@ class FastHighwayEnv(gym.Env):
             "snapshot": self.snapshot(),
         }
 
+    def road_snapshot(self, refresh: bool = False) -> RoadSnapshot:
+        """The scene now (the simulator-side interface the shield's ``refresh`` uses, like
+        :class:`safelane.sim.highway.HighwayEnvAdapter`'s; nothing is cached, so ``refresh`` changes nothing)."""
+        return self.snapshot()
+
     def snapshot(self) -> RoadSnapshot:
         """The scene as a :class:`RoadSnapshot` (fresh per-step arrays; the static ones are shared, read-only)."""
         F, G, sc = self.F, self.G, self.sim

@@ -24,7 +24,7 @@ import numpy as np
 from safelane.agents.dqn import parse_methods
 from safelane.config import ConfigError, load_config
 from safelane.env.factory import make_env
-from safelane.env.observations import paper_state
+from safelane.env.observations import paper_state_compiled as paper_state
 from safelane.reporting.plots import read_metrics
 from safelane.running.evaluation import fixed_policy
 from safelane.running.training import METRICS_FILE, make_train_config, train
@@ -125,7 +125,7 @@ def run_bench(
     * ``shield_overhead_ratio``: shielded ÷ raw (≤ 1; 1 means the shield is free);
     * ``snapshot_us_median``: building one road snapshot from highway-env's objects [µs], median;
     * ``shield_mask_us_median``: one ``SafetyShield.compute_mask()`` on it [µs], median over decisions;
-    * ``obs_us_median``: one paper observation ``paper_state`` (eq. 3) [µs], median over decisions;
+    * ``obs_us_median``: one paper observation (eq. 3, the compiled form the environment uses) [µs], median;
     * ``highway_env_steps_per_s``: raw decisions per second with highway-env's own neighbour search
       (``neighbour_search=highway-env``; identical episodes) and ``neighbour_search_speedup`` = raw ÷ that;
     * ``highway_env_decisions_per_s``: stock highway-env (``gym.make`` with the preset's config: its own

@@ -674,6 +674,9 @@ def render(
         if cfg.shield.mode != "none":
             cfg = resolve_config(preset, sets, shield, overrides={"shield.override": True})
         act = fixed_policy(policy, seed)
+    if cfg.simulator == "fast":  # it does not draw; highway-env plays the same episode (safelane sim check)
+        typer.echo("render: drawing on highway-env, which plays the fast simulator's episode", err=True)
+        cfg = cfg.model_copy(update={"simulator": "highway-env"})
     result = render_episode(cfg, act, seed, out, max_steps=max_steps)  # checks --out, then builds and closes the env
     typer.echo(f"wrote {result.path} ({result.frames} frames)")
 

@@ -11,11 +11,12 @@ action set differs from its training one (:func:`safelane.env.factory.check_same
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any
+from typing import Any, get_args
 
 from safelane.config import (
     ConfigError,
     SafelaneConfig,
+    ShieldConfig,
     apply_overrides,
     build_config,
     config_to_dict,
@@ -26,7 +27,8 @@ from safelane.env.factory import check_same_interface, env_interface
 from safelane.running.stress import Condition
 from safelane.running.training import RunConfig, load_run_config
 
-SHIELD_MODES: tuple[str, ...] = ("none", "nominal", "robust")
+SHIELD_MODES: tuple[str, ...] = get_args(ShieldConfig.model_fields["mode"].annotation)
+"""Values of ``shield.mode``."""
 
 
 def run_env_config(

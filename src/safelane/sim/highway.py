@@ -1,9 +1,9 @@
 """The highway-env adapter: highway-env's objects read once per reset and step into a :class:`RoadSnapshot`.
 
 :class:`HighwayEnvAdapter` wraps a highway-env environment (after safelane's traffic layout) and puts
-the snapshot of the scene in ``info["snapshot"]`` after every reset and step; it is the only place
-outside :mod:`safelane.sim` and :mod:`safelane.env.scenarios` that reads highway-env's object graph. It
-also watches the physics frames for the ego's first crash, so the snapshot carries the positions of
+the snapshot of the scene in ``info["snapshot"]`` after every reset and step, so that nothing above the
+simulator tier (but hand-built scenes, :mod:`safelane.env.scenarios`, and rendering) reads highway-env's
+object graph. It also watches the physics frames for the ego's first crash, so the snapshot carries the positions of
 the impact frame (highway-env pushes the bodies apart afterwards, so the end-of-decision geometry does
 not tell who hit whom).
 

@@ -113,8 +113,9 @@ class SafelaneConfig(_Section):
     )
     neighbour_search: Literal["numpy", "highway-env"] = Field(
         "numpy",
-        description="How highway-env finds each vehicle's leader and follower: 'numpy' (safelane.sim.neighbours, "
-        "identical episodes, ≈2x faster) or 'highway-env' (its own Python loop, the simulator untouched). "
+        description="How highway-env finds each vehicle's leader and follower and pre-screens collision pairs: "
+        "'numpy' (safelane.sim.neighbours, identical episodes, ≈2x faster) or 'highway-env' (its own Python "
+        "loops, the simulator untouched). "
         "Not the choice of simulator.",
     )
     state: Literal["paper", "lanes"] = Field(

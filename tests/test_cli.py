@@ -214,6 +214,29 @@ def test_sim_check_json_reports_trajectories_and_tests() -> None:
     assert all(0 < t["p_value"] <= 1 for t in out["tests"])
 
 
+def test_sim_check_records_units_and_resumes_after_a_kill(tmp_path: Path) -> None:
+    """With --record every finished unit is on disk at once; a re-run with the file plays nothing again
+    and gives the same JSON as a check without it; a record of another configuration is refused."""
+    record = tmp_path / "check.jsonl"
+    args = ["sim", "check", "--episodes", "2", "--stat-episodes", "2", "--seed", "3", "--json"]
+    args += ["--set", "env.duration=4"]
+    first = runner.invoke(app, [*args, "--record", str(record), "--workers", "2"])
+    assert first.exit_code == 0, first.output
+    lines = record.read_text().splitlines()
+    assert len(lines) == 1 + 2 + 2 * 5  # header, 2 trajectories, 5 policies x 2 simulators
+    # A kill in the middle of writing the last line: the cut line is dropped and its unit played again.
+    record.write_text("\n".join(lines[:-1]) + "\n" + lines[-1][:10])
+    again = runner.invoke(app, [*args, "--record", str(record)])
+    assert again.exit_code == 0, again.output
+    plain = runner.invoke(app, args)
+    a, b, c = (json.loads(r.stdout) for r in (first, again, plain))
+    assert b["units_resumed"] == len(lines) - 2 and c["units_resumed"] == 0
+    for key in ("trajectory_match_fraction", "divergences", "tests", "mean_length"):
+        assert a[key] == b[key] == c[key]
+    other = runner.invoke(app, [*args[:-1], "env.duration=5", "--record", str(record)])
+    assert other.exit_code == 2 and "--record" in other.output and "Traceback" not in other.output
+
+
 def test_sim_check_names_a_divergence(monkeypatch: pytest.MonkeyPatch) -> None:
     """A deliberately different configuration on the fast side (one vehicle fewer) is caught at the
     reset: the check can fail."""

@@ -156,6 +156,23 @@ def episode_progress(description: str, total: int) -> Iterator[Callable[[int, An
         yield lambda index, record: progress.update(task, completed=index + 1)
 
 
+@contextmanager
+def units_progress(description: str) -> Iterator[Callable[[int, int], None]]:
+    """A rich progress bar on stderr; yields a callback ``(done, total)`` (the total may be learnt late)."""
+    progress = Progress(
+        TextColumn("{task.description}"),
+        BarColumn(),
+        MofNCompleteColumn(),
+        TimeElapsedColumn(),
+        console=stderr,
+        transient=True,
+        disable=not stderr.is_terminal,
+    )
+    with progress:
+        task = progress.add_task(description, total=None)
+        yield lambda done, total: progress.update(task, completed=done, total=total)
+
+
 def print_json(data: dict[str, Any]) -> None:
     """One JSON object on one line of stdout."""
     sys.stdout.write(json.dumps(data) + "\n")
@@ -224,30 +241,36 @@ def sim_check(
             help="Episodes per policy and simulator for the statistical tests (0: trajectories only).",
         ),
     ] = 0,
+    workers: Annotated[int, typer.Option("--workers", help="Parallel processes.")] = 1,
+    record: Annotated[
+        Path | None,
+        typer.Option(
+            "--record",
+            help="JSON-lines file: each finished unit of work is appended at once; a re-run with the same "
+            "file resumes (a long check shows its partial results there).",
+        ),
+    ] = None,
     as_json: JsonOpt = False,
 ) -> None:
     """Compare the fast simulator with highway-env on a configuration: trajectories and statistics."""
     from safelane.running.simcheck import run_sim_check
 
     check_positive("--episodes", episodes)
+    check_positive("--workers", workers)
     check_seed(seed)
     if stat_episodes < 0:
         raise ConfigError(f"--stat-episodes: must be >= 0 (got {stat_episodes})")
     cfg = resolve_config(preset, sets)
-    with episode_progress("sim check", episodes) as advance:
-        count = [0]
-
-        def tick(_: str) -> None:
-            advance(count[0], None)
-            count[0] += 1
-
-        result = run_sim_check(cfg, episodes, seed, stat_episodes=stat_episodes, progress=tick)
+    with units_progress("sim check") as tick:
+        result = run_sim_check(
+            cfg, episodes, seed, stat_episodes=stat_episodes, workers=workers, record=record, progress=tick
+        )
     if as_json:
         print_json(result)
         return
     stdout.print(
         f"trajectories: {result['trajectory_match_fraction']:.3f} of {episodes} episodes matched within "
-        f"{result['tolerance']:g} (m, m/s, rad)"
+        f"{result['tolerance']:g} (m, m/s, rad); {result['bit_identical_fraction']:.3f} bit-identical"
     )
     for d in result["divergences"]:
         stdout.print(f"  seed {d['seed']} ({d['policy']}): step {d['first_step']}: {d['cause']}")

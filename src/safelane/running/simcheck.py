@@ -12,19 +12,28 @@ Two checks, both on the whole safelane environment (simulator, snapshot, observa
   episodes on each simulator (disjoint seed ranges); Fisher's exact test compares the collision rates
   and a permutation test the per-episode mean speeds. A p-value above 0.01 means no evidence of a
   difference at 1 %.
+
+The work is cut into units (one trajectory episode, or :data:`STAT_CHUNK` statistics episodes of one
+policy on one simulator) that run in a process pool and are appended to a record file as they finish,
+so that a check of hours shows partial results and resumes after a kill.
 """
 
 from __future__ import annotations
 
+import json
 import math
+import os
 import time
 from collections.abc import Callable
+from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import asdict, dataclass
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from safelane.config import SafelaneConfig, build_config, config_to_dict
+from safelane.core.errors import ConfigError
 from safelane.core.snapshot import RoadSnapshot
 from safelane.env.factory import make_env
 from safelane.reporting import stats
@@ -64,6 +73,13 @@ def _policy(policy: str, seed: int) -> Callable[[np.ndarray, dict[str, Any]], in
     return fixed_policy("random" if policy == "robust_random" else policy, seed)
 
 
+def _error(a: RoadSnapshot, b: RoadSnapshot) -> float:
+    """Largest difference of any vehicle's position, speed or heading (m, m/s, rad); inf if the counts differ."""
+    if a.n != b.n:
+        return math.inf
+    return max(float(np.abs(getattr(a, f) - getattr(b, f)).max(initial=0.0)) for f in ("position", "speed", "heading"))
+
+
 def _difference(a: RoadSnapshot, b: RoadSnapshot, tol: float) -> str | None:
     """What first differs between two snapshots (None: they agree)."""
     if a.n != b.n:
@@ -93,37 +109,103 @@ def _state_difference(obs: tuple[np.ndarray, np.ndarray], infos: tuple[dict, dic
     return cause
 
 
-def compare_episode(cfg: SafelaneConfig, seed: int, policy: str, tol: float = TOLERANCE) -> Divergence | None:
-    """Drive ``cfg`` on highway-env and on the fast simulator with ``policy`` from reset ``seed``;
-    the first :class:`Divergence`, or None when the whole episode agreed."""
+def compare_episode_error(
+    cfg: SafelaneConfig, seed: int, policy: str, tol: float = TOLERANCE
+) -> tuple[Divergence | None, float]:
+    """Drive ``cfg`` on highway-env and on the fast simulator with ``policy`` from reset ``seed``: the
+    first :class:`Divergence` (None when the whole episode agreed) and the largest position, speed or
+    heading difference seen up to it (m, m/s, rad; 0.0 means bit-identical states)."""
     envs = [make_env(on_simulator(cfg, sim, policy)) for sim in ("highway-env", "fast")]
     policies = [_policy(policy, seed), _policy(policy, seed)]
+    worst = 0.0
+
+    def check(step: int, obs: tuple[np.ndarray, np.ndarray], infos: tuple[dict, dict]) -> Divergence | None:
+        nonlocal worst
+        worst = max(worst, _error(infos[0]["snapshot"], infos[1]["snapshot"]))
+        cause = _state_difference(obs, infos, tol)
+        return None if cause is None else Divergence(seed, policy, step, cause)
+
     try:
         (obs_a, info_a), (obs_b, info_b) = (env.reset(seed=seed) for env in envs)
         step = 0
         while True:
-            cause = _state_difference((obs_a, obs_b), (info_a, info_b), tol)
-            if cause is not None:
-                return Divergence(seed, policy, step, cause)
+            found = check(step, (obs_a, obs_b), (info_a, info_b))
+            if found is not None:
+                return found, worst
             obs_a, r_a, term_a, trunc_a, info_a = envs[0].step(policies[0](obs_a, info_a))
             obs_b, r_b, term_b, trunc_b, info_b = envs[1].step(policies[1](obs_b, info_b))
             step += 1
             if abs(r_a - r_b) > tol:
-                return Divergence(seed, policy, step, f"reward {r_a} on highway-env, {r_b} on fast")
+                return Divergence(seed, policy, step, f"reward {r_a} on highway-env, {r_b} on fast"), worst
             if (term_a, trunc_a) != (term_b, trunc_b):
-                return Divergence(
-                    seed,
-                    policy,
-                    step,
+                cause = (
                     f"episode end (terminated, truncated) {(term_a, trunc_a)} "
-                    f"on highway-env, {(term_b, trunc_b)} on fast",
+                    f"on highway-env, {(term_b, trunc_b)} on fast"
                 )
+                return Divergence(seed, policy, step, cause), worst
             if term_a or trunc_a:
-                cause = _state_difference((obs_a, obs_b), (info_a, info_b), tol)
-                return None if cause is None else Divergence(seed, policy, step, cause)
+                return check(step, (obs_a, obs_b), (info_a, info_b)), worst
     finally:
         for env in envs:
             env.close()
+
+
+def compare_episode(cfg: SafelaneConfig, seed: int, policy: str, tol: float = TOLERANCE) -> Divergence | None:
+    """Drive ``cfg`` on highway-env and on the fast simulator with ``policy`` from reset ``seed``;
+    the first :class:`Divergence`, or None when the whole episode agreed within ``tol``."""
+    return compare_episode_error(cfg, seed, policy, tol)[0]
+
+
+def stat_episodes_of(
+    cfg: SafelaneConfig, policy: str, simulator: str, start: int, count: int, seed: int
+) -> dict[str, list[float]]:
+    """Episodes ``start … start+count-1`` of ``policy``'s sample on ``simulator``: reset seeds
+    ``seed + offset + i`` (an offset per simulator, so the two samples are independent), the random
+    policy's generator seeded per chunk so that a chunk's episodes do not depend on which process plays
+    it. Per episode: ``collision`` (0/1), ``mean_speed`` [m/s] and ``length`` (decisions)."""
+    offset = HIGHWAY_ENV_SEED_OFFSET if simulator == "highway-env" else FAST_SEED_OFFSET
+    env = make_env(on_simulator(cfg, simulator, policy))
+    try:
+        records = run_episodes(env, _policy(policy, seed + offset + start), count, seed + offset + start)
+    finally:
+        env.close()
+    return {
+        "collision": [float(r.collision) for r in records],
+        "mean_speed": [float(r.mean_speed) for r in records],
+        "length": [float(r.length) for r in records],
+    }
+
+
+def statistical_tests(samples: dict[tuple[str, str], dict[str, list[float]]], seed: int) -> list[dict[str, Any]]:
+    """Fisher's exact test on the collision rates and a permutation test on the per-episode mean
+    speeds of each policy's two samples (``samples[(policy, simulator)]``, as :func:`stat_episodes_of`
+    returns); one ``{policy, metric, episodes, highway_env, fast, p_value}`` per test."""
+    tests: list[dict[str, Any]] = []
+    policies = list(dict.fromkeys(policy for policy, _ in samples))
+    for policy in policies:
+        hw, fast = samples[(policy, "highway-env")], samples[(policy, "fast")]
+        n_hw, n_fast = len(hw["collision"]), len(fast["collision"])
+        k_hw, k_fast = int(sum(hw["collision"])), int(sum(fast["collision"]))
+        common = {"policy": policy, "episodes": {"highway_env": n_hw, "fast": n_fast}}
+        tests.append(
+            {
+                **common,
+                "metric": "collision_rate",
+                "highway_env": k_hw / n_hw,
+                "fast": k_fast / n_fast,
+                "p_value": stats.fisher_exact_test(k_hw, n_hw, k_fast, n_fast),
+            }
+        )
+        tests.append(
+            {
+                **common,
+                "metric": "mean_speed",
+                "highway_env": float(np.mean(hw["mean_speed"])),
+                "fast": float(np.mean(fast["mean_speed"])),
+                "p_value": stats.permutation_test(hw["mean_speed"], fast["mean_speed"], reps=2000, seed=seed),
+            }
+        )
+    return tests
 
 
 def compare_statistics(
@@ -131,44 +213,88 @@ def compare_statistics(
     episodes: int,
     seed: int,
     policies: tuple[str, ...] = STAT_POLICIES,
-    progress: Callable[[str], None] | None = None,
 ) -> list[dict[str, Any]]:
-    """Collision rate (Fisher's exact test) and mean speed (permutation test) of each policy, ``episodes``
-    independent episodes per simulator; one ``{policy, metric, highway_env, fast, p_value}`` per test."""
-    tests: list[dict[str, Any]] = []
-    for policy in policies:
-        results = {}
-        for sim, offset in (("highway-env", HIGHWAY_ENV_SEED_OFFSET), ("fast", FAST_SEED_OFFSET)):
-            env = make_env(on_simulator(cfg, sim, policy))
+    """Collision rate and mean speed of each policy, ``episodes`` independent episodes per simulator,
+    in this process (``run_sim_check`` spreads the same episodes over processes)."""
+    samples = {
+        (policy, sim): stat_episodes_of(cfg, policy, sim, 0, episodes, seed)
+        for policy in policies
+        for sim in ("highway-env", "fast")
+    }
+    return statistical_tests(samples, seed)
+
+
+# --- the whole check as units of work: parallel, recorded as they finish, resumable -----------------------
+
+STAT_CHUNK = 10
+"""Episodes per unit of the statistical comparison (the grain of parallel work and of resuming)."""
+
+
+def _units(episodes: int, stat_episodes: int) -> list[tuple[Any, ...]]:
+    """Every unit of work, the slowest kinds first so that a pool ends together."""
+    units: list[tuple[Any, ...]] = []
+    for start in range(0, stat_episodes, STAT_CHUNK):
+        count = min(STAT_CHUNK, stat_episodes - start)
+        units += [("stat", policy, "highway-env", start, count) for policy in STAT_POLICIES]
+    units += [("trajectory", k) for k in range(episodes)]
+    for start in range(0, stat_episodes, STAT_CHUNK):
+        count = min(STAT_CHUNK, stat_episodes - start)
+        units += [("stat", policy, "fast", start, count) for policy in STAT_POLICIES]
+    return units
+
+
+def _unit_key(unit: tuple[Any, ...]) -> str:
+    return "/".join(str(part) for part in unit)
+
+
+def _run_unit(cfg_data: dict[str, Any], seed: int, tol: float, unit: tuple[Any, ...]) -> dict[str, Any]:
+    """Play one unit (in a worker process); a JSON-ready record."""
+    cfg = build_config(cfg_data)
+    if unit[0] == "trajectory":
+        k = unit[1]
+        policy = TRAJECTORY_POLICIES[k % len(TRAJECTORY_POLICIES)]
+        found, worst = compare_episode_error(cfg, seed + k, policy, tol)
+        return {"divergence": None if found is None else asdict(found), "max_error": worst}
+    _, policy, sim, start, count = unit
+    return stat_episodes_of(cfg, policy, sim, start, count, seed)
+
+
+class CheckRecord:
+    """The JSON-lines file of a check's finished units (``--record``): a header naming the configuration,
+    seed and tolerance, then one line per unit, appended as each finishes. A killed check re-run with
+    the same file plays only what is missing; a file of another check is refused."""
+
+    def __init__(self, path: Path | None, header: dict[str, Any]) -> None:
+        self.path = path
+        self.done: dict[str, dict[str, Any]] = {}
+        if path is None:
+            return
+        if path.exists() and path.stat().st_size > 0:
+            text = path.read_text()
+            if not text.endswith("\n"):  # a line cut by a kill: drop it
+                text = text[: text.rfind("\n") + 1]
+                path.write_text(text)
+            lines = [json.loads(line) for line in text.splitlines() if line.strip()]
+            if not lines or lines[0].get("header") != header:
+                raise ConfigError(
+                    f"--record {path}: written by a check of another configuration, seed or tolerance; give a new file"
+                )
+            self.done = {line["unit"]: line["result"] for line in lines[1:]}
+        else:
             try:
-                records = run_episodes(env, _policy(policy, seed + offset), episodes, seed + offset)
-            finally:
-                env.close()
-            results[sim] = records
-            if progress is not None:
-                progress(f"{policy} on {sim}")
-        hw, fast = results["highway-env"], results["fast"]
-        k_hw, k_fast = sum(r.collision for r in hw), sum(r.collision for r in fast)
-        tests.append(
-            {
-                "policy": policy,
-                "metric": "collision_rate",
-                "highway_env": k_hw / episodes,
-                "fast": k_fast / episodes,
-                "p_value": stats.fisher_exact_test(k_hw, episodes, k_fast, episodes),
-            }
-        )
-        speeds_hw, speeds_fast = [r.mean_speed for r in hw], [r.mean_speed for r in fast]
-        tests.append(
-            {
-                "policy": policy,
-                "metric": "mean_speed",
-                "highway_env": float(np.mean(speeds_hw)),
-                "fast": float(np.mean(speeds_fast)),
-                "p_value": stats.permutation_test(speeds_hw, speeds_fast, reps=2000, seed=seed),
-            }
-        )
-    return tests
+                path.parent.mkdir(parents=True, exist_ok=True)
+                path.write_text(json.dumps({"header": header}) + "\n")
+            except OSError as err:
+                raise ConfigError(f"--record {path}: not writable ({err.strerror})") from None
+
+    def add(self, key: str, result: dict[str, Any]) -> None:
+        """Keep one finished unit, on disk at once (one appended line)."""
+        self.done[key] = result
+        if self.path is not None:
+            with open(self.path, "a") as f:
+                f.write(json.dumps({"unit": key, "result": result}) + "\n")
+                f.flush()
+                os.fsync(f.fileno())
 
 
 def run_sim_check(
@@ -177,29 +303,63 @@ def run_sim_check(
     seed: int,
     stat_episodes: int = 0,
     tol: float = TOLERANCE,
-    progress: Callable[[str], None] | None = None,
+    workers: int = 1,
+    record: str | Path | None = None,
+    progress: Callable[[int, int], None] | None = None,
 ) -> dict[str, Any]:
     """The JSON record of ``safelane sim check``: trajectory agreement over ``episodes`` episodes (reset
     seeds ``seed …``, policies cycled over :data:`TRAJECTORY_POLICIES`) and, with ``stat_episodes`` > 0,
-    the statistical tests."""
-    start = time.perf_counter()
-    divergences: list[Divergence] = []
-    for k in range(episodes):
-        policy = TRAJECTORY_POLICIES[k % len(TRAJECTORY_POLICIES)]
-        found = compare_episode(cfg, seed + k, policy, tol)
-        if found is not None:
-            divergences.append(found)
-        if progress is not None:
-            progress(f"trajectory {k + 1}/{episodes}")
-    tests = compare_statistics(cfg, stat_episodes, seed, progress=progress) if stat_episodes > 0 else []
+    the statistical tests on ``stat_episodes`` episodes per policy and simulator. Units of work run in
+    ``workers`` processes; with ``record`` each finished unit is appended to that file and a re-run
+    with it resumes. ``progress(done, total)`` after each unit."""
+    start_time = time.perf_counter()
+    cfg_data = config_to_dict(cfg)
+    header = {"config": cfg_data, "seed": seed, "tolerance": tol, "stat_chunk": STAT_CHUNK}
+    book = CheckRecord(None if record is None else Path(record), header)
+    units = _units(episodes, stat_episodes)
+    todo = [u for u in units if _unit_key(u) not in book.done]
+    finished = len(units) - len(todo)
+    if progress is not None:
+        progress(finished, len(units))
+    if workers <= 1 or len(todo) <= 1:
+        for unit in todo:
+            book.add(_unit_key(unit), _run_unit(cfg_data, seed, tol, unit))
+            finished += 1
+            if progress is not None:
+                progress(finished, len(units))
+    else:
+        with ProcessPoolExecutor(max_workers=min(workers, len(todo))) as pool:
+            futures = {pool.submit(_run_unit, cfg_data, seed, tol, u): _unit_key(u) for u in todo}
+            for fut in as_completed(futures):
+                book.add(futures[fut], fut.result())
+                finished += 1
+                if progress is not None:
+                    progress(finished, len(units))
+    results = {_unit_key(u): book.done[_unit_key(u)] for u in units}
+    trajectories = [results[_unit_key(("trajectory", k))] for k in range(episodes)]
+    divergences = [t["divergence"] for t in trajectories if t["divergence"] is not None]
+    samples: dict[tuple[str, str], dict[str, list[float]]] = {}
+    for unit in units:
+        if unit[0] == "stat":
+            sample = samples.setdefault((unit[1], unit[2]), {"collision": [], "mean_speed": [], "length": []})
+            for name, values in results[_unit_key(unit)].items():
+                sample[name] += values
+    tests = statistical_tests(samples, seed) if stat_episodes > 0 else []
+    errors = [t["max_error"] for t in trajectories if t["divergence"] is None]
     return {
         "preset": cfg.preset,
         "env_id": cfg.env_id,
+        "config": cfg_data,
         "episodes": episodes,
         "tolerance": tol,
         "trajectory_match_fraction": 1.0 - len(divergences) / episodes if episodes else math.nan,
-        "divergences": [asdict(d) for d in divergences],
+        "bit_identical_fraction": sum(e == 0.0 for e in errors) / episodes if episodes else math.nan,
+        "max_error_matched": max(errors, default=0.0),
+        "divergences": divergences,
         "stat_episodes": stat_episodes,
         "tests": tests,
-        "wall_time_s": time.perf_counter() - start,
+        "mean_length": {f"{p}/{sim}": float(np.mean(v["length"])) for (p, sim), v in samples.items()},
+        "workers": workers,
+        "units_resumed": len(units) - len(todo),
+        "wall_time_s": time.perf_counter() - start_time,
     }

@@ -332,3 +332,27 @@ def test_the_shield_wraps_a_plain_highway_env_environment() -> None:
         if terminated or truncated:
             break
     safe.close()
+
+
+def test_invariant_break_is_flagged_when_a_vehicle_leaves_the_model() -> None:
+    """An empty road: every action safe, no fallback. A stopped car appears 40 m ahead in the ego's
+    lane between two decisions (nothing the model allows: it was not there when IDLE was allowed), so
+    the next state has no safe action: that decision is an invariant break. Without the intruder the
+    same step is not."""
+    from highway_env.vehicle.behavior import IDMVehicle
+
+    from safelane.running.evaluation import EpisodeRecord, summarize
+
+    for intruder in (False, True):
+        scene = scenarios.build_scene(1, 25.0, [], mode="robust")
+        assert scene.mask[IDLE] and not scene.result.fallback
+        if intruder:
+            road = scene.env.unwrapped.road
+            lane = road.network.get_lane(road.vehicles[0].lane_index)
+            road.vehicles.append(IDMVehicle(road, lane.position(240.0, 0.0), 0.0, 0.0))
+        *_, info = scene.env.step(IDLE)
+        assert info["fallback"] is intruder
+        assert info["invariant_break"] is intruder
+    record = EpisodeRecord(0, 0.0, 4, False, None, 25.0, 0, 1, None, invariant_breaks=[3])
+    summary = summarize([record, EpisodeRecord(1, 0.0, 4, False, None, 25.0, 0, 0, None)])
+    assert summary["invariant_breaks"] == 1 and summary["invariant_break_rate"] == 1 / 8

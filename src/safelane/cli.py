@@ -291,6 +291,8 @@ EVALUATE_UNITS = {
     "time_to_collision": "s",
     "shield_intervention_rate": "per decision",
     "fallback_rate": "per decision",
+    "invariant_breaks": "decisions",
+    "invariant_break_rate": "per decision",
     "unsafe_action_rate": "per decision",
     "mean_vehicles_passed": "vehicles / episode",
     "wall_time_s": "s",
@@ -646,12 +648,12 @@ def stress(
         print_json(result)
         return
     table = Table(title=f"stress: {run_dir or policy}, shield {result['shield']}, {episodes} episodes per condition")
-    for col in ("condition", "collisions", "rate [95% CI]", "speed m/s", "interventions", "kinds"):
+    for col in ("condition", "collisions", "rate [95% CI]", "speed m/s", "interventions", "invariant breaks", "kinds"):
         table.add_column(col)
     for r in result["conditions"]:
         name = r["name"] + (" (adversarial)" if r["adversarial"] else "")
         if "skipped" in r:
-            table.add_row(name, "skipped", r["skipped"], "", "", "")
+            table.add_row(name, "skipped", r["skipped"], "", "", "", "")
             continue
         lo, hi = r["collision_rate_ci95"]
         kinds = ", ".join(f"{k} {v}" for k, v in r["collision_kinds"].items() if v)
@@ -661,6 +663,7 @@ def stress(
             f"{r['collision_rate']:.3f} [{lo:.3f}, {hi:.3f}]",
             f"{r['mean_speed']:.2f}",
             f"{r['shield_intervention_rate']:.3f}",
+            str(r["invariant_breaks"]),
             kinds or "-",
         )
     stdout.print(table)

@@ -163,6 +163,9 @@ class EpisodeRecord:
     """Histogram of the executed actions (after a shield's override), indexed like ACTION_NAMES."""
     vehicles_passed: int = 0
     """Net overtakes: vehicles ahead of the ego (along the road) at the start minus at the end."""
+    invariant_breaks: list[int] = field(default_factory=list)
+    """Decisions (1-based) after which the shield found no safe action although the previous state
+    had one and an allowed action was taken: counterexamples to the rule's invariant."""
 
     def to_dict(self) -> dict[str, Any]:
         """A JSON-ready dict of the record."""
@@ -186,6 +189,7 @@ def run_episode(env: gym.Env, policy: Policy, seed: int) -> EpisodeRecord:
     total_reward = 0.0
     speeds: list[float] = []
     interventions = fallbacks = unsafe_actions = 0
+    breaks: list[int] = []
     actions = [0] * N_ACTIONS
     time_to_collision: float | None = None
     collision = False
@@ -200,6 +204,8 @@ def run_episode(env: gym.Env, policy: Policy, seed: int) -> EpisodeRecord:
         interventions += bool(info.get("shield_intervened", False))
         fallbacks += bool(info.get("fallback", False))
         unsafe_actions += bool(info.get("unsafe_action", False))
+        if info.get("invariant_break", False):
+            breaks.append(steps)
         actions[int(info.get("executed_action", action))] += 1
         if info.get("collision", False) and not collision:
             collision = True
@@ -218,6 +224,7 @@ def run_episode(env: gym.Env, policy: Policy, seed: int) -> EpisodeRecord:
         unsafe_actions=unsafe_actions,
         actions=actions,
         vehicles_passed=ahead_at_start - vehicles_ahead(info["snapshot"]),
+        invariant_breaks=breaks,
     )
 
 
@@ -244,8 +251,9 @@ def summarize(records: list[EpisodeRecord], **meta: Any) -> dict[str, Any]:
     """Aggregate records into one JSON-ready dict; ``meta`` (policy, shield, preset…) is merged in.
 
     ``mean_speed`` [m/s] is the mean over episodes of each episode's mean speed;
-    ``mean_vehicles_passed`` the mean net overtakes per episode; the intervention, fallback and
-    unsafe-choice rates are per decision; ``time_to_collision`` lists one entry per episode (seconds,
+    ``mean_vehicles_passed`` the mean net overtakes per episode; the intervention, fallback,
+    unsafe-choice and invariant-break rates are per decision (``invariant_breaks``: their count, see
+    :class:`EpisodeRecord`); ``time_to_collision`` lists one entry per episode (seconds,
     or None without a collision).
     """
     if not records:
@@ -270,6 +278,8 @@ def summarize(records: list[EpisodeRecord], **meta: Any) -> dict[str, Any]:
         "shield_intervention_rate": sum(r.interventions for r in records) / max(decisions, 1),
         "fallback_rate": sum(r.fallbacks for r in records) / max(decisions, 1),
         "unsafe_action_rate": sum(r.unsafe_actions for r in records) / max(decisions, 1),
+        "invariant_breaks": sum(len(r.invariant_breaks) for r in records),
+        "invariant_break_rate": sum(len(r.invariant_breaks) for r in records) / max(decisions, 1),
         "mean_vehicles_passed": float(np.mean([r.vehicles_passed for r in records])),
         "collision_kinds": kinds,
         "actions": dict(zip(ACTION_NAMES, actions, strict=True)),

@@ -84,4 +84,3 @@ def preset_difference(trained_preset: str, preset: str) -> dict[str, Any]:
     walk(mine, theirs, "")
     out.pop("preset", None)
     return out
-

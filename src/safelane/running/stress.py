@@ -119,6 +119,8 @@ def run_condition(
         "mean_length": s["mean_length"],
         "shield_intervention_rate": s["shield_intervention_rate"],
         "fallback_rate": s["fallback_rate"],
+        "invariant_breaks": s["invariant_breaks"],
+        "invariant_break_rate": s["invariant_break_rate"],
         "collision_kinds": s["collision_kinds"],
         "wall_time_s": time.perf_counter() - start,
     }

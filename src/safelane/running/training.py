@@ -84,6 +84,7 @@ METRIC_COLUMNS: tuple[str, ...] = (
     "mean_loss",  # mean training loss over the episode's gradient steps (empty before learning starts)
     "shield_interventions",  # decisions whose action was unsafe under the mask ("would have been masked")
     "fallbacks",  # decisions where the shield found no safe action and allowed the least-bad one
+    "invariant_breaks",  # fallback states reached right after an allowed action in a state with a safe one
     "lambda",  # constrained: λ after the episode's dual update (empty for other methods)
     "cost",  # constrained's episode cost: decisions that were unsafe or ended in a collision
     "wall_time_s",  # [s] cumulative training wall time at the end of the episode
@@ -451,6 +452,7 @@ def train(
                 mask = _mask_of(info)
                 ep_return, length, speed_sum, ep_cost = 0.0, 0, 0.0, 0.0
                 interventions, fallbacks, loss_sum, n_losses = 0, 0, 0.0, 0
+                breaks = 0
                 eps, collision, done = acfg.eps_start, False, False
                 while not done:
                     eps = linear_epsilon(global_step, acfg, episode)
@@ -478,6 +480,7 @@ def train(
                     ep_cost += cost
                     interventions += int(unsafe)
                     fallbacks += int(bool(info.get("fallback", False)))
+                    breaks += int(bool(info.get("invariant_break", False)))
                     obs, mask = next_obs, next_mask
                     done = terminated or truncated
 
@@ -497,6 +500,7 @@ def train(
                     "mean_loss": loss_sum / n_losses if n_losses else None,
                     "shield_interventions": interventions,
                     "fallbacks": fallbacks,
+                    "invariant_breaks": breaks,
                     "lambda": lam,
                     "cost": ep_cost,
                     "wall_time_s": wall_before + elapsed,

@@ -184,6 +184,10 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
     def step(self, action: Any) -> tuple[Any, float, bool, bool, dict[str, Any]]:
         chosen = int(action)
         mask = self.action_masks()
+        # The rule's promise: after an allowed action in a state with a safe action, the next state has
+        # one again (while the others stay inside the model). A fallback state reached right after one
+        # is a counterexample, found hundreds of times more often than the crash it may lead to.
+        promised = self.result is not None and not self.result.fallback
         executed = chosen
         if self.override and not mask[chosen]:
             executed = next(a for a in OVERRIDE_ORDER[chosen] if mask[a])
@@ -192,4 +196,5 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
         info["unsafe_action"] = not bool(mask[chosen])
         info["executed_action"] = executed
         self._annotate(info)
+        info["invariant_break"] = bool(promised and mask[executed] and info["fallback"])
         return obs, reward, terminated, truncated, info

@@ -15,6 +15,16 @@ except PackageNotFoundError:  # pragma: no cover - running from a source tree
 
 from safelane.config import ConfigError, SafelaneConfig, load_config
 from safelane.env.factory import make_env
+from safelane.env.vector import make_vector_env, sb3_vec_env
 from safelane.safety.shield import SafetyShield
 
-__all__ = ["ConfigError", "SafelaneConfig", "SafetyShield", "__version__", "load_config", "make_env"]
+__all__ = [
+    "ConfigError",
+    "SafelaneConfig",
+    "SafetyShield",
+    "__version__",
+    "load_config",
+    "make_env",
+    "make_vector_env",
+    "sb3_vec_env",
+]

@@ -1,0 +1,233 @@
+"""Many environments stepped as one batch: ``make_vector_env`` (gymnasium) and ``sb3_vec_env`` (SB3).
+
+:class:`SafelaneVectorEnv` is a ``gymnasium.vector.VectorEnv`` over ``num_envs`` copies of the paper's
+environment (by default on the fast simulator). One ``step(actions)`` call steps them all and returns
+the batch as arrays: observations ``(N, 26)``, rewards, terminations, truncations, and in ``infos``
+one array per field — ``action_mask`` ``(N, 5)`` and the shield's ``fallback``, ``shield_intervened``,
+``unsafe_action``, ``invariant_break``, ``executed_action``, plus ``speed`` [m/s] and ``collision``.
+
+Autoreset is gymnasium's ``SAME_STEP`` mode: an environment that finishes is reset inside the same
+call, so the returned row is the *new* episode's first observation and mask; the finished episode's
+last observation and mask are kept in ``infos["final_obs"]`` and ``infos["final_action_mask"]``
+(rows valid where ``infos["_final_obs"]``), and its return and length in ``infos["episode"]``
+(``r``, ``l``; rows valid where ``infos["_episode"]``), the way CleanRL's loops read them.
+
+Seeding: ``reset(seed=S)`` resets environment ``i`` with ``S + i``; later autoresets continue each
+environment's own generator, so the same seed gives the same batch of episodes.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+from gymnasium.vector import AutoresetMode, VectorEnv
+from gymnasium.vector.utils import batch_space
+
+from safelane.config import ConfigError, SafelaneConfig
+from safelane.core.spaces import N_ACTIONS
+from safelane.env.factory import make_env, resolve_env_config
+
+BOOL_INFO = ("collision", "fallback", "shield_intervened", "unsafe_action", "invariant_break")
+"""Per-environment flags of a step, batched as bool arrays (False where the env does not report one)."""
+
+
+class SafelaneVectorEnv(VectorEnv):
+    """``num_envs`` safelane environments stepped in one call (see the module docstring)."""
+
+    def __init__(self, envs: list[gym.Env]) -> None:
+        if not envs:
+            raise ConfigError("num_envs: must be >= 1 (got 0)")
+        self.envs = envs
+        self.num_envs = len(envs)
+        self.single_observation_space = envs[0].observation_space
+        self.single_action_space = envs[0].action_space
+        self.observation_space = batch_space(self.single_observation_space, self.num_envs)
+        self.action_space = batch_space(self.single_action_space, self.num_envs)
+        self.metadata = {"autoreset_mode": AutoresetMode.SAME_STEP}
+        self.render_mode = None
+        space = self.single_observation_space
+        self._obs = np.zeros((self.num_envs, *space.shape), dtype=space.dtype)
+        self._masks = np.ones((self.num_envs, N_ACTIONS), dtype=bool)
+        self._returns = np.zeros(self.num_envs)
+        self._lengths = np.zeros(self.num_envs, dtype=np.int64)
+
+    def _mask_of(self, info: dict[str, Any]) -> np.ndarray:
+        mask = info.get("action_mask")
+        return np.ones(N_ACTIONS, dtype=bool) if mask is None else mask
+
+    def reset(
+        self, *, seed: int | list[int | None] | None = None, options: dict[str, Any] | None = None
+    ) -> tuple[np.ndarray, dict[str, Any]]:
+        """Reset every environment (``seed``: environment ``i`` gets ``seed + i``, or a list of seeds)."""
+        if seed is None or isinstance(seed, int):
+            seeds = [None if seed is None else seed + i for i in range(self.num_envs)]
+        else:
+            seeds = list(seed)
+            if len(seeds) != self.num_envs:
+                raise ConfigError(f"seed: a list of {self.num_envs} seeds (one per environment), got {len(seeds)}")
+        speeds = np.zeros(self.num_envs)
+        for i, (env, s) in enumerate(zip(self.envs, seeds, strict=True)):
+            obs, info = env.reset(seed=s, options=options)
+            self._obs[i] = obs
+            self._masks[i] = self._mask_of(info)
+            speeds[i] = float(info.get("speed", 0.0))
+        self._returns[:] = 0.0
+        self._lengths[:] = 0
+        return self._obs.copy(), {"action_mask": self._masks.copy(), "speed": speeds}
+
+    def step(self, actions: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, dict[str, Any]]:
+        """Step every environment with its action (shape ``(N,)``); finished ones are reset at once."""
+        actions = np.asarray(actions).reshape(self.num_envs)
+        n = self.num_envs
+        rewards = np.zeros(n)
+        terminated = np.zeros(n, dtype=bool)
+        truncated = np.zeros(n, dtype=bool)
+        flags = {key: np.zeros(n, dtype=bool) for key in BOOL_INFO}
+        speeds = np.zeros(n)
+        executed = np.asarray(actions, dtype=np.int64).copy()
+        final_obs = np.zeros_like(self._obs)
+        final_masks = np.zeros((n, N_ACTIONS), dtype=bool)
+        episode_r = np.zeros(n)
+        episode_l = np.zeros(n, dtype=np.int64)
+        for i, env in enumerate(self.envs):
+            obs, reward, term, trunc, info = env.step(int(actions[i]))
+            rewards[i], terminated[i], truncated[i] = reward, term, trunc
+            for key in BOOL_INFO:
+                flags[key][i] = bool(info.get(key, False))
+            speeds[i] = float(info.get("speed", 0.0))
+            executed[i] = int(info.get("executed_action", actions[i]))
+            self._returns[i] += float(reward)
+            self._lengths[i] += 1
+            if term or trunc:
+                final_obs[i] = obs
+                final_masks[i] = self._mask_of(info)
+                episode_r[i], episode_l[i] = self._returns[i], self._lengths[i]
+                self._returns[i], self._lengths[i] = 0.0, 0
+                obs, info = env.reset()
+            self._obs[i] = obs
+            self._masks[i] = self._mask_of(info)
+        done = terminated | truncated
+        infos: dict[str, Any] = {
+            **flags,
+            "speed": speeds,
+            "executed_action": executed,
+            "action_mask": self._masks.copy(),
+        }
+        if done.any():
+            infos.update(
+                final_obs=final_obs,
+                _final_obs=done.copy(),
+                final_action_mask=final_masks,
+                episode={"r": episode_r, "l": episode_l},
+                _episode=done.copy(),
+            )
+        return self._obs.copy(), rewards, terminated, truncated, infos
+
+    def action_masks(self) -> np.ndarray:
+        """Masks of the current observations (bool, shape ``(N, 5)``; all True without a shield)."""
+        return self._masks.copy()
+
+    def close_extras(self, **kwargs: Any) -> None:
+        """Close every environment."""
+        for env in self.envs:
+            env.close()
+
+
+def make_vector_env(
+    config: SafelaneConfig | str | None = "fast",
+    num_envs: int = 8,
+    seed: int | None = None,
+    simulator: str | None = None,
+    **overrides: Any,
+) -> SafelaneVectorEnv:
+    """``num_envs`` copies of :func:`safelane.make_env`'s environment as one :class:`SafelaneVectorEnv`.
+
+    ``config`` and ``overrides`` as for ``make_env``; ``simulator`` defaults to ``fast`` for a preset
+    name (the point of a batch is speed) and to the config's own for a :class:`SafelaneConfig`. With
+    ``seed`` the batch is reset once (environment ``i`` with ``seed + i``).
+    """
+    if not isinstance(num_envs, int) or num_envs < 1:
+        raise ConfigError(f"num_envs: must be an integer >= 1 (got {num_envs!r})")
+    if simulator is None and not isinstance(config, SafelaneConfig):
+        simulator = "fast"
+    if simulator is not None:
+        overrides = {**overrides, "simulator": simulator}
+    cfg = resolve_env_config(config, **overrides)
+    vector = SafelaneVectorEnv([make_env(cfg) for _ in range(num_envs)])
+    if seed is not None:
+        vector.reset(seed=seed)
+        vector.action_space.seed(seed)
+    return vector
+
+
+def sb3_vec_env(vector: SafelaneVectorEnv) -> Any:
+    """A Stable-Baselines3 ``VecEnv`` over ``vector`` (needs the optional ``stable-baselines3``):
+    ``env_method("action_masks")`` gives each environment's mask, as sb3-contrib's ``MaskablePPO``
+    asks for it; a finished episode's last observation is in ``infos[i]["terminal_observation"]``."""
+    try:
+        from stable_baselines3.common.vec_env import VecEnv
+    except ImportError:
+        raise ConfigError("sb3_vec_env: needs stable-baselines3 (pip install 'safelane[sb3]')") from None
+
+    class SafelaneSB3VecEnv(VecEnv):
+        """SB3's view of a :class:`SafelaneVectorEnv` (SB3's auto-reset convention is gymnasium's SAME_STEP)."""
+
+        def __init__(self, vector: SafelaneVectorEnv) -> None:
+            self.vector = vector  # before VecEnv.__init__, which asks the environments for render_mode
+            super().__init__(vector.num_envs, vector.single_observation_space, vector.single_action_space)
+            self._actions = np.zeros(vector.num_envs, dtype=np.int64)
+
+        def reset(self) -> np.ndarray:
+            seeds = list(self._seeds)
+            obs, _ = self.vector.reset(seed=seeds if any(s is not None for s in seeds) else None)
+            self._reset_seeds()
+            return obs
+
+        def step_async(self, actions: np.ndarray) -> None:
+            self._actions = np.asarray(actions)
+
+        def step_wait(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[dict[str, Any]]]:
+            obs, rewards, terminated, truncated, infos = self.vector.step(self._actions)
+            dones = terminated | truncated
+            per_env: list[dict[str, Any]] = []
+            for i in range(self.num_envs):
+                info = {key: infos[key][i] for key in (*BOOL_INFO, "speed", "executed_action")}
+                if dones[i]:
+                    info["terminal_observation"] = infos["final_obs"][i]
+                    info["TimeLimit.truncated"] = bool(truncated[i] and not terminated[i])
+                    info["episode"] = {"r": float(infos["episode"]["r"][i]), "l": int(infos["episode"]["l"][i])}
+                per_env.append(info)
+            return obs, rewards.astype(np.float32), dones, per_env
+
+        def close(self) -> None:
+            self.vector.close()
+
+        def get_attr(self, attr_name: str, indices: Any = None) -> list[Any]:
+            return [self.vector.envs[i].get_wrapper_attr(attr_name) for i in self._get_indices(indices)]
+
+        def set_attr(self, attr_name: str, value: Any, indices: Any = None) -> None:
+            for i in self._get_indices(indices):
+                self.vector.envs[i].set_wrapper_attr(attr_name, value)
+
+        def env_method(self, method_name: str, *method_args: Any, indices: Any = None, **method_kwargs: Any) -> list:
+            if method_name == "action_masks":  # the batch's masks of the current observations
+                masks = self.vector.action_masks()
+                return [masks[i] for i in self._get_indices(indices)]
+            return [
+                self.vector.envs[i].get_wrapper_attr(method_name)(*method_args, **method_kwargs)
+                for i in self._get_indices(indices)
+            ]
+
+        def env_is_wrapped(self, wrapper_class: type[gym.Wrapper], indices: Any = None) -> list[bool]:
+            out = []
+            for i in self._get_indices(indices):
+                env, found = self.vector.envs[i], False
+                while isinstance(env, gym.Wrapper):
+                    found = found or isinstance(env, wrapper_class)
+                    env = env.env
+                out.append(found)
+            return out
+
+    return SafelaneSB3VecEnv(vector)

@@ -231,15 +231,13 @@ STAT_CHUNK = 10
 
 
 def _units(episodes: int, stat_episodes: int) -> list[tuple[Any, ...]]:
-    """Every unit of work, the slowest kinds first so that a pool ends together."""
-    units: list[tuple[Any, ...]] = []
+    """Every unit of work: the trajectories first, then the statistics chunk by chunk (both simulators,
+    every policy), so that a check stopped early has whole trajectory results and a prefix of episodes
+    that a re-run with a smaller ``--stat-episodes`` (a multiple of :data:`STAT_CHUNK`) reuses."""
+    units: list[tuple[Any, ...]] = [("trajectory", k) for k in range(episodes)]
     for start in range(0, stat_episodes, STAT_CHUNK):
         count = min(STAT_CHUNK, stat_episodes - start)
-        units += [("stat", policy, "highway-env", start, count) for policy in STAT_POLICIES]
-    units += [("trajectory", k) for k in range(episodes)]
-    for start in range(0, stat_episodes, STAT_CHUNK):
-        count = min(STAT_CHUNK, stat_episodes - start)
-        units += [("stat", policy, "fast", start, count) for policy in STAT_POLICIES]
+        units += [("stat", policy, sim, start, count) for sim in ("highway-env", "fast") for policy in STAT_POLICIES]
     return units
 
 

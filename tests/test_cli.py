@@ -197,6 +197,14 @@ def test_bench_json() -> None:
     assert out["fast_raw_speedup"] == pytest.approx(out["fast_decisions_per_s"] / out["highway_env_decisions_per_s"])
     assert out["fast_raw_speedup"] > 10  # measured ≈ 10² or more; a regression to Python speed fails here
     assert ("envpool_decisions_per_s" in out) == (importlib.util.find_spec("envpool") is not None)
+    assert out["fast_speedup"] == pytest.approx(
+        out["fast_shielded_decisions_per_s"] / out["highway_env_decisions_per_s"]
+    )
+    assert out["shield_mask_us_median_fast"] > 0
+    assert set(out["fast_batched_decisions_per_s"]) == {"1", "16", "64", "256"}
+    assert all(rate > 0 for rate in out["fast_batched_decisions_per_s"].values())
+    for key in ("train_steps_per_s_fast", "agent_ms_per_decision_fast", "train_steps_per_s_constrained_fast"):
+        assert out[key] > 0
 
 
 # --- sim check ---------------------------------------------------------------------------------------------

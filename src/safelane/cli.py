@@ -370,6 +370,10 @@ BENCH_UNITS = {
     "highway_env_decisions_per_s": "decisions/s",
     "fast_decisions_per_s": "decisions/s",
     "fast_raw_speedup": "fast ÷ stock highway-env",
+    "fast_shielded_decisions_per_s": "decisions/s",
+    "fast_speedup": "fast shielded ÷ stock highway-env",
+    "shield_mask_us_median_fast": "µs",
+    "fast_batched_decisions_per_s": "N envs: summed decisions/s",
     "envpool_decisions_per_s": "decisions/s",
     "train_steps_per_s": "decisions/s",
     "agent_ms_per_decision": "ms",
@@ -415,6 +419,9 @@ def bench(
     units = dict(BENCH_UNITS)
     for method in train_methods[1:]:
         units.update({f"{key}_{method}": units[key] for key in TRAINING_FIGURES})
+    for method in train_methods:
+        suffix = "_fast" if method == train_methods[0] else f"_{method}_fast"
+        units.update({f"{key}{suffix}": units[key] for key in TRAINING_FIGURES})
     print_table(f"safelane bench: {result['preset']} preset, random policy, {shield} shield", result, units)
 
 

@@ -25,12 +25,15 @@ from safelane.agents.dqn import parse_methods
 from safelane.config import ConfigError, load_config
 from safelane.env.factory import make_env
 from safelane.env.observations import paper_state_compiled as paper_state
+from safelane.env.vector import make_vector_env
 from safelane.reporting.plots import read_metrics
 from safelane.running.evaluation import fixed_policy
 from safelane.running.training import METRICS_FILE, make_train_config, train
 
 BENCH_PRESET = "fast"
 BENCH_SHIELDS = ("nominal", "robust")
+BATCH_SIZES = (1, 16, 64, 256)
+"""Batch sizes of ``fast_batched_decisions_per_s``."""
 FAST_REPEATS = 5
 """The fast simulator plays each benchmark episode this many times (it takes milliseconds)."""
 
@@ -91,14 +94,35 @@ def measure_envpool(cfg: dict[str, Any], decisions: int, seed: int) -> float | N
     return rate
 
 
-def measure_training(episodes: int, seed: int, shield: str, method: str = "robust") -> dict[str, float]:
-    """Train ``method`` (``tuned`` preset, ``fast`` env with ``shield``) for ``episodes``
+def measure_batched(num_envs: int, decisions: int, seed: int, shield: str) -> float:
+    """Summed decisions per second of :func:`safelane.env.vector.make_vector_env` with ``num_envs``
+    fast-simulator environments under ``shield`` (random actions, autoresets included), over about
+    ``decisions`` decisions after one warm-up step."""
+    vector = make_vector_env(BENCH_PRESET, num_envs=num_envs, seed=seed, **{"shield.mode": shield})
+    rng = np.random.default_rng(seed)
+    steps = max(decisions // num_envs, 4)
+    actions = rng.integers(5, size=(steps + 1, num_envs))
+    try:
+        vector.step(actions[0])
+        start = time.perf_counter()
+        for a in actions[1:]:
+            vector.step(a)
+        elapsed = time.perf_counter() - start
+    finally:
+        vector.close()
+    return steps * num_envs / elapsed
+
+
+def measure_training(
+    episodes: int, seed: int, shield: str, method: str = "robust", simulator: str = "highway-env"
+) -> dict[str, float]:
+    """Train ``method`` (``tuned`` preset, ``fast`` env on ``simulator`` with ``shield``) for ``episodes``
     episodes in a temporary directory with the real loop of :func:`safelane.running.training.train`, and read its
     own clocks: decisions per second of training, and the share of its wall time spent outside the
     environment (acting, storing, gradient steps, bookkeeping, checkpoints)."""
     with tempfile.TemporaryDirectory(prefix="safelane-bench-") as tmp:
         # Learning starts after one batch, so nearly every timed decision carries a gradient step.
-        sets = [f"shield.mode={shield}", "agent.learning_starts=64"]
+        sets = [f"shield.mode={shield}", "agent.learning_starts=64", f"simulator={simulator}"]
         cfg = make_train_config(method=method, episodes=episodes, seed=seed, sets=sets)
         out = train(cfg, Path(tmp) / "run")
         clocks = read_metrics(out / METRICS_FILE, ["wall_time_s", "env_time_s", "env_steps"])
@@ -133,6 +157,11 @@ def run_bench(
     * ``fast_decisions_per_s``: the fast simulator through safelane's gymnasium stack (paper observation
       and reward, no shield), same seeds and actions, each episode played :data:`FAST_REPEATS` times;
       ``fast_raw_speedup`` = that ÷ stock highway-env;
+    * ``fast_shielded_decisions_per_s``: the same with the ``shield`` on (1 env) and ``fast_speedup`` =
+      that ÷ stock highway-env (unshielded); ``shield_mask_us_median_fast``: the mask's median cost [µs]
+      on the fast simulator's states (``shield_mask_us_median``: on highway-env's);
+    * ``fast_batched_decisions_per_s``: ``{N: summed decisions/s}`` of ``make_vector_env`` with N
+      shielded fast-simulator environments, N in :data:`BATCH_SIZES` (:func:`measure_batched`);
     * ``envpool_decisions_per_s``: the peer, EnvPool's C++ port (:func:`measure_envpool`), only when the
       optional ``envpool`` extra is installed;
     * ``train_steps_per_s``: decisions per second of a real training run of ``episodes`` episodes of
@@ -140,7 +169,8 @@ def run_bench(
       training adds to a decision, and ``agent_overhead_fraction`` the share of training wall time
       outside the environment, from the run's own clocks (``metrics.csv``: ``wall_time_s``,
       ``env_time_s``); each further method of ``methods`` adds the same three figures with the suffix
-      ``_METHOD`` (e.g. ``agent_overhead_fraction_constrained``).
+      ``_METHOD`` (e.g. ``agent_overhead_fraction_constrained``); the same training on the fast simulator
+      adds them with the suffix ``_fast`` (``_METHOD_fast`` for the further methods).
     """
     if episodes < 1:
         raise ConfigError(f"--episodes: must be >= 1 (got {episodes})")
@@ -168,14 +198,23 @@ def run_bench(
         mask_us.append((t2 - t1) * 1e6)
         obs_us.append((t3 - t2) * 1e6)
 
-    raw_n = shield_n = orig_n = stock_n = fast_n = 0
-    raw_s = shield_s = orig_s = stock_s = fast_s = 0.0
+    raw_n = shield_n = orig_n = stock_n = fast_n = fast_shield_n = 0
+    raw_s = shield_s = orig_s = stock_s = fast_s = fast_shield_s = 0.0
     # Stock highway-env (its own neighbour search and observation, no safelane layer) and the fast
     # simulator through safelane's whole gymnasium stack (paper observation, reward; no shield).
     preset_cfg = load_config(BENCH_PRESET)
     stock = gym.make(preset_cfg.env_id, config=dict(preset_cfg.env))
     fast = make_env(BENCH_PRESET, simulator="fast")
+    fast_shielded = make_env(BENCH_PRESET, simulator="fast", **{"shield.mode": shield})
+    fast_mask_us: list[float] = []
+
+    def time_fast_mask() -> None:
+        t0 = time.perf_counter()
+        fast_shielded.compute_mask()
+        fast_mask_us.append((time.perf_counter() - t0) * 1e6)
+
     _play(fast, seed)  # compiles (or loads) the numba kernels outside the timed episodes
+    _play(fast_shielded, seed)
     try:
         for i in range(episodes):
             # Alternate which of the pair runs first, so warm-up and drifts favour neither.
@@ -193,6 +232,9 @@ def run_bench(
             for _ in range(FAST_REPEATS):  # the same episode again: milliseconds each, so time several
                 n, s = _play(fast, seed + i)
                 fast_n, fast_s = fast_n + n, fast_s + s
+                n, s = _play(fast_shielded, seed + i)
+                fast_shield_n, fast_shield_s = fast_shield_n + n, fast_shield_s + s
+            _play(fast_shielded, seed + i, on_decision=time_fast_mask)  # untimed: the mask's own cost
             if progress is not None:
                 progress(i)
     finally:
@@ -201,11 +243,17 @@ def run_bench(
         original.close()
         stock.close()
         fast.close()
+        fast_shielded.close()
     envpool_rate = measure_envpool(dict(preset_cfg.env), max(fast_n, 1000), seed)
+    batched = {str(n): measure_batched(n, max(fast_n // 2, 2000), seed, shield) for n in BATCH_SIZES}
     training: dict[str, Any] = {"train_method": methods[0], **measure_training(episodes, seed, shield, methods[0])}
     for method in methods[1:]:
         figures = measure_training(episodes, seed, shield, method)
         training.update({f"{key}_{method}": value for key, value in figures.items()})
+    for method in methods:  # the same training on the fast simulator
+        figures = measure_training(episodes, seed, shield, method, simulator="fast")
+        suffix = "_fast" if method == methods[0] else f"_{method}_fast"
+        training.update({f"{key}{suffix}": value for key, value in figures.items()})
     raw_rate = raw_n / raw_s
     shield_rate = shield_n / shield_s
     return {
@@ -226,6 +274,10 @@ def run_bench(
         "highway_env_decisions_per_s": stock_n / stock_s,
         "fast_decisions_per_s": fast_n / fast_s,
         "fast_raw_speedup": (fast_n / fast_s) / (stock_n / stock_s),
+        "fast_shielded_decisions_per_s": fast_shield_n / fast_shield_s,
+        "fast_speedup": (fast_shield_n / fast_shield_s) / (stock_n / stock_s),
+        "shield_mask_us_median_fast": float(np.median(fast_mask_us)),
+        "fast_batched_decisions_per_s": batched,
         **({"envpool_decisions_per_s": envpool_rate} if envpool_rate is not None else {}),
         **training,
         "python": platform.python_version(),

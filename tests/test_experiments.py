@@ -142,3 +142,25 @@ def test_reproduce_killed_mid_run_resumes_without_loss_or_duplicates(tmp_path: P
     assert first.read_text() == kept
     keys = [(e["method"], e["seed"], e["test_episode"]) for e in results["episodes"]]
     assert sorted(keys) == sorted({(m, 0, k) for m in ("dqn", "constrained", "qmask", "robust") for k in range(2)})
+
+
+def test_confirm_on_highway_env_replays_fast_trained_agents_identically(tmp_path: Path) -> None:
+    """Trained on the fast simulator, confirmed on highway-env: the same test episodes come out (the
+    simulators are the same bit for bit), the report shows both side by side, and asking for the
+    confirmation after the run had finished adds it without retraining."""
+    spec = tiny_spec(methods=["robust"], sets=[*TINY, "simulator=fast"])
+    run_experiment(spec, tmp_path, workers=1)
+    eval_path = run_dir_of(tmp_path, "robust", 0) / "eval.json"
+    assert "confirm" not in json.loads(eval_path.read_text())
+    results = run_experiment(
+        tiny_spec(methods=["robust"], sets=[*TINY, "simulator=fast"], confirm_on="highway-env"), tmp_path, workers=1
+    )
+    confirm = results["methods"]["robust"]["aggregate"]["confirm"]
+    assert confirm["simulator"] == "highway-env" and confirm["test_episodes"] == 2
+    assert json.loads(eval_path.read_text())["confirm"]["summary"]["simulator"] == "highway-env"
+    assert confirm["identical_episodes"] == 2
+    assert json.loads(eval_path.read_text())["summary"]["simulator"] == "fast"
+    text = write_report(tmp_path).read_text()
+    assert "confirmed on highway-env" in text and "| 2 / 2 |" in text
+    with pytest.raises(ConfigError, match="confirm_on"):
+        make_spec(confirm_on="carla")

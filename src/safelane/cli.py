@@ -542,6 +542,14 @@ def reproduce(
     methods: Annotated[
         str, typer.Option("--methods", help="Methods to run, comma-separated, or all.", metavar="LIST")
     ] = "all",
+    confirm_on: Annotated[
+        str | None,
+        typer.Option(
+            "--confirm-on",
+            help="Re-run every agent's test episodes on this simulator (highway-env) and report both.",
+            metavar="SIM",
+        ),
+    ] = None,
 ) -> None:
     """Train every method × seed, evaluate on held-out episodes, write Table 4 / Fig. 6 / Fig. 7 and claims."""
     from safelane.agents.dqn import parse_methods
@@ -576,6 +584,7 @@ def reproduce(
         agent_preset=agent_preset,
         sets=list(sets or []),
         quick=quick,
+        confirm_on=confirm_on,
     )
     total = len(spec.methods) * len(spec.seeds)
     with episode_progress("reproduce (runs)", total) as advance:

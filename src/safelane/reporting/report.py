@@ -251,6 +251,32 @@ def write_report(out_dir: str | Path, gifs: dict[str, str] | None = None) -> Pat
         "excludes and highway-env turns into IDLE; the masked methods choose inside the mask (0 by "
         "construction).",
         "",
+    ]
+    confirmed = {m: d["aggregate"]["confirm"] for m, d in methods.items() if "confirm" in d["aggregate"]}
+    if confirmed:
+        sim = next(iter(confirmed.values()))["simulator"]
+        lines += [
+            f"## The same test episodes confirmed on {sim}",
+            "",
+            f"Every trained agent's test episodes played again on {sim} (same seeds, same greedy policy): "
+            "an episode counts as identical when its return, length, collision, kind, mean speed and "
+            "action counts are equal.",
+            "",
+            "| method | collisions / episodes (as trained) | "
+            f"collisions / episodes on {sim} [Wilson 95 %] | mean speed [m/s] (as trained / {sim}) | "
+            "identical episodes |",
+            "|---|---|---|---|---|",
+        ]
+        for m, c in confirmed.items():
+            a = methods[m]["aggregate"]
+            lo, hi = c["collision_rate_wilson95"]
+            lines.append(
+                f"| {LABELS[m]} | {a['collisions']} / {a['test_episodes']} | {c['collisions']} / "
+                f"{c['test_episodes']} [{lo:.3f}, {hi:.3f}] | {_fmt(a['mean_speed']['mean'])} / "
+                f"{_fmt(c['mean_speed'])} | {c['identical_episodes']} / {c['test_episodes']} |"
+            )
+        lines.append("")
+    lines += [
         "## Fig. 6 — total reward before collision",
         "",
         "![fig6](fig6.png)",

@@ -46,6 +46,11 @@ class ExperimentSpec(BaseModel):
         default_factory=list, description="Stress-suite conditions each trained run is also evaluated on."
     )
     stress_episodes: int = Field(10, ge=1)
+    confirm_on: Literal["highway-env"] | None = Field(
+        None,
+        description="Re-run every trained agent's test episodes on this simulator too (runs trained on "
+        "simulator=fast are confirmed on the reference) and report both side by side.",
+    )
 
 
 def make_spec(**fields: Any) -> ExperimentSpec:
@@ -75,7 +80,11 @@ def _task(out_dir: str, spec_json: str, method: str, seed: int) -> dict[str, Any
     run_dir = run_dir_of(Path(out_dir), method, seed)
     eval_path = run_dir / "eval.json"
     if eval_path.exists():
-        return json.loads(eval_path.read_text())
+        record = json.loads(eval_path.read_text())
+        if spec.confirm_on is not None and "confirm" not in record:  # asked for after the run was done
+            record["confirm"] = confirm_test_episodes(run_dir, spec, record["episodes"])
+            atomic_write_text(eval_path, json.dumps(record))
+        return record
     cfg = make_train_config(
         method=method,
         agent_preset=spec.agent_preset,
@@ -124,8 +133,35 @@ def _task(out_dir: str, spec_json: str, method: str, seed: int) -> dict[str, Any
         "train_wall_time_s": train_time,
         "eval_wall_time_s": time.perf_counter() - eval_start,
     }
+    if spec.confirm_on is not None:
+        record["confirm"] = confirm_test_episodes(run_dir, spec, episodes)
     atomic_write_text(eval_path, json.dumps(record))
     return record
+
+
+CONFIRM_FIELDS = ("return_", "length", "collision", "mean_speed", "collision_kind", "actions")
+"""Fields of a test episode that must agree for it to count as the same episode on both simulators."""
+
+
+def confirm_test_episodes(run_dir: Path, spec: ExperimentSpec, episodes: list[dict[str, Any]]) -> dict[str, Any]:
+    """Play the run's test episodes again (same seeds, same greedy policy) on ``spec.confirm_on``:
+    its summary, and how many episodes came out the same as the recorded ``episodes``."""
+    from safelane.running.evaluation import run_config, summarize
+    from safelane.running.runs import run_env_config
+    from safelane.running.training import load_policy, load_run_config
+
+    run = load_run_config(run_dir)
+    cfg = run_env_config(run).model_copy(update={"simulator": spec.confirm_on})
+    start = time.perf_counter()
+    records = run_config(cfg, load_policy(run_dir), spec.test_episodes, TEST_SEED_BASE)
+    same = sum(all(r.to_dict()[f] == e[f] for f in CONFIRM_FIELDS) for r, e in zip(records, episodes, strict=True))
+    return {
+        "simulator": cfg.simulator,
+        "summary": summarize(records, simulator=cfg.simulator),
+        "identical_episodes": same,
+        "episodes": len(records),
+        "wall_time_s": time.perf_counter() - start,
+    }
 
 
 def run_experiment(
@@ -202,6 +238,16 @@ def collect(out_dir: Path, spec: ExperimentSpec) -> dict[str, Any]:
                 "train_wall_time_s": rec["train_wall_time_s"],
                 "stress": rec.get("stress", []),
             }
+            if "confirm" in rec:
+                c = rec["confirm"]
+                per_seed[str(seed)]["confirm"] = {
+                    "simulator": c["simulator"],
+                    "collision_rate": c["summary"]["collision_rate"],
+                    "collisions": c["summary"]["collisions"],
+                    "mean_speed": c["summary"]["mean_speed"],
+                    "identical_episodes": c["identical_episodes"],
+                    "episodes": c["episodes"],
+                }
         if not per_seed:
             continue
         agg: dict[str, Any] = {}
@@ -217,5 +263,17 @@ def collect(out_dir: Path, spec: ExperimentSpec) -> dict[str, Any]:
         agg["collisions"] = collisions
         agg["test_episodes"] = n
         agg["collision_rate_wilson95"] = list(stats.binomial_ci(collisions, n))
+        confirms = [v["confirm"] for v in per_seed.values() if "confirm" in v]
+        if confirms:
+            c_coll, c_n = sum(c["collisions"] for c in confirms), sum(c["episodes"] for c in confirms)
+            agg["confirm"] = {
+                "simulator": confirms[0]["simulator"],
+                "runs": len(confirms),
+                "collisions": c_coll,
+                "test_episodes": c_n,
+                "collision_rate_wilson95": list(stats.binomial_ci(c_coll, c_n)),
+                "mean_speed": stats.mean([c["mean_speed"] for c in confirms]),
+                "identical_episodes": sum(c["identical_episodes"] for c in confirms),
+            }
         methods[method] = {"per_seed": per_seed, "aggregate": agg}
     return {"spec": spec.model_dump(), "methods": methods, "episodes": all_episodes}

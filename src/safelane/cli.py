@@ -76,6 +76,15 @@ SimulatorOpt = Annotated[
         metavar="SIM",
     ),
 ]
+TrainSimulatorOpt = Annotated[
+    str | None,
+    typer.Option(
+        "--simulator",
+        help="Simulator (sets simulator=): fast (default; bit-identical to highway-env on the checked "
+        "configurations, `safelane sim check`) or highway-env, the reference (a resumed run keeps its own).",
+        metavar="SIM",
+    ),
+]
 EpisodesOpt = Annotated[int, typer.Option("--episodes", "-n", help="Number of episodes (>= 1).")]
 SeedOpt = Annotated[int, typer.Option("--seed", help="Random seed: the same seed gives the same numbers.")]
 JsonOpt = Annotated[bool, typer.Option("--json", help="Print one JSON object on stdout instead of a table.")]
@@ -104,6 +113,27 @@ def cli_errors(fn: F) -> F:
             fail(f"{where}{err.strerror or err} (nothing written; earlier checkpoints and results are intact)")
 
     return wrapper  # type: ignore[return-value]
+
+
+def _simulator_of(sets: list[str]) -> str | None:
+    """The value of the last ``simulator=`` among ``--set`` strings (None: none)."""
+    found = [a.partition("=")[2].strip() for a in sets if a.partition("=")[0].strip() == "simulator"]
+    return found[-1] if found else None
+
+
+def training_simulator(sets: list[str] | None, simulator: str | None, earlier_sets: list[str] | None) -> list[str]:
+    """``sets`` for ``train`` / ``reproduce``, which default to the fast simulator (bit-identical to
+    highway-env on the checked configurations: ``safelane sim check``): ``--simulator`` if given, else a
+    ``simulator=`` of ``--set``, else what the run being resumed used (``earlier_sets``: its sets, where
+    no ``simulator=`` means highway-env, the default before), else ``fast``."""
+    sets = list(sets or [])
+    if simulator is not None:
+        return with_simulator(sets, simulator)
+    if _simulator_of(sets) is not None:
+        return sets
+    if earlier_sets is not None:
+        return with_simulator(sets, _simulator_of(earlier_sets) or "highway-env")
+    return with_simulator(sets, "fast")
 
 
 def with_simulator(sets: list[str] | None, simulator: str | None) -> list[str]:
@@ -465,7 +495,7 @@ def train(
         str, typer.Option("--agent-preset", help="Agent hyper-parameters: paper or tuned.", metavar="NAME")
     ] = "tuned",
     sets: SetOpt = None,
-    simulator: SimulatorOpt = None,
+    simulator: TrainSimulatorOpt = None,
     resume: Annotated[bool, typer.Option("--resume", help="Continue from the run's last checkpoint.")] = False,
     checkpoint_every: Annotated[int, typer.Option("--checkpoint-every", help="Episodes between checkpoints.")] = 10,
     tensorboard: Annotated[
@@ -475,10 +505,16 @@ def train(
     """Train a DQN with one of the paper's four methods; Ctrl-C checkpoints, --resume continues."""
     from rich.progress import Progress
 
-    from safelane.running.training import TrainingInterrupted, make_train_config
+    from safelane.running.training import TrainingInterrupted, load_run_config, make_train_config
     from safelane.running.training import train as run_training
 
-    sets = with_simulator(sets, simulator)
+    earlier: list[str] | None = None
+    if resume and (out / "config.yaml").is_file():
+        try:  # resume on the simulator the run was trained on
+            earlier = [f"simulator={load_run_config(out).env.simulator}"]
+        except ConfigError:
+            earlier = None  # the resume itself reports the unreadable config
+    sets = training_simulator(sets, simulator, earlier)
     check_positive("--episodes", episodes)
     check_seed(seed)
     cfg = make_train_config(
@@ -531,7 +567,7 @@ def reproduce(
     workers: Annotated[int | None, typer.Option("--workers", help="Parallel processes (default: cores).")] = None,
     agent_preset: Annotated[str, typer.Option("--agent-preset", help="paper or tuned.")] = "tuned",
     sets: SetOpt = None,
-    simulator: SimulatorOpt = None,
+    simulator: TrainSimulatorOpt = None,
     gifs: Annotated[bool, typer.Option("--gifs/--no-gifs", help="Render one episode GIF per method.")] = True,
     stress_episodes: Annotated[
         int, typer.Option("--stress-episodes", help="Also evaluate every run on the stress conditions (0: skip).")
@@ -556,7 +592,13 @@ def reproduce(
     from safelane.reporting.report import render_gifs, write_report
     from safelane.running.experiments import make_spec, run_experiment
 
-    sets = with_simulator(sets, simulator)
+    earlier: list[str] | None = None
+    if (out / "spec.json").is_file():  # an experiment being resumed keeps its simulator
+        try:
+            earlier = list(json.loads((out / "spec.json").read_text()).get("sets", []))
+        except (OSError, ValueError):
+            earlier = None
+    sets = training_simulator(sets, simulator, earlier)
     if quick:
         seeds, episodes, test_episodes = min(seeds, 2), min(episodes, 25), min(test_episodes, 7)
     check_positive("--seeds", seeds)

@@ -116,10 +116,15 @@ def _fast_simulator(cfg: SafelaneConfig, render_mode: str | None) -> gym.Env:
     if render_mode is not None:
         raise NotSupported("simulator: fast does not render; use simulator=highway-env to render an episode")
     if cfg.traffic.vehicles_behind:
-        raise NotSupported("traffic.vehicles_behind: not supported by simulator=fast; allowed there: 0")
+        raise NotSupported(
+            "traffic.vehicles_behind: not supported by simulator=fast; allowed there: 0 (or use simulator=highway-env)"
+        )
     if cfg.traffic.adversary != "none":
         adversary = cfg.traffic.adversary
-        raise NotSupported(f"traffic.adversary: '{adversary}' not supported by simulator=fast; allowed there: none")
+        raise NotSupported(
+            f"traffic.adversary: '{adversary}' not supported by simulator=fast; allowed there: none "
+            "(or use simulator=highway-env)"
+        )
     from safelane.sim.fast.env import FastHighwayEnv
 
     try:

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import functools
 import json
+import os
 import sys
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
@@ -271,7 +272,7 @@ def sim_check(
             help="Episodes per policy and simulator for the statistical tests (0: trajectories only).",
         ),
     ] = 0,
-    workers: Annotated[int, typer.Option("--workers", help="Parallel processes.")] = 1,
+    workers: Annotated[int | None, typer.Option("--workers", help="Parallel processes (default: cores).")] = None,
     record: Annotated[
         Path | None,
         typer.Option(
@@ -286,14 +287,21 @@ def sim_check(
     from safelane.running.simcheck import run_sim_check
 
     check_positive("--episodes", episodes)
-    check_positive("--workers", workers)
+    if workers is not None:
+        check_positive("--workers", workers)
     check_seed(seed)
     if stat_episodes < 0:
         raise ConfigError(f"--stat-episodes: must be >= 0 (got {stat_episodes})")
     cfg = resolve_config(preset, sets)
     with units_progress("sim check") as tick:
         result = run_sim_check(
-            cfg, episodes, seed, stat_episodes=stat_episodes, workers=workers, record=record, progress=tick
+            cfg,
+            episodes,
+            seed,
+            stat_episodes=stat_episodes,
+            workers=workers or os.cpu_count() or 1,
+            record=record,
+            progress=tick,
         )
     if as_json:
         print_json(result)

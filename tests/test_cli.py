@@ -219,7 +219,8 @@ def test_sim_check_json_reports_trajectories_and_tests() -> None:
     policies = ("random", "idle", "slower", "faster", "robust_random")
     metrics = ("collision_rate", "mean_speed")
     assert {(t["policy"], t["metric"]) for t in out["tests"]} == {(p, m) for p in policies for m in metrics}
-    assert all(0 < t["p_value"] <= 1 for t in out["tests"])
+    assert all(0 < t["p_value"] <= t["p_value_holm"] <= 1 for t in out["tests"])
+    assert out["replay_episodes"] == 5 * 2 and out["replay_identical_fraction"] == 1.0
 
 
 def test_sim_check_records_units_and_resumes_after_a_kill(tmp_path: Path) -> None:
@@ -231,7 +232,7 @@ def test_sim_check_records_units_and_resumes_after_a_kill(tmp_path: Path) -> Non
     first = runner.invoke(app, [*args, "--record", str(record), "--workers", "2"])
     assert first.exit_code == 0, first.output
     lines = record.read_text().splitlines()
-    assert len(lines) == 1 + 2 + 2 * 5  # header, 2 trajectories, 5 policies x 2 simulators
+    assert len(lines) == 1 + 2 + 2 * 5 + 5  # header, 2 trajectories, 5 policies x 2 simulators, 5 replays
     # A kill in the middle of writing the last line: the cut line is dropped and its unit played again.
     record.write_text("\n".join(lines[:-1]) + "\n" + lines[-1][:10])
     again = runner.invoke(app, [*args, "--record", str(record)])

@@ -225,3 +225,12 @@ def test_permutation_test_separates_shifted_samples_and_not_equal_ones() -> None
     assert same > 0.05
     assert shifted == pytest.approx(1 / 2001)  # no relabelling reaches a 1.5 m/s gap: the smallest p-value
     assert permutation_test([1.0, 2.0], [1.0, 2.0], reps=100) == 1.0
+
+
+def test_holm_adjustment_is_step_down_and_monotone() -> None:
+    from safelane.running.simcheck import holm_adjusted
+
+    tests = [{"p_value": p} for p in (0.04, 0.001, 0.03, 0.5)]
+    adjusted = [t["p_value_holm"] for t in holm_adjusted(tests)]
+    # sorted: 0.001*4=0.004, 0.03*3=0.09, 0.04*2=0.08 -> 0.09 (monotone), 0.5*1=0.5
+    assert adjusted == pytest.approx([0.09, 0.004, 0.09, 0.5])

@@ -314,12 +314,16 @@ def sim_check(
         stdout.print(f"  seed {d['seed']} ({d['policy']}): step {d['first_step']}: {d['cause']}")
     if result["tests"]:
         table = Table(title=f"{stat_episodes} episodes per policy and simulator")
-        for col in ("policy", "metric", "highway-env", "fast", "p-value"):
+        for col in ("policy", "metric", "highway-env", "fast", "p-value", "Holm"):
             table.add_column(col)
         for t in result["tests"]:
-            values = (f"{t['highway_env']:.4g}", f"{t['fast']:.4g}", f"{t['p_value']:.3g}")
+            values = (f"{t['highway_env']:.4g}", f"{t['fast']:.4g}", f"{t['p_value']:.3g}", f"{t['p_value_holm']:.3g}")
             table.add_row(t["policy"], t["metric"], *values)
         stdout.print(table)
+        stdout.print(
+            f"replay: {result['replay_identical_fraction']:.3f} of highway-env's {result['replay_episodes']} "
+            "statistics episodes came out the same on the fast simulator (same seeds, same policies)"
+        )
 
 
 EVALUATE_UNITS = {

@@ -11,7 +11,10 @@ Two checks, both on the whole safelane environment (simulator, snapshot, observa
 * **Statistics** (:func:`compare_statistics`): each policy of :data:`STAT_POLICIES` plays independent
   episodes on each simulator (disjoint seed ranges); Fisher's exact test compares the collision rates
   and a permutation test the per-episode mean speeds. A p-value above 0.01 means no evidence of a
-  difference at 1 %.
+  difference at 1 % (``p_value_holm``: adjusted for the number of tests, :func:`holm_adjusted`).
+* **Replay** (``replay_identical_fraction``): the fast simulator plays highway-env's statistical sample
+  again, on the same seeds with the same policies: the share of those episodes whose collision, mean
+  speed and length are equal. This separates a simulator difference from the luck of a seed draw.
 
 The work is cut into units (one trajectory episode, or :data:`STAT_CHUNK` statistics episodes of one
 policy on one simulator) that run in a process pool and are appended to a record file as they finish,
@@ -157,13 +160,20 @@ def compare_episode(cfg: SafelaneConfig, seed: int, policy: str, tol: float = TO
 
 
 def stat_episodes_of(
-    cfg: SafelaneConfig, policy: str, simulator: str, start: int, count: int, seed: int
+    cfg: SafelaneConfig,
+    policy: str,
+    simulator: str,
+    start: int,
+    count: int,
+    seed: int,
+    sample_of: str | None = None,
 ) -> dict[str, list[float]]:
     """Episodes ``start … start+count-1`` of ``policy``'s sample on ``simulator``: reset seeds
-    ``seed + offset + i`` (an offset per simulator, so the two samples are independent), the random
-    policy's generator seeded per chunk so that a chunk's episodes do not depend on which process plays
-    it. Per episode: ``collision`` (0/1), ``mean_speed`` [m/s] and ``length`` (decisions)."""
-    offset = HIGHWAY_ENV_SEED_OFFSET if simulator == "highway-env" else FAST_SEED_OFFSET
+    ``seed + offset + i`` (an offset per simulator, so the two samples are independent; ``sample_of``:
+    use that simulator's offset instead, to replay its sample), the random policy's generator seeded
+    per chunk so that a chunk's episodes do not depend on which process plays it. Per episode:
+    ``collision`` (0/1), ``mean_speed`` [m/s] and ``length`` (decisions)."""
+    offset = HIGHWAY_ENV_SEED_OFFSET if (sample_of or simulator) == "highway-env" else FAST_SEED_OFFSET
     env = make_env(on_simulator(cfg, simulator, policy))
     try:
         records = run_episodes(env, _policy(policy, seed + offset + start), count, seed + offset + start)
@@ -208,6 +218,20 @@ def statistical_tests(samples: dict[tuple[str, str], dict[str, list[float]]], se
     return tests
 
 
+def holm_adjusted(tests: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """The tests with ``p_value_holm``: Holm's step-down adjustment over all of them (the family-wise
+    error of the whole check; the per-policy samples share their reset seeds, so the tests of one
+    configuration are not independent either)."""
+    m = len(tests)
+    order = sorted(range(m), key=lambda i: tests[i]["p_value"])
+    adjusted = [0.0] * m
+    running = 0.0
+    for rank, i in enumerate(order):
+        running = max(running, min(1.0, (m - rank) * tests[i]["p_value"]))
+        adjusted[i] = running
+    return [{**t, "p_value_holm": adjusted[i]} for i, t in enumerate(tests)]
+
+
 def compare_statistics(
     cfg: SafelaneConfig,
     episodes: int,
@@ -238,6 +262,9 @@ def _units(episodes: int, stat_episodes: int) -> list[tuple[Any, ...]]:
     for start in range(0, stat_episodes, STAT_CHUNK):
         count = min(STAT_CHUNK, stat_episodes - start)
         units += [("stat", policy, sim, start, count) for sim in ("highway-env", "fast") for policy in STAT_POLICIES]
+    for start in range(0, stat_episodes, STAT_CHUNK):  # the fast simulator replaying highway-env's sample
+        count = min(STAT_CHUNK, stat_episodes - start)
+        units += [("replay", policy, start, count) for policy in STAT_POLICIES]
     return units
 
 
@@ -253,6 +280,9 @@ def _run_unit(cfg_data: dict[str, Any], seed: int, tol: float, unit: tuple[Any, 
         policy = TRAJECTORY_POLICIES[k % len(TRAJECTORY_POLICIES)]
         found, worst = compare_episode_error(cfg, seed + k, policy, tol)
         return {"divergence": None if found is None else asdict(found), "max_error": worst}
+    if unit[0] == "replay":
+        _, policy, start, count = unit
+        return stat_episodes_of(cfg, policy, "fast", start, count, seed, sample_of="highway-env")
     _, policy, sim, start, count = unit
     return stat_episodes_of(cfg, policy, sim, start, count, seed)
 
@@ -342,7 +372,16 @@ def run_sim_check(
             sample = samples.setdefault((unit[1], unit[2]), {"collision": [], "mean_speed": [], "length": []})
             for name, values in results[_unit_key(unit)].items():
                 sample[name] += values
-    tests = statistical_tests(samples, seed) if stat_episodes > 0 else []
+    tests = holm_adjusted(statistical_tests(samples, seed)) if stat_episodes > 0 else []
+    replayed = same = 0
+    for unit in units:
+        if unit[0] == "replay":
+            _, policy, start, count = unit
+            original = results[_unit_key(("stat", policy, "highway-env", start, count))]
+            again = results[_unit_key(unit)]
+            for i in range(count):
+                replayed += 1
+                same += all(original[name][i] == again[name][i] for name in original)
     errors = [t["max_error"] for t in trajectories if t["divergence"] is None]
     return {
         "preset": cfg.preset,
@@ -356,6 +395,8 @@ def run_sim_check(
         "divergences": divergences,
         "stat_episodes": stat_episodes,
         "tests": tests,
+        "replay_episodes": replayed,
+        "replay_identical_fraction": same / replayed if replayed else math.nan,
         "mean_length": {f"{p}/{sim}": float(np.mean(v["length"])) for (p, sim), v in samples.items()},
         "workers": workers,
         "units_resumed": len(units) - len(todo),

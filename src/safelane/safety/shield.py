@@ -150,6 +150,24 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
         snap = self.snapshot if snap is None else snap
         if snap is None:
             raise RuntimeError("SafetyShield: reset the environment first")
+        lane_heading, leave = self._ego_leave_time(snap)
+        dyn = self.dynamics
+        assert dyn is not None
+        if self.engine == "compiled" and (self.mode, self.formula) != ("nominal", "paper") and axis_aligned(snap):
+            # The fast path: the RoadState is built inside the kernel (identical to road_state's).
+            return evaluate_snapshot(snap, dyn, self.mode, lane_heading=lane_heading, ego_leave_time=leave)
+        evaluator = evaluate_compiled if self.engine == "compiled" else evaluate
+        return evaluator(road_state(snap), dataclasses.replace(dyn, ego_leave_time=leave), self.mode, self.formula)
+
+    def state_and_dynamics(self, snap: RoadSnapshot) -> tuple[RoadState, Dynamics]:
+        """The (RoadState, Dynamics) that :meth:`compute_result` evaluates for ``snap`` (the numpy engine's
+        inputs; the compiled engine builds the same state inside its kernel)."""
+        _, leave = self._ego_leave_time(snap)
+        assert self.dynamics is not None
+        return road_state(snap), dataclasses.replace(self.dynamics, ego_leave_time=leave)
+
+    def _ego_leave_time(self, snap: RoadSnapshot) -> tuple[float, float]:
+        """(lane heading [rad], the time [s] the ego takes to leave its lane) for ``snap``."""
         if self.dynamics is None:
             self.dynamics = dynamics_of(snap)
         dyn = self.dynamics
@@ -168,12 +186,7 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
             speed = min(max(math.floor(slowest * 2) / 2, 0.0), 40.0)
         else:
             speed = float(np.clip(np.floor(slowest * 2) / 2, 0.0, 40.0))
-        leave = lane_change_timing(1.0 / dyn.frame_dt, speed)[0] + dyn.frame_dt
-        if self.engine == "compiled" and (self.mode, self.formula) != ("nominal", "paper") and axis_aligned(snap):
-            # The fast path: the RoadState is built inside the kernel (identical to road_state's).
-            return evaluate_snapshot(snap, dyn, self.mode, lane_heading=lane_heading, ego_leave_time=leave)
-        evaluator = evaluate_compiled if self.engine == "compiled" else evaluate
-        return evaluator(road_state(snap), dataclasses.replace(dyn, ego_leave_time=leave), self.mode, self.formula)
+        return lane_heading, lane_change_timing(1.0 / dyn.frame_dt, speed)[0] + dyn.frame_dt
 
     def refresh(self) -> SafetyResult:
         """Re-read the scene from the simulator and recompute the verdict (after editing the road by hand)."""

@@ -313,10 +313,11 @@ def _evaluate(
                     if can and ahead_c:
                         acc, delta, dec = idm_comfort_acc[i], idm_delta[i], idm_comfort_dec[i]
                         dw, tw = idm_distance_wanted[i], idm_time_wanted[i]
-                        a_now = _idm_behind(acc, delta, dec, dw, tw, vx[i], d_now, ego_speed, target_clip)
-                        a_end = _idm_behind(acc, delta, dec, dw, tw, vx[i], d_end, kv, target_clip)
                         limit = -max_braking_imposed[i]
-                        permitted[slot, r] = a_now >= limit or a_end >= limit
+                        ok = _idm_behind(acc, delta, dec, dw, tw, vx[i], d_now, ego_speed, target_clip) >= limit
+                        if not ok:  # the end-of-period check only matters when the one of now fails
+                            ok = _idm_behind(acc, delta, dec, dw, tw, vx[i], d_end, kv, target_clip) >= limit
+                        permitted[slot, r] = ok
                     else:
                         permitted[slot, r] = False
 
@@ -491,15 +492,28 @@ def _check(mode: str, formula: str) -> None:
         raise ValueError(f"formula: got {formula!r}; allowed: 'kinematic', 'paper'")
 
 
+_ARGS: dict[tuple[int, float], tuple[Dynamics, tuple]] = {}
+"""The kernel's dynamics arguments per (Dynamics object, leave time): the shield evaluates one Dynamics
+for a whole episode with a handful of leave times, and building them costs as much as a small kernel."""
+
+
 def _dynamics_args(dyn: Dynamics, ego_leave_time: float) -> tuple:
+    key = (id(dyn), ego_leave_time)
+    hit = _ARGS.get(key)
+    if hit is not None and hit[0] is dyn:  # the entry holds dyn, so its id is not reused meanwhile
+        return hit[1]
     ts, t, powers = _horizon_arrays(
         dyn.frame_dt, dyn.frames_per_decision, dyn.horizon_decisions, dyn.ego_kp, dyn.target_speeds
     )
-    return (
+    args = (
         ts, t, powers, _TIE_BREAK, dyn.decision_period, dyn.frame_dt, dyn.frames_per_decision,
         dyn.horizon_decisions, dyn.ego_kp, dyn.lane_width, dyn.lanes_count, dyn.follower_reaction,
         ego_leave_time, dyn.cut_in_time, dyn.margin, _RELEVANCE, _LATERAL,
     )  # fmt: skip
+    if len(_ARGS) >= 256:
+        _ARGS.clear()
+    _ARGS[key] = (dyn, args)
+    return args
 
 
 def _result(out: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, bool]) -> SafetyResult:

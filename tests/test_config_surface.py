@@ -179,6 +179,7 @@ def test_render_into_a_new_directory_still_works(tmp_path: Path) -> None:
         ("traffic.adversary=ghost", "traffic.adversary"),
         ("shield.override=1", "shield.override"),
         ("shield.mode=true", "shield.mode"),
+        ("shield.engine=gpu", "shield.engine"),
         ("state=pixels", "state"),
         ("neighbour_search=gpu", "neighbour_search"),
         ("simulator=warp", "simulator"),

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings
@@ -9,8 +11,13 @@ from hypothesis import strategies as st
 
 from safelane.core.spaces import FASTER, IDLE, LANE_LEFT, LANE_RIGHT, SLOWER
 from safelane.env import scenarios
-from safelane.safety.model import Dynamics, RoadState, ego_trajectories, evaluate
+from safelane.safety.compiled import evaluate_compiled
+from safelane.safety.model import Dynamics, RoadState, SafetyResult, ego_trajectories, evaluate
 
+EVALUATORS = pytest.mark.parametrize("evaluate", [evaluate, evaluate_compiled], ids=["numpy", "compiled"])
+"""Every test that calls the safety model runs on the reference and on its compiled port."""
+
+Evaluator = Callable[..., SafetyResult]
 L, I, R, F, S = LANE_LEFT, IDLE, LANE_RIGHT, FASTER, SLOWER  # noqa: E741
 
 
@@ -43,19 +50,21 @@ EXPECTED = {
 
 @pytest.mark.parametrize("name", sorted(EXPECTED))
 @pytest.mark.parametrize("mode", ["nominal", "robust"])
-def test_scenario_masks(name: str, mode: str) -> None:
-    scene = scenarios.SCENARIOS[name](mode=mode)
+@pytest.mark.parametrize("engine", ["numpy", "compiled"])
+def test_scenario_masks(name: str, mode: str, engine: str) -> None:
+    scene = scenarios.SCENARIOS[name](mode=mode, **{"shield.engine": engine})
     assert scene.mask.tolist() == EXPECTED[name][mode]
     assert scene.result.fallback == (name == "dense_jam" or (name, mode) == ("leader_braking", "robust"))
     available = scene.env.unwrapped.action_type.get_available_actions()
     assert set(np.flatnonzero(scene.mask)) <= set(available)
 
 
-def test_paper_eq12_is_unsound_here() -> None:
+@pytest.mark.parametrize("engine", ["numpy", "compiled"])
+def test_paper_eq12_is_unsound_here(engine: str) -> None:
     """Eq. 12's denominator is negative in highway-env (ego brakes at 8.3 m/s² > 6): it lets the ego
     drive on at 25 m/s towards a stopped car 60 m ahead, which the kinematic rule forbids."""
-    paper = scenarios.stopped_car_ahead(mode="nominal", **{"shield.formula": "paper"})
-    kinematic = scenarios.stopped_car_ahead(mode="nominal")
+    paper = scenarios.stopped_car_ahead(mode="nominal", **{"shield.formula": "paper", "shield.engine": engine})
+    kinematic = scenarios.stopped_car_ahead(mode="nominal", **{"shield.engine": engine})
     assert paper.mask[IDLE] and paper.mask[FASTER]
     assert not kinematic.mask[IDLE] and not kinematic.mask[FASTER]
 
@@ -227,9 +236,10 @@ def make_state(
 PROPERTY_SETTINGS = settings(max_examples=150, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 
 
+@EVALUATORS
 @PROPERTY_SETTINGS
 @given(road())
-def test_masks_are_never_empty_and_nested(case: tuple[RoadState, Dynamics, list]) -> None:
+def test_masks_are_never_empty_and_nested(evaluate: Evaluator, case: tuple[RoadState, Dynamics, list]) -> None:
     state, dyn, _ = case
     nominal = evaluate(state, dyn, "nominal")
     robust = evaluate(state, dyn, "robust")
@@ -242,9 +252,10 @@ def test_masks_are_never_empty_and_nested(case: tuple[RoadState, Dynamics, list]
     assert not (robust.mask & ~nominal.mask).any()
 
 
+@EVALUATORS
 @PROPERTY_SETTINGS
 @given(road(), st.data())
-def test_adding_a_vehicle_never_makes_an_action_safer(case: tuple, data: st.DataObject) -> None:
+def test_adding_a_vehicle_never_makes_an_action_safer(evaluate: Evaluator, case: tuple, data: st.DataObject) -> None:
     state, dyn, cars = case
     extra = data.draw(vehicle(dyn.lanes_count))
     bigger = make_state(
@@ -256,9 +267,10 @@ def test_adding_a_vehicle_never_makes_an_action_safer(case: tuple, data: st.Data
         assert not (after & ~before).any(), mode
 
 
+@EVALUATORS
 @settings(max_examples=150, deadline=None)
 @given(road(extreme=True))
-def test_fuzz_extreme_states(case: tuple) -> None:
+def test_fuzz_extreme_states(evaluate: Evaluator, case: tuple) -> None:
     """Speeds 0–40 m/s, gaps 0–200 m, overlapping vehicles, headings ±π/2, crashed cars, one lane."""
     state, dyn, _ = case
     for mode in ("nominal", "robust"):
@@ -267,7 +279,8 @@ def test_fuzz_extreme_states(case: tuple) -> None:
         assert not np.isnan(result.min_gap).any()
 
 
-def test_empty_road_everything_available_is_safe() -> None:
+@EVALUATORS
+def test_empty_road_everything_available_is_safe(evaluate: Evaluator) -> None:
     dyn = dynamics(3, 5)
     state = make_state(0.0, 1, 1, 25.0, 5, [])
     result = evaluate(state, dyn, "robust")
@@ -275,12 +288,16 @@ def test_empty_road_everything_available_is_safe() -> None:
     assert not result.fallback
 
 
-def test_invalid_mode_is_a_clear_error() -> None:
+@EVALUATORS
+def test_invalid_mode_is_a_clear_error(evaluate: Evaluator) -> None:
     with pytest.raises(ValueError, match="mode"):
         evaluate(make_state(0.0, 0, 0, 25.0, 5, []), dynamics(2, 5), "paranoid")  # type: ignore[arg-type]
+    with pytest.raises(ValueError, match="formula"):
+        evaluate(make_state(0.0, 0, 0, 25.0, 5, []), dynamics(2, 5), "robust", "eq13")  # type: ignore[arg-type]
 
 
-def test_road_state_keeps_exactly_the_vehicles_evaluate_considers() -> None:
+@EVALUATORS
+def test_road_state_keeps_exactly_the_vehicles_evaluate_considers(evaluate: Evaluator) -> None:
     """road_state snapshots only vehicles within RELEVANCE_RANGE along the road (what evaluate reads),
     and moving a far vehicle around beyond that range changes neither the snapshot nor the mask."""
     from safelane.safety.model import RELEVANCE_RANGE

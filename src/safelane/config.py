@@ -99,6 +99,12 @@ class ShieldConfig(_Section):
         strict=True,
         description="Replace an unsafe chosen action by the closest safe action (any agent becomes safe).",
     )
+    engine: Literal["compiled", "numpy"] = Field(
+        "compiled",
+        description="How the shield evaluates the safety model: 'compiled' (safelane.safety.compiled, numba, "
+        "microseconds a mask) or 'numpy' (safelane.safety.model.evaluate, the readable reference, about a "
+        "millisecond). Identical masks.",
+    )
 
 
 class SafelaneConfig(_Section):

@@ -153,7 +153,10 @@ def make_env(
     env = PaperReward(env, cfg.reward.b, cfg.reward.c, cfg.reward.v_min, cfg.reward.v_max)
     env = PaperObservation(env, cfg.state)
     if cfg.shield.mode != "none":
-        env = SafetyShield(env, mode=cfg.shield.mode, formula=cfg.shield.formula, override=cfg.shield.override)
+        shield = cfg.shield
+        env = SafetyShield(
+            env, mode=shield.mode, formula=shield.formula, override=shield.override, engine=shield.engine
+        )
     env.safelane_config = cfg  # type: ignore[attr-defined]
     if seed is not None:
         env.reset(seed=seed)

@@ -1,0 +1,93 @@
+"""What a robust mask costs: the numpy reference against the compiled kernel, on the same recorded states.
+
+Plays random-policy episodes under the robust shield (override on) and, in one process, times on every
+recorded decision: the numpy ``evaluate``, ``evaluate_compiled`` (from a RoadState), the shield's fast
+path (``compute_result``: the state built inside the kernel) and ``road_state``. Then splits a shielded
+decision of the fast simulator into simulator (everything below the shield) and shield.
+
+    PYTHONPATH=src python examples/shield_cost.py --simulator fast --episodes 3
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+
+from safelane.env.factory import make_env
+from safelane.safety.compiled import evaluate_compiled
+from safelane.safety.model import evaluate
+from safelane.safety.shield import SafetyShield, road_state
+
+
+def best_of(fn: Callable[[], Any], reps: int) -> float:
+    """Smallest of ``reps`` timings [µs] of ``fn()`` (the machine may be shared: the minimum is the cost)."""
+    times = []
+    for _ in range(reps):
+        t0 = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - t0)
+    return min(times) * 1e6
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--preset", default="fast")
+    parser.add_argument("--simulator", default="fast", choices=["fast", "highway-env"])
+    parser.add_argument("--episodes", type=int, default=3)
+    parser.add_argument("--reps", type=int, default=20)
+    args = parser.parse_args()
+
+    env = make_env(args.preset, simulator=args.simulator, **{"shield.mode": "robust", "shield.override": True})
+    assert isinstance(env, SafetyShield)
+    rng = np.random.default_rng(0)
+    rows: dict[str, list[float]] = {k: [] for k in ("numpy", "compiled", "shield", "road_state", "sim", "step")}
+    n_near = []
+    for episode in range(args.episodes):
+        _, info = env.reset(seed=episode)
+        done = False
+        while not done:
+            snap = info["snapshot"]
+            state, dyn = env.state_and_dynamics(snap)
+            n_near.append(state.n)
+            # (the lambdas run at once, inside the loop: binding the loop variables late is what is meant)
+            rows["numpy"].append(best_of(lambda: evaluate(state, dyn, "robust"), max(2, args.reps // 10)))  # noqa: B023
+            rows["compiled"].append(best_of(lambda: evaluate_compiled(state, dyn, "robust"), args.reps))  # noqa: B023
+            rows["shield"].append(best_of(lambda: env.compute_result(snap), args.reps))  # noqa: B023
+            rows["road_state"].append(best_of(lambda: road_state(snap), args.reps))  # noqa: B023
+            # One shielded decision, and the part of it below the shield (simulator, reward, observation).
+            action = int(rng.integers(5))
+            inner = env.env.step
+            spent = [0.0]
+
+            def timed_inner(a: int, inner: Callable = inner, spent: list = spent) -> Any:
+                t0 = time.perf_counter()
+                out = inner(a)
+                spent[0] = time.perf_counter() - t0
+                return out
+
+            env.env.step = timed_inner  # type: ignore[method-assign]
+            t0 = time.perf_counter()
+            _, _, terminated, truncated, info = env.step(action)
+            rows["step"].append((time.perf_counter() - t0) * 1e6)
+            del env.env.step
+            rows["sim"].append(spent[0] * 1e6)
+            done = terminated or truncated
+    med = {k: float(np.median(v)) for k, v in rows.items()}
+    print(f"{args.preset}/{args.simulator}: {len(n_near)} states, median {np.median(n_near):.0f} vehicles in range")
+    print(f"robust mask, numpy evaluate      : {med['numpy']:9.1f} µs")
+    print(f"robust mask, evaluate_compiled   : {med['compiled']:9.1f} µs  ({med['numpy'] / med['compiled']:.0f}x)")
+    print(f"robust mask, shield fast path    : {med['shield']:9.1f} µs  (state built in the kernel)")
+    print(f"road_state (numpy path only)     : {med['road_state']:9.1f} µs")
+    shield_part = med["step"] - med["sim"]
+    print(
+        f"shielded decision {med['step']:.1f} µs = below the shield {med['sim']:.1f} µs + shield {shield_part:.1f} µs "
+        f"({100 * shield_part / med['step']:.0f} %)"
+    )
+
+
+if __name__ == "__main__":
+    main()

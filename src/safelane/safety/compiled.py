@@ -1,0 +1,575 @@
+"""The safety model compiled: :func:`safelane.safety.model.evaluate` as one numba kernel per state.
+
+:func:`evaluate_compiled` has ``evaluate``'s signature and returns the same :class:`SafetyResult` —
+the same mask, safe, available and fallback, and ``min_gap`` to the bit — in microseconds instead of
+a millisecond. :mod:`safelane.safety.model` stays the readable specification; this module follows it
+operation by operation and in the same order, so the IEEE-754 arithmetic (no fastmath) rounds the
+same way: numpy's ``x**2`` on arrays is ``x*x``, ``np.cumsum`` a sequential sum, ``np.minimum`` /
+``np.maximum`` propagate NaN (:func:`_nmin`, :func:`_nmax`), ``np.power`` / ``np.cos`` & co. are
+libm's, as numba's calls are (checked: numpy dispatches no SIMD transcendental on this build's
+x86-64-v3 baseline; SVML is not used by numba here). The constants that depend only on the dynamics
+(frame times, the P-controller's decay powers) are computed by numpy exactly as the reference does,
+once per :class:`Dynamics`, and handed to the kernel.
+
+:func:`evaluate_snapshot` is the shield's fast path: it reads a :class:`RoadSnapshot` directly and
+builds the :class:`RoadState` arrays inside the kernel (as :func:`safelane.safety.shield.road_state`
+does, bit for bit on axis-aligned roads — every highway-env straight road), so no Python object per
+vehicle and no ``RoadState`` is built.
+
+Units: metres, m/s, seconds. ``formula="paper"`` (eq. 12, nominal only) is delegated to the numpy
+reference: it is a baseline evaluated at decision time, not on the shield's hot path.
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+
+import numpy as np
+from numba import njit
+
+from safelane.core import spaces
+from safelane.core.snapshot import RoadSnapshot
+from safelane.safety import model
+from safelane.safety.model import Dynamics, Formula, Mode, RoadState, SafetyResult
+
+# The kernels use the action indices as literals (numba freezes globals at compile time, and its disk
+# cache only watches this file): check here that they are still the core's.
+LANE_LEFT, IDLE, LANE_RIGHT, FASTER, SLOWER = 0, 1, 2, 3, 4
+N_ACTIONS = 5
+N_FALLBACKS = 4  # fallbacks k = 0..MAX_HOLD_DECISIONS (a literal, so the loops over them unroll)
+assert (spaces.LANE_LEFT, spaces.IDLE, spaces.LANE_RIGHT, spaces.FASTER, spaces.SLOWER) == (0, 1, 2, 3, 4)
+assert spaces.N_ACTIONS == N_ACTIONS and model.MAX_HOLD_DECISIONS + 1 == N_FALLBACKS, "update compiled.py"
+
+# The model's other constants travel as arguments for the same reason (no stale cached kernel).
+_TIE_BREAK = np.array(model.TIE_BREAK_ORDER, dtype=np.int64)
+_RELEVANCE = float(model.RELEVANCE_RANGE)
+_LATERAL = float(model.LATERAL_MOTION_THRESHOLD)
+
+
+# --------------------------------------------------------------------------------------------
+# numpy's scalar semantics.
+# --------------------------------------------------------------------------------------------
+
+
+@njit(cache=True, inline="always")
+def _nmin(a: float, b: float) -> float:
+    """``np.minimum(a, b)``: NaN if either is NaN (Python's ``min`` is not)."""
+    return a if (a <= b or a != a) else b
+
+
+@njit(cache=True, inline="always")
+def _nmax(a: float, b: float) -> float:
+    """``np.maximum(a, b)``: NaN if either is NaN."""
+    return a if (a >= b or a != a) else b
+
+
+@njit(cache=True, inline="always")
+def _speed_index(speed: float, ts: np.ndarray) -> int:
+    """``model.speed_to_index`` for one speed (``np.round`` is ``rint``: halves to even)."""
+    n = ts.shape[0]
+    r = np.rint((speed - ts[0]) / (ts[n - 1] - ts[0]) * (n - 1))
+    return int(_nmin(_nmax(r, 0.0), n - 1.0))
+
+
+@njit(cache=True, inline="always")
+def _lane_index(y: float, lane_width: float, lanes_count: int) -> int:
+    """``RoadState.lane_of`` for one lateral position [m]."""
+    return int(_nmin(_nmax(np.rint(y / lane_width), 0.0), lanes_count - 1.0))
+
+
+@njit(cache=True, inline="always")
+def _idm_behind(
+    acc: float, delta: float, dec: float, wanted: float, time_wanted: float, vx: float,
+    gap: float, ego_speed: float, ego_target: float,
+) -> float:  # fmt: skip
+    """``model.idm_acceleration_behind`` for one vehicle (same operations, same order)."""
+    target = 1e-2 if abs(ego_target) < 1e-2 else ego_target
+    free = acc * (1 - math.pow(_nmax(ego_speed, 0.0) / abs(target), delta))
+    ab = -acc * dec
+    dv = ego_speed - vx
+    d_star = wanted + ego_speed * time_wanted + ego_speed * dv / (2 * np.sqrt(ab))
+    d = 1e-2 if abs(gap) < 1e-2 else gap
+    q = d_star / d
+    return free - acc * (q * q)
+
+
+# --------------------------------------------------------------------------------------------
+# The evaluation.
+# --------------------------------------------------------------------------------------------
+
+
+@njit(cache=True, error_model="numpy")
+def _evaluate(
+    ego_x: float, ego_speed: float, ego_lane: int, ego_target_lane: int, ego_target_speed: float,
+    ego_speed_index: int, ego_length: float, speed_limit: float,
+    x: np.ndarray, y: np.ndarray, vx: np.ndarray, vy: np.ndarray, heading: np.ndarray, length: np.ndarray,
+    crashed: np.ndarray, brake_max: np.ndarray, accel_max: np.ndarray, can_change_lane: np.ndarray,
+    idm_delta: np.ndarray, idm_comfort_acc: np.ndarray, idm_comfort_dec: np.ndarray,
+    idm_distance_wanted: np.ndarray, idm_time_wanted: np.ndarray, max_braking_imposed: np.ndarray,
+    ts: np.ndarray, t: np.ndarray, powers: np.ndarray, tie_break: np.ndarray,
+    decision_period: float, frame_dt: float, frames: int, horizon: int, ego_kp: float, lane_width: float,
+    lanes_count: int, follower_reaction: float, ego_leave_time: float, cut_in_time: float, margin: float,
+    relevance: float, lateral_threshold: float, robust: bool,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, bool]:  # fmt: skip
+    """``model.evaluate`` (formula ``kinematic``) of one state: (mask, safe, available, min_gap, fallback)."""
+    n_ts = ts.shape[0]
+    n_t = t.shape[0]  # frames of the horizon + 1
+    total = n_t - 1
+
+    # --- available_actions -------------------------------------------------------------------
+    available = np.zeros(N_ACTIONS, dtype=np.bool_)
+    available[IDLE] = True
+    available[LANE_LEFT] = ego_lane > 0
+    available[LANE_RIGHT] = ego_lane < lanes_count - 1
+    available[FASTER] = ego_speed_index < n_ts - 1
+    available[SLOWER] = ego_speed_index > 0
+
+    # --- action_targets ----------------------------------------------------------------------
+    idx_now = _speed_index(ego_speed, ts)
+    targets = np.full(N_ACTIONS, ego_target_speed)
+    targets[FASTER] = ts[min(idx_now + 1, n_ts - 1)]
+    targets[SLOWER] = ts[max(idx_now - 1, 0)]
+
+    # --- ego_trajectories: xs[a, frame, k] (the reference's (5, F, T) transposed, so the gap loop
+    # below runs the 4 fallbacks side by side); the speeds only where evaluate reads them ----------
+    xs = np.empty((N_ACTIONS, n_t, N_FALLBACKS))
+    v_key = np.empty(N_ACTIONS)  # ego_v[a, 0, frames]: the cut-in key
+    v4 = np.empty(N_FALLBACKS)  # per fallback: speed, position, set-point at the decision's start...
+    x4 = np.empty(N_FALLBACKS)
+    tg4 = np.empty(N_FALLBACKS)
+    dv4 = np.empty(N_FALLBACKS)
+    vp4 = np.empty(N_FALLBACKS)  # ...the frame's speed and the running sum of the speeds
+    cov4 = np.empty(N_FALLBACKS)
+    for a in range(N_ACTIONS):
+        # IDLE and the lane changes share their set-point (FASTER / SLOWER may too): one trajectory per
+        # distinct set-point, copied — the same computation on the same inputs, so the same bits.
+        src = -1
+        for b in range(a):
+            if targets[b] == targets[a]:
+                src = b
+                break
+        if src >= 0:
+            xs[a] = xs[src]
+            v_key[a] = v_key[src]
+            continue
+        for k in range(N_FALLBACKS):
+            v4[k], x4[k], tg4[k] = ego_speed, ego_x, targets[a]
+        for d in range(horizon):
+            base = d * frames
+            for k in range(N_FALLBACKS):
+                if d > k:  # fallback k sends SLOWER from decision k + 1 on (its hold is over)
+                    tg4[k] = ts[max(_speed_index(v4[k], ts) - 1, 0)]
+                dv4[k] = v4[k] - tg4[k]
+                # Frame 0 of the decision: covered = 0, so x = 0·dt + x. The reference writes it over
+                # the previous decision's last frame: for the speed that is (v − target)·1 + target,
+                # which can differ from v in the last bit — and ego_v[a, 0, frames] is read below.
+                xs[a, base, k] = 0.0 * frame_dt + x4[k]
+                vp4[k] = dv4[k] * powers[0] + tg4[k]
+            if d == 1:
+                v_key[a] = vp4[0]
+            for j in range(1, frames + 1):
+                p = powers[j]
+                for k in range(N_FALLBACKS):  # the 4 fallbacks side by side: independent chains
+                    # np.cumsum: out[0] = in[0], then out[j] = out[j − 1] + in[j] (sequential).
+                    cov4[k] = vp4[k] if j == 1 else cov4[k] + vp4[k]
+                    vp4[k] = dv4[k] * p + tg4[k]
+                    xs[a, base + j, k] = cov4[k] * frame_dt + x4[k]
+            if d == 0:
+                v_key[a] = vp4[0]  # kept when the horizon is a single decision
+            for k in range(N_FALLBACKS):
+                x4[k] = xs[a, base + frames, k]
+                v4[k] = vp4[k]
+        for k in range(N_FALLBACKS):
+            xs[a, total, k] += _nmax(v4[k] - 0.0, 0.0) / ego_kp  # the exponential tail beyond the horizon
+
+    # --- nearby vehicles and their worst-case motion -------------------------------------------
+    n = x.shape[0]
+    near = np.empty(n, dtype=np.int64)
+    m = 0
+    for i in range(n):
+        if abs(x[i] - ego_x) < relevance and np.isfinite(x[i]):
+            near[m] = i
+            m += 1
+    other_x = np.empty((m, n_t))  # leaders brake, followers surge (only the one used is computed)
+    is_ahead = np.empty(m, dtype=np.bool_)
+    half = np.empty(m)
+    lanes_near = np.empty(m, dtype=np.int64)
+    t_last = t[n_t - 1]
+    t_r = follower_reaction if not (t_last < follower_reaction) else t_last  # Python's min()
+    for r in range(m):
+        i = near[r]
+        half[r] = 0.5 * (length[i] + ego_length)
+        lanes_near[r] = _lane_index(y[i], lane_width, lanes_count)
+        is_ahead[r] = x[i] - ego_x >= 0
+        if is_ahead[r]:  # braking_positions; a crashed vehicle is a wall where it stands
+            v0 = _nmax(0.0 if crashed[i] else vx[i], 0.0)
+            b = _nmax(1e9 if crashed[i] else brake_max[i], 1e-6)
+            stop = v0 / b
+            hb = 0.5 * b
+            for j in range(n_t):
+                tt = _nmin(t[j], stop)
+                other_x[r, j] = x[i] + v0 * tt - hb * (tt * tt)
+        else:  # follower_positions
+            v0 = _nmax(vx[i], 0.0)
+            acc = accel_max[i]
+            b = _nmax(brake_max[i], 1e-6)
+            ha = 0.5 * acc
+            hb = 0.5 * b
+            v1 = v0 + acc * t_r
+            stop = v1 / b
+            for j in range(n_t):
+                t1 = _nmin(t[j], t_r)
+                x1 = x[i] + v0 * t1 + ha * (t1 * t1)
+                t2 = _nmin(_nmax(t[j] - t_r, 0.0), stop)
+                other_x[r, j] = x1 + v1 * t2 - hb * (t2 * t2)
+
+    # --- _occupancy: (row, lane, nominal); every entry starts at t = 0 -------------------------
+    occ_row = np.empty(2 * m, dtype=np.int64)
+    occ_lane = np.empty(2 * m, dtype=np.int64)
+    occ_nominal = np.empty(2 * m, dtype=np.bool_)
+    n_occ = 0
+    for r in range(m):
+        i = near[r]
+        own = lanes_near[r]
+        occ_row[n_occ], occ_lane[n_occ], occ_nominal[n_occ] = r, own, True
+        n_occ += 1
+        if robust and (abs(heading[i]) > lateral_threshold or abs(vy[i]) > 0.3):
+            nxt = own + (1 if vy[i] > 0 else -1)
+            if 0 <= nxt < lanes_count:
+                occ_row[n_occ], occ_lane[n_occ], occ_nominal[n_occ] = r, nxt, False
+                n_occ += 1
+
+    # Windows are contiguous ranges of the increasing frame times: [first t >= start, last t <= until]
+    # (NaN bounds give empty ranges, as the reference's comparisons do).
+    lo_now = 0
+    while lo_now < n_t and not (t[lo_now] >= 0.0):
+        lo_now += 1
+    lo_cut = 0
+    while lo_cut < n_t and not (t[lo_cut] >= cut_in_time):
+        lo_cut += 1
+    hi_leave = n_t - 1
+    while hi_leave >= 0 and not (t[hi_leave] <= ego_leave_time):
+        hi_leave -= 1
+    hi_inf = n_t - 1
+
+    inf = math.inf
+    joint_gap = np.full((N_ACTIONS, N_FALLBACKS), inf)
+    ahead_gap = np.full((N_ACTIONS, N_FALLBACKS), inf)
+    nominal_joint = np.full((N_ACTIONS, N_FALLBACKS), inf)
+    nominal_ahead = np.full((N_ACTIONS, N_FALLBACKS), inf)
+    nominal_ok = np.ones(N_ACTIONS, dtype=np.bool_)
+    worst = np.empty(N_FALLBACKS)
+    # _cut_in_candidates, memoised on its key as the reference does (IDLE and the lane changes share it).
+    keys = np.empty((N_ACTIONS, 3))
+    n_keys = 0
+    permitted = np.zeros((N_ACTIONS, m), dtype=np.bool_)
+    unfiltered = np.zeros((N_ACTIONS, m), dtype=np.bool_)
+    ego_lanes = np.empty(3, dtype=np.int64)
+    ego_until_leave = np.empty(3, dtype=np.bool_)  # until = ego_leave_time (else inf)
+    target_clip = 0.0
+    for a in range(N_ACTIONS):
+        if not available[a]:
+            continue
+        # _action_lanes: the sorted set {ego_lane, ego_target_lane}, then a lane change's new lane.
+        lo_l, hi_l = min(ego_lane, ego_target_lane), max(ego_lane, ego_target_lane)
+        n_el = 0
+        if a != LANE_LEFT and a != LANE_RIGHT:
+            ego_lanes[0], ego_until_leave[0] = lo_l, False
+            n_el = 1
+            if hi_l != lo_l:
+                ego_lanes[1], ego_until_leave[1] = hi_l, False
+                n_el = 2
+        else:
+            step = -1 if a == LANE_LEFT else 1
+            new_target = min(max(ego_target_lane + step, 0), lanes_count - 1)
+            for q in range(1 if hi_l == lo_l else 2):
+                lane = lo_l if q == 0 else hi_l
+                if lane != new_target:  # still overlapped until the ego has left it
+                    ego_lanes[n_el], ego_until_leave[n_el] = lane, True
+                    n_el += 1
+            ego_lanes[n_el], ego_until_leave[n_el] = new_target, False
+            n_el += 1
+
+        slot = -1
+        if robust:
+            kx, kv, kt = xs[a, frames, 0], v_key[a], targets[a]
+            for s in range(n_keys):
+                if keys[s, 0] == kx and keys[s, 1] == kv and keys[s, 2] == kt:
+                    slot = s
+                    break
+            if slot < 0:
+                slot = n_keys
+                keys[slot, 0], keys[slot, 1], keys[slot, 2] = kx, kv, kt
+                n_keys += 1
+                target_clip = _nmin(_nmax(kt, 0.0), speed_limit)  # np.clip(ego_target, 0, speed_limit)
+                for r in range(m):
+                    i = near[r]
+                    can = can_change_lane[i] and abs(vx[i]) >= 1.0
+                    d_now = x[i] - ego_x
+                    d_end = x[i] + vx[i] * decision_period - kx
+                    ahead_c = d_now > 0 or d_end > 0
+                    unfiltered[slot, r] = can and ahead_c
+                    if can and ahead_c:
+                        acc, delta, dec = idm_comfort_acc[i], idm_delta[i], idm_comfort_dec[i]
+                        dw, tw = idm_distance_wanted[i], idm_time_wanted[i]
+                        limit = -max_braking_imposed[i]
+                        ok = _idm_behind(acc, delta, dec, dw, tw, vx[i], d_now, ego_speed, target_clip) >= limit
+                        if not ok:  # the end-of-period check only matters when the one of now fails
+                            ok = _idm_behind(acc, delta, dec, dw, tw, vx[i], d_end, kv, target_clip) >= limit
+                        permitted[slot, r] = ok
+                    else:
+                        permitted[slot, r] = False
+
+        # Every conflict: (row, window, nominal). The order of the reference's pairs only matters to
+        # its min / max reductions, which are order-free here (NaN propagates either way).
+        n_conf = n_occ + (n_el * m if robust else 0)
+        for c in range(n_conf):
+            if c < n_occ:
+                r, lane_c, nominal = occ_row[c], occ_lane[c], occ_nominal[c]
+                lo = lo_now
+            else:
+                e_idx, r = divmod(c - n_occ, m)
+                lane_c = ego_lanes[e_idx]
+                occupied = (lane_c == ego_lane) | (lane_c == ego_target_lane)
+                cand = permitted[slot, r] if occupied else unfiltered[slot, r]
+                if not (cand and abs(lanes_near[r] - lane_c) == 1):
+                    continue
+                nominal = False
+                lo = lo_cut
+            for e in range(n_el):
+                if ego_lanes[e] != lane_c:
+                    continue
+                hi = hi_leave if ego_until_leave[e] else hi_inf
+                sign = 1.0 if is_ahead[r] else -1.0
+                h = half[r]
+                # The where(window, gap, inf).min(axis=-1) of the reference: the window's running minimum,
+                # the 4 fallbacks side by side (independent chains; min is exact in any order).
+                w0 = w1 = w2 = w3 = inf
+                for j in range(lo, hi + 1):
+                    o = other_x[r, j]
+                    w0 = _nmin(w0, sign * (o - xs[a, j, 0]) - h)
+                    w1 = _nmin(w1, sign * (o - xs[a, j, 1]) - h)
+                    w2 = _nmin(w2, sign * (o - xs[a, j, 2]) - h)
+                    w3 = _nmin(w3, sign * (o - xs[a, j, 3]) - h)
+                worst[0], worst[1], worst[2], worst[3] = w0, w1, w2, w3
+                best_f = -inf
+                for f in range(N_FALLBACKS):
+                    joint_gap[a, f] = _nmin(joint_gap[a, f], worst[f])
+                    if is_ahead[r]:
+                        ahead_gap[a, f] = _nmin(ahead_gap[a, f], worst[f])
+                    if nominal:
+                        nominal_joint[a, f] = _nmin(nominal_joint[a, f], worst[f])
+                        if is_ahead[r]:
+                            nominal_ahead[a, f] = _nmin(nominal_ahead[a, f], worst[f])
+                    best_f = worst[f] if f == 0 else _nmax(best_f, worst[f])
+                if nominal and not (best_f >= margin):
+                    nominal_ok[a] = False
+
+    # --- the verdict ----------------------------------------------------------------------------
+    best_gap = np.empty(N_ACTIONS)
+    safe = np.empty(N_ACTIONS, dtype=np.bool_)
+    for a in range(N_ACTIONS):
+        g = joint_gap[a, 0]
+        for f in range(1, N_FALLBACKS):
+            g = _nmax(g, joint_gap[a, f])
+        best_gap[a] = g if available[a] else -inf
+        safe[a] = ((best_gap[a] >= margin) if robust else nominal_ok[a]) and available[a]
+    if not np.isfinite(ego_leave_time):
+        safe[LANE_LEFT] = safe[LANE_RIGHT] = False
+        nominal_ok[LANE_LEFT] = nominal_ok[LANE_RIGHT] = False
+    if safe.any():
+        return safe.copy(), safe, available, best_gap, False
+    pool = nominal_ok & available
+    if robust and pool.any():
+        ahead_of, gaps_of = ahead_gap, joint_gap
+    else:
+        pool = available
+        ahead_of, gaps_of = nominal_ahead, nominal_joint
+    # least_bad_action: the largest (ahead gap, gap, −rank), compared as Python compares tuples.
+    choice = IDLE
+    found = False
+    b1 = b2 = 0.0
+    b3 = 0
+    for rank in range(tie_break.shape[0]):
+        a = tie_break[rank]
+        if not pool[a]:
+            continue
+        g1, g2 = ahead_of[a, 0], gaps_of[a, 0]
+        for f in range(1, N_FALLBACKS):
+            g1, g2 = _nmax(g1, ahead_of[a, f]), _nmax(g2, gaps_of[a, f])
+        k1, k2, k3 = _nmin(g1, 1e6), _nmin(g2, 1e6), -rank
+        better = True
+        if found:
+            better = k1 > b1 if k1 != b1 else (k2 > b2 if k2 != b2 else k3 > b3)
+        if better:
+            found, b1, b2, b3, choice = True, k1, k2, k3, a
+    mask = np.zeros(N_ACTIONS, dtype=np.bool_)
+    mask[choice] = True
+    return mask, safe, available, best_gap, True
+
+
+@njit(cache=True, error_model="numpy")
+def _evaluate_snapshot(
+    position: np.ndarray, speed: np.ndarray, heading: np.ndarray, length: np.ndarray, crashed: np.ndarray,
+    brake_max: np.ndarray, accel_max: np.ndarray, can_change_lane: np.ndarray, idm_delta: np.ndarray,
+    idm_comfort_acc: np.ndarray, idm_comfort_dec: np.ndarray, idm_distance_wanted: np.ndarray,
+    idm_time_wanted: np.ndarray, max_braking_imposed: np.ndarray,
+    ego: int, ego_lane: int, ego_target_lane: int, ego_target_speed: float, ego_speed_index: int,
+    origin: np.ndarray, direction: np.ndarray, lateral: np.ndarray, lane_heading: float, speed_limit: float,
+    ts: np.ndarray, t: np.ndarray, powers: np.ndarray, tie_break: np.ndarray,
+    decision_period: float, frame_dt: float, frames: int, horizon: int, ego_kp: float, lane_width: float,
+    lanes_count: int, follower_reaction: float, ego_leave_time: float, cut_in_time: float, margin: float,
+    relevance: float, lateral_threshold: float, robust: bool,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, bool]:  # fmt: skip
+    """``shield.road_state`` then :func:`_evaluate`, without building the state in Python.
+
+    The projections on the lane frame are written as ``p·d = p₀d₀ + p₁d₁``: the reference's ``@``
+    (BLAS) may round differently for an oblique frame, so the caller only comes here for the
+    axis-aligned one, where every order gives the same bits.
+    """
+    n = speed.shape[0]
+    e0 = position[ego, 0] - origin[0]
+    e1 = position[ego, 1] - origin[1]
+    ego_x = e0 * direction[0] + e1 * direction[1]
+    ego_speed = speed[ego] * math.cos(heading[ego] - lane_heading)
+    keep = np.empty(n, dtype=np.int64)
+    xk = np.empty(n)
+    m = 0
+    for k in range(n):  # the other bodies (static objects included) within range, in order
+        if k == ego:
+            continue
+        xv = (position[k, 0] - origin[0]) * direction[0] + (position[k, 1] - origin[1]) * direction[1]
+        if abs(xv - ego_x) < relevance and np.isfinite(xv):
+            keep[m] = k
+            xk[m] = xv
+            m += 1
+    keep, x = keep[:m], xk[:m].copy()
+    y = np.empty(m)
+    vx = np.empty(m)
+    vy = np.empty(m)
+    rel_heading = np.empty(m)
+    for r in range(m):
+        k = keep[r]
+        y[r] = (position[k, 0] - origin[0]) * lateral[0] + (position[k, 1] - origin[1]) * lateral[1]
+        h = heading[k] - lane_heading
+        c, s = np.cos(h), np.sin(h)
+        vx[r] = speed[k] * c
+        vy[r] = speed[k] * s
+        rel_heading[r] = np.arctan2(s, c)
+    return _evaluate(
+        ego_x, ego_speed, ego_lane, ego_target_lane, ego_target_speed, ego_speed_index, length[ego], speed_limit,
+        x, y, vx, vy, rel_heading, length[keep], crashed[keep], brake_max[keep], accel_max[keep],
+        can_change_lane[keep], idm_delta[keep], idm_comfort_acc[keep], idm_comfort_dec[keep],
+        idm_distance_wanted[keep], idm_time_wanted[keep], max_braking_imposed[keep],
+        ts, t, powers, tie_break, decision_period, frame_dt, frames, horizon, ego_kp, lane_width, lanes_count,
+        follower_reaction, ego_leave_time, cut_in_time, margin, relevance, lateral_threshold, robust,
+    )  # fmt: skip
+
+
+# --------------------------------------------------------------------------------------------
+# Python entries.
+# --------------------------------------------------------------------------------------------
+
+
+@functools.lru_cache(maxsize=64)
+def _horizon_arrays(
+    frame_dt: float, frames: int, horizon: int, ego_kp: float, target_speeds: tuple[float, ...]
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(target speeds [m/s], frame times [s], decay powers) computed by numpy exactly as the reference does."""
+    ts = np.asarray(target_speeds, dtype=float)
+    t = np.arange(horizon * frames + 1) * frame_dt  # Dynamics.times
+    powers = (1.0 - ego_kp * frame_dt) ** np.arange(frames + 1)  # ego_trajectories' decay^k
+    for a in (ts, t, powers):
+        a.flags.writeable = False
+    return ts, t, powers
+
+
+def _check(mode: str, formula: str) -> None:
+    if mode not in ("nominal", "robust"):
+        raise ValueError(f"mode: got {mode!r}; allowed: 'nominal', 'robust'")
+    if formula not in ("kinematic", "paper"):
+        raise ValueError(f"formula: got {formula!r}; allowed: 'kinematic', 'paper'")
+
+
+_ARGS: dict[tuple[int, float], tuple[Dynamics, tuple]] = {}
+"""The kernel's dynamics arguments per (Dynamics object, leave time): the shield evaluates one Dynamics
+for a whole episode with a handful of leave times, and building them costs as much as a small kernel."""
+
+
+def _dynamics_args(dyn: Dynamics, ego_leave_time: float) -> tuple:
+    key = (id(dyn), ego_leave_time)
+    hit = _ARGS.get(key)
+    if hit is not None and hit[0] is dyn:  # the entry holds dyn, so its id is not reused meanwhile
+        return hit[1]
+    ts, t, powers = _horizon_arrays(
+        dyn.frame_dt, dyn.frames_per_decision, dyn.horizon_decisions, dyn.ego_kp, dyn.target_speeds
+    )
+    args = (
+        ts, t, powers, _TIE_BREAK, dyn.decision_period, dyn.frame_dt, dyn.frames_per_decision,
+        dyn.horizon_decisions, dyn.ego_kp, dyn.lane_width, dyn.lanes_count, dyn.follower_reaction,
+        ego_leave_time, dyn.cut_in_time, dyn.margin, _RELEVANCE, _LATERAL,
+    )  # fmt: skip
+    if len(_ARGS) >= 256:
+        _ARGS.clear()
+    _ARGS[key] = (dyn, args)
+    return args
+
+
+def _result(out: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, bool]) -> SafetyResult:
+    mask, safe, available, min_gap, fallback = out
+    return SafetyResult(mask, safe, available, bool(fallback), min_gap)
+
+
+def evaluate_compiled(
+    state: RoadState, dyn: Dynamics, mode: Mode = "robust", formula: Formula = "kinematic"
+) -> SafetyResult:
+    """The safety mask of ``state`` — :func:`safelane.safety.model.evaluate`, compiled.
+
+    Same arguments (positions in metres, speeds in m/s, times in seconds), same errors, same result:
+    mask, safe, available and fallback identical, ``min_gap`` [m] bit for bit. ``formula="paper"`` in
+    nominal mode is computed by the numpy reference (eq. 12 is a baseline off the hot path; robust
+    mode ignores the formula, as the reference does).
+    """
+    _check(mode, formula)
+    if mode == "nominal" and formula == "paper":
+        return model.evaluate(state, dyn, mode, formula)
+    s = state
+    out = _evaluate(
+        s.ego_x, s.ego_speed, s.ego_lane, s.ego_target_lane, s.ego_target_speed, s.ego_speed_index,
+        s.ego_length, s.speed_limit, s.x, s.y, s.vx, s.vy, s.heading, s.length, s.crashed, s.brake_max,
+        s.accel_max, s.can_change_lane, s.idm_delta, s.idm_comfort_acc, s.idm_comfort_dec,
+        s.idm_distance_wanted, s.idm_time_wanted, s.max_braking_imposed,
+        *_dynamics_args(dyn, dyn.ego_leave_time), mode == "robust",
+    )  # fmt: skip
+    return _result(out)
+
+
+def axis_aligned(snap: RoadSnapshot) -> bool:
+    """Whether the snapshot's lane frame is x along the road, y across (every highway-env straight road):
+    there :func:`evaluate_snapshot` reproduces ``road_state``'s projections bit for bit."""
+    d, lat = snap.lane_direction, snap.lane_lateral
+    return bool(d[0] == 1.0 and d[1] == 0.0 and lat[0] == 0.0 and lat[1] == 1.0)
+
+
+def evaluate_snapshot(
+    snap: RoadSnapshot, dyn: Dynamics, mode: Mode = "robust", *, lane_heading: float, ego_leave_time: float
+) -> SafetyResult:
+    """``evaluate_compiled(road_state(snap), replace(dyn, ego_leave_time=...), mode)`` in one kernel.
+
+    The shield's fast path (formula ``kinematic``): the :class:`RoadState` is built inside the kernel,
+    bit for bit as :func:`safelane.safety.shield.road_state` builds it, for an :func:`axis_aligned`
+    snapshot (the caller checks). ``lane_heading`` [rad]: ``atan2`` of the lane direction, computed
+    once per episode; ``ego_leave_time`` [s] replaces ``dyn.ego_leave_time``.
+    """
+    _check(mode, "kinematic")
+    e = snap.ego
+    out = _evaluate_snapshot(
+        snap.position, snap.speed, snap.heading, snap.length, snap.crashed, snap.brake_max, snap.accel_max,
+        snap.can_change_lane, snap.idm_delta, snap.idm_comfort_acc, snap.idm_comfort_dec,
+        snap.idm_distance_wanted, snap.idm_time_wanted, snap.max_braking_imposed,
+        e, int(snap.lane[e]), int(snap.target_lane[e]), snap.ego_target_speed, snap.ego_speed_index,
+        snap.lane_origin, snap.lane_direction, snap.lane_lateral, lane_heading, snap.speed_limit,
+        *_dynamics_args(dyn, ego_leave_time), mode == "robust",
+    )  # fmt: skip
+    return _result(out)

@@ -1,0 +1,182 @@
+"""The compiled safety kernel gives the numpy reference's results, bit for bit, on random and real states."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections.abc import Iterator
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+
+from safelane.core.errors import ConfigError, NotSupported
+from safelane.core.snapshot import RoadSnapshot
+from safelane.env.factory import make_env
+from safelane.safety import compiled, model
+from safelane.safety.model import Dynamics, RoadState, SafetyResult
+from safelane.safety.shield import SafetyShield
+from test_safety import PROPERTY_SETTINGS, road
+
+MODES = ("nominal", "robust")
+
+
+def assert_same(ref: SafetyResult, got: SafetyResult, what: str = "") -> None:
+    """Identical masks and flags; ``min_gap`` equal bit for bit (inf == inf, NaN == NaN, signs of zero too)."""
+    for name in ("mask", "safe", "available"):
+        a, b = getattr(ref, name), getattr(got, name)
+        assert a.dtype == b.dtype == bool and np.array_equal(a, b), f"{what} {name}: {a} != {b}"
+    assert ref.fallback == got.fallback, f"{what} fallback"
+    assert isinstance(got.fallback, bool)
+    gap_a, gap_b = ref.min_gap.view(np.int64), got.min_gap.view(np.int64)
+    assert np.array_equal(gap_a, gap_b), f"{what} min_gap: {ref.min_gap.tolist()} != {got.min_gap.tolist()}"
+
+
+def mismatches(state: RoadState, dyn: Dynamics) -> list[str]:
+    """The modes in which the compiled kernel differs from the reference on ``state``."""
+    bad = []
+    for mode in MODES:
+        try:
+            assert_same(model.evaluate(state, dyn, mode), compiled.evaluate_compiled(state, dyn, mode), mode)
+        except AssertionError as err:
+            bad.append(str(err))
+    return bad
+
+
+@PROPERTY_SETTINGS
+@given(road())
+def test_random_states_bit_identical(case: tuple) -> None:
+    state, dyn, _ = case
+    assert mismatches(state, dyn) == []
+
+
+@settings(max_examples=150, deadline=None)
+@given(road(extreme=True))
+def test_extreme_states_bit_identical(case: tuple) -> None:
+    """Overlapping and crashed vehicles, headings up to ±π/2, one lane, a standstill ego."""
+    state, dyn, _ = case
+    assert mismatches(state, dyn) == []
+    # The ego that can never leave its lane (ego_leave_time = inf) and the paper's eq. 12 (delegated).
+    slow = dataclasses.replace(dyn, ego_leave_time=math.inf)
+    assert mismatches(state, slow) == []
+    paper = compiled.evaluate_compiled(state, dyn, "nominal", "paper")
+    assert_same(model.evaluate(state, dyn, "nominal", "paper"), paper)
+
+
+# --------------------------------------------------------------------------------------------
+# Recorded states of real episodes, both simulators.
+# --------------------------------------------------------------------------------------------
+
+
+def recorded(
+    preset: str, simulator: str, override: bool, episodes: int, seed: int, max_steps: int = 1000
+) -> Iterator[tuple[SafetyShield, RoadSnapshot]]:
+    """Every decision's snapshot of random-policy episodes, under the robust shield (``override``: it
+    replaces the unsafe choices, so the episodes last; else the random actions are executed as chosen)."""
+    try:
+        env = make_env(preset, simulator=simulator, **{"shield.mode": "robust", "shield.override": override})
+    except NotSupported as err:
+        pytest.skip(str(err))
+    rng = np.random.default_rng(seed)
+    assert isinstance(env, SafetyShield)
+    steps = 0
+    for episode in range(episodes):
+        if steps >= max_steps:
+            break
+        _, info = env.reset(seed=seed * 1000 + episode)
+        yield env, info["snapshot"]
+        done = False
+        while not done and steps < max_steps:
+            _, _, terminated, truncated, info = env.step(int(rng.integers(5)))
+            steps += 1
+            yield env, info["snapshot"]
+            done = terminated or truncated
+    env.close()
+
+
+def check_recorded(shield: SafetyShield, snap: RoadSnapshot) -> int:
+    """Compare the reference, the compiled kernel and the shield's fast path on one snapshot, both modes."""
+    state, dyn = shield.state_and_dynamics(snap)
+    mode, engine = shield.mode, shield.engine
+    try:
+        for m in MODES:
+            ref = model.evaluate(state, dyn, m)
+            assert_same(ref, compiled.evaluate_compiled(state, dyn, m), f"evaluate_compiled {m}")
+            shield.mode, shield.engine = m, "compiled"
+            assert_same(ref, shield.compute_result(snap), f"shield (snapshot kernel) {m}")
+    finally:
+        shield.mode, shield.engine = mode, engine
+    return len(MODES)
+
+
+CASES = [
+    (preset, simulator, override)
+    for preset in ("fast", "paper")
+    for simulator in ("highway-env", "fast")
+    for override in (False, True)
+]
+
+
+@pytest.mark.parametrize(("preset", "simulator", "override"), CASES)
+def test_recorded_states_bit_identical(preset: str, simulator: str, override: bool) -> None:
+    """About 20 decisions of each (preset, simulator, policy): ≈ 150 states in all, both modes."""
+    n = 0
+    for shield, snap in recorded(preset, simulator, override, episodes=4, seed=7, max_steps=15):
+        n += check_recorded(shield, snap)
+    assert n >= len(MODES) * 15
+
+
+LONG_DECISIONS = {"fast": 2000, "highway-env": 500}
+"""Decisions per case of the long check (10 000 in all): the compiled simulator's decisions are cheap."""
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize(("preset", "simulator", "override"), CASES)
+def test_recorded_states_bit_identical_long(preset: str, simulator: str, override: bool) -> None:
+    """10 000 decisions over the 8 cases, both modes: not one bit differs (run with ``-m slow``)."""
+    n = 0
+    steps = LONG_DECISIONS[simulator]
+    for shield, snap in recorded(preset, simulator, override, episodes=10_000, seed=11, max_steps=steps):
+        n += check_recorded(shield, snap)
+    print(f"{preset}/{simulator}/override={override}: {n // len(MODES)} states x {len(MODES)} modes, 0 mismatches")
+    assert n >= len(MODES) * steps
+
+
+# --------------------------------------------------------------------------------------------
+# The shield.
+# --------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("simulator", ["highway-env", "fast"])
+def test_engines_drive_the_same_episode(simulator: str) -> None:
+    """engine=numpy and engine=compiled: the same actions executed, the same masks, the same flags."""
+    traces = {}
+    for engine in ("numpy", "compiled"):
+        env = make_env(
+            "fast",
+            simulator=simulator,
+            **{"shield.mode": "robust", "shield.override": True, "shield.engine": engine},
+        )
+        rng = np.random.default_rng(5)
+        trace = []
+        for episode in range(2):
+            _, info = env.reset(seed=40 + episode)
+            trace.append(info["action_mask"].tolist())
+            for _ in range(15):
+                _, _, terminated, truncated, info = env.step(int(rng.integers(5)))
+                trace.append((info["executed_action"], info["action_mask"].tolist(), info["fallback"]))
+                if terminated or truncated:
+                    break
+        env.close()
+        traces[engine] = trace
+    assert traces["numpy"] == traces["compiled"]
+
+
+def test_engine_is_configurable() -> None:
+    env = make_env("fast", **{"shield.mode": "robust", "shield.engine": "numpy"})
+    assert isinstance(env, SafetyShield) and env.engine == "numpy"
+    assert make_env("fast", **{"shield.mode": "robust"}).engine == "compiled"
+    with pytest.raises(ConfigError, match=r"^shield\.engine: got 'gpu'; .*'compiled' or 'numpy'"):
+        make_env("fast", **{"shield.mode": "robust", "shield.engine": "gpu"})
+    with pytest.raises(ValueError, match=r"^shield\.engine: got 'gpu'; allowed: 'compiled', 'numpy'"):
+        SafetyShield(env.env, engine="gpu")  # type: ignore[arg-type]

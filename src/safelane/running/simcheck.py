@@ -287,6 +287,17 @@ def _run_unit(cfg_data: dict[str, Any], seed: int, tol: float, unit: tuple[Any, 
     return stat_episodes_of(cfg, policy, sim, start, count, seed)
 
 
+def _normalised(header: Any) -> Any:
+    """A record header with its configuration re-validated, so that a record written before a config
+    key was added (with its default) still matches the same configuration now."""
+    if not isinstance(header, dict) or not isinstance(header.get("config"), dict):
+        return header
+    try:
+        return {**header, "config": config_to_dict(build_config(header["config"]))}
+    except ConfigError:
+        return header
+
+
 class CheckRecord:
     """The JSON-lines file of a check's finished units (``--record``): a header naming the configuration,
     seed and tolerance, then one line per unit, appended as each finishes. A killed check re-run with
@@ -303,7 +314,7 @@ class CheckRecord:
                 text = text[: text.rfind("\n") + 1]
                 path.write_text(text)
             lines = [json.loads(line) for line in text.splitlines() if line.strip()]
-            if not lines or lines[0].get("header") != header:
+            if not lines or _normalised(lines[0].get("header")) != _normalised(header):
                 raise ConfigError(
                     f"--record {path}: written by a check of another configuration, seed or tolerance; give a new file"
                 )

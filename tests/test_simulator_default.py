@@ -50,3 +50,12 @@ def test_reproduce_defaults_to_fast(tmp_path: Path) -> None:
     spec = json.loads((tmp_path / "spec.json").read_text())
     assert spec["sets"][-1] == "simulator=fast"
     assert simulator_of(tmp_path / "runs" / "robust-s0") == "fast"
+
+
+def test_reproduce_on_fast_renders_its_gifs_on_highway_env(tmp_path: Path) -> None:
+    """make demo's path: runs trained on the fast simulator still get their episode GIFs (drawn by
+    highway-env, which plays the same episode)."""
+    args = ["reproduce", "--quick", "--methods", "robust", "--seeds", "1", "--episodes", "1", "--test-episodes", "1"]
+    result = runner.invoke(app, [*args, "--out", str(tmp_path), "--set", "env.duration=3"])
+    assert result.exit_code == 0, result.output
+    assert (tmp_path / "episode_robust.gif").stat().st_size > 1000

@@ -338,7 +338,10 @@ def render_gifs(out_dir: str | Path, max_steps: int = 40) -> dict[str, str]:
         run_dir = run_dir_of(out, m, spec.seeds[0])
         if not (run_dir / "checkpoint.pt").exists():
             continue
-        env = make_env(run_env_config(run_dir), render_mode="rgb_array")
+        cfg = run_env_config(run_dir)
+        # The fast simulator does not draw; highway-env plays the same episode, bit for bit (sim check).
+        cfg = cfg.model_copy(update={"simulator": "highway-env"})
+        env = make_env(cfg, render_mode="rgb_array")
         render_episode(env, load_policy(run_dir), TEST_SEED_BASE, out / f"episode_{m}.gif", max_steps=max_steps)
         env.close()
         gifs[m] = f"episode_{m}.gif"

@@ -24,7 +24,15 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 from rich.table import Table
 
 from safelane import __version__
-from safelane.config import ENV_PRESETS, ConfigError, SafelaneConfig, ShieldConfig, config_to_dict, load_config
+from safelane.config import (
+    ENV_PRESETS,
+    ConfigError,
+    SafelaneConfig,
+    ShieldConfig,
+    config_to_dict,
+    load_config,
+    parse_set,
+)
 
 SHIELD_CHOICES: tuple[str, ...] = get_args(ShieldConfig.model_fields["mode"].annotation)
 """Values of ``--shield`` (``shield.mode``)."""
@@ -118,8 +126,8 @@ def cli_errors(fn: F) -> F:
 
 def _simulator_of(sets: list[str]) -> str | None:
     """The value of the last ``simulator=`` among ``--set`` strings (None: none)."""
-    found = [a.partition("=")[2].strip() for a in sets if a.partition("=")[0].strip() == "simulator"]
-    return found[-1] if found else None
+    found = [value for key, value in map(parse_set, sets) if key == "simulator"]
+    return str(found[-1]) if found else None
 
 
 def training_simulator(sets: list[str] | None, simulator: str | None, earlier_sets: list[str] | None) -> list[str]:
@@ -170,27 +178,9 @@ def resolve_config(
     return load_config(preset, sets=sets, overrides=merged)
 
 
-@contextmanager
-def episode_progress(description: str, total: int) -> Iterator[Callable[[int, Any], None]]:
-    """A rich progress bar on stderr; yields a callback ``(episode_index, record)`` that advances it."""
-    progress = Progress(
-        TextColumn("{task.description}"),
-        BarColumn(),
-        MofNCompleteColumn(),
-        TimeElapsedColumn(),
-        console=stderr,
-        transient=True,
-        disable=not stderr.is_terminal,  # no bar in logs or pipes
-    )
-    with progress:
-        task = progress.add_task(description, total=total)
-        yield lambda index, record: progress.update(task, completed=index + 1)
-
-
-@contextmanager
-def units_progress(description: str) -> Iterator[Callable[[int, int], None]]:
-    """A rich progress bar on stderr; yields a callback ``(done, total)`` (the total may be learnt late)."""
-    progress = Progress(
+def _progress_bar() -> Progress:
+    """A transient rich progress bar on stderr (none in logs or pipes)."""
+    return Progress(
         TextColumn("{task.description}"),
         BarColumn(),
         MofNCompleteColumn(),
@@ -199,7 +189,20 @@ def units_progress(description: str) -> Iterator[Callable[[int, int], None]]:
         transient=True,
         disable=not stderr.is_terminal,
     )
-    with progress:
+
+
+@contextmanager
+def episode_progress(description: str, total: int) -> Iterator[Callable[[int, Any], None]]:
+    """A rich progress bar on stderr; yields a callback ``(episode_index, record)`` that advances it."""
+    with _progress_bar() as progress:
+        task = progress.add_task(description, total=total)
+        yield lambda index, record: progress.update(task, completed=index + 1)
+
+
+@contextmanager
+def units_progress(description: str) -> Iterator[Callable[[int, int], None]]:
+    """A rich progress bar on stderr; yields a callback ``(done, total)`` (the total may be learnt late)."""
+    with _progress_bar() as progress:
         task = progress.add_task(description, total=None)
         yield lambda done, total: progress.update(task, completed=done, total=total)
 
@@ -770,9 +773,8 @@ def render(
         if cfg.shield.mode != "none":
             cfg = resolve_config(preset, sets, shield, overrides={"shield.override": True})
         act = fixed_policy(policy, seed)
-    if cfg.simulator == "fast":  # it does not draw; highway-env plays the same episode (safelane sim check)
+    if cfg.simulator == "fast":  # the renderer draws it on highway-env, which plays the same episode
         typer.echo("render: drawing on highway-env, which plays the fast simulator's episode", err=True)
-        cfg = cfg.model_copy(update={"simulator": "highway-env"})
     result = render_episode(cfg, act, seed, out, max_steps=max_steps)  # checks --out, then builds and closes the env
     typer.echo(f"wrote {result.path} ({result.frames} frames)")
 

@@ -218,9 +218,12 @@ def _check_out_path(out_path: Path) -> None:
 def _open_env(env: Any) -> tuple[Any, bool]:
     """The rgb_array env to render and whether this module owns (and must close) it."""
     if isinstance(env, SafelaneConfig | str):
-        from safelane.env.factory import make_env
+        from safelane.env.factory import make_env, resolve_env_config
 
-        return make_env(env, render_mode="rgb_array"), True
+        cfg = resolve_env_config(env)
+        if cfg.simulator == "fast":  # it does not draw; highway-env plays the same episode, bit for bit
+            cfg = cfg.model_copy(update={"simulator": "highway-env"})
+        return make_env(cfg, render_mode="rgb_array"), True
     if hasattr(env, "step") and hasattr(env, "reset"):
         owned = False
     elif callable(env):
@@ -265,7 +268,8 @@ def render_episode(
 
     ``env``: a gymnasium Env built with ``render_mode="rgb_array"``, a zero-argument factory returning
     one (closed afterwards), or a :class:`SafelaneConfig` / preset name passed to
-    ``make_env(..., render_mode="rgb_array")``. The env is reset with ``seed``; the episode runs until
+    ``make_env(..., render_mode="rgb_array")`` (a ``simulator: fast`` config is drawn on highway-env,
+    which plays the same episode). The env is reset with ``seed``; the episode runs until
     termination, truncation or ``max_steps`` decisions. Frame ``t`` shows the state before decision
     ``t`` with that state's mask, the chosen action and (if different) the executed one; the last frame
     shows the final state with no action chosen. ``fps`` defaults to the env's ``policy_frequency``

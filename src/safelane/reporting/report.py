@@ -325,7 +325,6 @@ def write_report(out_dir: str | Path, gifs: dict[str, str] | None = None) -> Pat
 
 def render_gifs(out_dir: str | Path, max_steps: int = 40) -> dict[str, str]:
     """One GIF per method: the first seed's greedy policy on the first test episode."""
-    from safelane.env.factory import make_env
     from safelane.reporting.render import render_episode
     from safelane.running.experiments import TEST_SEED_BASE
     from safelane.running.runs import run_env_config
@@ -339,10 +338,6 @@ def render_gifs(out_dir: str | Path, max_steps: int = 40) -> dict[str, str]:
         if not (run_dir / "checkpoint.pt").exists():
             continue
         cfg = run_env_config(run_dir)
-        # The fast simulator does not draw; highway-env plays the same episode, bit for bit (sim check).
-        cfg = cfg.model_copy(update={"simulator": "highway-env"})
-        env = make_env(cfg, render_mode="rgb_array")
-        render_episode(env, load_policy(run_dir), TEST_SEED_BASE, out / f"episode_{m}.gif", max_steps=max_steps)
-        env.close()
+        render_episode(cfg, load_policy(run_dir), TEST_SEED_BASE, out / f"episode_{m}.gif", max_steps=max_steps)
         gifs[m] = f"episode_{m}.gif"
     return gifs

@@ -8,10 +8,11 @@ Two checks, both on the whole safelane environment (simulator, snapshot, observa
   position, speed and heading must agree within ``tol`` (m, m/s, rad) and its lane, crash flag, the
   mask, the observation and the reward must be equal. An episode that diverges reports its first
   divergent decision and what differed first.
-* **Statistics** (:func:`compare_statistics`): each policy of :data:`STAT_POLICIES` plays independent
-  episodes on each simulator (disjoint seed ranges); Fisher's exact test compares the collision rates
-  and a permutation test the per-episode mean speeds. A p-value above 0.01 means no evidence of a
-  difference at 1 % (``p_value_holm``: adjusted for the number of tests, :func:`holm_adjusted`).
+* **Statistics** (:func:`stat_episodes_of`, :func:`statistical_tests`): each policy of
+  :data:`STAT_POLICIES` plays independent episodes on each simulator (disjoint seed ranges); Fisher's
+  exact test compares the collision rates and a permutation test the per-episode mean speeds. A
+  p-value above 0.01 means no evidence of a difference at 1 % (``p_value_holm``: adjusted for the
+  number of tests, :func:`holm_adjusted`).
 * **Replay** (``replay_identical_fraction``): the fast simulator plays highway-env's statistical sample
   again, on the same seeds with the same policies: the share of those episodes whose collision, mean
   speed and length are equal. This separates a simulator difference from the luck of a seed draw.
@@ -230,22 +231,6 @@ def holm_adjusted(tests: list[dict[str, Any]]) -> list[dict[str, Any]]:
         running = max(running, min(1.0, (m - rank) * tests[i]["p_value"]))
         adjusted[i] = running
     return [{**t, "p_value_holm": adjusted[i]} for i, t in enumerate(tests)]
-
-
-def compare_statistics(
-    cfg: SafelaneConfig,
-    episodes: int,
-    seed: int,
-    policies: tuple[str, ...] = STAT_POLICIES,
-) -> list[dict[str, Any]]:
-    """Collision rate and mean speed of each policy, ``episodes`` independent episodes per simulator,
-    in this process (``run_sim_check`` spreads the same episodes over processes)."""
-    samples = {
-        (policy, sim): stat_episodes_of(cfg, policy, sim, 0, episodes, seed)
-        for policy in policies
-        for sim in ("highway-env", "fast")
-    }
-    return statistical_tests(samples, seed)
 
 
 # --- the whole check as units of work: parallel, recorded as they finish, resumable -----------------------

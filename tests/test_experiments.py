@@ -164,3 +164,23 @@ def test_confirm_on_highway_env_replays_fast_trained_agents_identically(tmp_path
     assert "confirmed on highway-env" in text and "| 2 / 2 |" in text
     with pytest.raises(ConfigError, match="confirm_on"):
         make_spec(confirm_on="carla")
+
+
+def test_confirm_episodes_re_runs_only_the_first_test_episodes(tmp_path: Path) -> None:
+    """--confirm-episodes K: highway-env re-plays each run's first K test episodes, the aggregate counts K
+    per run, and K outside 1..test_episodes (or without --confirm-on) is refused in one line."""
+    spec = tiny_spec(
+        methods=["robust"],
+        sets=[*TINY, "simulator=fast"],
+        test_episodes=3,
+        confirm_on="highway-env",
+        confirm_episodes=1,
+    )
+    results = run_experiment(spec, tmp_path, workers=1)
+    confirm = results["methods"]["robust"]["aggregate"]["confirm"]
+    assert (confirm["test_episodes"], confirm["identical_episodes"]) == (1, 1)
+    assert results["methods"]["robust"]["aggregate"]["test_episodes"] == 3
+    with pytest.raises(ConfigError, match=r"--confirm-episodes: at most --test-episodes \(3\), got 4"):
+        make_spec(test_episodes=3, confirm_on="highway-env", confirm_episodes=4)
+    with pytest.raises(ConfigError, match="--confirm-episodes: needs --confirm-on"):
+        make_spec(confirm_episodes=2)

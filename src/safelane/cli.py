@@ -601,6 +601,14 @@ def reproduce(
             metavar="SIM",
         ),
     ] = None,
+    confirm_episodes: Annotated[
+        int | None,
+        typer.Option(
+            "--confirm-episodes",
+            help="With --confirm-on: re-run only each run's first K test episodes (default: all).",
+            metavar="K",
+        ),
+    ] = None,
 ) -> None:
     """Train every method × seed, evaluate on held-out episodes, write Table 4 / Fig. 6 / Fig. 7 and claims."""
     from safelane.agents.dqn import parse_methods
@@ -642,6 +650,7 @@ def reproduce(
         sets=list(sets or []),
         quick=quick,
         confirm_on=confirm_on,
+        confirm_episodes=confirm_episodes,
     )
     total = len(spec.methods) * len(spec.seeds)
     with episode_progress("reproduce (runs)", total) as advance:

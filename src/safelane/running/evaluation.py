@@ -19,7 +19,7 @@ import math
 import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
-from typing import Any
+from typing import Any, Protocol, runtime_checkable
 
 import gymnasium as gym
 import numpy as np
@@ -182,50 +182,68 @@ def vehicles_ahead(snap: RoadSnapshot) -> int:
     return int(np.count_nonzero(snap.position[others, 0] > snap.position[snap.ego, 0]))
 
 
+class EpisodeTally:
+    """What an episode's steps add up to, step by step: the one bookkeeping of :func:`run_episode` and
+    :func:`run_episodes_batched` (so both give the same :class:`EpisodeRecord` for the same steps)."""
+
+    def __init__(self, seed: int, reset_info: dict[str, Any]) -> None:
+        self.seed = seed
+        self.ahead_at_start = vehicles_ahead(reset_info["snapshot"])
+        self.total_reward = 0.0
+        self.speeds: list[float] = []
+        self.interventions = self.fallbacks = self.unsafe_actions = 0
+        self.breaks: list[int] = []
+        self.actions = [0] * N_ACTIONS
+        self.time_to_collision: float | None = None
+        self.collision = False
+        self.steps = 0
+
+    def add(self, action: int, reward: float, info: dict[str, Any]) -> None:
+        """Count one decision: the ``action`` chosen, the ``reward`` and ``info`` its step returned."""
+        self.steps += 1
+        self.total_reward += float(reward)
+        self.speeds.append(float(info["speed"]))
+        self.interventions += bool(info.get("shield_intervened", False))
+        self.fallbacks += bool(info.get("fallback", False))
+        self.unsafe_actions += bool(info.get("unsafe_action", False))
+        if info.get("invariant_break", False):
+            self.breaks.append(self.steps)
+        self.actions[int(info.get("executed_action", action))] += 1
+        if info.get("collision", False) and not self.collision:
+            self.collision = True
+            self.time_to_collision = info["snapshot"].time
+
+    def record(self, last_info: dict[str, Any]) -> EpisodeRecord:
+        """The finished episode's record (``last_info``: the info of its last step)."""
+        snap = last_info["snapshot"]
+        return EpisodeRecord(
+            seed=self.seed,
+            return_=self.total_reward,
+            length=self.steps,
+            collision=self.collision,
+            time_to_collision=self.time_to_collision,
+            mean_speed=float(np.mean(self.speeds)),
+            interventions=self.interventions,
+            fallbacks=self.fallbacks,
+            collision_kind=classify_collision(snap) if self.collision else None,
+            unsafe_actions=self.unsafe_actions,
+            actions=self.actions,
+            vehicles_passed=self.ahead_at_start - vehicles_ahead(snap),
+            invariant_breaks=self.breaks,
+        )
+
+
 def run_episode(env: gym.Env, policy: Policy, seed: int) -> EpisodeRecord:
     """Play one episode reset with ``seed`` until it terminates or is truncated."""
     obs, info = env.reset(seed=seed)
-    ahead_at_start = vehicles_ahead(info["snapshot"])
-    total_reward = 0.0
-    speeds: list[float] = []
-    interventions = fallbacks = unsafe_actions = 0
-    breaks: list[int] = []
-    actions = [0] * N_ACTIONS
-    time_to_collision: float | None = None
-    collision = False
-    steps = 0
+    tally = EpisodeTally(seed, info)
     done = False
     while not done:
         action = int(policy(obs, info))
         obs, reward, terminated, truncated, info = env.step(action)
-        steps += 1
-        total_reward += float(reward)
-        speeds.append(float(info["speed"]))
-        interventions += bool(info.get("shield_intervened", False))
-        fallbacks += bool(info.get("fallback", False))
-        unsafe_actions += bool(info.get("unsafe_action", False))
-        if info.get("invariant_break", False):
-            breaks.append(steps)
-        actions[int(info.get("executed_action", action))] += 1
-        if info.get("collision", False) and not collision:
-            collision = True
-            time_to_collision = info["snapshot"].time
+        tally.add(action, float(reward), info)
         done = terminated or truncated
-    return EpisodeRecord(
-        seed=seed,
-        return_=total_reward,
-        length=steps,
-        collision=collision,
-        time_to_collision=time_to_collision,
-        mean_speed=float(np.mean(speeds)),
-        interventions=interventions,
-        fallbacks=fallbacks,
-        collision_kind=classify_collision(info["snapshot"]) if collision else None,
-        unsafe_actions=unsafe_actions,
-        actions=actions,
-        vehicles_passed=ahead_at_start - vehicles_ahead(info["snapshot"]),
-        invariant_breaks=breaks,
-    )
+    return tally.record(info)
 
 
 def run_episodes(
@@ -245,6 +263,64 @@ def run_episodes(
         if progress is not None:
             progress(i, record)
     return records
+
+
+@runtime_checkable
+class BatchPolicy(Protocol):
+    """A policy that also acts on many environments at once (a trained agent's greedy policy).
+
+    ``batch(obs (N, 26), infos)`` must give row ``k`` the action ``policy(obs[k], infos[k])`` gives:
+    :func:`run_episodes_batched` relies on it to play the same episodes as :func:`run_episodes`.
+    """
+
+    def __call__(self, obs: np.ndarray, info: dict[str, Any]) -> int: ...
+
+    def batch(self, obs: np.ndarray, infos: list[dict[str, Any]]) -> np.ndarray: ...
+
+
+def run_episodes_batched(
+    envs: list[gym.Env],
+    policy: BatchPolicy,
+    episodes: int,
+    seed: int,
+    progress: ProgressCallback | None = None,
+) -> list[EpisodeRecord]:
+    """:func:`run_episodes` on ``len(envs)`` environments at once: one ``policy.batch`` call per round of
+    decisions. Episode ``i`` is still reset with ``seed + i`` (handed to the next free environment), so
+    the records, returned in episode order, equal :func:`run_episodes`'s; ``progress`` is called as
+    episodes finish."""
+    if episodes < 1:
+        raise ValueError(f"episodes: must be >= 1 (got {episodes})")
+    records: list[EpisodeRecord | None] = [None] * episodes
+    next_episode = 0
+
+    def start(env: gym.Env) -> tuple[int, EpisodeTally, np.ndarray, dict[str, Any]]:
+        nonlocal next_episode
+        index, next_episode = next_episode, next_episode + 1
+        obs, info = env.reset(seed=seed + index)
+        return index, EpisodeTally(seed + index, info), obs, info
+
+    active = list(envs[:episodes])
+    slots = [start(env) for env in active]
+    while active:
+        actions = policy.batch(np.stack([slot[2] for slot in slots]), [slot[3] for slot in slots])
+        keep_envs, keep_slots = [], []
+        for env, (index, tally, _, _), action in zip(active, slots, actions, strict=True):
+            obs, reward, terminated, truncated, info = env.step(int(action))
+            tally.add(int(action), float(reward), info)
+            if not (terminated or truncated):
+                keep_envs.append(env)
+                keep_slots.append((index, tally, obs, info))
+                continue
+            record = tally.record(info)
+            records[index] = record
+            if progress is not None:
+                progress(index, record)
+            if next_episode < episodes:
+                keep_envs.append(env)
+                keep_slots.append(start(env))
+        active, slots = keep_envs, keep_slots
+    return [r for r in records if r is not None]
 
 
 def summarize(records: list[EpisodeRecord], **meta: Any) -> dict[str, Any]:
@@ -288,21 +364,39 @@ def summarize(records: list[EpisodeRecord], **meta: Any) -> dict[str, Any]:
     return summary
 
 
+DEFAULT_BATCH_ENVS = 16
+"""Environments played at once by :func:`run_config` for a :class:`BatchPolicy` on the fast simulator."""
+
+
 def run_config(
     config: SafelaneConfig,
     policy: Policy,
     episodes: int,
     seed: int,
     progress: ProgressCallback | None = None,
+    num_envs: int | None = None,
 ) -> list[EpisodeRecord]:
-    """Build the environment of ``config``, play :func:`run_episodes` on it, and close it."""
+    """Build the environment(s) of ``config``, play the episodes on them, and close them.
+
+    A :class:`BatchPolicy` plays ``num_envs`` environments at once (default: :data:`DEFAULT_BATCH_ENVS`
+    on the fast simulator, 1 on highway-env, whose steps cost milliseconds); any other policy, one.
+    The records are the same for every ``num_envs``.
+    """
     from safelane.env.factory import make_env
 
-    env = make_env(config)
+    if num_envs is None:
+        num_envs = DEFAULT_BATCH_ENVS if config.simulator == "fast" else 1
+    if num_envs < 1:
+        raise ConfigError(f"num_envs: must be >= 1 (got {num_envs})")
+    batched = isinstance(policy, BatchPolicy) and num_envs > 1 and episodes > 1
+    envs = [make_env(config) for _ in range(min(num_envs, episodes) if batched else 1)]
     try:
-        return run_episodes(env, policy, episodes, seed, progress)
+        if batched:
+            return run_episodes_batched(envs, policy, episodes, seed, progress)  # type: ignore[arg-type]
+        return run_episodes(envs[0], policy, episodes, seed, progress)
     finally:
-        env.close()
+        for env in envs:
+            env.close()
 
 
 def evaluate_fixed(

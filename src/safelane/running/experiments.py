@@ -18,7 +18,7 @@ from concurrent.futures import ProcessPoolExecutor, as_completed
 from pathlib import Path
 from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from safelane.config import ConfigError, validation_message
 from safelane.core.files import atomic_write_text
@@ -51,6 +51,26 @@ class ExperimentSpec(BaseModel):
         description="Re-run every trained agent's test episodes on this simulator too (runs trained on "
         "simulator=fast are confirmed on the reference) and report both side by side.",
     )
+    confirm_episodes: int | None = Field(
+        None,
+        ge=1,
+        description="With confirm_on: how many of each run's test episodes (the first ones) to re-run "
+        "(null = all; highway-env plays ≈ 10 decisions/s, so 1 000 test episodes × 40 runs take a day).",
+    )
+
+    @model_validator(mode="after")
+    def _confirm_within_test(self) -> ExperimentSpec:
+        if self.confirm_episodes is not None and self.confirm_on is None:
+            raise ConfigError("--confirm-episodes: needs --confirm-on (the simulator to confirm on)")
+        if self.confirm_episodes is not None and self.confirm_episodes > self.test_episodes:
+            raise ConfigError(
+                f"--confirm-episodes: at most --test-episodes ({self.test_episodes}), got {self.confirm_episodes}"
+            )
+        return self
+
+    def confirm_count(self) -> int:
+        """Test episodes per run re-run on ``confirm_on``."""
+        return self.test_episodes if self.confirm_episodes is None else self.confirm_episodes
 
 
 def make_spec(**fields: Any) -> ExperimentSpec:
@@ -144,8 +164,8 @@ CONFIRM_FIELDS = ("return_", "length", "collision", "mean_speed", "collision_kin
 
 
 def confirm_test_episodes(run_dir: Path, spec: ExperimentSpec, episodes: list[dict[str, Any]]) -> dict[str, Any]:
-    """Play the run's test episodes again (same seeds, same greedy policy) on ``spec.confirm_on``:
-    its summary, and how many episodes came out the same as the recorded ``episodes``."""
+    """Play the run's first ``spec.confirm_count()`` test episodes again (same seeds, same greedy policy)
+    on ``spec.confirm_on``: their summary, and how many came out the same as the recorded ``episodes``."""
     from safelane.running.evaluation import run_config, summarize
     from safelane.running.runs import run_env_config
     from safelane.running.training import load_policy, load_run_config
@@ -153,8 +173,11 @@ def confirm_test_episodes(run_dir: Path, spec: ExperimentSpec, episodes: list[di
     run = load_run_config(run_dir)
     cfg = run_env_config(run).model_copy(update={"simulator": spec.confirm_on})
     start = time.perf_counter()
-    records = run_config(cfg, load_policy(run_dir), spec.test_episodes, TEST_SEED_BASE)
-    same = sum(all(r.to_dict()[f] == e[f] for f in CONFIRM_FIELDS) for r, e in zip(records, episodes, strict=True))
+    count = spec.confirm_count()
+    records = run_config(cfg, load_policy(run_dir), count, TEST_SEED_BASE)
+    same = sum(
+        all(r.to_dict()[f] == e[f] for f in CONFIRM_FIELDS) for r, e in zip(records, episodes[:count], strict=True)
+    )
     return {
         "simulator": cfg.simulator,
         "summary": summarize(records, simulator=cfg.simulator),

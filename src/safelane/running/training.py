@@ -561,13 +561,27 @@ class GreedyPolicy:
         self.name = name
         self.interface = env_interface(run.env)
 
+    def _check(self, info: dict[str, Any]) -> None:
+        actual = interface_of(info)
+        if actual is not None and actual != self.interface:
+            check_same_interface(self.interface, actual, self.name)
+
     def __call__(self, obs: np.ndarray, info: dict[str, Any] | None = None) -> int:
+        """The greedy action for one observation (26,) (its mask read from ``info`` for mask users)."""
         if info is not None:
-            actual = interface_of(info)
-            if actual is not None and actual != self.interface:
-                check_same_interface(self.interface, actual, self.name)
+            self._check(info)
         mask = info.get("action_mask") if (info is not None and self.agent.uses_mask) else None
         return self.agent.greedy(obs, mask)
+
+    def batch(self, obs: np.ndarray, infos: list[dict[str, Any]]) -> np.ndarray:
+        """Greedy actions (N,) for observations (N, 26) of N environments, one forward pass; row ``k``
+        gets the action ``self(obs[k], infos[k])`` gives (:meth:`DQNAgent.greedy_batch`)."""
+        for info in infos:
+            self._check(info)
+        masks = None
+        if self.agent.uses_mask:
+            masks = np.stack([sanitize_mask(info.get("action_mask")) for info in infos])
+        return self.agent.greedy_batch(obs, masks)
 
 
 def load_agent(run_dir: str | Path) -> DQNAgent:

@@ -97,6 +97,22 @@ TrainSimulatorOpt = Annotated[
 EpisodesOpt = Annotated[int, typer.Option("--episodes", "-n", help="Number of episodes (>= 1).")]
 SeedOpt = Annotated[int, typer.Option("--seed", help="Random seed: the same seed gives the same numbers.")]
 JsonOpt = Annotated[bool, typer.Option("--json", help="Print one JSON object on stdout instead of a table.")]
+BackendOpt = Annotated[
+    str,
+    typer.Option(
+        "--backend",
+        help="Where runs execute: local (a process pool here) or ray (Ray Tune; pip install 'safelane[ray]').",
+        metavar="local|ray",
+    ),
+]
+AddressOpt = Annotated[
+    str | None,
+    typer.Option(
+        "--address",
+        help="With --backend ray: the cluster (auto = the one `ray start --head` started; default: a local "
+        "Ray instance for this job).",
+    ),
+]
 
 F = TypeVar("F", bound=Callable[..., Any])
 
@@ -609,6 +625,8 @@ def reproduce(
             metavar="K",
         ),
     ] = None,
+    backend: BackendOpt = "local",
+    address: AddressOpt = None,
 ) -> None:
     """Train every method × seed, evaluate on held-out episodes, write Table 4 / Fig. 6 / Fig. 7 and claims."""
     from safelane.agents.dqn import parse_methods
@@ -660,10 +678,53 @@ def reproduce(
             advance(done[0], None)
             done[0] += 1
 
-        run_experiment(spec, out, workers=workers, progress=tick)
+        run_experiment(spec, out, workers=workers, progress=tick, backend=backend, address=address)
     gif_paths = render_gifs(out, max_steps=20 if quick else 40) if gifs else None
     report = write_report(out, gif_paths)
     typer.echo(f"report: {report}")
+
+
+@app.command()
+@cli_errors
+def sweep(
+    spec_file: Path = typer.Argument(..., help="Sweep spec (YAML; examples in configs/sweeps/).", metavar="SPEC"),
+    out: Annotated[
+        Path, typer.Option("--out", "-o", help="Output directory (trials.csv, summary.md, best.yaml).")
+    ] = Path("runs/sweep"),
+    backend: BackendOpt = "local",
+    address: AddressOpt = None,
+    workers: Annotated[
+        int | None, typer.Option("--workers", help="Parallel runs (local processes or local Ray CPUs; default: cores).")
+    ] = None,
+    episodes: Annotated[
+        int | None, typer.Option("--episodes", help="Training episodes per run (overrides the spec).")
+    ] = None,
+    test_episodes: Annotated[
+        int | None, typer.Option("--test-episodes", help="Test episodes per run (overrides the spec).")
+    ] = None,
+    seeds: Annotated[int | None, typer.Option("--seeds", help="Seeds per point (overrides the spec).")] = None,
+    as_json: JsonOpt = False,
+) -> None:
+    """Search hyperparameters: every point × seed trained and tested, ranked by the spec's objective."""
+    from safelane.running.sweep import load_sweep_spec, run_sweep
+
+    for option, value in (("--episodes", episodes), ("--test-episodes", test_episodes), ("--seeds", seeds)):
+        if value is not None:
+            check_positive(option, value)
+    if workers is not None:
+        check_positive("--workers", workers)
+    spec = load_sweep_spec(spec_file, {"episodes": episodes, "test_episodes": test_episodes, "seeds": seeds})
+    with units_progress(f"sweep {spec.name} (trial × seed)") as tick:
+        summary = run_sweep(spec, out, backend=backend, workers=workers, address=address, progress=tick)
+    if as_json:
+        typer.echo(json.dumps(summary))
+        return
+    typer.echo((out / "summary.md").read_text())
+    best = summary["best"]
+    if best is None:
+        typer.echo("no trial met the constraints on every seed")
+    else:
+        typer.echo(f"best: t{best['trial']:03d} {best['params']} → {out / 'best.yaml'}")
 
 
 @app.command()

@@ -105,6 +105,13 @@ class ShieldConfig(_Section):
         "microseconds a mask) or 'numpy' (safelane.safety.model.evaluate, the readable reference, about a "
         "millisecond). Identical masks.",
     )
+    margin: float = Field(
+        1.0,
+        ge=0,
+        allow_inf_nan=False,
+        description="[m] The bumper-to-bumper gap the rule keeps under its worst case (the safety threshold "
+        "a sweep may tune; 1 m as derived in docs/safety.md).",
+    )
 
 
 class SafelaneConfig(_Section):

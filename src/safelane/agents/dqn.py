@@ -137,10 +137,16 @@ class AgentConfig(BaseModel):
 
 
 def agent_preset_path(name: str) -> Path:
-    """Path of an agent preset shipped in the package (``safelane/presets/agents/NAME.yaml``)."""
-    if name not in AGENT_PRESETS:
-        raise ConfigError(f"agent preset: unknown preset '{name}'; allowed: {', '.join(AGENT_PRESETS)}")
-    return Path(str(resources.files("safelane") / "presets" / "agents" / f"{name}.yaml"))
+    """Path of an agent preset: one shipped in the package (``safelane/presets/agents/NAME.yaml``) or a
+    YAML file of AgentConfig fields (e.g. a sweep's ``best.yaml``)."""
+    if name in AGENT_PRESETS:
+        return Path(str(resources.files("safelane") / "presets" / "agents" / f"{name}.yaml"))
+    path = Path(name)
+    if path.suffix in (".yaml", ".yml"):
+        if not path.is_file():
+            raise ConfigError(f"agent preset: no such file {name}")
+        return path
+    raise ConfigError(f"agent preset: unknown preset '{name}'; allowed: {', '.join(AGENT_PRESETS)} or a .yaml file")
 
 
 def build_agent_config(data: dict[str, Any]) -> AgentConfig:

@@ -4,17 +4,16 @@
 (resuming a run that was interrupted), evaluates its greedy policy on ``test_episodes`` episodes
 whose seeds are never used in training, and writes ``out_dir/results.json`` atomically. A task whose
 evaluation file exists is skipped, so re-running after a crash loses nothing and duplicates
-nothing. Tasks run in a process pool (``workers``, default: all cores).
+nothing. Tasks run on :mod:`safelane.running.engine` (``local``: a process pool of ``workers``, default all
+cores; ``ray``: Ray Tune trials).
 """
 
 from __future__ import annotations
 
 import json
-import os
 import shutil
 import time
 from collections.abc import Callable
-from concurrent.futures import ProcessPoolExecutor, as_completed
 from pathlib import Path
 from typing import Any, Literal
 
@@ -22,6 +21,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_valida
 
 from safelane.config import ConfigError, validation_message
 from safelane.core.files import atomic_write_text
+from safelane.running.engine import TaskFailure, check_backend, format_failure, run_tasks
 
 METHODS: tuple[str, ...] = ("dqn", "constrained", "qmask", "robust")
 TEST_SEED_BASE = 2_000_000_000
@@ -187,13 +187,35 @@ def confirm_test_episodes(run_dir: Path, spec: ExperimentSpec, episodes: list[di
     }
 
 
+def _validate_runs(spec: ExperimentSpec) -> None:
+    """Resolve each method's run configuration once (raises the one-line :class:`ConfigError` of a bad value)."""
+    from safelane.running.training import make_train_config, resolve
+
+    for method in spec.methods:
+        resolve(
+            make_train_config(
+                method=method,
+                agent_preset=spec.agent_preset,
+                env_preset=spec.env_preset,
+                episodes=spec.episodes,
+                sets=spec.sets,
+            )
+        )
+
+
 def run_experiment(
     spec: ExperimentSpec,
     out_dir: str | Path,
     workers: int | None = None,
     progress: Callable[[dict[str, Any]], None] | None = None,
+    backend: str = "local",
+    address: str | None = None,
 ) -> dict[str, Any]:
-    """Run every (method, seed) task not yet done, then collect all into ``out_dir/results.json``."""
+    """Run every (method, seed) task not yet done, then collect all into ``out_dir/results.json``.
+
+    ``backend`` / ``address``: where the tasks run (:mod:`safelane.running.engine`; same results).
+    """
+    check_backend(backend)
     out = Path(out_dir)
     try:
         out.mkdir(parents=True, exist_ok=True)
@@ -203,25 +225,31 @@ def run_experiment(
     except OSError as err:
         raise ConfigError(f"--out {out}: not writable ({err.strerror})") from None
     atomic_write_text(out / "spec.json", spec.model_dump_json(indent=2))
+    _validate_runs(spec)  # a bad --set fails here in one line, not once per task
     tasks = [(m, s) for s in spec.seeds for m in spec.methods]
-    workers = max(1, min(workers or os.cpu_count() or 1, len(tasks)))
     start = time.perf_counter()
-    records: list[dict[str, Any]] = []
     spec_json = spec.model_dump_json()
-    if workers == 1:
-        for m, s in tasks:
-            rec = _task(str(out), spec_json, m, s)
-            records.append(rec)
-            if progress:
-                progress(rec)
-    else:
-        with ProcessPoolExecutor(max_workers=workers) as pool:
-            futures = [pool.submit(_task, str(out), spec_json, m, s) for m, s in tasks]
-            for fut in as_completed(futures):
-                rec = fut.result()
-                records.append(rec)
-                if progress:
-                    progress(rec)
+    failures: list[str] = []
+
+    def finished(i: int, result: dict[str, Any] | TaskFailure) -> None:
+        if isinstance(result, TaskFailure):
+            failures.append(f"{tasks[i][0]} seed {tasks[i][1]}: {format_failure(result)}")
+        elif progress:
+            progress(result)
+
+    # Absolute: a Ray worker does not run in this directory.
+    run_tasks(
+        _task,
+        [(str(out.resolve()), spec_json, m, s) for m, s in tasks],
+        backend=backend,
+        workers=workers,
+        address=address,
+        on_result=finished,
+        name="reproduce",
+        storage=out.resolve() / "ray",
+    )
+    if failures:
+        raise ConfigError(f"reproduce: {len(failures)} run(s) failed; first: {failures[0]}")
     results = collect(out, spec)
     results["wall_time_s"] = time.perf_counter() - start
     atomic_write_text(out / "results.json", json.dumps(results, indent=1))

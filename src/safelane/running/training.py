@@ -105,7 +105,9 @@ class TrainConfig(BaseModel):
     method: Literal["dqn", "constrained", "qmask", "robust"] = Field(
         "robust", description="dqn, constrained, qmask or robust (paper Section IV.1–4)."
     )
-    agent_preset: str = Field("tuned", description=f"Agent preset: {', '.join(AGENT_PRESETS)}.")
+    agent_preset: str = Field(
+        "tuned", description=f"Agent preset: {', '.join(AGENT_PRESETS)}, or a YAML file of agent fields."
+    )
     env_preset: str = Field("fast", description=f"Environment preset: {', '.join(ENV_PRESETS)}.")
     episodes: int = Field(200, ge=1, description="Training episodes (the paper trains 200 of 40 s).")
     seed: int = Field(0, ge=0, description="Seed of network init, exploration, replay and episodes.")
@@ -119,8 +121,8 @@ class TrainConfig(BaseModel):
     @field_validator("agent_preset")
     @classmethod
     def _agent_preset(cls, name: str) -> str:
-        if name not in AGENT_PRESETS:
-            raise ValueError(f"unknown agent preset '{name}'; allowed: {', '.join(AGENT_PRESETS)}")
+        if name not in AGENT_PRESETS and Path(name).suffix not in (".yaml", ".yml"):
+            raise ValueError(f"unknown agent preset '{name}'; allowed: {', '.join(AGENT_PRESETS)} or a .yaml file")
         return name
 
     @field_validator("env_preset")
@@ -227,10 +229,13 @@ def run_config_dict(run: RunConfig) -> dict[str, Any]:
 
 
 def _comparable(data: dict[str, Any]) -> dict[str, Any]:
-    """The parts of a run config that change results (episodes, checkpointing and raw sets do not)."""
+    """The parts of a run config that change results (episodes, checkpointing and raw sets do not),
+    re-validated: a key added to safelane since the run was written compares equal at its default."""
     data = yaml.safe_load(yaml.safe_dump(data))
     train = {k: v for k, v in data["train"].items() if k not in ("episodes", "checkpoint_every", "sets")}
-    return {"train": train, "agent": data["agent"], "env": data["env"]}
+    agent = build_agent_config(data["agent"]).model_dump(mode="json")
+    env = config_to_dict(build_config(data["env"]))
+    return yaml.safe_load(yaml.safe_dump({"train": train, "agent": agent, "env": env}))
 
 
 def _first_difference(a: Any, b: Any, prefix: str = "") -> str:

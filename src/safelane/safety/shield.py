@@ -45,12 +45,15 @@ from safelane.safety.model import (
 )
 from safelane.sim.highway import HighwayEnvAdapter, lane_change_timing
 
+DEFAULT_MARGIN = Dynamics.__dataclass_fields__["margin"].default
+"""[m] The safety model's default bumper-to-bumper margin (``shield.margin``)."""
 Engine = Literal["compiled", "numpy"]
 ENGINES: tuple[Engine, ...] = ("compiled", "numpy")
 
 
-def dynamics_of(snap: RoadSnapshot) -> Dynamics:
-    """The :class:`Dynamics` constants of the simulated world a snapshot was taken in."""
+def dynamics_of(snap: RoadSnapshot, margin: float = DEFAULT_MARGIN) -> Dynamics:
+    """The :class:`Dynamics` constants of the simulated world a snapshot was taken in; ``margin`` [m]: the
+    bumper-to-bumper gap the rule keeps under its worst case."""
     sim_f, pol_f = snap.simulation_frequency, snap.policy_frequency
     # Fastest cut-in over plausible speeds; slowest ego exit (at low speed the lateral motion is slower).
     enter = min(lane_change_timing(sim_f, s)[1] for s in (15.0, 25.0, 35.0))
@@ -63,6 +66,7 @@ def dynamics_of(snap: RoadSnapshot) -> Dynamics:
         lane_width=snap.lane_width,
         lanes_count=snap.lanes_count,
         cut_in_time=max(enter - 1.0 / sim_f, 0.0),
+        margin=margin,
     )
 
 
@@ -115,6 +119,7 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
     ``override``: replace an unsafe chosen action by the closest safe one.
     ``engine``: ``"compiled"`` (:mod:`safelane.safety.compiled`, microseconds) or ``"numpy"`` (the
     reference :func:`safelane.safety.model.evaluate`, about a millisecond); the same masks either way.
+    ``margin`` [m]: the bumper-to-bumper gap kept under the worst case (the rule's safety threshold).
     """
 
     def __init__(
@@ -124,14 +129,19 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
         formula: Formula = "kinematic",
         override: bool = False,
         engine: Engine = "compiled",
+        margin: float = DEFAULT_MARGIN,
     ) -> None:
+        if not (math.isfinite(margin) and margin >= 0):
+            raise ValueError(f"shield.margin: must be a finite number >= 0 [m] (got {margin!r})")
         if mode not in ("nominal", "robust"):
             raise ValueError(f"shield.mode: got {mode!r}; allowed: 'nominal', 'robust'")
         if formula not in ("kinematic", "paper"):
             raise ValueError(f"shield.formula: got {formula!r}; allowed: 'kinematic', 'paper'")
         if engine not in ENGINES:
             raise ValueError(f"shield.engine: got {engine!r}; allowed: 'compiled', 'numpy'")
-        gym.utils.RecordConstructorArgs.__init__(self, mode=mode, formula=formula, override=override, engine=engine)
+        gym.utils.RecordConstructorArgs.__init__(
+            self, mode=mode, formula=formula, override=override, engine=engine, margin=margin
+        )
         try:
             env.get_wrapper_attr("road_snapshot")
         except AttributeError:  # a plain highway-env environment: read its scene through the adapter
@@ -141,6 +151,7 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
         self.formula: Formula = formula
         self.override = override
         self.engine: Engine = engine
+        self.margin = float(margin)
         self.dynamics: Dynamics | None = None
         self.result: SafetyResult | None = None
         self.snapshot: RoadSnapshot | None = None
@@ -169,7 +180,7 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
     def _ego_leave_time(self, snap: RoadSnapshot) -> tuple[float, float]:
         """(lane heading [rad], the time [s] the ego takes to leave its lane) for ``snap``."""
         if self.dynamics is None:
-            self.dynamics = dynamics_of(snap)
+            self.dynamics = dynamics_of(snap, self.margin)
         dyn = self.dynamics
         # The ego's speed along the road, as road_state computes it (the compiled path builds no RoadState).
         direction = snap.lane_direction

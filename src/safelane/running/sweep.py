@@ -1,0 +1,495 @@
+"""Hyperparameter sweeps: a YAML spec → trials × seeds, trained and tested, ranked by an objective.
+
+A spec (:class:`SweepSpec`, examples in ``configs/sweeps/``) names one method, a search space over any
+``--set`` key (``agent.*``, ``reward.*``, ``shield.*``, ``env.*`` …), how to search it (``grid``: every
+combination; ``random``: ``samples`` points drawn from ``search_seed``), the seeds of every point, the
+training length and test episodes, and the objective: a test metric to maximise or minimise, subject
+to constraints such as ``collision_rate <= 0.01``.
+
+:func:`run_sweep` turns the spec into *trials* (a point of the space, ``DIR/trials/tNNN/``), each
+trained and tested once per seed by the experiment runner's task (``DIR/trials/tNNN/runs/METHOD-sS``),
+on either backend of :mod:`safelane.running.engine`. What it writes, always rebuilt from the trial
+directories (so a killed sweep, re-run, neither repeats nor loses nor doubles a row):
+
+* ``trials.csv``: one row per trial and seed — parameters, seed, status (``ok`` / ``failed``), metrics,
+  the error of a failed one;
+* ``summary.md`` / ``summary.json``: per trial the objective's mean over seeds with a bootstrap 95 %
+  interval, the pooled collision rate with its Wilson interval, whether the constraints hold; the best
+  feasible trial;
+* ``best.yaml``: the agent preset of the best trial (the spec's agent preset with the trial's
+  ``agent.*`` values), ready for ``--agent-preset DIR/best.yaml``; its other keys as ``--set`` lines in
+  a comment;
+* ``objective_PARAM.png``: the objective against each parameter (mean and interval per trial).
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import itertools
+import json
+import math
+import re
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any, Literal
+
+import numpy as np
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+
+from safelane.config import ConfigError, validation_message
+from safelane.core.files import atomic_write_text
+
+METRICS: tuple[str, ...] = (
+    "mean_speed",
+    "collision_rate",
+    "mean_return",
+    "return_before_collision",
+    "fallback_rate",
+    "shield_intervention_rate",
+    "mean_vehicles_passed",
+)
+"""Test metrics a trial reports (per seed) and an objective or constraint may name."""
+
+_CONSTRAINT = re.compile(r"^\s*([a-z_]+)\s*(<=|>=|<|>)\s*([-+0-9.eE]+)\s*$")
+
+
+class Dimension(BaseModel):
+    """One key's values: exactly one of ``grid`` (the values, in order), ``choice`` (values drawn
+    uniformly by random search), ``uniform`` / ``loguniform`` ([low, high] for random search);
+    ``integer`` rounds drawn numbers."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    grid: list[Any] | None = None
+    choice: list[Any] | None = None
+    uniform: tuple[float, float] | None = None
+    loguniform: tuple[float, float] | None = None
+    integer: bool = False
+
+    @model_validator(mode="after")
+    def _exactly_one(self) -> Dimension:
+        given = [k for k in ("grid", "choice", "uniform", "loguniform") if getattr(self, k) is not None]
+        if len(given) != 1:
+            raise ValueError(f"give exactly one of grid, choice, uniform, loguniform (got {given or 'none'})")
+        values = self.grid if self.grid is not None else self.choice
+        if values is not None and not values:
+            raise ValueError("an empty list of values")
+        bounds = self.uniform or self.loguniform
+        if bounds is not None and not bounds[0] < bounds[1]:
+            raise ValueError(f"bounds must be increasing (got {list(bounds)})")
+        if self.loguniform is not None and self.loguniform[0] <= 0:
+            raise ValueError(f"loguniform bounds must be > 0 (got {list(self.loguniform)})")
+        return self
+
+    def draw(self, rng: np.random.Generator) -> Any:
+        """One value for random search."""
+        if self.grid is not None or self.choice is not None:
+            values = self.grid if self.grid is not None else self.choice
+            return values[int(rng.integers(len(values)))]  # type: ignore[index, arg-type]
+        if self.uniform is not None:
+            value = float(rng.uniform(*self.uniform))
+        else:
+            low, high = self.loguniform  # type: ignore[misc]
+            value = float(math.exp(rng.uniform(math.log(low), math.log(high))))
+        return round(value) if self.integer else value
+
+
+class Objective(BaseModel):
+    """What ranks the trials: the mean over seeds of a test ``metric``, maximised or minimised, among
+    trials whose pooled test metrics satisfy every ``constraints`` entry (``METRIC OP NUMBER``)."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    metric: Literal[METRICS] = "mean_speed"  # type: ignore[valid-type]
+    mode: Literal["max", "min"] = "max"
+    constraints: list[str] = Field(default_factory=list)
+
+    @field_validator("constraints")
+    @classmethod
+    def _parse(cls, items: list[str]) -> list[str]:
+        for item in items:
+            m = _CONSTRAINT.match(item)
+            if m is None or m.group(1) not in METRICS:
+                raise ValueError(f"'{item}': expected 'METRIC OP NUMBER' with METRIC one of {', '.join(METRICS)}")
+        return items
+
+    def satisfied(self, metrics: dict[str, float]) -> bool:
+        """Whether ``metrics`` (pooled over a trial's seeds) meet every constraint."""
+        for item in self.constraints:
+            name, op, bound = _CONSTRAINT.match(item).groups()  # type: ignore[union-attr]
+            value, limit = metrics[name], float(bound)
+            ok = {"<=": value <= limit, ">=": value >= limit, "<": value < limit, ">": value > limit}[op]
+            if not ok:
+                return False
+        return True
+
+
+class SweepSpec(BaseModel):
+    """A sweep (see the module docstring). Units: episodes of the environment preset (40 s each)."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    name: str = Field("sweep", description="A name for the sweep (reports).")
+    description: str = Field("", description="What the sweep searches and why.")
+    method: Literal["dqn", "constrained", "qmask", "robust"]
+    agent_preset: str = "tuned"
+    env_preset: Literal["fast", "paper"] = "fast"
+    sets: list[str] = Field(default_factory=lambda: ["simulator=fast"], description="--set overrides of every trial.")
+    space: dict[str, Dimension] = Field(description="KEY → values; KEY is any --set key.")
+    search: Literal["grid", "random"] = "grid"
+    samples: int = Field(8, ge=1, description="random: points drawn.")
+    search_seed: int = Field(0, ge=0, description="random: seed of the draws.")
+    seeds: int = Field(3, ge=1, description="Seeds per point: 0..seeds-1.")
+    episodes: int = Field(200, ge=1, description="Training episodes per run.")
+    test_episodes: int = Field(100, ge=1, description="Held-out test episodes per run.")
+    objective: Objective = Field(default_factory=Objective)
+
+    @field_validator("space")
+    @classmethod
+    def _space(cls, space: dict[str, Dimension]) -> dict[str, Dimension]:
+        if not space:
+            raise ValueError("an empty search space; give at least one KEY")
+        return space
+
+    @model_validator(mode="after")
+    def _grid_needs_lists(self) -> SweepSpec:
+        if self.search == "grid":
+            ranged = [k for k, d in self.space.items() if d.grid is None and d.choice is None]
+            if ranged:
+                raise ValueError(f"search grid: '{ranged[0]}' has a range; give it a grid list or use search: random")
+        return self
+
+    def points(self) -> list[dict[str, Any]]:
+        """The trials' parameters, in trial order (the same for every run of the same spec)."""
+        keys = list(self.space)
+        if self.search == "grid":
+            lists = [self.space[k].grid if self.space[k].grid is not None else self.space[k].choice for k in keys]
+            return [dict(zip(keys, combo, strict=True)) for combo in itertools.product(*lists)]  # type: ignore[arg-type]
+        rng = np.random.default_rng(self.search_seed)
+        return [{k: self.space[k].draw(rng) for k in keys} for _ in range(self.samples)]
+
+
+def load_sweep_spec(path: str | Path, overrides: dict[str, Any] | None = None) -> SweepSpec:
+    """Read a sweep spec YAML (``overrides``: fields set on top, e.g. ``episodes`` for a smoke run);
+    a one-line :class:`ConfigError` on a missing file or a bad field."""
+    path = Path(path)
+    try:
+        data = yaml.safe_load(path.read_text()) or {}
+    except FileNotFoundError:
+        raise ConfigError(f"sweep spec {path}: no such file") from None
+    except yaml.YAMLError as err:
+        raise ConfigError(f"sweep spec {path}: not valid YAML ({str(err).splitlines()[0]})") from None
+    if not isinstance(data, dict):
+        raise ConfigError(f"sweep spec {path}: expected a mapping of fields, got {type(data).__name__}")
+    data.update({k: v for k, v in (overrides or {}).items() if v is not None})
+    try:
+        return SweepSpec.model_validate(data)
+    except ValidationError as err:
+        raise ConfigError(f"sweep spec {path}: {validation_message(err, SweepSpec)}") from None
+
+
+def _value_text(value: Any) -> str:
+    """A --set value as YAML (so lists, booleans and strings round-trip)."""
+    return yaml.safe_dump(value, default_flow_style=True).strip().removesuffix("...").strip()
+
+
+def trial_sets(spec: SweepSpec, params: dict[str, Any]) -> list[str]:
+    """The --set strings of one trial: the spec's, then the trial's parameters."""
+    return [*spec.sets, *(f"{k}={_value_text(v)}" for k, v in params.items())]
+
+
+def trial_dir(out: Path, index: int) -> Path:
+    """Directory of trial ``index``."""
+    return out / "trials" / f"t{index:03d}"
+
+
+def _trial_experiment(spec: SweepSpec, params: dict[str, Any]) -> Any:
+    from safelane.running.experiments import make_spec
+
+    return make_spec(
+        methods=[spec.method],
+        seeds=list(range(spec.seeds)),
+        episodes=spec.episodes,
+        test_episodes=spec.test_episodes,
+        env_preset=spec.env_preset,
+        agent_preset=spec.agent_preset,
+        sets=trial_sets(spec, params),
+    )
+
+
+def _sweep_task(out_dir: str, spec_json: str, index: int, seed: int) -> dict[str, Any]:
+    """Train and test one (trial, seed); returns its metrics (the run's eval.json holds everything)."""
+    from safelane.running.experiments import _task
+
+    spec = SweepSpec.model_validate_json(spec_json)
+    params = spec.points()[index]
+    directory = trial_dir(Path(out_dir), index)
+    experiment = _trial_experiment(spec, params)
+    atomic_write_text(directory / "params.json", json.dumps(params))
+    try:
+        record = _task(str(directory), experiment.model_dump_json(), spec.method, seed)
+    except ConfigError as err:
+        _write_failure(directory, seed, "config", str(err))
+        raise
+    return {"trial": index, "seed": seed, "metrics": _metrics_of(record)}
+
+
+def _failure_path(directory: Path, seed: int) -> Path:
+    return directory / f"failed-s{seed}.json"
+
+
+def _write_failure(directory: Path, seed: int, kind: str, message: str) -> None:
+    atomic_write_text(_failure_path(directory, seed), json.dumps({"kind": kind, "error": message}))
+
+
+def _metrics_of(record: dict[str, Any]) -> dict[str, float]:
+    summary, episodes = record["summary"], record["episodes"]
+    metrics = {k: float(summary[k]) for k in METRICS if k in summary}
+    metrics["return_before_collision"] = float(np.mean([e["return_before_collision"] for e in episodes]))
+    metrics["collisions"] = float(summary["collisions"])
+    metrics["test_episodes"] = float(summary["episodes"])
+    metrics["train_wall_time_s"] = float(record["train_wall_time_s"])
+    return metrics
+
+
+def _eval_path(out: Path, spec: SweepSpec, index: int, seed: int) -> Path:
+    from safelane.running.experiments import run_dir_of
+
+    return run_dir_of(trial_dir(out, index), spec.method, seed) / "eval.json"
+
+
+def _check_same_spec(out: Path, spec: SweepSpec) -> None:
+    path = out / "sweep.json"
+    if path.is_file():
+        earlier = json.loads(path.read_text())
+        if earlier != json.loads(spec.model_dump_json()):
+            raise ConfigError(f"--out {out}: holds a sweep of another spec ({path}); give a new --out or delete it")
+
+
+def run_sweep(
+    spec: SweepSpec,
+    out_dir: str | Path,
+    backend: str = "local",
+    workers: int | None = None,
+    address: str | None = None,
+    progress: Callable[[int, int], None] | None = None,
+) -> dict[str, Any]:
+    """Run every (trial, seed) of ``spec`` not yet done into ``out_dir`` and write the summary files.
+
+    ``progress(done, total)`` is called as tasks finish. Returns the summary (also ``summary.json``).
+    """
+    from safelane.running.engine import TaskFailure, check_backend, run_tasks
+
+    check_backend(backend)
+    out = Path(out_dir)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as err:
+        raise ConfigError(f"--out {out}: not writable ({err.strerror})") from None
+    _check_same_spec(out, spec)
+    atomic_write_text(out / "sweep.json", spec.model_dump_json(indent=1))
+    points = spec.points()
+    tasks = [
+        (index, seed)
+        for index in range(len(points))
+        for seed in range(spec.seeds)
+        if not _eval_path(out, spec, index, seed).is_file() and not _final_failure(trial_dir(out, index), seed)
+    ]
+    total = len(points) * spec.seeds
+    done = [total - len(tasks)]
+    if progress is not None:
+        progress(done[0], total)
+    spec_json = spec.model_dump_json()
+
+    def finished(i: int, result: dict[str, Any] | TaskFailure) -> None:
+        index, seed = tasks[i]
+        if isinstance(result, TaskFailure):
+            _write_failure(trial_dir(out, index), seed, result.kind, result.message)
+        done[0] += 1
+        write_results(out, spec)  # after every task: a kill loses only the tasks in flight
+        if progress is not None:
+            progress(done[0], total)
+
+    run_tasks(
+        _sweep_task,
+        [(str(out), spec_json, index, seed) for index, seed in tasks],
+        backend=backend,
+        workers=workers,
+        address=address,
+        on_result=finished,
+        name=f"sweep-{spec.name}",
+        storage=out / "ray",
+    )
+    return write_results(out, spec)
+
+
+def _final_failure(directory: Path, seed: int) -> bool:
+    """A config failure is final (the same values fail again); any other is retried by a re-run."""
+    path = _failure_path(directory, seed)
+    return path.is_file() and json.loads(path.read_text()).get("kind") == "config"
+
+
+def read_trials(out: Path, spec: SweepSpec) -> list[dict[str, Any]]:
+    """One row per (trial, seed) that finished or failed, from the trial directories."""
+    rows: list[dict[str, Any]] = []
+    for index, params in enumerate(spec.points()):
+        for seed in range(spec.seeds):
+            row: dict[str, Any] = {"trial": index, "seed": seed, **params}
+            eval_path = _eval_path(out, spec, index, seed)
+            failure = _failure_path(trial_dir(out, index), seed)
+            if eval_path.is_file():
+                row.update(status="ok", **_metrics_of(json.loads(eval_path.read_text())), error="")
+            elif failure.is_file():
+                info = json.loads(failure.read_text())
+                row.update(status="failed", error=f"{info['kind']}: {info['error']}")
+            else:
+                continue
+            rows.append(row)
+    return rows
+
+
+def summarize_trials(spec: SweepSpec, rows: list[dict[str, Any]]) -> dict[str, Any]:
+    """Per trial: objective mean over seeds with a bootstrap 95 % CI, pooled metrics, feasibility; the best."""
+    from safelane.reporting import stats
+
+    metric, trials = spec.objective.metric, []
+    for index, params in enumerate(spec.points()):
+        ok = [r for r in rows if r["trial"] == index and r["status"] == "ok"]
+        failed = [r for r in rows if r["trial"] == index and r["status"] == "failed"]
+        entry: dict[str, Any] = {"trial": index, "params": params, "seeds_done": len(ok), "failed": len(failed)}
+        if failed:
+            entry["error"] = failed[0]["error"]
+        if ok:
+            values = [r[metric] for r in ok]
+            episodes = sum(int(r["test_episodes"]) for r in ok)
+            collisions = sum(int(r["collisions"]) for r in ok)
+            pooled = {m: float(np.mean([r[m] for r in ok])) for m in METRICS if m in ok[0]}
+            pooled["collision_rate"] = collisions / episodes
+            entry.update(
+                objective=stats.mean(values),
+                objective_ci95=list(stats.bootstrap_ci(values, seed=0)),
+                metrics=pooled,
+                collisions=collisions,
+                test_episodes=episodes,
+                collision_rate_wilson95=list(stats.binomial_ci(collisions, episodes)),
+                feasible=spec.objective.satisfied(pooled),
+            )
+        trials.append(entry)
+    complete = [t for t in trials if t["seeds_done"] == spec.seeds and t.get("feasible")]
+    sign = 1.0 if spec.objective.mode == "max" else -1.0
+    best = max(complete, key=lambda t: (sign * t["objective"], -t["trial"]), default=None)
+    return {
+        "name": spec.name,
+        "method": spec.method,
+        "objective": spec.objective.model_dump(),
+        "trials": trials,
+        "best": best,
+        "complete": all(t["seeds_done"] + t["failed"] == spec.seeds for t in trials),
+    }
+
+
+def write_results(out: Path, spec: SweepSpec) -> dict[str, Any]:
+    """Rebuild trials.csv, summary.json / summary.md, best.yaml and the plots from the trial directories."""
+    rows = read_trials(out, spec)
+    keys = list(spec.space)
+    extra = ["collisions", "test_episodes", "train_wall_time_s"]
+    columns = ["trial", "seed", *keys, "status", *METRICS, *extra, "error"]
+    buffer = io.StringIO()
+    writer = csv.DictWriter(buffer, fieldnames=columns, extrasaction="ignore", lineterminator="\n")
+    writer.writeheader()
+    for row in rows:
+        writer.writerow({c: (_value_text(row[c]) if c in keys else row.get(c, "")) for c in columns})
+    atomic_write_text(out / "trials.csv", buffer.getvalue())
+    summary = summarize_trials(spec, rows)
+    atomic_write_text(out / "summary.json", json.dumps(summary, indent=1))
+    atomic_write_text(out / "summary.md", summary_markdown(spec, summary))
+    if summary["best"] is not None:
+        atomic_write_text(out / "best.yaml", best_preset_yaml(spec, summary["best"]))
+    _plot_objective(out, spec, summary)
+    return summary
+
+
+def summary_markdown(spec: SweepSpec, summary: dict[str, Any]) -> str:
+    """The summary table: one line per trial (objective mean [95 % CI], collisions, feasibility)."""
+    metric = spec.objective.metric
+    keys = list(spec.space)
+    constraint = " and ".join(spec.objective.constraints) or "none"
+    lines = [
+        f"# Sweep {spec.name}: {spec.method}",
+        "",
+        spec.description.strip(),
+        "",
+        f"Objective: {spec.objective.mode} test `{metric}` (mean over {spec.seeds} seeds, bootstrap 95 % CI); "
+        f"constraints: {constraint}. {spec.episodes} training episodes, {spec.test_episodes} test episodes per run.",
+        "",
+        "| trial | "
+        + " | ".join(f"`{k}`" for k in keys)
+        + f" | {metric} [95 % CI] | collisions (Wilson 95 %) | feasible |",
+        "|---" * (len(keys) + 4) + "|",
+    ]
+    best = summary["best"]["trial"] if summary["best"] else None
+    for t in summary["trials"]:
+        values = " | ".join(_value_text(t["params"][k]) for k in keys)
+        if "objective" in t:
+            lo, hi = t["objective_ci95"]
+            clo, chi = t["collision_rate_wilson95"]
+            obj = f"{t['objective']:.3f} [{lo:.3f}, {hi:.3f}]"
+            col = f"{t['collisions']} / {t['test_episodes']} ({clo:.3f}–{chi:.3f})"
+            feas = "yes" if t["feasible"] else "no"
+        else:
+            obj, col, feas = "—", "—", f"failed: {t.get('error', 'not run')}" if t["failed"] else "not run"
+        mark = " **best**" if t["trial"] == best else ""
+        lines.append(f"| t{t['trial']:03d}{mark} | {values} | {obj} | {col} | {feas} |")
+    lines.append("")
+    return "\n".join(lines)
+
+
+def best_preset_yaml(spec: SweepSpec, best: dict[str, Any]) -> str:
+    """The agent preset of the best trial: the spec's preset with its ``agent.*`` values; the trial's
+    other keys as ``--set`` lines in the header."""
+    from safelane.agents.dqn import agent_preset_path
+
+    base = yaml.safe_load(Path(agent_preset_path(spec.agent_preset)).read_text()) or {}
+    base["method"] = spec.method
+    agent = {k.removeprefix("agent."): v for k, v in best["params"].items() if k.startswith("agent.")}
+    for key in spec.sets:
+        if key.startswith("agent."):
+            name, _, value = key.partition("=")
+            agent.setdefault(name.removeprefix("agent."), yaml.safe_load(value))
+    base.update(agent)
+    others = [f"{k}={_value_text(v)}" for k, v in best["params"].items() if not k.startswith("agent.")]
+    others += [s for s in spec.sets if not s.startswith("agent.")]
+    header = [
+        f"# Best trial t{best['trial']:03d} of sweep '{spec.name}' ({spec.objective.mode} {spec.objective.metric} = "
+        f"{best['objective']:.4f} over {best['seeds_done']} seeds).",
+        "# Use: --agent-preset best.yaml" + (" with " + " ".join(f"--set {o}" for o in others) if others else ""),
+    ]
+    return "\n".join(header) + "\n" + yaml.safe_dump(base, sort_keys=False)
+
+
+def _plot_objective(out: Path, spec: SweepSpec, summary: dict[str, Any]) -> None:
+    from matplotlib.figure import Figure
+
+    done = [t for t in summary["trials"] if "objective" in t]
+    if not done:
+        return
+    for key in spec.space:
+        xs = [t["params"][key] for t in done]
+        if not all(isinstance(x, int | float) and not isinstance(x, bool) for x in xs):
+            continue  # categorical values: the table says it
+        ys = np.array([t["objective"] for t in done])
+        lo = ys - np.array([t["objective_ci95"][0] for t in done])
+        hi = np.array([t["objective_ci95"][1] for t in done]) - ys
+        fig = Figure(figsize=(5, 3.5))
+        ax = fig.add_subplot()
+        colors = ["tab:blue" if t["feasible"] else "tab:red" for t in done]
+        ax.errorbar(xs, ys, yerr=[lo, hi], fmt="none", ecolor="grey", capsize=3)
+        ax.scatter(xs, ys, c=colors, zorder=3)
+        ax.set_xlabel(key)
+        ax.set_ylabel(f"test {spec.objective.metric}")
+        ax.set_title(f"{spec.name} ({spec.method}); red: constraints not met", fontsize=9)
+        fig.tight_layout()
+        safe = re.sub(r"[^A-Za-z0-9_.-]", "_", key)
+        fig.savefig(out / f"objective_{safe}.png", dpi=100)

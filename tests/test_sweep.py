@@ -1,0 +1,193 @@
+"""Sweeps and the task engine: specs, trials.csv, best.yaml, failures, kills, and both backends (real
+training on tiny budgets)."""
+
+from __future__ import annotations
+
+import csv
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+import yaml
+
+from safelane.agents.dqn import load_agent_config
+from safelane.config import ConfigError
+from safelane.running.engine import TaskFailure, run_tasks
+from safelane.running.sweep import load_sweep_spec, run_sweep
+
+TINY = ["simulator=fast", "env.duration=3", "env.vehicles_count=10"]
+SWEEPS = Path(__file__).resolve().parents[1] / "configs" / "sweeps"
+
+
+def write_spec(path: Path, **fields: object) -> Path:
+    data = {
+        "name": "tiny",
+        "method": "qmask",
+        "sets": TINY,
+        "space": {"agent.lr": {"grid": [0.001, 0.0005]}, "shield.margin": {"grid": [1.0, 2.0]}},
+        "seeds": 1,
+        "episodes": 1,
+        "test_episodes": 1,
+        "objective": {"metric": "mean_speed", "mode": "max", "constraints": ["collision_rate <= 0.5"]},
+    }
+    data.update(fields)
+    path.write_text(yaml.safe_dump(data))
+    return path
+
+
+def rows_of(out: Path) -> list[dict[str, str]]:
+    with open(out / "trials.csv") as f:
+        return [{k: v for k, v in row.items() if k != "train_wall_time_s"} for row in csv.DictReader(f)]
+
+
+# --- specs -----------------------------------------------------------------------------------------
+
+
+def test_points_grid_in_order_and_random_reproducible(tmp_path: Path) -> None:
+    spec = load_sweep_spec(write_spec(tmp_path / "s.yaml"))
+    assert spec.points() == [
+        {"agent.lr": 0.001, "shield.margin": 1.0},
+        {"agent.lr": 0.001, "shield.margin": 2.0},
+        {"agent.lr": 0.0005, "shield.margin": 1.0},
+        {"agent.lr": 0.0005, "shield.margin": 2.0},
+    ]
+    space = {"agent.lr": {"loguniform": [1e-4, 1e-2]}, "agent.batch_size": {"uniform": [16, 128], "integer": True}}
+    random = load_sweep_spec(write_spec(tmp_path / "r.yaml", space=space, search="random", samples=5))
+    points = random.points()
+    assert points == random.points() and len(points) == 5
+    assert all(1e-4 <= p["agent.lr"] <= 1e-2 and isinstance(p["agent.batch_size"], int) for p in points)
+
+
+@pytest.mark.parametrize(
+    ("fields", "message"),
+    [
+        ({"methd": "dqn"}, "methd: unknown key"),
+        ({"space": {"agent.lr": {"uniform": [0.1, 0.01]}}}, "bounds must be increasing"),
+        ({"space": {"agent.lr": {"uniform": [0.001, 0.01]}}}, "has a range; give it a grid list"),
+        ({"space": {}}, "an empty search space"),
+        ({"objective": {"constraints": ["speed < 3"]}}, "expected 'METRIC OP NUMBER'"),
+        ({"method": "ppo"}, "method"),
+    ],
+)
+def test_bad_specs_are_one_line_errors(tmp_path: Path, fields: dict, message: str) -> None:
+    with pytest.raises(ConfigError, match=message) as err:
+        load_sweep_spec(write_spec(tmp_path / "s.yaml", **fields))
+    assert "\n" not in str(err.value)
+    with pytest.raises(ConfigError, match="no such file"):
+        load_sweep_spec(tmp_path / "missing.yaml")
+
+
+def test_the_shipped_paper_searches_are_valid_specs() -> None:
+    specs = {p.stem: load_sweep_spec(p) for p in sorted(SWEEPS.glob("*.yaml"))}
+    assert set(specs) == {"dqn_collision_penalty", "constrained_budget", "qmask_margin", "robust_margin"}
+    assert all(s.seeds >= 3 and s.sets == ["simulator=fast"] for s in specs.values())
+
+
+# --- the local backend ------------------------------------------------------------------------------
+
+
+def test_local_sweep_writes_rows_best_preset_and_resumes(tmp_path: Path) -> None:
+    """A 2×2 grid, one seed each: 4 rows in trials.csv, a summary, a best.yaml that loads as an agent
+    preset with the best trial's agent value; re-running trains nothing again."""
+    spec = load_sweep_spec(write_spec(tmp_path / "s.yaml"))
+    out = tmp_path / "out"
+    summary = run_sweep(spec, out, workers=1)
+    rows = rows_of(out)
+    assert [(r["trial"], r["seed"], r["status"]) for r in rows] == [(str(i), "0", "ok") for i in range(4)]
+    assert {r["shield.margin"] for r in rows} == {"1.0", "2.0"}
+    best = summary["best"]
+    assert best is not None and best["objective"] == max(t["objective"] for t in summary["trials"])
+    preset = load_agent_config(str(out / "best.yaml"), "qmask")
+    assert preset.lr == best["params"]["agent.lr"]
+    assert f"--set shield.margin={best['params']['shield.margin']}" in (out / "best.yaml").read_text()
+    assert "**best**" in (out / "summary.md").read_text()
+    assert (out / "objective_agent.lr.png").is_file()
+    evals = sorted(out.glob("trials/*/runs/*/eval.json"))
+    stamps = [p.stat().st_mtime_ns for p in evals]
+    again = run_sweep(spec, out, workers=1)
+    assert [p.stat().st_mtime_ns for p in evals] == stamps and again["best"] == best
+    other = load_sweep_spec(write_spec(tmp_path / "o.yaml", seeds=2))
+    with pytest.raises(ConfigError, match="holds a sweep of another spec"):
+        run_sweep(other, out, workers=1)
+
+
+def test_a_bad_value_fails_its_trial_not_the_sweep(tmp_path: Path) -> None:
+    spec = load_sweep_spec(write_spec(tmp_path / "s.yaml", space={"agent.lr": {"grid": [0.001, -1.0]}}))
+    summary = run_sweep(spec, tmp_path / "out", workers=1)
+    rows = rows_of(tmp_path / "out")
+    assert [r["status"] for r in rows] == ["ok", "failed"]
+    assert rows[1]["error"].startswith("config: agent.lr") and "\n" not in rows[1]["error"]
+    assert summary["best"]["trial"] == 0
+
+
+def _die_once(marker: str, value: int) -> dict:
+    """A task whose worker process dies the first time it runs (to test the retry)."""
+    path = Path(marker)
+    if not path.exists():
+        path.write_text("died")
+        os._exit(1)
+    return {"value": value}
+
+
+def _bad_config(value: int) -> dict:
+    raise ConfigError(f"agent.lr: bad value {value}")
+
+
+def test_a_dead_worker_loses_only_its_tasks_which_are_retried(tmp_path: Path) -> None:
+    results = run_tasks(_die_once, [(str(tmp_path / "m"), 1), (str(tmp_path / "m"), 2)], workers=2)
+    assert results == [{"value": 1}, {"value": 2}]
+    failures = run_tasks(_bad_config, [(3,)], workers=1)
+    assert failures == [TaskFailure("config", "agent.lr: bad value 3")]
+
+
+def test_a_killed_sweep_resumes_without_repeating_or_losing_rows(tmp_path: Path) -> None:
+    spec_path = write_spec(tmp_path / "s.yaml")
+    out = tmp_path / "out"
+    args = [sys.executable, "-m", "safelane.cli", "sweep", str(spec_path), "--out", str(out), "--workers", "1"]
+    env = {**os.environ, "SDL_VIDEODRIVER": "dummy"}
+    proc = subprocess.Popen(args, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    deadline = time.time() + 240
+    while not list(out.glob("trials/*/runs/*/eval.json")) and proc.poll() is None and time.time() < deadline:
+        time.sleep(0.2)
+    proc.send_signal(signal.SIGKILL)
+    proc.wait()
+    first = sorted(out.glob("trials/*/runs/*/eval.json"))
+    assert first, "the sweep was killed before its first trial finished"
+    kept = {p: p.read_text() for p in first}
+    done = subprocess.run(args, env=env, capture_output=True, text=True, timeout=600, check=False)
+    assert done.returncode == 0, done.stderr
+    assert all(p.read_text() == text for p, text in kept.items())
+    rows = rows_of(out)
+    assert sorted((r["trial"], r["seed"]) for r in rows) == [(str(i), "0") for i in range(4)]
+    assert "best: t" in done.stdout
+
+
+# --- the Ray backend ----------------------------------------------------------------------------------
+
+
+def test_ray_backend_gives_the_local_rows_and_reproduce_results(tmp_path: Path) -> None:
+    """The same 2×2 sweep on a local Ray instance (2 CPUs) gives the local backend's rows; reproduce on
+    Ray gives the local runner's results."""
+    pytest.importorskip("ray.tune")
+    from safelane.running.experiments import make_spec, run_experiment
+
+    spec = load_sweep_spec(write_spec(tmp_path / "s.yaml"))
+    run_sweep(spec, tmp_path / "local", workers=2)
+    run_sweep(spec, tmp_path / "ray", backend="ray", workers=2)
+    assert rows_of(tmp_path / "ray") == rows_of(tmp_path / "local")
+    small = make_spec(methods=["dqn", "robust"], seeds=[0], episodes=1, test_episodes=2, sets=TINY, quick=True)
+    local = run_experiment(small, tmp_path / "rep-local", workers=2)
+    remote = run_experiment(small, tmp_path / "rep-ray", workers=2, backend="ray")
+    assert json.dumps(remote["episodes"], sort_keys=True) == json.dumps(local["episodes"], sort_keys=True)
+
+
+def test_backend_names_are_checked() -> None:
+    with pytest.raises(ConfigError, match="--backend: got 'slurm'; allowed: local, ray"):
+        run_tasks(_bad_config, [(1,)], backend="slurm")
+    with pytest.raises(ConfigError, match="--address: only with --backend ray"):
+        run_tasks(_bad_config, [(1,)], address="auto")

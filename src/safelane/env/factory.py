@@ -155,7 +155,11 @@ def make_env(
     if cfg.shield.mode != "none":
         shield = cfg.shield
         env = SafetyShield(
-            env, mode=shield.mode, formula=shield.formula, override=shield.override, engine=shield.engine,
+            env,
+            mode=shield.mode,
+            formula=shield.formula,
+            override=shield.override,
+            engine=shield.engine,
             margin=shield.margin,
         )
     env.safelane_config = cfg  # type: ignore[attr-defined]

@@ -284,6 +284,7 @@ def test_batched_evaluation_plays_the_same_episodes_as_one_environment(method: s
     one = run_config(cfg, policy, 9, 100, num_envs=1)
     many = run_config(cfg, policy, 9, 100, progress=lambda i, r: seen.append(i), num_envs=4)
     assert [r.to_dict() for r in many] == [r.to_dict() for r in one]
+    assert [r.chosen_actions for r in many] == [r.chosen_actions for r in one]
     assert sorted(seen) == list(range(9))
     assert len({r.length for r in one}) > 1 or method == "robust"  # dqn's crashes refill slots mid-round
 

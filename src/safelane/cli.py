@@ -97,6 +97,14 @@ TrainSimulatorOpt = Annotated[
 EpisodesOpt = Annotated[int, typer.Option("--episodes", "-n", help="Number of episodes (>= 1).")]
 SeedOpt = Annotated[int, typer.Option("--seed", help="Random seed: the same seed gives the same numbers.")]
 JsonOpt = Annotated[bool, typer.Option("--json", help="Print one JSON object on stdout instead of a table.")]
+CounterexamplesOpt = Annotated[
+    Path | None,
+    typer.Option(
+        "--save-counterexamples",
+        help="Save every crash and invariant break as a replayable file in this directory (safelane replay FILE).",
+        metavar="DIR",
+    ),
+]
 BackendOpt = Annotated[
     str,
     typer.Option(
@@ -376,6 +384,7 @@ def evaluate(
     sets: SetOpt = None,
     shield: ShieldOpt = None,
     simulator: SimulatorOpt = None,
+    counterexamples: CounterexamplesOpt = None,
     as_json: JsonOpt = False,
 ) -> None:
     """Evaluate a policy: collisions, speed, return, time to collision, shield activity.
@@ -394,7 +403,7 @@ def evaluate(
             raise ConfigError("evaluate: give either RUN_DIR or --policy, not both")
         check_positive("--episodes", episodes)
         check_seed(seed)
-        summary = evaluate_run(run_dir, episodes, seed, sets, shield)
+        summary = evaluate_run(run_dir, episodes, seed, sets, shield, counterexamples)
         if as_json:
             print_json(summary)
         else:
@@ -411,7 +420,7 @@ def evaluate(
     if cfg.shield.mode != "none" and not override_set:
         cfg = resolve_config(preset, sets, shield, overrides={"shield.override": True})
     with episode_progress(f"evaluate {policy}", episodes) as advance:
-        summary = evaluate_fixed(cfg, policy, episodes, seed, progress=advance)
+        summary = evaluate_fixed(cfg, policy, episodes, seed, progress=advance, counterexamples=counterexamples)
     if as_json:
         print_json(summary)
         return
@@ -486,8 +495,16 @@ def bench(
     print_table(f"safelane bench: {result['preset']} preset, random policy, {shield} shield", result, units)
 
 
-def evaluate_run(run_dir: Path, episodes: int, seed: int, sets: list[str] | None, shield: str | None) -> dict[str, Any]:
-    """Evaluate a trained run's greedy policy on its own environment config (plus --set / --shield)."""
+def evaluate_run(
+    run_dir: Path,
+    episodes: int,
+    seed: int,
+    sets: list[str] | None,
+    shield: str | None,
+    counterexamples: Path | None = None,
+) -> dict[str, Any]:
+    """Evaluate a trained run's greedy policy on its own environment config (plus --set / --shield);
+    ``counterexamples``: save its crashes and invariant breaks there."""
     from safelane.running.evaluation import run_config, summarize
     from safelane.running.runs import run_env_config
     from safelane.running.training import load_policy, load_run_config
@@ -497,8 +514,14 @@ def evaluate_run(run_dir: Path, episodes: int, seed: int, sets: list[str] | None
     policy = load_policy(run_dir)
     with episode_progress(f"evaluate {run_dir}", episodes) as advance:
         records = run_config(cfg, policy, episodes, seed, advance)
+    files: list[Path] = []
+    if counterexamples is not None:
+        from safelane.running.counterexamples import save_counterexamples
+
+        files = save_counterexamples(records, cfg, counterexamples, f"evaluate {run_dir} --seed {seed}")
     return summarize(
         records,
+        counterexample_files=[str(f) for f in files],
         method=run.train.method,
         run_dir=str(run_dir),
         shield=cfg.shield.mode,
@@ -729,6 +752,66 @@ def sweep(
 
 @app.command()
 @cli_errors
+def replay(
+    file: Path = typer.Argument(..., help="A counterexample file (--save-counterexamples).", metavar="FILE"),
+    simulator: SimulatorOpt = None,
+    gif: Annotated[
+        Path | None, typer.Option("--gif", help="Also draw the replay (.gif or .mp4).", metavar="OUT")
+    ] = None,
+    last: Annotated[int, typer.Option("--last", help="Decisions of the log to print (the last N).")] = 8,
+    as_json: JsonOpt = False,
+) -> None:
+    """Replay a saved crash or invariant break: the decision log, and whether the event happens again."""
+    from safelane.core.spaces import ACTION_NAMES
+    from safelane.running.counterexamples import dump_json, load_counterexample, render_counterexample
+    from safelane.running.counterexamples import replay as replay_counterexample
+
+    if simulator is not None and simulator not in ("fast", "highway-env"):
+        raise ConfigError(f"--simulator: got {simulator!r}; allowed: fast, highway-env")
+    check_positive("--last", last)
+    cx = load_counterexample(file)
+    result = replay_counterexample(cx, simulator)
+    if gif is not None:
+        render_counterexample(cx, gif)
+    if as_json:
+        typer.echo(dump_json(result))
+    else:
+        table = Table(title=f"{file}: {cx.kind} after decision {cx.step}, seed {cx.seed}, on {result.simulator}")
+        for column in (
+            "t [s]",
+            "chosen → executed",
+            "mask (L I R F S)",
+            "min gap [m] per action",
+            "fallback after",
+            "ego lane, speed",
+            "nearby (lane, dx, v)",
+        ):
+            table.add_column(column)
+        for d in result.decisions[-last:]:
+            gaps = " ".join("–" if g is None else f"{g:.1f}" for g in d.min_gap)
+            mark = " BREAK" if d.invariant_break else (" CRASH" if d.collision else "")
+            near = "; ".join(f"{v['lane']},{v['dx']:+.0f},{v['speed']:.0f}" for v in d.nearby[:6])
+            table.add_row(
+                f"{d.time:.1f}",
+                f"{ACTION_NAMES[d.chosen]} → {ACTION_NAMES[d.executed]}",
+                "".join("■" if m else "·" for m in d.mask),
+                gaps,
+                f"{d.fallback_after}{mark}",
+                f"{d.ego['lane']}, {d.ego['speed']:.1f}",
+                near,
+            )
+        Console().print(table)
+        kind = f" ({result.collision_kind})" if result.collision_kind else ""
+        verdict = "reproduced" if result.reproduced else "NOT reproduced"
+        typer.echo(f"{verdict}: {cx.kind}{kind} after decision {cx.step} on {result.simulator}")
+        if gif is not None:
+            typer.echo(f"wrote {gif}")
+    if not result.reproduced:
+        raise typer.Exit(1)
+
+
+@app.command()
+@cli_errors
 def stress(
     run_dir: Path | None = typer.Argument(None, help="A trained run, instead of --policy.", metavar="RUN_DIR"),
     policy: Annotated[str | None, typer.Option("--policy", help="Fixed policy: random, idle, faster, slower.")] = None,
@@ -740,6 +823,7 @@ def stress(
     ] = None,
     only: Annotated[list[str] | None, typer.Option("--only", help="Run only these condition names.")] = None,
     sets: SetOpt = None,
+    counterexamples: CounterexamplesOpt = None,
     as_json: JsonOpt = False,
 ) -> None:
     """Run the stress suite: collisions (classified), 95 % CI, speed and interventions per condition."""
@@ -786,6 +870,7 @@ def stress(
             sets,
             on_condition=lambda r: (rows.append(r), advance(len(rows) - 1, None)),
             run=run,
+            counterexamples=counterexamples,
         )
     if as_json:
         print_json(result)

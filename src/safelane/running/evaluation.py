@@ -19,6 +19,7 @@ import math
 import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
+from pathlib import Path
 from typing import Any, Protocol, runtime_checkable
 
 import gymnasium as gym
@@ -166,10 +167,16 @@ class EpisodeRecord:
     invariant_breaks: list[int] = field(default_factory=list)
     """Decisions (1-based) after which the shield found no safe action although the previous state
     had one and an allowed action was taken: counterexamples to the rule's invariant."""
+    chosen_actions: list[int] = field(default_factory=list, repr=False)
+    """The action the policy chose at each decision (before any override): with the seed and the
+    configuration, enough to replay the episode (:mod:`safelane.running.counterexamples`). Not in
+    :meth:`to_dict` (a run's 1 000 test episodes would carry 40 000 of them)."""
 
     def to_dict(self) -> dict[str, Any]:
-        """A JSON-ready dict of the record."""
-        return asdict(self)
+        """A JSON-ready dict of the record (without ``chosen_actions``)."""
+        data = asdict(self)
+        del data["chosen_actions"]
+        return data
 
 
 ProgressCallback = Callable[[int, EpisodeRecord], None]
@@ -194,6 +201,7 @@ class EpisodeTally:
         self.interventions = self.fallbacks = self.unsafe_actions = 0
         self.breaks: list[int] = []
         self.actions = [0] * N_ACTIONS
+        self.chosen: list[int] = []
         self.time_to_collision: float | None = None
         self.collision = False
         self.steps = 0
@@ -201,6 +209,7 @@ class EpisodeTally:
     def add(self, action: int, reward: float, info: dict[str, Any]) -> None:
         """Count one decision: the ``action`` chosen, the ``reward`` and ``info`` its step returned."""
         self.steps += 1
+        self.chosen.append(int(action))
         self.total_reward += float(reward)
         self.speeds.append(float(info["speed"]))
         self.interventions += bool(info.get("shield_intervened", False))
@@ -230,6 +239,7 @@ class EpisodeTally:
             actions=self.actions,
             vehicles_passed=self.ahead_at_start - vehicles_ahead(snap),
             invariant_breaks=self.breaks,
+            chosen_actions=self.chosen,
         )
 
 
@@ -405,11 +415,13 @@ def evaluate_fixed(
     episodes: int,
     seed: int,
     progress: ProgressCallback | None = None,
+    counterexamples: str | Path | None = None,
 ) -> dict[str, Any]:
     """Evaluate a fixed policy (:data:`FIXED_POLICIES`) on ``config``: the summary dict of
     :func:`summarize` with ``policy``, ``shield``, ``override``, ``preset``, ``env_id``, ``simulator``,
     ``neighbour_search``, ``seed`` and ``wall_time_s`` added. With a shield the config should set
-    ``shield.override`` (a fixed policy cannot read the mask)."""
+    ``shield.override`` (a fixed policy cannot read the mask). ``counterexamples``: a directory where
+    every crash and invariant break is saved as a replayable file (``counterexample_files`` counts them)."""
 
     if episodes < 1:
         raise ConfigError(f"--episodes: must be >= 1 (got {episodes})")
@@ -418,8 +430,14 @@ def evaluate_fixed(
     act = fixed_policy(policy, seed)
     start = time.perf_counter()
     records = run_config(config, act, episodes, seed, progress)
+    files: list[Path] = []
+    if counterexamples is not None:
+        from safelane.running.counterexamples import save_counterexamples
+
+        files = save_counterexamples(records, config, counterexamples, f"evaluate --policy {policy} --seed {seed}")
     return summarize(
         records,
+        counterexample_files=[str(f) for f in files],
         policy=policy,
         shield=config.shield.mode,
         override=config.shield.override,

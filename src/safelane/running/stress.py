@@ -80,8 +80,12 @@ def run_condition(
     sets: list[str] | None = None,
     run: RunConfig | None = None,
     progress: Callable[[int, Any], None] | None = None,
+    counterexamples: Path | None = None,
 ) -> dict[str, Any]:
     """Evaluate ``policy`` on one condition; the per-condition JSON record of ``safelane stress``.
+
+    ``counterexamples``: a directory where every crash and invariant break is saved as a replayable
+    file (:mod:`safelane.running.counterexamples`), named after the condition.
 
     For a trained ``run`` the environment is the run's own (:func:`safelane.running.runs.run_env_config`)
     with the condition on top, and ``shield`` / ``override`` of None keep the run's shield; a condition
@@ -107,6 +111,11 @@ def run_condition(
     start = time.perf_counter()
     records = run_config(cfg, policy, episodes, STRESS_SEED_BASE, progress)
     s = summarize(records)
+    files: list[Path] = []
+    if counterexamples is not None:
+        from safelane.running.counterexamples import save_counterexamples
+
+        files = save_counterexamples(records, cfg, counterexamples, f"stress {condition.name}", f"{condition.name}-")
     return {
         "name": condition.name,
         "adversarial": condition.adversarial,
@@ -122,6 +131,7 @@ def run_condition(
         "invariant_breaks": s["invariant_breaks"],
         "invariant_break_rate": s["invariant_break_rate"],
         "collision_kinds": s["collision_kinds"],
+        "counterexample_files": [str(f) for f in files],
         "wall_time_s": time.perf_counter() - start,
     }
 
@@ -135,8 +145,10 @@ def run_stress(
     sets: list[str] | None = None,
     on_condition: Callable[[dict[str, Any]], None] | None = None,
     run: RunConfig | None = None,
+    counterexamples: Path | None = None,
 ) -> dict[str, Any]:
-    """Run every condition; ``policy_factory`` gives a fresh policy per condition (same seeds each).
+    """Run every condition; ``policy_factory`` gives a fresh policy per condition (same seeds each);
+    ``counterexamples``: save every crash and invariant break there (:func:`run_condition`).
 
     Conditions that cannot run as asked — a trained ``run``'s policy in another decision rate, state or
     action set, a traffic option the chosen simulator does not model — are recorded as
@@ -145,7 +157,9 @@ def run_stress(
     results = []
     for cond in conditions or load_conditions():
         try:
-            rec = run_condition(cond, policy_factory(), episodes, shield, override, sets, run=run)
+            rec = run_condition(
+                cond, policy_factory(), episodes, shield, override, sets, run=run, counterexamples=counterexamples
+            )
         except NotSupported as err:
             rec = {"name": cond.name, "adversarial": cond.adversarial, "skipped": str(err)}
         results.append(rec)

@@ -1,0 +1,245 @@
+"""Counterexamples as files: a crash or an invariant break, saved small and replayed exactly.
+
+A :class:`Counterexample` holds what it takes to play the episode again — the environment configuration
+(with its simulator), the reset seed and the actions the policy *chose* (a shield's overrides are
+re-derived by the same shield) — and the event: a ``collision`` at the last decision, or an
+``invariant_break`` (a fallback state reached right after an allowed action in a state that had a safe
+one, :class:`safelane.safety.shield.SafetyShield`) after decision ``step``. Both simulators are
+deterministic after reset, so :func:`replay` plays the same decisions and checks the same event happens
+at the same decision; ``simulator=`` replays a fast-simulator finding on highway-env (the reference).
+
+:func:`save_counterexamples` writes one file per crash and per break of a list of
+:class:`~safelane.running.evaluation.EpisodeRecord` (``evaluate`` / ``stress`` ``--save-counterexamples``).
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Literal
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
+
+from safelane.config import ConfigError, SafelaneConfig, build_config, config_to_dict
+from safelane.core.files import atomic_write_text
+from safelane.core.spaces import ACTION_NAMES
+
+NEAR = 80.0
+"""[m] Vehicles within this distance of the ego, along the road, are logged."""
+
+EventKind = Literal["collision", "invariant_break"]
+
+
+class Counterexample(BaseModel):
+    """One replayable finding (see the module docstring). ``step`` is 1-based: the decision after which
+    the event was observed."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    format: Literal["safelane-counterexample/1"] = "safelane-counterexample/1"
+    kind: EventKind
+    config: dict[str, Any] = Field(description="The environment configuration (config_to_dict).")
+    seed: int = Field(ge=0, description="Reset seed of the episode.")
+    actions: list[int] = Field(description="Actions the policy chose, decision by decision (0..4).")
+    step: int = Field(ge=1, description="Decision (1-based) after which the event was observed.")
+    collision_kind: str | None = None
+    source: str = Field("", description="What found it (command, policy, condition).")
+
+    def env_config(self, simulator: str | None = None) -> SafelaneConfig:
+        """The configuration to replay in (``simulator`` overrides the recorded one)."""
+        data = dict(self.config)
+        if simulator is not None:
+            data["simulator"] = simulator
+        return build_config(data)
+
+
+def load_counterexample(path: str | Path) -> Counterexample:
+    """Read a counterexample file (a one-line :class:`ConfigError` if it is missing or malformed)."""
+    path = Path(path)
+    try:
+        return Counterexample.model_validate_json(path.read_text())
+    except FileNotFoundError:
+        raise ConfigError(f"{path}: no such counterexample file") from None
+    except ValidationError as err:
+        e = err.errors()[0]
+        raise ConfigError(f"{path}: not a counterexample ({'.'.join(map(str, e['loc']))}: {e['msg']})") from None
+
+
+def counterexamples_of(records: list[Any], config: SafelaneConfig, source: str = "") -> list[Counterexample]:
+    """One :class:`Counterexample` per collision and per invariant break in ``records``."""
+    found: list[Counterexample] = []
+    data = config_to_dict(config)
+    for r in records:
+        for step in r.invariant_breaks:
+            found.append(
+                Counterexample(
+                    kind="invariant_break",
+                    config=data,
+                    seed=r.seed,
+                    actions=r.chosen_actions[:step],
+                    step=step,
+                    source=source,
+                )
+            )
+        if r.collision:
+            found.append(
+                Counterexample(
+                    kind="collision",
+                    config=data,
+                    seed=r.seed,
+                    actions=list(r.chosen_actions),
+                    step=r.length,
+                    collision_kind=r.collision_kind,
+                    source=source,
+                )
+            )
+    return found
+
+
+def save_counterexamples(
+    records: list[Any], config: SafelaneConfig, out_dir: str | Path, source: str = "", prefix: str = ""
+) -> list[Path]:
+    """Write :func:`counterexamples_of` as ``out_dir/PREFIXseedSEED-KIND-stepSTEP.json`` (atomically)."""
+    out = Path(out_dir)
+    paths = []
+    for cx in counterexamples_of(records, config, source):
+        path = out / f"{prefix}seed{cx.seed}-{cx.kind}-step{cx.step}.json"
+        atomic_write_text(path, cx.model_dump_json(indent=1))
+        paths.append(path)
+    return paths
+
+
+@dataclass
+class Decision:
+    """One logged decision of a replay. Distances [m], speeds [m/s], time [s]."""
+
+    step: int
+    time: float
+    chosen: int
+    executed: int
+    mask: list[bool]
+    min_gap: list[float | None]  # None: no conflict (an infinite gap)
+    fallback_before: bool
+    fallback_after: bool
+    invariant_break: bool
+    collision: bool
+    ego: dict[str, float]
+    nearby: list[dict[str, float]] = field(default_factory=list)
+
+
+@dataclass
+class ReplayResult:
+    """What a replay saw: the decision log and whether the recorded event happened again."""
+
+    counterexample: Counterexample
+    simulator: str
+    decisions: list[Decision]
+    reproduced: bool
+    collision_kind: str | None
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-ready."""
+        return {
+            "kind": self.counterexample.kind,
+            "step": self.counterexample.step,
+            "simulator": self.simulator,
+            "reproduced": self.reproduced,
+            "collision_kind": self.collision_kind,
+            "decisions": [d.__dict__ for d in self.decisions],
+        }
+
+
+def _scene(snap: Any) -> tuple[dict[str, float], list[dict[str, float]]]:
+    """The ego and the vehicles within :data:`NEAR` of it: lane, x offset [m], speed [m/s]."""
+    e = snap.ego
+    x0 = float(snap.position[e, 0])
+    ego = {"lane": int(snap.lane[e]), "x": x0, "speed": float(snap.speed[e])}
+    nearby = []
+    for i in range(snap.n):
+        dx = float(snap.position[i, 0]) - x0
+        if i != e and abs(dx) <= NEAR:
+            nearby.append(
+                {"vehicle": i, "lane": int(snap.lane[i]), "dx": round(dx, 2), "speed": round(float(snap.speed[i]), 2)}
+            )
+    nearby.sort(key=lambda v: (v["lane"], v["dx"]))
+    return ego, nearby
+
+
+def replay(cx: Counterexample, simulator: str | None = None) -> ReplayResult:
+    """Play ``cx`` again (on ``simulator`` if given) and log every decision up to its event.
+
+    A configuration without a shield is replayed with a robust shield that only observes (no override),
+    so the log still shows masks and gaps; the episode is the same.
+    """
+    from safelane.env.factory import make_env
+    from safelane.running.evaluation import classify_collision
+
+    cfg = cx.env_config(simulator)
+    if cfg.shield.mode == "none":
+        data = config_to_dict(cfg)
+        data["shield"] = {**data["shield"], "mode": "robust", "override": False}
+        cfg = build_config(data)
+    env = make_env(cfg)
+    decisions: list[Decision] = []
+    kind = None
+    try:
+        _, info = env.reset(seed=cx.seed)
+        done = False
+        for k, action in enumerate(cx.actions[: cx.step], start=1):
+            if done:
+                break
+            result = env.get_wrapper_attr("result")
+            ego, nearby = _scene(info["snapshot"])
+            _, _, terminated, truncated, info = env.step(int(action))
+            decisions.append(
+                Decision(
+                    step=k,
+                    time=float(info["snapshot"].time),
+                    chosen=int(action),
+                    executed=int(info.get("executed_action", action)),
+                    mask=[bool(m) for m in result.mask],
+                    min_gap=[round(float(g), 3) if np.isfinite(g) else None for g in result.min_gap],
+                    fallback_before=bool(result.fallback),
+                    fallback_after=bool(info["fallback"]),
+                    invariant_break=bool(info.get("invariant_break", False)),
+                    collision=bool(info.get("collision", False)),
+                    ego=ego,
+                    nearby=nearby,
+                )
+            )
+            done = bool(terminated or truncated)
+        if decisions and decisions[-1].collision:
+            kind = classify_collision(info["snapshot"])
+    finally:
+        env.close()
+    last = decisions[-1] if len(decisions) == cx.step else None
+    if cx.kind == "collision":
+        reproduced = last is not None and last.collision and not any(d.collision for d in decisions[:-1])
+    else:
+        reproduced = last is not None and last.invariant_break
+    return ReplayResult(cx, cfg.simulator, decisions, bool(reproduced), kind)
+
+
+def render_counterexample(cx: Counterexample, out_path: str | Path) -> Path:
+    """Draw the replay (on highway-env, which plays the same episode) to a GIF / MP4 with the mask legend."""
+    from safelane.reporting.render import render_episode
+
+    actions = iter(cx.actions)
+
+    def policy(obs: np.ndarray, info: dict[str, Any]) -> int:
+        return next(actions)
+
+    cfg = cx.env_config()
+    return render_episode(cfg, policy, cx.seed, out_path, max_steps=cx.step).path
+
+
+def action_name(action: int) -> str:
+    """The meta-action's name."""
+    return ACTION_NAMES[action]
+
+
+def dump_json(result: ReplayResult) -> str:
+    """The replay as one JSON object."""
+    return json.dumps(result.to_dict())

@@ -1,0 +1,70 @@
+"""Counterexample files: every crash and invariant break saved, replayed to the same event (on the fast
+simulator and on highway-env), and `safelane replay` (real simulators, real CLI)."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+from pathlib import Path
+
+import pytest
+
+from safelane.config import ConfigError, load_config
+from safelane.running.counterexamples import load_counterexample, replay
+from safelane.running.evaluation import evaluate_fixed
+
+FAST = {"simulator": "fast"}
+
+
+def test_crashes_are_saved_and_replay_to_the_same_crash_on_both_simulators(tmp_path: Path) -> None:
+    """Always-FASTER without a shield crashes (seed 0: into the car ahead after 7 decisions); its file
+    replays to the same crash at the same decision on the fast simulator and on highway-env."""
+    summary = evaluate_fixed(load_config("fast", overrides=FAST), "faster", 1, 0, counterexamples=tmp_path)
+    assert summary["collisions"] == 1 and len(summary["counterexample_files"]) == 1
+    cx = load_counterexample(summary["counterexample_files"][0])
+    assert (cx.kind, cx.seed, cx.step, cx.collision_kind) == ("collision", 0, 7, "ego_hit_front")
+    assert cx.actions == [3] * 7
+    for simulator in ("fast", "highway-env"):
+        result = replay(cx, simulator)
+        assert result.reproduced and result.collision_kind == "ego_hit_front"
+        assert len(result.decisions) == 7 and result.decisions[-1].collision
+        assert not any(d.collision for d in result.decisions[:-1])
+
+
+def test_invariant_breaks_are_saved_and_replay_to_the_same_break(tmp_path: Path) -> None:
+    """Random actions under the robust shield (override on) on the fast preset: episode seed 3 reaches a
+    fallback state right after its first, allowed, decision. The file replays to that break, on
+    highway-env too, with the state before it logged (a safe action existed: not a fallback)."""
+    cfg = load_config("fast", overrides={**FAST, "shield": {"mode": "robust", "override": True}})
+    summary = evaluate_fixed(cfg, "random", 4, 0, counterexamples=tmp_path)
+    assert summary["invariant_breaks"] >= 1
+    path = tmp_path / "seed3-invariant_break-step1.json"
+    assert str(path) in summary["counterexample_files"]
+    cx = load_counterexample(path)
+    for simulator in ("fast", "highway-env"):
+        result = replay(cx, simulator)
+        assert result.reproduced
+        last = result.decisions[-1]
+        assert last.invariant_break and last.fallback_after and not last.fallback_before
+        assert last.mask[last.executed]
+
+
+def test_a_tampered_file_is_not_reproduced_and_a_broken_one_is_one_line(tmp_path: Path, safelane_exe: Path) -> None:
+    summary = evaluate_fixed(load_config("fast", overrides=FAST), "faster", 1, 0, counterexamples=tmp_path)
+    path = Path(summary["counterexample_files"][0])
+    ok = subprocess.run([str(safelane_exe), "replay", str(path), "--json"], capture_output=True, text=True, check=False)
+    assert ok.returncode == 0, ok.stderr
+    assert json.loads(ok.stdout)["reproduced"] is True
+    table = subprocess.run([str(safelane_exe), "replay", str(path)], capture_output=True, text=True, check=False)
+    assert "reproduced: collision (ego_hit_front) after decision 7 on fast" in table.stdout
+    data = json.loads(path.read_text())
+    data["actions"] = [4] * 7  # SLOWER instead: no crash
+    tampered = tmp_path / "tampered.json"
+    tampered.write_text(json.dumps(data))
+    bad = subprocess.run([str(safelane_exe), "replay", str(tampered)], capture_output=True, text=True, check=False)
+    assert bad.returncode == 1 and "NOT reproduced" in bad.stdout
+    (tmp_path / "junk.json").write_text('{"kind": "crash"}')
+    junk = subprocess.run([str(safelane_exe), "replay", str(tmp_path / "junk.json")], capture_output=True, text=True, check=False)
+    assert junk.returncode == 2 and junk.stderr.count("\n") == 1 and "not a counterexample" in junk.stderr
+    with pytest.raises(ConfigError, match="no such counterexample file"):
+        load_counterexample(tmp_path / "missing.json")

@@ -64,7 +64,9 @@ def test_a_tampered_file_is_not_reproduced_and_a_broken_one_is_one_line(tmp_path
     bad = subprocess.run([str(safelane_exe), "replay", str(tampered)], capture_output=True, text=True, check=False)
     assert bad.returncode == 1 and "NOT reproduced" in bad.stdout
     (tmp_path / "junk.json").write_text('{"kind": "crash"}')
-    junk = subprocess.run([str(safelane_exe), "replay", str(tmp_path / "junk.json")], capture_output=True, text=True, check=False)
+    junk = subprocess.run(
+        [str(safelane_exe), "replay", str(tmp_path / "junk.json")], capture_output=True, text=True, check=False
+    )
     assert junk.returncode == 2 and junk.stderr.count("\n") == 1 and "not a counterexample" in junk.stderr
     with pytest.raises(ConfigError, match="no such counterexample file"):
         load_counterexample(tmp_path / "missing.json")

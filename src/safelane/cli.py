@@ -752,6 +752,36 @@ def sweep(
 
 @app.command()
 @cli_errors
+def falsify(
+    spec_file: Path = typer.Argument(..., help="Campaign spec (YAML; configs/falsify/grid.yaml).", metavar="SPEC"),
+    out: Annotated[
+        Path, typer.Option("--out", "-o", help="Output directory (cells.csv, summary.md, counterexamples/).")
+    ] = Path("runs/falsify"),
+    backend: BackendOpt = "local",
+    address: AddressOpt = None,
+    workers: Annotated[int | None, typer.Option("--workers", help="Parallel cells (default: cores).")] = None,
+    episodes: Annotated[int | None, typer.Option("--episodes", help="Episodes per cell (overrides the spec).")] = None,
+    sample: Annotated[int | None, typer.Option("--sample", help="Play this many cells drawn at random.")] = None,
+    as_json: JsonOpt = False,
+) -> None:
+    """Drive the shield over a grid of traffic conditions: collisions, invariant breaks (classified), files."""
+    from safelane.running.falsify import load_campaign_spec, run_campaign
+
+    for option, value in (("--episodes", episodes), ("--sample", sample), ("--workers", workers)):
+        if value is not None:
+            check_positive(option, value)
+    spec = load_campaign_spec(spec_file, {"episodes": episodes, "sample": sample})
+    with units_progress(f"falsify {spec.name} (cells)") as tick:
+        summary = run_campaign(spec, out, backend=backend, workers=workers, address=address, progress=tick)
+    if as_json:
+        typer.echo(json.dumps(summary))
+        return
+    typer.echo((out / "summary.md").read_text())
+    typer.echo(f"counterexamples: {out / 'counterexamples'} (safelane replay FILE)")
+
+
+@app.command()
+@cli_errors
 def replay(
     file: Path = typer.Argument(..., help="A counterexample file (--save-counterexamples).", metavar="FILE"),
     simulator: SimulatorOpt = None,
@@ -801,6 +831,13 @@ def replay(
                 near,
             )
         Console().print(table)
+        f = result.final
+        gaps = " ".join("–" if g is None else f"{g:.1f}" for g in f["min_gap"])
+        near = "; ".join(f"{v['lane']},{v['dx']:+.0f},{v['speed']:.0f}" for v in f["nearby"][:8])
+        typer.echo(
+            f"then, t = {f['time']:.1f} s: mask {''.join('■' if m else '·' for m in f['mask'])}, min gaps {gaps}, "
+            f"fallback {f['fallback']}, ego lane {f['ego']['lane']} at {f['ego']['speed']:.1f} m/s; nearby {near}"
+        )
         kind = f" ({result.collision_kind})" if result.collision_kind else ""
         verdict = "reproduced" if result.reproduced else "NOT reproduced"
         typer.echo(f"{verdict}: {cx.kind}{kind} after decision {cx.step} on {result.simulator}")

@@ -138,6 +138,9 @@ class ReplayResult:
     decisions: list[Decision]
     reproduced: bool
     collision_kind: str | None
+    final: dict[str, Any] = field(default_factory=dict)
+    """The state after the last decision: its mask, worst-case gaps, fallback, ego and nearby vehicles
+    (for a break: the state the model found no safe action in)."""
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready."""
@@ -148,6 +151,7 @@ class ReplayResult:
             "reproduced": self.reproduced,
             "collision_kind": self.collision_kind,
             "decisions": [d.__dict__ for d in self.decisions],
+            "final": self.final,
         }
 
 
@@ -212,6 +216,16 @@ def replay(cx: Counterexample, simulator: str | None = None) -> ReplayResult:
             done = bool(terminated or truncated)
         if decisions and decisions[-1].collision:
             kind = classify_collision(info["snapshot"])
+        result = env.get_wrapper_attr("result")
+        ego, nearby = _scene(info["snapshot"])
+        final = {
+            "time": float(info["snapshot"].time),
+            "mask": [bool(m) for m in result.mask],
+            "min_gap": [round(float(g), 3) if np.isfinite(g) else None for g in result.min_gap],
+            "fallback": bool(result.fallback),
+            "ego": ego,
+            "nearby": nearby,
+        }
     finally:
         env.close()
     last = decisions[-1] if len(decisions) == cx.step else None
@@ -219,7 +233,7 @@ def replay(cx: Counterexample, simulator: str | None = None) -> ReplayResult:
         reproduced = last is not None and last.collision and not any(d.collision for d in decisions[:-1])
     else:
         reproduced = last is not None and last.invariant_break
-    return ReplayResult(cx, cfg.simulator, decisions, bool(reproduced), kind)
+    return ReplayResult(cx, cfg.simulator, decisions, bool(reproduced), kind, final)
 
 
 def render_counterexample(cx: Counterexample, out_path: str | Path) -> Path:

@@ -1,0 +1,332 @@
+"""A falsification campaign: the shield driven by fixed policies over a grid of traffic conditions.
+
+A campaign spec (:class:`CampaignSpec`; the shipped one is ``configs/falsify/grid.yaml``) names *axes*
+— each a list of settings, a setting being one or more ``--set`` keys that belong together (a decision
+rate with a physics rate it divides) — the policies (``random``, ``faster``, ``idle``, ``slower``), the
+shield, the episodes per cell and the simulator. A *cell* is one combination of the axes and one policy;
+``sample`` draws that many cells (seeded) instead of the whole product.
+
+:func:`run_campaign` plays every cell not yet done (engine backends, as sweeps), writes each cell's record
+to ``DIR/cells/CELL.json`` and every crash and invariant break as a replayable file under
+``DIR/counterexamples/`` (:mod:`safelane.running.counterexamples`), each break with a *class* from its
+replay (:func:`break_class`), and rebuilds ``DIR/cells.csv`` and ``DIR/summary.md`` from the cell files
+after each one (kill-safe, resumable).
+
+Break classes (what changed around the ego during the decision that ended in a state with no safe
+action — a description of the scene, not yet a proof of what the model missed):
+
+* ``second_lane_cut_in``: a vehicle that was two or more lanes from the ego is now in a lane next to it,
+  within 60 m — the rule's cut-in candidates are the vehicles already next to the ego;
+* ``adjacent_lane_change``: a vehicle next to the ego, or in its lane, changed lanes (within 60 m);
+* ``ego_lane_change``: the ego changed lanes;
+* ``other``: none of these.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import itertools
+import json
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any, Literal
+
+import numpy as np
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
+
+from safelane.config import ConfigError, validation_message
+from safelane.core.files import atomic_write_text
+
+FALSIFY_SEED_BASE = 4_000_000_000
+"""Campaign episodes are reset with ``FALSIFY_SEED_BASE + 10 000·cell + k`` (never used elsewhere)."""
+CELL_SEED_STRIDE = 10_000
+BREAK_CLASSES: tuple[str, ...] = ("second_lane_cut_in", "adjacent_lane_change", "ego_lane_change", "other")
+NEAR_CHANGE = 60.0
+"""[m] How close along the road a lane-changing vehicle must be to count in :func:`break_class`."""
+
+
+class CampaignSpec(BaseModel):
+    """What to play (see the module docstring). Units: episodes of the preset's duration."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    name: str = "campaign"
+    description: str = ""
+    preset: Literal["fast", "paper"] = "fast"
+    simulator: Literal["fast", "highway-env"] = "fast"
+    shield: Literal["nominal", "robust"] = "robust"
+    sets: list[str] = Field(default_factory=list, description="--set overrides of every cell.")
+    axes: dict[str, list[dict[str, Any]]] = Field(description="AXIS → settings; a setting maps keys to values.")
+    policies: list[Literal["random", "faster", "idle", "slower"]] = Field(default_factory=lambda: ["random", "faster"])
+    episodes: int = Field(20, ge=1, description="Episodes per cell.")
+    sample: int | None = Field(None, ge=1, description="Play this many cells drawn at random (default: all).")
+    sample_seed: int = Field(0, ge=0)
+
+    @field_validator("axes")
+    @classmethod
+    def _axes(cls, axes: dict[str, list[dict[str, Any]]]) -> dict[str, list[dict[str, Any]]]:
+        if not axes:
+            raise ValueError("no axes; give at least one AXIS with a list of settings")
+        for name, settings in axes.items():
+            if not settings:
+                raise ValueError(f"axis '{name}' has no settings")
+        return axes
+
+    def cells(self) -> list[dict[str, Any]]:
+        """Every cell: ``{"index", "policy", "labels" (axis → setting text), "sets" (key → value)}``."""
+        names = list(self.axes)
+        combos = list(itertools.product(*(self.axes[n] for n in names)))
+        cells = []
+        for combo in combos:
+            for policy in self.policies:
+                sets: dict[str, Any] = {}
+                for setting in combo:
+                    sets.update(setting)
+                labels = {
+                    n: ",".join(f"{k.split('.')[-1]}={v}" for k, v in s.items())
+                    for n, s in zip(names, combo, strict=True)
+                }
+                cells.append({"policy": policy, "labels": labels, "sets": sets})
+        if self.sample is not None and self.sample < len(cells):
+            rng = np.random.default_rng(self.sample_seed)
+            keep = sorted(rng.choice(len(cells), size=self.sample, replace=False).tolist())
+            cells = [cells[i] for i in keep]
+        for i, cell in enumerate(cells):
+            cell["index"] = i
+        return cells
+
+
+def _label(setting: dict[str, Any]) -> str:
+    """A short text for a setting: last key part = last value part (``drivers: AggressiveVehicle``)."""
+    return ",".join(f"{k.split('.')[-1]}={str(v).split('.')[-1]}" for k, v in setting.items())
+
+
+def load_campaign_spec(path: str | Path, overrides: dict[str, Any] | None = None) -> CampaignSpec:
+    """Read a campaign YAML (``overrides``: fields on top, None ignored); a one-line ConfigError on bad input."""
+    path = Path(path)
+    try:
+        data = yaml.safe_load(path.read_text()) or {}
+    except FileNotFoundError:
+        raise ConfigError(f"campaign spec {path}: no such file") from None
+    except yaml.YAMLError as err:
+        raise ConfigError(f"campaign spec {path}: not valid YAML ({str(err).splitlines()[0]})") from None
+    data.update({k: v for k, v in (overrides or {}).items() if v is not None})
+    try:
+        return CampaignSpec.model_validate(data)
+    except ValidationError as err:
+        raise ConfigError(f"campaign spec {path}: {validation_message(err, CampaignSpec)}") from None
+
+
+def cell_config(spec: CampaignSpec, cell: dict[str, Any]) -> Any:
+    """The environment config of a cell: the preset, the spec's sets, the cell's, the shield with override."""
+    from safelane.config import load_config
+
+    overrides = {**cell["sets"], "simulator": spec.simulator, "shield.mode": spec.shield, "shield.override": True}
+    return load_config(spec.preset, sets=spec.sets, overrides=overrides)
+
+
+def break_class(result: Any) -> str:
+    """The class of an invariant break from its replay (see the module docstring)."""
+    decisions = result.decisions
+    last = decisions[-1]
+    before, after = last.nearby, result.final["nearby"]
+    ego_before, ego_after = last.ego["lane"], result.final["ego"]["lane"]
+    lanes_before = {v["vehicle"]: v["lane"] for v in before}
+    for v in after:
+        was = lanes_before.get(v["vehicle"])
+        if was is None or abs(v["dx"]) > NEAR_CHANGE:
+            continue
+        if abs(v["lane"] - ego_after) == 1 and abs(was - ego_before) >= 2:
+            return "second_lane_cut_in"
+    for v in after:
+        was = lanes_before.get(v["vehicle"])
+        if was is not None and was != v["lane"] and abs(v["dx"]) <= NEAR_CHANGE and abs(was - ego_before) <= 1:
+            return "adjacent_lane_change"
+    if ego_after != ego_before:
+        return "ego_lane_change"
+    return "other"
+
+
+def _cell_path(out: Path, index: int) -> Path:
+    return out / "cells" / f"cell{index:05d}.json"
+
+
+def _cell_task(out_dir: str, spec_json: str, index: int) -> dict[str, Any]:
+    """Play one cell; write its record (and its counterexample files); return the record."""
+    from safelane.core.errors import NotSupported
+    from safelane.running.counterexamples import replay, save_counterexamples
+    from safelane.running.evaluation import fixed_policy, run_config, summarize
+
+    spec = CampaignSpec.model_validate_json(spec_json)
+    cell = spec.cells()[index]
+    out = Path(out_dir)
+    base = {"index": index, "policy": cell["policy"], **{f"axis_{k}": v for k, v in cell["labels"].items()}}
+    try:
+        cfg = cell_config(spec, cell)
+        seed = FALSIFY_SEED_BASE + CELL_SEED_STRIDE * index
+        start = time.perf_counter()
+        records = run_config(cfg, fixed_policy(cell["policy"], seed), spec.episodes, seed)
+    except NotSupported as err:
+        record = {**base, "skipped": str(err)}
+        atomic_write_text(_cell_path(out, index), json.dumps(record))
+        return record
+    s = summarize(records)
+    files = save_counterexamples(records, cfg, out / "counterexamples", f"falsify cell {index}", f"cell{index:05d}-")
+    classes = dict.fromkeys(BREAK_CLASSES, 0)
+    for path in files:
+        if "invariant_break" in path.name:
+            from safelane.running.counterexamples import load_counterexample
+
+            classes[break_class(replay(load_counterexample(path)))] += 1
+    record = {
+        **base,
+        "episodes": s["episodes"],
+        "decisions": s["decisions"],
+        "collisions": s["collisions"],
+        "collision_kinds": s["collision_kinds"],
+        "invariant_breaks": s["invariant_breaks"],
+        "break_classes": classes,
+        "fallback_rate": s["fallback_rate"],
+        "mean_speed": s["mean_speed"],
+        "counterexample_files": [p.name for p in files],
+        "wall_time_s": time.perf_counter() - start,
+    }
+    atomic_write_text(_cell_path(out, index), json.dumps(record))
+    return record
+
+
+def run_campaign(
+    spec: CampaignSpec,
+    out_dir: str | Path,
+    backend: str = "local",
+    workers: int | None = None,
+    address: str | None = None,
+    progress: Callable[[int, int], None] | None = None,
+) -> dict[str, Any]:
+    """Play every cell of ``spec`` not yet done into ``out_dir``; returns the totals (also summary.json)."""
+    from safelane.running.engine import TaskFailure, check_backend, format_failure, run_tasks
+
+    check_backend(backend)
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    stored = out / "campaign.json"
+    if stored.is_file() and json.loads(stored.read_text()) != json.loads(spec.model_dump_json()):
+        raise ConfigError(f"--out {out}: holds a campaign of another spec ({stored}); give a new --out or delete it")
+    atomic_write_text(stored, spec.model_dump_json(indent=1))
+    cells = spec.cells()
+    for cell in cells[:1]:
+        cell_config(spec, cell)  # a bad key fails here, once, in one line
+    todo = [c["index"] for c in cells if not _cell_path(out, c["index"]).is_file()]
+    done = [len(cells) - len(todo)]
+    failures: list[str] = []
+    if progress is not None:
+        progress(done[0], len(cells))
+
+    def finished(i: int, result: dict[str, Any] | TaskFailure) -> None:
+        if isinstance(result, TaskFailure):
+            failures.append(f"cell {todo[i]}: {format_failure(result)}")
+        done[0] += 1
+        if done[0] % 10 == 0 or done[0] == len(cells):
+            write_summary(out, spec)
+        if progress is not None:
+            progress(done[0], len(cells))
+
+    spec_json = spec.model_dump_json()
+    run_tasks(
+        _cell_task,
+        [(str(out.resolve()), spec_json, i) for i in todo],
+        backend=backend,
+        workers=workers,
+        address=address,
+        on_result=finished,
+        name=f"falsify-{spec.name}",
+        storage=out.resolve() / "ray",
+    )
+    summary = write_summary(out, spec)
+    if failures:
+        raise ConfigError(f"falsify: {len(failures)} cell(s) failed; first: {failures[0]}")
+    return summary
+
+
+def write_summary(out: Path, spec: CampaignSpec) -> dict[str, Any]:
+    """Rebuild cells.csv, summary.json and summary.md from the cell files."""
+    from safelane.reporting import stats
+
+    records = [json.loads(p.read_text()) for p in sorted((out / "cells").glob("cell*.json"))]
+    played = [r for r in records if "skipped" not in r]
+    axes = [f"axis_{a}" for a in spec.axes]
+    columns = ["index", "policy", *axes, "episodes", "decisions", "collisions", "invariant_breaks",
+               *BREAK_CLASSES, "fallback_rate", "mean_speed", "skipped"]  # fmt: skip
+    buffer = io.StringIO()
+    writer = csv.DictWriter(buffer, fieldnames=columns, extrasaction="ignore", lineterminator="\n")
+    writer.writeheader()
+    for r in records:
+        writer.writerow({**r, **r.get("break_classes", {})})
+    atomic_write_text(out / "cells.csv", buffer.getvalue())
+    episodes = sum(r["episodes"] for r in played)
+    decisions = sum(r["decisions"] for r in played)
+    collisions = sum(r["collisions"] for r in played)
+    breaks = sum(r["invariant_breaks"] for r in played)
+    kinds: dict[str, int] = {}
+    classes = dict.fromkeys(BREAK_CLASSES, 0)
+    for r in played:
+        for k, v in r["collision_kinds"].items():
+            kinds[k] = kinds.get(k, 0) + v
+        for k, v in r["break_classes"].items():
+            classes[k] += v
+    summary = {
+        "name": spec.name,
+        "shield": spec.shield,
+        "simulator": spec.simulator,
+        "cells": len(spec.cells()),
+        "cells_done": len(records),
+        "cells_skipped": len(records) - len(played),
+        "episodes": episodes,
+        "decisions": decisions,
+        "collisions": collisions,
+        "collision_rate_wilson95": list(stats.binomial_ci(collisions, episodes)) if episodes else None,
+        "collision_kinds": kinds,
+        "invariant_breaks": breaks,
+        "invariant_break_rate": breaks / decisions if decisions else None,
+        "break_classes": classes,
+    }
+    atomic_write_text(out / "summary.json", json.dumps(summary, indent=1))
+    atomic_write_text(out / "summary.md", _markdown(spec, summary, played))
+    return summary
+
+
+def _markdown(spec: CampaignSpec, summary: dict[str, Any], played: list[dict[str, Any]]) -> str:
+    lines = [
+        f"# Falsification campaign {spec.name}: {spec.shield} shield (override on), {spec.simulator} simulator",
+        "",
+        spec.description.strip(),
+        "",
+        f"{summary['cells_done']} / {summary['cells']} cells ({summary['cells_skipped']} skipped as not "
+        f"supported), {summary['episodes']} episodes, {summary['decisions']} decisions: "
+        f"**{summary['collisions']} collisions** {summary['collision_kinds']}, "
+        f"**{summary['invariant_breaks']} invariant breaks** {summary['break_classes']}.",
+        "",
+    ]
+    for axis in spec.axes:
+        key = f"axis_{axis}"
+        lines += [
+            f"## By {axis}",
+            "",
+            "| setting | episodes | collisions | invariant breaks | breaks / 1 000 decisions |",
+            "|---|---|---|---|---|",
+        ]
+        groups: dict[str, list[dict[str, Any]]] = {}
+        for r in played:
+            groups.setdefault(r[key], []).append(r)
+        for value, rs in groups.items():
+            d = sum(r["decisions"] for r in rs)
+            b = sum(r["invariant_breaks"] for r in rs)
+            lines.append(
+                f"| {value} | {sum(r['episodes'] for r in rs)} | {sum(r['collisions'] for r in rs)} | {b} | "
+                f"{1000 * b / max(d, 1):.2f} |"
+            )
+        lines.append("")
+    return "\n".join(lines)

@@ -1,0 +1,107 @@
+"""The falsification campaign: cells over a grid, counterexample files, break classes, resume (real fast
+simulator, real shield)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from types import SimpleNamespace
+
+import pytest
+import yaml
+
+from safelane.config import ConfigError
+from safelane.running.counterexamples import load_counterexample, replay
+from safelane.running.falsify import break_class, load_campaign_spec, run_campaign
+
+GRID = Path(__file__).resolve().parents[1] / "configs" / "falsify" / "grid.yaml"
+
+
+def write_spec(path: Path, **fields: object) -> Path:
+    data = {
+        "name": "tiny",
+        "sets": ["env.duration=6"],
+        "axes": {
+            "lanes": [{"env.lanes_count": 3}, {"env.lanes_count": 4}],
+            "behind": [{"traffic.vehicles_behind": 0}, {"traffic.vehicles_behind": 5}],
+        },
+        "policies": ["random"],
+        "episodes": 4,
+    }
+    data.update(fields)
+    path.write_text(yaml.safe_dump(data))
+    return path
+
+
+def test_shipped_grid_covers_the_issues_axes() -> None:
+    spec = load_campaign_spec(GRID)
+    assert set(spec.axes) == {"rate", "lanes", "density", "drivers"}
+    assert len(spec.cells()) == 4 * 5 * 4 * 4 * 2
+    rates = {(s["env.policy_frequency"], s["env.simulation_frequency"]) for s in spec.axes["rate"]}
+    assert {r for r, _ in rates} == {1, 2, 3, 5} and all(f % r == 0 for r, f in rates)
+    sampled = load_campaign_spec(GRID, {"sample": 7}).cells()
+    assert len(sampled) == 7 and sampled == load_campaign_spec(GRID, {"sample": 7}).cells()
+
+
+def test_campaign_writes_cells_skips_what_the_simulator_lacks_and_resumes(tmp_path: Path) -> None:
+    spec = load_campaign_spec(write_spec(tmp_path / "c.yaml"))
+    out = tmp_path / "out"
+    summary = run_campaign(spec, out, workers=1)
+    assert summary["cells"] == 4 and summary["cells_skipped"] == 2  # vehicles_behind: not on the fast simulator
+    assert summary["episodes"] == 8
+    rows = (out / "cells.csv").read_text().splitlines()
+    assert (
+        len(rows) == 1 + 4
+        and "traffic.vehicles_behind: not supported by simulator=fast" in (out / "cells.csv").read_text()
+    )
+    files = sorted((out / "counterexamples").glob("*.json"))
+    assert len(files) == summary["invariant_breaks"] + summary["collisions"]
+    for path in files[:2]:
+        assert replay(load_counterexample(path)).reproduced
+    stamps = [p.stat().st_mtime_ns for p in sorted((out / "cells").glob("*.json"))]
+    assert run_campaign(spec, out, workers=1) == summary
+    assert [p.stat().st_mtime_ns for p in sorted((out / "cells").glob("*.json"))] == stamps
+    with pytest.raises(ConfigError, match="holds a campaign of another spec"):
+        run_campaign(load_campaign_spec(write_spec(tmp_path / "d.yaml", episodes=5)), out, workers=1)
+
+
+def test_bad_campaign_keys_fail_once_in_one_line(tmp_path: Path) -> None:
+    spec = load_campaign_spec(write_spec(tmp_path / "c.yaml", axes={"lanes": [{"env.lanes_cont": 3}]}))
+    with pytest.raises(ConfigError, match="lanes_cont") as err:
+        run_campaign(spec, tmp_path / "out", workers=1)
+    assert "\n" not in str(err.value)
+    with pytest.raises(ConfigError, match="no axes"):
+        load_campaign_spec(write_spec(tmp_path / "e.yaml", axes={}))
+
+
+def _result(
+    ego_before: int, ego_after: int, before: list[tuple[int, int, float]], after: list[tuple[int, int, float]]
+) -> SimpleNamespace:
+    """A replay's last decision and final state: (vehicle, lane, dx [m]) before and after it."""
+
+    def scene(vs: list[tuple[int, int, float]]) -> list[dict]:
+        return [{"vehicle": v, "lane": lane, "dx": dx, "speed": 20.0} for v, lane, dx in vs]
+
+    last = SimpleNamespace(nearby=scene(before), ego={"lane": ego_before})
+    return SimpleNamespace(decisions=[last], final={"nearby": scene(after), "ego": {"lane": ego_after}})
+
+
+@pytest.mark.parametrize(
+    ("ego", "before", "after", "kind"),
+    [
+        ((0, 0), [(7, 2, 10.0)], [(7, 1, 8.0)], "second_lane_cut_in"),  # lane 2 → next to the ego in lane 0
+        ((0, 0), [(7, 2, 90.0)], [(7, 1, 70.0)], "other"),  # same move, too far along the road
+        ((1, 1), [(7, 2, 10.0)], [(7, 1, 8.0)], "adjacent_lane_change"),  # cuts into the ego's lane
+        ((1, 2), [(7, 0, 30.0)], [(7, 0, 25.0)], "ego_lane_change"),
+        ((1, 1), [(7, 1, 30.0)], [(7, 1, 25.0)], "other"),
+    ],
+)
+def test_break_classes_on_hand_built_scenes(ego: tuple[int, int], before: list, after: list, kind: str) -> None:
+    assert break_class(_result(ego[0], ego[1], before, after)) == kind
+
+
+def test_cell_records_are_json(tmp_path: Path) -> None:
+    spec = load_campaign_spec(write_spec(tmp_path / "c.yaml", axes={"lanes": [{"env.lanes_count": 3}]}, episodes=2))
+    run_campaign(spec, tmp_path / "out", workers=1)
+    record = json.loads((tmp_path / "out" / "cells" / "cell00000.json").read_text())
+    assert record["episodes"] == 2 and set(record["break_classes"]) >= {"second_lane_cut_in", "other"}

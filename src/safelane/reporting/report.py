@@ -184,6 +184,13 @@ def _ci_str(a: dict[str, Any], digits: int = 3) -> str:
     return f"[{lo:.{digits}f}, {hi:.{digits}f}]"
 
 
+def _confirm_scope(results: dict[str, Any]) -> str:
+    """\" (the first K of each run's)\" when only part of the test episodes were confirmed."""
+    spec = results.get("spec", {})
+    k, n = spec.get("confirm_episodes"), spec.get("test_episodes")
+    return f" (the first {k} of each run's {n})" if k is not None and n is not None and k < n else ""
+
+
 def write_report(out_dir: str | Path, gifs: dict[str, str] | None = None) -> Path:
     """Write ``report.md`` and its figures from ``out_dir/results.json``; returns the report path."""
     out = Path(out_dir)
@@ -258,9 +265,9 @@ def write_report(out_dir: str | Path, gifs: dict[str, str] | None = None) -> Pat
         lines += [
             f"## The same test episodes confirmed on {sim}",
             "",
-            f"Every trained agent's test episodes played again on {sim} (same seeds, same greedy policy): "
-            "an episode counts as identical when its return, length, collision, kind, mean speed and "
-            "action counts are equal.",
+            f"Every trained agent's test episodes{_confirm_scope(results)} played again on {sim} (same seeds, "
+            "same greedy policy): an episode counts as identical when its return, length, collision, kind, "
+            "mean speed and action counts are equal.",
             "",
             "| method | collisions / episodes (as trained) | "
             f"collisions / episodes on {sim} [Wilson 95 %] | mean speed [m/s] (as trained / {sim}) | "

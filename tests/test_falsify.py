@@ -105,3 +105,9 @@ def test_cell_records_are_json(tmp_path: Path) -> None:
     run_campaign(spec, tmp_path / "out", workers=1)
     record = json.loads((tmp_path / "out" / "cells" / "cell00000.json").read_text())
     assert record["episodes"] == 2 and set(record["break_classes"]) >= {"second_lane_cut_in", "other"}
+
+
+def test_cell_labels_are_short() -> None:
+    cells = load_campaign_spec(GRID).cells()
+    assert cells[0]["labels"]["drivers"] == "other_vehicles_type=IDMVehicle"
+    assert cells[0]["labels"]["rate"] == "policy_frequency=1,simulation_frequency=5"

@@ -108,6 +108,7 @@ class ShieldConfig(_Section):
     margin: float = Field(
         1.0,
         ge=0,
+        strict=True,
         allow_inf_nan=False,
         description="[m] The bumper-to-bumper gap the rule keeps under its worst case (the safety threshold "
         "a sweep may tune; 1 m as derived in docs/safety.md).",

@@ -85,10 +85,7 @@ class CampaignSpec(BaseModel):
                 sets: dict[str, Any] = {}
                 for setting in combo:
                     sets.update(setting)
-                labels = {
-                    n: ",".join(f"{k.split('.')[-1]}={v}" for k, v in s.items())
-                    for n, s in zip(names, combo, strict=True)
-                }
+                labels = {n: _label(setting) for n, setting in zip(names, combo, strict=True)}
                 cells.append({"policy": policy, "labels": labels, "sets": sets})
         if self.sample is not None and self.sample < len(cells):
             rng = np.random.default_rng(self.sample_seed)
@@ -175,12 +172,14 @@ def _cell_task(out_dir: str, spec_json: str, index: int) -> dict[str, Any]:
         return record
     s = summarize(records)
     files = save_counterexamples(records, cfg, out / "counterexamples", f"falsify cell {index}", f"cell{index:05d}-")
+    from safelane.running.counterexamples import load_counterexample
+
     classes = dict.fromkeys(BREAK_CLASSES, 0)
+    file_classes: dict[str, str] = {}
     for path in files:
         if "invariant_break" in path.name:
-            from safelane.running.counterexamples import load_counterexample
-
-            classes[break_class(replay(load_counterexample(path)))] += 1
+            file_classes[path.name] = break_class(replay(load_counterexample(path)))
+            classes[file_classes[path.name]] += 1
     record = {
         **base,
         "episodes": s["episodes"],
@@ -192,6 +191,7 @@ def _cell_task(out_dir: str, spec_json: str, index: int) -> dict[str, Any]:
         "fallback_rate": s["fallback_rate"],
         "mean_speed": s["mean_speed"],
         "counterexample_files": [p.name for p in files],
+        "break_file_classes": file_classes,
         "wall_time_s": time.perf_counter() - start,
     }
     atomic_write_text(_cell_path(out, index), json.dumps(record))

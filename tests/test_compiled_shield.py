@@ -180,3 +180,30 @@ def test_engine_is_configurable() -> None:
         make_env("fast", **{"shield.mode": "robust", "shield.engine": "gpu"})
     with pytest.raises(ValueError, match=r"^shield\.engine: got 'gpu'; allowed: 'compiled', 'numpy'"):
         SafetyShield(env.env, engine="gpu")  # type: ignore[arg-type]
+
+
+# --------------------------------------------------------------------------------------------
+# shield.projected_cut_ins (experimental, off by default): the same in both engines, and only stricter.
+# --------------------------------------------------------------------------------------------
+
+
+@PROPERTY_SETTINGS
+@given(road())
+def test_projected_cut_ins_bit_identical_and_only_stricter(case: tuple) -> None:
+    state, dyn, _ = case
+    strict = dataclasses.replace(dyn, projected_cut_ins=True)
+    assert mismatches(state, strict) == []
+    for mode in MODES:
+        base, more = model.evaluate(state, dyn, mode), model.evaluate(state, strict, mode)
+        assert not (more.safe & ~base.safe).any()  # more conflicts: never a new safe action
+        if mode == "nominal":
+            assert_same(base, more)  # the option belongs to the robust rule only
+
+
+def test_projected_cut_ins_on_recorded_states() -> None:
+    n = 0
+    for shield, snap in recorded("fast", "fast", True, episodes=4, seed=5, max_steps=40):
+        assert shield.dynamics is not None
+        shield.dynamics = dataclasses.replace(shield.dynamics, projected_cut_ins=True)
+        n += check_recorded(shield, snap)
+    assert n >= 80

@@ -45,6 +45,9 @@ EXPECTED = {
     "dense_jam": {"nominal": mask_of(S), "robust": mask_of(S)},
     # The left-lane car may legally cut in (MOBIL) and brake: robust keeps speed down.
     "adjacent_car_ahead": {"nominal": mask_of(I, R, S), "robust": mask_of(R, S)},
+    # A car two lanes over steering into the lane next to the ego: robust projects it into that lane
+    # (so LANE_RIGHT is unsafe) but, by default, not as a cut-in into the ego's own lane.
+    "second_lane_car_moving_over": {"nominal": mask_of(I, R, S), "robust": mask_of(I, S)},
 }
 
 
@@ -57,6 +60,17 @@ def test_scenario_masks(name: str, mode: str, engine: str) -> None:
     assert scene.result.fallback == (name == "dense_jam" or (name, mode) == ("leader_braking", "robust"))
     available = scene.env.unwrapped.action_type.get_available_actions()
     assert set(np.flatnonzero(scene.mask)) <= set(available)
+
+
+@pytest.mark.parametrize("engine", ["numpy", "compiled"])
+def test_projected_cut_ins_see_the_second_lane_car(engine: str) -> None:
+    """With shield.projected_cut_ins the car moving over from two lanes away is also a cut-in candidate
+    into the ego's lane: IDLE becomes unsafe (it could cut in 45 m ahead and brake), only SLOWER is left."""
+    scene = scenarios.SCENARIOS["second_lane_car_moving_over"](
+        mode="robust", **{"shield.engine": engine, "shield.projected_cut_ins": True}
+    )
+    assert scene.mask.tolist() == mask_of(S) and not scene.result.fallback
+    assert scene.result.min_gap[I] < 0 < scene.result.min_gap[S]
 
 
 @pytest.mark.parametrize("engine", ["numpy", "compiled"])

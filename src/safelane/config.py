@@ -113,6 +113,12 @@ class ShieldConfig(_Section):
         description="[m] The bumper-to-bumper gap the rule keeps under its worst case (the safety threshold "
         "a sweep may tune; 1 m as derived in docs/safety.md).",
     )
+    projected_cut_ins: bool = Field(
+        False,
+        strict=True,
+        description="Robust mode, experimental: a vehicle already moving sideways may also cut in from the lane "
+        "it moves to (closes most of the falsification campaign's 'second_lane_cut_in' breaks, docs/safety.md §6b).",
+    )
 
 
 class SafelaneConfig(_Section):

@@ -161,6 +161,7 @@ def make_env(
             override=shield.override,
             engine=shield.engine,
             margin=shield.margin,
+            projected_cut_ins=shield.projected_cut_ins,
         )
     env.safelane_config = cfg  # type: ignore[attr-defined]
     if seed is not None:

@@ -169,6 +169,15 @@ def adjacent_car_ahead(mode: Mode = "robust", dx: float = 45.0, **kw: Any) -> Sc
     return build_scene(1, 25.0, [VehicleSpec(0, dx, 25.0)], mode=mode, ego_target_speed=30.0, **kw)
 
 
+def second_lane_car_moving_over(mode: Mode = "robust", **kw: Any) -> Scene:
+    """The ego in the leftmost lane at 25 m/s (set-point 30); a car 45 m ahead two lanes to the right, at
+    25 m/s, already steering into the lane next to the ego. Once there it may cut in (MOBIL allows it) and
+    brake: the falsification campaign's most common invariant break (``second_lane_cut_in``), which the
+    robust rule sees only with ``shield.projected_cut_ins``."""
+    specs = [VehicleSpec(2, 45.0, 25.0, heading=-0.15, target_lane=1)]
+    return build_scene(0, 25.0, specs, mode=mode, ego_target_speed=30.0, **kw)
+
+
 SCENARIOS: dict[str, Callable[..., Scene]] = {
     "leader_braking": leader_braking,
     "stopped_car_ahead": stopped_car_ahead,
@@ -180,6 +189,7 @@ SCENARIOS: dict[str, Callable[..., Scene]] = {
     "ego_rightmost_lane": ego_rightmost_lane,
     "dense_jam": dense_jam,
     "adjacent_car_ahead": adjacent_car_ahead,
+    "second_lane_car_moving_over": second_lane_car_moving_over,
 }
 """Every scenario by name."""
 

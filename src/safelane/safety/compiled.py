@@ -110,7 +110,7 @@ def _evaluate(
     ts: np.ndarray, t: np.ndarray, powers: np.ndarray, tie_break: np.ndarray,
     decision_period: float, frame_dt: float, frames: int, horizon: int, ego_kp: float, lane_width: float,
     lanes_count: int, follower_reaction: float, ego_leave_time: float, cut_in_time: float, margin: float,
-    relevance: float, lateral_threshold: float, robust: bool,
+    relevance: float, lateral_threshold: float, robust: bool, projected_cut_ins: bool,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, bool]:  # fmt: skip
     """``model.evaluate`` (formula ``kinematic``) of one state: (mask, safe, available, min_gap, fallback)."""
     n_ts = ts.shape[0]
@@ -229,16 +229,19 @@ def _evaluate(
     occ_lane = np.empty(2 * m, dtype=np.int64)
     occ_nominal = np.empty(2 * m, dtype=np.bool_)
     n_occ = 0
+    projected = np.full(m, -10, dtype=np.int64)  # the lane a sideways-moving vehicle moves to (-10: none)
     for r in range(m):
         i = near[r]
         own = lanes_near[r]
         occ_row[n_occ], occ_lane[n_occ], occ_nominal[n_occ] = r, own, True
         n_occ += 1
-        if robust and (abs(heading[i]) > lateral_threshold or abs(vy[i]) > 0.3):
+        if abs(heading[i]) > lateral_threshold or abs(vy[i]) > 0.3:
             nxt = own + (1 if vy[i] > 0 else -1)
             if 0 <= nxt < lanes_count:
-                occ_row[n_occ], occ_lane[n_occ], occ_nominal[n_occ] = r, nxt, False
-                n_occ += 1
+                projected[r] = nxt
+                if robust:
+                    occ_row[n_occ], occ_lane[n_occ], occ_nominal[n_occ] = r, nxt, False
+                    n_occ += 1
 
     # Windows are contiguous ranges of the increasing frame times: [first t >= start, last t <= until]
     # (NaN bounds give empty ranges, as the reference's comparisons do).
@@ -333,7 +336,10 @@ def _evaluate(
                 lane_c = ego_lanes[e_idx]
                 occupied = (lane_c == ego_lane) | (lane_c == ego_target_lane)
                 cand = permitted[slot, r] if occupied else unfiltered[slot, r]
-                if not (cand and abs(lanes_near[r] - lane_c) == 1):
+                adjacent = abs(lanes_near[r] - lane_c) == 1
+                if projected_cut_ins and not adjacent:
+                    adjacent = abs(projected[r] - lane_c) == 1
+                if not (cand and adjacent):
                     continue
                 nominal = False
                 lo = lo_cut
@@ -420,7 +426,7 @@ def _evaluate_snapshot(
     ts: np.ndarray, t: np.ndarray, powers: np.ndarray, tie_break: np.ndarray,
     decision_period: float, frame_dt: float, frames: int, horizon: int, ego_kp: float, lane_width: float,
     lanes_count: int, follower_reaction: float, ego_leave_time: float, cut_in_time: float, margin: float,
-    relevance: float, lateral_threshold: float, robust: bool,
+    relevance: float, lateral_threshold: float, robust: bool, projected_cut_ins: bool,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, bool]:  # fmt: skip
     """``shield.road_state`` then :func:`_evaluate`, without building the state in Python.
 
@@ -464,6 +470,7 @@ def _evaluate_snapshot(
         idm_distance_wanted[keep], idm_time_wanted[keep], max_braking_imposed[keep],
         ts, t, powers, tie_break, decision_period, frame_dt, frames, horizon, ego_kp, lane_width, lanes_count,
         follower_reaction, ego_leave_time, cut_in_time, margin, relevance, lateral_threshold, robust,
+        projected_cut_ins,
     )  # fmt: skip
 
 
@@ -540,7 +547,7 @@ def evaluate_compiled(
         s.ego_length, s.speed_limit, s.x, s.y, s.vx, s.vy, s.heading, s.length, s.crashed, s.brake_max,
         s.accel_max, s.can_change_lane, s.idm_delta, s.idm_comfort_acc, s.idm_comfort_dec,
         s.idm_distance_wanted, s.idm_time_wanted, s.max_braking_imposed,
-        *_dynamics_args(dyn, dyn.ego_leave_time), mode == "robust",
+        *_dynamics_args(dyn, dyn.ego_leave_time), mode == "robust", dyn.projected_cut_ins,
     )  # fmt: skip
     return _result(out)
 
@@ -570,6 +577,6 @@ def evaluate_snapshot(
         snap.idm_distance_wanted, snap.idm_time_wanted, snap.max_braking_imposed,
         e, int(snap.lane[e]), int(snap.target_lane[e]), snap.ego_target_speed, snap.ego_speed_index,
         snap.lane_origin, snap.lane_direction, snap.lane_lateral, lane_heading, snap.speed_limit,
-        *_dynamics_args(dyn, ego_leave_time), mode == "robust",
+        *_dynamics_args(dyn, ego_leave_time), mode == "robust", dyn.projected_cut_ins,
     )  # fmt: skip
     return _result(out)

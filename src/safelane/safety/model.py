@@ -89,6 +89,7 @@ class Dynamics:
     ego_leave_time: float = 0.8  # [s] the ego still overlaps its old lane this long into a lane change
     cut_in_time: float = 0.4  # [s] fastest time for another vehicle to reach the ego's lane
     margin: float = 1.0  # [m] minimum bumper-to-bumper gap kept under the worst case
+    projected_cut_ins: bool = False  # robust: a vehicle moving sideways may also cut in from the lane it moves to
 
     @property
     def horizon_decisions(self) -> int:
@@ -403,6 +404,10 @@ def evaluate(state: RoadState, dyn: Dynamics, mode: Mode = "robust", formula: Fo
     nominal_ahead = np.full((N_ACTIONS, n_fb), np.inf)
     nominal_ok = np.ones(N_ACTIONS, dtype=bool)  # every nominal conflict has *some* good fallback
     lanes_near = state.lane_of(state.y[near], dyn.lanes_count, dyn.lane_width)
+    # _occupancy's sideways test: the lane each moving vehicle moves to (valid lanes only).
+    moving_near = (np.abs(state.heading[near]) > LATERAL_MOTION_THRESHOLD) | (np.abs(state.vy[near]) > 0.3)
+    projected_near = lanes_near + np.where(state.vy[near] > 0, 1, -1)
+    moving_near &= (projected_near >= 0) & (projected_near < dyn.lanes_count)
     cut_ins: dict[tuple[float, float, float], tuple[np.ndarray, np.ndarray]] = {}
     for a in range(N_ACTIONS):
         if not available[a]:
@@ -419,7 +424,12 @@ def evaluate(state: RoadState, dyn: Dynamics, mode: Mode = "robust", formula: Fo
             extra_v, extra_l = [], []
             for lane, _ in ego_lanes:
                 cands = permitted if lane in occupied else unfiltered
-                for j in np.flatnonzero(cands & (np.abs(lanes_near - lane) == 1)):
+                adjacent = np.abs(lanes_near - lane) == 1
+                if dyn.projected_cut_ins:
+                    # A vehicle already moving sideways toward the lane next to this one may finish that
+                    # change and cut in from there (issue 15: 'second_lane_cut_in' breaks).
+                    adjacent = adjacent | (moving_near & (np.abs(projected_near - lane) == 1))
+                for j in np.flatnonzero(cands & adjacent):
                     extra_v.append(int(near[j]))
                     extra_l.append(lane)
             vehicles = vehicles + extra_v

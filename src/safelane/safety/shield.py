@@ -51,7 +51,7 @@ Engine = Literal["compiled", "numpy"]
 ENGINES: tuple[Engine, ...] = ("compiled", "numpy")
 
 
-def dynamics_of(snap: RoadSnapshot, margin: float = DEFAULT_MARGIN) -> Dynamics:
+def dynamics_of(snap: RoadSnapshot, margin: float = DEFAULT_MARGIN, projected_cut_ins: bool = False) -> Dynamics:
     """The :class:`Dynamics` constants of the simulated world a snapshot was taken in; ``margin`` [m]: the
     bumper-to-bumper gap the rule keeps under its worst case."""
     sim_f, pol_f = snap.simulation_frequency, snap.policy_frequency
@@ -67,6 +67,7 @@ def dynamics_of(snap: RoadSnapshot, margin: float = DEFAULT_MARGIN) -> Dynamics:
         lanes_count=snap.lanes_count,
         cut_in_time=max(enter - 1.0 / sim_f, 0.0),
         margin=margin,
+        projected_cut_ins=projected_cut_ins,
     )
 
 
@@ -120,6 +121,7 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
     ``engine``: ``"compiled"`` (:mod:`safelane.safety.compiled`, microseconds) or ``"numpy"`` (the
     reference :func:`safelane.safety.model.evaluate`, about a millisecond); the same masks either way.
     ``margin`` [m]: the bumper-to-bumper gap kept under the worst case (the rule's safety threshold).
+    ``projected_cut_ins``: robust mode also counts cut-ins from the lane a sideways-moving vehicle moves to.
     """
 
     def __init__(
@@ -130,6 +132,7 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
         override: bool = False,
         engine: Engine = "compiled",
         margin: float = DEFAULT_MARGIN,
+        projected_cut_ins: bool = False,
     ) -> None:
         if not (math.isfinite(margin) and margin >= 0):
             raise ValueError(f"shield.margin: must be a finite number >= 0 [m] (got {margin!r})")
@@ -140,7 +143,13 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
         if engine not in ENGINES:
             raise ValueError(f"shield.engine: got {engine!r}; allowed: 'compiled', 'numpy'")
         gym.utils.RecordConstructorArgs.__init__(
-            self, mode=mode, formula=formula, override=override, engine=engine, margin=margin
+            self,
+            mode=mode,
+            formula=formula,
+            override=override,
+            engine=engine,
+            margin=margin,
+            projected_cut_ins=projected_cut_ins,
         )
         try:
             env.get_wrapper_attr("road_snapshot")
@@ -152,6 +161,7 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
         self.override = override
         self.engine: Engine = engine
         self.margin = float(margin)
+        self.projected_cut_ins = bool(projected_cut_ins)
         self.dynamics: Dynamics | None = None
         self.result: SafetyResult | None = None
         self.snapshot: RoadSnapshot | None = None
@@ -180,7 +190,7 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
     def _ego_leave_time(self, snap: RoadSnapshot) -> tuple[float, float]:
         """(lane heading [rad], the time [s] the ego takes to leave its lane) for ``snap``."""
         if self.dynamics is None:
-            self.dynamics = dynamics_of(snap, self.margin)
+            self.dynamics = dynamics_of(snap, self.margin, self.projected_cut_ins)
         dyn = self.dynamics
         # The ego's speed along the road, as road_state computes it (the compiled path builds no RoadState).
         direction = snap.lane_direction

@@ -162,6 +162,7 @@ def _run_ray(
     import json
     import tempfile
 
+    _check_reachable(address)
     started_here = not ray.is_initialized()
     if started_here:
         kwargs: dict[str, Any] = {"include_dashboard": False, "log_to_driver": False}
@@ -216,6 +217,21 @@ def _run_ray(
             ray.shutdown()
         if tmp is not None:
             tmp.cleanup()
+
+
+def _check_reachable(address: str | None, timeout_s: float = 5.0) -> None:
+    """A ``HOST:PORT`` address that does not answer within ``timeout_s`` seconds is a one-line error
+    (Ray itself retries for minutes before it gives up)."""
+    if address is None or address == "auto" or "://" in address or ":" not in address:
+        return
+    import socket
+
+    host, _, port = address.rpartition(":")
+    try:
+        with socket.create_connection((host, int(port)), timeout=timeout_s):
+            pass
+    except (OSError, ValueError) as err:
+        raise ConfigError(f"--address {address}: no Ray cluster answers there ({_one_line(err)})") from None
 
 
 def format_failure(failure: TaskFailure) -> str:

@@ -192,5 +192,5 @@ def test_backend_names_are_checked() -> None:
     with pytest.raises(ConfigError, match="--address: only with --backend ray"):
         run_tasks(_bad_config, [(1,)], address="auto")
     pytest.importorskip("ray")
-    with pytest.raises(ConfigError, match="--address 127.0.0.1:9: no Ray cluster answers there"):
+    with pytest.raises(ConfigError, match=r"--address 127\.0\.0\.1:9: no Ray cluster answers there"):
         run_tasks(_bad_config, [(1,)], backend="ray", address="127.0.0.1:9")

@@ -24,7 +24,6 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from safelane.config import ConfigError, SafelaneConfig, build_config, config_to_dict
 from safelane.core.files import atomic_write_text
-from safelane.core.spaces import ACTION_NAMES
 
 NEAR = 80.0
 """[m] Vehicles within this distance of the ego, along the road, are logged."""
@@ -247,11 +246,6 @@ def render_counterexample(cx: Counterexample, out_path: str | Path) -> Path:
 
     cfg = cx.env_config()
     return render_episode(cfg, policy, cx.seed, out_path, max_steps=cx.step).path
-
-
-def action_name(action: int) -> str:
-    """The meta-action's name."""
-    return ACTION_NAMES[action]
 
 
 def dump_json(result: ReplayResult) -> str:

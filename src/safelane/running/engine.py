@@ -20,6 +20,7 @@ is reported as a :class:`TaskFailure` with the one-line message, and the other t
 
 from __future__ import annotations
 
+import json
 import os
 from collections.abc import Callable, Sequence
 from concurrent.futures import Future, ProcessPoolExecutor, as_completed
@@ -29,6 +30,7 @@ from pathlib import Path
 from typing import Any, Literal
 
 from safelane.config import ConfigError
+from safelane.core.files import atomic_write_text
 
 Backend = Literal["local", "ray"]
 BACKENDS: tuple[str, ...] = ("local", "ray")
@@ -232,6 +234,19 @@ def _check_reachable(address: str | None, timeout_s: float = 5.0) -> None:
             pass
     except (OSError, ValueError) as err:
         raise ConfigError(f"--address {address}: no Ray cluster answers there ({_one_line(err)})") from None
+
+
+def claim_out_dir(out: Path, spec_json: str, file_name: str, kind: str) -> None:
+    """Create ``out`` and keep the job's spec in ``out/file_name``; a folder already holding another
+    spec (or not writable) is a one-line :class:`ConfigError` — a re-run resumes only the same job."""
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as err:
+        raise ConfigError(f"--out {out}: not writable ({err.strerror})") from None
+    path = out / file_name
+    if path.is_file() and json.loads(path.read_text()) != json.loads(spec_json):
+        raise ConfigError(f"--out {out}: holds a {kind} of another spec ({path}); give a new --out or delete it")
+    atomic_write_text(path, spec_json)
 
 
 def format_failure(failure: TaskFailure) -> str:

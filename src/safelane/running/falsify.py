@@ -207,18 +207,14 @@ def run_campaign(
     progress: Callable[[int, int], None] | None = None,
 ) -> dict[str, Any]:
     """Play every cell of ``spec`` not yet done into ``out_dir``; returns the totals (also summary.json)."""
-    from safelane.running.engine import TaskFailure, check_backend, format_failure, run_tasks
+    from safelane.running.engine import TaskFailure, check_backend, claim_out_dir, format_failure, run_tasks
 
     check_backend(backend)
     out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    stored = out / "campaign.json"
-    if stored.is_file() and json.loads(stored.read_text()) != json.loads(spec.model_dump_json()):
-        raise ConfigError(f"--out {out}: holds a campaign of another spec ({stored}); give a new --out or delete it")
-    atomic_write_text(stored, spec.model_dump_json(indent=1))
+    claim_out_dir(out, spec.model_dump_json(indent=1), "campaign.json", "campaign")
     cells = spec.cells()
-    for cell in cells[:1]:
-        cell_config(spec, cell)  # a bad key fails here, once, in one line
+    if cells:
+        cell_config(spec, cells[0])  # a bad key fails here, once, in one line
     todo = [c["index"] for c in cells if not _cell_path(out, c["index"]).is_file()]
     done = [len(cells) - len(todo)]
     failures: list[str] = []

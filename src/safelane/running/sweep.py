@@ -228,11 +228,8 @@ def _sweep_task(out_dir: str, spec_json: str, index: int, seed: int) -> dict[str
     directory = trial_dir(Path(out_dir), index)
     experiment = _trial_experiment(spec, params)
     atomic_write_text(directory / "params.json", json.dumps(params))
-    try:
-        record = _task(str(directory), experiment.model_dump_json(), spec.method, seed)
-    except ConfigError as err:
-        _write_failure(directory, seed, "config", str(err))
-        raise
+    # A ConfigError propagates: the engine reports it as a final TaskFailure and run_sweep writes it.
+    record = _task(str(directory), experiment.model_dump_json(), spec.method, seed)
     return {"trial": index, "seed": seed, "metrics": _metrics_of(record)}
 
 
@@ -260,14 +257,6 @@ def _eval_path(out: Path, spec: SweepSpec, index: int, seed: int) -> Path:
     return run_dir_of(trial_dir(out, index), spec.method, seed) / "eval.json"
 
 
-def _check_same_spec(out: Path, spec: SweepSpec) -> None:
-    path = out / "sweep.json"
-    if path.is_file():
-        earlier = json.loads(path.read_text())
-        if earlier != json.loads(spec.model_dump_json()):
-            raise ConfigError(f"--out {out}: holds a sweep of another spec ({path}); give a new --out or delete it")
-
-
 def run_sweep(
     spec: SweepSpec,
     out_dir: str | Path,
@@ -280,16 +269,11 @@ def run_sweep(
 
     ``progress(done, total)`` is called as tasks finish. Returns the summary (also ``summary.json``).
     """
-    from safelane.running.engine import TaskFailure, check_backend, run_tasks
+    from safelane.running.engine import TaskFailure, check_backend, claim_out_dir, run_tasks
 
     check_backend(backend)
     out = Path(out_dir)
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-    except OSError as err:
-        raise ConfigError(f"--out {out}: not writable ({err.strerror})") from None
-    _check_same_spec(out, spec)
-    atomic_write_text(out / "sweep.json", spec.model_dump_json(indent=1))
+    claim_out_dir(out, spec.model_dump_json(indent=1), "sweep.json", "sweep")
     points = spec.points()
     tasks = [
         (index, seed)

@@ -21,7 +21,7 @@ and have no effect.
 
 from __future__ import annotations
 
-from typing import Any, ClassVar
+from typing import Any, ClassVar, NamedTuple
 
 import gymnasium as gym
 import numpy as np
@@ -42,6 +42,20 @@ _SNAPSHOT_FIELDS = (
     "idm_comfort_acc", "idm_comfort_dec", "idm_distance_wanted", "idm_time_wanted", "max_braking_imposed",
     "impact_before", "impact_after",
 )  # fmt: skip
+
+
+class SimState(NamedTuple):
+    """Everything :meth:`FastHighwayEnv.step` reads or writes (copies): the per-vehicle float and integer
+    arrays, the ego's set-point index, the clock [s], the frame count, and the last crash's record."""
+
+    F: np.ndarray
+    G: np.ndarray
+    E: np.ndarray
+    time: float
+    steps: int
+    rec: np.ndarray
+    before: np.ndarray
+    after: np.ndarray
 
 
 class FastHighwayEnv(gym.Env):
@@ -172,6 +186,26 @@ class FastHighwayEnv(gym.Env):
             "crashed": G[:, K.CRASHED].astype(bool),
             "speed_index": self.E.copy(),
         }
+
+    def get_state(self) -> SimState:
+        """A copy of everything a step reads or writes (every vehicle, the ego's set-point index, the
+        clock, the crash record): :meth:`set_state` puts it back exactly, so a planner can try action
+        sequences from one state (the other drivers are deterministic after reset)."""
+        return SimState(
+            self.F.copy(), self.G.copy(), self.E.copy(), self.time, self.steps,
+            self._rec.copy(), self._before.copy(), self._after.copy(),
+        )  # fmt: skip
+
+    def set_state(self, state: SimState) -> None:
+        """Restore a state taken by :meth:`get_state` in this episode (copied in: ``state`` stays reusable)."""
+        self.F[...] = state.F
+        self.G[...] = state.G
+        self.E[...] = state.E
+        self.time = state.time
+        self.steps = state.steps
+        self._rec[...] = state.rec
+        self._before[...] = state.before
+        self._after[...] = state.after
 
     def _info(self) -> dict[str, Any]:
         return {

@@ -1,0 +1,438 @@
+"""The price of robustness: how fast can a collision-free policy drive, with and without a shield?
+
+:class:`ForesightPlanner` knows the future. On the fast simulator the other drivers are deterministic
+after reset (IDM and MOBIL have no noise; the randomness is all in the spawn), so a copy of the
+simulator's state (:meth:`safelane.sim.fast.env.FastHighwayEnv.get_state`) predicts exactly what
+every car will do for any sequence of ego actions. The planner searches meta-action sequences over a
+receding horizon (a beam search: every surviving sequence is extended by each allowed action, crashed
+ones are dropped, the ``beam`` that got farthest along the road are kept) and plays the best plan's
+first action(s). Unmasked, it bounds the speed any collision-free policy reaches in this traffic (from
+below: a deeper search could only drive faster); restricted to the nominal or robust mask at every
+node of the search, it gives that shield's real ceiling.
+
+:func:`overtaking_probe` is the hand-written FASTER-first heuristic the README used before (it reads
+the snapshot and the mask); :func:`ceiling_table` runs the comparison at several decision rates.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from typing import Any, Literal, NamedTuple
+
+import numpy as np
+
+from safelane.config import ConfigError, SafelaneConfig, apply_overrides, build_config, config_to_dict
+from safelane.core.snapshot import RoadSnapshot
+from safelane.core.spaces import ACTION_NAMES, FASTER, IDLE, LANE_LEFT, LANE_RIGHT, N_ACTIONS
+from safelane.env.factory import make_env
+from safelane.safety.shield import SafetyShield
+from safelane.sim.fast.env import FastHighwayEnv, SimState
+
+PlannerMask = Literal["none", "nominal", "robust"]
+PLANNER_MASKS: tuple[str, ...] = ("none", "nominal", "robust")
+FREE_ROAD = 1e9  # [m] the room reported for a lane with no car ahead
+
+
+def fast_simulator_of(env: Any) -> FastHighwayEnv:
+    """The :class:`FastHighwayEnv` inside a safelane environment (ConfigError if it runs on another simulator)."""
+    base = env.unwrapped
+    if not isinstance(base, FastHighwayEnv):
+        raise ConfigError("simulator: the foresight planner needs 'fast' (it copies the simulator's state)")
+    return base
+
+
+class ForesightPlanner:
+    """A policy with perfect foresight: a beam search over the fast simulator's exact future.
+
+    ``env``: the safelane environment it acts in (built with ``simulator: fast``). ``mask``: ``none``
+    (any action), ``nominal`` or ``robust`` (only actions that shield allows, at every node of the
+    search; in a fallback state, the shield's least-bad action). ``horizon`` [s]: how far each search
+    looks; ``beam``: sequences kept per depth; ``replan`` [s]: how often it searches again (the plan is
+    exact, so replaying it between searches loses nothing but horizon). Call it like any policy:
+    ``planner(obs, info) -> action``; it restores the simulator's state after each search.
+    """
+
+    def __init__(
+        self,
+        env: Any,
+        mask: PlannerMask = "none",
+        horizon: float = 4.0,
+        beam: int = 8,
+        replan: float = 1.0,
+        margin: float | None = None,
+    ) -> None:
+        if mask not in PLANNER_MASKS:
+            raise ConfigError(f"mask: got {mask!r}; allowed: {', '.join(PLANNER_MASKS)}")
+        if not horizon > 0:
+            raise ConfigError(f"horizon: must be > 0 s (got {horizon})")
+        if beam < 1:
+            raise ConfigError(f"beam: must be >= 1 (got {beam})")
+        if not replan > 0:
+            raise ConfigError(f"replan: must be > 0 s (got {replan})")
+        self.sim = fast_simulator_of(env)
+        rate = float(self.sim.sim.policy_frequency)
+        self.depth = max(1, round(horizon * rate))  # decisions per search
+        self.every = max(1, round(replan * rate))  # decisions between searches
+        self.beam = beam
+        self.mask_mode: PlannerMask = mask
+        kwargs = {} if margin is None else {"margin": margin}
+        # A shield over the bare simulator, only to evaluate masks of predicted states (never stepped).
+        self.shield = None if mask == "none" else SafetyShield(self.sim, mode=mask, **kwargs)
+        self.plan: list[int] = []
+        self.searches = 0
+        self.nodes = 0
+        self.search_time = 0.0
+
+    def allowed(self, snap: RoadSnapshot) -> tuple[np.ndarray, bool]:
+        """The actions the planner may take in ``snap`` (bool (5,)) and whether ``snap`` is a fallback
+        state of the mask (no action safe: the mask holds the least-bad one)."""
+        if self.shield is None:
+            return np.ones(N_ACTIONS, dtype=bool), False
+        result = self.shield.compute_result(snap)
+        return result.mask, bool(result.fallback)
+
+    def search(self) -> list[int]:
+        """The best action sequence from the simulator's current state (the state is restored)."""
+        start_clock = time.perf_counter()
+        sim = self.sim
+        root = sim.get_state()
+        root_snap = sim.snapshot()
+        # A node: (state, snapshot, actions so far). Children that crash are dropped; the deepest
+        # crash is kept as a last resort so the planner always returns an action.
+        # Under a mask, a sequence that enters a fallback state (no safe action) ranks below every one
+        # that stays in the safe set: the planner knows the future, so it can keep the rule's promise.
+        frontier: list[tuple[SimState, RoadSnapshot, list[int], int]] = [(root, root_snap, [], 0)]
+        best_crashed: tuple[int, float, list[int]] | None = None
+        for _ in range(self.depth):
+            children: list[Node] = []
+            seen: set[tuple[float, float, float, int]] = set()
+            for state, snap, actions, fallbacks in frontier:
+                mask, fallback = self.allowed(snap)
+                fallbacks += int(fallback and bool(actions))
+                for action in np.flatnonzero(mask):
+                    sim.set_state(state)
+                    _, _, terminated, _, info = sim.step(int(action))
+                    self.nodes += 1
+                    child = snap_of(info)
+                    x, v = float(child.position[0, 0]), float(child.speed[0])
+                    seq = [*actions, int(action)]
+                    if terminated:
+                        key = (len(seq), x)
+                        if best_crashed is None or key > best_crashed[:2]:
+                            best_crashed = (len(seq), x, seq)
+                        continue
+                    # FASTER at the top set-point is IDLE, and so on: keep one of identical states.
+                    signature = (round(x, 9), round(float(child.position[0, 1]), 9), round(v, 9), child.ego_speed_index)
+                    if signature in seen:
+                        continue
+                    seen.add(signature)
+                    children.append(Node(-fallbacks, x, v, sim.get_state(), child, seq))
+            if not children:
+                break
+            frontier = [(c.state, c.snap, c.actions, -c.rank) for c in diverse_beam(children, self.beam)]
+            if all(snap.time >= sim.sim.duration for _, snap, _, _ in frontier):
+                break
+        sim.set_state(root)
+        self.searches += 1
+        self.search_time += time.perf_counter() - start_clock
+        if frontier and frontier[0][2]:
+            return frontier[0][2]
+        if best_crashed is not None:
+            return best_crashed[2]
+        return [int(np.flatnonzero(self.allowed(root_snap)[0])[-1])]
+
+    def __call__(self, obs: np.ndarray, info: dict[str, Any]) -> int:
+        if not self.plan:
+            self.plan = self.search()[: self.every]
+        return self.plan.pop(0)
+
+    def reset(self) -> None:
+        """Forget the current plan (call at the start of an episode)."""
+        self.plan = []
+
+
+class Node(NamedTuple):
+    """A sequence in the search: its rank (minus the fallback states it passed), the ego's position [m]
+    along the road and speed [m/s] at its end, the simulator state there, its snapshot, its actions."""
+
+    rank: int
+    x: float
+    v: float
+    state: SimState
+    snap: RoadSnapshot
+    actions: list[int]
+
+
+def diverse_beam(children: list[Node], beam: int) -> list[Node]:
+    """The ``beam`` children to extend, best first by (rank, position, speed): the best of each (lane,
+    target lane, set-point) class first, so that a slower or other-lane sequence survives next to the
+    greedy ones (a beam of only the farthest can lose every sequence that brakes in time for a jam
+    ahead); then the best of the rest."""
+    ranked = sorted(children, key=lambda c: (c.rank, c.x, c.v), reverse=True)
+    best_of_class: dict[tuple[int, int, int], int] = {}
+    for i, c in enumerate(ranked):
+        snap = c.snap
+        best_of_class.setdefault((int(snap.lane[0]), int(snap.target_lane[0]), snap.ego_speed_index), i)
+    firsts = sorted(best_of_class.values())
+    chosen = firsts[:beam]
+    if len(chosen) < beam:
+        taken = set(chosen)
+        chosen += [i for i in range(len(ranked)) if i not in taken][: beam - len(chosen)]
+    return [ranked[i] for i in sorted(chosen)]
+
+
+def snap_of(info: dict[str, Any]) -> RoadSnapshot:
+    """The road snapshot of a step's ``info``."""
+    return info["snapshot"]
+
+
+def room_ahead(snap: RoadSnapshot, lane: int) -> float:
+    """Distance [m] along the road from the ego to the next car ahead in ``lane`` (FREE_ROAD if none)."""
+    others = snap.others()
+    dx = snap.position[others, 0] - snap.position[snap.ego, 0]
+    ahead = dx[(snap.lane[others] == lane) & (dx > 0)]
+    return float(ahead.min()) if ahead.size else FREE_ROAD
+
+
+def overtaking_probe(obs: np.ndarray, info: dict[str, Any]) -> int:
+    """The FASTER-first overtaking heuristic (reads the snapshot and the shield's mask in ``info``):
+    FASTER when allowed; else an allowed lane change into a lane whose next car is > 10 m farther than
+    in the ego's lane (the farthest); else IDLE; else the last allowed action (SLOWER first)."""
+    snap: RoadSnapshot = info["snapshot"]
+    mask = info.get("action_mask", np.ones(N_ACTIONS, dtype=bool))
+    if mask[FASTER]:
+        return FASTER
+    lane = int(snap.lane[snap.ego])
+    own = room_ahead(snap, lane)
+    options = [(room_ahead(snap, lane + (-1 if a == LANE_LEFT else 1)), a) for a in (LANE_LEFT, LANE_RIGHT) if mask[a]]
+    better = [o for o in options if o[0] > own + 10.0]
+    if better:
+        return max(better)[1]
+    if mask[IDLE]:
+        return IDLE
+    return int(np.flatnonzero(mask)[-1])
+
+
+def at_rate(cfg: SafelaneConfig, rate: int) -> SafelaneConfig:
+    """``cfg`` with ``rate`` decisions per second and physics at 5·rate Hz (the ``fast`` preset's ratio)."""
+    return with_overrides(cfg, {"env.policy_frequency": rate, "env.simulation_frequency": 5 * rate})
+
+
+def with_overrides(cfg: SafelaneConfig, overrides: dict[str, Any]) -> SafelaneConfig:
+    """A copy of ``cfg`` with dotted-key overrides, validated again."""
+    data = config_to_dict(cfg)
+    apply_overrides(data, overrides)
+    return build_config(data)
+
+
+def play(
+    cfg: SafelaneConfig,
+    policy_of: Callable[[Any], Callable[[np.ndarray, dict[str, Any]], int]],
+    episodes: int,
+    seed: int,
+) -> dict[str, Any]:
+    """Play ``episodes`` episodes (reset seeds ``seed + i``) with the policy ``policy_of(env)`` builds;
+    collisions, mean speed [m/s] over all decisions, fallback and intervention rates, wall time [s]."""
+    from safelane.running.evaluation import run_episodes, summarize
+
+    env = make_env(cfg)
+    try:
+        policy = policy_of(env)
+        wrapped = _resetting(policy)
+        start = time.perf_counter()
+        records = run_episodes(env, wrapped, episodes, seed)
+        wall = time.perf_counter() - start
+    finally:
+        env.close()
+    summary = summarize(records)
+    return {
+        "episodes": episodes,
+        "collisions": int(sum(r.collision for r in records)),
+        "mean_speed": float(summary["mean_speed"]),
+        "fallback_rate": float(summary["fallback_rate"]),
+        "shield_intervention_rate": float(summary["shield_intervention_rate"]),
+        "invariant_breaks": int(summary["invariant_breaks"]),
+        "wall_time_s": wall,
+        "actions": {name: int(sum(r.actions[i] for r in records)) for i, name in enumerate(ACTION_NAMES)},
+    }
+
+
+def _resetting(policy: Callable[[np.ndarray, dict[str, Any]], int]) -> Callable[[np.ndarray, dict[str, Any]], int]:
+    """``policy`` that forgets a planner's plan when a new episode starts (time 0 in the snapshot)."""
+    reset = getattr(policy, "reset", None)
+
+    def act(obs: np.ndarray, info: dict[str, Any]) -> int:
+        if reset is not None and info["snapshot"].time == 0.0:
+            reset()
+        return policy(obs, info)
+
+    return act
+
+
+# --- the price-of-robustness table ------------------------------------------------------------------
+
+ROWS: tuple[str, ...] = ("foresight", "foresight_nominal", "foresight_robust", "probe_robust", "agent_robust")
+"""The table's rows per decision rate: the planner unmasked / under the nominal / under the robust mask,
+the overtaking probe under the robust shield, and a trained robust agent (where one is given)."""
+
+
+def row_config(cfg: SafelaneConfig, row: str) -> SafelaneConfig:
+    """The environment of a row: the fast simulator; the shield the row acts under, with override so a
+    mask-respecting policy is never overridden (the shield's counters then show it)."""
+    shield = {"foresight": "none", "foresight_nominal": "nominal"}.get(row, "robust")
+    overrides: dict[str, Any] = {"simulator": "fast", "shield.mode": shield}
+    if shield != "none":
+        overrides["shield.override"] = True
+    return with_overrides(cfg, overrides)
+
+
+def play_row(
+    cfg_data: dict[str, Any], row: str, episodes: int, seed: int, agent_dir: str | None, horizon: float, beam: int
+) -> dict[str, Any]:
+    """One cell of the table (a task of :func:`safelane.running.engine.run_tasks`: plain arguments)."""
+    cfg = row_config(build_config(cfg_data), row)
+    if row == "agent_robust":
+        from safelane.running.runs import run_env_config
+        from safelane.running.training import GreedyPolicy, load_agent, load_run_config
+
+        if agent_dir is None:
+            raise ConfigError("agent: no trained agent given for this rate")
+        run = load_run_config(agent_dir)
+        agent = load_agent(agent_dir)
+        env_cfg = run_env_config(run, shield="robust", override=True)
+        return {"row": row, "agent": agent_dir, **play(env_cfg, lambda env: GreedyPolicy(agent, run), episodes, seed)}
+    if row == "probe_robust":
+        return {"row": row, **play(cfg, lambda env: overtaking_probe, episodes, seed)}
+    mask: PlannerMask = {"foresight": "none", "foresight_nominal": "nominal", "foresight_robust": "robust"}[row]  # type: ignore[assignment]
+    planners: list[ForesightPlanner] = []
+
+    def make(env: Any) -> ForesightPlanner:
+        planners.append(ForesightPlanner(env, mask=mask, horizon=horizon, beam=beam))
+        return planners[-1]
+
+    result = play(cfg, make, episodes, seed)
+    p = planners[0]
+    return {"row": row, "horizon_s": horizon, "beam": beam, "searches": p.searches, "nodes": p.nodes, **result}
+
+
+def _merge(parts: list[dict[str, Any]]) -> dict[str, Any]:
+    """One row from its chunks: counts summed, mean speed weighted by episodes, rates by decisions."""
+    n = sum(p["episodes"] for p in parts)
+    merged: dict[str, Any] = {k: v for k, v in parts[0].items() if k not in ("episodes", "seed", "chunk")}
+    merged["episodes"] = n
+    merged["collisions"] = sum(p["collisions"] for p in parts)
+    merged["invariant_breaks"] = sum(p["invariant_breaks"] for p in parts)
+    merged["mean_speed"] = sum(p["mean_speed"] * p["episodes"] for p in parts) / n
+    decisions = [sum(p["actions"].values()) for p in parts]
+    total = max(sum(decisions), 1)
+    for key in ("fallback_rate", "shield_intervention_rate"):
+        merged[key] = sum(p[key] * d for p, d in zip(parts, decisions, strict=True)) / total
+    merged["actions"] = {a: sum(p["actions"][a] for p in parts) for a in ACTION_NAMES}
+    merged["wall_time_s"] = sum(p["wall_time_s"] for p in parts)
+    for key in ("searches", "nodes"):
+        if key in parts[0]:
+            merged[key] = sum(p[key] for p in parts)
+    return merged
+
+
+def ceiling_table(
+    cfg: SafelaneConfig,
+    rates: list[int],
+    episodes: int,
+    seed: int,
+    out: Any,
+    agents: dict[int, str] | None = None,
+    horizon: float = 4.0,
+    beam: int = 16,
+    chunk: int = 25,
+    workers: int | None = None,
+    progress: Callable[[int, int], None] | None = None,
+) -> dict[str, Any]:
+    """The price-of-robustness table: every row of :data:`ROWS` at every decision rate (physics at
+    5·rate Hz) on the same episodes (reset seeds ``seed + i``). Work is cut into chunks of ``chunk``
+    episodes written to ``out/cells/`` as they finish, so a killed run resumes where it stopped;
+    ``out/ceiling.json`` and ``out/ceiling.md`` are rebuilt from them. Rows without an agent are skipped."""
+    import json
+    from pathlib import Path
+
+    from safelane.core.files import atomic_write_text
+    from safelane.running.engine import TaskFailure, run_tasks
+
+    if episodes < 1:
+        raise ConfigError(f"--episodes: must be >= 1 (got {episodes})")
+    for rate in rates:
+        if rate < 1:
+            raise ConfigError(f"--rates: decision rates must be >= 1 per second (got {rate})")
+    agents = agents or {}
+    for rate in agents:
+        if rate not in rates:
+            raise ConfigError(f"--agent: rate {rate} is not in --rates ({', '.join(map(str, rates))})")
+    out = Path(out)
+    cells = out / "cells"
+    cells.mkdir(parents=True, exist_ok=True)
+    tasks: list[tuple[Any, ...]] = []
+    names: list[Path] = []
+    for rate in rates:
+        data = config_to_dict(at_rate(cfg, rate))
+        for row in ROWS:
+            if row == "agent_robust" and rate not in agents:
+                continue
+            for start in range(0, episodes, chunk):
+                path = cells / f"{rate}hz-{row}-{start:06d}.json"
+                if path.is_file():
+                    continue
+                count = min(chunk, episodes - start)
+                tasks.append((data, row, count, seed + start, agents.get(rate), horizon, beam))
+                names.append(path)
+    done = [0]
+
+    def on_result(i: int, result: dict[str, Any] | TaskFailure) -> None:
+        if not isinstance(result, TaskFailure):
+            atomic_write_text(names[i], json.dumps(result) + "\n")
+        done[0] += 1
+        if progress is not None:
+            progress(done[0], len(tasks))
+
+    results = run_tasks(play_row, tasks, workers=workers, on_result=on_result, name="ceiling")
+    failures = [r for r in results if isinstance(r, TaskFailure)]
+    if failures:
+        raise ConfigError(f"ceiling: {len(failures)} task(s) failed, first: {failures[0].message}")
+    table: dict[str, Any] = {"episodes": episodes, "seed": seed, "horizon_s": horizon, "beam": beam, "rates": {}}
+    for rate in rates:
+        rows: dict[str, Any] = {}
+        for row in ROWS:
+            parts = [json.loads(p.read_text()) for p in sorted(cells.glob(f"{rate}hz-{row}-*.json"))]
+            if parts:
+                rows[row] = _merge(parts)
+        table["rates"][str(rate)] = rows
+    atomic_write_text(out / "ceiling.json", json.dumps(table, indent=1) + "\n")
+    atomic_write_text(out / "ceiling.md", ceiling_markdown(table))
+    return table
+
+
+ROW_LABELS = {
+    "foresight": "foresight, unmasked",
+    "foresight_nominal": "foresight under the nominal mask",
+    "foresight_robust": "foresight under the robust mask",
+    "probe_robust": "overtaking probe, robust shield",
+    "agent_robust": "learned robust agent",
+}
+
+
+def ceiling_markdown(table: dict[str, Any]) -> str:
+    """The table as Markdown: one line per rate and row (speed [m/s], collisions, breaks, fallbacks)."""
+    lines = [
+        f"Episodes per cell: {table['episodes']} (reset seeds {table['seed']}+); planner horizon "
+        f"{table['horizon_s']:g} s, beam {table['beam']}.",
+        "",
+        "| decisions/s | policy | mean speed [m/s] | collisions | invariant breaks | fallback rate |",
+        "|---|---|---|---|---|---|",
+    ]
+    for rate, rows in table["rates"].items():
+        for row, r in rows.items():
+            lines.append(
+                f"| {rate} | {ROW_LABELS[row]} | {r['mean_speed']:.2f} | {r['collisions']}/{r['episodes']} | "
+                f"{r['invariant_breaks']} | {r['fallback_rate']:.4f} |"
+            )
+    return "\n".join(lines) + "\n"

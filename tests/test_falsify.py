@@ -111,3 +111,39 @@ def test_cell_labels_are_short() -> None:
     cells = load_campaign_spec(GRID).cells()
     assert cells[0]["labels"]["drivers"] == "other_vehicles_type=IDMVehicle"
     assert cells[0]["labels"]["rate"] == "policy_frequency=1,simulation_frequency=5"
+
+
+CRASHES = Path(__file__).resolve().parents[1] / "docs" / "results" / "falsify" / "grid" / "counterexamples"
+
+
+@pytest.mark.parametrize(
+    ("name", "context"),
+    [
+        ("cell00018-seed4000180007-collision-step3.json", "started_unsafe"),  # spawned into a crash
+        ("cell00444-seed4004440003-collision-step7.json", "after_break"),
+        ("cell00537-seed4005370010-collision-step122.json", "from_safe_state"),  # the rule's own hole
+    ],
+)
+def test_collision_context_says_where_a_crash_stands_against_the_promise(name: str, context: str) -> None:
+    from safelane.env.factory import make_env
+    from safelane.running.evaluation import run_episode, summarize
+
+    cx = load_counterexample(CRASHES / name)
+    env = make_env(cx.env_config())
+    actions = iter(cx.actions)
+    record = run_episode(env, lambda obs, info: next(actions), cx.seed)
+    env.close()
+    assert record.collision and record.length == cx.step
+    assert record.collision_context == context
+    assert summarize([record])["collision_contexts"][context] == 1
+
+
+def test_collision_context_is_none_without_a_shield() -> None:
+    from safelane.config import load_config
+    from safelane.env.factory import make_env
+    from safelane.running.evaluation import fixed_policy, run_episode
+
+    env = make_env(load_config("fast", overrides={"simulator": "fast"}))
+    record = run_episode(env, fixed_policy("faster"), 0)
+    env.close()
+    assert record.collision and record.collision_context is None

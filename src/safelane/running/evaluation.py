@@ -167,6 +167,9 @@ class EpisodeRecord:
     invariant_breaks: list[int] = field(default_factory=list)
     """Decisions (1-based) after which the shield found no safe action although the previous state
     had one and an allowed action was taken: counterexamples to the rule's invariant."""
+    collision_context: str | None = None
+    """Where a collision stands with respect to the shield's promise (None without a collision or a
+    shield): see :data:`COLLISION_CONTEXTS`."""
     chosen_actions: list[int] = field(default_factory=list, repr=False)
     """The action the policy chose at each decision (before any override): with the seed and the
     configuration, enough to replay the episode (:mod:`safelane.running.counterexamples`). Not in
@@ -178,6 +181,14 @@ class EpisodeRecord:
         del data["chosen_actions"]
         return data
 
+
+COLLISION_CONTEXTS: tuple[str, ...] = ("started_unsafe", "after_break", "from_safe_state", "after_fallback")
+"""A shielded episode's collision, against the rule's promise (after an allowed action in a state with a
+safe action, the next state has one again, while the others stay inside the model): ``started_unsafe``
+— no state of the episode before the crash had a safe action (outside the promise: the scene was
+spawned inside a crash); ``after_break`` — an invariant break came first (the hole is that break);
+``from_safe_state`` — the crashing action was allowed in a state with a safe action (a hole of the
+rule itself); ``after_fallback`` — anything else (e.g. an unsafe action chosen without override)."""
 
 ProgressCallback = Callable[[int, EpisodeRecord], None]
 """Called as ``progress(episode_index, record)`` after each episode."""
@@ -205,6 +216,11 @@ class EpisodeTally:
         self.time_to_collision: float | None = None
         self.collision = False
         self.steps = 0
+        # For the collision's context: whether a shield reports fallbacks, whether any state so far had
+        # a safe action, and whether the state the next action is taken in has one.
+        self.shielded = "fallback" in reset_info
+        self.safe_seen = self.state_safe = reset_info.get("fallback") is False
+        self.context: str | None = None
 
     def add(self, action: int, reward: float, info: dict[str, Any]) -> None:
         """Count one decision: the ``action`` chosen, the ``reward`` and ``info`` its step returned."""
@@ -221,6 +237,18 @@ class EpisodeTally:
         if info.get("collision", False) and not self.collision:
             self.collision = True
             self.time_to_collision = info["snapshot"].time
+            if self.shielded:
+                earlier_break = bool(self.breaks) and self.breaks[0] < self.steps
+                if not self.safe_seen:
+                    self.context = "started_unsafe"
+                elif earlier_break:
+                    self.context = "after_break"
+                elif self.state_safe and not info.get("unsafe_action", False):
+                    self.context = "from_safe_state"
+                else:
+                    self.context = "after_fallback"
+        self.state_safe = info.get("fallback") is False
+        self.safe_seen = self.safe_seen or self.state_safe
 
     def record(self, last_info: dict[str, Any]) -> EpisodeRecord:
         """The finished episode's record (``last_info``: the info of its last step)."""
@@ -239,6 +267,7 @@ class EpisodeTally:
             actions=self.actions,
             vehicles_passed=self.ahead_at_start - vehicles_ahead(snap),
             invariant_breaks=self.breaks,
+            collision_context=self.context,
             chosen_actions=self.chosen,
         )
 
@@ -368,6 +397,7 @@ def summarize(records: list[EpisodeRecord], **meta: Any) -> dict[str, Any]:
         "invariant_break_rate": sum(len(r.invariant_breaks) for r in records) / max(decisions, 1),
         "mean_vehicles_passed": float(np.mean([r.vehicles_passed for r in records])),
         "collision_kinds": kinds,
+        "collision_contexts": {c: sum(r.collision_context == c for r in records) for c in COLLISION_CONTEXTS},
         "actions": dict(zip(ACTION_NAMES, actions, strict=True)),
     }
     summary.update(meta)

@@ -186,6 +186,7 @@ def _cell_task(out_dir: str, spec_json: str, index: int) -> dict[str, Any]:
         "decisions": s["decisions"],
         "collisions": s["collisions"],
         "collision_kinds": s["collision_kinds"],
+        "collision_contexts": s["collision_contexts"],
         "invariant_breaks": s["invariant_breaks"],
         "break_classes": classes,
         "fallback_rate": s["fallback_rate"],
@@ -250,6 +251,7 @@ def run_campaign(
 def write_summary(out: Path, spec: CampaignSpec) -> dict[str, Any]:
     """Rebuild cells.csv, summary.json and summary.md from the cell files."""
     from safelane.reporting import stats
+    from safelane.running.evaluation import COLLISION_CONTEXTS
 
     records = [json.loads(p.read_text()) for p in sorted((out / "cells").glob("cell*.json"))]
     played = [r for r in records if "skipped" not in r]
@@ -267,10 +269,13 @@ def write_summary(out: Path, spec: CampaignSpec) -> dict[str, Any]:
     collisions = sum(r["collisions"] for r in played)
     breaks = sum(r["invariant_breaks"] for r in played)
     kinds: dict[str, int] = {}
+    contexts = dict.fromkeys(COLLISION_CONTEXTS, 0)
     classes = dict.fromkeys(BREAK_CLASSES, 0)
     for r in played:
         for k, v in r["collision_kinds"].items():
             kinds[k] = kinds.get(k, 0) + v
+        for k, v in r.get("collision_contexts", {}).items():  # cells of campaigns before contexts lack it
+            contexts[k] += v
         for k, v in r["break_classes"].items():
             classes[k] += v
     summary = {
@@ -285,6 +290,7 @@ def write_summary(out: Path, spec: CampaignSpec) -> dict[str, Any]:
         "collisions": collisions,
         "collision_rate_wilson95": list(stats.binomial_ci(collisions, episodes)) if episodes else None,
         "collision_kinds": kinds,
+        "collision_contexts": contexts,
         "invariant_breaks": breaks,
         "invariant_break_rate": breaks / decisions if decisions else None,
         "break_classes": classes,
@@ -302,7 +308,8 @@ def _markdown(spec: CampaignSpec, summary: dict[str, Any], played: list[dict[str
         "",
         f"{summary['cells_done']} / {summary['cells']} cells ({summary['cells_skipped']} skipped as not "
         f"supported), {summary['episodes']} episodes, {summary['decisions']} decisions: "
-        f"**{summary['collisions']} collisions** {summary['collision_kinds']}, "
+        f"**{summary['collisions']} collisions** {summary['collision_kinds']} "
+        f"(against the rule's promise: {summary['collision_contexts']}), "
         f"**{summary['invariant_breaks']} invariant breaks** {summary['break_classes']}.",
         "",
     ]
@@ -311,8 +318,8 @@ def _markdown(spec: CampaignSpec, summary: dict[str, Any], played: list[dict[str
         lines += [
             f"## By {axis}",
             "",
-            "| setting | episodes | collisions | invariant breaks | breaks / 1 000 decisions |",
-            "|---|---|---|---|---|",
+            "| setting | episodes | collisions | started unsafe | invariant breaks | breaks / 1 000 decisions |",
+            "|---|---|---|---|---|---|",
         ]
         groups: dict[str, list[dict[str, Any]]] = {}
         for r in played:
@@ -320,9 +327,10 @@ def _markdown(spec: CampaignSpec, summary: dict[str, Any], played: list[dict[str
         for value, rs in groups.items():
             d = sum(r["decisions"] for r in rs)
             b = sum(r["invariant_breaks"] for r in rs)
+            unsafe_starts = sum(r.get("collision_contexts", {}).get("started_unsafe", 0) for r in rs)
             lines.append(
-                f"| {value} | {sum(r['episodes'] for r in rs)} | {sum(r['collisions'] for r in rs)} | {b} | "
-                f"{1000 * b / max(d, 1):.2f} |"
+                f"| {value} | {sum(r['episodes'] for r in rs)} | {sum(r['collisions'] for r in rs)} | "
+                f"{unsafe_starts} | {b} | {1000 * b / max(d, 1):.2f} |"
             )
         lines.append("")
     return "\n".join(lines)

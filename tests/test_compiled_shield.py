@@ -183,27 +183,32 @@ def test_engine_is_configurable() -> None:
 
 
 # --------------------------------------------------------------------------------------------
-# shield.projected_cut_ins (experimental, off by default): the same in both engines, and only stricter.
+# The robust options (shield.projected_cut_ins, experimental; shield.body_extent): the same in both
+# engines, and only stricter.
 # --------------------------------------------------------------------------------------------
 
+ROBUST_OPTIONS = pytest.mark.parametrize("option", ["projected_cut_ins", "body_extent"])
 
+
+@ROBUST_OPTIONS
 @PROPERTY_SETTINGS
-@given(road())
-def test_projected_cut_ins_bit_identical_and_only_stricter(case: tuple) -> None:
+@given(case=road())
+def test_robust_options_bit_identical_and_only_stricter(option: str, case: tuple) -> None:
     state, dyn, _ = case
-    strict = dataclasses.replace(dyn, projected_cut_ins=True)
+    strict = dataclasses.replace(dyn, **{option: True})
     assert mismatches(state, strict) == []
     for mode in MODES:
         base, more = model.evaluate(state, dyn, mode), model.evaluate(state, strict, mode)
         assert not (more.safe & ~base.safe).any()  # more conflicts: never a new safe action
         if mode == "nominal":
-            assert_same(base, more)  # the option belongs to the robust rule only
+            assert_same(base, more)  # the options belong to the robust rule only
 
 
-def test_projected_cut_ins_on_recorded_states() -> None:
+@ROBUST_OPTIONS
+def test_robust_options_on_recorded_states(option: str) -> None:
     n = 0
     for shield, snap in recorded("fast", "fast", True, episodes=4, seed=5, max_steps=40):
         assert shield.dynamics is not None
-        shield.dynamics = dataclasses.replace(shield.dynamics, projected_cut_ins=True)
+        shield.dynamics = dataclasses.replace(shield.dynamics, **{option: True})
         n += check_recorded(shield, snap)
     assert n >= 80

@@ -120,6 +120,12 @@ class ShieldConfig(_Section):
         "it moves to. Measured (docs/safety.md §6b): fewer 'second_lane_cut_in' invariant breaks but more in "
         "total; kept for the next, one-decision-ahead rule.",
     )
+    body_extent: bool = Field(
+        False,
+        strict=True,
+        description="Robust mode: a vehicle also occupies every lane its body, rotated by its heading, overlaps "
+        "(a slow car turning hard sticks a corner into the lane it leaves; docs/safety.md §6b).",
+    )
 
 
 class SafelaneConfig(_Section):

@@ -162,6 +162,7 @@ def make_env(
             engine=shield.engine,
             margin=shield.margin,
             projected_cut_ins=shield.projected_cut_ins,
+            body_extent=shield.body_extent,
         )
     env.safelane_config = cfg  # type: ignore[attr-defined]
     if seed is not None:

@@ -178,6 +178,16 @@ def second_lane_car_moving_over(mode: Mode = "robust", **kw: Any) -> Scene:
     return build_scene(0, 25.0, specs, mode=mode, ego_target_speed=30.0, **kw)
 
 
+def slow_car_turning_out(mode: Mode = "robust", dx: float = 10.0, **kw: Any) -> Scene:
+    """The ego in lane 2 at 5 m/s (set-point 5); a car ``dx`` m ahead, nearly stopped (2 m/s), turning
+    hard out of the ego's lane toward lane 0: its centre is already in lane 1 (0.85 m right of lane 1's
+    centre), its heading −0.78 rad. At that angle its rear corner still reaches 1.5 m into lane 2 — the
+    falsification campaign's one crash from states the rule called safe (``cell00537``, 5 decisions/s),
+    which the robust rule sees only with ``shield.body_extent``."""
+    specs = [VehicleSpec(1, dx, 2.0, heading=-0.78, target_lane=0, lateral_offset=0.85)]
+    return build_scene(2, 5.0, specs, mode=mode, ego_target_speed=5.0, **kw)
+
+
 SCENARIOS: dict[str, Callable[..., Scene]] = {
     "leader_braking": leader_braking,
     "stopped_car_ahead": stopped_car_ahead,
@@ -190,6 +200,7 @@ SCENARIOS: dict[str, Callable[..., Scene]] = {
     "dense_jam": dense_jam,
     "adjacent_car_ahead": adjacent_car_ahead,
     "second_lane_car_moving_over": second_lane_car_moving_over,
+    "slow_car_turning_out": slow_car_turning_out,
 }
 """Every scenario by name."""
 

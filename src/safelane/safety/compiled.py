@@ -110,7 +110,8 @@ def _evaluate(
     ts: np.ndarray, t: np.ndarray, powers: np.ndarray, tie_break: np.ndarray,
     decision_period: float, frame_dt: float, frames: int, horizon: int, ego_kp: float, lane_width: float,
     lanes_count: int, follower_reaction: float, ego_leave_time: float, cut_in_time: float, margin: float,
-    relevance: float, lateral_threshold: float, robust: bool, projected_cut_ins: bool,
+    relevance: float, lateral_threshold: float, robust: bool, projected_cut_ins: bool, body_extent: bool,
+    body_width: float,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, bool]:  # fmt: skip
     """``model.evaluate`` (formula ``kinematic``) of one state: (mask, safe, available, min_gap, fallback)."""
     n_ts = ts.shape[0]
@@ -225,9 +226,9 @@ def _evaluate(
                 other_x[r, j] = x1 + v1 * t2 - hb * (t2 * t2)
 
     # --- _occupancy: (row, lane, nominal); every entry starts at t = 0 -------------------------
-    occ_row = np.empty(2 * m, dtype=np.int64)
-    occ_lane = np.empty(2 * m, dtype=np.int64)
-    occ_nominal = np.empty(2 * m, dtype=np.bool_)
+    occ_row = np.empty(3 * m, dtype=np.int64)
+    occ_lane = np.empty(3 * m, dtype=np.int64)
+    occ_nominal = np.empty(3 * m, dtype=np.bool_)
     n_occ = 0
     projected = np.full(m, -10, dtype=np.int64)  # the lane a sideways-moving vehicle moves to (-10: none)
     for r in range(m):
@@ -235,12 +236,22 @@ def _evaluate(
         own = lanes_near[r]
         occ_row[n_occ], occ_lane[n_occ], occ_nominal[n_occ] = r, own, True
         n_occ += 1
+        nxt = -10
         if abs(heading[i]) > lateral_threshold or abs(vy[i]) > 0.3:
             nxt = own + (1 if vy[i] > 0 else -1)
             if 0 <= nxt < lanes_count:
                 projected[r] = nxt
                 if robust:
                     occ_row[n_occ], occ_lane[n_occ], occ_nominal[n_occ] = r, nxt, False
+                    n_occ += 1
+        if robust and body_extent:  # model._occupancy: every lane the rotated body overlaps
+            reach = abs(0.5 * length[i] * math.sin(heading[i])) + abs(0.5 * body_width * math.cos(heading[i]))
+            for side in (own - 1, own + 1):
+                if side == nxt or not (0 <= side < lanes_count):
+                    continue
+                centre, half_lane = side * lane_width, 0.5 * lane_width
+                if y[i] + reach > centre - half_lane and y[i] - reach < centre + half_lane:
+                    occ_row[n_occ], occ_lane[n_occ], occ_nominal[n_occ] = r, side, False
                     n_occ += 1
 
     # Windows are contiguous ranges of the increasing frame times: [first t >= start, last t <= until]
@@ -426,7 +437,8 @@ def _evaluate_snapshot(
     ts: np.ndarray, t: np.ndarray, powers: np.ndarray, tie_break: np.ndarray,
     decision_period: float, frame_dt: float, frames: int, horizon: int, ego_kp: float, lane_width: float,
     lanes_count: int, follower_reaction: float, ego_leave_time: float, cut_in_time: float, margin: float,
-    relevance: float, lateral_threshold: float, robust: bool, projected_cut_ins: bool,
+    relevance: float, lateral_threshold: float, robust: bool, projected_cut_ins: bool, body_extent: bool,
+    body_width: float,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, bool]:  # fmt: skip
     """``shield.road_state`` then :func:`_evaluate`, without building the state in Python.
 
@@ -470,7 +482,7 @@ def _evaluate_snapshot(
         idm_distance_wanted[keep], idm_time_wanted[keep], max_braking_imposed[keep],
         ts, t, powers, tie_break, decision_period, frame_dt, frames, horizon, ego_kp, lane_width, lanes_count,
         follower_reaction, ego_leave_time, cut_in_time, margin, relevance, lateral_threshold, robust,
-        projected_cut_ins,
+        projected_cut_ins, body_extent, body_width,
     )  # fmt: skip
 
 
@@ -547,7 +559,8 @@ def evaluate_compiled(
         s.ego_length, s.speed_limit, s.x, s.y, s.vx, s.vy, s.heading, s.length, s.crashed, s.brake_max,
         s.accel_max, s.can_change_lane, s.idm_delta, s.idm_comfort_acc, s.idm_comfort_dec,
         s.idm_distance_wanted, s.idm_time_wanted, s.max_braking_imposed,
-        *_dynamics_args(dyn, dyn.ego_leave_time), mode == "robust", dyn.projected_cut_ins,
+        *_dynamics_args(dyn, dyn.ego_leave_time), mode == "robust", dyn.projected_cut_ins, dyn.body_extent,
+        dyn.body_width,
     )  # fmt: skip
     return _result(out)
 
@@ -577,6 +590,7 @@ def evaluate_snapshot(
         snap.idm_distance_wanted, snap.idm_time_wanted, snap.max_braking_imposed,
         e, int(snap.lane[e]), int(snap.target_lane[e]), snap.ego_target_speed, snap.ego_speed_index,
         snap.lane_origin, snap.lane_direction, snap.lane_lateral, lane_heading, snap.speed_limit,
-        *_dynamics_args(dyn, ego_leave_time), mode == "robust", dyn.projected_cut_ins,
+        *_dynamics_args(dyn, ego_leave_time), mode == "robust", dyn.projected_cut_ins, dyn.body_extent,
+        dyn.body_width,
     )  # fmt: skip
     return _result(out)

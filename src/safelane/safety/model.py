@@ -90,6 +90,8 @@ class Dynamics:
     cut_in_time: float = 0.4  # [s] fastest time for another vehicle to reach the ego's lane
     margin: float = 1.0  # [m] minimum bumper-to-bumper gap kept under the worst case
     projected_cut_ins: bool = False  # robust: a vehicle moving sideways may also cut in from the lane it moves to
+    body_extent: bool = False  # robust: a vehicle also occupies every lane its rotated body overlaps
+    body_width: float = 2.0  # [m] the other vehicles' width (highway-env's Vehicle.WIDTH), for body_extent
 
     @property
     def horizon_decisions(self) -> int:
@@ -331,11 +333,25 @@ def _occupancy(state: RoadState, dyn: Dynamics, mode: Mode, near: np.ndarray) ->
         if mode != "robust":
             continue
         # Heading angle (Section IV.4b): a vehicle already moving sideways is in the next lane too.
+        nxt = -10
         if abs(state.heading[i]) > LATERAL_MOTION_THRESHOLD or abs(state.vy[i]) > 0.3:
             direction = 1 if state.vy[i] > 0 else -1
             nxt = own + direction
             if 0 <= nxt < dyn.lanes_count:
                 occ.add(int(i), nxt, 0.0, False)
+        if dyn.body_extent:
+            # Its body, rotated by its heading, reaches this far either side of its centre [m]; it is
+            # in every lane whose band that overlaps (a slow car turning hard sticks its rear corner
+            # into the lane it is leaving: issue 15, cell00537).
+            reach = abs(0.5 * state.length[i] * math.sin(state.heading[i])) + abs(
+                0.5 * dyn.body_width * math.cos(state.heading[i])
+            )
+            for side in (own - 1, own + 1):
+                if side == nxt or not 0 <= side < dyn.lanes_count:
+                    continue
+                centre, half_lane = side * dyn.lane_width, 0.5 * dyn.lane_width
+                if state.y[i] + reach > centre - half_lane and state.y[i] - reach < centre + half_lane:
+                    occ.add(int(i), side, 0.0, False)
     return occ
 
 

@@ -51,9 +51,11 @@ Engine = Literal["compiled", "numpy"]
 ENGINES: tuple[Engine, ...] = ("compiled", "numpy")
 
 
-def dynamics_of(snap: RoadSnapshot, margin: float = DEFAULT_MARGIN, projected_cut_ins: bool = False) -> Dynamics:
+def dynamics_of(
+    snap: RoadSnapshot, margin: float = DEFAULT_MARGIN, projected_cut_ins: bool = False, body_extent: bool = False
+) -> Dynamics:
     """The :class:`Dynamics` constants of the simulated world a snapshot was taken in; ``margin`` [m]: the
-    bumper-to-bumper gap the rule keeps under its worst case."""
+    bumper-to-bumper gap the rule keeps under its worst case; the two robust options as in :class:`Dynamics`."""
     sim_f, pol_f = snap.simulation_frequency, snap.policy_frequency
     # Fastest cut-in over plausible speeds; slowest ego exit (at low speed the lateral motion is slower).
     enter = min(lane_change_timing(sim_f, s)[1] for s in (15.0, 25.0, 35.0))
@@ -68,6 +70,9 @@ def dynamics_of(snap: RoadSnapshot, margin: float = DEFAULT_MARGIN, projected_cu
         cut_in_time=max(enter - 1.0 / sim_f, 0.0),
         margin=margin,
         projected_cut_ins=projected_cut_ins,
+        body_extent=body_extent,
+        # The widest other body (every highway-env vehicle has Vehicle.WIDTH): the occupancy bound.
+        body_width=float(np.max(snap.width)) if len(snap.width) else 2.0,
     )
 
 
@@ -122,6 +127,7 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
     reference :func:`safelane.safety.model.evaluate`, about a millisecond); the same masks either way.
     ``margin`` [m]: the bumper-to-bumper gap kept under the worst case (the rule's safety threshold).
     ``projected_cut_ins``: robust mode also counts cut-ins from the lane a sideways-moving vehicle moves to.
+    ``body_extent``: robust mode also puts a vehicle in every lane its rotated body overlaps.
     """
 
     def __init__(
@@ -133,6 +139,7 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
         engine: Engine = "compiled",
         margin: float = DEFAULT_MARGIN,
         projected_cut_ins: bool = False,
+        body_extent: bool = False,
     ) -> None:
         if not (math.isfinite(margin) and margin >= 0):
             raise ValueError(f"shield.margin: must be a finite number >= 0 [m] (got {margin!r})")
@@ -150,6 +157,7 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
             engine=engine,
             margin=margin,
             projected_cut_ins=projected_cut_ins,
+            body_extent=body_extent,
         )
         try:
             env.get_wrapper_attr("road_snapshot")
@@ -162,6 +170,7 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
         self.engine: Engine = engine
         self.margin = float(margin)
         self.projected_cut_ins = bool(projected_cut_ins)
+        self.body_extent = bool(body_extent)
         self.dynamics: Dynamics | None = None
         self.result: SafetyResult | None = None
         self.snapshot: RoadSnapshot | None = None
@@ -190,7 +199,7 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
     def _ego_leave_time(self, snap: RoadSnapshot) -> tuple[float, float]:
         """(lane heading [rad], the time [s] the ego takes to leave its lane) for ``snap``."""
         if self.dynamics is None:
-            self.dynamics = dynamics_of(snap, self.margin, self.projected_cut_ins)
+            self.dynamics = dynamics_of(snap, self.margin, self.projected_cut_ins, self.body_extent)
         dyn = self.dynamics
         # The ego's speed along the road, as road_state computes it (the compiled path builds no RoadState).
         direction = snap.lane_direction

@@ -5,7 +5,7 @@ BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 DEMO_OUT ?= runs/demo
 
-.PHONY: demo test lint bench results beyond sweeps clean
+.PHONY: demo test lint bench results beyond sweeps docs docs-serve clean
 
 $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
@@ -24,14 +24,22 @@ demo: $(STAMP)
 	SDL_VIDEODRIVER=dummy $(BIN)/safelane reproduce --simulator fast --seeds 10 --episodes 200 \
 		--test-episodes 1000 --out $(DEMO_OUT)
 
+# The tests include tests/test_docs.py: the strict site build and every example of the README and the guides.
 test: $(STAMP)
-	$(BIN)/ruff check src tests examples
+	$(BIN)/ruff check src tests examples docs/_ext
 	$(BIN)/lint-imports
 	SDL_VIDEODRIVER=dummy $(BIN)/python -m pytest -q -m "not slow"
 
 lint: $(STAMP)
-	$(BIN)/ruff check src tests examples
+	$(BIN)/ruff check src tests examples docs/_ext
 	$(BIN)/lint-imports
+
+# The documentation site (mkdocs.yml, docs/): built strictly into site/, or served with live reload.
+docs: $(STAMP)
+	NO_MKDOCS_2_WARNING=1 $(BIN)/mkdocs build --strict --site-dir site
+
+docs-serve: $(STAMP)
+	NO_MKDOCS_2_WARNING=1 $(BIN)/mkdocs serve
 
 bench: $(STAMP)
 	$(BIN)/safelane bench
@@ -58,4 +66,4 @@ sweeps: $(STAMP)
 	done
 
 clean:
-	rm -rf $(VENV) build *.egg-info src/*.egg-info
+	rm -rf $(VENV) build site *.egg-info src/*.egg-info

@@ -262,6 +262,27 @@ def test_tpe_proposals_are_seeded_typed_and_steered_by_the_constraints(tmp_path:
     assert sum(0.5 <= x <= 1.5 for x in late) >= 5, late
 
 
+def test_tpe_batch_defaults_to_workers_and_a_resumed_study_keeps_its_own(tmp_path: Path) -> None:
+    spec = tpe_spec(tmp_path, batch=None)
+    assert spec.batch is None and spec.with_batch(3).batch == 3
+    stored = json.loads(spec.with_batch(2).record_json())  # the folder's sweep.json after a --workers 2 run
+    assert spec.with_batch(1, stored).batch == 2
+    other = json.loads(tpe_spec(tmp_path, batch=None, samples=6).with_batch(2).record_json())
+    assert spec.with_batch(1, other).batch == 1  # another spec: claim_out_dir then refuses the folder
+    assert "batch" not in json.loads(load_sweep_spec(write_spec(tmp_path / "g.yaml")).record_json())
+
+
+def test_constraint_values_are_the_excess_past_each_bound(tmp_path: Path) -> None:
+    objective = load_sweep_spec(
+        write_spec(tmp_path / "s.yaml", objective={"constraints": ["collision_rate <= 0.01", "mean_speed > 20"]})
+    ).objective
+    assert objective.violations({"collision_rate": 0.03, "mean_speed": 21.5}) == pytest.approx([0.02, -1.5])
+    assert not objective.satisfied({"collision_rate": 0.03, "mean_speed": 21.5})
+    at_bounds = objective.violations({"collision_rate": 0.01, "mean_speed": 20.0})
+    assert at_bounds[0] == 0 and at_bounds[1] > 0  # <= holds at its bound, > does not
+    assert objective.satisfied({"collision_rate": 0.0, "mean_speed": 20.1})
+
+
 def test_tpe_without_optuna_is_one_line(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.setitem(sys.modules, "optuna", None)  # import optuna now raises ImportError
     spec = tpe_spec(tmp_path)

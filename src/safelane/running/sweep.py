@@ -339,7 +339,8 @@ def run_sweep(
     address: str | None = None,
     progress: Callable[[int, int], None] | None = None,
 ) -> dict[str, Any]:
-    """Run every (trial, seed) of ``spec`` not yet done into ``out_dir`` and write the summary files.
+    """Run every (trial, seed) of ``spec`` not yet done into ``out_dir`` and write the summary files
+    (``search: tpe``: batch by batch as the study proposes them, :func:`safelane.running.tpe.run_tpe`).
 
     ``progress(done, total)`` is called as tasks finish. Returns the summary (also ``summary.json``).
     """

@@ -79,7 +79,7 @@ class TpeSearch:
         with warnings.catch_warnings():
             # multivariate / constant_liar / constraints_func are "experimental" in some Optuna 3–4
             # releases; they are fixed here, so the warning would only be noise on every sweep.
-            warnings.simplefilter("ignore")
+            warnings.simplefilter("ignore", optuna.exceptions.ExperimentalWarning)
             sampler = optuna.samplers.TPESampler(
                 seed=spec.search_seed,
                 n_startup_trials=spec.startup(),
@@ -97,8 +97,10 @@ class TpeSearch:
 
     def ask(self) -> tuple[int, dict[str, Any]]:
         """The next trial: its number (0, 1, …) and its parameters (the spec's values)."""
+        from optuna.exceptions import ExperimentalWarning
+
         with warnings.catch_warnings():
-            warnings.simplefilter("ignore")  # as above: experimental-feature notices
+            warnings.simplefilter("ignore", ExperimentalWarning)  # as above, raised when sampling in 3–4
             trial = self.study.ask(dict(self._distributions))
         self._trials[trial.number] = trial
         params = {}

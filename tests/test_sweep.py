@@ -311,7 +311,9 @@ def test_tpe_sweep_writes_the_proposed_trials(tpe_local: tuple[SweepSpec, Path])
     summary = json.loads((out / "summary.json").read_text())
     assert summary["search"] == {"kind": "tpe", "samples": 4, "search_seed": 0, "batch": 2, "startup_trials": 2}
     assert summary["complete"] and summary["best"] is not None
-    assert "Search: Optuna TPE, 4 trials in batches of 2" in (out / "summary.md").read_text()
+    table = (out / "summary.md").read_text()
+    assert "Search: Optuna TPE, 4 trials in batches of 2" in table
+    assert f"| t000 | {stored[0]['agent.lr']:.4g} | " in table.replace(" **best**", "")  # short in the table
 
 
 def test_a_tpe_sweep_resumes_by_replaying_the_study(tpe_local: tuple[SweepSpec, Path], tmp_path: Path) -> None:

@@ -543,7 +543,7 @@ def summary_markdown(spec: SweepSpec, summary: dict[str, Any]) -> str:
     ]
     best = summary["best"]["trial"] if summary["best"] else None
     for t in summary["trials"]:
-        values = " | ".join(_value_text(t["params"][k]) for k in keys)
+        values = " | ".join(_cell(t["params"][k]) for k in keys)
         if "objective" in t:
             lo, hi = t["objective_ci95"]
             clo, chi = t["collision_rate_wilson95"]
@@ -556,6 +556,14 @@ def summary_markdown(spec: SweepSpec, summary: dict[str, Any]) -> str:
         lines.append(f"| t{t['trial']:03d}{mark} | {values} | {obj} | {col} | {feas} |")
     lines.append("")
     return "\n".join(lines)
+
+
+def _cell(value: Any) -> str:
+    """A parameter in the summary table: a drawn float to 4 significant digits (trials.csv, params.json
+    and best.yaml keep every digit), anything else as in the spec."""
+    if isinstance(value, float) and len(repr(value)) > 8:
+        return f"{value:.4g}"
+    return _value_text(value)
 
 
 def best_preset_yaml(spec: SweepSpec, best: dict[str, Any]) -> str:

@@ -607,6 +607,8 @@ def _plot_objective(out: Path, spec: SweepSpec, summary: dict[str, Any]) -> None
         colors = ["tab:blue" if t["feasible"] else "tab:red" for t in done]
         ax.errorbar(xs, ys, yerr=[lo, hi], fmt="none", ecolor="grey", capsize=3)
         ax.scatter(xs, ys, c=colors, zorder=3)
+        if spec.space[key].loguniform is not None:
+            ax.set_xscale("log")  # the scale the values were drawn on
         ax.set_xlabel(key)
         ax.set_ylabel(f"test {spec.objective.metric}")
         ax.set_title(f"{spec.name} ({spec.method}); red: constraints not met", fontsize=9)

@@ -22,9 +22,10 @@ from __future__ import annotations
 
 import json
 import os
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import Future, ProcessPoolExecutor, as_completed
 from concurrent.futures.process import BrokenProcessPool
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal
@@ -156,24 +157,11 @@ def _run_ray(
     name: str,
     storage: Path | None,
 ) -> list[dict[str, Any] | TaskFailure]:
-    try:
-        import ray
-        from ray import tune
-    except ImportError:
-        raise ConfigError("--backend ray: Ray is not installed; pip install 'safelane[ray]'") from None
     import json
     import tempfile
 
-    _check_reachable(address)
-    started_here = not ray.is_initialized()
-    if started_here:
-        kwargs: dict[str, Any] = {"include_dashboard": False, "log_to_driver": False}
-        if address is None:
-            kwargs["num_cpus"] = workers
-        try:
-            ray.init(address=address, **kwargs)
-        except ConnectionError as err:
-            raise ConfigError(f"--address {address}: no Ray cluster there ({_one_line(err)})") from None
+    ray, tune = _import_ray()
+    started_here = _start_ray(address, workers)
     task_list = list(tasks)
 
     def trainable(config: dict[str, Any]) -> dict[str, Any]:
@@ -219,6 +207,52 @@ def _run_ray(
             ray.shutdown()
         if tmp is not None:
             tmp.cleanup()
+
+
+def _import_ray() -> tuple[Any, Any]:
+    try:
+        import ray
+        from ray import tune
+    except ImportError:
+        raise ConfigError("--backend ray: Ray is not installed; pip install 'safelane[ray]'") from None
+    return ray, tune
+
+
+def _start_ray(address: str | None, workers: int) -> bool:
+    """Connect to the cluster at ``address`` (None: start a local instance of ``workers`` CPUs) unless
+    this process is connected already; whether it connected here (and so must shut Ray down)."""
+    ray, _ = _import_ray()
+    _check_reachable(address)
+    if ray.is_initialized():
+        return False
+    kwargs: dict[str, Any] = {"include_dashboard": False, "log_to_driver": False}
+    if address is None:
+        kwargs["num_cpus"] = workers
+    try:
+        ray.init(address=address, **kwargs)
+    except ConnectionError as err:
+        raise ConfigError(f"--address {address}: no Ray cluster there ({_one_line(err)})") from None
+    return True
+
+
+@contextmanager
+def backend_session(backend: str, workers: int | None = None, address: str | None = None) -> Iterator[None]:
+    """Keep ``backend`` up across several :func:`run_tasks` calls (a TPE sweep's batches): on ``ray``,
+    one connection (or local instance) for all of them instead of a Ray start per call; ``local``
+    needs nothing."""
+    backend = check_backend(backend)
+    if backend != "ray":
+        if address is not None:
+            raise ConfigError("--address: only with --backend ray")
+        yield
+        return
+    ray, _ = _import_ray()
+    started_here = _start_ray(address, max(1, workers or os.cpu_count() or 1))
+    try:
+        yield
+    finally:
+        if started_here:
+            ray.shutdown()
 
 
 def _check_reachable(address: str | None, timeout_s: float = 5.0) -> None:

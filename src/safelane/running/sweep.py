@@ -2,7 +2,9 @@
 
 A spec (:class:`SweepSpec`, examples in ``configs/sweeps/``) names one method, a search space over any
 ``--set`` key (``agent.*``, ``reward.*``, ``shield.*``, ``env.*`` …), how to search it (``grid``: every
-combination; ``random``: ``samples`` points drawn from ``search_seed``), the seeds of every point, the
+combination; ``random``: ``samples`` points drawn from ``search_seed``; ``tpe``: ``samples`` trials proposed
+by Optuna's TPE sampler from the results so far, in batches of ``batch``, see :mod:`safelane.running.tpe`),
+the seeds of every point, the
 training length and test episodes, and the objective: a test metric to maximise or minimise, subject
 to constraints such as ``collision_rate <= 0.01``.
 
@@ -29,6 +31,7 @@ import io
 import itertools
 import json
 import math
+import os
 import re
 from collections.abc import Callable
 from pathlib import Path
@@ -54,11 +57,16 @@ METRICS: tuple[str, ...] = (
 
 _CONSTRAINT = re.compile(r"^\s*([a-z_]+)\s*(<=|>=|<|>)\s*([-+0-9.eE]+)\s*$")
 
+SEARCHES: tuple[str, ...] = ("grid", "random", "tpe")
+TPE_FIELDS: tuple[str, ...] = ("batch", "startup_trials")
+"""Spec fields only a ``tpe`` search has (left out of a grid or random sweep's sweep.json)."""
+
 
 class Dimension(BaseModel):
     """One key's values: exactly one of ``grid`` (the values, in order), ``choice`` (values drawn
     uniformly by random search), ``uniform`` / ``loguniform`` ([low, high] for random search);
-    ``integer`` rounds drawn numbers."""
+    ``integer`` rounds drawn numbers. TPE sees ``grid`` / ``choice`` as categories and the ranges as
+    floats or (``integer``) integers, on a log scale for ``loguniform``."""
 
     model_config = ConfigDict(extra="forbid")
 
@@ -117,13 +125,19 @@ class Objective(BaseModel):
 
     def satisfied(self, metrics: dict[str, float]) -> bool:
         """Whether ``metrics`` (pooled over a trial's seeds) meet every constraint."""
+        return all(v <= 0 for v in self.violations(metrics))
+
+    def violations(self, metrics: dict[str, float]) -> list[float]:
+        """Per constraint, how far ``metrics`` are past its bound (in the metric's units): ≤ 0 when it
+        holds, > 0 when not (Optuna's convention for constraint values)."""
+        out = []
         for item in self.constraints:
             name, op, bound = _CONSTRAINT.match(item).groups()  # type: ignore[union-attr]
             value, limit = metrics[name], float(bound)
-            ok = {"<=": value <= limit, ">=": value >= limit, "<": value < limit, ">": value > limit}[op]
-            if not ok:
-                return False
-        return True
+            excess = value - limit if op in ("<=", "<") else limit - value
+            # A strict bound met with equality is violated: report it as a tiny positive excess.
+            out.append(max(excess, 1e-12) if op in ("<", ">") and excess == 0 else excess)
+        return out
 
 
 class SweepSpec(BaseModel):
@@ -138,9 +152,15 @@ class SweepSpec(BaseModel):
     env_preset: Literal["fast", "paper"] = "fast"
     sets: list[str] = Field(default_factory=lambda: ["simulator=fast"], description="--set overrides of every trial.")
     space: dict[str, Dimension] = Field(description="KEY → values; KEY is any --set key.")
-    search: Literal["grid", "random"] = "grid"
-    samples: int = Field(8, ge=1, description="random: points drawn.")
-    search_seed: int = Field(0, ge=0, description="random: seed of the draws.")
+    search: Literal["grid", "random", "tpe"] = "grid"
+    samples: int = Field(8, ge=1, description="random: points drawn; tpe: trials (required).")
+    batch: int | None = Field(
+        None, ge=1, description="tpe: trials proposed and run at once (default: --workers, else the cores)."
+    )
+    startup_trials: int | None = Field(
+        None, ge=1, description="tpe: random trials before TPE models the results (default: samples // 3, ≥ 2)."
+    )
+    search_seed: int = Field(0, ge=0, description="random, tpe: seed of the draws.")
     seeds: int = Field(3, ge=1, description="Seeds per point: 0..seeds-1.")
     episodes: int = Field(200, ge=1, description="Training episodes per run.")
     test_episodes: int = Field(100, ge=1, description="Held-out test episodes per run.")
@@ -154,15 +174,54 @@ class SweepSpec(BaseModel):
         return space
 
     @model_validator(mode="after")
-    def _grid_needs_lists(self) -> SweepSpec:
+    def _fits_the_search(self) -> SweepSpec:
+        # ConfigError, not ValueError: validation_message then gives this line as it is (it names the key).
         if self.search == "grid":
             ranged = [k for k, d in self.space.items() if d.grid is None and d.choice is None]
             if ranged:
-                raise ValueError(f"search grid: '{ranged[0]}' has a range; give it a grid list or use search: random")
+                raise ConfigError(
+                    f"search grid: '{ranged[0]}' has a range; give it a grid list or use search: random or tpe"
+                )
+        if self.search != "tpe":
+            given = [k for k in TPE_FIELDS if getattr(self, k) is not None]
+            if given:
+                raise ConfigError(f"{given[0]}: only with search: tpe (search is {self.search})")
+            return self
+        if "samples" not in self.model_fields_set:
+            raise ConfigError("samples: search tpe needs the number of trials, e.g. samples: 12")
+        for key, dim in self.space.items():
+            bounds = dim.uniform or dim.loguniform
+            if dim.integer and bounds is not None and math.ceil(bounds[0]) > math.floor(bounds[1]):
+                raise ConfigError(f"space.{key}: integer, but no integer lies in {list(bounds)}")
         return self
 
+    def startup(self) -> int:
+        """tpe: the random trials before TPE models the results (a third of the budget unless given)."""
+        return self.startup_trials if self.startup_trials is not None else max(2, self.samples // 3)
+
+    def record_json(self) -> str:
+        """The spec as kept in ``DIR/sweep.json`` (a grid or random sweep without the tpe-only fields, so a
+        folder written before they existed still resumes)."""
+        exclude = set() if self.search == "tpe" else set(TPE_FIELDS)
+        return self.model_dump_json(indent=1, exclude=exclude)
+
+    def with_batch(self, workers: int | None, stored: dict[str, Any] | None = None) -> SweepSpec:
+        """tpe: the spec with its batch size fixed: as given, else the batch the folder's study ran with
+        (``stored``: its sweep.json; a resumed study keeps its batches whatever ``--workers`` is), else
+        ``workers`` (default: this machine's cores)."""
+        if self.search != "tpe" or self.batch is not None:
+            return self
+        if stored is not None and stored.get("batch"):
+            mine = json.loads(self.record_json())
+            if {**mine, "batch": stored["batch"]} == stored:
+                return self.model_copy(update={"batch": int(stored["batch"])})
+        return self.model_copy(update={"batch": workers or os.cpu_count() or 1})
+
     def points(self) -> list[dict[str, Any]]:
-        """The trials' parameters, in trial order (the same for every run of the same spec)."""
+        """The trials' parameters, in trial order (the same for every run of the same spec); grid and
+        random only (TPE's depend on the results: :func:`trial_points`)."""
+        if self.search == "tpe":
+            raise ValueError("search tpe: the points come from the study (trial_points)")
         keys = list(self.space)
         if self.search == "grid":
             lists = [self.space[k].grid if self.space[k].grid is not None else self.space[k].choice for k in keys]
@@ -219,12 +278,13 @@ def _trial_experiment(spec: SweepSpec, params: dict[str, Any]) -> Any:
     )
 
 
-def _sweep_task(out_dir: str, spec_json: str, index: int, seed: int) -> dict[str, Any]:
-    """Train and test one (trial, seed); returns its metrics (the run's eval.json holds everything)."""
+def _sweep_task(out_dir: str, spec_json: str, index: int, seed: int, params_json: str | None = None) -> dict[str, Any]:
+    """Train and test one (trial, seed); returns its metrics (the run's eval.json holds everything).
+    ``params_json``: the trial's parameters (a TPE trial's; by default the spec's point ``index``)."""
     from safelane.running.experiments import _task
 
     spec = SweepSpec.model_validate_json(spec_json)
-    params = spec.points()[index]
+    params = json.loads(params_json) if params_json is not None else spec.points()[index]
     directory = trial_dir(Path(out_dir), index)
     experiment = _trial_experiment(spec, params)
     atomic_write_text(directory / "params.json", json.dumps(params))
@@ -251,6 +311,20 @@ def _metrics_of(record: dict[str, Any]) -> dict[str, float]:
     return metrics
 
 
+def trial_points(out: Path, spec: SweepSpec) -> list[dict[str, Any]]:
+    """The trials' parameters in trial order: the spec's points (grid, random) or those a TPE study
+    proposed so far (``DIR/trials/tNNN/params.json``, written before the trial runs)."""
+    if spec.search != "tpe":
+        return spec.points()
+    points = []
+    for index in range(spec.samples):
+        path = trial_dir(out, index) / "params.json"
+        if not path.is_file():
+            break
+        points.append(json.loads(path.read_text()))
+    return points
+
+
 def _eval_path(out: Path, spec: SweepSpec, index: int, seed: int) -> Path:
     from safelane.running.experiments import run_dir_of
 
@@ -265,7 +339,8 @@ def run_sweep(
     address: str | None = None,
     progress: Callable[[int, int], None] | None = None,
 ) -> dict[str, Any]:
-    """Run every (trial, seed) of ``spec`` not yet done into ``out_dir`` and write the summary files.
+    """Run every (trial, seed) of ``spec`` not yet done into ``out_dir`` and write the summary files
+    (``search: tpe``: batch by batch as the study proposes them, :func:`safelane.running.tpe.run_tpe`).
 
     ``progress(done, total)`` is called as tasks finish. Returns the summary (also ``summary.json``).
     """
@@ -273,7 +348,15 @@ def run_sweep(
 
     check_backend(backend)
     out = Path(out_dir)
-    claim_out_dir(out, spec.model_dump_json(indent=1), "sweep.json", "sweep")
+    if spec.search == "tpe":
+        from safelane.running.tpe import check_optuna, run_tpe
+
+        check_optuna()  # before the folder is claimed: a missing extra leaves nothing behind
+        spec = spec.with_batch(workers, _stored_spec(out))
+        claim_out_dir(out, spec.record_json(), "sweep.json", "sweep")
+        run_tpe(spec, out, backend=backend, workers=workers, address=address, progress=progress)
+        return write_results(out, spec)
+    claim_out_dir(out, spec.record_json(), "sweep.json", "sweep")
     points = spec.points()
     tasks = [
         (index, seed)
@@ -309,37 +392,59 @@ def run_sweep(
     return write_results(out, spec)
 
 
+def _stored_spec(out: Path) -> dict[str, Any] | None:
+    """The spec a sweep folder was started with (its sweep.json), if any."""
+    path = out / "sweep.json"
+    return json.loads(path.read_text()) if path.is_file() else None
+
+
 def _final_failure(directory: Path, seed: int) -> bool:
     """A config failure is final (the same values fail again); any other is retried by a re-run."""
     path = _failure_path(directory, seed)
     return path.is_file() and json.loads(path.read_text()).get("kind") == "config"
 
 
-def read_trials(out: Path, spec: SweepSpec) -> list[dict[str, Any]]:
-    """One row per (trial, seed) that finished or failed, from the trial directories."""
+def trial_rows(out: Path, spec: SweepSpec, index: int, params: dict[str, Any]) -> list[dict[str, Any]]:
+    """One row per seed of trial ``index`` that finished or failed, from its directory."""
     rows: list[dict[str, Any]] = []
-    for index, params in enumerate(spec.points()):
-        for seed in range(spec.seeds):
-            row: dict[str, Any] = {"trial": index, "seed": seed, **params}
-            eval_path = _eval_path(out, spec, index, seed)
-            failure = _failure_path(trial_dir(out, index), seed)
-            if eval_path.is_file():
-                row.update(status="ok", **_metrics_of(json.loads(eval_path.read_text())), error="")
-            elif failure.is_file():
-                info = json.loads(failure.read_text())
-                row.update(status="failed", error=f"{info['kind']}: {info['error']}")
-            else:
-                continue
-            rows.append(row)
+    for seed in range(spec.seeds):
+        row: dict[str, Any] = {"trial": index, "seed": seed, **params}
+        eval_path = _eval_path(out, spec, index, seed)
+        failure = _failure_path(trial_dir(out, index), seed)
+        if eval_path.is_file():
+            row.update(status="ok", **_metrics_of(json.loads(eval_path.read_text())), error="")
+        elif failure.is_file():
+            info = json.loads(failure.read_text())
+            row.update(status="failed", error=f"{info['kind']}: {info['error']}")
+        else:
+            continue
+        rows.append(row)
     return rows
 
 
-def summarize_trials(spec: SweepSpec, rows: list[dict[str, Any]]) -> dict[str, Any]:
-    """Per trial: objective mean over seeds with a bootstrap 95 % CI, pooled metrics, feasibility; the best."""
+def read_trials(out: Path, spec: SweepSpec) -> list[dict[str, Any]]:
+    """One row per (trial, seed) that finished or failed, from the trial directories."""
+    return [row for index, params in enumerate(trial_points(out, spec)) for row in trial_rows(out, spec, index, params)]
+
+
+def pooled_metrics(ok: list[dict[str, Any]]) -> dict[str, float]:
+    """A trial's test metrics over its finished seeds: means, and the collision rate of all its episodes."""
+    episodes = sum(int(r["test_episodes"]) for r in ok)
+    pooled = {m: float(np.mean([r[m] for r in ok])) for m in METRICS if m in ok[0]}
+    pooled["collision_rate"] = sum(int(r["collisions"]) for r in ok) / episodes
+    return pooled
+
+
+def summarize_trials(
+    spec: SweepSpec, rows: list[dict[str, Any]], points: list[dict[str, Any]] | None = None
+) -> dict[str, Any]:
+    """Per trial: objective mean over seeds with a bootstrap 95 % CI, pooled metrics, feasibility; the best.
+    ``points``: the trials' parameters (default: the spec's; a TPE sweep's from :func:`trial_points`)."""
     from safelane.reporting import stats
 
+    points = spec.points() if points is None else points
     metric, trials = spec.objective.metric, []
-    for index, params in enumerate(spec.points()):
+    for index, params in enumerate(points):
         ok = [r for r in rows if r["trial"] == index and r["status"] == "ok"]
         failed = [r for r in rows if r["trial"] == index and r["status"] == "failed"]
         entry: dict[str, Any] = {"trial": index, "params": params, "seeds_done": len(ok), "failed": len(failed)}
@@ -349,8 +454,7 @@ def summarize_trials(spec: SweepSpec, rows: list[dict[str, Any]]) -> dict[str, A
             values = [r[metric] for r in ok]
             episodes = sum(int(r["test_episodes"]) for r in ok)
             collisions = sum(int(r["collisions"]) for r in ok)
-            pooled = {m: float(np.mean([r[m] for r in ok])) for m in METRICS if m in ok[0]}
-            pooled["collision_rate"] = collisions / episodes
+            pooled = pooled_metrics(ok)
             entry.update(
                 objective=stats.mean(values),
                 objective_ci95=list(stats.bootstrap_ci(values, seed=0)),
@@ -364,14 +468,37 @@ def summarize_trials(spec: SweepSpec, rows: list[dict[str, Any]]) -> dict[str, A
     complete = [t for t in trials if t["seeds_done"] == spec.seeds and t.get("feasible")]
     sign = 1.0 if spec.objective.mode == "max" else -1.0
     best = max(complete, key=lambda t: (sign * t["objective"], -t["trial"]), default=None)
+    planned = spec.samples if spec.search == "tpe" else len(points)
     return {
         "name": spec.name,
         "method": spec.method,
+        "search": search_info(spec),
         "objective": spec.objective.model_dump(),
         "trials": trials,
         "best": best,
-        "complete": all(t["seeds_done"] + t["failed"] == spec.seeds for t in trials),
+        "complete": len(trials) == planned and all(t["seeds_done"] + t["failed"] == spec.seeds for t in trials),
     }
+
+
+def search_info(spec: SweepSpec) -> dict[str, Any]:
+    """How the points were chosen (summary.json's ``search``)."""
+    if spec.search == "grid":
+        return {"kind": "grid"}
+    info: dict[str, Any] = {"kind": spec.search, "samples": spec.samples, "search_seed": spec.search_seed}
+    if spec.search == "tpe":
+        info.update(batch=spec.batch, startup_trials=spec.startup())
+    return info
+
+
+def _search_text(spec: SweepSpec, n_trials: int) -> str:
+    if spec.search == "grid":
+        return f"Search: grid, {n_trials} points."
+    if spec.search == "random":
+        return f"Search: random, {spec.samples} points drawn with seed {spec.search_seed}."
+    return (
+        f"Search: Optuna TPE, {spec.samples} trials in batches of {spec.batch} (the first {spec.startup()} "
+        f"random), seed {spec.search_seed}; {n_trials} proposed so far."
+    )
 
 
 def write_results(out: Path, spec: SweepSpec) -> dict[str, Any]:
@@ -386,7 +513,7 @@ def write_results(out: Path, spec: SweepSpec) -> dict[str, Any]:
     for row in rows:
         writer.writerow({c: (_value_text(row[c]) if c in keys else row.get(c, "")) for c in columns})
     atomic_write_text(out / "trials.csv", buffer.getvalue())
-    summary = summarize_trials(spec, rows)
+    summary = summarize_trials(spec, rows, trial_points(out, spec))
     atomic_write_text(out / "summary.json", json.dumps(summary, indent=1))
     atomic_write_text(out / "summary.md", summary_markdown(spec, summary))
     if summary["best"] is not None:
@@ -407,6 +534,7 @@ def summary_markdown(spec: SweepSpec, summary: dict[str, Any]) -> str:
         "",
         f"Objective: {spec.objective.mode} test `{metric}` (mean over {spec.seeds} seeds, bootstrap 95 % CI); "
         f"constraints: {constraint}. {spec.episodes} training episodes, {spec.test_episodes} test episodes per run.",
+        _search_text(spec, len(summary["trials"])),
         "",
         "| trial | "
         + " | ".join(f"`{k}`" for k in keys)
@@ -415,7 +543,7 @@ def summary_markdown(spec: SweepSpec, summary: dict[str, Any]) -> str:
     ]
     best = summary["best"]["trial"] if summary["best"] else None
     for t in summary["trials"]:
-        values = " | ".join(_value_text(t["params"][k]) for k in keys)
+        values = " | ".join(_cell(t["params"][k]) for k in keys)
         if "objective" in t:
             lo, hi = t["objective_ci95"]
             clo, chi = t["collision_rate_wilson95"]
@@ -428,6 +556,14 @@ def summary_markdown(spec: SweepSpec, summary: dict[str, Any]) -> str:
         lines.append(f"| t{t['trial']:03d}{mark} | {values} | {obj} | {col} | {feas} |")
     lines.append("")
     return "\n".join(lines)
+
+
+def _cell(value: Any) -> str:
+    """A parameter in the summary table: a drawn float to 4 significant digits (trials.csv, params.json
+    and best.yaml keep every digit), anything else as in the spec."""
+    if isinstance(value, float) and len(repr(value)) > 8:
+        return f"{value:.4g}"
+    return _value_text(value)
 
 
 def best_preset_yaml(spec: SweepSpec, best: dict[str, Any]) -> str:
@@ -471,6 +607,8 @@ def _plot_objective(out: Path, spec: SweepSpec, summary: dict[str, Any]) -> None
         colors = ["tab:blue" if t["feasible"] else "tab:red" for t in done]
         ax.errorbar(xs, ys, yerr=[lo, hi], fmt="none", ecolor="grey", capsize=3)
         ax.scatter(xs, ys, c=colors, zorder=3)
+        if spec.space[key].loguniform is not None:
+            ax.set_xscale("log")  # the scale the values were drawn on
         ax.set_xlabel(key)
         ax.set_ylabel(f"test {spec.objective.metric}")
         ax.set_title(f"{spec.name} ({spec.method}); red: constraints not met", fontsize=9)

@@ -59,7 +59,8 @@ beyond: $(STAMP)
 		--set agent.buffer_size=45000 --set agent.target_update_interval=600 --set agent.learning_starts=600 \
 		--set agent.shaping_margin=0.033
 
-# The paper's four grid searches (configs/sweeps/), 3 seeds per point on the fast simulator.
+# The paper's four grid searches and the robust one by TPE (configs/sweeps/), 3 seeds per point on the
+# fast simulator.
 sweeps: $(STAMP)
 	for spec in configs/sweeps/*.yaml; do \
 		$(BIN)/safelane sweep $$spec --out runs/sweeps/$$(basename $$spec .yaml) || exit 1; \

@@ -189,3 +189,16 @@ def test_overrides_do_not_alias_the_callers_objects() -> None:
     cfg = load_config("fast", overrides={"env.action.target_speeds": speeds})
     speeds.append(35)
     assert cfg.env["action"]["target_speeds"] == [20, 25, 30]
+
+
+def test_recorded_configs_keep_the_rule_they_ran_with() -> None:
+    """A configuration read back from a run or a counterexample file written before shield.body_extent
+    existed replays with the earlier rule; a new one gets today's default."""
+    from safelane.config import build_config, config_to_dict, load_config, recorded_config
+
+    data = config_to_dict(load_config("fast"))
+    assert data["shield"]["body_extent"] is True
+    old = {**data, "shield": {k: v for k, v in data["shield"].items() if k != "body_extent"}}
+    assert recorded_config(old).shield.body_extent is False
+    assert build_config(old).shield.body_extent is True
+    assert recorded_config(data).shield.body_extent is True

@@ -49,9 +49,10 @@ EXPECTED = {
     # (so LANE_RIGHT is unsafe) but, by default, not as a cut-in into the ego's own lane.
     "second_lane_car_moving_over": {"nominal": mask_of(I, R, S), "robust": mask_of(I, S)},
     # A nearly stopped car turning hard out of the ego's lane: by its centre it is in lane 1 (moving to 0),
-    # so by default neither mode sees its rear corner in the ego's lane (the campaign's crash cell00537);
-    # the lane changes are unsafe at 5 m/s (too slow to leave the lane in time).
-    "slow_car_turning_out": {"nominal": mask_of(I, F, S), "robust": mask_of(I, F, S)},
+    # but its rotated body reaches into the ego's lane (shield.body_extent, robust only): only SLOWER keeps
+    # the gap. Nominal misses it (the campaign's crash cell00537); the lane changes are unsafe at 5 m/s
+    # (too slow to leave the lane in time).
+    "slow_car_turning_out": {"nominal": mask_of(I, F, S), "robust": mask_of(S)},
 }
 
 
@@ -79,18 +80,19 @@ def test_projected_cut_ins_see_the_second_lane_car(engine: str) -> None:
 
 @pytest.mark.parametrize("engine", ["numpy", "compiled"])
 def test_body_extent_sees_the_corner_of_a_car_turning_out(engine: str) -> None:
-    """With shield.body_extent the rotated body (reach 2.5·sin 0.78 + 1·cos 0.78 = 2.47 m from a centre
-    4.85 m across) overlaps lane 2's band (from 6 m): the car is a leader in the ego's lane, 10 m ahead at
-    2 m/s. Holding 5 m/s for a decision runs into it (worst gap −2.8 m); only SLOWER keeps the gap (2.2 m).
-    Nominal is unchanged: the option belongs to the robust rule."""
-    robust = scenarios.SCENARIOS["slow_car_turning_out"](
-        mode="robust", **{"shield.engine": engine, "shield.body_extent": True}
-    )
+    """shield.body_extent: the rotated body (reach 2.5·sin 0.78 + 1·cos 0.78 = 2.47 m from a centre 4.85 m
+    across) overlaps lane 2's band (from 6 m): the car is a leader in the ego's lane, 10 m ahead at 2 m/s.
+    Holding 5 m/s for a decision runs into it (worst gap −2.8 m); only SLOWER keeps the gap (2.2 m). The
+    earlier rule (body_extent false) allowed IDLE and FASTER here — the crash of cell00537. Nominal is
+    unchanged: the option belongs to the robust rule."""
+    robust = scenarios.SCENARIOS["slow_car_turning_out"](mode="robust", **{"shield.engine": engine})
     assert robust.mask.tolist() == mask_of(S) and not robust.result.fallback
     assert robust.result.min_gap[I] < 0 < robust.result.min_gap[S]
-    nominal = scenarios.SCENARIOS["slow_car_turning_out"](
-        mode="nominal", **{"shield.engine": engine, "shield.body_extent": True}
+    earlier = scenarios.SCENARIOS["slow_car_turning_out"](
+        mode="robust", **{"shield.engine": engine, "shield.body_extent": False}
     )
+    assert earlier.mask.tolist() == mask_of(I, F, S)
+    nominal = scenarios.SCENARIOS["slow_car_turning_out"](mode="nominal", **{"shield.engine": engine})
     assert nominal.mask.tolist() == EXPECTED["slow_car_turning_out"]["nominal"]
     # Turned straight, the same car no longer reaches the ego's lane: the option adds nothing.
     straight = scenarios.build_scene(

@@ -121,10 +121,11 @@ class ShieldConfig(_Section):
         "total; kept for the next, one-decision-ahead rule.",
     )
     body_extent: bool = Field(
-        False,
+        True,
         strict=True,
         description="Robust mode: a vehicle also occupies every lane its body, rotated by its heading, overlaps "
-        "(a slow car turning hard sticks a corner into the lane it leaves; docs/safety.md §6b).",
+        "(a slow car turning hard sticks a corner into the lane it leaves; docs/safety.md §6b). On by default "
+        "since issue 15's campaign; false gives the earlier rule.",
     )
 
 
@@ -522,6 +523,23 @@ RENAMED_KEYS: dict[str, tuple[str, dict[Any, Any]]] = {
     "backend": ("neighbour_search", {"vectorized": "numpy", "highway-env": "highway-env"}),
 }
 """Keys of older run configs: old name → (new name, old value → new value). Read, never written."""
+
+
+RULE_CHANGES: dict[str, Any] = {"body_extent": False}
+"""Shield keys added with a new default that changes the rule: a *recorded* configuration (a run's
+config.yaml, a counterexample file) written before the key existed had the old behaviour, given here,
+so that it replays as it ran (:func:`recorded_config`)."""
+
+
+def recorded_config(data: dict[str, Any]) -> SafelaneConfig:
+    """:func:`build_config` for a configuration read back from a file: shield keys it predates take the
+    value they had when it was written (:data:`RULE_CHANGES`), not today's default."""
+    shield = data.get("shield")
+    if isinstance(shield, dict):
+        missing = {k: v for k, v in RULE_CHANGES.items() if k not in shield}
+        if missing:
+            data = {**data, "shield": {**shield, **missing}}
+    return build_config(data)
 
 
 def build_config(data: dict[str, Any]) -> SafelaneConfig:

@@ -183,7 +183,7 @@ def slow_car_turning_out(mode: Mode = "robust", dx: float = 10.0, **kw: Any) -> 
     hard out of the ego's lane toward lane 0: its centre is already in lane 1 (0.85 m right of lane 1's
     centre), its heading −0.78 rad. At that angle its rear corner still reaches 1.5 m into lane 2 — the
     falsification campaign's one crash from states the rule called safe (``cell00537``, 5 decisions/s),
-    which the robust rule sees only with ``shield.body_extent``."""
+    which the robust rule sees since ``shield.body_extent`` (on by default; false: the earlier rule)."""
     specs = [VehicleSpec(1, dx, 2.0, heading=-0.78, target_lane=0, lateral_offset=0.85)]
     return build_scene(2, 5.0, specs, mode=mode, ego_target_speed=5.0, **kw)
 

@@ -22,7 +22,7 @@ from typing import Any, Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
-from safelane.config import ConfigError, SafelaneConfig, build_config, config_to_dict
+from safelane.config import ConfigError, SafelaneConfig, build_config, config_to_dict, recorded_config
 from safelane.core.files import atomic_write_text
 
 NEAR = 80.0
@@ -51,7 +51,7 @@ class Counterexample(BaseModel):
         data = dict(self.config)
         if simulator is not None:
             data["simulator"] = simulator
-        return build_config(data)
+        return recorded_config(data)
 
 
 def load_counterexample(path: str | Path) -> Counterexample:
@@ -251,3 +251,103 @@ def render_counterexample(cx: Counterexample, out_path: str | Path) -> Path:
 def dump_json(result: ReplayResult) -> str:
     """The replay as one JSON object."""
     return json.dumps(result.to_dict())
+
+
+# --- what an invariant break's model missed -------------------------------------------------------
+
+CULPRIT_ROLES: tuple[str, ...] = (
+    "came_from_two_lanes",
+    "adjacent_ahead",
+    "adjacent_behind",
+    "leader",
+    "follower",
+    "overtook",
+    "ego_changed_lane",
+    "joint",
+)
+"""What the vehicle whose removal alone gives the break state a safe action was, before and after the
+decision (lanes relative to the ego's; ahead / behind along the road): ``came_from_two_lanes`` — two
+or more lanes away before, next to or in the ego's lane after; ``adjacent_ahead`` / ``adjacent_behind``
+— in a lane next to the ego's both times; ``leader`` / ``follower`` — in the ego's lane both times;
+``overtook`` — it changed from behind to ahead of the ego or back; ``ego_changed_lane`` — the ego's lane
+changed and the vehicle's relation with it; ``joint`` — no single vehicle: only removing several helps
+(the robust rule's one fallback for all conflicts)."""
+
+
+def break_culprits(cx: Counterexample, simulator: str | None = None) -> dict[str, Any]:
+    """Explain an invariant break by leave-one-out: replay ``cx`` to the state before its event and the
+    event's state (which has no safe action), remove each other vehicle in turn from the latter, and
+    keep those whose removal alone makes an action safe. Each culprit comes with its role
+    (:data:`CULPRIT_ROLES`) and its state at both decisions; ``role`` is the first culprit's (nearest
+    first), ``joint`` if there is none. Uses the numpy reference model on the shield's own inputs."""
+    import dataclasses
+
+    from safelane.env.factory import make_env
+    from safelane.safety.model import evaluate
+
+    if cx.kind != "invariant_break":
+        raise ConfigError(f"{cx.kind}: culprits are defined for invariant breaks only")
+    env = make_env(cx.env_config(simulator))
+    try:
+        _, info = env.reset(seed=cx.seed)
+        before = info["snapshot"]
+        for action in cx.actions[: cx.step]:
+            before = info["snapshot"]
+            _, _, _, _, info = env.step(int(action))
+        after = info["snapshot"]
+        unwrapped_shield = env
+        while not hasattr(unwrapped_shield, "state_and_dynamics"):
+            unwrapped_shield = unwrapped_shield.env
+        state_and_dynamics = unwrapped_shield.state_and_dynamics
+        mode = unwrapped_shield.mode
+        base = evaluate(*state_and_dynamics(after), mode)
+    finally:
+        env.close()
+    e = after.ego
+    ego_lane_before, ego_lane_after = int(before.lane[before.ego]), int(after.lane[e])
+    order = sorted(
+        (j for j in range(after.n) if j != e), key=lambda j: abs(float(after.position[j, 0] - after.position[e, 0]))
+    )
+    culprits = []
+    for j in order:
+        dx_after = float(after.position[j, 0] - after.position[e, 0])
+        if abs(dx_after) > NEAR:
+            continue
+        position = after.position.copy()
+        position[j, 0] = np.inf  # outside the model's range: as if the vehicle were not there
+        result = evaluate(*state_and_dynamics(dataclasses.replace(after, position=position)), mode)
+        if result.fallback:
+            continue
+        dx_before = float(before.position[j, 0] - before.position[before.ego, 0])
+        lane_before, lane_after = int(before.lane[j]) - ego_lane_before, int(after.lane[j]) - ego_lane_after
+        if (dx_before >= 0) != (dx_after >= 0):
+            role = "overtook"
+        elif ego_lane_before != ego_lane_after:
+            role = "ego_changed_lane"
+        elif abs(lane_before) >= 2 and abs(lane_after) <= 1:
+            role = "came_from_two_lanes"
+        elif lane_after == 0 and lane_before == 0:
+            role = "leader" if dx_after >= 0 else "follower"
+        elif abs(lane_after) == 1 and abs(lane_before) == 1:
+            role = "adjacent_ahead" if dx_after >= 0 else "adjacent_behind"
+        else:
+            role = "came_from_two_lanes" if abs(lane_before) > abs(lane_after) else "ego_changed_lane"
+        culprits.append(
+            {
+                "vehicle": j,
+                "role": role,
+                "dx": [round(dx_before, 2), round(dx_after, 2)],
+                "lane_vs_ego": [lane_before, lane_after],
+                "speed": [round(float(before.speed[j]), 2), round(float(after.speed[j]), 2)],
+                "heading": [round(float(before.heading[j]), 4), round(float(after.heading[j]), 4)],
+                "unlocks": [int(a) for a in np.flatnonzero(result.safe)],
+            }
+        )
+    return {
+        "role": culprits[0]["role"] if culprits else "joint",
+        "culprits": culprits,
+        "ego_speed": [round(float(before.speed[before.ego]), 2), round(float(after.speed[e]), 2)],
+        "ego_lane": [ego_lane_before, ego_lane_after],
+        "chosen": int(cx.actions[cx.step - 1]),
+        "fallback_confirmed": bool(base.fallback),
+    }

@@ -55,6 +55,7 @@ from safelane.config import (
     config_to_dict,
     load_config,
     parse_set,
+    recorded_config,
     validation_message,
 )
 from safelane.core.files import atomic_write
@@ -255,7 +256,7 @@ def load_run_config(run_dir: str | Path) -> RunConfig:
         data = yaml.safe_load(path.read_text())
         train = TrainConfig.model_validate(data["train"])
         agent = build_agent_config(data["agent"])
-        env = build_config(data["env"])
+        env = recorded_config(data["env"])
     except ConfigError as err:
         raise ConfigError(f"{path}: incompatible run config ({err})") from None
     except (yaml.YAMLError, KeyError, TypeError, ValidationError) as err:

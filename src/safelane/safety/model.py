@@ -90,7 +90,7 @@ class Dynamics:
     cut_in_time: float = 0.4  # [s] fastest time for another vehicle to reach the ego's lane
     margin: float = 1.0  # [m] minimum bumper-to-bumper gap kept under the worst case
     projected_cut_ins: bool = False  # robust: a vehicle moving sideways may also cut in from the lane it moves to
-    body_extent: bool = False  # robust: a vehicle also occupies every lane its rotated body overlaps
+    body_extent: bool = True  # robust: a vehicle also occupies every lane its rotated body overlaps
     body_width: float = 2.0  # [m] the other vehicles' width (highway-env's Vehicle.WIDTH), for body_extent
 
     @property

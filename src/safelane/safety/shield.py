@@ -52,7 +52,7 @@ ENGINES: tuple[Engine, ...] = ("compiled", "numpy")
 
 
 def dynamics_of(
-    snap: RoadSnapshot, margin: float = DEFAULT_MARGIN, projected_cut_ins: bool = False, body_extent: bool = False
+    snap: RoadSnapshot, margin: float = DEFAULT_MARGIN, projected_cut_ins: bool = False, body_extent: bool = True
 ) -> Dynamics:
     """The :class:`Dynamics` constants of the simulated world a snapshot was taken in; ``margin`` [m]: the
     bumper-to-bumper gap the rule keeps under its worst case; the two robust options as in :class:`Dynamics`."""
@@ -139,7 +139,7 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
         engine: Engine = "compiled",
         margin: float = DEFAULT_MARGIN,
         projected_cut_ins: bool = False,
-        body_extent: bool = False,
+        body_extent: bool = True,
     ) -> None:
         if not (math.isfinite(margin) and margin >= 0):
             raise ValueError(f"shield.margin: must be a finite number >= 0 [m] (got {margin!r})")

@@ -5,6 +5,7 @@ from __future__ import annotations
 import dataclasses
 import math
 from collections.abc import Iterator
+from typing import Any
 
 import numpy as np
 import pytest
@@ -69,12 +70,14 @@ def test_extreme_states_bit_identical(case: tuple) -> None:
 
 
 def recorded(
-    preset: str, simulator: str, override: bool, episodes: int, seed: int, max_steps: int = 1000
+    preset: str, simulator: str, override: bool, episodes: int, seed: int, max_steps: int = 1000, **sets: Any
 ) -> Iterator[tuple[SafetyShield, RoadSnapshot]]:
     """Every decision's snapshot of random-policy episodes, under the robust shield (``override``: it
     replaces the unsafe choices, so the episodes last; else the random actions are executed as chosen)."""
     try:
-        env = make_env(preset, simulator=simulator, **{"shield.mode": "robust", "shield.override": override})
+        env = make_env(
+            preset, simulator=simulator, **{"shield.mode": "robust", "shield.override": override, **sets}
+        )
     except NotSupported as err:
         pytest.skip(str(err))
     rng = np.random.default_rng(seed)
@@ -188,6 +191,7 @@ def test_engine_is_configurable() -> None:
 # --------------------------------------------------------------------------------------------
 
 ROBUST_OPTIONS = pytest.mark.parametrize("option", ["projected_cut_ins", "body_extent"])
+"""The options that only add conflicts (linear_mobil removes some: tested on its own below)."""
 
 
 @ROBUST_OPTIONS
@@ -205,6 +209,21 @@ def test_robust_options_bit_identical_and_only_stricter(option: str, case: tuple
             assert_same(base, more)  # the options belong to the robust rule only
 
 
+@PROPERTY_SETTINGS
+@given(case=road())
+def test_linear_mobil_bit_identical_and_only_looser(case: tuple) -> None:
+    """shield.linear_mobil judges Linear-model cut-ins by their criterion: the same in both engines either
+    way, and it only removes conflicts (never makes an action unsafe); nominal ignores it."""
+    state, dyn, _ = case
+    earlier, now = (dataclasses.replace(dyn, linear_mobil=v) for v in (False, True))
+    assert mismatches(state, earlier) == [] and mismatches(state, now) == []
+    for mode in MODES:
+        before, after = model.evaluate(state, earlier, mode), model.evaluate(state, now, mode)
+        assert not (before.safe & ~after.safe).any()
+        if mode == "nominal":
+            assert_same(before, after)
+
+
 @ROBUST_OPTIONS
 def test_robust_options_on_recorded_states(option: str) -> None:
     n = 0
@@ -214,3 +233,16 @@ def test_robust_options_on_recorded_states(option: str) -> None:
             shield.dynamics = dataclasses.replace(shield.dynamics, **{option: value})
             n += check_recorded(shield, snap)
     assert n >= 160
+
+
+@pytest.mark.parametrize("simulator", ["fast", "highway-env"])
+def test_linear_drivers_mobil_on_recorded_states(simulator: str) -> None:
+    """Linear-model drivers (their MOBIL criterion judges the ego with the linear formula and their own
+    randomised gains): reference, compiled kernel and the shield's fast path agree on dense roads."""
+    n = 0
+    linear = {"env.other_vehicles_type": "highway_env.vehicle.behavior.LinearVehicle", "env.vehicles_density": 2}
+    steps = 25 if simulator == "highway-env" else 60
+    for shield, snap in recorded("fast", simulator, True, episodes=3, seed=9, max_steps=steps, **linear):
+        assert np.isfinite(snap.linear_speed_gain[1:]).all() and np.isnan(snap.linear_speed_gain[0])
+        n += check_recorded(shield, snap)
+    assert n >= 2 * steps

@@ -53,6 +53,9 @@ EXPECTED = {
     # the gap. Nominal misses it (the campaign's crash cell00537); the lane changes are unsafe at 5 m/s
     # (too slow to leave the lane in time).
     "slow_car_turning_out": {"nominal": mask_of(I, F, S), "robust": mask_of(S)},
+    # A Linear driver level with the ego in the next lane: its MOBIL criterion (linear formula) forbids
+    # cutting in, so only the leader 42 m ahead matters: SLOWER keeps the gap (IDLE leaves 0.33 m < 1 m).
+    "linear_car_alongside": {"nominal": mask_of(S), "robust": mask_of(S)},
 }
 
 
@@ -100,6 +103,22 @@ def test_body_extent_sees_the_corner_of_a_car_turning_out(engine: str) -> None:
         **{"shield.engine": engine, "shield.body_extent": True},
     )  # fmt: skip
     assert straight.mask.tolist() == mask_of(I, F, S)
+
+
+@pytest.mark.parametrize("engine", ["numpy", "compiled"])
+def test_linear_mobil_lets_a_car_alongside_stay_where_it_is(engine: str) -> None:
+    """shield.linear_mobil: the Linear driver level with the ego would impose on the ego, as its new
+    follower 0.1 m behind, 0.3·0.65 + 2·min(−0.1 − (10 + 2.5·19.35), 0) ≈ −117 m/s² by its own formula, far
+    below −2: no cut-in, and SLOWER is safe (worst gap 20.3 m). The earlier rule assumed any Linear-model
+    cut-in: the car appears in the ego's lane at its nose, nothing is safe (a fallback) — the 1 052
+    ``adjacent_behind`` breaks."""
+    now = scenarios.SCENARIOS["linear_car_alongside"](mode="robust", **{"shield.engine": engine})
+    assert now.mask.tolist() == mask_of(S) and not now.result.fallback
+    assert now.result.min_gap[S] > 20
+    earlier = scenarios.SCENARIOS["linear_car_alongside"](
+        mode="robust", **{"shield.engine": engine, "shield.linear_mobil": False}
+    )
+    assert earlier.result.fallback and (earlier.result.min_gap < 0).all()
 
 
 @pytest.mark.parametrize("engine", ["numpy", "compiled"])
@@ -221,6 +240,8 @@ def vehicle(draw: st.DrawFn, lanes: int, extreme: bool = False) -> dict[str, flo
         "crashed": draw(st.booleans()) if extreme else False,
         "delta": draw(st.floats(3.5, 4.5)),
         "idm": draw(st.booleans()),
+        # a Linear-model driver (its MOBIL criterion uses the linear formula), with LinearVehicle's gains
+        "linear": draw(st.booleans()),
     }
 
 
@@ -249,6 +270,7 @@ def make_state(
     heading = col("heading")
     speed_o = col("speed")
     idm = np.array([c["idm"] for c in cars], dtype=bool).reshape(n)
+    linear = idm & np.array([c.get("linear", False) for c in cars], dtype=bool).reshape(n)
     return RoadState(
         ego_x=ego_x,
         ego_y=lane * 4.0,
@@ -273,6 +295,9 @@ def make_state(
         idm_distance_wanted=np.full(n, 10.0),
         idm_time_wanted=np.full(n, 1.5),
         max_braking_imposed=np.where(idm, 2.0, np.inf),
+        linear_speed_gain=np.where(linear, 0.3, np.nan),
+        linear_speed_difference_gain=np.where(linear, 0.3, np.nan),
+        linear_distance_gain=np.where(linear, 2.0, np.nan),
     )
 
 

@@ -31,6 +31,9 @@ DRIVER_FIELDS: tuple[str, ...] = (
     "idm_distance_wanted",
     "idm_time_wanted",
     "max_braking_imposed",
+    "linear_speed_gain",
+    "linear_speed_difference_gain",
+    "linear_distance_gain",
 )
 """The per-body driver-model arrays of a snapshot, in the order the safety model's ``RoadState`` uses."""
 
@@ -113,6 +116,14 @@ class RoadSnapshot:
     """(N,) [s] desired time gap."""
     max_braking_imposed: np.ndarray
     """(N,) [m/s²] > 0: MOBIL's safety criterion (inf: never checks it)."""
+    linear_speed_gain: np.ndarray
+    """(N,) [1/s]: ``LinearVehicle.ACCELERATION_PARAMETERS[0]`` of a driver with the linear acceleration
+    model (Linear, Aggressive, Defensive), which its MOBIL criterion applies to its new follower; NaN for
+    IDM's formula."""
+    linear_speed_difference_gain: np.ndarray
+    """(N,) [1/s]: ``ACCELERATION_PARAMETERS[1]`` (NaN for IDM's formula)."""
+    linear_distance_gain: np.ndarray
+    """(N,) [1/s²]: ``ACCELERATION_PARAMETERS[2]`` (NaN for IDM's formula)."""
 
     # --- forensics ---------------------------------------------------------------------------------
     impact_before: np.ndarray | None = None

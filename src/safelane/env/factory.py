@@ -163,6 +163,7 @@ def make_env(
             margin=shield.margin,
             projected_cut_ins=shield.projected_cut_ins,
             body_extent=shield.body_extent,
+            linear_mobil=shield.linear_mobil,
         )
     env.safelane_config = cfg  # type: ignore[attr-defined]
     if seed is not None:

@@ -188,6 +188,22 @@ def slow_car_turning_out(mode: Mode = "robust", dx: float = 10.0, **kw: Any) -> 
     return build_scene(2, 5.0, specs, mode=mode, ego_target_speed=5.0, **kw)
 
 
+def linear_car_alongside(mode: Mode = "robust", **kw: Any) -> Scene:
+    """The ego in the leftmost lane at 19.35 m/s (set-point 20), a Linear-model driver in the next lane
+    just level with it (its centre 0.1 m behind the ego's) at 20.25 m/s, and a Linear leader 42 m ahead at
+    17.3 m/s: the falsification campaign's most common break with those drivers (``adjacent_behind``,
+    cell00011). By its own MOBIL criterion (the linear formula: the ego would be its new follower at a
+    gap far below its safe distance) the car alongside cannot cut in; the earlier rule
+    (``shield.linear_mobil: false``) assumed it could, and then nothing is safe."""
+    from highway_env.vehicle.behavior import LinearVehicle
+
+    specs = [
+        VehicleSpec(1, -0.1, 20.25, vehicle_class=LinearVehicle),
+        VehicleSpec(0, 42.0, 17.3, vehicle_class=LinearVehicle),
+    ]
+    return build_scene(0, 19.35, specs, mode=mode, ego_target_speed=20.0, **kw)
+
+
 SCENARIOS: dict[str, Callable[..., Scene]] = {
     "leader_braking": leader_braking,
     "stopped_car_ahead": stopped_car_ahead,
@@ -201,6 +217,7 @@ SCENARIOS: dict[str, Callable[..., Scene]] = {
     "adjacent_car_ahead": adjacent_car_ahead,
     "second_lane_car_moving_over": second_lane_car_moving_over,
     "slow_car_turning_out": slow_car_turning_out,
+    "linear_car_alongside": linear_car_alongside,
 }
 """Every scenario by name."""
 

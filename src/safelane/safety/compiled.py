@@ -94,6 +94,16 @@ def _idm_behind(
     return free - acc * (q * q)
 
 
+@njit(cache=True, error_model="numpy")
+def _linear_behind(
+    k0: float, k1: float, k2: float, wanted: float, time_wanted: float, own_speed: float,
+    gap: float, ego_speed: float, ego_target: float,
+) -> float:  # fmt: skip
+    """``model.linear_acceleration_behind`` for one vehicle (same operations, same order)."""
+    d_safe = wanted + _nmax(ego_speed, 0.0) * time_wanted
+    return k0 * (ego_target - ego_speed) + k1 * _nmin(own_speed - ego_speed, 0.0) + k2 * _nmin(gap - d_safe, 0.0)
+
+
 # --------------------------------------------------------------------------------------------
 # The evaluation.
 # --------------------------------------------------------------------------------------------
@@ -107,11 +117,12 @@ def _evaluate(
     crashed: np.ndarray, brake_max: np.ndarray, accel_max: np.ndarray, can_change_lane: np.ndarray,
     idm_delta: np.ndarray, idm_comfort_acc: np.ndarray, idm_comfort_dec: np.ndarray,
     idm_distance_wanted: np.ndarray, idm_time_wanted: np.ndarray, max_braking_imposed: np.ndarray,
+    lin_k0: np.ndarray, lin_k1: np.ndarray, lin_k2: np.ndarray,
     ts: np.ndarray, t: np.ndarray, powers: np.ndarray, tie_break: np.ndarray,
     decision_period: float, frame_dt: float, frames: int, horizon: int, ego_kp: float, lane_width: float,
     lanes_count: int, follower_reaction: float, ego_leave_time: float, cut_in_time: float, margin: float,
     relevance: float, lateral_threshold: float, robust: bool, projected_cut_ins: bool, body_extent: bool,
-    body_width: float,
+    body_width: float, linear_mobil: bool,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, bool]:  # fmt: skip
     """``model.evaluate`` (formula ``kinematic``) of one state: (mask, safe, available, min_gap, fallback)."""
     n_ts = ts.shape[0]
@@ -328,9 +339,17 @@ def _evaluate(
                         acc, delta, dec = idm_comfort_acc[i], idm_delta[i], idm_comfort_dec[i]
                         dw, tw = idm_distance_wanted[i], idm_time_wanted[i]
                         limit = -max_braking_imposed[i]
-                        ok = _idm_behind(acc, delta, dec, dw, tw, vx[i], d_now, ego_speed, target_clip) >= limit
-                        if not ok:  # the end-of-period check only matters when the one of now fails
-                            ok = _idm_behind(acc, delta, dec, dw, tw, vx[i], d_end, kv, target_clip) >= limit
+                        if np.isfinite(lin_k0[i]) and not linear_mobil:  # the earlier rule: any cut-in
+                            ok = True
+                        elif np.isfinite(lin_k0[i]):  # model.linear_acceleration_behind, now then at the end
+                            k0, k1, k2, own = lin_k0[i], lin_k1[i], lin_k2[i], math.hypot(vx[i], vy[i])
+                            ok = _linear_behind(k0, k1, k2, dw, tw, own, d_now, ego_speed, kt) >= limit
+                            if not ok:
+                                ok = _linear_behind(k0, k1, k2, dw, tw, own, d_end, kv, kt) >= limit
+                        else:
+                            ok = _idm_behind(acc, delta, dec, dw, tw, vx[i], d_now, ego_speed, target_clip) >= limit
+                            if not ok:  # the end-of-period check only matters when the one of now fails
+                                ok = _idm_behind(acc, delta, dec, dw, tw, vx[i], d_end, kv, target_clip) >= limit
                         permitted[slot, r] = ok
                     else:
                         permitted[slot, r] = False
@@ -432,13 +451,14 @@ def _evaluate_snapshot(
     brake_max: np.ndarray, accel_max: np.ndarray, can_change_lane: np.ndarray, idm_delta: np.ndarray,
     idm_comfort_acc: np.ndarray, idm_comfort_dec: np.ndarray, idm_distance_wanted: np.ndarray,
     idm_time_wanted: np.ndarray, max_braking_imposed: np.ndarray,
+    lin_k0: np.ndarray, lin_k1: np.ndarray, lin_k2: np.ndarray,
     ego: int, ego_lane: int, ego_target_lane: int, ego_target_speed: float, ego_speed_index: int,
     origin: np.ndarray, direction: np.ndarray, lateral: np.ndarray, lane_heading: float, speed_limit: float,
     ts: np.ndarray, t: np.ndarray, powers: np.ndarray, tie_break: np.ndarray,
     decision_period: float, frame_dt: float, frames: int, horizon: int, ego_kp: float, lane_width: float,
     lanes_count: int, follower_reaction: float, ego_leave_time: float, cut_in_time: float, margin: float,
     relevance: float, lateral_threshold: float, robust: bool, projected_cut_ins: bool, body_extent: bool,
-    body_width: float,
+    body_width: float, linear_mobil: bool,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, bool]:  # fmt: skip
     """``shield.road_state`` then :func:`_evaluate`, without building the state in Python.
 
@@ -480,9 +500,10 @@ def _evaluate_snapshot(
         x, y, vx, vy, rel_heading, length[keep], crashed[keep], brake_max[keep], accel_max[keep],
         can_change_lane[keep], idm_delta[keep], idm_comfort_acc[keep], idm_comfort_dec[keep],
         idm_distance_wanted[keep], idm_time_wanted[keep], max_braking_imposed[keep],
+        lin_k0[keep], lin_k1[keep], lin_k2[keep],
         ts, t, powers, tie_break, decision_period, frame_dt, frames, horizon, ego_kp, lane_width, lanes_count,
         follower_reaction, ego_leave_time, cut_in_time, margin, relevance, lateral_threshold, robust,
-        projected_cut_ins, body_extent, body_width,
+        projected_cut_ins, body_extent, body_width, linear_mobil,
     )  # fmt: skip
 
 
@@ -558,9 +579,10 @@ def evaluate_compiled(
         s.ego_x, s.ego_speed, s.ego_lane, s.ego_target_lane, s.ego_target_speed, s.ego_speed_index,
         s.ego_length, s.speed_limit, s.x, s.y, s.vx, s.vy, s.heading, s.length, s.crashed, s.brake_max,
         s.accel_max, s.can_change_lane, s.idm_delta, s.idm_comfort_acc, s.idm_comfort_dec,
-        s.idm_distance_wanted, s.idm_time_wanted, s.max_braking_imposed,
+        s.idm_distance_wanted, s.idm_time_wanted, s.max_braking_imposed, s.linear_speed_gain,
+        s.linear_speed_difference_gain, s.linear_distance_gain,
         *_dynamics_args(dyn, dyn.ego_leave_time), mode == "robust", dyn.projected_cut_ins, dyn.body_extent,
-        dyn.body_width,
+        dyn.body_width, dyn.linear_mobil,
     )  # fmt: skip
     return _result(out)
 
@@ -587,10 +609,11 @@ def evaluate_snapshot(
     out = _evaluate_snapshot(
         snap.position, snap.speed, snap.heading, snap.length, snap.crashed, snap.brake_max, snap.accel_max,
         snap.can_change_lane, snap.idm_delta, snap.idm_comfort_acc, snap.idm_comfort_dec,
-        snap.idm_distance_wanted, snap.idm_time_wanted, snap.max_braking_imposed,
+        snap.idm_distance_wanted, snap.idm_time_wanted, snap.max_braking_imposed, snap.linear_speed_gain,
+        snap.linear_speed_difference_gain, snap.linear_distance_gain,
         e, int(snap.lane[e]), int(snap.target_lane[e]), snap.ego_target_speed, snap.ego_speed_index,
         snap.lane_origin, snap.lane_direction, snap.lane_lateral, lane_heading, snap.speed_limit,
         *_dynamics_args(dyn, ego_leave_time), mode == "robust", dyn.projected_cut_ins, dyn.body_extent,
-        dyn.body_width,
+        dyn.body_width, dyn.linear_mobil,
     )  # fmt: skip
     return _result(out)

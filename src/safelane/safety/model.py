@@ -92,6 +92,7 @@ class Dynamics:
     projected_cut_ins: bool = False  # robust: a vehicle moving sideways may also cut in from the lane it moves to
     body_extent: bool = True  # robust: a vehicle also occupies every lane its rotated body overlaps
     body_width: float = 2.0  # [m] the other vehicles' width (highway-env's Vehicle.WIDTH), for body_extent
+    linear_mobil: bool = True  # robust: linear-model drivers' MOBIL criterion with their formula (else: any cut-in)
 
     @property
     def horizon_decisions(self) -> int:
@@ -139,6 +140,11 @@ class RoadState:
     idm_distance_wanted: np.ndarray = field(default_factory=lambda: np.zeros(0))  # [m]
     idm_time_wanted: np.ndarray = field(default_factory=lambda: np.zeros(0))  # [s]
     max_braking_imposed: np.ndarray = field(default_factory=lambda: np.zeros(0))  # [m/s²] > 0
+    # The linear acceleration model's gains (LinearVehicle.ACCELERATION_PARAMETERS) of drivers that use it
+    # (Linear, Aggressive, Defensive), whose MOBIL criterion applies it to the new follower; NaN: IDM.
+    linear_speed_gain: np.ndarray = field(default_factory=lambda: np.zeros(0))  # [1/s]
+    linear_speed_difference_gain: np.ndarray = field(default_factory=lambda: np.zeros(0))  # [1/s]
+    linear_distance_gain: np.ndarray = field(default_factory=lambda: np.zeros(0))  # [1/s²]
     speed_limit: float = 30.0  # [m/s] of the ego's lane (IDM clips the ego's set-point to it)
 
     @property
@@ -281,6 +287,24 @@ def idm_acceleration_behind(
     return free - acc * (d_star / d) ** 2
 
 
+def linear_acceleration_behind(
+    state: RoadState, who: np.ndarray, gap_centres: np.ndarray, ego_speed: np.ndarray, ego_target: np.ndarray
+) -> np.ndarray:
+    """The acceleration [m/s²] a linear-model driver ``who`` (``LinearVehicle.acceleration``) predicts for
+    the ego following it: ``k₀·(v* − v) + k₁·min(v_who − v, 0) + k₂·min(d − d_safe, 0)`` with
+    ``d_safe = DISTANCE_WANTED + max(v, 0)·TIME_WANTED`` — MOBIL's safety criterion for Linear, Aggressive
+    and Defensive drivers. ``gap_centres`` [m] centre to centre, ``ego_target`` [m/s] the ego's set-point
+    (not clipped: highway-env reads ``target_speed``); the driver's speed is its whole speed (≥ its
+    speed along the road), which can only make the criterion allow more."""
+    own_speed = np.hypot(state.vx[who], state.vy[who])
+    d_safe = state.idm_distance_wanted[who] + np.maximum(ego_speed, 0.0) * state.idm_time_wanted[who]
+    return (
+        state.linear_speed_gain[who] * (ego_target - ego_speed)
+        + state.linear_speed_difference_gain[who] * np.minimum(own_speed - ego_speed, 0.0)
+        + state.linear_distance_gain[who] * np.minimum(gap_centres - d_safe, 0.0)
+    )
+
+
 # --------------------------------------------------------------------------------------------
 # Conflicts: (vehicle, lane, time window) pairs the ego must keep a gap to.
 # --------------------------------------------------------------------------------------------
@@ -361,8 +385,10 @@ def _cut_in_candidates(
     """Vehicles ahead that may cut in: (into a lane the ego is in, into a lane the ego is entering).
 
     Into a lane the ego already occupies, a vehicle changes lane only if its own rule allows it:
-    MOBIL's safety criterion (highway-env) requires the IDM acceleration it predicts for its new
-    follower — the ego — to stay ≥ −LANE_CHANGE_MAX_BRAKING_IMPOSED. The ego is taken as that follower
+    MOBIL's safety criterion (highway-env) requires the acceleration its own model predicts for its new
+    follower — the ego — to stay ≥ −LANE_CHANGE_MAX_BRAKING_IMPOSED: IDM's formula
+    (:func:`idm_acceleration_behind`), or the linear model's for Linear, Aggressive and Defensive drivers
+    (:func:`linear_acceleration_behind`). The ego is taken as that follower
     (conservative and independent of the other vehicles, which keeps the model monotone); the
     criterion is checked now and at the end of the decision period (others at constant speed, the ego
     on the action's trajectory). Into a lane the ego is only *entering*, the other driver cannot see the
@@ -373,9 +399,17 @@ def _cut_in_candidates(
     can = state.can_change_lane[near] & (np.abs(state.vx[near]) >= 1.0)
     target = np.clip(ego_target, 0.0, state.speed_limit)
     d_now = state.x[near] - state.ego_x
-    a_now = idm_acceleration_behind(state, near, d_now, np.full(near.size, state.ego_speed), np.full(near.size, target))
     d_end = state.x[near] + state.vx[near] * dyn.decision_period - ego_x_end
-    a_end = idm_acceleration_behind(state, near, d_end, np.full(near.size, ego_v_end), np.full(near.size, target))
+    v_now, v_end = np.full(near.size, state.ego_speed), np.full(near.size, ego_v_end)
+    a_now = idm_acceleration_behind(state, near, d_now, v_now, np.full(near.size, target))
+    a_end = idm_acceleration_behind(state, near, d_end, v_end, np.full(near.size, target))
+    linear = np.isfinite(state.linear_speed_gain[near])
+    if linear.any() and dyn.linear_mobil:  # Linear / Aggressive / Defensive drivers: their own formula
+        who, set_point = near[linear], np.full(int(linear.sum()), float(ego_target))
+        a_now[linear] = linear_acceleration_behind(state, who, d_now[linear], v_now[linear], set_point)
+        a_end[linear] = linear_acceleration_behind(state, who, d_end[linear], v_end[linear], set_point)
+    elif linear.any():  # the earlier rule: their criterion was not modelled, so any cut-in was allowed
+        a_now[linear] = np.inf
     limit = -state.max_braking_imposed[near]
     ahead = (d_now > 0) | (d_end > 0)
     return can & ahead & ((a_now >= limit) | (a_end >= limit)), can & ahead

@@ -52,7 +52,11 @@ ENGINES: tuple[Engine, ...] = ("compiled", "numpy")
 
 
 def dynamics_of(
-    snap: RoadSnapshot, margin: float = DEFAULT_MARGIN, projected_cut_ins: bool = False, body_extent: bool = True
+    snap: RoadSnapshot,
+    margin: float = DEFAULT_MARGIN,
+    projected_cut_ins: bool = False,
+    body_extent: bool = True,
+    linear_mobil: bool = True,
 ) -> Dynamics:
     """The :class:`Dynamics` constants of the simulated world a snapshot was taken in; ``margin`` [m]: the
     bumper-to-bumper gap the rule keeps under its worst case; the two robust options as in :class:`Dynamics`."""
@@ -71,6 +75,7 @@ def dynamics_of(
         margin=margin,
         projected_cut_ins=projected_cut_ins,
         body_extent=body_extent,
+        linear_mobil=linear_mobil,
         # The widest other body (every highway-env vehicle has Vehicle.WIDTH): the occupancy bound.
         body_width=float(np.max(snap.width)) if len(snap.width) else 2.0,
     )
@@ -128,6 +133,7 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
     ``margin`` [m]: the bumper-to-bumper gap kept under the worst case (the rule's safety threshold).
     ``projected_cut_ins``: robust mode also counts cut-ins from the lane a sideways-moving vehicle moves to.
     ``body_extent``: robust mode also puts a vehicle in every lane its rotated body overlaps.
+    ``linear_mobil``: robust mode applies a linear-model driver's MOBIL criterion with its own formula.
     """
 
     def __init__(
@@ -140,6 +146,7 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
         margin: float = DEFAULT_MARGIN,
         projected_cut_ins: bool = False,
         body_extent: bool = True,
+        linear_mobil: bool = True,
     ) -> None:
         if not (math.isfinite(margin) and margin >= 0):
             raise ValueError(f"shield.margin: must be a finite number >= 0 [m] (got {margin!r})")
@@ -158,6 +165,7 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
             margin=margin,
             projected_cut_ins=projected_cut_ins,
             body_extent=body_extent,
+            linear_mobil=linear_mobil,
         )
         try:
             env.get_wrapper_attr("road_snapshot")
@@ -171,6 +179,7 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
         self.margin = float(margin)
         self.projected_cut_ins = bool(projected_cut_ins)
         self.body_extent = bool(body_extent)
+        self.linear_mobil = bool(linear_mobil)
         self.dynamics: Dynamics | None = None
         self.result: SafetyResult | None = None
         self.snapshot: RoadSnapshot | None = None
@@ -199,7 +208,9 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
     def _ego_leave_time(self, snap: RoadSnapshot) -> tuple[float, float]:
         """(lane heading [rad], the time [s] the ego takes to leave its lane) for ``snap``."""
         if self.dynamics is None:
-            self.dynamics = dynamics_of(snap, self.margin, self.projected_cut_ins, self.body_extent)
+            self.dynamics = dynamics_of(
+                snap, self.margin, self.projected_cut_ins, self.body_extent, self.linear_mobil
+            )
         dyn = self.dynamics
         # The ego's speed along the road, as road_state computes it (the compiled path builds no RoadState).
         direction = snap.lane_direction

@@ -42,6 +42,9 @@ class _DriverRecord(NamedTuple):
     idm_distance_wanted: float
     idm_time_wanted: float
     max_braking_imposed: float
+    linear_speed_gain: float
+    linear_speed_difference_gain: float
+    linear_distance_gain: float
 
 
 _FLOAT_FIELDS = tuple(f for f in _DriverRecord._fields if f != "is_vehicle")
@@ -50,6 +53,10 @@ _FLOAT_FIELDS = tuple(f for f in _DriverRecord._fields if f != "is_vehicle")
 def _driver_record(o: Any, is_vehicle: bool) -> _DriverRecord:
     """Read one body's static attributes (instance first, then class; IDM's values as defaults)."""
     idm_formula = getattr(type(o), "acceleration", None) is IDMVehicle.acceleration
+    # The linear model's gains (LinearVehicle and its subclasses): MOBIL's criterion uses that formula.
+    linear = getattr(o, "ACCELERATION_PARAMETERS", None) if not idm_formula and is_vehicle else None
+    gains = [float(g) for g in linear] if linear is not None and len(linear) == 3 else [np.nan] * 3
+    mobil = linear is not None or idm_formula
     comfort_acc = float(getattr(o, "COMFORT_ACC_MAX", IDMVehicle.COMFORT_ACC_MAX))
     acc_max = float(getattr(o, "ACC_MAX", IDMVehicle.ACC_MAX))
     return _DriverRecord(
@@ -63,7 +70,10 @@ def _driver_record(o: Any, is_vehicle: bool) -> _DriverRecord:
         idm_comfort_dec=float(getattr(o, "COMFORT_ACC_MIN", IDMVehicle.COMFORT_ACC_MIN)),
         idm_distance_wanted=float(getattr(o, "DISTANCE_WANTED", IDMVehicle.DISTANCE_WANTED)),
         idm_time_wanted=float(getattr(o, "TIME_WANTED", IDMVehicle.TIME_WANTED)),
-        max_braking_imposed=float(getattr(o, "LANE_CHANGE_MAX_BRAKING_IMPOSED", 2.0)) if idm_formula else np.inf,
+        max_braking_imposed=float(getattr(o, "LANE_CHANGE_MAX_BRAKING_IMPOSED", 2.0)) if mobil else np.inf,
+        linear_speed_gain=gains[0],
+        linear_speed_difference_gain=gains[1],
+        linear_distance_gain=gains[2],
     )
 
 

@@ -40,7 +40,7 @@ _SNAPSHOT_FIELDS = (
     "ego_target_speeds", "ego_kp", "ego_lane_offset", "position", "speed", "heading", "lane", "target_lane",
     "length", "width", "crashed", "is_vehicle", "brake_max", "accel_max", "can_change_lane", "idm_delta",
     "idm_comfort_acc", "idm_comfort_dec", "idm_distance_wanted", "idm_time_wanted", "max_braking_imposed",
-    "impact_before", "impact_after",
+    "impact_before", "impact_after", "linear_speed_gain", "linear_speed_difference_gain", "linear_distance_gain",
 )  # fmt: skip
 
 
@@ -107,8 +107,11 @@ class FastHighwayEnv(gym.Env):
         self._comfort_dec = np.where(idm, float(cls.COMFORT_ACC_MIN), float(IDMVehicle.COMFORT_ACC_MIN))
         self._distance_wanted = np.where(idm, float(cls.DISTANCE_WANTED), float(IDMVehicle.DISTANCE_WANTED))
         self._time_wanted = np.where(idm, float(cls.TIME_WANTED), float(IDMVehicle.TIME_WANTED))
-        others_mbi = float(cls.LANE_CHANGE_MAX_BRAKING_IMPOSED) if idm_formula else np.inf
-        self._max_braking = np.where(idm, others_mbi, np.inf)
+        # MOBIL's criterion with the driver's own formula: IDM's, or the linear model's gains.
+        self._max_braking = np.where(idm, float(cls.LANE_CHANGE_MAX_BRAKING_IMPOSED), np.inf)
+        # Linear-model drivers draw their gains per vehicle at spawn (randomize_behavior): read at reset.
+        self._linear_model = not idm_formula
+        self._no_gains = np.full(n, np.nan)
         for a in (
             self._length,
             self._width,
@@ -121,6 +124,7 @@ class FastHighwayEnv(gym.Env):
             self._distance_wanted,
             self._time_wanted,
             self._max_braking,
+            self._no_gains,
         ):
             a.flags.writeable = False
         self._origin = np.zeros(2)
@@ -145,6 +149,14 @@ class FastHighwayEnv(gym.Env):
         self._rec[0] = 0
         self._delta = self.F[:, K.DELTA].copy()
         self._delta.flags.writeable = False
+        self._linear_gains = [self._no_gains] * 3
+        if self._linear_model:
+            self._linear_gains = []
+            for column in (K.AP0, K.AP1, K.AP2):
+                gains = self.F[:, column].copy()
+                gains[0] = np.nan  # the ego is not a linear-model driver
+                gains.flags.writeable = False
+                self._linear_gains.append(gains)
         self._episode_fields = self._constant_fields()
         return self._obs.copy(), self._info()
 
@@ -245,6 +257,9 @@ class FastHighwayEnv(gym.Env):
             "idm_distance_wanted": self._distance_wanted,
             "idm_time_wanted": self._time_wanted,
             "max_braking_imposed": self._max_braking,
+            "linear_speed_gain": self._linear_gains[0],
+            "linear_speed_difference_gain": self._linear_gains[1],
+            "linear_distance_gain": self._linear_gains[2],
         }
 
     def snapshot(self) -> RoadSnapshot:

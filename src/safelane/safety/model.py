@@ -92,7 +92,7 @@ class Dynamics:
     projected_cut_ins: bool = False  # robust: a vehicle moving sideways may also cut in from the lane it moves to
     body_extent: bool = True  # robust: a vehicle also occupies every lane its rotated body overlaps
     body_width: float = 2.0  # [m] the other vehicles' width (highway-env's Vehicle.WIDTH), for body_extent
-    linear_mobil: bool = True  # robust: linear-model drivers' MOBIL criterion with their formula (else: any cut-in)
+    linear_mobil: bool = False  # robust: linear-model drivers' MOBIL criterion with their formula (else: any cut-in)
 
     @property
     def horizon_decisions(self) -> int:

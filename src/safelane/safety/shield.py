@@ -56,7 +56,7 @@ def dynamics_of(
     margin: float = DEFAULT_MARGIN,
     projected_cut_ins: bool = False,
     body_extent: bool = True,
-    linear_mobil: bool = True,
+    linear_mobil: bool = False,
 ) -> Dynamics:
     """The :class:`Dynamics` constants of the simulated world a snapshot was taken in; ``margin`` [m]: the
     bumper-to-bumper gap the rule keeps under its worst case; the two robust options as in :class:`Dynamics`."""
@@ -146,7 +146,7 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
         margin: float = DEFAULT_MARGIN,
         projected_cut_ins: bool = False,
         body_extent: bool = True,
-        linear_mobil: bool = True,
+        linear_mobil: bool = False,
     ) -> None:
         if not (math.isfinite(margin) and margin >= 0):
             raise ValueError(f"shield.margin: must be a finite number >= 0 [m] (got {margin!r})")

@@ -47,8 +47,9 @@ def test_random_policy_is_seeded_and_uses_every_action() -> None:
 
 
 def test_unknown_policy_lists_the_policies() -> None:
-    assert FIXED_POLICIES == ("random", "idle", "faster", "slower")
-    with pytest.raises(ConfigError, match=r"^policy: unknown policy 'fastest'; allowed: random, idle, faster, slower$"):
+    assert FIXED_POLICIES == ("random", "idle", "faster", "slower", "probe")
+    allowed = "random, idle, faster, slower, probe"
+    with pytest.raises(ConfigError, match=rf"^policy: unknown policy 'fastest'; allowed: {allowed}$"):
         fixed_policy("fastest")
 
 
@@ -294,3 +295,16 @@ def test_run_config_rejects_a_batch_of_no_environments() -> None:
 
     with pytest.raises(ConfigError, match="num_envs: must be >= 1"):
         run_config(load_config("fast", overrides={"simulator": "fast"}), fixed_policy("idle"), 2, 0, num_envs=0)
+
+
+def test_probe_policy_drives_inside_the_mask() -> None:
+    """``probe`` (the overtaking heuristic) only chooses actions the shield allows: never overridden."""
+    from safelane.config import load_config
+    from safelane.env.factory import make_env
+    from safelane.running.evaluation import run_episode
+
+    shielded = {"simulator": "fast", "shield.mode": "robust", "shield.override": True}
+    env = make_env(load_config("fast", overrides=shielded))
+    record = run_episode(env, fixed_policy("probe"), 5000)
+    env.close()
+    assert record.length > 0 and record.interventions == 0 and record.mean_speed > 15

@@ -376,7 +376,7 @@ def evaluate(
     ),
     policy: Annotated[
         str | None,
-        typer.Option("--policy", help="Fixed policy: random, idle, faster, slower.", metavar="POLICY"),
+        typer.Option("--policy", help="Fixed policy: random, idle, faster, slower, probe.", metavar="POLICY"),
     ] = None,
     episodes: EpisodesOpt = 20,
     seed: SeedOpt = 0,
@@ -901,7 +901,7 @@ def replay(
 @cli_errors
 def stress(
     run_dir: Path | None = typer.Argument(None, help="A trained run, instead of --policy.", metavar="RUN_DIR"),
-    policy: Annotated[str | None, typer.Option("--policy", help="Fixed policy: random, idle, faster, slower.")] = None,
+    policy: Annotated[str | None, typer.Option("--policy", help="Fixed policy: random, idle, faster, slower, probe.")] = None,
     shield: ShieldOpt = None,
     simulator: SimulatorOpt = None,
     episodes: EpisodesOpt = 20,
@@ -988,7 +988,7 @@ def stress(
 @cli_errors
 def render(
     run_dir: Path | None = typer.Argument(None, help="A trained run, instead of --policy.", metavar="RUN_DIR"),
-    policy: Annotated[str | None, typer.Option("--policy", help="Fixed policy: random, idle, faster, slower.")] = None,
+    policy: Annotated[str | None, typer.Option("--policy", help="Fixed policy: random, idle, faster, slower, probe.")] = None,
     out: Annotated[Path, typer.Option("--out", "-o", help="Output file (.gif, or .mp4 with imageio-ffmpeg).")] = Path(
         "episode.gif"
     ),

@@ -32,8 +32,10 @@ from safelane.core.spaces import ACTION_NAMES, FASTER, IDLE, N_ACTIONS, SLOWER
 Policy = Callable[[np.ndarray, dict[str, Any]], int]
 """``policy(obs, info) -> action index`` (0..4: LANE_LEFT, IDLE, LANE_RIGHT, FASTER, SLOWER)."""
 
-FIXED_POLICIES: tuple[str, ...] = ("random", "idle", "faster", "slower")
-"""Policies that need no training (``safelane evaluate --policy NAME``)."""
+FIXED_POLICIES: tuple[str, ...] = ("random", "idle", "faster", "slower", "probe")
+"""Policies that need no training (``safelane evaluate --policy NAME``); ``probe`` is the FASTER-first
+overtaking heuristic that reads the road and the shield's mask
+(:func:`safelane.running.foresight.overtaking_probe`)."""
 
 COLLISION_KINDS: tuple[str, ...] = ("ego_hit_front", "rear_ended", "side")
 """Every value :func:`classify_collision` returns for a crashed ego."""
@@ -44,8 +46,9 @@ COLLISION_KINDS: tuple[str, ...] = ("ego_hit_front", "rear_ended", "side")
 
 def fixed_policy(name: str, seed: int = 0) -> Policy:
     """A policy that needs no training: ``random`` (uniform over the 5 actions, its own RNG seeded
-    with ``seed``), ``idle``, ``faster`` or ``slower`` (always that action). Masks are ignored: run it
-    with ``shield.override=true`` to have the shield replace unsafe actions."""
+    with ``seed``), ``idle``, ``faster`` or ``slower`` (always that action) — these ignore masks: run
+    them with ``shield.override=true`` to have the shield replace unsafe actions — or ``probe`` (the
+    overtaking heuristic, which chooses among the mask's actions)."""
     if name == "random":
         rng = np.random.default_rng(seed)
 
@@ -53,6 +56,10 @@ def fixed_policy(name: str, seed: int = 0) -> Policy:
             return int(rng.integers(N_ACTIONS))
 
         return random_policy
+    if name == "probe":
+        from safelane.running.foresight import overtaking_probe
+
+        return overtaking_probe
     constant = {"idle": IDLE, "faster": FASTER, "slower": SLOWER}
     if name not in constant:
         raise ConfigError(f"policy: unknown policy '{name}'; allowed: {', '.join(FIXED_POLICIES)}")

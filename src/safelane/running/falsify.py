@@ -2,7 +2,8 @@
 
 A campaign spec (:class:`CampaignSpec`; the shipped one is ``configs/falsify/grid.yaml``) names *axes*
 — each a list of settings, a setting being one or more ``--set`` keys that belong together (a decision
-rate with a physics rate it divides) — the policies (``random``, ``faster``, ``idle``, ``slower``), the
+rate with a physics rate it divides) — the policies (``random``, ``faster``, ``idle``, ``slower``, the
+overtaking ``probe``), the
 shield, the episodes per cell and the simulator. A *cell* is one combination of the axes and one policy;
 ``sample`` draws that many cells (seeded) instead of the whole product.
 
@@ -60,7 +61,9 @@ class CampaignSpec(BaseModel):
     shield: Literal["nominal", "robust"] = "robust"
     sets: list[str] = Field(default_factory=list, description="--set overrides of every cell.")
     axes: dict[str, list[dict[str, Any]]] = Field(description="AXIS → settings; a setting maps keys to values.")
-    policies: list[Literal["random", "faster", "idle", "slower"]] = Field(default_factory=lambda: ["random", "faster"])
+    policies: list[Literal["random", "faster", "idle", "slower", "probe"]] = Field(
+        default_factory=lambda: ["random", "faster"]
+    )
     episodes: int = Field(20, ge=1, description="Episodes per cell.")
     sample: int | None = Field(None, ge=1, description="Play this many cells drawn at random (default: all).")
     sample_seed: int = Field(0, ge=0)

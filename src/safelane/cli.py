@@ -901,7 +901,9 @@ def replay(
 @cli_errors
 def stress(
     run_dir: Path | None = typer.Argument(None, help="A trained run, instead of --policy.", metavar="RUN_DIR"),
-    policy: Annotated[str | None, typer.Option("--policy", help="Fixed policy: random, idle, faster, slower, probe.")] = None,
+    policy: Annotated[
+        str | None, typer.Option("--policy", help="Fixed policy: random, idle, faster, slower, probe.")
+    ] = None,
     shield: ShieldOpt = None,
     simulator: SimulatorOpt = None,
     episodes: EpisodesOpt = 20,
@@ -988,7 +990,9 @@ def stress(
 @cli_errors
 def render(
     run_dir: Path | None = typer.Argument(None, help="A trained run, instead of --policy.", metavar="RUN_DIR"),
-    policy: Annotated[str | None, typer.Option("--policy", help="Fixed policy: random, idle, faster, slower, probe.")] = None,
+    policy: Annotated[
+        str | None, typer.Option("--policy", help="Fixed policy: random, idle, faster, slower, probe.")
+    ] = None,
     out: Annotated[Path, typer.Option("--out", "-o", help="Output file (.gif, or .mp4 with imageio-ffmpeg).")] = Path(
         "episode.gif"
     ),

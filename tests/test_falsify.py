@@ -147,3 +147,17 @@ def test_collision_context_is_none_without_a_shield() -> None:
     record = run_episode(env, fixed_policy("faster"), 0)
     env.close()
     assert record.collision and record.collision_context is None
+
+
+def test_break_culprits_name_the_vehicle_the_model_missed() -> None:
+    """Leave-one-out on a recorded break: the Linear car drawing level in the next lane is the culprit
+    (removing it alone makes SLOWER safe), not the leader 42 m ahead; a crash file is refused."""
+    from safelane.running.counterexamples import break_culprits
+
+    cx = load_counterexample(CRASHES / "cell00011-seed4000110013-invariant_break-step40.json")
+    result = break_culprits(cx)
+    assert result["fallback_confirmed"] and result["role"] == "adjacent_behind"
+    first = result["culprits"][0]
+    assert first["lane_vs_ego"] == [1, 1] and first["dx"][1] < 0 and 4 in first["unlocks"]
+    with pytest.raises(ConfigError, match="invariant breaks only"):
+        break_culprits(load_counterexample(CRASHES / "cell00018-seed4000180007-collision-step3.json"))

@@ -314,7 +314,7 @@ def break_culprits(cx: Counterexample, simulator: str | None = None) -> dict[str
         if abs(dx_after) > NEAR:
             continue
         position = after.position.copy()
-        position[j, 0] = np.inf  # outside the model's range: as if the vehicle were not there
+        position[j, 0] += 1e6  # far beyond the model's range (250 m): as if the vehicle were not there
         result = evaluate(*state_and_dynamics(dataclasses.replace(after, position=position)), mode)
         if result.fallback:
             continue

@@ -114,7 +114,7 @@ def test_linear_mobil_lets_a_car_alongside_stay_where_it_is(engine: str) -> None
     """shield.linear_mobil: the Linear driver level with the ego would impose on the ego, as its new
     follower 0.1 m behind, 0.3·0.65 + 2·min(−0.1 − (10 + 2.5·19.35), 0) ≈ −117 m/s² by its own formula, far
     below −2: no cut-in, and SLOWER is safe (worst gap 20.3 m). The default rule assumes any Linear-model
-    cut-in: the car appears in the ego's lane at its nose, nothing is safe (a fallback) — 1 052 of the
+    cut-in: the car appears in the ego's lane at its nose, nothing is safe (a fallback) — 1 051 of the
     campaign's ``adjacent_behind`` breaks."""
     with_criterion = scenarios.SCENARIOS["linear_car_alongside"](
         mode="robust", **{"shield.engine": engine, "shield.linear_mobil": True}

@@ -261,6 +261,8 @@ CULPRIT_ROLES: tuple[str, ...] = (
     "adjacent_behind",
     "leader",
     "follower",
+    "two_lanes_away",
+    "moved_away",
     "overtook",
     "ego_changed_lane",
     "joint",
@@ -269,9 +271,29 @@ CULPRIT_ROLES: tuple[str, ...] = (
 decision (lanes relative to the ego's; ahead / behind along the road): ``came_from_two_lanes`` — two
 or more lanes away before, next to or in the ego's lane after; ``adjacent_ahead`` / ``adjacent_behind``
 — in a lane next to the ego's both times; ``leader`` / ``follower`` — in the ego's lane both times;
-``overtook`` — it changed from behind to ahead of the ego or back; ``ego_changed_lane`` — the ego's lane
-changed and the vehicle's relation with it; ``joint`` — no single vehicle: only removing several helps
-(the robust rule's one fallback for all conflicts)."""
+``two_lanes_away`` — two or more lanes away both times; ``moved_away`` — farther in lanes after than
+before; ``overtook`` — it changed from behind to ahead of the ego or back; ``ego_changed_lane`` — the
+ego's lane changed; ``joint`` — no single vehicle: only removing several helps (the robust rule's one
+fallback for all conflicts)."""
+
+
+def culprit_role(dx: tuple[float, float], lanes: tuple[int, int], ego_changed_lane: bool) -> str:
+    """The :data:`CULPRIT_ROLES` entry of a culprit from its offset along the road [m] and its lane
+    relative to the ego's, before and after the decision."""
+    (dx_before, dx_after), (lane_before, lane_after) = dx, lanes
+    if (dx_before >= 0) != (dx_after >= 0):
+        return "overtook"
+    if ego_changed_lane:
+        return "ego_changed_lane"
+    if abs(lane_before) >= 2 and abs(lane_after) <= 1:
+        return "came_from_two_lanes"
+    if lane_after == 0 and lane_before == 0:
+        return "leader" if dx_after >= 0 else "follower"
+    if abs(lane_after) == 1 and abs(lane_before) == 1:
+        return "adjacent_ahead" if dx_after >= 0 else "adjacent_behind"
+    if abs(lane_before) >= 2 and abs(lane_after) >= 2:
+        return "two_lanes_away"
+    return "moved_away"
 
 
 def break_culprits(cx: Counterexample, simulator: str | None = None) -> dict[str, Any]:
@@ -320,18 +342,7 @@ def break_culprits(cx: Counterexample, simulator: str | None = None) -> dict[str
             continue
         dx_before = float(before.position[j, 0] - before.position[before.ego, 0])
         lane_before, lane_after = int(before.lane[j]) - ego_lane_before, int(after.lane[j]) - ego_lane_after
-        if (dx_before >= 0) != (dx_after >= 0):
-            role = "overtook"
-        elif ego_lane_before != ego_lane_after:
-            role = "ego_changed_lane"
-        elif abs(lane_before) >= 2 and abs(lane_after) <= 1:
-            role = "came_from_two_lanes"
-        elif lane_after == 0 and lane_before == 0:
-            role = "leader" if dx_after >= 0 else "follower"
-        elif abs(lane_after) == 1 and abs(lane_before) == 1:
-            role = "adjacent_ahead" if dx_after >= 0 else "adjacent_behind"
-        else:
-            role = "came_from_two_lanes" if abs(lane_before) > abs(lane_after) else "ego_changed_lane"
+        role = culprit_role((dx_before, dx_after), (lane_before, lane_after), ego_lane_before != ego_lane_after)
         culprits.append(
             {
                 "vehicle": j,

@@ -100,8 +100,9 @@ class ForesightPlanner:
         root_snap = sim.snapshot()
         # A node: (state, snapshot, actions so far). Children that crash are dropped; the deepest
         # crash is kept as a last resort so the planner always returns an action.
-        # Under a mask, a sequence that enters a fallback state (no safe action) ranks below every one
-        # that stays in the safe set: the planner knows the future, so it can keep the rule's promise.
+        # Under a mask, a sequence that has passed through a fallback state (no safe action) ranks below
+        # every one that stayed in the safe set: the planner knows the future, so it can keep the rule's
+        # promise. A state is judged when it is extended, so the last depth's states are not judged.
         frontier: list[tuple[SimState, RoadSnapshot, list[int], int]] = [(root, root_snap, [], 0)]
         best_crashed: tuple[int, float, list[int]] | None = None
         for _ in range(self.depth):

@@ -203,3 +203,25 @@ def test_recorded_configs_keep_the_rule_they_ran_with() -> None:
     assert build_config(old).shield.body_extent is True
     assert recorded_config(data).shield.body_extent is True
     assert data["shield"]["linear_mobil"] is False  # measured, not adopted (docs/safety.md §6b)
+
+
+def test_a_check_record_of_an_earlier_rule_is_not_resumed(tmp_path) -> None:
+    """A sim-check record written before shield.body_extent existed was made under the earlier rule:
+    resuming it under today's would mix two rules in one sample, so it is refused in one line."""
+    import json
+
+    import pytest
+
+    from safelane.config import ConfigError, config_to_dict, load_config
+    from safelane.running.simcheck import CheckRecord
+
+    header = {"config": config_to_dict(load_config("fast")), "seed": 0, "tolerance": 1e-6}
+    record = tmp_path / "check.jsonl"
+    CheckRecord(record, header)  # written now: resumes
+    assert CheckRecord(record, header).done == {}
+    old = {**header, "config": {**header["config"], "shield": dict(header["config"]["shield"])}}
+    del old["config"]["shield"]["body_extent"]
+    earlier = tmp_path / "earlier.jsonl"
+    earlier.write_text(json.dumps({"header": old}) + "\n")
+    with pytest.raises(ConfigError, match="another configuration"):
+        CheckRecord(earlier, header)

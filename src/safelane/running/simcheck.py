@@ -36,7 +36,7 @@ from typing import Any
 
 import numpy as np
 
-from safelane.config import SafelaneConfig, build_config, config_to_dict
+from safelane.config import SafelaneConfig, build_config, config_to_dict, recorded_config
 from safelane.core.errors import ConfigError
 from safelane.core.snapshot import RoadSnapshot
 from safelane.env.factory import make_env
@@ -274,11 +274,13 @@ def _run_unit(cfg_data: dict[str, Any], seed: int, tol: float, unit: tuple[Any, 
 
 def _normalised(header: Any) -> Any:
     """A record header with its configuration re-validated, so that a record written before a config
-    key was added (with its default) still matches the same configuration now."""
+    key was added still matches the same configuration now — with the value the key had then
+    (:func:`safelane.config.recorded_config`): a record made under an earlier shield rule is refused
+    rather than resumed under today's."""
     if not isinstance(header, dict) or not isinstance(header.get("config"), dict):
         return header
     try:
-        return {**header, "config": config_to_dict(build_config(header["config"]))}
+        return {**header, "config": config_to_dict(recorded_config(header["config"]))}
     except ConfigError:
         return header
 

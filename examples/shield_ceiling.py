@@ -19,34 +19,8 @@ import json
 
 import numpy as np
 
-from safelane.core.snapshot import RoadSnapshot
-from safelane.core.spaces import FASTER, IDLE, LANE_LEFT, LANE_RIGHT
 from safelane.env.factory import make_env
-
-FREE_ROAD = 1e9  # [m] distance reported for a lane with no car ahead
-
-
-def room_ahead(snap: RoadSnapshot, lane: int) -> float:
-    """Distance [m] along the road from the ego to the next car ahead in ``lane``."""
-    others = snap.others()
-    dx = snap.position[others, 0] - snap.position[snap.ego, 0]
-    ahead = dx[(snap.lane[others] == lane) & (dx > 0)]
-    return float(ahead.min()) if ahead.size else FREE_ROAD
-
-
-def choose(snap: RoadSnapshot, mask: np.ndarray) -> int:
-    """The heuristic's action for the current road and shield mask."""
-    if mask[FASTER]:
-        return FASTER
-    lane = int(snap.lane[snap.ego])
-    own = room_ahead(snap, lane)
-    options = [(room_ahead(snap, lane + (-1 if a == LANE_LEFT else 1)), a) for a in (LANE_LEFT, LANE_RIGHT) if mask[a]]
-    better = [o for o in options if o[0] > own + 10.0]
-    if better:
-        return max(better)[1]
-    if mask[IDLE]:
-        return IDLE
-    return int(np.flatnonzero(mask)[-1])
+from safelane.running.foresight import overtaking_probe  # the heuristic described above (also --policy probe)
 
 
 def main() -> None:
@@ -62,10 +36,10 @@ def main() -> None:
     )
     collisions, speeds, fallbacks = 0, [], 0
     for k in range(args.episodes):
-        _, info = env.reset(seed=args.seed + k)
+        obs, info = env.reset(seed=args.seed + k)
         done = False
         while not done:
-            _, _, terminated, truncated, info = env.step(choose(info["snapshot"], info["action_mask"]))
+            obs, _, terminated, truncated, info = env.step(overtaking_probe(obs, info))
             speeds.append(info["speed"])
             fallbacks += bool(info["fallback"])
             done = terminated or truncated

@@ -161,9 +161,9 @@ def test_a_dead_worker_loses_only_its_tasks_which_are_retried(tmp_path: Path) ->
     assert failures == [TaskFailure("config", "agent.lr: bad value 3")]
 
 
-def test_a_killed_sweep_resumes_without_repeating_or_losing_rows(tmp_path: Path) -> None:
-    spec_path = write_spec(tmp_path / "s.yaml")
-    out = tmp_path / "out"
+def kill_after_first_trial_and_rerun(spec_path: Path, out: Path) -> subprocess.CompletedProcess:
+    """Run ``safelane sweep`` as a process, SIGKILL it once a first trial has finished, run it again to
+    the end; assert the finished trials' results were not rewritten. Returns the second run."""
     args = [sys.executable, "-m", "safelane.cli", "sweep", str(spec_path), "--out", str(out), "--workers", "1"]
     env = {**os.environ, "SDL_VIDEODRIVER": "dummy"}
     proc = subprocess.Popen(args, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
@@ -178,6 +178,13 @@ def test_a_killed_sweep_resumes_without_repeating_or_losing_rows(tmp_path: Path)
     done = subprocess.run(args, env=env, capture_output=True, text=True, timeout=600, check=False)
     assert done.returncode == 0, done.stderr
     assert all(p.read_text() == text for p, text in kept.items())
+    return done
+
+
+def test_a_killed_sweep_resumes_without_repeating_or_losing_rows(tmp_path: Path) -> None:
+    spec_path = write_spec(tmp_path / "s.yaml")
+    out = tmp_path / "out"
+    done = kill_after_first_trial_and_rerun(spec_path, out)
     rows = rows_of(out)
     assert sorted((r["trial"], r["seed"]) for r in rows) == [(str(i), "0") for i in range(4)]
     assert "best: t" in done.stdout
@@ -356,18 +363,5 @@ def test_a_killed_tpe_sweep_resumes_without_repeating_or_losing_rows(
     spec_path = tmp_path / "tpe.yaml"
     shutil.copy(full.parent / "tpe.yaml", spec_path)
     out = tmp_path / "out"
-    args = [sys.executable, "-m", "safelane.cli", "sweep", str(spec_path), "--out", str(out), "--workers", "1"]
-    env = {**os.environ, "SDL_VIDEODRIVER": "dummy"}
-    proc = subprocess.Popen(args, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    deadline = time.time() + 240
-    while not list(out.glob("trials/*/runs/*/eval.json")) and proc.poll() is None and time.time() < deadline:
-        time.sleep(0.2)
-    proc.send_signal(signal.SIGKILL)
-    proc.wait()
-    first = sorted(out.glob("trials/*/runs/*/eval.json"))
-    assert first, "the sweep was killed before its first trial finished"
-    kept = {p: p.read_text() for p in first}
-    done = subprocess.run(args, env=env, capture_output=True, text=True, timeout=600, check=False)
-    assert done.returncode == 0, done.stderr
-    assert all(p.read_text() == text for p, text in kept.items())
+    kill_after_first_trial_and_rerun(spec_path, out)
     assert rows_of(out) == rows_of(full)

@@ -344,7 +344,7 @@ def run_sweep(
 
     ``progress(done, total)`` is called as tasks finish. Returns the summary (also ``summary.json``).
     """
-    from safelane.running.engine import TaskFailure, check_backend, claim_out_dir, run_tasks
+    from safelane.running.engine import check_backend, claim_out_dir
 
     check_backend(backend)
     out = Path(out_dir)
@@ -368,28 +368,52 @@ def run_sweep(
     done = [total - len(tasks)]
     if progress is not None:
         progress(done[0], total)
+    run_trial_tasks(
+        out, spec, [(index, seed, None) for index, seed in tasks], done, total, progress,
+        backend=backend, workers=workers, address=address, name=f"sweep-{spec.name}",
+    )  # fmt: skip
+    return write_results(out, spec)
+
+
+def run_trial_tasks(
+    out: Path,
+    spec: SweepSpec,
+    tasks: list[tuple[int, int, str | None]],
+    done: list[int],
+    total: int,
+    progress: Callable[[int, int], None] | None,
+    *,
+    backend: str,
+    workers: int | None,
+    address: str | None,
+    name: str,
+) -> None:
+    """Run ``(trial, seed, params JSON or None for the spec's point)`` tasks on the engine; after each,
+    record its failure (if any), count it in ``done`` (one-element list, shared with the caller), rebuild
+    the summary files (a kill loses only the tasks in flight) and report ``progress(done, total)``."""
+    from safelane.running.engine import TaskFailure, run_tasks
+
     spec_json = spec.model_dump_json()
 
     def finished(i: int, result: dict[str, Any] | TaskFailure) -> None:
-        index, seed = tasks[i]
+        index, seed, _ = tasks[i]
         if isinstance(result, TaskFailure):
             _write_failure(trial_dir(out, index), seed, result.kind, result.message)
         done[0] += 1
-        write_results(out, spec)  # after every task: a kill loses only the tasks in flight
+        write_results(out, spec)
         if progress is not None:
             progress(done[0], total)
 
     run_tasks(
         _sweep_task,
-        [(str(out), spec_json, index, seed) for index, seed in tasks],
+        [(str(out), spec_json, index, seed, params) for index, seed, params in tasks],
         backend=backend,
         workers=workers,
         address=address,
         on_result=finished,
-        name=f"sweep-{spec.name}",
+        name=name,
         storage=out / "ray",
     )
-    return write_results(out, spec)
 
 
 def _stored_spec(out: Path) -> dict[str, Any] | None:

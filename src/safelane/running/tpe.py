@@ -36,12 +36,10 @@ from safelane.running.sweep import (
     SweepSpec,
     _eval_path,
     _failure_path,
-    _sweep_task,
-    _write_failure,
     pooled_metrics,
+    run_trial_tasks,
     trial_dir,
     trial_rows,
-    write_results,
 )
 
 INSTALL_HINT = "search tpe: Optuna is not installed; pip install 'safelane[tune]'"
@@ -178,13 +176,12 @@ def run_tpe(
 ) -> None:
     """Run (or resume) the TPE sweep ``spec`` (its ``batch`` fixed, see :meth:`SweepSpec.with_batch`)
     into ``out``, batch by batch; the summary files are rebuilt after every task."""
-    from safelane.running.engine import TaskFailure, backend_session, run_tasks
+    from safelane.running.engine import backend_session
 
     assert spec.batch is not None, "fix the batch first (SweepSpec.with_batch)"
     search = TpeSearch(spec)
     total = spec.samples * spec.seeds
     done = [0]
-    spec_json = spec.model_dump_json()
     with backend_session(backend, workers, address):
         for start in range(0, spec.samples, spec.batch):
             proposals = [search.ask() for _ in range(min(spec.batch, spec.samples - start))]
@@ -205,25 +202,10 @@ def run_tpe(
             if progress is not None:
                 progress(done[0], total)
 
-            def finished(i: int, result: dict[str, Any] | TaskFailure, tasks: list = tasks) -> None:
-                index, seed, _ = tasks[i]
-                if isinstance(result, TaskFailure):
-                    _write_failure(trial_dir(out, index), seed, result.kind, result.message)
-                done[0] += 1
-                write_results(out, spec)  # after every task: a kill loses only the tasks in flight
-                if progress is not None:
-                    progress(done[0], total)
-
-            run_tasks(
-                _sweep_task,
-                [(str(out), spec_json, index, seed, params_json) for index, seed, params_json in tasks],
-                backend=backend,
-                workers=workers,
-                address=address,
-                on_result=finished,
-                name=f"sweep-{spec.name}-b{start // spec.batch:03d}",
-                storage=out / "ray",
-            )
+            run_trial_tasks(
+                out, spec, tasks, done, total, progress, backend=backend, workers=workers,
+                address=address, name=f"sweep-{spec.name}-b{start // spec.batch:03d}",
+            )  # fmt: skip
             # In trial order, whatever order the tasks finished in: the study is then the same everywhere.
             for index, params in proposals:
                 search.tell(index, trial_outcome(out, spec, index, params))

@@ -14,10 +14,16 @@ last observation and mask are kept in ``infos["final_obs"]`` and ``infos["final_
 
 Seeding: ``reset(seed=S)`` resets environment ``i`` with ``S + i``; later autoresets continue each
 environment's own generator, so the same seed gives the same batch of episodes.
+
+On the fast simulator :func:`make_vector_env` returns a :class:`FastVectorEnv` (the same contract on
+:class:`safelane.env.fast_batch.FastBatch`: every environment stepped, shielded and observed in two
+numba calls); elsewhere, and for the few settings the batch does not run
+(:func:`safelane.env.fast_batch.supports`), a :class:`SafelaneVectorEnv` over ``make_env`` copies.
 """
 
 from __future__ import annotations
 
+import functools
 from typing import Any
 
 import gymnasium as gym
@@ -28,6 +34,8 @@ from gymnasium.vector.utils import batch_space
 from safelane.config import ConfigError, SafelaneConfig
 from safelane.core.spaces import N_ACTIONS
 from safelane.env.factory import make_env, resolve_env_config
+from safelane.env.fast_batch import FastBatch, supports
+from safelane.env.observations import OBS_SIZE
 
 BOOL_INFO = ("collision", "fallback", "shield_intervened", "unsafe_action", "invariant_break")
 """Per-environment flags of a step, batched as bool arrays (False where the env does not report one)."""
@@ -61,12 +69,7 @@ class SafelaneVectorEnv(VectorEnv):
         self, *, seed: int | list[int | None] | None = None, options: dict[str, Any] | None = None
     ) -> tuple[np.ndarray, dict[str, Any]]:
         """Reset every environment (``seed``: environment ``i`` gets ``seed + i``, or a list of seeds)."""
-        if seed is None or isinstance(seed, int):
-            seeds = [None if seed is None else seed + i for i in range(self.num_envs)]
-        else:
-            seeds = list(seed)
-            if len(seeds) != self.num_envs:
-                raise ConfigError(f"seed: a list of {self.num_envs} seeds (one per environment), got {len(seeds)}")
+        seeds = _seeds_of(seed, self.num_envs)
         speeds = np.zeros(self.num_envs)
         for i, (env, s) in enumerate(zip(self.envs, seeds, strict=True)):
             obs, info = env.reset(seed=s, options=options)
@@ -135,14 +138,96 @@ class SafelaneVectorEnv(VectorEnv):
             env.close()
 
 
+class FastVectorEnv(VectorEnv):
+    """:class:`SafelaneVectorEnv`'s contract on a :class:`safelane.env.fast_batch.FastBatch`: the same rows,
+    flags, autoresets and seeds, every environment stepped in two numba calls instead of a Python loop
+    over wrapper stacks. ``envs``: the batch's :class:`safelane.sim.fast.env.FastHighwayEnv` objects."""
+
+    def __init__(self, batch: FastBatch) -> None:
+        self.batch = batch
+        self.envs = batch.envs
+        self.num_envs = batch.num_envs
+        self.single_observation_space = gym.spaces.Box(-1.0, 1.0, shape=(OBS_SIZE,), dtype=np.float32)
+        self.single_action_space = gym.spaces.Discrete(N_ACTIONS)
+        self.observation_space = batch_space(self.single_observation_space, self.num_envs)
+        self.action_space = batch_space(self.single_action_space, self.num_envs)
+        self.metadata = {"autoreset_mode": AutoresetMode.SAME_STEP}
+        self.render_mode = None
+        self._rows = np.arange(self.num_envs, dtype=np.int64)
+        self._returns = np.zeros(self.num_envs)
+        self._lengths = np.zeros(self.num_envs, dtype=np.int64)
+
+    def reset(
+        self, *, seed: int | list[int | None] | None = None, options: dict[str, Any] | None = None
+    ) -> tuple[np.ndarray, dict[str, Any]]:
+        """Reset every environment (``seed``: environment ``i`` gets ``seed + i``, or a list of seeds)."""
+        if options:
+            raise ValueError("reset(options=...) is not supported by the fast simulator")
+        for i, s in enumerate(_seeds_of(seed, self.num_envs)):
+            self.batch.reset_env(i, s)
+        self._returns[:] = 0.0
+        self._lengths[:] = 0
+        return self.batch.obs.copy(), {"action_mask": self.batch.masks.copy(), "speed": self.batch.speeds()}
+
+    def step(self, actions: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, dict[str, Any]]:
+        """Step every environment with its action (shape ``(N,)``); finished ones are reset at once."""
+        batch = self.batch
+        out = batch.step(np.asarray(actions).reshape(self.num_envs), self._rows)
+        self._returns += out.rewards
+        self._lengths += 1
+        done = out.terminated | out.truncated
+        infos: dict[str, Any] = {
+            "collision": out.collision,
+            "fallback": out.fallback,
+            "shield_intervened": out.shield_intervened,
+            "unsafe_action": out.unsafe_action,
+            "invariant_break": out.invariant_break,
+            "speed": out.speed,
+            "executed_action": out.executed,
+        }
+        if done.any():
+            infos.update(
+                final_obs=np.where(done[:, None], batch.obs, 0.0).astype(batch.obs.dtype),
+                _final_obs=done.copy(),
+                final_action_mask=np.where(done[:, None], batch.masks, False),
+                episode={"r": np.where(done, self._returns, 0.0), "l": np.where(done, self._lengths, 0)},
+                _episode=done.copy(),
+            )
+            for i in np.flatnonzero(done).tolist():
+                batch.reset_env(i)
+            self._returns[done] = 0.0
+            self._lengths[done] = 0
+        infos["action_mask"] = batch.masks.copy()
+        return batch.obs.copy(), out.rewards, out.terminated, out.truncated, infos
+
+    def action_masks(self) -> np.ndarray:
+        """Masks of the current observations (bool, shape ``(N, 5)``; all True without a shield)."""
+        return self.batch.masks.copy()
+
+    def close_extras(self, **kwargs: Any) -> None:
+        """Close every environment."""
+        self.batch.close()
+
+
+def _seeds_of(seed: int | list[int | None] | None, num_envs: int) -> list[int | None]:
+    """Per-environment seeds: ``seed + i``, None for all, or a list of ``num_envs`` seeds."""
+    if seed is None or isinstance(seed, int):
+        return [None if seed is None else seed + i for i in range(num_envs)]
+    seeds = list(seed)
+    if len(seeds) != num_envs:
+        raise ConfigError(f"seed: a list of {num_envs} seeds (one per environment), got {len(seeds)}")
+    return seeds
+
+
 def make_vector_env(
     config: SafelaneConfig | str | None = "fast",
     num_envs: int = 8,
     seed: int | None = None,
     simulator: str | None = None,
     **overrides: Any,
-) -> SafelaneVectorEnv:
-    """``num_envs`` copies of :func:`safelane.make_env`'s environment as one :class:`SafelaneVectorEnv`.
+) -> SafelaneVectorEnv | FastVectorEnv:
+    """``num_envs`` copies of :func:`safelane.make_env`'s environment as one vector environment: a
+    :class:`FastVectorEnv` on the fast simulator, else a :class:`SafelaneVectorEnv` (the same rows).
 
     ``config`` and ``overrides`` as for ``make_env``; ``simulator`` defaults to ``fast`` for a preset
     name (the point of a batch is speed) and to the config's own for a :class:`SafelaneConfig`. With
@@ -155,14 +240,18 @@ def make_vector_env(
     if simulator is not None:
         overrides = {**overrides, "simulator": simulator}
     cfg = resolve_env_config(config, **overrides)
-    vector = SafelaneVectorEnv([make_env(cfg) for _ in range(num_envs)])
+    vector: SafelaneVectorEnv | FastVectorEnv
+    if supports(cfg) is None:
+        vector = FastVectorEnv(FastBatch(cfg, num_envs))
+    else:
+        vector = SafelaneVectorEnv([make_env(cfg) for _ in range(num_envs)])
     if seed is not None:
         vector.reset(seed=seed)
         vector.action_space.seed(seed)
     return vector
 
 
-def sb3_vec_env(vector: SafelaneVectorEnv) -> Any:
+def sb3_vec_env(vector: SafelaneVectorEnv | FastVectorEnv) -> Any:
     """A Stable-Baselines3 ``VecEnv`` over ``vector`` (needs the optional ``stable-baselines3``):
     ``env_method("action_masks")`` gives each environment's mask, as sb3-contrib's ``MaskablePPO``
     asks for it; a finished episode's last observation is in ``infos[i]["terminal_observation"]``."""
@@ -174,7 +263,7 @@ def sb3_vec_env(vector: SafelaneVectorEnv) -> Any:
     class SafelaneSB3VecEnv(VecEnv):
         """SB3's view of a :class:`SafelaneVectorEnv` (SB3's auto-reset convention is gymnasium's SAME_STEP)."""
 
-        def __init__(self, vector: SafelaneVectorEnv) -> None:
+        def __init__(self, vector: SafelaneVectorEnv | FastVectorEnv) -> None:
             self.vector = vector  # before VecEnv.__init__, which asks the environments for render_mode
             super().__init__(vector.num_envs, vector.single_observation_space, vector.single_action_space)
             self._actions = np.zeros(vector.num_envs, dtype=np.int64)
@@ -205,7 +294,12 @@ def sb3_vec_env(vector: SafelaneVectorEnv) -> Any:
             self.vector.close()
 
         def get_attr(self, attr_name: str, indices: Any = None) -> list[Any]:
+            if attr_name == "action_masks":  # each environment's mask, read from the batch's masks
+                return [functools.partial(self._mask_of, i) for i in self._get_indices(indices)]
             return [self.vector.envs[i].get_wrapper_attr(attr_name) for i in self._get_indices(indices)]
+
+        def _mask_of(self, i: int) -> np.ndarray:
+            return self.vector.action_masks()[i]
 
         def set_attr(self, attr_name: str, value: Any, indices: Any = None) -> None:
             for i in self._get_indices(indices):

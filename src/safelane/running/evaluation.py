@@ -20,7 +20,7 @@ import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any, Protocol, runtime_checkable
+from typing import TYPE_CHECKING, Any, Protocol, runtime_checkable
 
 import gymnasium as gym
 import numpy as np
@@ -28,6 +28,9 @@ import numpy as np
 from safelane.config import ConfigError, SafelaneConfig
 from safelane.core.snapshot import RoadSnapshot
 from safelane.core.spaces import ACTION_NAMES, FASTER, IDLE, N_ACTIONS, SLOWER
+
+if TYPE_CHECKING:
+    from safelane.env.fast_batch import FastBatch
 
 Policy = Callable[[np.ndarray, dict[str, Any]], int]
 """``policy(obs, info) -> action index`` (0..4: LANE_LEFT, IDLE, LANE_RIGHT, FASTER, SLOWER)."""
@@ -369,6 +372,68 @@ def run_episodes_batched(
     return [r for r in records if r is not None]
 
 
+def run_episodes_fast_batch(
+    batch: FastBatch,
+    policy: BatchPolicy,
+    episodes: int,
+    seed: int,
+    progress: ProgressCallback | None = None,
+) -> list[EpisodeRecord]:
+    """:func:`run_episodes_batched` on a :class:`safelane.env.fast_batch.FastBatch`: the same records
+    (episode ``i`` reset with ``seed + i`` on the next free environment, one ``policy.batch`` call per
+    round), the environments stepped in one call. The policy sees each episode's full reset ``info``
+    (snapshot and state: a trained policy checks its interface there) and afterwards only the masks."""
+    if episodes < 1:
+        raise ValueError(f"episodes: must be >= 1 (got {episodes})")
+    records: list[EpisodeRecord | None] = [None] * episodes
+    shielded = batch.shielded
+    slots: dict[int, tuple[int, EpisodeTally]] = {}
+    infos: dict[int, dict[str, Any]] = {}
+    next_episode = 0
+
+    def start(i: int) -> None:
+        nonlocal next_episode
+        index, next_episode = next_episode, next_episode + 1
+        batch.reset_env(i, seed + index)
+        info = batch.reset_info(i)
+        slots[i] = (index, EpisodeTally(seed + index, info))
+        infos[i] = info
+
+    for i in range(min(batch.num_envs, episodes)):
+        start(i)
+    while slots:
+        rows = np.fromiter(slots, dtype=np.int64, count=len(slots))
+        actions = np.asarray(policy.batch(batch.obs[rows], [infos[i] for i in rows.tolist()]), dtype=np.int64)
+        out = batch.step(actions, rows)
+        done = out.terminated | out.truncated
+        for j, i in enumerate(rows.tolist()):
+            info: dict[str, Any] = {"speed": float(out.speed[j]), "collision": bool(out.collision[j])}
+            if shielded:
+                info.update(
+                    fallback=bool(out.fallback[j]),
+                    shield_intervened=bool(out.shield_intervened[j]),
+                    unsafe_action=bool(out.unsafe_action[j]),
+                    invariant_break=bool(out.invariant_break[j]),
+                    executed_action=int(out.executed[j]),
+                    action_mask=batch.masks[i].copy(),
+                )
+            if out.collision[j] or done[j]:
+                info["snapshot"] = batch.snapshot(i)
+            index, tally = slots[i]
+            tally.add(int(actions[j]), float(out.rewards[j]), info)
+            infos[i] = info
+            if not done[j]:
+                continue
+            record = tally.record(info)
+            records[index] = record
+            if progress is not None:
+                progress(index, record)
+            del slots[i], infos[i]
+            if next_episode < episodes:
+                start(i)
+    return [r for r in records if r is not None]
+
+
 def summarize(records: list[EpisodeRecord], **meta: Any) -> dict[str, Any]:
     """Aggregate records into one JSON-ready dict; ``meta`` (policy, shield, preset…) is merged in.
 
@@ -430,12 +495,19 @@ def run_config(
     The records are the same for every ``num_envs``.
     """
     from safelane.env.factory import make_env
+    from safelane.env.fast_batch import FastBatch, supports
 
     if num_envs is None:
         num_envs = DEFAULT_BATCH_ENVS if config.simulator == "fast" else 1
     if num_envs < 1:
         raise ConfigError(f"num_envs: must be >= 1 (got {num_envs})")
     batched = isinstance(policy, BatchPolicy) and num_envs > 1 and episodes > 1
+    if batched and supports(config) is None:  # the fast simulator: all environments in one call
+        batch = FastBatch(config, min(num_envs, episodes))
+        try:
+            return run_episodes_fast_batch(batch, policy, episodes, seed, progress)  # type: ignore[arg-type]
+        finally:
+            batch.close()
     envs = [make_env(config) for _ in range(min(num_envs, episodes) if batched else 1)]
     try:
         if batched:

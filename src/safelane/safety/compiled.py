@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import functools
 import math
+from typing import NamedTuple
 
 import numpy as np
 from numba import njit
@@ -554,6 +555,45 @@ def _dynamics_args(dyn: Dynamics, ego_leave_time: float) -> tuple:
         _ARGS.clear()
     _ARGS[key] = (dyn, args)
     return args
+
+
+snapshot_kernel = _evaluate_snapshot
+"""The njit kernel behind :func:`evaluate_snapshot` (its arguments: the snapshot's arrays, the ego's
+lane, target lane, set-point [m/s] and speed index, the lane frame, then :func:`kernel_constants`'s
+fields around ``ego_leave_time``): for a caller that evaluates many scenes inside one numba call."""
+
+
+class KernelConstants(NamedTuple):
+    """A :class:`Dynamics` as :data:`snapshot_kernel` takes it (everything but ``ego_leave_time``)."""
+
+    ts: np.ndarray
+    t: np.ndarray
+    powers: np.ndarray
+    tie_break: np.ndarray
+    decision_period: float
+    frame_dt: float
+    frames: int
+    horizon: int
+    ego_kp: float
+    lane_width: float
+    lanes_count: int
+    follower_reaction: float
+    cut_in_time: float
+    margin: float
+    relevance: float
+    lateral_threshold: float
+    projected_cut_ins: bool
+    body_extent: bool
+    body_width: float
+    linear_mobil: bool
+
+
+def kernel_constants(dyn: Dynamics) -> KernelConstants:
+    """``dyn``'s constants in :data:`snapshot_kernel`'s form (the arrays computed as the reference does)."""
+    args = _dynamics_args(dyn, dyn.ego_leave_time)
+    return KernelConstants(
+        *args[:12], *args[13:], dyn.projected_cut_ins, dyn.body_extent, dyn.body_width, dyn.linear_mobil
+    )
 
 
 def _result(out: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, bool]) -> SafetyResult:

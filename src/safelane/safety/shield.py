@@ -81,6 +81,26 @@ def dynamics_of(
     )
 
 
+FALLBACK_SLOWDOWN = 4.5
+"""[m/s] What a fallback SLOWER removes from the ego's speed within the next second (the leave time is
+taken at the ego's speed or set-point minus this)."""
+LEAVE_TIME_MAX_SPEED = 40.0
+"""[m/s] The leave time is looked up at speeds rounded down to 0.5 m/s in [0, this]."""
+
+
+def ego_leave_time_at(dyn: Dynamics, speed: float) -> float:
+    """[s] The time the ego takes to leave its lane when changing lane at ``speed`` [m/s] (a multiple of
+    0.5 in [0, 40]), plus one frame, because the change starts at the next physics frame."""
+    return lane_change_timing(1.0 / dyn.frame_dt, speed)[0] + dyn.frame_dt
+
+
+def ego_leave_times(dyn: Dynamics) -> np.ndarray:
+    """[s] :func:`ego_leave_time_at` for the speeds 0, 0.5, …, 40 m/s (entry ``k``: speed ``k / 2``), the
+    table a batched kernel looks the leave time up in, exactly as :class:`SafetyShield` computes it."""
+    count = int(LEAVE_TIME_MAX_SPEED * 2) + 1
+    return np.array([ego_leave_time_at(dyn, k / 2) for k in range(count)])
+
+
 def road_state(snap: RoadSnapshot) -> RoadState:
     """The scene around the ego in lane coordinates (metres, m/s) for the safety model.
 
@@ -222,12 +242,12 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
         # the ego may have while still changing lane — its speed or set-point, minus what a
         # fallback SLOWER removes in the next second (4.5 m/s) — rounded down to 0.5 m/s so the
         # simulation is cached, plus one frame because the change starts at the next physics frame.
-        slowest = min(ego_speed, snap.ego_target_speed) - 4.5
+        slowest = min(ego_speed, snap.ego_target_speed) - FALLBACK_SLOWDOWN
         if math.isfinite(slowest):  # the numpy expression below with Python scalars (≈3 µs less, same value)
-            speed = min(max(math.floor(slowest * 2) / 2, 0.0), 40.0)
+            speed = min(max(math.floor(slowest * 2) / 2, 0.0), LEAVE_TIME_MAX_SPEED)
         else:
-            speed = float(np.clip(np.floor(slowest * 2) / 2, 0.0, 40.0))
-        return lane_heading, lane_change_timing(1.0 / dyn.frame_dt, speed)[0] + dyn.frame_dt
+            speed = float(np.clip(np.floor(slowest * 2) / 2, 0.0, LEAVE_TIME_MAX_SPEED))
+        return lane_heading, ego_leave_time_at(dyn, speed)
 
     def refresh(self) -> SafetyResult:
         """Re-read the scene from the simulator and recompute the verdict (after editing the road by hand)."""

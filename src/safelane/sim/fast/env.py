@@ -58,16 +58,58 @@ class SimState(NamedTuple):
     after: np.ndarray
 
 
+class SceneStorage(NamedTuple):
+    """The arrays a scene lives in (every reset writes into them, every step updates them in place):
+    per-vehicle floats ``F`` (n, NF) and integers ``G`` (n, NI), the ego's set-point index ``E`` (1,),
+    the positions [m] at the start / end of the ego's crash frame ``before`` / ``after`` (n, 2), and the
+    crash flag ``rec`` (1,). A batch hands each environment views of its stacked arrays, so one numba
+    call steps them all (:func:`stacked_storage`)."""
+
+    F: np.ndarray
+    G: np.ndarray
+    E: np.ndarray
+    before: np.ndarray
+    after: np.ndarray
+    rec: np.ndarray
+
+    @classmethod
+    def allocate(cls, n: int) -> SceneStorage:
+        """Fresh arrays for ``n`` bodies (the ego included)."""
+        return stacked_storage(1, n).row(0)
+
+    def row(self, i: int) -> SceneStorage:
+        """Environment ``i``'s views of stacked arrays (each array with a leading batch axis)."""
+        return SceneStorage(*(a[i] for a in self))
+
+
+def stacked_storage(num_envs: int, n: int) -> SceneStorage:
+    """:class:`SceneStorage` for ``num_envs`` scenes of ``n`` bodies, each array with a leading batch axis."""
+    return SceneStorage(
+        np.zeros((num_envs, n, K.NF)),
+        np.zeros((num_envs, n, K.NI), dtype=np.int64),
+        np.zeros((num_envs, 1), dtype=np.int64),
+        np.zeros((num_envs, n, 2)),
+        np.zeros((num_envs, n, 2)),
+        np.zeros((num_envs, 1), dtype=np.int64),
+    )
+
+
 class FastHighwayEnv(gym.Env):
     """A gymnasium-style env reproducing highway-env's straight highway (see the module docstring).
 
     ``state()`` gives every vehicle's arrays (row 0: the ego, then highway-env's ``road.vehicles`` order).
+    ``storage``: the arrays to live in (default: its own; :class:`SceneStorage`).
     Seeding is gymnasium's (``Env.reset(seed=...)`` -> ``self.np_random``), as in highway-env.
     """
 
     metadata: ClassVar[dict[str, Any]] = {"render_modes": []}
 
-    def __init__(self, config: dict[str, Any] | None = None, env_id: str = "highway-fast-v0") -> None:
+    def __init__(
+        self,
+        config: dict[str, Any] | None = None,
+        env_id: str = "highway-fast-v0",
+        storage: SceneStorage | None = None,
+    ) -> None:
         self.env_id = env_id
         self.sim = resolve_config(config, env_id)
         self.config = self.sim.config
@@ -76,10 +118,15 @@ class FastHighwayEnv(gym.Env):
         self.P = params()
         self._obs = np.zeros(2, dtype=np.float32)
         n = 1 + self.sim.vehicles_count
-        self._before = np.zeros((n, 2))
-        self._after = np.zeros((n, 2))
-        self._rec = np.zeros(1, dtype=np.int64)
-        self._buffers = (np.zeros((n, K.NF)), np.zeros((n, K.NI), dtype=np.int64), np.zeros(1, dtype=np.int64))
+        if storage is None:
+            storage = SceneStorage.allocate(n)
+        elif storage.F.shape != (n, K.NF):
+            raise ValueError(f"storage: arrays for {storage.F.shape[0]} bodies, this configuration has {n}")
+        self.storage = storage
+        self._before = storage.before
+        self._after = storage.after
+        self._rec = storage.rec
+        self._buffers = (storage.F, storage.G, storage.E)
         self._static_cache()
         self.time = 0.0
         self.steps = 0
@@ -143,7 +190,11 @@ class FastHighwayEnv(gym.Env):
         if options:
             raise ValueError("reset(options=...) is not supported by the fast simulator")
         super().reset(seed=seed)
-        self.F, self.G, self.E = build_scene(self.np_random, self.sim, self.P, self._buffers)
+        scene = build_scene(self.np_random, self.sim, self.P, self._buffers)
+        for array, built in zip(self._buffers, scene, strict=True):
+            if array is not built:  # the Python path (a non-PCG64 generator) builds new arrays
+                array[...] = built
+        self.F, self.G, self.E = self._buffers
         self.time = 0.0
         self.steps = 0
         self._rec[0] = 0

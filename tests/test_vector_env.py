@@ -93,3 +93,27 @@ def test_maskable_ppo_never_takes_a_masked_action() -> None:
     assert unsafe == 0
     unsafe_ppo, _ = _train("ppo", 256)
     assert unsafe_ppo > 0
+
+
+def test_the_batch_kernels_cache_is_dropped_when_a_kernel_it_calls_changes(
+    tmp_path: object, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """numba keys a cache to its own file only; the batch's kernels compile in kernels of other files,
+    so a changed digest of those files deletes the batch's cached kernels (and only then)."""
+    from pathlib import Path
+
+    from safelane.env import fast_batch
+
+    cache = Path(str(tmp_path))
+    monkeypatch.setenv("NUMBA_CACHE_DIR", str(cache))
+    (cache / "sub").mkdir()
+    stale = cache / "sub" / "fast_batch._observe_rows-1.py311.nbi"
+    other = cache / "sub" / "kernels.simulate-1.py311.nbi"
+    stale.write_text("old")
+    other.write_text("keep")
+    (cache / "fast_batch.kernels.sha256").write_text("a digest of other sources")
+    fast_batch._drop_stale_kernel_cache()
+    assert not stale.exists() and other.exists()
+    stale.write_text("fresh")  # compiled against the current sources: kept from now on
+    fast_batch._drop_stale_kernel_cache()
+    assert stale.exists()

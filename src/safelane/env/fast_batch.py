@@ -21,7 +21,10 @@ runner (:func:`safelane.running.evaluation.run_episodes_fast_batch`: each episod
 
 from __future__ import annotations
 
+import hashlib
 import math
+import os
+from pathlib import Path
 from typing import Any, NamedTuple
 
 import numpy as np
@@ -37,6 +40,35 @@ from safelane.safety.model import OVERRIDE_ORDER
 from safelane.safety.shield import FALLBACK_SLOWDOWN, dynamics_of, ego_leave_times
 from safelane.sim.fast import kernels as K
 from safelane.sim.fast.env import FastHighwayEnv, stacked_storage
+
+
+def _drop_stale_kernel_cache() -> None:
+    """Delete numba's disk cache of this module's kernels when a kernel they call changed.
+
+    numba keys a cached function to its own source file only, but these kernels compile in the
+    simulator's, the safety model's and the observations' kernels from other files: after an edit
+    there, the cache would run the old code. A digest of those files, kept beside the cache, tells.
+    """
+    from safelane.env import observations
+    from safelane.safety import compiled
+
+    sources = (Path(__file__), Path(K.__file__), Path(compiled.__file__), Path(observations.__file__))
+    digest = hashlib.sha256(b"".join(p.read_bytes() for p in sources)).hexdigest()
+    custom = os.environ.get("NUMBA_CACHE_DIR")
+    cache_dir = Path(custom) if custom else Path(__file__).parent / "__pycache__"
+    stamp = cache_dir / "fast_batch.kernels.sha256"
+    try:
+        if stamp.is_file() and stamp.read_text() == digest:
+            return
+        for cached in cache_dir.rglob("fast_batch.*.nb[ic]") if custom else cache_dir.glob("fast_batch.*.nb[ic]"):
+            cached.unlink(missing_ok=True)
+        cache_dir.mkdir(parents=True, exist_ok=True)
+        stamp.write_text(digest)
+    except OSError:  # a read-only install: numba caches elsewhere (or not at all)
+        pass
+
+
+_drop_stale_kernel_cache()
 
 STATE_KINDS = {"paper": 0, "lanes": 1}
 """The kernel's code for each ``SafelaneConfig.state``."""

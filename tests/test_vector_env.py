@@ -117,3 +117,24 @@ def test_the_batch_kernels_cache_is_dropped_when_a_kernel_it_calls_changes(
     stale.write_text("fresh")  # compiled against the current sources: kept from now on
     fast_batch._drop_stale_kernel_cache()
     assert stale.exists()
+
+
+def test_threads_give_the_same_rows() -> None:
+    """Two numba threads share the batch's scenes: the same observations, rewards, masks and flags as
+    one thread, step for step across autoresets."""
+    rows = []
+    for threads in (1, 2):
+        vector = make_vector_env("fast", num_envs=6, seed=5, threads=threads, **SHORT)
+        rng = np.random.default_rng(2)
+        steps = [vector.step(rng.integers(5, size=6)) for _ in range(9)]
+        rows.append([
+            (o, r, te, tr, i["action_mask"], i["fallback"], i["invariant_break"]) for o, r, te, tr, i in steps
+        ])
+        vector.close()
+    for one, two in zip(*rows, strict=True):
+        assert all(np.array_equal(a, b) for a, b in zip(one, two, strict=True))
+
+
+def test_threads_outside_the_machine_is_one_line() -> None:
+    with pytest.raises(ConfigError, match=r"threads: must be an integer in 1\.\."):
+        make_vector_env("fast", num_envs=2, threads=0)

@@ -27,8 +27,9 @@ import os
 from pathlib import Path
 from typing import Any, NamedTuple
 
+import numba
 import numpy as np
-from numba import njit
+from numba import njit, prange
 
 from safelane.config import ConfigError, SafelaneConfig
 from safelane.core.errors import NotSupported
@@ -91,11 +92,90 @@ def supports(cfg: SafelaneConfig) -> str | None:
 
 
 @njit(cache=True, error_model="numpy")
+def _simulate_one(i, F, G, E, ts, P, actions, frames, dt, n_lanes, before, after, rec):
+    """``kernels.simulate`` for scene ``i`` with its action ``actions[i]``."""
+    K.simulate(F[i], G[i], E[i], ts, P, actions[i], frames, dt, n_lanes, before[i], after[i], rec[i])
+
+
+@njit(cache=True, error_model="numpy")
 def _simulate_rows(F, G, E, ts, P, actions, frames, dt, n_lanes, before, after, rec, rows):
     """``kernels.simulate`` for every scene in ``rows`` with its action ``actions[i]``."""
     for r in range(rows.shape[0]):
-        i = rows[r]
-        K.simulate(F[i], G[i], E[i], ts, P, actions[i], frames, dt, n_lanes, before[i], after[i], rec[i])
+        _simulate_one(rows[r], F, G, E, ts, P, actions, frames, dt, n_lanes, before, after, rec)
+
+
+@njit(cache=True, error_model="numpy", parallel=True)
+def _simulate_rows_threads(F, G, E, ts, P, actions, frames, dt, n_lanes, before, after, rec, rows):
+    """:func:`_simulate_rows` with the scenes shared among numba's threads (each scene is independent)."""
+    for r in prange(rows.shape[0]):
+        _simulate_one(rows[r], F, G, E, ts, P, actions, frames, dt, n_lanes, before, after, rec)
+
+
+@njit(cache=True, error_model="numpy")
+def _observe_one(
+    i, F, G, E, length, is_vehicle, can_change_lane, drivers, state_kind, lane_width, lanes_count,
+    shielded, robust, leave_table, slowdown, speed_limit, origin, direction, lateral, lane_heading,
+    ts, t, powers, tie_break, decision_period, frame_dt, frames, horizon, ego_kp, kernel_lane_width,
+    kernel_lanes_count, follower_reaction, cut_in_time, margin, relevance, lateral_threshold,
+    projected_cut_ins, body_extent, body_width, linear_mobil,
+    obs, masks, fallback, forward, crashed_ego, speed_ego, bad,
+):  # fmt: skip
+    """Scene ``i``: the agent's state into ``obs[i]``, the ego's forward and total speed [m/s] and crash
+    flag, and with ``shielded`` the shield's mask and fallback (``bad[i]``: the ego's speed is not a
+    number, so no leave time exists)."""
+    n = F.shape[1]
+    # The snapshot's per-step arrays, as FastHighwayEnv.snapshot copies them out of F and G.
+    position = np.empty((n, 2))
+    speed = np.empty(n)
+    heading = np.empty(n)
+    crashed = np.empty(n, dtype=np.bool_)
+    lane = np.empty(n, dtype=np.int64)
+    for k in range(n):
+        position[k, 0] = F[i, k, K.X]
+        position[k, 1] = F[i, k, K.Y]
+        speed[k] = F[i, k, K.V]
+        heading[k] = F[i, k, K.H]
+        crashed[k] = G[i, k, K.CRASHED] != 0
+        lane[k] = G[i, k, K.LANE]
+    speed_ego[i] = speed[0]
+    forward[i] = speed[0] * math.cos(heading[0])  # PaperReward: speed · cos(heading)
+    crashed_ego[i] = crashed[0]
+    if state_kind == 0:
+        _paper_state_kernel(position, speed, heading, is_vehicle[i], 0, obs[i])
+    else:
+        offset = F[i, 0, K.Y] - lane[0] * lane_width
+        _lane_state_kernel(
+            position, speed, heading, lane, is_vehicle[i], 0, lanes_count, offset / lane_width,
+            F[i, 0, K.TSPD], obs[i],
+        )  # fmt: skip
+    if not shielded:
+        return
+    # SafetyShield._ego_leave_time: the speed or set-point minus a fallback's slowdown, rounded
+    # down to 0.5 m/s in [0, 40], looked up in the table of ego_leave_times.
+    ego_speed = speed[0] * math.cos(heading[0] - lane_heading)
+    target = F[i, 0, K.TSPD]
+    if ego_speed != ego_speed or target != target:
+        bad[i] = True
+        return
+    slowest = min(ego_speed, target) - slowdown
+    top = leave_table.shape[0] - 1  # the table's last entry: the fastest speed it holds
+    if slowest * 2 >= top:
+        leave = leave_table[top]
+    elif slowest < 0.0:
+        leave = leave_table[0]
+    else:
+        leave = leave_table[math.floor(slowest * 2)]
+    d = drivers[i]
+    out = snapshot_kernel(
+        position, speed, heading, length[i], crashed, d[0], d[1], can_change_lane[i], d[2], d[3], d[4],
+        d[5], d[6], d[7], d[8], d[9], d[10],
+        0, lane[0], G[i, 0, K.TLANE], target, E[i, 0], origin, direction, lateral, lane_heading,
+        speed_limit, ts, t, powers, tie_break, decision_period, frame_dt, frames, horizon, ego_kp,
+        kernel_lane_width, kernel_lanes_count, follower_reaction, leave, cut_in_time, margin, relevance,
+        lateral_threshold, robust, projected_cut_ins, body_extent, body_width, linear_mobil,
+    )  # fmt: skip
+    masks[i] = out[0]
+    fallback[i] = out[4]
 
 
 @njit(cache=True, error_model="numpy")
@@ -107,64 +187,37 @@ def _observe_rows(
     projected_cut_ins, body_extent, body_width, linear_mobil,
     obs, masks, fallback, forward, crashed_ego, speed_ego, bad,
 ):  # fmt: skip
-    """For every scene in ``rows``: the agent's state into ``obs[i]``, the ego's forward and total speed
-    [m/s] and crash flag, and with ``shielded`` the shield's mask and fallback (``bad[i]``: the ego's
-    speed is not a number, so no leave time exists)."""
-    n = F.shape[1]
+    """:func:`_observe_one` for every scene in ``rows``."""
     for r in range(rows.shape[0]):
-        i = rows[r]
-        # The snapshot's per-step arrays, as FastHighwayEnv.snapshot copies them out of F and G.
-        position = np.empty((n, 2))
-        speed = np.empty(n)
-        heading = np.empty(n)
-        crashed = np.empty(n, dtype=np.bool_)
-        lane = np.empty(n, dtype=np.int64)
-        for k in range(n):
-            position[k, 0] = F[i, k, K.X]
-            position[k, 1] = F[i, k, K.Y]
-            speed[k] = F[i, k, K.V]
-            heading[k] = F[i, k, K.H]
-            crashed[k] = G[i, k, K.CRASHED] != 0
-            lane[k] = G[i, k, K.LANE]
-        speed_ego[i] = speed[0]
-        forward[i] = speed[0] * math.cos(heading[0])  # PaperReward: speed · cos(heading)
-        crashed_ego[i] = crashed[0]
-        if state_kind == 0:
-            _paper_state_kernel(position, speed, heading, is_vehicle[i], 0, obs[i])
-        else:
-            offset = F[i, 0, K.Y] - lane[0] * lane_width
-            _lane_state_kernel(
-                position, speed, heading, lane, is_vehicle[i], 0, lanes_count, offset / lane_width,
-                F[i, 0, K.TSPD], obs[i],
-            )  # fmt: skip
-        if not shielded:
-            continue
-        # SafetyShield._ego_leave_time: the speed or set-point minus a fallback's slowdown, rounded
-        # down to 0.5 m/s in [0, 40], looked up in the table of ego_leave_times.
-        ego_speed = speed[0] * math.cos(heading[0] - lane_heading)
-        target = F[i, 0, K.TSPD]
-        if ego_speed != ego_speed or target != target:
-            bad[i] = True
-            continue
-        slowest = min(ego_speed, target) - slowdown
-        top = leave_table.shape[0] - 1  # the table's last entry: the fastest speed it holds
-        if slowest * 2 >= top:
-            leave = leave_table[top]
-        elif slowest < 0.0:
-            leave = leave_table[0]
-        else:
-            leave = leave_table[math.floor(slowest * 2)]
-        d = drivers[i]
-        out = snapshot_kernel(
-            position, speed, heading, length[i], crashed, d[0], d[1], can_change_lane[i], d[2], d[3], d[4],
-            d[5], d[6], d[7], d[8], d[9], d[10],
-            0, lane[0], G[i, 0, K.TLANE], target, E[i, 0], origin, direction, lateral, lane_heading,
-            speed_limit, ts, t, powers, tie_break, decision_period, frame_dt, frames, horizon, ego_kp,
-            kernel_lane_width, kernel_lanes_count, follower_reaction, leave, cut_in_time, margin, relevance,
-            lateral_threshold, robust, projected_cut_ins, body_extent, body_width, linear_mobil,
+        _observe_one(
+            rows[r], F, G, E, length, is_vehicle, can_change_lane, drivers, state_kind, lane_width, lanes_count,
+            shielded, robust, leave_table, slowdown, speed_limit, origin, direction, lateral, lane_heading,
+            ts, t, powers, tie_break, decision_period, frame_dt, frames, horizon, ego_kp, kernel_lane_width,
+            kernel_lanes_count, follower_reaction, cut_in_time, margin, relevance, lateral_threshold,
+            projected_cut_ins, body_extent, body_width, linear_mobil,
+            obs, masks, fallback, forward, crashed_ego, speed_ego, bad,
         )  # fmt: skip
-        masks[i] = out[0]
-        fallback[i] = out[4]
+
+
+@njit(cache=True, error_model="numpy", parallel=True)
+def _observe_rows_threads(
+    rows, F, G, E, length, is_vehicle, can_change_lane, drivers, state_kind, lane_width, lanes_count,
+    shielded, robust, leave_table, slowdown, speed_limit, origin, direction, lateral, lane_heading,
+    ts, t, powers, tie_break, decision_period, frame_dt, frames, horizon, ego_kp, kernel_lane_width,
+    kernel_lanes_count, follower_reaction, cut_in_time, margin, relevance, lateral_threshold,
+    projected_cut_ins, body_extent, body_width, linear_mobil,
+    obs, masks, fallback, forward, crashed_ego, speed_ego, bad,
+):  # fmt: skip
+    """:func:`_observe_rows` with the scenes shared among numba's threads."""
+    for r in prange(rows.shape[0]):
+        _observe_one(
+            rows[r], F, G, E, length, is_vehicle, can_change_lane, drivers, state_kind, lane_width, lanes_count,
+            shielded, robust, leave_table, slowdown, speed_limit, origin, direction, lateral, lane_heading,
+            ts, t, powers, tie_break, decision_period, frame_dt, frames, horizon, ego_kp, kernel_lane_width,
+            kernel_lanes_count, follower_reaction, cut_in_time, margin, relevance, lateral_threshold,
+            projected_cut_ins, body_extent, body_width, linear_mobil,
+            obs, masks, fallback, forward, crashed_ego, speed_ego, bad,
+        )  # fmt: skip
 
 
 _FLOAT_DRIVERS = tuple(name for name in DRIVER_FIELDS if name != "can_change_lane")
@@ -190,16 +243,26 @@ class BatchStep(NamedTuple):
 class FastBatch:
     """``num_envs`` environments of ``cfg`` (see the module docstring): reset one by one, stepped together.
 
+    ``threads`` > 1 shares the scenes of a step among that many of numba's threads (the same numbers;
+    numba's OpenMP layer is not fork-safe, so keep 1 in a process that forks workers afterwards).
+
     After :meth:`reset_env` / :meth:`step` the current state of environment ``i`` is ``obs[i]`` (its
     observation), ``masks[i]`` (the shield's mask; all True without a shield) and ``fallback[i]``.
     """
 
-    def __init__(self, cfg: SafelaneConfig, num_envs: int) -> None:
+    def __init__(self, cfg: SafelaneConfig, num_envs: int, threads: int = 1) -> None:
         why = supports(cfg)
         if why is not None:
             raise NotSupported(f"{why}: not supported by the fast batch")
         if not isinstance(num_envs, int) or num_envs < 1:
             raise ConfigError(f"num_envs: must be an integer >= 1 (got {num_envs!r})")
+        most = numba.config.NUMBA_NUM_THREADS
+        if not isinstance(threads, int) or not 1 <= threads <= most:
+            raise ConfigError(f"threads: must be an integer in 1..{most} (this machine's cores; got {threads!r})")
+        self.threads = threads
+        # Several threads: numba's parallel loop over the scenes (the same numbers: each is independent).
+        self._simulate_rows = _simulate_rows_threads if threads > 1 else _simulate_rows
+        self._observe_rows = _observe_rows_threads if threads > 1 else _observe_rows
         self.cfg = cfg
         self.num_envs = num_envs
         probe = self._make_env(None)
@@ -312,7 +375,9 @@ class FastBatch:
         self._actions[rows] = executed
         sc = self.sim
         st = self.storage
-        _simulate_rows(
+        if self.threads > 1:
+            numba.set_num_threads(self.threads)
+        self._simulate_rows(
             st.F, st.G, st.E, sc.target_speeds, self.P, self._actions, sc.frames, sc.dt, sc.lanes_count,
             st.before, st.after, st.rec, rows,
         )  # fmt: skip
@@ -348,7 +413,9 @@ class FastBatch:
         if shield_args is None:  # no shield: the kernel's shield arguments are placeholders
             shield_args = (np.zeros(1), 0.0, 0.0, *_NO_FRAME, 0.0, *_NO_SHIELD)
         self._bad[rows] = False
-        _observe_rows(
+        if self.threads > 1:
+            numba.set_num_threads(self.threads)
+        self._observe_rows(
             rows, st.F, st.G, st.E, self.length, self.is_vehicle, self.can_change_lane, self.drivers,
             self.state_kind, float(self.P[K.P_LANE_WIDTH]), self.sim.lanes_count, self.shielded, self.robust,
             *shield_args, self.obs, self.masks, self.fallback, self._forward, self._crashed, self._speed, self._bad,

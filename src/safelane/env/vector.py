@@ -224,6 +224,7 @@ def make_vector_env(
     num_envs: int = 8,
     seed: int | None = None,
     simulator: str | None = None,
+    threads: int = 1,
     **overrides: Any,
 ) -> SafelaneVectorEnv | FastVectorEnv:
     """``num_envs`` copies of :func:`safelane.make_env`'s environment as one vector environment: a
@@ -231,7 +232,8 @@ def make_vector_env(
 
     ``config`` and ``overrides`` as for ``make_env``; ``simulator`` defaults to ``fast`` for a preset
     name (the point of a batch is speed) and to the config's own for a :class:`SafelaneConfig`. With
-    ``seed`` the batch is reset once (environment ``i`` with ``seed + i``).
+    ``seed`` the batch is reset once (environment ``i`` with ``seed + i``). ``threads``: numba threads
+    sharing a :class:`FastVectorEnv`'s steps (:class:`safelane.env.fast_batch.FastBatch`; the same rows).
     """
     if not isinstance(num_envs, int) or num_envs < 1:
         raise ConfigError(f"num_envs: must be an integer >= 1 (got {num_envs!r})")
@@ -242,7 +244,7 @@ def make_vector_env(
     cfg = resolve_env_config(config, **overrides)
     vector: SafelaneVectorEnv | FastVectorEnv
     if supports(cfg) is None:
-        vector = FastVectorEnv(FastBatch(cfg, num_envs))
+        vector = FastVectorEnv(FastBatch(cfg, num_envs, threads))
     else:
         vector = SafelaneVectorEnv([make_env(cfg) for _ in range(num_envs)])
     if seed is not None:

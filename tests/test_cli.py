@@ -203,6 +203,11 @@ def test_bench_json() -> None:
     assert out["shield_mask_us_median_fast"] > 0
     assert set(out["fast_batched_decisions_per_s"]) == {"1", "16", "64", "256"}
     assert all(rate > 0 for rate in out["fast_batched_decisions_per_s"].values())
+    for n, rate in out["fast_batched_decisions_per_s"].items():
+        assert out["fast_batched_speedup"][n] == pytest.approx(rate / out["highway_env_decisions_per_s"])
+    assert set(out["fast_batched_threaded_decisions_per_s"]) == {"1", "16", "64", "256"}
+    assert out["fast_batched_threads"] >= 1 and set(out["fast_batched_threaded_speedup"]) == {"1", "16", "64", "256"}
+    assert 0 < out["shield_mask_share_fast"] < 1 and out["batched_shield_share"] < 1
     for key in ("train_steps_per_s_fast", "agent_ms_per_decision_fast", "train_steps_per_s_constrained_fast"):
         assert out[key] > 0
 

@@ -19,6 +19,7 @@ from pathlib import Path
 from typing import Any
 
 import gymnasium as gym
+import numba
 import numpy as np
 
 from safelane.agents.dqn import parse_methods
@@ -34,6 +35,8 @@ BENCH_PRESET = "fast"
 BENCH_SHIELDS = ("nominal", "robust")
 BATCH_SIZES = (1, 16, 64, 256)
 """Batch sizes of ``fast_batched_decisions_per_s``."""
+SHARE_BATCH = 64
+"""The batch size at which ``batched_shield_share`` is measured."""
 FAST_REPEATS = 5
 """The fast simulator plays each benchmark episode this many times (it takes milliseconds)."""
 
@@ -94,11 +97,11 @@ def measure_envpool(cfg: dict[str, Any], decisions: int, seed: int) -> float | N
     return rate
 
 
-def measure_batched(num_envs: int, decisions: int, seed: int, shield: str) -> float:
+def measure_batched(num_envs: int, decisions: int, seed: int, shield: str, threads: int = 1) -> float:
     """Summed decisions per second of :func:`safelane.env.vector.make_vector_env` with ``num_envs``
-    fast-simulator environments under ``shield`` (random actions, autoresets included), over about
-    ``decisions`` decisions after one warm-up step."""
-    vector = make_vector_env(BENCH_PRESET, num_envs=num_envs, seed=seed, **{"shield.mode": shield})
+    fast-simulator environments under ``shield`` (``none`` for no shield; random actions, autoresets
+    included) on ``threads`` numba threads, over about ``decisions`` decisions after one warm-up step."""
+    vector = make_vector_env(BENCH_PRESET, num_envs=num_envs, seed=seed, threads=threads, **{"shield.mode": shield})
     rng = np.random.default_rng(seed)
     steps = max(decisions // num_envs, 4)
     actions = rng.integers(5, size=(steps + 1, num_envs))
@@ -160,8 +163,15 @@ def run_bench(
     * ``fast_shielded_decisions_per_s``: the same with the ``shield`` on (1 env) and ``fast_speedup`` =
       that ÷ stock highway-env (unshielded); ``shield_mask_us_median_fast``: the mask's median cost [µs]
       on the fast simulator's states (``shield_mask_us_median``: on highway-env's);
+    * ``shield_mask_share_fast``: that median mask cost as a share of a shielded fast decision
+      (median µs × ``fast_shielded_decisions_per_s``);
     * ``fast_batched_decisions_per_s``: ``{N: summed decisions/s}`` of ``make_vector_env`` with N
-      shielded fast-simulator environments, N in :data:`BATCH_SIZES` (:func:`measure_batched`);
+      shielded fast-simulator environments on one thread, N in :data:`BATCH_SIZES`
+      (:func:`measure_batched`), and ``fast_batched_speedup`` each ÷ stock highway-env;
+      ``batched_shield_share``: the shield's share of a batched decision at N = :data:`SHARE_BATCH`
+      (1 − shielded ÷ unshielded rate, the two measured alternately, twice each);
+      ``fast_batched_threaded_decisions_per_s`` / ``_speedup``: the same batches shared among
+      ``fast_batched_threads`` numba threads (all of this machine's cores);
     * ``envpool_decisions_per_s``: the peer, EnvPool's C++ port (:func:`measure_envpool`), only when the
       optional ``envpool`` extra is installed;
     * ``train_steps_per_s``: decisions per second of a real training run of ``episodes`` episodes of
@@ -245,7 +255,15 @@ def run_bench(
         fast.close()
         fast_shielded.close()
     envpool_rate = measure_envpool(dict(preset_cfg.env), max(fast_n, 1000), seed)
-    batched = {str(n): measure_batched(n, max(fast_n // 2, 2000), seed, shield) for n in BATCH_SIZES}
+    batch_decisions = max(fast_n // 2, 4000)
+    batched = {str(n): measure_batched(n, batch_decisions, seed, shield) for n in BATCH_SIZES}
+    # The shield's share of a batched decision: N = 64 with and without it, alternating, one thread.
+    with_shield = without_shield = 0.0
+    for _ in range(2):
+        with_shield += measure_batched(SHARE_BATCH, batch_decisions, seed, shield)
+        without_shield += measure_batched(SHARE_BATCH, batch_decisions, seed, "none")
+    threads = numba.config.NUMBA_NUM_THREADS
+    threaded = {str(n): measure_batched(n, batch_decisions, seed, shield, threads) for n in BATCH_SIZES}
     training: dict[str, Any] = {"train_method": methods[0], **measure_training(episodes, seed, shield, methods[0])}
     for method in methods[1:]:
         figures = measure_training(episodes, seed, shield, method)
@@ -277,7 +295,14 @@ def run_bench(
         "fast_shielded_decisions_per_s": fast_shield_n / fast_shield_s,
         "fast_speedup": (fast_shield_n / fast_shield_s) / (stock_n / stock_s),
         "shield_mask_us_median_fast": float(np.median(fast_mask_us)),
+        "shield_mask_share_fast": float(np.median(fast_mask_us)) * 1e-6 * (fast_shield_n / fast_shield_s),
         "fast_batched_decisions_per_s": batched,
+        "fast_batched_speedup": {n: rate / (stock_n / stock_s) for n, rate in batched.items()},
+        # time share = 1 − (time without ÷ time with) = 1 − (rate with ÷ rate without)
+        "batched_shield_share": 1.0 - with_shield / without_shield,
+        "fast_batched_threads": threads,
+        "fast_batched_threaded_decisions_per_s": threaded,
+        "fast_batched_threaded_speedup": {n: rate / (stock_n / stock_s) for n, rate in threaded.items()},
         **({"envpool_decisions_per_s": envpool_rate} if envpool_rate is not None else {}),
         **training,
         "python": platform.python_version(),

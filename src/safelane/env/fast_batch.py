@@ -284,6 +284,7 @@ class FastBatch:
         self.is_vehicle = np.zeros((num_envs, n), dtype=bool)
         self.can_change_lane = np.zeros((num_envs, n), dtype=bool)
         self.drivers = np.zeros((num_envs, len(_FLOAT_DRIVERS), n))
+        self._statics_set = np.zeros(num_envs, dtype=bool)
         # The current state of each scene.
         self.obs = np.zeros((num_envs, OBS_SIZE), dtype=np.float32)
         self.masks = np.ones((num_envs, N_ACTIONS), dtype=bool)
@@ -305,18 +306,27 @@ class FastBatch:
     # --- resets ------------------------------------------------------------------------------------
     def reset_env(self, i: int, seed: int | None = None) -> None:
         """Reset environment ``i`` (``seed``: gymnasium's; None continues its own generator)."""
-        env = self.envs[i]
-        env.reset(seed=seed)
-        snap = env.snapshot()
-        self.length[i] = snap.length
-        self.is_vehicle[i] = snap.is_vehicle
-        self.can_change_lane[i] = snap.can_change_lane
-        for row, name in enumerate(_FLOAT_DRIVERS):
-            self.drivers[i, row] = getattr(snap, name)
-        if self.shielded and self._kernel_args is None:
-            self._kernel_args = self._shield_constants(snap)
-        self.times[i] = 0.0
-        self._observe(np.array([i], dtype=np.int64))
+        self.reset_envs(np.array([i], dtype=np.int64), [seed])
+
+    def reset_envs(self, rows: np.ndarray, seeds: list[int | None] | None = None) -> None:
+        """Reset the environments ``rows`` (int array; ``seeds``: one per row, default None: each
+        continues its own generator), then observe them all in one call."""
+        for k, i in enumerate(rows.tolist()):
+            _, info = self.envs[i].reset(seed=None if seeds is None else seeds[k])
+            snap: RoadSnapshot = info["snapshot"]
+            # The per-episode driver parameters (IDM's DELTA, the linear models' gains) are drawn at
+            # reset; the other per-body constants depend on the configuration only.
+            for row, name in enumerate(_FLOAT_DRIVERS):
+                self.drivers[i, row] = getattr(snap, name)
+            if not self._statics_set[i]:
+                self.length[i] = snap.length
+                self.is_vehicle[i] = snap.is_vehicle
+                self.can_change_lane[i] = snap.can_change_lane
+                self._statics_set[i] = True
+            if self.shielded and self._kernel_args is None:
+                self._kernel_args = self._shield_constants(snap)
+        self.times[rows] = 0.0
+        self._observe(rows)
 
     def _shield_constants(self, snap: RoadSnapshot) -> tuple:
         """The safety kernel's arguments that stay the same for the batch (SafetyShield's dynamics)."""

@@ -163,8 +163,7 @@ class FastVectorEnv(VectorEnv):
         """Reset every environment (``seed``: environment ``i`` gets ``seed + i``, or a list of seeds)."""
         if options:
             raise ValueError("reset(options=...) is not supported by the fast simulator")
-        for i, s in enumerate(_seeds_of(seed, self.num_envs)):
-            self.batch.reset_env(i, s)
+        self.batch.reset_envs(self._rows, _seeds_of(seed, self.num_envs))
         self._returns[:] = 0.0
         self._lengths[:] = 0
         return self.batch.obs.copy(), {"action_mask": self.batch.masks.copy(), "speed": self.batch.speeds()}
@@ -193,8 +192,7 @@ class FastVectorEnv(VectorEnv):
                 episode={"r": np.where(done, self._returns, 0.0), "l": np.where(done, self._lengths, 0)},
                 _episode=done.copy(),
             )
-            for i in np.flatnonzero(done).tolist():
-                batch.reset_env(i)
+            batch.reset_envs(np.flatnonzero(done))
             self._returns[done] = 0.0
             self._lengths[done] = 0
         infos["action_mask"] = batch.masks.copy()

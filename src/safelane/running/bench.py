@@ -37,6 +37,8 @@ BATCH_SIZES = (1, 16, 64, 256)
 """Batch sizes of ``fast_batched_decisions_per_s``."""
 SHARE_BATCH = 64
 """The batch size at which ``batched_shield_share`` is measured."""
+SHARE_DECISIONS = 20_000
+"""Decisions per sample of ``batched_shield_share`` (four samples: shielded, unshielded, twice)."""
 FAST_REPEATS = 5
 """The fast simulator plays each benchmark episode this many times (it takes milliseconds)."""
 
@@ -255,13 +257,13 @@ def run_bench(
         fast.close()
         fast_shielded.close()
     envpool_rate = measure_envpool(dict(preset_cfg.env), max(fast_n, 1000), seed)
-    batch_decisions = max(fast_n // 2, 4000)
+    batch_decisions = max(fast_n, 12_000)  # about a second of each batch size
     batched = {str(n): measure_batched(n, batch_decisions, seed, shield) for n in BATCH_SIZES}
     # The shield's share of a batched decision: N = 64 with and without it, alternating, one thread.
     with_shield = without_shield = 0.0
-    for _ in range(2):
-        with_shield += measure_batched(SHARE_BATCH, batch_decisions, seed, shield)
-        without_shield += measure_batched(SHARE_BATCH, batch_decisions, seed, "none")
+    for _ in range(2):  # a few seconds each: shorter samples swing by ±15 % on a shared machine
+        with_shield += measure_batched(SHARE_BATCH, SHARE_DECISIONS, seed, shield)
+        without_shield += measure_batched(SHARE_BATCH, SHARE_DECISIONS, seed, "none")
     threads = numba.config.NUMBA_NUM_THREADS
     threaded = {str(n): measure_batched(n, batch_decisions, seed, shield, threads) for n in BATCH_SIZES}
     training: dict[str, Any] = {"train_method": methods[0], **measure_training(episodes, seed, shield, methods[0])}

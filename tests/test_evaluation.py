@@ -337,6 +337,28 @@ def test_fast_batch_records_equal_the_wrapper_stack_with_crashes_and_breaks(shie
         assert sum(len(r.invariant_breaks) for r in one) > 0
 
 
+@pytest.mark.parametrize("name", ["faster", "slower", "probe"])
+def test_deterministic_fixed_policies_play_the_same_episodes_on_the_fast_batch(name: str) -> None:
+    """always-FASTER / SLOWER and the probe (which reads every state's snapshot) are batch policies:
+    run_config plays them on the fast batch and gets the records of one environment."""
+    from safelane.env.factory import make_env
+    from safelane.running.evaluation import BatchPolicy, run_config, run_episodes
+
+    cfg = load_config(
+        "fast",
+        overrides={"simulator": "fast", "shield.mode": "robust", "shield.override": True, "env.vehicles_density": 2.0},
+    )
+    policy = fixed_policy(name)
+    assert isinstance(policy, BatchPolicy)
+    batched = run_config(cfg, policy, 8, 900, num_envs=3)
+    one = run_episodes(make_env(cfg), policy, 8, 900)
+    assert [r.to_dict() for r in batched] == [r.to_dict() for r in one]
+    if name == "faster":  # the shield had to replace FASTER
+        assert sum(r.interventions for r in one) > 0
+    if name == "probe":  # it overtook, choosing inside the mask
+        assert sum(r.actions[0] + r.actions[2] for r in one) > 0 and sum(r.interventions for r in one) == 0
+
+
 def test_run_config_rejects_a_batch_of_no_environments() -> None:
     from safelane.running.evaluation import run_config
 

@@ -60,18 +60,41 @@ def fixed_policy(name: str, seed: int = 0) -> Policy:
 
         return random_policy
     if name == "probe":
-        from safelane.running.foresight import overtaking_probe
-
-        return overtaking_probe
+        return ProbePolicy()
     constant = {"idle": IDLE, "faster": FASTER, "slower": SLOWER}
     if name not in constant:
         raise ConfigError(f"policy: unknown policy '{name}'; allowed: {', '.join(FIXED_POLICIES)}")
-    action = constant[name]
+    return ConstantPolicy(constant[name])
 
-    def constant_policy(obs: np.ndarray, info: dict[str, Any]) -> int:
-        return action
 
-    return constant_policy
+class ConstantPolicy:
+    """Always ``action`` (0–4), whatever the state; one environment or a batch (:class:`BatchPolicy`)."""
+
+    def __init__(self, action: int) -> None:
+        self.action = int(action)
+
+    def __call__(self, obs: np.ndarray, info: dict[str, Any]) -> int:
+        return self.action
+
+    def batch(self, obs: np.ndarray, infos: list[dict[str, Any]]) -> np.ndarray:
+        """``action`` for every row."""
+        return np.full(len(obs), self.action, dtype=np.int64)
+
+
+class ProbePolicy:
+    """The overtaking probe (:func:`safelane.running.foresight.overtaking_probe`) as a :class:`BatchPolicy`;
+    it reads each state's snapshot (``needs_snapshot``: a batch runner puts it in every ``info``)."""
+
+    needs_snapshot = True
+
+    def __call__(self, obs: np.ndarray, info: dict[str, Any]) -> int:
+        from safelane.running.foresight import overtaking_probe
+
+        return overtaking_probe(obs, info)
+
+    def batch(self, obs: np.ndarray, infos: list[dict[str, Any]]) -> np.ndarray:
+        """The probe's action for every row."""
+        return np.array([self(row, info) for row, info in zip(obs, infos, strict=True)], dtype=np.int64)
 
 
 # --- collision classification -----------------------------------------------------------------
@@ -382,11 +405,13 @@ def run_episodes_fast_batch(
     """:func:`run_episodes_batched` on a :class:`safelane.env.fast_batch.FastBatch`: the same records
     (episode ``i`` reset with ``seed + i`` on the next free environment, one ``policy.batch`` call per
     round), the environments stepped in one call. The policy sees each episode's full reset ``info``
-    (snapshot and state: a trained policy checks its interface there) and afterwards only the masks."""
+    (snapshot and state: a trained policy checks its interface there) and afterwards the step's flags
+    and mask, plus the snapshot for a policy with ``needs_snapshot``."""
     if episodes < 1:
         raise ValueError(f"episodes: must be >= 1 (got {episodes})")
     records: list[EpisodeRecord | None] = [None] * episodes
     shielded = batch.shielded
+    needs_snapshot = bool(getattr(policy, "needs_snapshot", False))
     slots: dict[int, tuple[int, EpisodeTally]] = {}
     infos: dict[int, dict[str, Any]] = {}
     next_episode = 0
@@ -417,7 +442,7 @@ def run_episodes_fast_batch(
                     executed_action=int(out.executed[j]),
                     action_mask=batch.masks[i].copy(),
                 )
-            if out.collision[j] or done[j]:
+            if out.collision[j] or done[j] or needs_snapshot:
                 info["snapshot"] = batch.snapshot(i)
             index, tally = slots[i]
             tally.add(int(actions[j]), float(out.rewards[j]), info)

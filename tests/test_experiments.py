@@ -67,6 +67,7 @@ def test_stress_suite_has_enough_conditions() -> None:
         "adversary_hard_brake",
         "adversary_cut_in",
         "adversary_stopped_car",
+        "adversary_cut_in_mobil",
     }
 
 

@@ -78,10 +78,11 @@ class TrafficConfig(_Section):
         description="How many of env.vehicles_count vehicles spawn behind the ego instead of ahead "
         "(0 = highway-env's own scene, where the ego starts behind everybody).",
     )
-    adversary: Literal["none", "brake", "cut_in", "stopped"] = Field(
+    adversary: Literal["none", "brake", "cut_in", "stopped", "cut_in_mobil"] = Field(
         "none",
         description="A scripted adversary placed near the ego at reset (safelane.sim.adversaries): a leader "
-        "that brakes at full ACC_MAX at a random time, a car that cuts in ignoring MOBIL, a stopped car.",
+        "that brakes at full ACC_MAX at a random time, a car that cuts in ignoring MOBIL, a stopped car, a car "
+        "that cuts in as soon as MOBIL's safety criterion allows.",
     )
 
 
@@ -182,9 +183,9 @@ class SafelaneConfig(_Section):
                 f"traffic.vehicles_behind: must be at most env.vehicles_count ({env['vehicles_count']}), "
                 f"got {self.traffic.vehicles_behind}"
             )
-        if self.traffic.adversary == "cut_in" and env["lanes_count"] < 2:
+        if self.traffic.adversary in ("cut_in", "cut_in_mobil") and env["lanes_count"] < 2:
             raise ConfigError(
-                f"traffic.adversary: 'cut_in' needs env.lanes_count >= 2 (a lane to cut in from), "
+                f"traffic.adversary: '{self.traffic.adversary}' needs env.lanes_count >= 2 (a lane to cut in from), "
                 f"got {env['lanes_count']}"
             )
         return self

@@ -10,6 +10,10 @@ gives the same scene.
   soon as it is just ahead of it, with a minimal gap, *ignoring* MOBIL's safety criterion: outside
   the model (a driver breaking its own rule).
 * ``stopped`` — :class:`StoppedVehicle`: a broken-down car standing in the ego's lane ahead.
+* ``cut_in_mobil`` — :class:`MobilCutInVehicle`: a car in an adjacent lane that changes into the ego's
+  lane just ahead of it the moment MOBIL's *safety* criterion allows (the ego, its new follower, would
+  brake no harder than ``LANE_CHANGE_MAX_BRAKING_IMPOSED`` by the car's own IDM), with no incentive
+  criterion: the most aggressive cut-in inside the model.
 """
 
 from __future__ import annotations
@@ -19,7 +23,7 @@ from typing import Any
 from highway_env.vehicle.behavior import IDMVehicle
 from highway_env.vehicle.kinematics import Vehicle
 
-ADVERSARIES = ("none", "brake", "cut_in", "stopped")
+ADVERSARIES = ("none", "brake", "cut_in", "stopped", "cut_in_mobil")
 
 
 class HardBraker(IDMVehicle):
@@ -62,6 +66,27 @@ class CutInVehicle(IDMVehicle):
             self.done_cut = True
 
 
+class MobilCutInVehicle(IDMVehicle):
+    """Changes into ``victim``'s lane, right in front of it, as soon as MOBIL's safety criterion holds:
+    ``acceleration(ego_vehicle=victim, front_vehicle=self) >= -LANE_CHANGE_MAX_BRAKING_IMPOSED`` [m/s²],
+    highway-env's ``new_following_pred_a`` test with the victim as the new follower. Once."""
+
+    victim: Any = None
+    done_cut: bool = False
+
+    def change_lane_policy(self) -> None:
+        ego = self.victim
+        if self.done_cut or ego is None or abs(ego.lane_index[2] - self.lane_index[2]) != 1:
+            return
+        _, new_following = self.road.neighbour_vehicles(self, ego.lane_index)
+        if new_following is not ego:  # only directly in front of the ego (ahead of it, nobody between)
+            return
+        if self.acceleration(ego_vehicle=ego, front_vehicle=self) < -self.LANE_CHANGE_MAX_BRAKING_IMPOSED:
+            return
+        self.target_lane_index = ego.lane_index
+        self.done_cut = True
+
+
 class StoppedVehicle(IDMVehicle):
     """A car standing still in its lane (never accelerates, never changes lane)."""
 
@@ -97,7 +122,8 @@ def add_adversary(road: Any, ego: Any, kind: str) -> Vehicle | None:
         lane_id = int(rng.choice(sides))
         side_lane = road.network.get_lane((*lane_index[:2], lane_id))
         dx = float(rng.uniform(40.0, 80.0))
-        vehicle = CutInVehicle(road, side_lane.position(x + dx, 0), 0.0, float(rng.uniform(18.0, 22.0)))
+        cls = CutInVehicle if kind == "cut_in" else MobilCutInVehicle
+        vehicle = cls(road, side_lane.position(x + dx, 0), 0.0, float(rng.uniform(18.0, 22.0)))
         vehicle.victim = ego
     # Remove a vehicle already occupying that spot so the adversary does not spawn inside it.
     target_lane = road.network.get_lane((*lane_index[:2], lane_id))

@@ -65,6 +65,38 @@ def test_campaign_writes_cells_skips_what_the_simulator_lacks_and_resumes(tmp_pa
         run_campaign(load_campaign_spec(write_spec(tmp_path / "d.yaml", episodes=5)), out, workers=1)
 
 
+def test_a_trained_agent_joins_the_campaign_where_its_interface_fits(tmp_path: Path) -> None:
+    """``run:RUN_DIR`` drives the cells at its own decision rate (on the fast batch, the same records
+    as one by one) and is recorded as skipped at another; a policy that is neither is one line."""
+    from safelane.env.factory import make_env
+    from safelane.running.evaluation import run_episodes
+    from safelane.running.falsify import cell_config
+    from safelane.running.training import load_policy, make_train_config, train
+
+    run_dir = train(make_train_config(method="robust", episodes=1, seed=0, sets=["simulator=fast"]), tmp_path / "r")
+    rates = [
+        {"env.policy_frequency": 1, "env.simulation_frequency": 5},
+        {"env.policy_frequency": 2, "env.simulation_frequency": 10},
+    ]
+    path = write_spec(tmp_path / "c.yaml", axes={"rate": rates}, policies=["faster", f"run:{run_dir}"], episodes=3)
+    spec = load_campaign_spec(path)
+    summary = run_campaign(spec, tmp_path / "out", workers=1)
+    assert summary["cells"] == 4 and summary["cells_skipped"] == 1
+    cells = [json.loads(p.read_text()) for p in sorted((tmp_path / "out" / "cells").glob("*.json"))]
+    trained = [c for c in cells if c["policy"].startswith("run:")]
+    assert "skipped" in trained[1] and "decisions/s" in trained[1]["skipped"]
+    assert trained[0]["episodes"] == 3
+    cell = spec.cells()[trained[0]["index"]]
+    one = run_episodes(
+        make_env(cell_config(spec, cell)), load_policy(run_dir), 3, trained[0]["index"] * 10_000 + 4_000_000_000
+    )
+    assert sum(r.length for r in one) == trained[0]["decisions"]
+    with pytest.raises(ConfigError, match="unknown policy 'fastest'"):
+        load_campaign_spec(write_spec(tmp_path / "d.yaml", policies=["fastest"]))
+    with pytest.raises(ConfigError, match="no trained run there"):
+        load_campaign_spec(write_spec(tmp_path / "e.yaml", policies=[f"run:{tmp_path / 'nothing'}"]))
+
+
 def test_bad_campaign_keys_fail_once_in_one_line(tmp_path: Path) -> None:
     spec = load_campaign_spec(write_spec(tmp_path / "c.yaml", axes={"lanes": [{"env.lanes_cont": 3}]}))
     with pytest.raises(ConfigError, match="lanes_cont") as err:

@@ -3,7 +3,7 @@
 A campaign spec (:class:`CampaignSpec`; the shipped one is ``configs/falsify/grid.yaml``) names *axes*
 — each a list of settings, a setting being one or more ``--set`` keys that belong together (a decision
 rate with a physics rate it divides) — the policies (``random``, ``faster``, ``idle``, ``slower``, the
-overtaking ``probe``), the
+overtaking ``probe``, and trained agents as ``run:RUN_DIR``), the
 shield, the episodes per cell and the simulator. A *cell* is one combination of the axes and one policy;
 ``sample`` draws that many cells (seeded) instead of the whole product.
 
@@ -44,6 +44,9 @@ from safelane.core.files import atomic_write_text
 FALSIFY_SEED_BASE = 4_000_000_000
 """Campaign episodes are reset with ``FALSIFY_SEED_BASE + 10 000·cell + k`` (never used elsewhere)."""
 CELL_SEED_STRIDE = 10_000
+RUN_PREFIX = "run:"
+"""A campaign policy ``run:RUN_DIR`` is the greedy policy of that trained run (its cells at another
+decision rate, state or action set are recorded as skipped)."""
 BREAK_CLASSES: tuple[str, ...] = ("second_lane_cut_in", "adjacent_lane_change", "ego_lane_change", "other")
 NEAR_CHANGE = 60.0
 """[m] How close along the road a lane-changing vehicle must be to count in :func:`break_class`."""
@@ -61,12 +64,28 @@ class CampaignSpec(BaseModel):
     shield: Literal["nominal", "robust"] = "robust"
     sets: list[str] = Field(default_factory=list, description="--set overrides of every cell.")
     axes: dict[str, list[dict[str, Any]]] = Field(description="AXIS → settings; a setting maps keys to values.")
-    policies: list[Literal["random", "faster", "idle", "slower", "probe"]] = Field(
-        default_factory=lambda: ["random", "faster"]
+    policies: list[str] = Field(
+        default_factory=lambda: ["random", "faster"],
+        description="Fixed policies (random, faster, idle, slower, probe) and trained agents as 'run:RUN_DIR'.",
     )
     episodes: int = Field(20, ge=1, description="Episodes per cell.")
     sample: int | None = Field(None, ge=1, description="Play this many cells drawn at random (default: all).")
     sample_seed: int = Field(0, ge=0)
+
+    @field_validator("policies")
+    @classmethod
+    def _policies(cls, policies: list[str]) -> list[str]:
+        from safelane.running.evaluation import FIXED_POLICIES
+
+        if not policies:
+            raise ValueError("no policies; give at least one")
+        for policy in policies:
+            if policy.startswith(RUN_PREFIX):
+                if not (Path(policy[len(RUN_PREFIX) :]) / "config.yaml").is_file():
+                    raise ValueError(f"'{policy}': no trained run there (no config.yaml)")
+            elif policy not in FIXED_POLICIES:
+                raise ValueError(f"unknown policy '{policy}'; allowed: {', '.join(FIXED_POLICIES)} or run:RUN_DIR")
+        return policies
 
     @field_validator("axes")
     @classmethod
@@ -150,6 +169,17 @@ def break_class(result: Any) -> str:
     return "other"
 
 
+def _cell_policy(name: str, seed: int) -> Any:
+    """A cell's policy: a fixed one (seeded) or a trained run's greedy policy (``run:RUN_DIR``)."""
+    from safelane.running.evaluation import fixed_policy
+
+    if name.startswith(RUN_PREFIX):
+        from safelane.running.training import load_policy
+
+        return load_policy(name[len(RUN_PREFIX) :])
+    return fixed_policy(name, seed)
+
+
 def _cell_path(out: Path, index: int) -> Path:
     return out / "cells" / f"cell{index:05d}.json"
 
@@ -158,7 +188,7 @@ def _cell_task(out_dir: str, spec_json: str, index: int) -> dict[str, Any]:
     """Play one cell; write its record (and its counterexample files); return the record."""
     from safelane.core.errors import NotSupported
     from safelane.running.counterexamples import replay, save_counterexamples
-    from safelane.running.evaluation import fixed_policy, run_config, summarize
+    from safelane.running.evaluation import run_config, summarize
 
     spec = CampaignSpec.model_validate_json(spec_json)
     cell = spec.cells()[index]
@@ -168,7 +198,7 @@ def _cell_task(out_dir: str, spec_json: str, index: int) -> dict[str, Any]:
         cfg = cell_config(spec, cell)
         seed = FALSIFY_SEED_BASE + CELL_SEED_STRIDE * index
         start = time.perf_counter()
-        records = run_config(cfg, fixed_policy(cell["policy"], seed), spec.episodes, seed)
+        records = run_config(cfg, _cell_policy(cell["policy"], seed), spec.episodes, seed)
     except NotSupported as err:
         record = {**base, "skipped": str(err)}
         atomic_write_text(_cell_path(out, index), json.dumps(record))

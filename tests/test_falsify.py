@@ -93,8 +93,9 @@ def test_a_trained_agent_joins_the_campaign_where_its_interface_fits(tmp_path: P
     assert sum(r.length for r in one) == trained[0]["decisions"]
     with pytest.raises(ConfigError, match="unknown policy 'fastest'"):
         load_campaign_spec(write_spec(tmp_path / "d.yaml", policies=["fastest"]))
+    missing = load_campaign_spec(write_spec(tmp_path / "e.yaml", policies=[f"run:{tmp_path / 'nothing'}"]))
     with pytest.raises(ConfigError, match="no trained run there"):
-        load_campaign_spec(write_spec(tmp_path / "e.yaml", policies=[f"run:{tmp_path / 'nothing'}"]))
+        run_campaign(missing, tmp_path / "out2", workers=1)
 
 
 def test_bad_campaign_keys_fail_once_in_one_line(tmp_path: Path) -> None:

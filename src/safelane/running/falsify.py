@@ -79,11 +79,8 @@ class CampaignSpec(BaseModel):
 
         if not policies:
             raise ValueError("no policies; give at least one")
-        for policy in policies:
-            if policy.startswith(RUN_PREFIX):
-                if not (Path(policy[len(RUN_PREFIX) :]) / "config.yaml").is_file():
-                    raise ValueError(f"'{policy}': no trained run there (no config.yaml)")
-            elif policy not in FIXED_POLICIES:
+        for policy in policies:  # a run's directory is checked when the campaign starts
+            if not policy.startswith(RUN_PREFIX) and policy not in FIXED_POLICIES:
                 raise ValueError(f"unknown policy '{policy}'; allowed: {', '.join(FIXED_POLICIES)} or run:RUN_DIR")
         return policies
 
@@ -244,6 +241,9 @@ def run_campaign(
     from safelane.running.engine import TaskFailure, check_backend, claim_out_dir, format_failure, run_tasks
 
     check_backend(backend)
+    for policy in spec.policies:
+        if policy.startswith(RUN_PREFIX) and not (Path(policy[len(RUN_PREFIX) :]) / "config.yaml").is_file():
+            raise ConfigError(f"policies: '{policy}': no trained run there (no config.yaml)")
     out = Path(out_dir)
     claim_out_dir(out, spec.model_dump_json(indent=1), "campaign.json", "campaign")
     cells = spec.cells()

@@ -144,6 +144,8 @@ def test_cell_labels_are_short() -> None:
     cells = load_campaign_spec(GRID).cells()
     assert cells[0]["labels"]["drivers"] == "other_vehicles_type=IDMVehicle"
     assert cells[0]["labels"]["rate"] == "policy_frequency=1,simulation_frequency=5"
+    # numbers whole: 0.5 and 1.5 were both "5" once, which merged their rows in the summaries
+    assert {c["labels"]["density"] for c in cells} == {f"vehicles_density={d}" for d in (0.5, 1.0, 1.5, 2.0)}
 
 
 CRASHES = Path(__file__).resolve().parents[1] / "docs" / "results" / "falsify" / "grid" / "counterexamples"

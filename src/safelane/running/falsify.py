@@ -116,8 +116,9 @@ class CampaignSpec(BaseModel):
 
 
 def _label(setting: dict[str, Any]) -> str:
-    """A short text for a setting: last key part = last value part (``drivers: AggressiveVehicle``)."""
-    return ",".join(f"{k.split('.')[-1]}={str(v).split('.')[-1]}" for k, v in setting.items())
+    """A short text for a setting: last key part = value, a dotted class path by its last part
+    (``other_vehicles_type=AggressiveVehicle``, ``vehicles_density=0.5``)."""
+    return ",".join(f"{k.split('.')[-1]}={v.split('.')[-1] if isinstance(v, str) else v}" for k, v in setting.items())
 
 
 def load_campaign_spec(path: str | Path, overrides: dict[str, Any] | None = None) -> CampaignSpec:
@@ -287,6 +288,11 @@ def write_summary(out: Path, spec: CampaignSpec) -> dict[str, Any]:
     from safelane.running.evaluation import COLLISION_CONTEXTS
 
     records = [json.loads(p.read_text()) for p in sorted((out / "cells").glob("cell*.json"))]
+    # The labels from the spec, not the files: cell files written before the label fix said
+    # "vehicles_density=5" for both 0.5 and 1.5.
+    labels = {c["index"]: c["labels"] for c in spec.cells()}
+    for r in records:
+        r.update({f"axis_{k}": v for k, v in labels[r["index"]].items()})
     played = [r for r in records if "skipped" not in r]
     axes = [f"axis_{a}" for a in spec.axes]
     columns = ["index", "policy", *axes, "episodes", "decisions", "collisions", "invariant_breaks",

@@ -28,7 +28,7 @@ demo: $(STAMP)
 test: $(STAMP)
 	$(BIN)/ruff check src tests examples docs/_ext
 	$(BIN)/lint-imports
-	SDL_VIDEODRIVER=dummy $(BIN)/python -m pytest -q -m "not slow"
+	SDL_VIDEODRIVER=dummy $(BIN)/python -m pytest -q -m "not slow" --durations=25
 
 lint: $(STAMP)
 	$(BIN)/ruff check src tests examples docs/_ext

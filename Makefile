@@ -7,6 +7,10 @@ DEMO_OUT ?= runs/demo
 
 .PHONY: demo test lint bench results beyond sweeps docs docs-serve clean
 
+# numpy's AVX-512 tan/arctan differ from libm's in the last bit; the fast simulator (numba → libm)
+# matches highway-env bit for bit only with numpy on libm (safelane.sim.fast.libm). Ignored elsewhere.
+export NPY_DISABLE_CPU_FEATURES ?= X86_V4 AVX512_ICL AVX512_SPR
+
 $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/pip install --quiet --upgrade pip

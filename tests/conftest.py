@@ -5,6 +5,9 @@ from __future__ import annotations
 import os
 
 os.environ.setdefault("SDL_VIDEODRIVER", "dummy")  # highway-env imports pygame; no display in tests
+# numpy's AVX-512 tan/arctan are not libm's: keep numpy on libm so highway-env and the fast simulator
+# compute the same bits (safelane.sim.fast.libm; must precede numpy's import, the Makefile exports it too)
+os.environ.setdefault("NPY_DISABLE_CPU_FEATURES", "X86_V4 AVX512_ICL AVX512_SPR")
 
 import shutil
 import sys

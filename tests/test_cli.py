@@ -312,3 +312,15 @@ def test_stress_on_the_fast_simulator_skips_what_it_does_not_model() -> None:
     training, behind = json.loads(result.stdout)["conditions"]
     assert training["simulator"] == "fast" and training["episodes"] == 1
     assert "traffic.vehicles_behind: not supported by simulator=fast" in behind["skipped"]
+
+
+def test_sim_check_warns_in_one_line_when_numpy_is_not_libm(monkeypatch: pytest.MonkeyPatch) -> None:
+    """On a CPU where numpy's tan/arctan are not libm's the trajectories cannot be identical: say so."""
+    import safelane.sim.fast.libm as libm
+
+    monkeypatch.setattr(libm, "numpy_matches_libm", lambda: False)
+    args = ["sim", "check", "--episodes", "1", "--stat-episodes", "0", "--workers", "1", "--json"]
+    result = runner.invoke(app, [*args, "--set", "env.duration=2"])
+    assert result.exit_code == 0, result.output
+    lines = [line for line in result.stderr.splitlines() if line.startswith("warning:")]
+    assert len(lines) == 1 and "NPY_DISABLE_CPU_FEATURES" in lines[0]

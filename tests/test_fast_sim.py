@@ -284,3 +284,11 @@ def test_linear_vehicle_episodes_match_highway_env_slow(name: str, typ: str) -> 
     for seed, policy in ((20, "random"), (21, "faster"), (22, "weave")):
         r = compare_episode(cfg, env_id, seed, policy_actions(policy, seed), tol=TOL, oracle=oracle, stop_at_end=False)
         assert r.matched, f"{name} {typ} seed {seed} {policy}: {r.divergent_step}: {r.cause}"
+
+
+def test_numpy_computes_libm_bits_here() -> None:
+    """The bit-for-bit comparisons with highway-env need numpy's tan/arctan to be libm's (they are not
+    with its AVX-512 kernels): a failure here says why those comparisons would diverge."""
+    from safelane.sim.fast.libm import LIBM_NUMPY_ENV, numpy_matches_libm
+
+    assert numpy_matches_libm(), f"numpy's transcendental functions are not libm's here; set {LIBM_NUMPY_ENV}"

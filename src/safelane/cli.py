@@ -174,6 +174,22 @@ def with_simulator(sets: list[str] | None, simulator: str | None) -> list[str]:
     return [*(sets or []), *([f"simulator={simulator}"] if simulator is not None else [])]
 
 
+def warn_if_numpy_is_not_libm() -> None:
+    """One warning line on stderr when numpy's tan/arctan are not libm's in this process (the fast
+    simulator then matches highway-env statistically, not bit for bit): :mod:`safelane.sim.fast.libm`."""
+    from safelane.sim.fast.libm import LIBM_NUMPY_ENV, numpy_matches_libm
+
+    if not numpy_matches_libm():
+        setting = " ".join(f"{k}='{v}'" for k, v in LIBM_NUMPY_ENV.items())
+        stderr.print(
+            f"warning: numpy's tan/arctan are not libm's on this CPU (AVX-512): highway-env and the fast "
+            f"simulator will drift apart by ~1e-6 m; run with {setting} for identical trajectories",
+            markup=False,
+            highlight=False,
+            soft_wrap=True,
+        )
+
+
 def check_positive(option: str, value: int) -> None:
     """Raise a ConfigError naming ``option`` unless ``value >= 1``."""
     if value < 1:
@@ -320,6 +336,7 @@ def sim_check(
     if stat_episodes < 0:
         raise ConfigError(f"--stat-episodes: must be >= 0 (got {stat_episodes})")
     cfg = resolve_config(preset, sets)
+    warn_if_numpy_is_not_libm()
     with units_progress("sim check") as tick:
         result = run_sim_check(
             cfg,
@@ -693,6 +710,8 @@ def reproduce(
         confirm_on=confirm_on,
         confirm_episodes=confirm_episodes,
     )
+    if confirm_on is not None:
+        warn_if_numpy_is_not_libm()
     total = len(spec.methods) * len(spec.seeds)
     with episode_progress("reproduce (runs)", total) as advance:
         done = [0]
@@ -850,6 +869,8 @@ def replay(
         raise ConfigError(f"--simulator: got {simulator!r}; allowed: fast, highway-env")
     check_positive("--last", last)
     cx = load_counterexample(file)
+    if simulator is not None and simulator != cx.env_config().simulator:
+        warn_if_numpy_is_not_libm()
     result = replay_counterexample(cx, simulator)
     if gif is not None:
         render_counterexample(cx, gif)

@@ -179,45 +179,17 @@ def _observe_one(
 
 
 @njit(cache=True, error_model="numpy")
-def _observe_rows(
-    rows, F, G, E, length, is_vehicle, can_change_lane, drivers, state_kind, lane_width, lanes_count,
-    shielded, robust, leave_table, slowdown, speed_limit, origin, direction, lateral, lane_heading,
-    ts, t, powers, tie_break, decision_period, frame_dt, frames, horizon, ego_kp, kernel_lane_width,
-    kernel_lanes_count, follower_reaction, cut_in_time, margin, relevance, lateral_threshold,
-    projected_cut_ins, body_extent, body_width, linear_mobil,
-    obs, masks, fallback, forward, crashed_ego, speed_ego, bad,
-):  # fmt: skip
-    """:func:`_observe_one` for every scene in ``rows``."""
+def _observe_rows(rows, args):
+    """:func:`_observe_one` for every scene in ``rows`` (``args``: its arguments after the scene)."""
     for r in range(rows.shape[0]):
-        _observe_one(
-            rows[r], F, G, E, length, is_vehicle, can_change_lane, drivers, state_kind, lane_width, lanes_count,
-            shielded, robust, leave_table, slowdown, speed_limit, origin, direction, lateral, lane_heading,
-            ts, t, powers, tie_break, decision_period, frame_dt, frames, horizon, ego_kp, kernel_lane_width,
-            kernel_lanes_count, follower_reaction, cut_in_time, margin, relevance, lateral_threshold,
-            projected_cut_ins, body_extent, body_width, linear_mobil,
-            obs, masks, fallback, forward, crashed_ego, speed_ego, bad,
-        )  # fmt: skip
+        _observe_one(rows[r], *args)
 
 
 @njit(cache=True, error_model="numpy", parallel=True)
-def _observe_rows_threads(
-    rows, F, G, E, length, is_vehicle, can_change_lane, drivers, state_kind, lane_width, lanes_count,
-    shielded, robust, leave_table, slowdown, speed_limit, origin, direction, lateral, lane_heading,
-    ts, t, powers, tie_break, decision_period, frame_dt, frames, horizon, ego_kp, kernel_lane_width,
-    kernel_lanes_count, follower_reaction, cut_in_time, margin, relevance, lateral_threshold,
-    projected_cut_ins, body_extent, body_width, linear_mobil,
-    obs, masks, fallback, forward, crashed_ego, speed_ego, bad,
-):  # fmt: skip
+def _observe_rows_threads(rows, args):
     """:func:`_observe_rows` with the scenes shared among numba's threads."""
     for r in prange(rows.shape[0]):
-        _observe_one(
-            rows[r], F, G, E, length, is_vehicle, can_change_lane, drivers, state_kind, lane_width, lanes_count,
-            shielded, robust, leave_table, slowdown, speed_limit, origin, direction, lateral, lane_heading,
-            ts, t, powers, tie_break, decision_period, frame_dt, frames, horizon, ego_kp, kernel_lane_width,
-            kernel_lanes_count, follower_reaction, cut_in_time, margin, relevance, lateral_threshold,
-            projected_cut_ins, body_extent, body_width, linear_mobil,
-            obs, masks, fallback, forward, crashed_ego, speed_ego, bad,
-        )  # fmt: skip
+        _observe_one(rows[r], *args)
 
 
 _FLOAT_DRIVERS = tuple(name for name in DRIVER_FIELDS if name != "can_change_lane")
@@ -425,11 +397,12 @@ class FastBatch:
         self._bad[rows] = False
         if self.threads > 1:
             numba.set_num_threads(self.threads)
-        self._observe_rows(
-            rows, st.F, st.G, st.E, self.length, self.is_vehicle, self.can_change_lane, self.drivers,
+        args = (
+            st.F, st.G, st.E, self.length, self.is_vehicle, self.can_change_lane, self.drivers,
             self.state_kind, float(self.P[K.P_LANE_WIDTH]), self.sim.lanes_count, self.shielded, self.robust,
             *shield_args, self.obs, self.masks, self.fallback, self._forward, self._crashed, self._speed, self._bad,
         )  # fmt: skip
+        self._observe_rows(rows, args)
         if self.shielded and self._bad[rows].any():
             i = int(rows[np.argmax(self._bad[rows])])
             raise RuntimeError(f"fast batch: environment {i}'s ego speed is not a number; no mask exists")

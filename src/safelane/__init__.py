@@ -16,9 +16,10 @@ except PackageNotFoundError:  # pragma: no cover - running from a source tree
 from safelane.config import ConfigError, SafelaneConfig, load_config
 from safelane.env.factory import make_env
 from safelane.env.vector import make_vector_env, sb3_vec_env
-from safelane.safety.shield import SafetyShield
+from safelane.safety.shield import CannotStopWarning, SafetyShield, stoppable_action_config
 
 __all__ = [
+    "CannotStopWarning",
     "ConfigError",
     "SafelaneConfig",
     "SafetyShield",
@@ -27,4 +28,5 @@ __all__ = [
     "make_env",
     "make_vector_env",
     "sb3_vec_env",
+    "stoppable_action_config",
 ]

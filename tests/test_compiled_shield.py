@@ -186,11 +186,11 @@ def test_engine_is_configurable() -> None:
 
 
 # --------------------------------------------------------------------------------------------
-# The robust options (shield.projected_cut_ins, experimental; shield.body_extent): the same in both
-# engines, and only stricter.
+# The robust options (shield.projected_cut_ins and shield.level_cut_ins, experimental; shield.body_extent):
+# the same in both engines, and only stricter.
 # --------------------------------------------------------------------------------------------
 
-ROBUST_OPTIONS = pytest.mark.parametrize("option", ["projected_cut_ins", "body_extent"])
+ROBUST_OPTIONS = pytest.mark.parametrize("option", ["projected_cut_ins", "body_extent", "level_cut_ins"])
 """The options that only add conflicts (linear_mobil removes some: tested on its own below)."""
 
 
@@ -207,6 +207,22 @@ def test_robust_options_bit_identical_and_only_stricter(option: str, case: tuple
         assert not (more.safe & ~base.safe).any()  # more conflicts: never a new safe action
         if mode == "nominal":
             assert_same(base, more)  # the options belong to the robust rule only
+
+
+@PROPERTY_SETTINGS
+@given(case=road(extreme=True))
+def test_reversing_leaders_bit_identical_and_only_stricter(case: tuple) -> None:
+    """shield.reversing_leaders (on by default): a leader rolling backwards keeps its reverse speed. Both
+    engines agree either way (extreme roads have speeds down to −5 m/s), it never makes an action safe,
+    and without a reversing leader it changes nothing, to the bit."""
+    state, dyn, _ = case
+    earlier, now = (dataclasses.replace(dyn, reversing_leaders=v) for v in (False, True))
+    assert mismatches(state, earlier) == [] and mismatches(state, now) == []
+    for mode in MODES:
+        before, after = model.evaluate(state, earlier, mode), model.evaluate(state, now, mode)
+        assert not (after.safe & ~before.safe).any()
+        if not ((state.vx < 0) & ~state.crashed).any():
+            assert_same(before, after)
 
 
 @PROPERTY_SETTINGS

@@ -58,6 +58,12 @@ EXPECTED = {
     # SLOWER, the least bad, is flagged as a fallback. Nominal: only the leader 42 m ahead matters, SLOWER
     # keeps the gap (IDLE leaves 0.33 m < 1 m).
     "linear_car_alongside": {"nominal": mask_of(S), "robust": mask_of(S)},
+    # A car 7 m ahead rolling backwards at 2 m/s toward the nearly stopped ego (shield.reversing_leaders, both
+    # modes): nothing is safe, the least-bad IDLE is flagged as a fallback.
+    "reversing_leader": {"nominal": mask_of(I), "robust": mask_of(I)},
+    # The ego overtaking a queue of slow cars in the next lane: by default MOBIL keeps the cars ahead out of
+    # its lane (the ego would be their follower, far too close), so IDLE, LANE_RIGHT and SLOWER are safe.
+    "car_being_overtaken": {"nominal": mask_of(I, R, S), "robust": mask_of(I, R, S)},
 }
 
 
@@ -68,7 +74,7 @@ def test_scenario_masks(name: str, mode: str, engine: str) -> None:
     scene = scenarios.SCENARIOS[name](mode=mode, **{"shield.engine": engine})
     assert scene.mask.tolist() == EXPECTED[name][mode]
     fallbacks = {("dense_jam", "nominal"), ("dense_jam", "robust"), ("leader_braking", "robust")}
-    fallbacks.add(("linear_car_alongside", "robust"))
+    fallbacks |= {("linear_car_alongside", "robust"), ("reversing_leader", "nominal"), ("reversing_leader", "robust")}
     assert scene.result.fallback == ((name, mode) in fallbacks)
     available = scene.env.unwrapped.action_type.get_available_actions()
     assert set(np.flatnonzero(scene.mask)) <= set(available)
@@ -107,6 +113,61 @@ def test_body_extent_sees_the_corner_of_a_car_turning_out(engine: str) -> None:
         **{"shield.engine": engine, "shield.body_extent": True},
     )  # fmt: skip
     assert straight.mask.tolist() == mask_of(I, F, S)
+
+
+@pytest.mark.parametrize("engine", ["numpy", "compiled"])
+@pytest.mark.parametrize("mode", ["nominal", "robust"])
+def test_a_reversing_leader_keeps_its_reverse_speed(engine: str, mode: str) -> None:
+    """shield.reversing_leaders (default): the car 7 m ahead (2 m bumper to bumper) rolling back at 2 m/s
+    keeps doing so over the 13 s horizon, 26 m: every action's worst gap is −24.06 m, no action is safe and
+    the state is a fallback (cells 38 and 86 of the campaign crashed from here, called safe). The earlier
+    rule (false) took the car as stopped and kept IDLE's 1.94 m gap as safe."""
+    now = scenarios.SCENARIOS["reversing_leader"](mode=mode, **{"shield.engine": engine})
+    assert now.result.fallback and not now.result.safe.any()
+    assert now.result.min_gap[I] == pytest.approx(-24.06, abs=0.01)
+    earlier = scenarios.SCENARIOS["reversing_leader"](
+        mode=mode, **{"shield.engine": engine, "shield.reversing_leaders": False}
+    )
+    assert earlier.result.safe.tolist() == mask_of(I) and not earlier.result.fallback
+    assert earlier.result.min_gap[I] == pytest.approx(1.94, abs=0.01)
+    # Rolling forward at 2 m/s instead, the same car is an ordinary leader: both rules give the same gaps.
+    forward = [scenarios.VehicleSpec(1, 7.0, 2.0)]
+    gaps = []
+    for reversing in (False, True):
+        scene = scenarios.build_scene(
+            1, 0.1, forward, mode=mode, ego_target_speed=0.0,
+            **{"shield.engine": engine, "shield.reversing_leaders": reversing},
+        )  # fmt: skip
+        assert scene.result.safe.tolist() == mask_of(I)
+        gaps.append(scene.result.min_gap)
+    assert gaps[0].tolist() == gaps[1].tolist()
+
+
+@pytest.mark.parametrize("engine", ["numpy", "compiled"])
+def test_level_cut_ins_see_the_car_being_overtaken_turn_in(engine: str) -> None:
+    """shield.level_cut_ins (experimental, off by default): the car 3 m ahead in the next lane at 13 m/s is
+    passed within the decision (0.5 s), and may then turn in behind the ego after the cut-in time and follow
+    it. At 0.2 s into the turn the ego leads it by only 1.76 m centre to centre: every action that keeps the
+    ego in lane 1 for that long leaves a −3.24 m gap (SLOWER −3.47 m), nothing is safe. The default rule
+    allows IDLE, LANE_RIGHT and SLOWER (cell00470's side impact). Nominal ignores the option."""
+    level = scenarios.SCENARIOS["car_being_overtaken"](mode="robust", **{"shield.engine": engine, "shield.level_cut_ins": True})
+    assert level.result.fallback and not level.result.safe.any()
+    assert level.result.min_gap[[I, R, S]] == pytest.approx([-3.24, -3.24, -3.47], abs=0.01)
+    default = scenarios.SCENARIOS["car_being_overtaken"](mode="robust", **{"shield.engine": engine})
+    assert default.result.safe.tolist() == mask_of(I, R, S)
+    nominal = scenarios.SCENARIOS["car_being_overtaken"](
+        mode="nominal", **{"shield.engine": engine, "shield.level_cut_ins": True}
+    )
+    assert nominal.result.safe.tolist() == mask_of(I, R, S)
+    # Without the queue's car beside the ego (only the ones 11 m and more ahead), the option changes nothing.
+    ahead_only = [scenarios.VehicleSpec(0, dx, 13.0) for dx in (11.0, 19.0)]
+    rate = {"env.policy_frequency": 2, "env.simulation_frequency": 10}
+    for on in (False, True):
+        scene = scenarios.build_scene(
+            1, 29.2, ahead_only, mode="robust", ego_target_speed=30.0, **rate,
+            **{"shield.engine": engine, "shield.level_cut_ins": on},
+        )  # fmt: skip
+        assert scene.result.safe.tolist() == mask_of(I, R, S)
 
 
 @pytest.mark.parametrize("engine", ["numpy", "compiled"])
@@ -239,7 +300,8 @@ def vehicle(draw: st.DrawFn, lanes: int, extreme: bool = False) -> dict[str, flo
     return {
         "x": draw(st.floats(0.0 if extreme else 100.0, 400.0 if extreme else 300.0)),
         "y": lane * 4.0 + draw(st.floats(-1.5, 1.5)),
-        "speed": draw(st.floats(0.0, 40.0)),
+        # extreme: down to -5 m/s, highway-env's jammed IDM cars roll backwards (shield.reversing_leaders)
+        "speed": draw(st.floats(-5.0 if extreme else 0.0, 40.0)),
         "heading": draw(st.floats(-max_heading, max_heading)),
         "crashed": draw(st.booleans()) if extreme else False,
         "delta": draw(st.floats(3.5, 4.5)),
@@ -343,7 +405,7 @@ def test_adding_a_vehicle_never_makes_an_action_safer(evaluate: Evaluator, case:
 @settings(max_examples=150, deadline=None)
 @given(road(extreme=True))
 def test_fuzz_extreme_states(evaluate: Evaluator, case: tuple) -> None:
-    """Speeds 0–40 m/s, gaps 0–200 m, overlapping vehicles, headings ±π/2, crashed cars, one lane."""
+    """Speeds −5–40 m/s, gaps 0–200 m, overlapping vehicles, headings ±π/2, crashed cars, one lane."""
     state, dyn, _ = case
     for mode in ("nominal", "robust"):
         result = evaluate(state, dyn, mode)

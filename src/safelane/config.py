@@ -136,6 +136,20 @@ class ShieldConfig(_Section):
         "drivers). Off: any such cut-in is assumed. On the campaign's grid it removes a third of the invariant "
         "breaks but lets more crashes follow the rest (docs/safety.md §6b).",
     )
+    reversing_leaders: bool = Field(
+        True,
+        strict=True,
+        description="A leader moving backwards (highway-env's jammed IDM cars roll back) keeps its reverse speed "
+        "over the horizon; false: it counts as stopped (the rule before issue 15's reversing crashes, "
+        "docs/safety.md §6d). On by default.",
+    )
+    level_cut_ins: bool = Field(
+        False,
+        strict=True,
+        description="Robust mode, experimental: a car level with or behind the ego in a next lane (its centre behind "
+        "the ego's now or at the end of the decision) may turn in behind it after the cut-in time and then "
+        "follow it; MOBIL's safety criterion does not protect the ego there (docs/safety.md §6e).",
+    )
 
 
 class SafelaneConfig(_Section):
@@ -534,7 +548,7 @@ RENAMED_KEYS: dict[str, tuple[str, dict[Any, Any]]] = {
 """Keys of older run configs: old name → (new name, old value → new value). Read, never written."""
 
 
-RULE_CHANGES: dict[str, Any] = {"body_extent": False}
+RULE_CHANGES: dict[str, Any] = {"body_extent": False, "reversing_leaders": False}
 """Shield keys added with a new default that changes the rule: a *recorded* configuration (a run's
 config.yaml, a counterexample file) written before the key existed had the old behaviour, given here,
 so that it replays as it ran (:func:`recorded_config`)."""

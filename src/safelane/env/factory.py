@@ -115,10 +115,6 @@ def _fast_simulator(cfg: SafelaneConfig, render_mode: str | None) -> gym.Env:
     """safelane's compiled simulator of the same highway (it produces the snapshot itself)."""
     if render_mode is not None:
         raise NotSupported("simulator: fast does not render; use simulator=highway-env to render an episode")
-    if cfg.traffic.vehicles_behind:
-        raise NotSupported(
-            "traffic.vehicles_behind: not supported by simulator=fast; allowed there: 0 (or use simulator=highway-env)"
-        )
     if cfg.traffic.adversary != "none":
         adversary = cfg.traffic.adversary
         raise NotSupported(
@@ -128,7 +124,7 @@ def _fast_simulator(cfg: SafelaneConfig, render_mode: str | None) -> gym.Env:
     from safelane.sim.fast.env import FastHighwayEnv
 
     try:
-        return FastHighwayEnv(dict(cfg.env), cfg.env_id)
+        return FastHighwayEnv(dict(cfg.env), cfg.env_id, vehicles_behind=cfg.traffic.vehicles_behind)
     except ValueError as err:  # a highway-env option the fast simulator does not model
         raise NotSupported(str(err)) from None
 
@@ -164,6 +160,8 @@ def make_env(
             projected_cut_ins=shield.projected_cut_ins,
             body_extent=shield.body_extent,
             linear_mobil=shield.linear_mobil,
+            reversing_leaders=shield.reversing_leaders,
+            level_cut_ins=shield.level_cut_ins,
         )
     env.safelane_config = cfg  # type: ignore[attr-defined]
     if seed is not None:

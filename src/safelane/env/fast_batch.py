@@ -117,7 +117,7 @@ def _observe_one(
     shielded, robust, leave_table, slowdown, speed_limit, origin, direction, lateral, lane_heading,
     ts, t, powers, tie_break, decision_period, frame_dt, frames, horizon, ego_kp, kernel_lane_width,
     kernel_lanes_count, follower_reaction, cut_in_time, margin, relevance, lateral_threshold,
-    projected_cut_ins, body_extent, body_width, linear_mobil,
+    projected_cut_ins, body_extent, body_width, linear_mobil, reversing_leaders, level_cut_ins,
     obs, masks, fallback, forward, crashed_ego, speed_ego, bad,
 ):  # fmt: skip
     """Scene ``i``: the agent's state into ``obs[i]``, the ego's forward and total speed [m/s] and crash
@@ -172,7 +172,8 @@ def _observe_one(
         0, lane[0], G[i, 0, K.TLANE], target, E[i, 0], origin, direction, lateral, lane_heading,
         speed_limit, ts, t, powers, tie_break, decision_period, frame_dt, frames, horizon, ego_kp,
         kernel_lane_width, kernel_lanes_count, follower_reaction, leave, cut_in_time, margin, relevance,
-        lateral_threshold, robust, projected_cut_ins, body_extent, body_width, linear_mobil,
+        lateral_threshold, robust, projected_cut_ins, body_extent, body_width, linear_mobil, reversing_leaders,
+        level_cut_ins,
     )  # fmt: skip
     masks[i] = out[0]
     fallback[i] = out[4]
@@ -271,7 +272,9 @@ class FastBatch:
 
     def _make_env(self, storage: Any) -> FastHighwayEnv:
         try:
-            return FastHighwayEnv(dict(self.cfg.env), self.cfg.env_id, storage=storage)
+            return FastHighwayEnv(
+                dict(self.cfg.env), self.cfg.env_id, storage=storage, vehicles_behind=self.cfg.traffic.vehicles_behind
+            )
         except ValueError as err:  # a highway-env option the fast simulator does not model
             raise NotSupported(str(err)) from None
 
@@ -303,7 +306,10 @@ class FastBatch:
     def _shield_constants(self, snap: RoadSnapshot) -> tuple:
         """The safety kernel's arguments that stay the same for the batch (SafetyShield's dynamics)."""
         shield = self.cfg.shield
-        dyn = dynamics_of(snap, shield.margin, shield.projected_cut_ins, shield.body_extent, shield.linear_mobil)
+        dyn = dynamics_of(
+            snap, shield.margin, shield.projected_cut_ins, shield.body_extent, shield.linear_mobil,
+            shield.reversing_leaders, shield.level_cut_ins,
+        )  # fmt: skip
         direction = snap.lane_direction
         lane_heading = math.atan2(direction[1], direction[0])
         return (
@@ -421,7 +427,7 @@ def _readonly(a: np.ndarray) -> np.ndarray:
 _NO_FRAME = tuple(_readonly(np.zeros(2)) for _ in range(3))
 _NO_SHIELD = (
     _readonly(np.zeros(1)), _readonly(np.zeros(1)), _readonly(np.zeros(1)), np.zeros(1, dtype=np.int64), 1.0, 1.0,
-    1, 1, 1.0, 4.0, 1, 0.0, 0.0, 0.0, 0.0, 0.0, False, False, 0.0, False,
+    1, 1, 1.0, 4.0, 1, 0.0, 0.0, 0.0, 0.0, 0.0, False, False, 0.0, False, False, False,
 )  # fmt: skip
 """Placeholders of :class:`safelane.safety.compiled.KernelConstants`'s fields when no shield runs (typed
 as the real ones, so both cases share one compiled kernel)."""

@@ -204,6 +204,26 @@ def linear_car_alongside(mode: Mode = "robust", **kw: Any) -> Scene:
     return build_scene(0, 19.35, specs, mode=mode, ego_target_speed=20.0, **kw)
 
 
+def reversing_leader(mode: Mode = "robust", dx: float = 7.0, **kw: Any) -> Scene:
+    """The ego nearly stopped (0.1 m/s, set-point 0) in lane 1; the car ``dx`` m ahead rolls *backwards* at
+    2 m/s, as highway-env's jammed IDM cars do (speeds are clipped to ±40 m/s only): the campaign's crashes
+    of cells 38 and 86 (``cell00038-seed4000380020``). With ``shield.reversing_leaders`` (the default) the
+    rule keeps its reverse speed and nothing is safe; the earlier rule took it as stopped, 2 m away."""
+    return build_scene(1, 0.1, [VehicleSpec(1, dx, -2.0)], mode=mode, ego_target_speed=0.0, **kw)
+
+
+def car_being_overtaken(mode: Mode = "robust", **kw: Any) -> Scene:
+    """2 decisions per second; the ego in lane 1 at 29.2 m/s (set-point 30) overtakes a queue of slow cars
+    (13 m/s) in lane 0, one of them 3 m ahead of the ego's centre: the campaign's crash from a state called
+    safe, ``cell00470-seed4004700006`` (6 lanes there). Within the decision the ego passes that car, which
+    then sees the ego as its new *leader*: MOBIL's safety criterion protects its new follower, not the ego,
+    and it may turn into the ego's rear flank. ``shield.level_cut_ins`` counts it as a follower entering
+    the ego's lane after the cut-in time."""
+    specs = [VehicleSpec(0, dx, 13.0) for dx in (-6.0, 3.0, 11.0, 19.0)]
+    rate = {"env.policy_frequency": 2, "env.simulation_frequency": 10}
+    return build_scene(1, 29.2, specs, mode=mode, ego_target_speed=30.0, **rate, **kw)
+
+
 SCENARIOS: dict[str, Callable[..., Scene]] = {
     "leader_braking": leader_braking,
     "stopped_car_ahead": stopped_car_ahead,
@@ -218,6 +238,8 @@ SCENARIOS: dict[str, Callable[..., Scene]] = {
     "second_lane_car_moving_over": second_lane_car_moving_over,
     "slow_car_turning_out": slow_car_turning_out,
     "linear_car_alongside": linear_car_alongside,
+    "reversing_leader": reversing_leader,
+    "car_being_overtaken": car_being_overtaken,
 }
 """Every scenario by name."""
 

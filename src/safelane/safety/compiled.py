@@ -105,6 +105,24 @@ def _linear_behind(
     return k0 * (ego_target - ego_speed) + k1 * _nmin(own_speed - ego_speed, 0.0) + k2 * _nmin(gap - d_safe, 0.0)
 
 
+@njit(cache=True, inline="always")
+def _follower_row(
+    out: np.ndarray, x0: float, vx: float, acc: float, brake: float, t_r: float, t: np.ndarray
+) -> None:  # fmt: skip
+    """``model.follower_positions`` for one vehicle into ``out`` (same operations, same order)."""
+    v0 = _nmax(vx, 0.0)
+    b = _nmax(brake, 1e-6)
+    ha = 0.5 * acc
+    hb = 0.5 * b
+    v1 = v0 + acc * t_r
+    stop = v1 / b
+    for j in range(t.shape[0]):
+        t1 = _nmin(t[j], t_r)
+        x1 = x0 + v0 * t1 + ha * (t1 * t1)
+        t2 = _nmin(_nmax(t[j] - t_r, 0.0), stop)
+        out[j] = x1 + v1 * t2 - hb * (t2 * t2)
+
+
 # --------------------------------------------------------------------------------------------
 # The evaluation.
 # --------------------------------------------------------------------------------------------
@@ -123,7 +141,7 @@ def _evaluate(
     decision_period: float, frame_dt: float, frames: int, horizon: int, ego_kp: float, lane_width: float,
     lanes_count: int, follower_reaction: float, ego_leave_time: float, cut_in_time: float, margin: float,
     relevance: float, lateral_threshold: float, robust: bool, projected_cut_ins: bool, body_extent: bool,
-    body_width: float, linear_mobil: bool,
+    body_width: float, linear_mobil: bool, reversing_leaders: bool, level_cut_ins: bool,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, bool]:  # fmt: skip
     """``model.evaluate`` (formula ``kinematic``) of one state: (mask, safe, available, min_gap, fallback)."""
     n_ts = ts.shape[0]
@@ -216,26 +234,28 @@ def _evaluate(
         lanes_near[r] = _lane_index(y[i], lane_width, lanes_count)
         is_ahead[r] = x[i] - ego_x >= 0
         if is_ahead[r]:  # braking_positions; a crashed vehicle is a wall where it stands
-            v0 = _nmax(0.0 if crashed[i] else vx[i], 0.0)
+            v_signed = 0.0 if crashed[i] else vx[i]
+            v0 = _nmax(v_signed, 0.0)
             b = _nmax(1e9 if crashed[i] else brake_max[i], 1e-6)
             stop = v0 / b
             hb = 0.5 * b
+            back = reversing_leaders and v_signed < 0.0  # a leader rolling backwards keeps its speed
             for j in range(n_t):
                 tt = _nmin(t[j], stop)
                 other_x[r, j] = x[i] + v0 * tt - hb * (tt * tt)
+                if back:
+                    other_x[r, j] = other_x[r, j] + v_signed * t[j]
         else:  # follower_positions
-            v0 = _nmax(vx[i], 0.0)
-            acc = accel_max[i]
-            b = _nmax(brake_max[i], 1e-6)
-            ha = 0.5 * acc
-            hb = 0.5 * b
-            v1 = v0 + acc * t_r
-            stop = v1 / b
-            for j in range(n_t):
-                t1 = _nmin(t[j], t_r)
-                x1 = x[i] + v0 * t1 + ha * (t1 * t1)
-                t2 = _nmin(_nmax(t[j] - t_r, 0.0), stop)
-                other_x[r, j] = x1 + v1 * t2 - hb * (t2 * t2)
+            _follower_row(other_x[r], x[i], vx[i], accel_max[i], brake_max[i], t_r, t)
+    # level_cut_ins: a car turning in behind the ego follows it, wherever it is now (ahead rows too).
+    level_rows = robust and level_cut_ins
+    foll_x = np.empty((m if level_rows else 0, n_t))
+    for r in range(foll_x.shape[0]):
+        if is_ahead[r]:
+            i = near[r]
+            _follower_row(foll_x[r], x[i], vx[i], accel_max[i], brake_max[i], t_r, t)
+        else:
+            foll_x[r] = other_x[r]
 
     # --- _occupancy: (row, lane, nominal); every entry starts at t = 0 -------------------------
     occ_row = np.empty(3 * m, dtype=np.int64)
@@ -291,6 +311,7 @@ def _evaluate(
     n_keys = 0
     permitted = np.zeros((N_ACTIONS, m), dtype=np.bool_)
     unfiltered = np.zeros((N_ACTIONS, m), dtype=np.bool_)
+    level = np.zeros((N_ACTIONS, m), dtype=np.bool_)  # level with or behind the ego (level_cut_ins)
     ego_lanes = np.empty(3, dtype=np.int64)
     ego_until_leave = np.empty(3, dtype=np.bool_)  # until = ego_leave_time (else inf)
     target_clip = 0.0
@@ -336,6 +357,7 @@ def _evaluate(
                     d_end = x[i] + vx[i] * decision_period - kx
                     ahead_c = d_now > 0 or d_end > 0
                     unfiltered[slot, r] = can and ahead_c
+                    level[slot, r] = can and (d_now <= 0 or d_end <= 0)
                     if can and ahead_c:
                         acc, delta, dec = idm_comfort_acc[i], idm_delta[i], idm_comfort_dec[i]
                         dw, tw = idm_distance_wanted[i], idm_time_wanted[i]
@@ -357,11 +379,21 @@ def _evaluate(
 
         # Every conflict: (row, window, nominal). The order of the reference's pairs only matters to
         # its min / max reductions, which are order-free here (NaN propagates either way).
-        n_conf = n_occ + (n_el * m if robust else 0)
+        n_cut = n_occ + (n_el * m if robust else 0)
+        n_conf = n_cut + (n_el * m if level_rows else 0)
         for c in range(n_conf):
+            follows = False
             if c < n_occ:
                 r, lane_c, nominal = occ_row[c], occ_lane[c], occ_nominal[c]
                 lo = lo_now
+            elif c >= n_cut:  # level_cut_ins: a car level with or behind the ego turning in behind it
+                e_idx, r = divmod(c - n_cut, m)
+                lane_c = ego_lanes[e_idx]
+                if not (level[slot, r] and abs(lanes_near[r] - lane_c) == 1):
+                    continue
+                nominal = False
+                follows = True
+                lo = lo_cut
             else:
                 e_idx, r = divmod(c - n_occ, m)
                 lane_c = ego_lanes[e_idx]
@@ -378,13 +410,15 @@ def _evaluate(
                 if ego_lanes[e] != lane_c:
                     continue
                 hi = hi_leave if ego_until_leave[e] else hi_inf
-                sign = 1.0 if is_ahead[r] else -1.0
+                ahead_r = is_ahead[r] and not follows
+                sign = 1.0 if ahead_r else -1.0
+                motion = foll_x if follows else other_x
                 h = half[r]
                 # The where(window, gap, inf).min(axis=-1) of the reference: the window's running minimum,
                 # the 4 fallbacks side by side (independent chains; min is exact in any order).
                 w0 = w1 = w2 = w3 = inf
                 for j in range(lo, hi + 1):
-                    o = other_x[r, j]
+                    o = motion[r, j]
                     w0 = _nmin(w0, sign * (o - xs[a, j, 0]) - h)
                     w1 = _nmin(w1, sign * (o - xs[a, j, 1]) - h)
                     w2 = _nmin(w2, sign * (o - xs[a, j, 2]) - h)
@@ -393,11 +427,11 @@ def _evaluate(
                 best_f = -inf
                 for f in range(N_FALLBACKS):
                     joint_gap[a, f] = _nmin(joint_gap[a, f], worst[f])
-                    if is_ahead[r]:
+                    if ahead_r:
                         ahead_gap[a, f] = _nmin(ahead_gap[a, f], worst[f])
                     if nominal:
                         nominal_joint[a, f] = _nmin(nominal_joint[a, f], worst[f])
-                        if is_ahead[r]:
+                        if ahead_r:
                             nominal_ahead[a, f] = _nmin(nominal_ahead[a, f], worst[f])
                     best_f = worst[f] if f == 0 else _nmax(best_f, worst[f])
                 if nominal and not (best_f >= margin):
@@ -459,7 +493,7 @@ def _evaluate_snapshot(
     decision_period: float, frame_dt: float, frames: int, horizon: int, ego_kp: float, lane_width: float,
     lanes_count: int, follower_reaction: float, ego_leave_time: float, cut_in_time: float, margin: float,
     relevance: float, lateral_threshold: float, robust: bool, projected_cut_ins: bool, body_extent: bool,
-    body_width: float, linear_mobil: bool,
+    body_width: float, linear_mobil: bool, reversing_leaders: bool, level_cut_ins: bool,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, bool]:  # fmt: skip
     """``shield.road_state`` then :func:`_evaluate`, without building the state in Python.
 
@@ -504,7 +538,7 @@ def _evaluate_snapshot(
         lin_k0[keep], lin_k1[keep], lin_k2[keep],
         ts, t, powers, tie_break, decision_period, frame_dt, frames, horizon, ego_kp, lane_width, lanes_count,
         follower_reaction, ego_leave_time, cut_in_time, margin, relevance, lateral_threshold, robust,
-        projected_cut_ins, body_extent, body_width, linear_mobil,
+        projected_cut_ins, body_extent, body_width, linear_mobil, reversing_leaders, level_cut_ins,
     )  # fmt: skip
 
 
@@ -586,13 +620,16 @@ class KernelConstants(NamedTuple):
     body_extent: bool
     body_width: float
     linear_mobil: bool
+    reversing_leaders: bool
+    level_cut_ins: bool
 
 
 def kernel_constants(dyn: Dynamics) -> KernelConstants:
     """``dyn``'s constants in :data:`snapshot_kernel`'s form (the arrays computed as the reference does)."""
     args = _dynamics_args(dyn, dyn.ego_leave_time)
     return KernelConstants(
-        *args[:12], *args[13:], dyn.projected_cut_ins, dyn.body_extent, dyn.body_width, dyn.linear_mobil
+        *args[:12], *args[13:], dyn.projected_cut_ins, dyn.body_extent, dyn.body_width, dyn.linear_mobil,
+        dyn.reversing_leaders, dyn.level_cut_ins,
     )
 
 
@@ -622,7 +659,7 @@ def evaluate_compiled(
         s.idm_distance_wanted, s.idm_time_wanted, s.max_braking_imposed, s.linear_speed_gain,
         s.linear_speed_difference_gain, s.linear_distance_gain,
         *_dynamics_args(dyn, dyn.ego_leave_time), mode == "robust", dyn.projected_cut_ins, dyn.body_extent,
-        dyn.body_width, dyn.linear_mobil,
+        dyn.body_width, dyn.linear_mobil, dyn.reversing_leaders, dyn.level_cut_ins,
     )  # fmt: skip
     return _result(out)
 
@@ -654,6 +691,6 @@ def evaluate_snapshot(
         e, int(snap.lane[e]), int(snap.target_lane[e]), snap.ego_target_speed, snap.ego_speed_index,
         snap.lane_origin, snap.lane_direction, snap.lane_lateral, lane_heading, snap.speed_limit,
         *_dynamics_args(dyn, ego_leave_time), mode == "robust", dyn.projected_cut_ins, dyn.body_extent,
-        dyn.body_width, dyn.linear_mobil,
+        dyn.body_width, dyn.linear_mobil, dyn.reversing_leaders, dyn.level_cut_ins,
     )  # fmt: skip
     return _result(out)

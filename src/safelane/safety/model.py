@@ -12,7 +12,8 @@ vehicle may share. The ego's own motion is simulated exactly as highway-env inte
 (P-controller on the speed target, explicit Euler at the simulation step); the others are
 bounded by their driver model's limits:
 
-* a vehicle ahead may brake at its maximum deceleration (IDM's ``ACC_MAX``) from now on;
+* a vehicle ahead may brake at its maximum deceleration (IDM's ``ACC_MAX``) from now on; one moving
+  backwards (highway-env's jammed IDM cars roll back) keeps its reverse speed;
 * a vehicle behind may accelerate at its maximum (IDM's ``COMFORT_ACC_MAX``) for a reaction time
   and then brake at ``ACC_MAX``.
 
@@ -93,6 +94,8 @@ class Dynamics:
     body_extent: bool = True  # robust: a vehicle also occupies every lane its rotated body overlaps
     body_width: float = 2.0  # [m] the other vehicles' width (highway-env's Vehicle.WIDTH), for body_extent
     linear_mobil: bool = False  # robust: linear-model drivers' MOBIL criterion with their formula (else: any cut-in)
+    reversing_leaders: bool = True  # a leader moving backwards keeps its reverse speed (else: taken as stopped)
+    level_cut_ins: bool = False  # robust: a car level with or behind the ego in a next lane may turn in behind it
 
     @property
     def horizon_decisions(self) -> int:
@@ -241,12 +244,22 @@ def ego_trajectories(state: RoadState, dyn: Dynamics) -> tuple[np.ndarray, np.nd
 # --------------------------------------------------------------------------------------------
 
 
-def braking_positions(x0: np.ndarray, v0: np.ndarray, brake: np.ndarray, t: np.ndarray) -> np.ndarray:
-    """Positions [m] of vehicles braking at ``brake`` [m/s²] from speed ``v0`` [m/s] until standstill."""
+def braking_positions(
+    x0: np.ndarray, v0: np.ndarray, brake: np.ndarray, t: np.ndarray, reversing: bool = False
+) -> np.ndarray:
+    """Positions [m] of vehicles braking at ``brake`` [m/s²] from speed ``v0`` [m/s] until standstill.
+
+    A vehicle moving backwards (``v0 < 0``) counts as stopped, or with ``reversing`` keeps moving back at
+    ``v0`` for the whole of ``t``: IDM has no bound on how long a jammed car rolls back (highway-env clips
+    speeds to ±40 m/s only), and the ego behind it cannot reverse (docs/safety.md §6d)."""
+    v_signed = v0[:, None]
     v0 = np.maximum(v0, 0.0)[:, None]
     b = np.maximum(brake, 1e-6)[:, None]
     tt = np.minimum(t[None, :], v0 / b)
-    return x0[:, None] + v0 * tt - 0.5 * b * tt**2
+    x = x0[:, None] + v0 * tt - 0.5 * b * tt**2
+    if reversing:
+        x = np.where(v_signed < 0.0, x + v_signed * t[None, :], x)
+    return x
 
 
 def follower_positions(
@@ -381,8 +394,9 @@ def _occupancy(state: RoadState, dyn: Dynamics, mode: Mode, near: np.ndarray) ->
 
 def _cut_in_candidates(
     state: RoadState, dyn: Dynamics, near: np.ndarray, ego_x_end: float, ego_v_end: float, ego_target: float
-) -> tuple[np.ndarray, np.ndarray]:
-    """Vehicles ahead that may cut in: (into a lane the ego is in, into a lane the ego is entering).
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Vehicles that may change into a lane the ego uses: (ahead, into a lane the ego is in; ahead, into a
+    lane the ego is entering; level with or behind the ego, into any lane it uses — ``level_cut_ins``).
 
     Into a lane the ego already occupies, a vehicle changes lane only if its own rule allows it:
     MOBIL's safety criterion (highway-env) requires the acceleration its own model predicts for its new
@@ -393,9 +407,14 @@ def _cut_in_candidates(
     criterion is checked now and at the end of the decision period (others at constant speed, the ego
     on the action's trajectory). Into a lane the ego is only *entering*, the other driver cannot see the
     ego there when it decides, so any moving vehicle ahead may cut in.
+
+    A vehicle whose centre is behind the ego's, now or at the end of the period (the ego overtaking it),
+    sees the ego as its new *leader*: MOBIL's safety criterion then protects its new follower, not the
+    ego, so any of them may turn in (issue 15, cell 470: a car just overtaken turned into the ego's
+    rear flank). With ``level_cut_ins`` the rule counts them as followers entering the ego's lanes.
     """
     if near.size == 0:
-        return np.zeros(0, dtype=bool), np.zeros(0, dtype=bool)
+        return np.zeros(0, dtype=bool), np.zeros(0, dtype=bool), np.zeros(0, dtype=bool)
     can = state.can_change_lane[near] & (np.abs(state.vx[near]) >= 1.0)
     target = np.clip(ego_target, 0.0, state.speed_limit)
     d_now = state.x[near] - state.ego_x
@@ -412,7 +431,8 @@ def _cut_in_candidates(
         a_now[linear] = np.inf
     limit = -state.max_braking_imposed[near]
     ahead = (d_now > 0) | (d_end > 0)
-    return can & ahead & ((a_now >= limit) | (a_end >= limit)), can & ahead
+    level = (d_now <= 0) | (d_end <= 0)
+    return can & ahead & ((a_now >= limit) | (a_end >= limit)), can & ahead, can & level
 
 
 def evaluate(state: RoadState, dyn: Dynamics, mode: Mode = "robust", formula: Formula = "kinematic") -> SafetyResult:
@@ -435,7 +455,9 @@ def evaluate(state: RoadState, dyn: Dynamics, mode: Mode = "robust", formula: Fo
     # Worst-case longitudinal motion of every nearby vehicle: leaders brake, followers surge.
     stopped = state.crashed  # a crashed vehicle is treated as a wall where it stands
     brake = np.where(stopped, 1e9, state.brake_max)
-    lead_x = braking_positions(state.x[near], np.where(stopped[near], 0.0, state.vx[near]), brake[near], t)
+    lead_x = braking_positions(
+        state.x[near], np.where(stopped[near], 0.0, state.vx[near]), brake[near], t, dyn.reversing_leaders
+    )
     foll_x = follower_positions(
         state.x[near], state.vx[near], state.accel_max[near], state.brake_max[near], dyn.follower_reaction, t
     )
@@ -458,19 +480,20 @@ def evaluate(state: RoadState, dyn: Dynamics, mode: Mode = "robust", formula: Fo
     moving_near = (np.abs(state.heading[near]) > LATERAL_MOTION_THRESHOLD) | (np.abs(state.vy[near]) > 0.3)
     projected_near = lanes_near + np.where(state.vy[near] > 0, 1, -1)
     moving_near &= (projected_near >= 0) & (projected_near < dyn.lanes_count)
-    cut_ins: dict[tuple[float, float, float], tuple[np.ndarray, np.ndarray]] = {}
+    cut_ins: dict[tuple[float, float, float], tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
     for a in range(N_ACTIONS):
         if not available[a]:
             continue
         ego_lanes = _action_lanes(state, dyn, a)
         vehicles, lanes_v, starts, nominal_flags = occ.vehicle, occ.lane, occ.start, occ.nominal
+        as_follower = [False] * len(vehicles)  # a conflict with a car turning in behind the ego (level_cut_ins)
         if mode == "robust":
             occupied = {state.ego_lane, state.ego_target_lane}
             # IDLE and the lane changes share one longitudinal trajectory: compute their cut-ins once.
             key = (float(ego_x[a, 0, frames]), float(ego_v[a, 0, frames]), float(targets[a]))
             if key not in cut_ins:
                 cut_ins[key] = _cut_in_candidates(state, dyn, near, *key)
-            permitted, unfiltered = cut_ins[key]
+            permitted, unfiltered, level = cut_ins[key]
             extra_v, extra_l = [], []
             for lane, _ in ego_lanes:
                 cands = permitted if lane in occupied else unfiltered
@@ -482,14 +505,25 @@ def evaluate(state: RoadState, dyn: Dynamics, mode: Mode = "robust", formula: Fo
                 for j in np.flatnonzero(cands & adjacent):
                     extra_v.append(int(near[j]))
                     extra_l.append(lane)
-            vehicles = vehicles + extra_v
-            lanes_v = lanes_v + extra_l
-            starts = starts + [dyn.cut_in_time] * len(extra_v)
-            nominal_flags = nominal_flags + [False] * len(extra_v)
+            behind_v, behind_l = [], []
+            if dyn.level_cut_ins:
+                # A car level with or behind the ego in a next lane may turn in behind it after the cut-in
+                # time and then follow it (accelerate for the reaction time, then brake): a follower.
+                for lane, _ in ego_lanes:
+                    for j in np.flatnonzero(level & (np.abs(lanes_near - lane) == 1)):
+                        behind_v.append(int(near[j]))
+                        behind_l.append(lane)
+            vehicles = vehicles + extra_v + behind_v
+            lanes_v = lanes_v + extra_l + behind_l
+            starts = starts + [dyn.cut_in_time] * (len(extra_v) + len(behind_v))
+            nominal_flags = nominal_flags + [False] * (len(extra_v) + len(behind_v))
+            as_follower = as_follower + [False] * len(extra_v) + [True] * len(behind_v)
         # Every (vehicle, lane) pair that shares a lane with the ego, with the window in which both do.
         pairs = [
-            (row_of[vi], start, until, is_nominal)
-            for vi, lane, start, is_nominal in zip(vehicles, lanes_v, starts, nominal_flags, strict=True)
+            (row_of[vi], start, until, is_nominal, follows)
+            for vi, lane, start, is_nominal, follows in zip(
+                vehicles, lanes_v, starts, nominal_flags, as_follower, strict=True
+            )
             for ego_lane, until in ego_lanes
             if ego_lane == lane
         ]
@@ -500,11 +534,13 @@ def evaluate(state: RoadState, dyn: Dynamics, mode: Mode = "robust", formula: Fo
             t[None, :] <= np.array([p[2] for p in pairs])[:, None]
         )  # (c, T)
         is_nominal = np.array([p[3] for p in pairs], dtype=bool)
+        follows = np.array([p[4] for p in pairs], dtype=bool)
         vehicle = near[rows]
-        sign = np.where(ahead[vehicle], 1.0, -1.0)
-        gap = sign[:, None, None] * (other_x[rows][:, None, :] - ego_x[a][None]) - half[vehicle][:, None, None]
+        is_ahead = ahead[vehicle] & ~follows
+        sign = np.where(is_ahead, 1.0, -1.0)
+        motion = np.where(follows[:, None], foll_x[rows], other_x[rows])  # a car turning in behind follows
+        gap = sign[:, None, None] * (motion[:, None, :] - ego_x[a][None]) - half[vehicle][:, None, None]
         worst = np.where(window[:, None, :], gap, np.inf).min(axis=-1)  # (c, F) worst gap per fallback
-        is_ahead = ahead[vehicle]
         joint_gap[a] = worst.min(axis=0)
         if is_ahead.any():
             ahead_gap[a] = worst[is_ahead].min(axis=0)

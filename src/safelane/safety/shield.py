@@ -76,9 +76,11 @@ def dynamics_of(
     projected_cut_ins: bool = False,
     body_extent: bool = True,
     linear_mobil: bool = False,
+    reversing_leaders: bool = True,
+    level_cut_ins: bool = False,
 ) -> Dynamics:
     """The :class:`Dynamics` constants of the simulated world a snapshot was taken in; ``margin`` [m]: the
-    bumper-to-bumper gap the rule keeps under its worst case; the two robust options as in :class:`Dynamics`."""
+    bumper-to-bumper gap the rule keeps under its worst case; the rule's options as in :class:`Dynamics`."""
     sim_f, pol_f = snap.simulation_frequency, snap.policy_frequency
     # Fastest cut-in over plausible speeds; slowest ego exit (at low speed the lateral motion is slower).
     enter = min(lane_change_timing(sim_f, s)[1] for s in (15.0, 25.0, 35.0))
@@ -95,6 +97,8 @@ def dynamics_of(
         projected_cut_ins=projected_cut_ins,
         body_extent=body_extent,
         linear_mobil=linear_mobil,
+        reversing_leaders=reversing_leaders,
+        level_cut_ins=level_cut_ins,
         # The widest other body (every highway-env vehicle has Vehicle.WIDTH): the occupancy bound.
         body_width=float(np.max(snap.width)) if len(snap.width) else 2.0,
     )
@@ -173,6 +177,8 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
     ``projected_cut_ins``: robust mode also counts cut-ins from the lane a sideways-moving vehicle moves to.
     ``body_extent``: robust mode also puts a vehicle in every lane its rotated body overlaps.
     ``linear_mobil``: robust mode applies a linear-model driver's MOBIL criterion with its own formula.
+    ``reversing_leaders``: a leader moving backwards keeps its reverse speed (else it counts as stopped).
+    ``level_cut_ins``: robust mode lets a car level with or behind the ego in a next lane turn in behind it.
     """
 
     def __init__(
@@ -186,6 +192,8 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
         projected_cut_ins: bool = False,
         body_extent: bool = True,
         linear_mobil: bool = False,
+        reversing_leaders: bool = True,
+        level_cut_ins: bool = False,
     ) -> None:
         if not (math.isfinite(margin) and margin >= 0):
             raise ValueError(f"shield.margin: must be a finite number >= 0 [m] (got {margin!r})")
@@ -205,6 +213,8 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
             projected_cut_ins=projected_cut_ins,
             body_extent=body_extent,
             linear_mobil=linear_mobil,
+            reversing_leaders=reversing_leaders,
+            level_cut_ins=level_cut_ins,
         )
         try:
             env.get_wrapper_attr("road_snapshot")
@@ -219,6 +229,8 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
         self.projected_cut_ins = bool(projected_cut_ins)
         self.body_extent = bool(body_extent)
         self.linear_mobil = bool(linear_mobil)
+        self.reversing_leaders = bool(reversing_leaders)
+        self.level_cut_ins = bool(level_cut_ins)
         self.dynamics: Dynamics | None = None
         self.result: SafetyResult | None = None
         self.snapshot: RoadSnapshot | None = None
@@ -249,8 +261,9 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
         """(lane heading [rad], the time [s] the ego takes to leave its lane) for ``snap``."""
         if self.dynamics is None:
             self.dynamics = dynamics_of(
-                snap, self.margin, self.projected_cut_ins, self.body_extent, self.linear_mobil
-            )
+                snap, self.margin, self.projected_cut_ins, self.body_extent, self.linear_mobil,
+                self.reversing_leaders, self.level_cut_ins,
+            )  # fmt: skip
         dyn = self.dynamics
         # The ego's speed along the road, as road_state computes it (the compiled path builds no RoadState).
         direction = snap.lane_direction

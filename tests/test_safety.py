@@ -150,7 +150,9 @@ def test_level_cut_ins_see_the_car_being_overtaken_turn_in(engine: str) -> None:
     it. At 0.2 s into the turn the ego leads it by only 1.76 m centre to centre: every action that keeps the
     ego in lane 1 for that long leaves a −3.24 m gap (SLOWER −3.47 m), nothing is safe. The default rule
     allows IDLE, LANE_RIGHT and SLOWER (cell00470's side impact). Nominal ignores the option."""
-    level = scenarios.SCENARIOS["car_being_overtaken"](mode="robust", **{"shield.engine": engine, "shield.level_cut_ins": True})
+    level = scenarios.SCENARIOS["car_being_overtaken"](
+        mode="robust", **{"shield.engine": engine, "shield.level_cut_ins": True}
+    )
     assert level.result.fallback and not level.result.safe.any()
     assert level.result.min_gap[[I, R, S]] == pytest.approx([-3.24, -3.24, -3.47], abs=0.01)
     default = scenarios.SCENARIOS["car_being_overtaken"](mode="robust", **{"shield.engine": engine})

@@ -11,9 +11,9 @@ Python per environment and decision.
 It is the same environment, not an approximation: row ``i`` after any sequence of resets and steps has
 the observation, reward, flags, mask and fallback of ``make_env(config)`` driven the same way
 (``tests/test_vector_env.py``, ``tests/test_evaluation.py``). Supported: the fast simulator with
-``state`` ``paper`` or ``lanes`` and any shield mode on the compiled engine except nominal with the
-``paper`` formula (:func:`supports`); :func:`safelane.env.vector.make_vector_env` falls back to a loop over
-``make_env`` environments otherwise.
+``state`` ``paper`` or ``lanes``, any ``traffic.vehicles_behind``, no ``traffic.adversary``, and any
+shield mode on the compiled engine except nominal with the ``paper`` formula (:func:`supports`);
+:func:`safelane.env.vector.make_vector_env` falls back to a loop over ``make_env`` environments otherwise.
 
 Used by :class:`safelane.env.vector.FastVectorEnv` (gymnasium's autoreset) and by the evaluation
 runner (:func:`safelane.running.evaluation.run_episodes_fast_batch`: each episode on its own seed).
@@ -83,6 +83,8 @@ def supports(cfg: SafelaneConfig) -> str | None:
         return f"simulator: {cfg.simulator} (the batch steps the fast simulator)"
     if cfg.state not in STATE_KINDS:
         return f"state: {cfg.state}"
+    if cfg.traffic.adversary != "none":  # make_env refuses it on the fast simulator: so does the batch
+        return f"traffic.adversary: {cfg.traffic.adversary} (the fast simulator places no adversary)"
     shield = cfg.shield
     if shield.mode != "none" and shield.engine != "compiled":
         return f"shield.engine: {shield.engine} (the batch runs the compiled kernel)"

@@ -16,7 +16,9 @@ Supported: any ``action.target_speeds`` (2 or more, last != first), ``lanes_coun
 :data:`safelane.sim.fast.scene.OTHER_VEHICLE_TYPES` (IDMVehicle; LinearVehicle, AggressiveVehicle,
 DefensiveVehicle). Any other setting that changes the dynamics raises ValueError naming it
 (:func:`safelane.sim.fast.scene.resolve_config`); rendering, reward and observation settings are accepted
-and have no effect.
+and have no effect. ``vehicles_behind`` (safelane's ``traffic.vehicles_behind``, not a highway-env
+setting) moves that many vehicles behind the ego at reset as :class:`safelane.sim.traffic.TrafficLayout`
+does on highway-env (:func:`safelane.sim.fast.scene.spawn_behind`).
 """
 
 from __future__ import annotations
@@ -31,7 +33,7 @@ from highway_env.vehicle.controller import ControlledVehicle
 
 from safelane.core.snapshot import RoadSnapshot
 from safelane.sim.fast import kernels as K
-from safelane.sim.fast.scene import SPEED_LIMIT, build_scene, params, resolve_config
+from safelane.sim.fast.scene import SPEED_LIMIT, build_scene, params, resolve_config, spawn_behind
 
 ACTIONS = {0: "LANE_LEFT", 1: "IDLE", 2: "LANE_RIGHT", 3: "FASTER", 4: "SLOWER"}
 _SNAPSHOT_FIELDS = (
@@ -99,6 +101,8 @@ class FastHighwayEnv(gym.Env):
 
     ``state()`` gives every vehicle's arrays (row 0: the ego, then highway-env's ``road.vehicles`` order).
     ``storage``: the arrays to live in (default: its own; :class:`SceneStorage`).
+    ``vehicles_behind``: how many vehicles (at most ``vehicles_count``) each reset moves from the front
+    of the scene to behind the ego, as safelane's ``traffic.vehicles_behind`` on highway-env.
     Seeding is gymnasium's (``Env.reset(seed=...)`` -> ``self.np_random``), as in highway-env.
     """
 
@@ -109,9 +113,14 @@ class FastHighwayEnv(gym.Env):
         config: dict[str, Any] | None = None,
         env_id: str = "highway-fast-v0",
         storage: SceneStorage | None = None,
+        vehicles_behind: int = 0,
     ) -> None:
         self.env_id = env_id
         self.sim = resolve_config(config, env_id)
+        whole = isinstance(vehicles_behind, int | np.integer) and not isinstance(vehicles_behind, bool)
+        if not whole or vehicles_behind < 0:
+            raise ValueError(f"vehicles_behind: {vehicles_behind!r} is not supported; allowed: an integer >= 0")
+        self.vehicles_behind = int(vehicles_behind)
         self.config = self.sim.config
         self.action_space = spaces.Discrete(5)
         self.observation_space = spaces.Box(-np.inf, np.inf, shape=(2,), dtype=np.float32)
@@ -195,6 +204,8 @@ class FastHighwayEnv(gym.Env):
             if array is not built:  # the Python path (a non-PCG64 generator) builds new arrays
                 array[...] = built
         self.F, self.G, self.E = self._buffers
+        if self.vehicles_behind:  # TrafficLayout, right after highway-env's scene
+            spawn_behind(self.np_random, self.sim, self.P, self.F, self.G, self.vehicles_behind)
         self.time = 0.0
         self.steps = 0
         self._rec[0] = 0

@@ -879,3 +879,51 @@ def spawn(raws, st, ego_lane, ego_spacing, spacing, lanes_factor, lo, hi, d_lo, 
         if x > x_max:
             x_max = x
     return st[0] >= 0
+
+
+@njit(cache=True, error_model="numpy")
+def spawn_behind(raws, st, first, count, x, lo, hi, lanes_factor, density, d_lo, d_hi, delay, drv, check_others,
+                 n_lanes, P, F, G):  # fmt: skip
+    """safelane's ``TrafficLayout._spawn_behind``: ``count`` vehicles behind the ego at x [m], in rows
+    ``first`` .. ``first + count - 1`` (see scene.spawn_behind_python, its line-by-line twin).
+
+    Each: lane ``integers(n_lanes)``, speed ``uniform(lo, hi)`` [m/s], gap ``(12 + speed) * lanes_factor /
+    density * uniform(0.9, 1.1)`` [m] back from the previous one, then ``randomize_behavior()`` (``drv`` as
+    in :func:`spawn`). Returns False when ``raws`` ran out (``st[0] == -1``)."""
+    width = P[P_LANE_WIDTH]
+    lin = drv[0] != 0.0
+    for k in range(first, first + count):
+        lane_id = _integers(raws, st, n_lanes)
+        speed = _uniform(raws, st, lo, hi)
+        offset = (12 + speed) * lanes_factor / density
+        x -= offset * _uniform(raws, st, 0.9, 1.1)
+        y = lane_id * width
+        F[k, :] = 0.0
+        G[k, :] = 0
+        F[k, X] = x
+        F[k, Y] = y
+        F[k, V] = speed
+        F[k, TSPD] = speed
+        F[k, TIMER] = ((x + y) * np.pi) % delay
+        F[k, TW] = drv[1]
+        F[k, GAIN] = drv[2]
+        if lin:
+            u0 = _uniform(raws, st, 0.0, 1.0)
+            u1 = _uniform(raws, st, 0.0, 1.0)
+            u2 = _uniform(raws, st, 0.0, 1.0)
+            F[k, AP0] = drv[3] + u0 * (drv[6] - drv[3])
+            F[k, AP1] = drv[4] + u1 * (drv[7] - drv[4])
+            F[k, AP2] = drv[5] + u2 * (drv[8] - drv[5])
+            v0 = _uniform(raws, st, 0.0, 1.0)
+            v1 = _uniform(raws, st, 0.0, 1.0)
+            F[k, SP0] = drv[9] + v0 * (drv[11] - drv[9])
+            F[k, SP1] = drv[10] + v1 * (drv[12] - drv[10])
+            G[k, LIN] = 1
+        F[k, DELTA] = _uniform(raws, st, d_lo, d_hi)
+        lane = closest_lane(x, y, 0.0, n_lanes, P)
+        G[k, LANE] = lane
+        G[k, TLANE] = lane
+        G[k, CHECK] = check_others
+        G[k, ELC] = 1
+        G[k, IDM] = 1
+    return st[0] >= 0

@@ -15,10 +15,17 @@ hands to the ``Road``), making the same calls in the same order with the same ar
 
 The arithmetic is the same expressions in the same order, so positions, speeds, timers and DELTAs are
 bit-identical to highway-env's.
+
+``traffic.vehicles_behind = N`` (safelane's :class:`safelane.sim.traffic.TrafficLayout`, applied right
+after highway-env's scene) is :func:`spawn_behind`: the N vehicles farthest ahead leave, N new ones are
+drawn behind the ego from the same generator (``integers(lanes_count)``, ``uniform(0.7·30, 1.0·30)``,
+``uniform(0.9, 1.1)``, then ``randomize_behavior()``), with the same rows order as ``road.vehicles``.
 """
 
 from __future__ import annotations
 
+import math
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -256,26 +263,41 @@ def build_scene(
     if out is None:
         out = (np.zeros((n, K.NF)), np.zeros((n, K.NI), dtype=np.int64), np.zeros(1, dtype=np.int64))
     F, G, E = out
-    state = bg.state
-    has = int(state["has_uint32"])
-    st0 = np.array([0, has, int(state["uinteger"])], dtype=np.int64)
     n_int = sc.vehicles_count + (1 if sc.initial_lane_id is None else 0) if sc.lanes_count > 1 else 0
     n_dbl = 1 + (8 if sc.driver[0] else 3) * sc.vehicles_count
-    need = n_dbl + (max(n_int - has, 0) + 1) // 2  # the fewest raw outputs the draws can take
-    raws = bg.random_raw(need)
     ego_lane = -1 if sc.initial_lane_id is None else sc.initial_lane_id
     lanes_factor = float(np.exp(-5 / 40 * sc.lanes_count))
     d_lo, d_hi = sc.other_class.DELTA_RANGE
-    while True:
-        st = st0.copy()
-        ok = K.spawn(
+
+    def draw(raws: np.ndarray, st: np.ndarray) -> bool:
+        return K.spawn(
             raws, st, ego_lane, float(sc.ego_spacing), float(1 / sc.vehicles_density), lanes_factor,
             0.7 * SPEED_LIMIT, 0.8 * SPEED_LIMIT, float(d_lo), float(d_hi), float(sc.other_class.LANE_CHANGE_DELAY),
             float(IDMVehicle.DELTA), sc.driver, 1 if sc.others_check_collisions else 0, sc.target_speeds,
             sc.lanes_count,
             P, F, G, E,
         )  # fmt: skip
-        if ok:
+
+    _replay(bg, n_int, n_dbl, draw)
+    return F, G, E
+
+
+def _replay(bg: np.random.PCG64, n_int: int, n_dbl: int, draw: Callable[[np.ndarray, np.ndarray], bool]) -> None:
+    """Run ``draw(raws, st)`` (a numba kernel's draws) on the generator's next raw outputs, then leave the
+    generator exactly where the same ``integers`` / ``uniform`` calls would.
+
+    ``n_int`` bounded 32-bit draws and ``n_dbl`` doubles is what the draws take without rejections: the
+    fewest raw outputs (a bounded draw takes half of one, through the generator's ``has_uint32`` buffer);
+    a rejected draw makes ``draw`` return False, and it is replayed with one more output.
+    """
+    state = bg.state
+    has = int(state["has_uint32"])
+    st0 = np.array([0, has, int(state["uinteger"])], dtype=np.int64)
+    need = n_dbl + (max(n_int - has, 0) + 1) // 2  # the fewest raw outputs the draws can take
+    raws = bg.random_raw(need)
+    while True:
+        st = st0.copy()
+        if draw(raws, st):
             break
         raws = np.concatenate([raws, bg.random_raw(1)])  # a rejected bounded draw: one more output
     assert st[0] == raws.size, (st, raws.size, need, has)
@@ -284,7 +306,6 @@ def build_scene(
         state["has_uint32"] = int(st[1])
         state["uinteger"] = int(st[2])
         bg.state = state
-    return F, G, E
 
 
 def build_scene_python(
@@ -374,3 +395,119 @@ def build_scene_python(
         if x > x_max:
             x_max = x
     return F, G, E
+
+
+def _make_room(F: np.ndarray, G: np.ndarray, count: int) -> tuple[int, int]:
+    """Remove the ``count`` vehicles farthest ahead (at most all but the ego) as TrafficLayout does:
+    the largest x [m] by a stable sort, as Python's ``list.sort``; the others keep their order
+    (``road.vehicles.remove``) and move up. Returns (the first free row, how many rows are free)."""
+    n_others = F.shape[0] - 1
+    count = max(min(int(count), n_others), 0)
+    if count == 0:
+        return F.shape[0], 0
+    order = np.argsort(F[1:, K.X], kind="stable") + 1
+    keep = np.sort(order[: n_others - count])
+    F[1 : 1 + keep.size] = F[keep]
+    G[1 : 1 + keep.size] = G[keep]
+    first = 1 + keep.size
+    F[first:] = 0.0
+    G[first:] = 0
+    return first, count
+
+
+def spawn_behind(
+    rng: np.random.Generator, sc: SimConfig, P: np.ndarray, F: np.ndarray, G: np.ndarray, count: int
+) -> int:
+    """``TrafficLayout._spawn_behind`` (safelane's ``traffic.vehicles_behind``) on a built scene's arrays,
+    in place; returns how many vehicles moved (``count``, at most ``vehicles_count``).
+
+    The ``count`` vehicles farthest ahead leave; the others keep their rows and order, and the new ones
+    take the last rows (highway-env's ``road.vehicles`` after ``remove`` / ``append``). On PCG64 the
+    draws are replayed from the generator's raw outputs in one numba call
+    (:func:`safelane.sim.fast.kernels.spawn_behind`), leaving the generator where the ``integers`` /
+    ``uniform`` calls would; other bit generators take :func:`spawn_behind_python`.
+    """
+    bg = rng.bit_generator
+    if type(bg) is not np.random.PCG64:
+        return spawn_behind_python(rng, sc, P, F, G, count)
+    first, count = _make_room(F, G, count)
+    if count == 0:
+        return 0
+    cls = sc.other_class
+    d_lo, d_hi = cls.DELTA_RANGE
+    limit = SPEED_LIMIT or 30.0  # lane.speed_limit or 30.0
+    x = float(F[0, K.X])  # ego.lane.local_coordinates(ego.position)[0]
+
+    def draw(raws: np.ndarray, st: np.ndarray) -> bool:
+        return K.spawn_behind(
+            raws, st, first, count, x, 0.7 * limit, 1.0 * limit, math.exp(-5 / 40 * sc.lanes_count),
+            float(sc.vehicles_density), float(d_lo), float(d_hi), float(cls.LANE_CHANGE_DELAY), sc.driver,
+            1 if sc.others_check_collisions else 0, sc.lanes_count, P, F, G,
+        )  # fmt: skip
+
+    n_int = count if sc.lanes_count > 1 else 0
+    _replay(bg, n_int, (8 if sc.driver[0] else 3) * count, draw)
+    return count
+
+
+def spawn_behind_python(
+    rng: np.random.Generator, sc: SimConfig, P: np.ndarray, F: np.ndarray, G: np.ndarray, count: int
+) -> int:
+    """``TrafficLayout._spawn_behind`` on a built scene's arrays (in place) with the generator's own calls
+    (the reference for :func:`spawn_behind`); returns how many vehicles moved.
+
+    ``count`` vehicles (at most ``vehicles_count``) leave: the ones farthest ahead (largest x [m], a
+    stable sort as Python's ``list.sort``); the others keep their rows and order (``road.vehicles.remove``),
+    and the new vehicles take the last rows (``road.vehicles.append``). Going backwards from the ego's x
+    [m], each draws its lane (``integers(lanes_count)``), its speed [m/s] (``uniform(0.7·limit, 1.0·limit)``,
+    limit 30 m/s) and its gap [m] (``(12 + speed)·exp(-5/40·lanes_count) / vehicles_density`` times
+    ``uniform(0.9, 1.1)``), then its driver parameters (``randomize_behavior()``), from ``rng`` with the
+    generator's own calls in TrafficLayout's order, so the draws and the arithmetic are highway-env's.
+    """
+    first, count = _make_room(F, G, count)
+    if count == 0:
+        return 0
+    cls = sc.other_class
+    lin = issubclass(cls, LinearVehicle)
+    n_lanes = sc.lanes_count
+    width = float(P[K.P_LANE_WIDTH])
+    limit = SPEED_LIMIT or 30.0  # lane.speed_limit or 30.0
+    lanes_factor = math.exp(-5 / 40 * n_lanes)
+    density = sc.vehicles_density
+    d_lo, d_hi = cls.DELTA_RANGE
+    delay = cls.LANE_CHANGE_DELAY
+    check = 1 if sc.others_check_collisions else 0
+    uniform = rng.uniform
+    # ego.lane.local_coordinates(ego.position)[0]: lane i starts at (0, i·w) with direction (1, 0)
+    x = float(F[0, K.X])
+    for k in range(first, first + count):
+        lane_id = int(rng.integers(n_lanes))
+        speed = float(uniform(0.7 * limit, 1.0 * limit))
+        offset = (12 + speed) * lanes_factor / density
+        x -= offset * uniform(0.9, 1.1)
+        y = float(lane_id * width)  # lane.position(x, 0) on lane lane_id
+        # IDMVehicle(road, position, heading=lane.heading_at(x) = 0, speed): target speed = speed,
+        # timer = (np.sum(position) * pi) % LANE_CHANGE_DELAY, lane = the closest lane
+        F[k, K.X] = x
+        F[k, K.Y] = y
+        F[k, K.H] = 0.0
+        F[k, K.V] = speed
+        F[k, K.TSPD] = speed
+        F[k, K.TIMER] = (np.sum(np.array([x, y])) * np.pi) % delay
+        F[k, K.TW] = cls.TIME_WANTED
+        F[k, K.GAIN] = cls.LANE_CHANGE_MIN_ACC_GAIN
+        if lin:  # LinearVehicle.randomize_behavior, then IDMVehicle's
+            ar, sr = cls.ACCELERATION_RANGE, cls.STEERING_RANGE
+            ua = uniform(size=np.shape(cls.ACCELERATION_PARAMETERS))
+            F[k, K.AP0 : K.AP2 + 1] = ar[0] + ua * (ar[1] - ar[0])
+            ub = uniform(size=np.shape(cls.STEERING_PARAMETERS))
+            F[k, K.SP0 : K.SP1 + 1] = sr[0] + ub * (sr[1] - sr[0])
+            G[k, K.LIN] = 1
+        F[k, K.DELTA] = uniform(low=d_lo, high=d_hi)
+        lane = K.closest_lane(x, y, 0.0, n_lanes, P)
+        G[k, K.LANE] = lane
+        G[k, K.TLANE] = lane
+        G[k, K.CHECK] = check
+        G[k, K.ELC] = 1
+        G[k, K.IDM] = 1
+    return count

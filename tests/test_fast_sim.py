@@ -292,3 +292,35 @@ def test_numpy_computes_libm_bits_here() -> None:
     from safelane.sim.fast.libm import LIBM_NUMPY_ENV, numpy_matches_libm
 
     assert numpy_matches_libm(), f"numpy's transcendental functions are not libm's here; set {LIBM_NUMPY_ENV}"
+
+
+def test_linear_steering_squares_the_speed_with_pow_as_highway_env() -> None:
+    """LinearVehicle.steering_features divides by ``not_zero(speed) ** 2``: libm's pow on a float, which is
+    an ulp away from speed·speed for about 1 speed in 1 200; the kernel calls pow too (a product would
+    differ from highway-env's steering for some of these speeds: checked below)."""
+    from highway_env.vehicle.behavior import LinearVehicle
+
+    from safelane.sim.fast import kernels as K
+    from safelane.sim.fast.scene import params
+
+    oracle = _oracle("fast")
+    oracle.reset(seed=0)
+    road = oracle.unwrapped.road
+    P = params()
+    rng = np.random.default_rng(0)
+    speeds = [s for s in rng.uniform(5.0, 30.0, 40_000).tolist() if s**2 != s * s][:25]
+    assert len(speeds) == 25
+    F = np.zeros((1, K.NF))
+    product_differs = 0
+    for k, s in enumerate(speeds):
+        v = LinearVehicle(road, [100.0, 4.0 + 0.05 * (k + 1)], heading=0.002 * k, speed=s)
+        v.randomize_behavior()
+        lane = v.target_lane_index
+        ref = v.steering_control(lane)
+        F[0, K.X], F[0, K.Y], F[0, K.H], F[0, K.V] = v.position[0], v.position[1], v.heading, v.speed
+        F[0, K.SP0 : K.SP1 + 1] = v.STEERING_PARAMETERS
+        assert K._linear_steering(F, 0, lane[2], P) == ref, f"speed {s!r}"
+        f0 = v.steering_features(lane)[0]
+        f1_product = -v.lane.local_coordinates(v.position)[1] * v.LENGTH / (s * s)
+        product_differs += float(np.dot(v.STEERING_PARAMETERS, [f0, f1_product])) != ref
+    assert product_differs > 0

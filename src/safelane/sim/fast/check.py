@@ -41,12 +41,19 @@ class Alignment:
         return self.divergent_step is None
 
 
-def make_oracle(config: dict[str, Any], env_id: str) -> Any:
-    """Stock highway-env, as the project makes it: ``gym.make(env_id, config=config)``."""
+def make_oracle(config: dict[str, Any], env_id: str, vehicles_behind: int = 0) -> Any:
+    """Stock highway-env, as the project makes it: ``gym.make(env_id, config=config)``; with
+    ``vehicles_behind`` > 0 wrapped in :class:`safelane.sim.traffic.TrafficLayout` (highway-env's own
+    neighbour search kept), which moves that many vehicles behind the ego at reset."""
     import gymnasium as gym
     import highway_env  # noqa: F401  (registers the envs)
 
-    return gym.make(env_id, config=config)
+    env = gym.make(env_id, config=config)
+    if vehicles_behind:
+        from safelane.sim.traffic import TrafficLayout
+
+        env = TrafficLayout(env, vehicles_behind, vectorized=False)
+    return env
 
 
 def oracle_state(env: Any) -> dict[str, np.ndarray]:
@@ -113,15 +120,17 @@ def compare_episode(
     oracle: Any = None,
     fast: FastHighwayEnv | None = None,
     stop_at_end: bool = True,
+    vehicles_behind: int = 0,
 ) -> Alignment:
     """Run ``actions`` from ``reset(seed=seed)`` in both simulators and report the first divergence.
 
-    ``oracle`` / ``fast``: envs to reuse (made from ``config`` / ``env_id`` when None).
+    ``oracle`` / ``fast``: envs to reuse (made from ``config`` / ``env_id`` / ``vehicles_behind`` when None).
+    ``vehicles_behind``: safelane's ``traffic.vehicles_behind`` (see :func:`make_oracle`).
     ``stop_at_end``: stop at the oracle's termination / truncation (False: play every action, which
     also checks the crashed ego and the traffic after the episode would have ended).
     """
-    oracle = oracle if oracle is not None else make_oracle(config, env_id)
-    fast = fast if fast is not None else FastHighwayEnv(config, env_id)
+    oracle = oracle if oracle is not None else make_oracle(config, env_id, vehicles_behind)
+    fast = fast if fast is not None else FastHighwayEnv(config, env_id, vehicles_behind=vehicles_behind)
     oracle.reset(seed=seed)
     fast.reset(seed=seed)
     cause, err, bitwise = compare_states(fast.state(), oracle_state(oracle), tol, full=True)

@@ -75,8 +75,9 @@ NI = 8
     P_MIN_ACC_GAIN,
     P_MAX_BRAKING_IMPOSED,
     P_LANE_CHANGE_DELAY,
-) = range(23)
-NP = 23
+    P_SQUARE,  # 2.0, read at run time: highway-env's ``x ** 2`` on a float is libm's pow (see _linear_steering)
+) = range(24)
+NP = 24
 
 # Ego meta-actions (DiscreteMetaAction.ACTIONS_ALL)
 LANE_LEFT, IDLE, LANE_RIGHT, FASTER, SLOWER = 0, 1, 2, 3, 4
@@ -356,11 +357,16 @@ def _steering_control(F, j, target_lane, P):
 
 @njit(cache=True, error_model="numpy", inline="always")
 def _linear_steering(F, j, target_lane, P):
-    """LinearVehicle.steering_control: STEERING_PARAMETERS · steering_features (not clipped here)."""
+    """LinearVehicle.steering_control: STEERING_PARAMETERS · steering_features (not clipped here).
+
+    ``not_zero(speed) ** 2`` is libm's ``pow(speed, 2.0)``, which is not always ``speed * speed`` (glibc's pow
+    is within 0.52 ulp, not correctly rounded: about 1 speed in 1 200 differs by an ulp). With a literal
+    2.0, LLVM rewrites ``pow(x, 2.0)`` as ``x * x``; the exponent ``P[P_SQUARE]`` is only known at run time.
+    """
     lat = F[j, Y] - target_lane * P[P_LANE_WIDTH]
     nz = _not_zero(F[j, V])
     f0 = _wrap_to_pi(0.0 - F[j, H]) * P[P_LENGTH] / nz
-    f1 = -lat * P[P_LENGTH] / (nz * nz)
+    f1 = -lat * P[P_LENGTH] / math.pow(nz, P[P_SQUARE])
     return F[j, SP0] * f0 + F[j, SP1] * f1
 
 

@@ -228,6 +228,7 @@ def params() -> np.ndarray:
     P[K.P_MIN_ACC_GAIN] = IDMVehicle.LANE_CHANGE_MIN_ACC_GAIN
     P[K.P_MAX_BRAKING_IMPOSED] = IDMVehicle.LANE_CHANGE_MAX_BRAKING_IMPOSED
     P[K.P_LANE_CHANGE_DELAY] = IDMVehicle.LANE_CHANGE_DELAY
+    P[K.P_SQUARE] = 2.0
     return P
 
 

@@ -307,11 +307,13 @@ def test_script_version(safelane_exe: Path) -> None:
 
 def test_stress_on_the_fast_simulator_skips_what_it_does_not_model() -> None:
     args = ["stress", "--policy", "random", "--simulator", "fast", "--episodes", "1", "--json"]
-    result = runner.invoke(app, [*args, "--only", "training", "--only", "vehicles_behind_15"])
+    only = ["--only", "training", "--only", "vehicles_behind_15", "--only", "adversary_hard_brake"]
+    result = runner.invoke(app, [*args, *only])
     assert result.exit_code == 0, result.output
-    training, behind = json.loads(result.stdout)["conditions"]
+    training, behind, adversary = json.loads(result.stdout)["conditions"]
     assert training["simulator"] == "fast" and training["episodes"] == 1
-    assert "traffic.vehicles_behind: not supported by simulator=fast" in behind["skipped"]
+    assert behind["simulator"] == "fast" and behind["episodes"] == 1 and "skipped" not in behind
+    assert "traffic.adversary: 'brake' not supported by simulator=fast" in adversary["skipped"]
 
 
 def test_sim_check_warns_in_one_line_when_numpy_is_not_libm(monkeypatch: pytest.MonkeyPatch) -> None:

@@ -23,7 +23,7 @@ def write_spec(path: Path, **fields: object) -> Path:
         "sets": ["env.duration=6"],
         "axes": {
             "lanes": [{"env.lanes_count": 3}, {"env.lanes_count": 4}],
-            "behind": [{"traffic.vehicles_behind": 0}, {"traffic.vehicles_behind": 5}],
+            "adversary": [{"traffic.adversary": "none"}, {"traffic.adversary": "brake"}],
         },
         "policies": ["random"],
         "episodes": 4,
@@ -47,12 +47,12 @@ def test_campaign_writes_cells_skips_what_the_simulator_lacks_and_resumes(tmp_pa
     spec = load_campaign_spec(write_spec(tmp_path / "c.yaml"))
     out = tmp_path / "out"
     summary = run_campaign(spec, out, workers=1)
-    assert summary["cells"] == 4 and summary["cells_skipped"] == 2  # vehicles_behind: not on the fast simulator
+    assert summary["cells"] == 4 and summary["cells_skipped"] == 2  # adversaries: not on the fast simulator
     assert summary["episodes"] == 8
     rows = (out / "cells.csv").read_text().splitlines()
     assert (
         len(rows) == 1 + 4
-        and "traffic.vehicles_behind: not supported by simulator=fast" in (out / "cells.csv").read_text()
+        and "traffic.adversary: 'brake' not supported by simulator=fast" in (out / "cells.csv").read_text()
     )
     files = sorted((out / "counterexamples").glob("*.json"))
     assert len(files) == summary["invariant_breaks"] + summary["collisions"]

@@ -227,6 +227,23 @@ def test_reversing_leaders_bit_identical_and_only_stricter(case: tuple) -> None:
 
 @PROPERTY_SETTINGS
 @given(case=road())
+def test_level_incentive_bit_identical_and_between_the_rules(case: tuple) -> None:
+    """shield.level_cut_ins with MOBIL's incentive (the default of the option) only keeps the level cars
+    that gain by moving behind the ego: never stricter than any level car turning in (level_incentive
+    false), never looser than the rule without level cut-ins; the same in both engines."""
+    state, dyn, _ = case
+    off = dataclasses.replace(dyn, level_cut_ins=False)
+    plain = dataclasses.replace(dyn, level_cut_ins=True, level_incentive=False)
+    incentive = dataclasses.replace(dyn, level_cut_ins=True, level_incentive=True)
+    assert mismatches(state, plain) == [] and mismatches(state, incentive) == []
+    for mode in MODES:
+        without, anyone, gaining = (model.evaluate(state, d, mode) for d in (off, plain, incentive))
+        assert not (anyone.safe & ~gaining.safe).any()
+        assert not (gaining.safe & ~without.safe).any()
+
+
+@PROPERTY_SETTINGS
+@given(case=road())
 def test_linear_mobil_bit_identical_and_only_looser(case: tuple) -> None:
     """shield.linear_mobil judges Linear-model cut-ins by their criterion: the same in both engines either
     way, and it only removes conflicts (never makes an action unsafe); nominal ignores it."""

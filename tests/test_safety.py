@@ -161,6 +161,13 @@ def test_level_cut_ins_see_the_car_being_overtaken_turn_in(engine: str) -> None:
         mode="nominal", **{"shield.engine": engine, "shield.level_cut_ins": True}
     )
     assert nominal.result.safe.tolist() == mask_of(I, R, S)
+    # MOBIL's incentive (level_incentive, on by default): that car, stuck 8 m behind the next car of its queue
+    # at the same speed, gains by moving behind the ego (the ego 5 m ahead and 16 m/s faster at the end of the
+    # decision): it stays a conflict. Without the incentive filter, the same.
+    anyone = scenarios.SCENARIOS["car_being_overtaken"](
+        mode="robust", **{"shield.engine": engine, "shield.level_cut_ins": True, "shield.level_incentive": False}
+    )
+    assert anyone.result.min_gap.tolist() == level.result.min_gap.tolist()
     # Without the queue's car beside the ego (only the ones 11 m and more ahead), the option changes nothing.
     ahead_only = [scenarios.VehicleSpec(0, dx, 13.0) for dx in (11.0, 19.0)]
     rate = {"env.policy_frequency": 2, "env.simulation_frequency": 10}
@@ -170,6 +177,29 @@ def test_level_cut_ins_see_the_car_being_overtaken_turn_in(engine: str) -> None:
             **{"shield.engine": engine, "shield.level_cut_ins": on},
         )  # fmt: skip
         assert scene.result.safe.tolist() == mask_of(I, R, S)
+
+
+@pytest.mark.parametrize("engine", ["numpy", "compiled"])
+def test_level_incentive_lets_a_car_in_free_flow_stay_in_its_lane(engine: str) -> None:
+    """A car 3 m behind the ego in the next lane at the ego's 25 m/s, nothing ahead of it; a leader 40 m ahead
+    of the ego at 20 m/s. Behind the ego, 3 m centre to centre, IDM would brake it at 3·(47.5 / 3)² ≈ 750 m/s²
+    against 0 in its free lane: MOBIL never moves it there (shield.level_incentive, default), and the mask is
+    the default rule's (only SLOWER, worst gap 3.33 m). If any level car may turn in (level_incentive false),
+    it becomes a follower 2 m short of a car length behind the braking ego: nothing is safe."""
+    scene = [scenarios.VehicleSpec(0, -3.0, 25.0), scenarios.VehicleSpec(1, 40.0, 20.0)]
+    results = {}
+    for name, options in {
+        "default": {},
+        "incentive": {"shield.level_cut_ins": True},
+        "anyone": {"shield.level_cut_ins": True, "shield.level_incentive": False},
+    }.items():
+        built = scenarios.build_scene(
+            1, 25.0, scene, mode="robust", ego_target_speed=25.0, **{"shield.engine": engine, **options}
+        )
+        results[name] = built.result
+    assert results["default"].safe.tolist() == mask_of(S)
+    assert results["incentive"].min_gap.tolist() == results["default"].min_gap.tolist()
+    assert results["anyone"].fallback and results["anyone"].min_gap[S] == pytest.approx(-9.34, abs=0.01)
 
 
 @pytest.mark.parametrize("engine", ["numpy", "compiled"])

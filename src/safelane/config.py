@@ -150,6 +150,13 @@ class ShieldConfig(_Section):
         "the ego's now or at the end of the decision) may turn in behind it after the cut-in time and then "
         "follow it; MOBIL's safety criterion does not protect the ego there (docs/safety.md §6e).",
     )
+    level_incentive: bool = Field(
+        True,
+        strict=True,
+        description="With level_cut_ins: only a car that MOBIL's incentive lets move behind the ego (politeness 0: it "
+        "gains acceleration there over its own lane, e.g. stuck in a slow queue) counts; false: any such car "
+        "(measured, docs/safety.md §6e).",
+    )
 
 
 class SafelaneConfig(_Section):

@@ -162,6 +162,7 @@ def make_env(
             linear_mobil=shield.linear_mobil,
             reversing_leaders=shield.reversing_leaders,
             level_cut_ins=shield.level_cut_ins,
+            level_incentive=shield.level_incentive,
         )
     env.safelane_config = cfg  # type: ignore[attr-defined]
     if seed is not None:

@@ -46,6 +46,7 @@ assert spaces.N_ACTIONS == N_ACTIONS and model.MAX_HOLD_DECISIONS + 1 == N_FALLB
 _TIE_BREAK = np.array(model.TIE_BREAK_ORDER, dtype=np.int64)
 _RELEVANCE = float(model.RELEVANCE_RANGE)
 _LATERAL = float(model.LATERAL_MOTION_THRESHOLD)
+_MIN_ACC_GAIN = float(model.MOBIL_MIN_ACC_GAIN)
 
 
 # --------------------------------------------------------------------------------------------
@@ -106,6 +107,17 @@ def _linear_behind(
 
 
 @njit(cache=True, inline="always")
+def _gap_ratio(
+    dw: float, tw: float, acc: float, dec: float, v: float, front_speed: float, gap: float
+) -> float:  # fmt: skip
+    """``model._gap_ratio`` for one vehicle (same operations, same order)."""
+    ab = -acc * dec
+    d_star = dw + v * tw + v * (v - front_speed) / (2 * np.sqrt(ab))
+    d = 1e-2 if abs(gap) < 1e-2 else gap
+    return d_star / d
+
+
+@njit(cache=True, inline="always")
 def _follower_row(
     out: np.ndarray, x0: float, vx: float, acc: float, brake: float, t_r: float, t: np.ndarray
 ) -> None:  # fmt: skip
@@ -141,7 +153,8 @@ def _evaluate(
     decision_period: float, frame_dt: float, frames: int, horizon: int, ego_kp: float, lane_width: float,
     lanes_count: int, follower_reaction: float, ego_leave_time: float, cut_in_time: float, margin: float,
     relevance: float, lateral_threshold: float, robust: bool, projected_cut_ins: bool, body_extent: bool,
-    body_width: float, linear_mobil: bool, reversing_leaders: bool, level_cut_ins: bool,
+    body_width: float, linear_mobil: bool, reversing_leaders: bool, level_cut_ins: bool, level_incentive: bool,
+    min_acc_gain: float,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, bool]:  # fmt: skip
     """``model.evaluate`` (formula ``kinematic``) of one state: (mask, safe, available, min_gap, fallback)."""
     n_ts = ts.shape[0]
@@ -312,6 +325,14 @@ def _evaluate(
     permitted = np.zeros((N_ACTIONS, m), dtype=np.bool_)
     unfiltered = np.zeros((N_ACTIONS, m), dtype=np.bool_)
     level = np.zeros((N_ACTIONS, m), dtype=np.bool_)  # level with or behind the ego (level_cut_ins)
+    # model.own_leaders: each nearby vehicle's nearest one ahead in its own lane (the first of equals).
+    leader_of = np.full(m if (level_rows and level_incentive) else 0, -1, dtype=np.int64)
+    for r in range(leader_of.shape[0]):
+        xr = x[near[r]]
+        for k in range(m):
+            xk = x[near[k]]
+            if lanes_near[k] == lanes_near[r] and xk > xr and (leader_of[r] < 0 or xk < x[near[leader_of[r]]]):
+                leader_of[r] = k
     ego_lanes = np.empty(3, dtype=np.int64)
     ego_until_leave = np.empty(3, dtype=np.bool_)  # until = ego_leave_time (else inf)
     target_clip = 0.0
@@ -357,7 +378,26 @@ def _evaluate(
                     d_end = x[i] + vx[i] * decision_period - kx
                     ahead_c = d_now > 0 or d_end > 0
                     unfiltered[slot, r] = can and ahead_c
-                    level[slot, r] = can and (d_now <= 0 or d_end <= 0)
+                    if level_rows and level_incentive and not np.isfinite(lin_k0[i]):
+                        # model.turn_in_incentive: MOBIL's gain behind the ego, now or at the end.
+                        dw, tw, v = idm_distance_wanted[i], idm_time_wanted[i], vx[i]
+                        acc, dec = idm_comfort_acc[i], idm_comfort_dec[i]
+                        q_ln = q_le = 0.0
+                        ld = leader_of[r]
+                        if ld >= 0:
+                            lx, lv = x[near[ld]], vx[near[ld]]
+                            q_ln = _gap_ratio(dw, tw, acc, dec, v, lv, lx - x[i])
+                            gap_end = (lx + lv * decision_period) - (x[i] + v * decision_period)
+                            q_le = _gap_ratio(dw, tw, acc, dec, v, lv, gap_end)
+                        q_en = _gap_ratio(dw, tw, acc, dec, v, ego_speed, -d_now)
+                        q_ee = _gap_ratio(dw, tw, acc, dec, v, kv, -d_end)
+                        gain_now = acc * (q_ln * q_ln) - acc * (q_en * q_en)
+                        gain_end = acc * (q_le * q_le) - acc * (q_ee * q_ee)
+                        level[slot, r] = can and (
+                            (d_now <= 0 and gain_now >= min_acc_gain) or (d_end <= 0 and gain_end >= min_acc_gain)
+                        )
+                    else:
+                        level[slot, r] = can and (d_now <= 0 or d_end <= 0)
                     if can and ahead_c:
                         acc, delta, dec = idm_comfort_acc[i], idm_delta[i], idm_comfort_dec[i]
                         dw, tw = idm_distance_wanted[i], idm_time_wanted[i]
@@ -493,7 +533,8 @@ def _evaluate_snapshot(
     decision_period: float, frame_dt: float, frames: int, horizon: int, ego_kp: float, lane_width: float,
     lanes_count: int, follower_reaction: float, ego_leave_time: float, cut_in_time: float, margin: float,
     relevance: float, lateral_threshold: float, robust: bool, projected_cut_ins: bool, body_extent: bool,
-    body_width: float, linear_mobil: bool, reversing_leaders: bool, level_cut_ins: bool,
+    body_width: float, linear_mobil: bool, reversing_leaders: bool, level_cut_ins: bool, level_incentive: bool,
+    min_acc_gain: float,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, bool]:  # fmt: skip
     """``shield.road_state`` then :func:`_evaluate`, without building the state in Python.
 
@@ -538,7 +579,8 @@ def _evaluate_snapshot(
         lin_k0[keep], lin_k1[keep], lin_k2[keep],
         ts, t, powers, tie_break, decision_period, frame_dt, frames, horizon, ego_kp, lane_width, lanes_count,
         follower_reaction, ego_leave_time, cut_in_time, margin, relevance, lateral_threshold, robust,
-        projected_cut_ins, body_extent, body_width, linear_mobil, reversing_leaders, level_cut_ins,
+        projected_cut_ins, body_extent, body_width, linear_mobil, reversing_leaders, level_cut_ins, level_incentive,
+        min_acc_gain,
     )  # fmt: skip
 
 
@@ -622,6 +664,8 @@ class KernelConstants(NamedTuple):
     linear_mobil: bool
     reversing_leaders: bool
     level_cut_ins: bool
+    level_incentive: bool
+    min_acc_gain: float
 
 
 def kernel_constants(dyn: Dynamics) -> KernelConstants:
@@ -629,7 +673,7 @@ def kernel_constants(dyn: Dynamics) -> KernelConstants:
     args = _dynamics_args(dyn, dyn.ego_leave_time)
     return KernelConstants(
         *args[:12], *args[13:], dyn.projected_cut_ins, dyn.body_extent, dyn.body_width, dyn.linear_mobil,
-        dyn.reversing_leaders, dyn.level_cut_ins,
+        dyn.reversing_leaders, dyn.level_cut_ins, dyn.level_incentive, _MIN_ACC_GAIN,
     )
 
 
@@ -659,7 +703,8 @@ def evaluate_compiled(
         s.idm_distance_wanted, s.idm_time_wanted, s.max_braking_imposed, s.linear_speed_gain,
         s.linear_speed_difference_gain, s.linear_distance_gain,
         *_dynamics_args(dyn, dyn.ego_leave_time), mode == "robust", dyn.projected_cut_ins, dyn.body_extent,
-        dyn.body_width, dyn.linear_mobil, dyn.reversing_leaders, dyn.level_cut_ins,
+        dyn.body_width, dyn.linear_mobil, dyn.reversing_leaders, dyn.level_cut_ins, dyn.level_incentive,
+        _MIN_ACC_GAIN,
     )  # fmt: skip
     return _result(out)
 
@@ -691,6 +736,7 @@ def evaluate_snapshot(
         e, int(snap.lane[e]), int(snap.target_lane[e]), snap.ego_target_speed, snap.ego_speed_index,
         snap.lane_origin, snap.lane_direction, snap.lane_lateral, lane_heading, snap.speed_limit,
         *_dynamics_args(dyn, ego_leave_time), mode == "robust", dyn.projected_cut_ins, dyn.body_extent,
-        dyn.body_width, dyn.linear_mobil, dyn.reversing_leaders, dyn.level_cut_ins,
+        dyn.body_width, dyn.linear_mobil, dyn.reversing_leaders, dyn.level_cut_ins, dyn.level_incentive,
+        _MIN_ACC_GAIN,
     )  # fmt: skip
     return _result(out)

@@ -57,6 +57,7 @@ TAIL_DECISIONS = 2
 """Decisions simulated after the speed target reaches its minimum (the P-controller's exponential tail)."""
 RELEVANCE_RANGE = 250.0  # [m] vehicles farther than this (longitudinally) cannot matter in the horizon
 LATERAL_MOTION_THRESHOLD = 0.01  # [rad] |heading| above which a vehicle counts as changing lane (robust)
+MOBIL_MIN_ACC_GAIN = 0.2  # [m/s²] highway-env's IDMVehicle.LANE_CHANGE_MIN_ACC_GAIN (its POLITENESS is 0)
 
 OVERRIDE_ORDER: dict[int, tuple[int, ...]] = {
     LANE_LEFT: (LANE_LEFT, IDLE, SLOWER, FASTER, LANE_RIGHT),
@@ -96,6 +97,7 @@ class Dynamics:
     linear_mobil: bool = False  # robust: linear-model drivers' MOBIL criterion with their formula (else: any cut-in)
     reversing_leaders: bool = True  # a leader moving backwards keeps its reverse speed (else: taken as stopped)
     level_cut_ins: bool = False  # robust: a car level with or behind the ego in a next lane may turn in behind it
+    level_incentive: bool = True  # level_cut_ins: only if MOBIL's incentive (its gain behind the ego) allows it
 
     @property
     def horizon_decisions(self) -> int:
@@ -431,8 +433,62 @@ def _cut_in_candidates(
         a_now[linear] = np.inf
     limit = -state.max_braking_imposed[near]
     ahead = (d_now > 0) | (d_end > 0)
-    level = (d_now <= 0) | (d_end <= 0)
+    if dyn.level_cut_ins and dyn.level_incentive:
+        # Linear-model drivers' incentive uses their own formula, not modelled: any turn-in is assumed.
+        incentive = turn_in_incentive(state, dyn, near, d_now, d_end, ego_v_end)
+        level = np.where(linear, (d_now <= 0) | (d_end <= 0), incentive)
+    else:
+        level = (d_now <= 0) | (d_end <= 0)
     return can & ahead & ((a_now >= limit) | (a_end >= limit)), can & ahead, can & level
+
+
+def _gap_ratio(state: RoadState, who: np.ndarray, front_speed: np.ndarray, gap: np.ndarray) -> np.ndarray:
+    """IDM's ``d*/d`` for vehicles ``who`` following a vehicle at ``front_speed`` [m/s], ``gap`` [m] centre to
+    centre (``IDMVehicle.desired_gap`` over ``not_zero(lane_distance_to)``), with their own parameters."""
+    v = state.vx[who]
+    ab = -state.idm_comfort_acc[who] * state.idm_comfort_dec[who]
+    d_star = state.idm_distance_wanted[who] + v * state.idm_time_wanted[who] + v * (v - front_speed) / (2 * np.sqrt(ab))
+    d = np.where(np.abs(gap) < 1e-2, 1e-2, gap)
+    return d_star / d
+
+
+def own_leaders(state: RoadState, dyn: Dynamics, near: np.ndarray) -> np.ndarray:
+    """For each vehicle of ``near``, the row (in ``near``) of the nearest one ahead of it in its own lane
+    (−1: none within range): its current leader, as ``Road.neighbour_vehicles`` finds it."""
+    x = state.x[near]
+    lanes = state.lane_of(state.y[near], dyn.lanes_count, dyn.lane_width)
+    leader = np.full(near.size, -1, dtype=int)
+    for j in range(near.size):
+        rows = np.flatnonzero((lanes == lanes[j]) & (x > x[j]))
+        if rows.size:
+            leader[j] = rows[np.argmin(x[rows])]  # the first of equals, in row order
+    return leader
+
+
+def turn_in_incentive(
+    state: RoadState, dyn: Dynamics, near: np.ndarray, d_now: np.ndarray, d_end: np.ndarray, ego_v_end: float
+) -> np.ndarray:
+    """Whether each vehicle of ``near``, with its centre behind the ego's (``d_now`` / ``d_end`` [m]: its
+    offset ahead of the ego now / at the end of the decision, others at constant speed), gains by moving
+    behind the ego: MOBIL's incentive with politeness 0 (highway-env's ``IDMVehicle``), ``a(behind the
+    ego) − a(behind its own leader) ≥`` :data:`MOBIL_MIN_ACC_GAIN`. The free-road terms cancel, leaving
+    ``acc·(d*/d)²_leader − acc·(d*/d)²_ego``; with no leader within range, only the ego's term. Checked
+    now and at the end of the decision, as the cut-in criterion is (an approximation within the decision,
+    not a bound): a car in free flow loses by tucking in behind the ego at a short gap; one stuck behind
+    a slower or stopped queue gains (cell 470)."""
+    leader = own_leaders(state, dyn, near)
+    has = leader >= 0
+    rows = np.where(has, leader, 0)
+    x, v, t = state.x[near], state.vx[near], dyn.decision_period
+    acc = state.idm_comfort_acc[near]
+    lead_v = np.where(has, v[rows], 0.0)
+    q_lead_now = np.where(has, _gap_ratio(state, near, lead_v, x[rows] - x), 0.0)
+    q_lead_end = np.where(has, _gap_ratio(state, near, lead_v, (x[rows] + lead_v * t) - (x + v * t)), 0.0)
+    q_ego_now = _gap_ratio(state, near, np.full(near.size, state.ego_speed), -d_now)
+    q_ego_end = _gap_ratio(state, near, np.full(near.size, ego_v_end), -d_end)
+    gain_now = acc * q_lead_now**2 - acc * q_ego_now**2
+    gain_end = acc * q_lead_end**2 - acc * q_ego_end**2
+    return ((d_now <= 0) & (gain_now >= MOBIL_MIN_ACC_GAIN)) | ((d_end <= 0) & (gain_end >= MOBIL_MIN_ACC_GAIN))
 
 
 def evaluate(state: RoadState, dyn: Dynamics, mode: Mode = "robust", formula: Formula = "kinematic") -> SafetyResult:

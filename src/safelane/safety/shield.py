@@ -78,6 +78,7 @@ def dynamics_of(
     linear_mobil: bool = False,
     reversing_leaders: bool = True,
     level_cut_ins: bool = False,
+    level_incentive: bool = True,
 ) -> Dynamics:
     """The :class:`Dynamics` constants of the simulated world a snapshot was taken in; ``margin`` [m]: the
     bumper-to-bumper gap the rule keeps under its worst case; the rule's options as in :class:`Dynamics`."""
@@ -99,6 +100,7 @@ def dynamics_of(
         linear_mobil=linear_mobil,
         reversing_leaders=reversing_leaders,
         level_cut_ins=level_cut_ins,
+        level_incentive=level_incentive,
         # The widest other body (every highway-env vehicle has Vehicle.WIDTH): the occupancy bound.
         body_width=float(np.max(snap.width)) if len(snap.width) else 2.0,
     )
@@ -178,7 +180,8 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
     ``body_extent``: robust mode also puts a vehicle in every lane its rotated body overlaps.
     ``linear_mobil``: robust mode applies a linear-model driver's MOBIL criterion with its own formula.
     ``reversing_leaders``: a leader moving backwards keeps its reverse speed (else it counts as stopped).
-    ``level_cut_ins``: robust mode lets a car level with or behind the ego in a next lane turn in behind it.
+    ``level_cut_ins``: robust mode lets a car level with or behind the ego in a next lane turn in behind it;
+    ``level_incentive``: only when MOBIL's incentive lets it (else any such car may).
     """
 
     def __init__(
@@ -194,6 +197,7 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
         linear_mobil: bool = False,
         reversing_leaders: bool = True,
         level_cut_ins: bool = False,
+        level_incentive: bool = True,
     ) -> None:
         if not (math.isfinite(margin) and margin >= 0):
             raise ValueError(f"shield.margin: must be a finite number >= 0 [m] (got {margin!r})")
@@ -215,6 +219,7 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
             linear_mobil=linear_mobil,
             reversing_leaders=reversing_leaders,
             level_cut_ins=level_cut_ins,
+            level_incentive=level_incentive,
         )
         try:
             env.get_wrapper_attr("road_snapshot")
@@ -231,6 +236,7 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
         self.linear_mobil = bool(linear_mobil)
         self.reversing_leaders = bool(reversing_leaders)
         self.level_cut_ins = bool(level_cut_ins)
+        self.level_incentive = bool(level_incentive)
         self.dynamics: Dynamics | None = None
         self.result: SafetyResult | None = None
         self.snapshot: RoadSnapshot | None = None
@@ -262,7 +268,7 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
         if self.dynamics is None:
             self.dynamics = dynamics_of(
                 snap, self.margin, self.projected_cut_ins, self.body_extent, self.linear_mobil,
-                self.reversing_leaders, self.level_cut_ins,
+                self.reversing_leaders, self.level_cut_ins, self.level_incentive,
             )  # fmt: skip
         dyn = self.dynamics
         # The ego's speed along the road, as road_state computes it (the compiled path builds no RoadState).

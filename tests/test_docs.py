@@ -8,7 +8,7 @@
 * Every ``safelane …`` line of their ```bash blocks names a real command and only options that command
   has (read from its ``--help``); the commands are not run, since their documented budgets are the real
   ones.
-* Every ```yaml block that is a sweep or falsification spec validates as one.
+* Every ```yaml block that is a sweep or falsification spec (grid or search) validates as one.
 * The README is at most 6 000 characters and its relative links point to files that exist.
 """
 
@@ -149,6 +149,7 @@ def _specs() -> list[tuple[str, str]]:
 @pytest.mark.parametrize(("where", "body"), _specs(), ids=[where for where, _ in _specs()])
 def test_yaml_specs_validate(where: str, body: str, tmp_path: Path) -> None:
     from safelane.running.falsify import load_campaign_spec
+    from safelane.running.falsify_search import SearchSpec, check_parameters, load_falsify_spec
     from safelane.running.sweep import load_sweep_spec
 
     data = yaml.safe_load(body)
@@ -158,5 +159,9 @@ def test_yaml_specs_validate(where: str, body: str, tmp_path: Path) -> None:
         assert load_campaign_spec(spec).cells()
     elif "space" in data:
         load_sweep_spec(spec)
+    elif "search" in data:  # a falsification search (a sweep's search: is its method, with a space)
+        search = load_falsify_spec(spec)
+        assert isinstance(search, SearchSpec)
+        check_parameters(search)
     else:
         pytest.fail(f"{where}: a yaml block that is neither a sweep nor a falsification spec")

@@ -772,26 +772,36 @@ def sweep(
 @app.command()
 @cli_errors
 def falsify(
-    spec_file: Path = typer.Argument(..., help="Campaign spec (YAML; configs/falsify/grid.yaml).", metavar="SPEC"),
+    spec_file: Path = typer.Argument(
+        ..., help="Campaign spec (YAML; configs/falsify/grid.yaml, or a search: search_cem.yaml).", metavar="SPEC"
+    ),
     out: Annotated[
         Path, typer.Option("--out", "-o", help="Output directory (cells.csv, summary.md, counterexamples/).")
     ] = Path("runs/falsify"),
     backend: BackendOpt = "local",
     address: AddressOpt = None,
     workers: Annotated[int | None, typer.Option("--workers", help="Parallel cells (default: cores).")] = None,
-    episodes: Annotated[int | None, typer.Option("--episodes", help="Episodes per cell (overrides the spec).")] = None,
+    episodes: Annotated[
+        int | None, typer.Option("--episodes", help="Episodes per cell or search sample (overrides the spec).")
+    ] = None,
     sample: Annotated[int | None, typer.Option("--sample", help="Play this many cells drawn at random.")] = None,
     as_json: JsonOpt = False,
 ) -> None:
-    """Drive the shield over a grid of traffic conditions: collisions, invariant breaks (classified), files."""
-    from safelane.running.falsify import load_campaign_spec, run_campaign
+    """Drive the shield over a grid of traffic conditions, or search them (a spec with a search section:
+    cross-entropy method toward the most invariant breaks): collisions, invariant breaks (classified), files."""
+    from safelane.running.falsify import run_campaign
+    from safelane.running.falsify_search import SearchSpec, load_falsify_spec, run_search
 
     for option, value in (("--episodes", episodes), ("--sample", sample), ("--workers", workers)):
         if value is not None:
             check_positive(option, value)
-    spec = load_campaign_spec(spec_file, {"episodes": episodes, "sample": sample})
-    with units_progress(f"falsify {spec.name} (cells)") as tick:
-        summary = run_campaign(spec, out, backend=backend, workers=workers, address=address, progress=tick)
+    spec = load_falsify_spec(spec_file, {"episodes": episodes, "sample": sample})
+    if isinstance(spec, SearchSpec):
+        with units_progress(f"falsify search {spec.name} (samples)") as tick:
+            summary = run_search(spec, out, backend=backend, workers=workers, address=address, progress=tick)
+    else:
+        with units_progress(f"falsify {spec.name} (cells)") as tick:
+            summary = run_campaign(spec, out, backend=backend, workers=workers, address=address, progress=tick)
     if as_json:
         typer.echo(json.dumps(summary))
         return

@@ -52,8 +52,9 @@ NEAR_CHANGE = 60.0
 """[m] How close along the road a lane-changing vehicle must be to count in :func:`break_class`."""
 
 
-class CampaignSpec(BaseModel):
-    """What to play (see the module docstring). Units: episodes of the preset's duration."""
+class CampaignBase(BaseModel):
+    """What every campaign names: the preset, simulator, shield, fixed ``--set`` overrides, the policies
+    (:class:`CampaignSpec` adds the grid, :class:`safelane.running.falsify_search.SearchSpec` a search)."""
 
     model_config = ConfigDict(extra="forbid")
 
@@ -63,14 +64,10 @@ class CampaignSpec(BaseModel):
     simulator: Literal["fast", "highway-env"] = "fast"
     shield: Literal["nominal", "robust"] = "robust"
     sets: list[str] = Field(default_factory=list, description="--set overrides of every cell.")
-    axes: dict[str, list[dict[str, Any]]] = Field(description="AXIS → settings; a setting maps keys to values.")
     policies: list[str] = Field(
         default_factory=lambda: ["random", "faster"],
         description="Fixed policies (random, faster, idle, slower, probe) and trained agents as 'run:RUN_DIR'.",
     )
-    episodes: int = Field(20, ge=1, description="Episodes per cell.")
-    sample: int | None = Field(None, ge=1, description="Play this many cells drawn at random (default: all).")
-    sample_seed: int = Field(0, ge=0)
 
     @field_validator("policies")
     @classmethod
@@ -83,6 +80,15 @@ class CampaignSpec(BaseModel):
             if not policy.startswith(RUN_PREFIX) and policy not in FIXED_POLICIES:
                 raise ValueError(f"unknown policy '{policy}'; allowed: {', '.join(FIXED_POLICIES)} or run:RUN_DIR")
         return policies
+
+
+class CampaignSpec(CampaignBase):
+    """What to play (see the module docstring). Units: episodes of the preset's duration."""
+
+    axes: dict[str, list[dict[str, Any]]] = Field(description="AXIS → settings; a setting maps keys to values.")
+    episodes: int = Field(20, ge=1, description="Episodes per cell.")
+    sample: int | None = Field(None, ge=1, description="Play this many cells drawn at random (default: all).")
+    sample_seed: int = Field(0, ge=0)
 
     @field_validator("axes")
     @classmethod
@@ -121,15 +127,23 @@ def _label(setting: dict[str, Any]) -> str:
     return ",".join(f"{k.split('.')[-1]}={v.split('.')[-1] if isinstance(v, str) else v}" for k, v in setting.items())
 
 
-def load_campaign_spec(path: str | Path, overrides: dict[str, Any] | None = None) -> CampaignSpec:
-    """Read a campaign YAML (``overrides``: fields on top, None ignored); a one-line ConfigError on bad input."""
-    path = Path(path)
+def read_spec_yaml(path: Path) -> dict[str, Any]:
+    """A campaign spec file as a dict; a one-line ConfigError if it is missing or not a YAML mapping."""
     try:
         data = yaml.safe_load(path.read_text()) or {}
     except FileNotFoundError:
         raise ConfigError(f"campaign spec {path}: no such file") from None
     except yaml.YAMLError as err:
         raise ConfigError(f"campaign spec {path}: not valid YAML ({str(err).splitlines()[0]})") from None
+    if not isinstance(data, dict):
+        raise ConfigError(f"campaign spec {path}: expected a mapping of fields (name, axes, policies…)")
+    return data
+
+
+def load_campaign_spec(path: str | Path, overrides: dict[str, Any] | None = None) -> CampaignSpec:
+    """Read a campaign YAML (``overrides``: fields on top, None ignored); a one-line ConfigError on bad input."""
+    path = Path(path)
+    data = read_spec_yaml(path)
     data.update({k: v for k, v in (overrides or {}).items() if v is not None})
     try:
         return CampaignSpec.model_validate(data)
@@ -137,7 +151,7 @@ def load_campaign_spec(path: str | Path, overrides: dict[str, Any] | None = None
         raise ConfigError(f"campaign spec {path}: {validation_message(err, CampaignSpec)}") from None
 
 
-def cell_config(spec: CampaignSpec, cell: dict[str, Any]) -> Any:
+def cell_config(spec: CampaignBase, cell: dict[str, Any]) -> Any:
     """The environment config of a cell: the preset, the spec's sets, the cell's, the shield with override."""
     from safelane.config import load_config
 
@@ -184,35 +198,47 @@ def _cell_path(out: Path, index: int) -> Path:
 
 def _cell_task(out_dir: str, spec_json: str, index: int) -> dict[str, Any]:
     """Play one cell; write its record (and its counterexample files); return the record."""
-    from safelane.core.errors import NotSupported
-    from safelane.running.counterexamples import replay, save_counterexamples
-    from safelane.running.evaluation import run_config, summarize
-
     spec = CampaignSpec.model_validate_json(spec_json)
     cell = spec.cells()[index]
     out = Path(out_dir)
     base = {"index": index, "policy": cell["policy"], **{f"axis_{k}": v for k, v in cell["labels"].items()}}
+    seed = FALSIFY_SEED_BASE + CELL_SEED_STRIDE * index
+    played = play_cell(
+        spec, cell, seed, spec.episodes, out / "counterexamples", f"falsify cell {index}", f"cell{index:05d}-"
+    )
+    record = {**base, **played}
+    atomic_write_text(_cell_path(out, index), json.dumps(record))
+    return record
+
+
+def play_cell(
+    spec: CampaignBase, cell: dict[str, Any], seed: int, episodes: int, counterexamples: Path, source: str, prefix: str
+) -> dict[str, Any]:
+    """Play ``episodes`` episodes of one cell (``cell["sets"]`` on the spec's config, ``cell["policy"]``),
+    seeds ``seed, seed + 1, …``; save every crash and invariant break as ``counterexamples/PREFIX…json``
+    and class the breaks from their replays. Returns the cell's statistics (episodes, decisions,
+    collisions and their kinds and contexts, invariant breaks and their classes, fallback rate, mean
+    speed [m/s], file names, ``wall_time_s`` [s]), or ``{"skipped": why}`` where the simulator lacks a setting.
+    The one episode loop of every campaign: the grid's cells and the search's samples."""
+    from safelane.core.errors import NotSupported
+    from safelane.running.counterexamples import load_counterexample, replay, save_counterexamples
+    from safelane.running.evaluation import run_config, summarize
+
     try:
         cfg = cell_config(spec, cell)
-        seed = FALSIFY_SEED_BASE + CELL_SEED_STRIDE * index
         start = time.perf_counter()
-        records = run_config(cfg, _cell_policy(cell["policy"], seed), spec.episodes, seed)
+        records = run_config(cfg, _cell_policy(cell["policy"], seed), episodes, seed)
     except NotSupported as err:
-        record = {**base, "skipped": str(err)}
-        atomic_write_text(_cell_path(out, index), json.dumps(record))
-        return record
+        return {"skipped": str(err)}
     s = summarize(records)
-    files = save_counterexamples(records, cfg, out / "counterexamples", f"falsify cell {index}", f"cell{index:05d}-")
-    from safelane.running.counterexamples import load_counterexample
-
+    files = save_counterexamples(records, cfg, counterexamples, source, prefix)
     classes = dict.fromkeys(BREAK_CLASSES, 0)
     file_classes: dict[str, str] = {}
     for path in files:
         if "invariant_break" in path.name:
             file_classes[path.name] = break_class(replay(load_counterexample(path)))
             classes[file_classes[path.name]] += 1
-    record = {
-        **base,
+    return {
         "episodes": s["episodes"],
         "decisions": s["decisions"],
         "collisions": s["collisions"],
@@ -226,8 +252,13 @@ def _cell_task(out_dir: str, spec_json: str, index: int) -> dict[str, Any]:
         "break_file_classes": file_classes,
         "wall_time_s": time.perf_counter() - start,
     }
-    atomic_write_text(_cell_path(out, index), json.dumps(record))
-    return record
+
+
+def check_policies(spec: CampaignBase) -> None:
+    """Every ``run:RUN_DIR`` policy names a trained run (a one-line ConfigError otherwise)."""
+    for policy in spec.policies:
+        if policy.startswith(RUN_PREFIX) and not (Path(policy[len(RUN_PREFIX) :]) / "config.yaml").is_file():
+            raise ConfigError(f"policies: '{policy}': no trained run there (no config.yaml)")
 
 
 def run_campaign(
@@ -242,9 +273,7 @@ def run_campaign(
     from safelane.running.engine import TaskFailure, check_backend, claim_out_dir, format_failure, run_tasks
 
     check_backend(backend)
-    for policy in spec.policies:
-        if policy.startswith(RUN_PREFIX) and not (Path(policy[len(RUN_PREFIX) :]) / "config.yaml").is_file():
-            raise ConfigError(f"policies: '{policy}': no trained run there (no config.yaml)")
+    check_policies(spec)
     out = Path(out_dir)
     claim_out_dir(out, spec.model_dump_json(indent=1), "campaign.json", "campaign")
     cells = spec.cells()

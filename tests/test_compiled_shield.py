@@ -186,7 +186,7 @@ def test_engine_is_configurable() -> None:
 
 
 # --------------------------------------------------------------------------------------------
-# The robust options (shield.projected_cut_ins and shield.level_cut_ins, experimental; shield.body_extent):
+# The robust options (shield.projected_cut_ins, experimental; shield.body_extent and shield.level_cut_ins):
 # the same in both engines, and only stricter.
 # --------------------------------------------------------------------------------------------
 
@@ -228,7 +228,7 @@ def test_reversing_leaders_bit_identical_and_only_stricter(case: tuple) -> None:
 @PROPERTY_SETTINGS
 @given(case=road())
 def test_level_incentive_bit_identical_and_between_the_rules(case: tuple) -> None:
-    """shield.level_cut_ins with MOBIL's incentive (the default of the option) only keeps the level cars
+    """shield.level_cut_ins with MOBIL's incentive (the default) only keeps the level cars
     that gain by moving behind the ego: never stricter than any level car turning in (level_incentive
     false), never looser than the rule without level cut-ins; the same in both engines."""
     state, dyn, _ = case

@@ -144,11 +144,12 @@ class ShieldConfig(_Section):
         "docs/safety.md §6d). On by default.",
     )
     level_cut_ins: bool = Field(
-        False,
+        True,
         strict=True,
-        description="Robust mode, experimental: a car level with or behind the ego in a next lane (its centre behind "
-        "the ego's now or at the end of the decision) may turn in behind it after the cut-in time and then "
-        "follow it; MOBIL's safety criterion does not protect the ego there (docs/safety.md §6e).",
+        description="Robust mode: a car level with or behind the ego in a next lane (its centre behind the ego's now "
+        "or at the end of the decision) may turn in behind it after the cut-in time and then follow it; MOBIL's "
+        "safety criterion does not protect the ego there (docs/safety.md §6e). On by default since issue 15's "
+        "fourth session; false gives the earlier rule.",
     )
     level_incentive: bool = Field(
         True,
@@ -555,7 +556,7 @@ RENAMED_KEYS: dict[str, tuple[str, dict[Any, Any]]] = {
 """Keys of older run configs: old name → (new name, old value → new value). Read, never written."""
 
 
-RULE_CHANGES: dict[str, Any] = {"body_extent": False, "reversing_leaders": False}
+RULE_CHANGES: dict[str, Any] = {"body_extent": False, "reversing_leaders": False, "level_cut_ins": False}
 """Shield keys added with a new default that changes the rule: a *recorded* configuration (a run's
 config.yaml, a counterexample file) written before the key existed had the old behaviour, given here,
 so that it replays as it ran (:func:`recorded_config`)."""

@@ -217,8 +217,8 @@ def car_being_overtaken(mode: Mode = "robust", **kw: Any) -> Scene:
     (13 m/s) in lane 0, one of them 3 m ahead of the ego's centre: the campaign's crash from a state called
     safe, ``cell00470-seed4004700006`` (6 lanes there). Within the decision the ego passes that car, which
     then sees the ego as its new *leader*: MOBIL's safety criterion protects its new follower, not the ego,
-    and it may turn into the ego's rear flank. ``shield.level_cut_ins`` counts it as a follower entering
-    the ego's lane after the cut-in time."""
+    and it may turn into the ego's rear flank. ``shield.level_cut_ins`` (on by default; false: the earlier
+    rule) counts it as a follower entering the ego's lane after the cut-in time."""
     specs = [VehicleSpec(0, dx, 13.0) for dx in (-6.0, 3.0, 11.0, 19.0)]
     rate = {"env.policy_frequency": 2, "env.simulation_frequency": 10}
     return build_scene(1, 29.2, specs, mode=mode, ego_target_speed=30.0, **rate, **kw)

@@ -325,14 +325,6 @@ def _evaluate(
     permitted = np.zeros((N_ACTIONS, m), dtype=np.bool_)
     unfiltered = np.zeros((N_ACTIONS, m), dtype=np.bool_)
     level = np.zeros((N_ACTIONS, m), dtype=np.bool_)  # level with or behind the ego (level_cut_ins)
-    # model.own_leaders: each nearby vehicle's nearest one ahead in its own lane (the first of equals).
-    leader_of = np.full(m if (level_rows and level_incentive) else 0, -1, dtype=np.int64)
-    for r in range(leader_of.shape[0]):
-        xr = x[near[r]]
-        for k in range(m):
-            xk = x[near[k]]
-            if lanes_near[k] == lanes_near[r] and xk > xr and (leader_of[r] < 0 or xk < x[near[leader_of[r]]]):
-                leader_of[r] = k
     ego_lanes = np.empty(3, dtype=np.int64)
     ego_until_leave = np.empty(3, dtype=np.bool_)  # until = ego_leave_time (else inf)
     target_clip = 0.0
@@ -382,17 +374,23 @@ def _evaluate(
                         # model.turn_in_incentive: MOBIL's gain behind the ego, now or at the end.
                         dw, tw, v = idm_distance_wanted[i], idm_time_wanted[i], vx[i]
                         acc, dec = idm_comfort_acc[i], idm_comfort_dec[i]
-                        q_ln = q_le = 0.0
-                        ld = leader_of[r]
-                        if ld >= 0:
-                            lx, lv = x[near[ld]], vx[near[ld]]
-                            q_ln = _gap_ratio(dw, tw, acc, dec, v, lv, lx - x[i])
-                            gap_end = (lx + lv * decision_period) - (x[i] + v * decision_period)
-                            q_le = _gap_ratio(dw, tw, acc, dec, v, lv, gap_end)
+                        lead_now = lead_end = 0.0  # the largest (d*/d)² over the vehicles ahead in its lane
+                        found = False
+                        for k in range(m):
+                            lx = x[near[k]]
+                            if lanes_near[k] == lanes_near[r] and lx > x[i]:
+                                lv = vx[near[k]]
+                                q = _gap_ratio(dw, tw, acc, dec, v, lv, lx - x[i])
+                                gap_end = (lx + lv * decision_period) - (x[i] + v * decision_period)
+                                qe = _gap_ratio(dw, tw, acc, dec, v, lv, gap_end)
+                                if found:
+                                    lead_now, lead_end = _nmax(lead_now, q * q), _nmax(lead_end, qe * qe)
+                                else:
+                                    lead_now, lead_end, found = q * q, qe * qe, True
                         q_en = _gap_ratio(dw, tw, acc, dec, v, ego_speed, -d_now)
                         q_ee = _gap_ratio(dw, tw, acc, dec, v, kv, -d_end)
-                        gain_now = acc * (q_ln * q_ln) - acc * (q_en * q_en)
-                        gain_end = acc * (q_le * q_le) - acc * (q_ee * q_ee)
+                        gain_now = acc * lead_now - acc * (q_en * q_en)
+                        gain_end = acc * lead_end - acc * (q_ee * q_ee)
                         level[slot, r] = can and (
                             (d_now <= 0 and gain_now >= min_acc_gain) or (d_end <= 0 and gain_end >= min_acc_gain)
                         )

@@ -28,7 +28,8 @@ docs/safety.md).
 ``robust`` — the paper's robust Q-masking (Section IV.4b, Fig. 5). In addition to nominal:
 vehicles moving laterally (heading angle) are projected into the lane they move to; any vehicle in
 a lane adjacent to a lane the ego uses may cut in, if its own lane-change rule (MOBIL's safety
-criterion, with the ego as its new follower) allows it, and is then a leader braking fully;
+criterion, with the ego as its new follower) allows it, and is then a leader braking fully; one level
+with or behind the ego may turn in behind it, if MOBIL's incentive lets it, and is then a follower;
 and **one** fallback must handle every leader braking and every follower accelerating at the same
 time.
 
@@ -96,7 +97,7 @@ class Dynamics:
     body_width: float = 2.0  # [m] the other vehicles' width (highway-env's Vehicle.WIDTH), for body_extent
     linear_mobil: bool = False  # robust: linear-model drivers' MOBIL criterion with their formula (else: any cut-in)
     reversing_leaders: bool = True  # a leader moving backwards keeps its reverse speed (else: taken as stopped)
-    level_cut_ins: bool = False  # robust: a car level with or behind the ego in a next lane may turn in behind it
+    level_cut_ins: bool = True  # robust: a car level with or behind the ego in a next lane may turn in behind it
     level_incentive: bool = True  # level_cut_ins: only if MOBIL's incentive (its gain behind the ego) allows it
 
     @property
@@ -452,42 +453,35 @@ def _gap_ratio(state: RoadState, who: np.ndarray, front_speed: np.ndarray, gap: 
     return d_star / d
 
 
-def own_leaders(state: RoadState, dyn: Dynamics, near: np.ndarray) -> np.ndarray:
-    """For each vehicle of ``near``, the row (in ``near``) of the nearest one ahead of it in its own lane
-    (−1: none within range): its current leader, as ``Road.neighbour_vehicles`` finds it."""
-    x = state.x[near]
-    lanes = state.lane_of(state.y[near], dyn.lanes_count, dyn.lane_width)
-    leader = np.full(near.size, -1, dtype=int)
-    for j in range(near.size):
-        rows = np.flatnonzero((lanes == lanes[j]) & (x > x[j]))
-        if rows.size:
-            leader[j] = rows[np.argmin(x[rows])]  # the first of equals, in row order
-    return leader
-
-
 def turn_in_incentive(
     state: RoadState, dyn: Dynamics, near: np.ndarray, d_now: np.ndarray, d_end: np.ndarray, ego_v_end: float
 ) -> np.ndarray:
     """Whether each vehicle of ``near``, with its centre behind the ego's (``d_now`` / ``d_end`` [m]: its
-    offset ahead of the ego now / at the end of the decision, others at constant speed), gains by moving
+    offset ahead of the ego now / at the end of the decision, others at constant speed), may gain by moving
     behind the ego: MOBIL's incentive with politeness 0 (highway-env's ``IDMVehicle``), ``a(behind the
-    ego) − a(behind its own leader) ≥`` :data:`MOBIL_MIN_ACC_GAIN`. The free-road terms cancel, leaving
-    ``acc·(d*/d)²_leader − acc·(d*/d)²_ego``; with no leader within range, only the ego's term. Checked
-    now and at the end of the decision, as the cut-in criterion is (an approximation within the decision,
-    not a bound): a car in free flow loses by tucking in behind the ego at a short gap; one stuck behind
-    a slower or stopped queue gains (cell 470)."""
-    leader = own_leaders(state, dyn, near)
-    has = leader >= 0
-    rows = np.where(has, leader, 0)
+    ego) − a(behind its leader) ≥`` :data:`MOBIL_MIN_ACC_GAIN`. The free-road terms cancel, leaving
+    ``acc·(d*/d)²_leader − acc·(d*/d)²_ego``. Its leader's term is taken as the largest over every vehicle
+    ahead of it in its lane (IDM sees the nearest; the largest can only overstate the gain, and it keeps
+    the rule monotone: adding a vehicle never removes a conflict); none: 0. Checked now and at the end of
+    the decision, as the cut-in criterion is (an approximation within the decision, not a bound): a car in
+    free flow loses by tucking in behind the ego at a short gap; one stuck in a slow queue gains (cell 470)."""
     x, v, t = state.x[near], state.vx[near], dyn.decision_period
+    lanes = state.lane_of(state.y[near], dyn.lanes_count, dyn.lane_width)
     acc = state.idm_comfort_acc[near]
-    lead_v = np.where(has, v[rows], 0.0)
-    q_lead_now = np.where(has, _gap_ratio(state, near, lead_v, x[rows] - x), 0.0)
-    q_lead_end = np.where(has, _gap_ratio(state, near, lead_v, (x[rows] + lead_v * t) - (x + v * t)), 0.0)
+    lead_now = np.zeros(near.size)
+    lead_end = np.zeros(near.size)
+    for j in range(near.size):
+        rows = np.flatnonzero((lanes == lanes[j]) & (x > x[j]))  # every vehicle ahead of it in its lane
+        if rows.size:
+            who = np.full(rows.size, near[j])
+            q_now = _gap_ratio(state, who, v[rows], x[rows] - x[j])
+            q_end = _gap_ratio(state, who, v[rows], (x[rows] + v[rows] * t) - (x[j] + v[j] * t))
+            lead_now[j] = (q_now * q_now).max()
+            lead_end[j] = (q_end * q_end).max()
     q_ego_now = _gap_ratio(state, near, np.full(near.size, state.ego_speed), -d_now)
     q_ego_end = _gap_ratio(state, near, np.full(near.size, ego_v_end), -d_end)
-    gain_now = acc * q_lead_now**2 - acc * q_ego_now**2
-    gain_end = acc * q_lead_end**2 - acc * q_ego_end**2
+    gain_now = acc * lead_now - acc * (q_ego_now * q_ego_now)
+    gain_end = acc * lead_end - acc * (q_ego_end * q_ego_end)
     return ((d_now <= 0) & (gain_now >= MOBIL_MIN_ACC_GAIN)) | ((d_end <= 0) & (gain_end >= MOBIL_MIN_ACC_GAIN))
 
 

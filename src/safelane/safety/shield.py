@@ -77,7 +77,7 @@ def dynamics_of(
     body_extent: bool = True,
     linear_mobil: bool = False,
     reversing_leaders: bool = True,
-    level_cut_ins: bool = False,
+    level_cut_ins: bool = True,
     level_incentive: bool = True,
 ) -> Dynamics:
     """The :class:`Dynamics` constants of the simulated world a snapshot was taken in; ``margin`` [m]: the
@@ -196,7 +196,7 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
         body_extent: bool = True,
         linear_mobil: bool = False,
         reversing_leaders: bool = True,
-        level_cut_ins: bool = False,
+        level_cut_ins: bool = True,
         level_incentive: bool = True,
     ) -> None:
         if not (math.isfinite(margin) and margin >= 0):

@@ -809,6 +809,42 @@ def _uniform(raws, st, lo, hi):
     return lo + (hi - lo) * ((r >> np.uint64(11)) * (1.0 / 9007199254740992.0))
 
 
+@njit(cache=True, error_model="numpy", inline="always")
+def _place_vehicle(raws, st, k, x, y, speed, delay, drv, lin, d_lo, d_hi, check_others, n_lanes, P, F, G):
+    """Row ``k``: an ``IDMVehicle`` (or a linear-model driver, ``lin``) created at (x, y) [m] going ``speed``
+    [m/s] — its constructor's fields (target speed = speed, the lane-change timer from its position) —
+    then ``randomize_behavior()``'s draws (a linear driver's gains first, then DELTA in [d_lo, d_hi]).
+    Shared by :func:`spawn` and :func:`spawn_behind`."""
+    F[k, :] = 0.0
+    G[k, :] = 0
+    F[k, X] = x
+    F[k, Y] = y
+    F[k, V] = speed
+    F[k, TSPD] = speed
+    F[k, TIMER] = ((x + y) * np.pi) % delay
+    F[k, TW] = drv[1]
+    F[k, GAIN] = drv[2]
+    if lin:
+        u0 = _uniform(raws, st, 0.0, 1.0)
+        u1 = _uniform(raws, st, 0.0, 1.0)
+        u2 = _uniform(raws, st, 0.0, 1.0)
+        F[k, AP0] = drv[3] + u0 * (drv[6] - drv[3])
+        F[k, AP1] = drv[4] + u1 * (drv[7] - drv[4])
+        F[k, AP2] = drv[5] + u2 * (drv[8] - drv[5])
+        v0 = _uniform(raws, st, 0.0, 1.0)
+        v1 = _uniform(raws, st, 0.0, 1.0)
+        F[k, SP0] = drv[9] + v0 * (drv[11] - drv[9])
+        F[k, SP1] = drv[10] + v1 * (drv[12] - drv[10])
+        G[k, LIN] = 1
+    F[k, DELTA] = _uniform(raws, st, d_lo, d_hi)
+    lane = closest_lane(x, y, 0.0, n_lanes, P)
+    G[k, LANE] = lane
+    G[k, TLANE] = lane
+    G[k, CHECK] = check_others
+    G[k, ELC] = 1
+    G[k, IDM] = 1
+
+
 @njit(cache=True, error_model="numpy")
 def spawn(raws, st, ego_lane, ego_spacing, spacing, lanes_factor, lo, hi, d_lo, d_hi, delay, ego_delta,
           drv, check_others, ts, n_lanes, P, F, G, E):  # fmt: skip
@@ -854,34 +890,7 @@ def spawn(raws, st, ego_lane, ego_spacing, spacing, lanes_factor, lo, hi, d_lo, 
         x0 += offset * _uniform(raws, st, 0.9, 1.1)
         x = x0
         y = lane_id * width
-        F[k, :] = 0.0
-        G[k, :] = 0
-        F[k, X] = x
-        F[k, Y] = y
-        F[k, V] = speed
-        F[k, TSPD] = speed
-        F[k, TIMER] = ((x + y) * np.pi) % delay
-        F[k, TW] = drv[1]
-        F[k, GAIN] = drv[2]
-        if lin:
-            u0 = _uniform(raws, st, 0.0, 1.0)
-            u1 = _uniform(raws, st, 0.0, 1.0)
-            u2 = _uniform(raws, st, 0.0, 1.0)
-            F[k, AP0] = drv[3] + u0 * (drv[6] - drv[3])
-            F[k, AP1] = drv[4] + u1 * (drv[7] - drv[4])
-            F[k, AP2] = drv[5] + u2 * (drv[8] - drv[5])
-            v0 = _uniform(raws, st, 0.0, 1.0)
-            v1 = _uniform(raws, st, 0.0, 1.0)
-            F[k, SP0] = drv[9] + v0 * (drv[11] - drv[9])
-            F[k, SP1] = drv[10] + v1 * (drv[12] - drv[10])
-            G[k, LIN] = 1
-        F[k, DELTA] = _uniform(raws, st, d_lo, d_hi)
-        lane = closest_lane(x, y, 0.0, n_lanes, P)
-        G[k, LANE] = lane
-        G[k, TLANE] = lane
-        G[k, CHECK] = check_others
-        G[k, ELC] = 1
-        G[k, IDM] = 1
+        _place_vehicle(raws, st, k, x, y, speed, delay, drv, lin, d_lo, d_hi, check_others, n_lanes, P, F, G)
         if x > x_max:
             x_max = x
     return st[0] >= 0
@@ -904,32 +913,5 @@ def spawn_behind(raws, st, first, count, x, lo, hi, lanes_factor, density, d_lo,
         offset = (12 + speed) * lanes_factor / density
         x -= offset * _uniform(raws, st, 0.9, 1.1)
         y = lane_id * width
-        F[k, :] = 0.0
-        G[k, :] = 0
-        F[k, X] = x
-        F[k, Y] = y
-        F[k, V] = speed
-        F[k, TSPD] = speed
-        F[k, TIMER] = ((x + y) * np.pi) % delay
-        F[k, TW] = drv[1]
-        F[k, GAIN] = drv[2]
-        if lin:
-            u0 = _uniform(raws, st, 0.0, 1.0)
-            u1 = _uniform(raws, st, 0.0, 1.0)
-            u2 = _uniform(raws, st, 0.0, 1.0)
-            F[k, AP0] = drv[3] + u0 * (drv[6] - drv[3])
-            F[k, AP1] = drv[4] + u1 * (drv[7] - drv[4])
-            F[k, AP2] = drv[5] + u2 * (drv[8] - drv[5])
-            v0 = _uniform(raws, st, 0.0, 1.0)
-            v1 = _uniform(raws, st, 0.0, 1.0)
-            F[k, SP0] = drv[9] + v0 * (drv[11] - drv[9])
-            F[k, SP1] = drv[10] + v1 * (drv[12] - drv[10])
-            G[k, LIN] = 1
-        F[k, DELTA] = _uniform(raws, st, d_lo, d_hi)
-        lane = closest_lane(x, y, 0.0, n_lanes, P)
-        G[k, LANE] = lane
-        G[k, TLANE] = lane
-        G[k, CHECK] = check_others
-        G[k, ELC] = 1
-        G[k, IDM] = 1
+        _place_vehicle(raws, st, k, x, y, speed, delay, drv, lin, d_lo, d_hi, check_others, n_lanes, P, F, G)
     return st[0] >= 0

@@ -309,6 +309,41 @@ def _replay(bg: np.random.PCG64, n_int: int, n_dbl: int, draw: Callable[[np.ndar
         bg.state = state
 
 
+def _place_python(
+    rng: np.random.Generator, cls: type, k: int, x: float, y: float, speed: float, check: int, n_lanes: int,
+    P: np.ndarray, F: np.ndarray, G: np.ndarray,
+) -> None:  # fmt: skip
+    """Row ``k`` (zeros): ``cls(road, (x, y) [m], heading 0, speed [m/s])`` — target speed = speed, the
+    lane-change timer ``(np.sum(position) · π) % LANE_CHANGE_DELAY`` (a sum of two: ``x + y``), the closest
+    lane — then ``randomize_behavior()`` with the generator's own calls (a linear driver's gains first).
+    The reference twin of ``kernels._place_vehicle``, shared by :func:`build_scene_python` and
+    :func:`spawn_behind_python`."""
+    uniform = rng.uniform
+    F[k, K.X] = x
+    F[k, K.Y] = y
+    F[k, K.H] = 0.0
+    F[k, K.V] = speed
+    F[k, K.TSPD] = speed
+    F[k, K.TIMER] = ((x + y) * np.pi) % cls.LANE_CHANGE_DELAY
+    F[k, K.TW] = cls.TIME_WANTED
+    F[k, K.GAIN] = cls.LANE_CHANGE_MIN_ACC_GAIN
+    if issubclass(cls, LinearVehicle):  # LinearVehicle.randomize_behavior, then IDMVehicle's
+        ar, sr = cls.ACCELERATION_RANGE, cls.STEERING_RANGE
+        ua = uniform(size=np.shape(cls.ACCELERATION_PARAMETERS))
+        F[k, K.AP0 : K.AP2 + 1] = ar[0] + ua * (ar[1] - ar[0])
+        ub = uniform(size=np.shape(cls.STEERING_PARAMETERS))
+        F[k, K.SP0 : K.SP1 + 1] = sr[0] + ub * (sr[1] - sr[0])
+        G[k, K.LIN] = 1
+    d_lo, d_hi = cls.DELTA_RANGE
+    F[k, K.DELTA] = uniform(low=d_lo, high=d_hi)
+    lane = K.closest_lane(x, y, 0.0, n_lanes, P)
+    G[k, K.LANE] = lane
+    G[k, K.TLANE] = lane
+    G[k, K.CHECK] = check
+    G[k, K.ELC] = 1
+    G[k, K.IDM] = 1
+
+
 def build_scene_python(
     rng: np.random.Generator, sc: SimConfig, P: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -354,11 +389,8 @@ def build_scene_python(
 
     # --- the others: IDMVehicle.create_random(road, spacing=1 / vehicles_density); randomize_behavior()
     cls = sc.other_class
-    lin = issubclass(cls, LinearVehicle)
     spacing = 1 / sc.vehicles_density
     lo, hi = 0.7 * SPEED_LIMIT, 0.8 * SPEED_LIMIT
-    d_lo, d_hi = cls.DELTA_RANGE
-    delay = cls.LANE_CHANGE_DELAY
     check = 1 if sc.others_check_collisions else 0
     for k in range(1, n):
         if not _SKIP_NODE_CHOICES:
@@ -371,28 +403,7 @@ def build_scene_python(
         x0 = x_max
         x0 += offset * uniform(0.9, 1.1)
         x, y = float(x0), float(lane_id * width)
-        F[k, K.X] = x
-        F[k, K.Y] = y
-        F[k, K.H] = 0.0
-        F[k, K.V] = speed
-        F[k, K.TSPD] = speed
-        F[k, K.TIMER] = ((x + y) * np.pi) % delay
-        F[k, K.TW] = cls.TIME_WANTED
-        F[k, K.GAIN] = cls.LANE_CHANGE_MIN_ACC_GAIN
-        if lin:  # LinearVehicle.randomize_behavior, then IDMVehicle's
-            ar, sr = cls.ACCELERATION_RANGE, cls.STEERING_RANGE
-            ua = uniform(size=np.shape(cls.ACCELERATION_PARAMETERS))
-            F[k, K.AP0 : K.AP2 + 1] = ar[0] + ua * (ar[1] - ar[0])
-            ub = uniform(size=np.shape(cls.STEERING_PARAMETERS))
-            F[k, K.SP0 : K.SP1 + 1] = sr[0] + ub * (sr[1] - sr[0])
-            G[k, K.LIN] = 1
-        F[k, K.DELTA] = uniform(low=d_lo, high=d_hi)
-        lane = K.closest_lane(x, y, 0.0, n_lanes, P)
-        G[k, K.LANE] = lane
-        G[k, K.TLANE] = lane
-        G[k, K.CHECK] = check
-        G[k, K.ELC] = 1
-        G[k, K.IDM] = 1
+        _place_python(rng, cls, k, x, y, speed, check, n_lanes, P, F, G)
         if x > x_max:
             x_max = x
     return F, G, E
@@ -469,14 +480,11 @@ def spawn_behind_python(
     if count == 0:
         return 0
     cls = sc.other_class
-    lin = issubclass(cls, LinearVehicle)
     n_lanes = sc.lanes_count
     width = float(P[K.P_LANE_WIDTH])
     limit = SPEED_LIMIT or 30.0  # lane.speed_limit or 30.0
     lanes_factor = math.exp(-5 / 40 * n_lanes)
     density = sc.vehicles_density
-    d_lo, d_hi = cls.DELTA_RANGE
-    delay = cls.LANE_CHANGE_DELAY
     check = 1 if sc.others_check_collisions else 0
     uniform = rng.uniform
     # ego.lane.local_coordinates(ego.position)[0]: lane i starts at (0, i·w) with direction (1, 0)
@@ -489,26 +497,5 @@ def spawn_behind_python(
         y = float(lane_id * width)  # lane.position(x, 0) on lane lane_id
         # IDMVehicle(road, position, heading=lane.heading_at(x) = 0, speed): target speed = speed,
         # timer = (np.sum(position) * pi) % LANE_CHANGE_DELAY, lane = the closest lane
-        F[k, K.X] = x
-        F[k, K.Y] = y
-        F[k, K.H] = 0.0
-        F[k, K.V] = speed
-        F[k, K.TSPD] = speed
-        F[k, K.TIMER] = (np.sum(np.array([x, y])) * np.pi) % delay
-        F[k, K.TW] = cls.TIME_WANTED
-        F[k, K.GAIN] = cls.LANE_CHANGE_MIN_ACC_GAIN
-        if lin:  # LinearVehicle.randomize_behavior, then IDMVehicle's
-            ar, sr = cls.ACCELERATION_RANGE, cls.STEERING_RANGE
-            ua = uniform(size=np.shape(cls.ACCELERATION_PARAMETERS))
-            F[k, K.AP0 : K.AP2 + 1] = ar[0] + ua * (ar[1] - ar[0])
-            ub = uniform(size=np.shape(cls.STEERING_PARAMETERS))
-            F[k, K.SP0 : K.SP1 + 1] = sr[0] + ub * (sr[1] - sr[0])
-            G[k, K.LIN] = 1
-        F[k, K.DELTA] = uniform(low=d_lo, high=d_hi)
-        lane = K.closest_lane(x, y, 0.0, n_lanes, P)
-        G[k, K.LANE] = lane
-        G[k, K.TLANE] = lane
-        G[k, K.CHECK] = check
-        G[k, K.ELC] = 1
-        G[k, K.IDM] = 1
+        _place_python(rng, cls, k, x, y, speed, check, n_lanes, P, F, G)
     return count

@@ -225,3 +225,27 @@ def test_a_check_record_of_an_earlier_rule_is_not_resumed(tmp_path) -> None:
     earlier.write_text(json.dumps({"header": old}) + "\n")
     with pytest.raises(ConfigError, match="another configuration"):
         CheckRecord(earlier, header)
+
+
+def test_every_rule_option_reaches_the_shield_of_make_env_and_of_the_batch() -> None:
+    """Each ``shield.<option>`` of :data:`RULE_OPTIONS`, flipped in the config, is flipped in the dynamics of
+    the shield ``make_env`` builds and in those of the fast batch (one list feeds both)."""
+    import numpy as np
+
+    from safelane.config import RULE_OPTIONS, ShieldConfig
+    from safelane.env.factory import make_env
+    from safelane.env.fast_batch import FastBatch
+    from safelane.safety.compiled import KernelConstants
+    from safelane.safety.shield import SafetyShield
+
+    defaults = ShieldConfig().rule_options()
+    assert tuple(defaults) == RULE_OPTIONS
+    for name in RULE_OPTIONS:
+        sets = {"shield.mode": "robust", f"shield.{name}": not defaults[name], "env.vehicles_count": 5}
+        env = make_env("fast", seed=0, simulator="fast", **sets)
+        assert isinstance(env, SafetyShield) and getattr(env.dynamics, name) is (not defaults[name])
+        batch = FastBatch(env.safelane_config, 1)
+        batch.reset_envs(np.array([0]), [0])
+        assert batch._kernel_args is not None
+        constants = KernelConstants(*batch._kernel_args[7:])  # after the leave times, speed limit and lane frame
+        assert getattr(constants, name) is (not defaults[name])

@@ -159,6 +159,11 @@ class ShieldConfig(_Section):
         "(measured, docs/safety.md §6e).",
     )
 
+    def rule_options(self) -> dict[str, bool]:
+        """The rule's on/off options by name, as :class:`safelane.safety.shield.SafetyShield` and
+        :func:`safelane.safety.shield.dynamics_of` take them (one list for every place that builds a shield)."""
+        return {name: getattr(self, name) for name in RULE_OPTIONS}
+
 
 class SafelaneConfig(_Section):
     """A whole environment configuration: which highway-env, its config, and safelane's layers."""
@@ -554,6 +559,12 @@ RENAMED_KEYS: dict[str, tuple[str, dict[Any, Any]]] = {
     "backend": ("neighbour_search", {"vectorized": "numpy", "highway-env": "highway-env"}),
 }
 """Keys of older run configs: old name → (new name, old value → new value). Read, never written."""
+
+
+RULE_OPTIONS = (
+    "projected_cut_ins", "body_extent", "linear_mobil", "reversing_leaders", "level_cut_ins", "level_incentive",
+)  # fmt: skip
+"""The :class:`ShieldConfig` fields that switch parts of the safety rule on or off (``ShieldConfig.rule_options``)."""
 
 
 RULE_CHANGES: dict[str, Any] = {"body_extent": False, "reversing_leaders": False, "level_cut_ins": False}

@@ -157,12 +157,7 @@ def make_env(
             override=shield.override,
             engine=shield.engine,
             margin=shield.margin,
-            projected_cut_ins=shield.projected_cut_ins,
-            body_extent=shield.body_extent,
-            linear_mobil=shield.linear_mobil,
-            reversing_leaders=shield.reversing_leaders,
-            level_cut_ins=shield.level_cut_ins,
-            level_incentive=shield.level_incentive,
+            **shield.rule_options(),
         )
     env.safelane_config = cfg  # type: ignore[attr-defined]
     if seed is not None:

@@ -308,10 +308,7 @@ class FastBatch:
     def _shield_constants(self, snap: RoadSnapshot) -> tuple:
         """The safety kernel's arguments that stay the same for the batch (SafetyShield's dynamics)."""
         shield = self.cfg.shield
-        dyn = dynamics_of(
-            snap, shield.margin, shield.projected_cut_ins, shield.body_extent, shield.linear_mobil,
-            shield.reversing_leaders, shield.level_cut_ins, shield.level_incentive,
-        )  # fmt: skip
+        dyn = dynamics_of(snap, shield.margin, **shield.rule_options())
         direction = snap.lane_direction
         lane_heading = math.atan2(direction[1], direction[0])
         return (

@@ -32,6 +32,7 @@ from typing import Any, Literal
 import gymnasium as gym
 import numpy as np
 
+from safelane.config import RULE_OPTIONS
 from safelane.core.snapshot import DRIVER_FIELDS, RoadSnapshot
 from safelane.safety.compiled import axis_aligned, evaluate_compiled, evaluate_snapshot
 from safelane.safety.model import (
@@ -237,6 +238,7 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
         self.reversing_leaders = bool(reversing_leaders)
         self.level_cut_ins = bool(level_cut_ins)
         self.level_incentive = bool(level_incentive)
+        self._rule_options = {name: getattr(self, name) for name in RULE_OPTIONS}  # dynamics_of's keywords
         self.dynamics: Dynamics | None = None
         self.result: SafetyResult | None = None
         self.snapshot: RoadSnapshot | None = None
@@ -266,10 +268,7 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
     def _ego_leave_time(self, snap: RoadSnapshot) -> tuple[float, float]:
         """(lane heading [rad], the time [s] the ego takes to leave its lane) for ``snap``."""
         if self.dynamics is None:
-            self.dynamics = dynamics_of(
-                snap, self.margin, self.projected_cut_ins, self.body_extent, self.linear_mobil,
-                self.reversing_leaders, self.level_cut_ins, self.level_incentive,
-            )  # fmt: skip
+            self.dynamics = dynamics_of(snap, self.margin, **self._rule_options)
         dyn = self.dynamics
         # The ego's speed along the road, as road_state computes it (the compiled path builds no RoadState).
         direction = snap.lane_direction

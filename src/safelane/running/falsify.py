@@ -261,6 +261,18 @@ def check_policies(spec: CampaignBase) -> None:
             raise ConfigError(f"policies: '{policy}': no trained run there (no config.yaml)")
 
 
+def open_campaign(spec: CampaignBase, out_dir: str | Path, backend: str) -> Path:
+    """The checks every campaign kind runs before playing (backend, ``run:`` policies), then ``out_dir`` claimed
+    for ``spec`` (a killed run of the same spec resumes there; another spec is refused). Returns it."""
+    from safelane.running.engine import check_backend, claim_out_dir
+
+    check_backend(backend)
+    check_policies(spec)
+    out = Path(out_dir)
+    claim_out_dir(out, spec.model_dump_json(indent=1), "campaign.json", "campaign")
+    return out
+
+
 def run_campaign(
     spec: CampaignSpec,
     out_dir: str | Path,
@@ -270,12 +282,9 @@ def run_campaign(
     progress: Callable[[int, int], None] | None = None,
 ) -> dict[str, Any]:
     """Play every cell of ``spec`` not yet done into ``out_dir``; returns the totals (also summary.json)."""
-    from safelane.running.engine import TaskFailure, check_backend, claim_out_dir, format_failure, run_tasks
+    from safelane.running.engine import TaskFailure, format_failure, run_tasks
 
-    check_backend(backend)
-    check_policies(spec)
-    out = Path(out_dir)
-    claim_out_dir(out, spec.model_dump_json(indent=1), "campaign.json", "campaign")
+    out = open_campaign(spec, out_dir, backend)
     cells = spec.cells()
     if cells:
         cell_config(spec, cells[0])  # a bad key fails here, once, in one line

@@ -50,8 +50,8 @@ from safelane.running.falsify import (
     CampaignBase,
     CampaignSpec,
     cell_config,
-    check_policies,
     load_campaign_spec,
+    open_campaign,
     play_cell,
     read_spec_yaml,
 )
@@ -409,13 +409,8 @@ def run_search(
     progress: Callable[[int, int], None] | None = None,
 ) -> dict[str, Any]:
     """Run the CEM search of ``spec`` into ``out_dir`` (resuming a killed one); returns search.json's dict."""
-    from safelane.running.engine import check_backend, claim_out_dir
-
-    check_backend(backend)
-    check_policies(spec)
     check_parameters(spec)  # before anything is written
-    out = Path(out_dir)
-    claim_out_dir(out, spec.model_dump_json(indent=1), "campaign.json", "campaign")
+    out = open_campaign(spec, out_dir, backend)
     settings = spec.search
     total = settings.iterations * settings.population
     dist = initial_distribution(settings)

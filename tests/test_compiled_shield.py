@@ -186,11 +186,13 @@ def test_engine_is_configurable() -> None:
 
 
 # --------------------------------------------------------------------------------------------
-# The robust options (shield.projected_cut_ins, experimental; shield.body_extent and shield.level_cut_ins):
+# The robust options (shield.projected_cut_ins, experimental; shield.body_extent, level_cut_ins, level_entering):
 # the same in both engines, and only stricter.
 # --------------------------------------------------------------------------------------------
 
-ROBUST_OPTIONS = pytest.mark.parametrize("option", ["projected_cut_ins", "body_extent", "level_cut_ins"])
+ROBUST_OPTIONS = pytest.mark.parametrize(
+    "option", ["projected_cut_ins", "body_extent", "level_cut_ins", "level_entering"]
+)
 """The options that only add conflicts (linear_mobil removes some: tested on its own below)."""
 
 
@@ -230,16 +232,25 @@ def test_reversing_leaders_bit_identical_and_only_stricter(case: tuple) -> None:
 def test_level_incentive_bit_identical_and_between_the_rules(case: tuple) -> None:
     """shield.level_cut_ins with MOBIL's incentive (the default) only keeps the level cars
     that gain by moving behind the ego: never stricter than any level car turning in (level_incentive
-    false), never looser than the rule without level cut-ins; the same in both engines."""
+    false), never looser than the rule without level cut-ins; with level_entering (the default) between
+    the two as well, and stricter than the filter applied to every lane; the same in both engines."""
     state, dyn, _ = case
     off = dataclasses.replace(dyn, level_cut_ins=False)
     plain = dataclasses.replace(dyn, level_cut_ins=True, level_incentive=False)
-    incentive = dataclasses.replace(dyn, level_cut_ins=True, level_incentive=True)
-    assert mismatches(state, plain) == [] and mismatches(state, incentive) == []
+    incentive = dataclasses.replace(dyn, level_cut_ins=True, level_incentive=True, level_entering=True)
+    own_lanes = dataclasses.replace(incentive, level_entering=False)  # the filter into entered lanes too
+    for d in (plain, incentive, own_lanes):
+        assert mismatches(state, d) == []
     for mode in MODES:
-        without, anyone, gaining = (model.evaluate(state, d, mode) for d in (off, plain, incentive))
+        rules = (off, plain, incentive, own_lanes)
+        without, anyone, gaining, filtered = (model.evaluate(state, d, mode) for d in rules)
         assert not (anyone.safe & ~gaining.safe).any()
-        assert not (gaining.safe & ~without.safe).any()
+        assert not (gaining.safe & ~filtered.safe).any()  # level_entering only adds conflicts
+        assert not (filtered.safe & ~without.safe).any()
+        # The filter is lifted only for lanes the ego is entering: IDLE, FASTER and SLOWER stay in the
+        # lanes it is in, so their gaps do not depend on level_entering.
+        keep = [1, 3, 4]
+        assert np.array_equal(gaining.min_gap[keep], filtered.min_gap[keep], equal_nan=True)
 
 
 @PROPERTY_SETTINGS

@@ -66,6 +66,9 @@ EXPECTED = {
     # behind it (shield.level_cut_ins, robust only): nothing is safe, the least-bad IDLE is flagged. Nominal:
     # IDLE, LANE_RIGHT and SLOWER.
     "car_being_overtaken": {"nominal": mask_of(I, R, S), "robust": mask_of(I)},
+    # A car two lanes over, level with the ego, may change into the lane the ego is changing into
+    # (shield.level_entering, robust only): LANE_RIGHT is unsafe. FASTER closes on the leader 52 m ahead.
+    "car_two_lanes_over": {"nominal": mask_of(I, R, S), "robust": mask_of(I, S)},
 }
 
 
@@ -180,6 +183,32 @@ def test_level_cut_ins_see_the_car_being_overtaken_turn_in(engine: str) -> None:
             **{"shield.engine": engine, "shield.level_cut_ins": on},
         )  # fmt: skip
         assert scene.result.safe.tolist() == mask_of(I, R, S)
+
+
+@pytest.mark.parametrize("engine", ["numpy", "compiled"])
+def test_level_entering_sees_a_car_two_lanes_over_change_into_the_ego_s_new_lane(engine: str) -> None:
+    """shield.level_entering (default): the car two lanes over, 2 m behind the ego's centre, may turn into
+    lane 1 while the ego changes into it: LANE_RIGHT's worst gap is −4.07 m (it ends up a follower 2 m behind
+    the ego's centre). MOBIL's incentive judged with the ego already in lane 1 keeps it out (a follower 2 m
+    behind a car would brake at hundreds of m/s²): the earlier rule (false), like the rule without level
+    cut-ins, allowed LANE_RIGHT with 24.97 m — the trained agents' side impact of cell 169. Into the ego's
+    own lane the filter still holds: IDLE's and SLOWER's gaps are the same under every rule."""
+    scene = scenarios.SCENARIOS["car_two_lanes_over"](mode="robust", **{"shield.engine": engine})
+    assert scene.mask.tolist() == mask_of(I, S) and not scene.result.fallback
+    assert scene.result.min_gap[[I, R, S]] == pytest.approx([24.97, -4.07, 44.97], abs=0.01)
+    for options in ({"shield.level_entering": False}, {"shield.level_cut_ins": False}):
+        earlier = scenarios.SCENARIOS["car_two_lanes_over"](mode="robust", **{"shield.engine": engine}, **options)
+        assert earlier.mask.tolist() == mask_of(I, R, S)
+        assert earlier.result.min_gap[[I, R, S]] == pytest.approx([24.97, 24.97, 44.97], abs=0.01)
+    anyone = scenarios.SCENARIOS["car_two_lanes_over"](
+        mode="robust", **{"shield.engine": engine, "shield.level_incentive": False}
+    )
+    assert anyone.result.min_gap.tolist() == scene.result.min_gap.tolist()
+    # The same car 30 m behind the ego is not level with it at the end of the lane change's first part.
+    far = [scenarios.VehicleSpec(2, -30.0, 21.0), scenarios.VehicleSpec(0, 52.0, 22.0)]
+    behind = scenarios.build_scene(0, 20.6, far, mode="robust", lanes_count=3, ego_target_speed=20.0,
+                                   **{"shield.engine": engine})  # fmt: skip
+    assert behind.mask[R]
 
 
 @pytest.mark.parametrize("engine", ["numpy", "compiled"])

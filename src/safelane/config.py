@@ -158,6 +158,13 @@ class ShieldConfig(_Section):
         "gains acceleration there over its own lane, e.g. stuck in a slow queue) counts; false: any such car "
         "(measured, docs/safety.md §6e).",
     )
+    level_entering: bool = Field(
+        True,
+        strict=True,
+        description="With level_incentive: into a lane the ego is only entering (a lane change's new lane) every "
+        "level car counts, unfiltered: MOBIL's incentive there is judged without the ego in the lane (docs/safety.md "
+        "§6f). On by default since issue 15's sixth session; false gives the earlier rule.",
+    )
 
     def rule_options(self) -> dict[str, bool]:
         """The rule's on/off options by name, as :class:`safelane.safety.shield.SafetyShield` and
@@ -563,11 +570,14 @@ RENAMED_KEYS: dict[str, tuple[str, dict[Any, Any]]] = {
 
 RULE_OPTIONS = (
     "projected_cut_ins", "body_extent", "linear_mobil", "reversing_leaders", "level_cut_ins", "level_incentive",
+    "level_entering",
 )  # fmt: skip
 """The :class:`ShieldConfig` fields that switch parts of the safety rule on or off (``ShieldConfig.rule_options``)."""
 
 
-RULE_CHANGES: dict[str, Any] = {"body_extent": False, "reversing_leaders": False, "level_cut_ins": False}
+RULE_CHANGES: dict[str, Any] = {
+    "body_extent": False, "reversing_leaders": False, "level_cut_ins": False, "level_entering": False,
+}  # fmt: skip
 """Shield keys added with a new default that changes the rule: a *recorded* configuration (a run's
 config.yaml, a counterexample file) written before the key existed had the old behaviour, given here,
 so that it replays as it ran (:func:`recorded_config`)."""

@@ -224,6 +224,18 @@ def car_being_overtaken(mode: Mode = "robust", **kw: Any) -> Scene:
     return build_scene(1, 29.2, specs, mode=mode, ego_target_speed=30.0, **rate, **kw)
 
 
+def car_two_lanes_over(mode: Mode = "robust", **kw: Any) -> Scene:
+    """3 lanes; the ego in lane 0 at 20.6 m/s (set-point 20), a car two lanes over (lane 2) 2 m behind the
+    ego's centre at 21 m/s with a slower car 81 m ahead of it, and a leader 52 m ahead of the ego: the trained
+    agents' crash from a state called safe, ``cell00169-seed4001690001`` (step 34). The ego changes right
+    into lane 1 while that car changes left into it: a side impact. When the car decides, the ego is not in
+    lane 1, so MOBIL's incentive (which ``shield.level_incentive`` judges *with* the ego there, and which
+    then keeps the car out) does not hold; ``shield.level_entering`` (on by default; false: the earlier rule)
+    counts every level car into a lane the ego is only entering."""
+    specs = [VehicleSpec(2, -2.0, 21.0), VehicleSpec(0, 52.0, 22.0), VehicleSpec(2, 79.0, 20.0)]
+    return build_scene(0, 20.6, specs, mode=mode, lanes_count=3, ego_target_speed=20.0, **kw)
+
+
 SCENARIOS: dict[str, Callable[..., Scene]] = {
     "leader_braking": leader_braking,
     "stopped_car_ahead": stopped_car_ahead,
@@ -240,6 +252,7 @@ SCENARIOS: dict[str, Callable[..., Scene]] = {
     "linear_car_alongside": linear_car_alongside,
     "reversing_leader": reversing_leader,
     "car_being_overtaken": car_being_overtaken,
+    "car_two_lanes_over": car_two_lanes_over,
 }
 """Every scenario by name."""
 

@@ -154,7 +154,7 @@ def _evaluate(
     lanes_count: int, follower_reaction: float, ego_leave_time: float, cut_in_time: float, margin: float,
     relevance: float, lateral_threshold: float, robust: bool, projected_cut_ins: bool, body_extent: bool,
     body_width: float, linear_mobil: bool, reversing_leaders: bool, level_cut_ins: bool, level_incentive: bool,
-    min_acc_gain: float,
+    level_entering: bool, min_acc_gain: float,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, bool]:  # fmt: skip
     """``model.evaluate`` (formula ``kinematic``) of one state: (mask, safe, available, min_gap, fallback)."""
     n_ts = ts.shape[0]
@@ -325,6 +325,7 @@ def _evaluate(
     permitted = np.zeros((N_ACTIONS, m), dtype=np.bool_)
     unfiltered = np.zeros((N_ACTIONS, m), dtype=np.bool_)
     level = np.zeros((N_ACTIONS, m), dtype=np.bool_)  # level with or behind the ego (level_cut_ins)
+    level_any = np.zeros((N_ACTIONS, m), dtype=np.bool_)  # the same, no incentive filter (level_entering)
     ego_lanes = np.empty(3, dtype=np.int64)
     ego_until_leave = np.empty(3, dtype=np.bool_)  # until = ego_leave_time (else inf)
     target_clip = 0.0
@@ -370,6 +371,7 @@ def _evaluate(
                     d_end = x[i] + vx[i] * decision_period - kx
                     ahead_c = d_now > 0 or d_end > 0
                     unfiltered[slot, r] = can and ahead_c
+                    level_any[slot, r] = can and (d_now <= 0 or d_end <= 0)
                     if level_rows and level_incentive and not np.isfinite(lin_k0[i]):
                         # model.turn_in_incentive: MOBIL's gain behind the ego, now or at the end.
                         dw, tw, v = idm_distance_wanted[i], idm_time_wanted[i], vx[i]
@@ -395,7 +397,7 @@ def _evaluate(
                             (d_now <= 0 and gain_now >= min_acc_gain) or (d_end <= 0 and gain_end >= min_acc_gain)
                         )
                     else:
-                        level[slot, r] = can and (d_now <= 0 or d_end <= 0)
+                        level[slot, r] = level_any[slot, r]
                     if can and ahead_c:
                         acc, delta, dec = idm_comfort_acc[i], idm_delta[i], idm_comfort_dec[i]
                         dw, tw = idm_distance_wanted[i], idm_time_wanted[i]
@@ -427,7 +429,11 @@ def _evaluate(
             elif c >= n_cut:  # level_cut_ins: a car level with or behind the ego turning in behind it
                 e_idx, r = divmod(c - n_cut, m)
                 lane_c = ego_lanes[e_idx]
-                if not (level[slot, r] and abs(lanes_near[r] - lane_c) == 1):
+                occupied = (lane_c == ego_lane) | (lane_c == ego_target_lane)
+                # model._cut_in_candidates: MOBIL's incentive is judged with the ego in the lane, which a
+                # lane it is only entering does not hold (level_entering: any level car there).
+                turning = level[slot, r] if occupied or not level_entering else level_any[slot, r]
+                if not (turning and abs(lanes_near[r] - lane_c) == 1):
                     continue
                 nominal = False
                 follows = True
@@ -532,7 +538,7 @@ def _evaluate_snapshot(
     lanes_count: int, follower_reaction: float, ego_leave_time: float, cut_in_time: float, margin: float,
     relevance: float, lateral_threshold: float, robust: bool, projected_cut_ins: bool, body_extent: bool,
     body_width: float, linear_mobil: bool, reversing_leaders: bool, level_cut_ins: bool, level_incentive: bool,
-    min_acc_gain: float,
+    level_entering: bool, min_acc_gain: float,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, bool]:  # fmt: skip
     """``shield.road_state`` then :func:`_evaluate`, without building the state in Python.
 
@@ -578,7 +584,7 @@ def _evaluate_snapshot(
         ts, t, powers, tie_break, decision_period, frame_dt, frames, horizon, ego_kp, lane_width, lanes_count,
         follower_reaction, ego_leave_time, cut_in_time, margin, relevance, lateral_threshold, robust,
         projected_cut_ins, body_extent, body_width, linear_mobil, reversing_leaders, level_cut_ins, level_incentive,
-        min_acc_gain,
+        level_entering, min_acc_gain,
     )  # fmt: skip
 
 
@@ -663,6 +669,7 @@ class KernelConstants(NamedTuple):
     reversing_leaders: bool
     level_cut_ins: bool
     level_incentive: bool
+    level_entering: bool
     min_acc_gain: float
 
 
@@ -671,7 +678,8 @@ def kernel_constants(dyn: Dynamics) -> KernelConstants:
     args = _dynamics_args(dyn, dyn.ego_leave_time)
     return KernelConstants(
         *args[:12], *args[13:], dyn.projected_cut_ins, dyn.body_extent, dyn.body_width, dyn.linear_mobil,
-        dyn.reversing_leaders, dyn.level_cut_ins, dyn.level_incentive, _MIN_ACC_GAIN,
+        dyn.reversing_leaders, dyn.level_cut_ins, dyn.level_incentive, dyn.level_entering,
+        _MIN_ACC_GAIN,
     )
 
 
@@ -702,7 +710,7 @@ def evaluate_compiled(
         s.linear_speed_difference_gain, s.linear_distance_gain,
         *_dynamics_args(dyn, dyn.ego_leave_time), mode == "robust", dyn.projected_cut_ins, dyn.body_extent,
         dyn.body_width, dyn.linear_mobil, dyn.reversing_leaders, dyn.level_cut_ins, dyn.level_incentive,
-        _MIN_ACC_GAIN,
+        dyn.level_entering, _MIN_ACC_GAIN,
     )  # fmt: skip
     return _result(out)
 
@@ -735,6 +743,6 @@ def evaluate_snapshot(
         snap.lane_origin, snap.lane_direction, snap.lane_lateral, lane_heading, snap.speed_limit,
         *_dynamics_args(dyn, ego_leave_time), mode == "robust", dyn.projected_cut_ins, dyn.body_extent,
         dyn.body_width, dyn.linear_mobil, dyn.reversing_leaders, dyn.level_cut_ins, dyn.level_incentive,
-        _MIN_ACC_GAIN,
+        dyn.level_entering, _MIN_ACC_GAIN,
     )  # fmt: skip
     return _result(out)

@@ -99,6 +99,7 @@ class Dynamics:
     reversing_leaders: bool = True  # a leader moving backwards keeps its reverse speed (else: taken as stopped)
     level_cut_ins: bool = True  # robust: a car level with or behind the ego in a next lane may turn in behind it
     level_incentive: bool = True  # level_cut_ins: only if MOBIL's incentive (its gain behind the ego) allows it
+    level_entering: bool = True  # level_incentive: not into a lane the ego is only entering (any level car there)
 
     @property
     def horizon_decisions(self) -> int:
@@ -397,9 +398,10 @@ def _occupancy(state: RoadState, dyn: Dynamics, mode: Mode, near: np.ndarray) ->
 
 def _cut_in_candidates(
     state: RoadState, dyn: Dynamics, near: np.ndarray, ego_x_end: float, ego_v_end: float, ego_target: float
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Vehicles that may change into a lane the ego uses: (ahead, into a lane the ego is in; ahead, into a
-    lane the ego is entering; level with or behind the ego, into any lane it uses — ``level_cut_ins``).
+    lane the ego is entering; level with or behind the ego, into a lane the ego is in; level with or behind
+    the ego, into a lane it is entering — the last two for ``level_cut_ins``).
 
     Into a lane the ego already occupies, a vehicle changes lane only if its own rule allows it:
     MOBIL's safety criterion (highway-env) requires the acceleration its own model predicts for its new
@@ -414,10 +416,15 @@ def _cut_in_candidates(
     A vehicle whose centre is behind the ego's, now or at the end of the period (the ego overtaking it),
     sees the ego as its new *leader*: MOBIL's safety criterion then protects its new follower, not the
     ego, so any of them may turn in (issue 15, cell 470: a car just overtaken turned into the ego's
-    rear flank). With ``level_cut_ins`` the rule counts them as followers entering the ego's lanes.
+    rear flank). With ``level_cut_ins`` the rule counts them as followers entering the ego's lanes; with
+    ``level_incentive`` only those MOBIL's incentive lets move behind the ego (:func:`turn_in_incentive`).
+    That incentive is judged with the ego in the lane, so into a lane the ego is only *entering* it does
+    not hold either (issue 15, the trained agents' cells 169 and 440: a car two lanes over, level with the
+    ego, changed into the lane the ego was changing into — it saw no ego there when it decided): with
+    ``level_entering`` every level car counts there.
     """
     if near.size == 0:
-        return np.zeros(0, dtype=bool), np.zeros(0, dtype=bool), np.zeros(0, dtype=bool)
+        return (np.zeros(0, dtype=bool),) * 4
     can = state.can_change_lane[near] & (np.abs(state.vx[near]) >= 1.0)
     target = np.clip(ego_target, 0.0, state.speed_limit)
     d_now = state.x[near] - state.ego_x
@@ -434,13 +441,15 @@ def _cut_in_candidates(
         a_now[linear] = np.inf
     limit = -state.max_braking_imposed[near]
     ahead = (d_now > 0) | (d_end > 0)
+    level_any = (d_now <= 0) | (d_end <= 0)
     if dyn.level_cut_ins and dyn.level_incentive:
         # Linear-model drivers' incentive uses their own formula, not modelled: any turn-in is assumed.
         incentive = turn_in_incentive(state, dyn, near, d_now, d_end, ego_v_end)
-        level = np.where(linear, (d_now <= 0) | (d_end <= 0), incentive)
+        level = np.where(linear, level_any, incentive)
     else:
-        level = (d_now <= 0) | (d_end <= 0)
-    return can & ahead & ((a_now >= limit) | (a_end >= limit)), can & ahead, can & level
+        level = level_any
+    level_entering = level_any if dyn.level_entering else level
+    return can & ahead & ((a_now >= limit) | (a_end >= limit)), can & ahead, can & level, can & level_entering
 
 
 def _gap_ratio(state: RoadState, who: np.ndarray, front_speed: np.ndarray, gap: np.ndarray) -> np.ndarray:
@@ -530,7 +539,7 @@ def evaluate(state: RoadState, dyn: Dynamics, mode: Mode = "robust", formula: Fo
     moving_near = (np.abs(state.heading[near]) > LATERAL_MOTION_THRESHOLD) | (np.abs(state.vy[near]) > 0.3)
     projected_near = lanes_near + np.where(state.vy[near] > 0, 1, -1)
     moving_near &= (projected_near >= 0) & (projected_near < dyn.lanes_count)
-    cut_ins: dict[tuple[float, float, float], tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
+    cut_ins: dict[tuple[float, float, float], tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = {}
     for a in range(N_ACTIONS):
         if not available[a]:
             continue
@@ -543,7 +552,7 @@ def evaluate(state: RoadState, dyn: Dynamics, mode: Mode = "robust", formula: Fo
             key = (float(ego_x[a, 0, frames]), float(ego_v[a, 0, frames]), float(targets[a]))
             if key not in cut_ins:
                 cut_ins[key] = _cut_in_candidates(state, dyn, near, *key)
-            permitted, unfiltered, level = cut_ins[key]
+            permitted, unfiltered, level, level_entering = cut_ins[key]
             extra_v, extra_l = [], []
             for lane, _ in ego_lanes:
                 cands = permitted if lane in occupied else unfiltered
@@ -560,7 +569,8 @@ def evaluate(state: RoadState, dyn: Dynamics, mode: Mode = "robust", formula: Fo
                 # A car level with or behind the ego in a next lane may turn in behind it after the cut-in
                 # time and then follow it (accelerate for the reaction time, then brake): a follower.
                 for lane, _ in ego_lanes:
-                    for j in np.flatnonzero(level & (np.abs(lanes_near - lane) == 1)):
+                    turning = level if lane in occupied else level_entering
+                    for j in np.flatnonzero(turning & (np.abs(lanes_near - lane) == 1)):
                         behind_v.append(int(near[j]))
                         behind_l.append(lane)
             vehicles = vehicles + extra_v + behind_v

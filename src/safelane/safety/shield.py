@@ -80,6 +80,7 @@ def dynamics_of(
     reversing_leaders: bool = True,
     level_cut_ins: bool = True,
     level_incentive: bool = True,
+    level_entering: bool = True,
 ) -> Dynamics:
     """The :class:`Dynamics` constants of the simulated world a snapshot was taken in; ``margin`` [m]: the
     bumper-to-bumper gap the rule keeps under its worst case; the rule's options as in :class:`Dynamics`."""
@@ -102,6 +103,7 @@ def dynamics_of(
         reversing_leaders=reversing_leaders,
         level_cut_ins=level_cut_ins,
         level_incentive=level_incentive,
+        level_entering=level_entering,
         # The widest other body (every highway-env vehicle has Vehicle.WIDTH): the occupancy bound.
         body_width=float(np.max(snap.width)) if len(snap.width) else 2.0,
     )
@@ -182,7 +184,8 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
     ``linear_mobil``: robust mode applies a linear-model driver's MOBIL criterion with its own formula.
     ``reversing_leaders``: a leader moving backwards keeps its reverse speed (else it counts as stopped).
     ``level_cut_ins``: robust mode lets a car level with or behind the ego in a next lane turn in behind it;
-    ``level_incentive``: only when MOBIL's incentive lets it (else any such car may).
+    ``level_incentive``: only when MOBIL's incentive lets it (else any such car may);
+    ``level_entering``: any such car into a lane the ego is only entering (the incentive assumes it there).
     """
 
     def __init__(
@@ -199,6 +202,7 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
         reversing_leaders: bool = True,
         level_cut_ins: bool = True,
         level_incentive: bool = True,
+        level_entering: bool = True,
     ) -> None:
         if not (math.isfinite(margin) and margin >= 0):
             raise ValueError(f"shield.margin: must be a finite number >= 0 [m] (got {margin!r})")
@@ -221,6 +225,7 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
             reversing_leaders=reversing_leaders,
             level_cut_ins=level_cut_ins,
             level_incentive=level_incentive,
+            level_entering=level_entering,
         )
         try:
             env.get_wrapper_attr("road_snapshot")
@@ -238,6 +243,7 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
         self.reversing_leaders = bool(reversing_leaders)
         self.level_cut_ins = bool(level_cut_ins)
         self.level_incentive = bool(level_incentive)
+        self.level_entering = bool(level_entering)
         self._rule_options = {name: getattr(self, name) for name in RULE_OPTIONS}  # dynamics_of's keywords
         self.dynamics: Dynamics | None = None
         self.result: SafetyResult | None = None

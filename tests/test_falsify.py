@@ -12,7 +12,7 @@ import yaml
 
 from safelane.config import ConfigError
 from safelane.running.counterexamples import load_counterexample, replay
-from safelane.running.falsify import break_class, load_campaign_spec, run_campaign
+from safelane.running.falsify import break_class, load_campaign_spec, read_spec_yaml, run_campaign
 
 GRID = Path(__file__).resolve().parents[1] / "configs" / "falsify" / "grid.yaml"
 
@@ -41,6 +41,21 @@ def test_shipped_grid_covers_the_issues_axes() -> None:
     assert {r for r, _ in rates} == {1, 2, 3, 5} and all(f % r == 0 for r, f in rates)
     sampled = load_campaign_spec(GRID, {"sample": 7}).cells()
     assert len(sampled) == 7 and sampled == load_campaign_spec(GRID, {"sample": 7}).cells()
+
+
+def test_the_claim_s_grid_has_every_axis_of_the_issue_and_100k_episodes() -> None:
+    """configs/falsify/grid_100k_behind.yaml: grid.yaml's axes, the three scripted policies and
+    traffic.vehicles_behind 0–25, ≥ 100 000 episodes, on the fast simulator; every shipped grid spec loads
+    (search specs have their own loader, tests/test_falsify_search.py)."""
+    shipped = [p for p in sorted(GRID.parent.glob("*.yaml")) if "search" not in read_spec_yaml(p)]
+    assert len(shipped) >= 10 and all(load_campaign_spec(p).name for p in shipped)
+    spec = load_campaign_spec(GRID.parent / "grid_100k_behind.yaml")
+    assert set(spec.axes) == {"rate", "lanes", "density", "drivers", "behind"}
+    behind = [s["traffic.vehicles_behind"] for s in spec.axes["behind"]]
+    assert min(behind) == 0 and max(behind) == 25
+    assert set(spec.policies) == {"random", "faster", "probe"} and spec.simulator == "fast"
+    assert len(spec.cells()) * spec.episodes >= 100_000
+    assert spec.axes["drivers"] == load_campaign_spec(GRID).axes["drivers"]
 
 
 def test_campaign_writes_cells_skips_what_the_simulator_lacks_and_resumes(tmp_path: Path) -> None:

@@ -255,6 +255,24 @@ def test_level_incentive_bit_identical_and_between_the_rules(case: tuple) -> Non
 
 @PROPERTY_SETTINGS
 @given(case=road())
+def test_least_bad_joint_bit_identical_and_only_the_fallback_choice(case: tuple) -> None:
+    """shield.least_bad_joint ranks the fallback by the gap to everybody first: the same in both engines,
+    the same safe set and gaps, and the same mask whenever some action is safe."""
+    state, dyn, _ = case
+    ahead_first, joint_first = (dataclasses.replace(dyn, least_bad_joint=v) for v in (False, True))
+    assert mismatches(state, ahead_first) == [] and mismatches(state, joint_first) == []
+    for mode in MODES:
+        a, b = model.evaluate(state, ahead_first, mode), model.evaluate(state, joint_first, mode)
+        assert a.safe.tolist() == b.safe.tolist() and a.fallback == b.fallback
+        assert np.array_equal(a.min_gap, b.min_gap, equal_nan=True)
+        if not a.fallback:
+            assert a.mask.tolist() == b.mask.tolist()
+        else:
+            assert a.mask.sum() == b.mask.sum() == 1
+
+
+@PROPERTY_SETTINGS
+@given(case=road())
 def test_linear_mobil_bit_identical_and_only_looser(case: tuple) -> None:
     """shield.linear_mobil judges Linear-model cut-ins by their criterion: the same in both engines either
     way, and it only removes conflicts (never makes an action unsafe); nominal ignores it."""

@@ -212,6 +212,26 @@ def test_level_entering_sees_a_car_two_lanes_over_change_into_the_ego_s_new_lane
 
 
 @pytest.mark.parametrize("engine", ["numpy", "compiled"])
+def test_least_bad_joint_ranks_the_fallback_by_the_gap_to_anybody(engine: str) -> None:
+    """2 lanes, the ego in lane 0 at 20 m/s between a leader 9 m ahead at 15 m/s and a follower 8 m behind at
+    28 m/s, a car level with it in lane 1: nothing is safe in either mode. The default ranking (the gap to the
+    vehicles ahead first) brakes (SLOWER, the follower's problem); shield.least_bad_joint takes the largest
+    gap to anybody under the nominal conflicts, which is the lane change beside the level car (the follower's
+    surge is worse than that overlap) — the measure the campaign compares (docs/safety.md §6f)."""
+    spec = scenarios.VehicleSpec
+    specs = [spec(0, 9.0, 15.0), spec(0, -8.0, 28.0), spec(1, 0.0, 20.0)]
+    chosen = {}
+    for joint in (False, True):
+        scene = scenarios.build_scene(
+            0, 20.0, specs, mode="robust", lanes_count=2, ego_target_speed=20.0,
+            **{"shield.engine": engine, "shield.least_bad_joint": joint},
+        )  # fmt: skip
+        assert scene.result.fallback and not scene.result.safe.any()
+        chosen[joint] = scene.mask.tolist()
+    assert chosen[False] == mask_of(S) and chosen[True] == mask_of(R)
+
+
+@pytest.mark.parametrize("engine", ["numpy", "compiled"])
 def test_level_incentive_lets_a_car_in_free_flow_stay_in_its_lane(engine: str) -> None:
     """A car 3 m behind the ego in the next lane at the ego's 25 m/s, nothing ahead of it; a leader 40 m ahead
     of the ego at 20 m/s. Behind the ego, 3 m centre to centre, IDM would brake it at 3·(47.5 / 3)² ≈ 750 m/s²

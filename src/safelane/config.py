@@ -165,6 +165,13 @@ class ShieldConfig(_Section):
         "level car counts, unfiltered: MOBIL's incentive there is judged without the ego in the lane (docs/safety.md "
         "§6f). On by default since issue 15's sixth session; false gives the earlier rule.",
     )
+    least_bad_joint: bool = Field(
+        False,
+        strict=True,
+        description="When no action is safe, allow the one with the largest worst-case gap to any vehicle first "
+        "(a follower or a car alongside counts as much as a leader); false (default): to the vehicles ahead "
+        "first, the ego's own responsibility (docs/safety.md §6f).",
+    )
 
     def rule_options(self) -> dict[str, bool]:
         """The rule's on/off options by name, as :class:`safelane.safety.shield.SafetyShield` and
@@ -570,7 +577,7 @@ RENAMED_KEYS: dict[str, tuple[str, dict[Any, Any]]] = {
 
 RULE_OPTIONS = (
     "projected_cut_ins", "body_extent", "linear_mobil", "reversing_leaders", "level_cut_ins", "level_incentive",
-    "level_entering",
+    "level_entering", "least_bad_joint",
 )  # fmt: skip
 """The :class:`ShieldConfig` fields that switch parts of the safety rule on or off (``ShieldConfig.rule_options``)."""
 

@@ -154,7 +154,7 @@ def _evaluate(
     lanes_count: int, follower_reaction: float, ego_leave_time: float, cut_in_time: float, margin: float,
     relevance: float, lateral_threshold: float, robust: bool, projected_cut_ins: bool, body_extent: bool,
     body_width: float, linear_mobil: bool, reversing_leaders: bool, level_cut_ins: bool, level_incentive: bool,
-    level_entering: bool, min_acc_gain: float,
+    level_entering: bool, least_bad_joint: bool, min_acc_gain: float,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, bool]:  # fmt: skip
     """``model.evaluate`` (formula ``kinematic``) of one state: (mask, safe, available, min_gap, fallback)."""
     n_ts = ts.shape[0]
@@ -501,6 +501,8 @@ def _evaluate(
     else:
         pool = available
         ahead_of, gaps_of = nominal_ahead, nominal_joint
+    if least_bad_joint:  # model.evaluate: the gap to everybody first
+        ahead_of, gaps_of = gaps_of, ahead_of
     # least_bad_action: the largest (ahead gap, gap, −rank), compared as Python compares tuples.
     choice = IDLE
     found = False
@@ -538,7 +540,7 @@ def _evaluate_snapshot(
     lanes_count: int, follower_reaction: float, ego_leave_time: float, cut_in_time: float, margin: float,
     relevance: float, lateral_threshold: float, robust: bool, projected_cut_ins: bool, body_extent: bool,
     body_width: float, linear_mobil: bool, reversing_leaders: bool, level_cut_ins: bool, level_incentive: bool,
-    level_entering: bool, min_acc_gain: float,
+    level_entering: bool, least_bad_joint: bool, min_acc_gain: float,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, bool]:  # fmt: skip
     """``shield.road_state`` then :func:`_evaluate`, without building the state in Python.
 
@@ -584,7 +586,7 @@ def _evaluate_snapshot(
         ts, t, powers, tie_break, decision_period, frame_dt, frames, horizon, ego_kp, lane_width, lanes_count,
         follower_reaction, ego_leave_time, cut_in_time, margin, relevance, lateral_threshold, robust,
         projected_cut_ins, body_extent, body_width, linear_mobil, reversing_leaders, level_cut_ins, level_incentive,
-        level_entering, min_acc_gain,
+        level_entering, least_bad_joint, min_acc_gain,
     )  # fmt: skip
 
 
@@ -670,6 +672,7 @@ class KernelConstants(NamedTuple):
     level_cut_ins: bool
     level_incentive: bool
     level_entering: bool
+    least_bad_joint: bool
     min_acc_gain: float
 
 
@@ -679,7 +682,7 @@ def kernel_constants(dyn: Dynamics) -> KernelConstants:
     return KernelConstants(
         *args[:12], *args[13:], dyn.projected_cut_ins, dyn.body_extent, dyn.body_width, dyn.linear_mobil,
         dyn.reversing_leaders, dyn.level_cut_ins, dyn.level_incentive, dyn.level_entering,
-        _MIN_ACC_GAIN,
+        dyn.least_bad_joint, _MIN_ACC_GAIN,
     )
 
 
@@ -710,7 +713,7 @@ def evaluate_compiled(
         s.linear_speed_difference_gain, s.linear_distance_gain,
         *_dynamics_args(dyn, dyn.ego_leave_time), mode == "robust", dyn.projected_cut_ins, dyn.body_extent,
         dyn.body_width, dyn.linear_mobil, dyn.reversing_leaders, dyn.level_cut_ins, dyn.level_incentive,
-        dyn.level_entering, _MIN_ACC_GAIN,
+        dyn.level_entering, dyn.least_bad_joint, _MIN_ACC_GAIN,
     )  # fmt: skip
     return _result(out)
 
@@ -743,6 +746,6 @@ def evaluate_snapshot(
         snap.lane_origin, snap.lane_direction, snap.lane_lateral, lane_heading, snap.speed_limit,
         *_dynamics_args(dyn, ego_leave_time), mode == "robust", dyn.projected_cut_ins, dyn.body_extent,
         dyn.body_width, dyn.linear_mobil, dyn.reversing_leaders, dyn.level_cut_ins, dyn.level_incentive,
-        dyn.level_entering, _MIN_ACC_GAIN,
+        dyn.level_entering, dyn.least_bad_joint, _MIN_ACC_GAIN,
     )  # fmt: skip
     return _result(out)

@@ -100,6 +100,7 @@ class Dynamics:
     level_cut_ins: bool = True  # robust: a car level with or behind the ego in a next lane may turn in behind it
     level_incentive: bool = True  # level_cut_ins: only if MOBIL's incentive (its gain behind the ego) allows it
     level_entering: bool = True  # level_incentive: not into a lane the ego is only entering (any level car there)
+    least_bad_joint: bool = False  # no safe action: rank by the gap to everybody first (else: to vehicles ahead)
 
     @property
     def horizon_decisions(self) -> int:
@@ -622,9 +623,12 @@ def evaluate(state: RoadState, dyn: Dynamics, mode: Mode = "robust", formula: Fo
     # robust ⊆ nominal holds for the final masks too), else exactly what nominal would pick.
     nominal_safe = nominal_ok & available
     if mode == "robust" and nominal_safe.any():
-        choice = least_bad_action(ahead_gap.max(axis=1), joint_gap.max(axis=1), nominal_safe)
+        first, second, pool = ahead_gap, joint_gap, nominal_safe
     else:
-        choice = least_bad_action(nominal_ahead.max(axis=1), nominal_joint.max(axis=1), available)
+        first, second, pool = nominal_ahead, nominal_joint, available
+    if dyn.least_bad_joint:  # the worst gap to anybody first: a follower's or a car alongside's counts as much
+        first, second = second, first
+    choice = least_bad_action(first.max(axis=1), second.max(axis=1), pool)
     return _fallback(choice, safe, available, best_gap)
 
 
@@ -641,8 +645,9 @@ def _fallback(choice: int, safe: np.ndarray, available: np.ndarray, gaps: np.nda
 
 
 def least_bad_action(ahead_gaps: np.ndarray, gaps: np.ndarray, pool: np.ndarray) -> int:
-    """The action to allow when none is safe: largest worst-case gap to vehicles *ahead* (the ego's
-    own responsibility), then to everybody, then :data:`TIE_BREAK_ORDER`."""
+    """The action to allow when none is safe: largest worst-case gap [m] to vehicles *ahead* (the ego's
+    own responsibility), then to everybody, then :data:`TIE_BREAK_ORDER` (``Dynamics.least_bad_joint``
+    passes the two gap arrays the other way round)."""
     best: tuple[float, float, int] | None = None
     choice = IDLE
     for rank, a in enumerate(TIE_BREAK_ORDER):

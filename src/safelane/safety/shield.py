@@ -81,6 +81,7 @@ def dynamics_of(
     level_cut_ins: bool = True,
     level_incentive: bool = True,
     level_entering: bool = True,
+    least_bad_joint: bool = False,
 ) -> Dynamics:
     """The :class:`Dynamics` constants of the simulated world a snapshot was taken in; ``margin`` [m]: the
     bumper-to-bumper gap the rule keeps under its worst case; the rule's options as in :class:`Dynamics`."""
@@ -104,6 +105,7 @@ def dynamics_of(
         level_cut_ins=level_cut_ins,
         level_incentive=level_incentive,
         level_entering=level_entering,
+        least_bad_joint=least_bad_joint,
         # The widest other body (every highway-env vehicle has Vehicle.WIDTH): the occupancy bound.
         body_width=float(np.max(snap.width)) if len(snap.width) else 2.0,
     )
@@ -186,6 +188,7 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
     ``level_cut_ins``: robust mode lets a car level with or behind the ego in a next lane turn in behind it;
     ``level_incentive``: only when MOBIL's incentive lets it (else any such car may);
     ``level_entering``: any such car into a lane the ego is only entering (the incentive assumes it there).
+    ``least_bad_joint``: with no safe action, rank by the worst gap to anybody first (else: to vehicles ahead).
     """
 
     def __init__(
@@ -203,6 +206,7 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
         level_cut_ins: bool = True,
         level_incentive: bool = True,
         level_entering: bool = True,
+        least_bad_joint: bool = False,
     ) -> None:
         if not (math.isfinite(margin) and margin >= 0):
             raise ValueError(f"shield.margin: must be a finite number >= 0 [m] (got {margin!r})")
@@ -226,6 +230,7 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
             level_cut_ins=level_cut_ins,
             level_incentive=level_incentive,
             level_entering=level_entering,
+            least_bad_joint=least_bad_joint,
         )
         try:
             env.get_wrapper_attr("road_snapshot")
@@ -244,6 +249,7 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
         self.level_cut_ins = bool(level_cut_ins)
         self.level_incentive = bool(level_incentive)
         self.level_entering = bool(level_entering)
+        self.least_bad_joint = bool(least_bad_joint)
         self._rule_options = {name: getattr(self, name) for name in RULE_OPTIONS}  # dynamics_of's keywords
         self.dynamics: Dynamics | None = None
         self.result: SafetyResult | None = None

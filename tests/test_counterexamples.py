@@ -10,7 +10,7 @@ from pathlib import Path
 import pytest
 
 from safelane.config import ConfigError, load_config
-from safelane.running.counterexamples import load_counterexample, replay
+from safelane.running.counterexamples import crash_partner, load_counterexample, replay
 from safelane.running.evaluation import evaluate_fixed
 
 FAST = {"simulator": "fast"}
@@ -70,3 +70,23 @@ def test_a_tampered_file_is_not_reproduced_and_a_broken_one_is_one_line(tmp_path
     assert junk.returncode == 2 and junk.stderr.count("\n") == 1 and "not a counterexample" in junk.stderr
     with pytest.raises(ConfigError, match="no such counterexample file"):
         load_counterexample(tmp_path / "missing.json")
+
+
+CAMPAIGN = Path(__file__).resolve().parents[1] / "docs" / "results" / "falsify"
+CELL_38 = "cell00038-seed4000380020-collision-step26.json"
+CELL_169 = "cell00169-seed4001690001-collision-step34.json"
+
+
+def test_crash_partner_tells_a_reversing_car_from_one_inside_the_model() -> None:
+    """crash_partner: cell 38's crash (the campaign's reversing leader: the car 6 m ahead rolls back at
+    2 m/s into the nearly stopped ego) has its partner in the ego's lane, ahead, moving backwards; the
+    trained agents' cell 169 (a car two lanes over changing into the lane the ego enters) has a partner
+    moving forwards. A break file has no crash partner."""
+    reversing = crash_partner(load_counterexample(CAMPAIGN / "grid_100k" / "counterexamples" / CELL_38))
+    assert reversing["reversing"] and reversing["lane_vs_ego"] == [0, 0]
+    assert reversing["dx"][0] > 0 and min(reversing["speed"]) < 0
+    side = crash_partner(load_counterexample(CAMPAIGN / "grid_agents_level_cut_ins" / "counterexamples" / CELL_169))
+    assert not side["reversing"] and side["lane_vs_ego"] == [2, 1] and min(side["speed"]) > 10
+    breaks = sorted((CAMPAIGN / "grid" / "counterexamples").glob("*invariant_break*.json"))
+    with pytest.raises(ConfigError, match="collisions only"):
+        crash_partner(load_counterexample(breaks[0]))

@@ -235,6 +235,45 @@ def replay(cx: Counterexample, simulator: str | None = None) -> ReplayResult:
     return ReplayResult(cx, cfg.simulator, decisions, bool(reproduced), kind, final)
 
 
+def crash_partner(cx: Counterexample, simulator: str | None = None) -> dict[str, Any]:
+    """Who the ego crashed into, and whether that vehicle stayed inside the rule's model: replay the crash
+    ``cx`` and return the partner's index, its lane relative to the ego's, its offset along the road [m] and
+    its speed [m/s] at the last decision before the crash and at the crash, with ``reversing`` set when it
+    moved backwards at either. The rule's leader bound lets a braking car stop, not roll back: a car
+    *starting* to reverse (highway-env lets IDM's speed go below zero in a jam) breaks its own driver
+    model (docs/safety.md §6f); one already reversing keeps its speed under ``shield.reversing_leaders``."""
+    from safelane.env.factory import make_env
+    from safelane.running.evaluation import collision_partner
+
+    if cx.kind != "collision":
+        raise ConfigError(f"{cx.kind}: a crash partner is defined for collisions only")
+    env = make_env(cx.env_config(simulator))
+    try:
+        _, info = env.reset(seed=cx.seed)
+        before = info["snapshot"]
+        for action in cx.actions[: cx.step]:
+            before = info["snapshot"]
+            _, _, _, _, info = env.step(int(action))
+        crash = info["snapshot"]
+    finally:
+        env.close()
+    j = collision_partner(crash)
+    if j is None:
+        return {"vehicle": None, "reversing": False}
+    e = crash.ego
+    speeds = [round(float(before.speed[j]), 2), round(float(crash.speed[j]), 2)]
+    return {
+        "vehicle": j,
+        "lane_vs_ego": [int(before.lane[j]) - int(before.lane[before.ego]), int(crash.lane[j]) - int(crash.lane[e])],
+        "dx": [
+            round(float(before.position[j, 0] - before.position[before.ego, 0]), 2),
+            round(float(crash.position[j, 0] - crash.position[e, 0]), 2),
+        ],
+        "speed": speeds,
+        "reversing": min(speeds) < 0.0,
+    }
+
+
 def render_counterexample(cx: Counterexample, out_path: str | Path) -> Path:
     """Draw the replay (on highway-env, which plays the same episode) to a GIF / MP4 with the mask legend."""
     from safelane.reporting.render import render_episode

@@ -143,6 +143,21 @@ def _lane_coordinates(snap: RoadSnapshot, lane: int, position: np.ndarray) -> tu
     return float(np.dot(delta, snap.lane_direction)), float(np.dot(delta, snap.lane_lateral))
 
 
+def collision_partner(snap: RoadSnapshot) -> int | None:
+    """The index of the body the ego crashed into: the crashed body nearest to the ego at the impact (the
+    impact frame the simulator recorded, else the current geometry); None if the ego has not crashed or no
+    partner is found."""
+    if not snap.ego_crashed:
+        return None
+    e = snap.ego
+    after = snap.impact_after if snap.impact_before is not None and snap.impact_after is not None else snap.position
+    candidates = [i for i in range(min(snap.n, after.shape[0])) if i != e and snap.crashed[i]]
+    if not candidates:
+        return None
+    # The first of equally near partners, as Python's min() picks.
+    return min(candidates, key=lambda i: float(np.hypot(*(after[i] - after[e]))))
+
+
 def classify_collision(snap: RoadSnapshot) -> str | None:
     """The kind of the ego's crash (one of :data:`COLLISION_KINDS`), or None if it has not crashed.
 
@@ -157,11 +172,9 @@ def classify_collision(snap: RoadSnapshot) -> str | None:
         before, after = snap.impact_before, snap.impact_after
     else:
         before = after = snap.position
-    candidates = [i for i in range(min(snap.n, after.shape[0])) if i != e and snap.crashed[i]]
-    if not candidates:
+    other = collision_partner(snap)
+    if other is None:
         return "side"  # no partner found (not produced by highway-env's straight roads)
-    # The first of equally near partners, as Python's min() picks.
-    other = min(candidates, key=lambda i: float(np.hypot(*(after[i] - after[e]))))
     lane = int(snap.lane[e])
 
     def offset(positions: np.ndarray) -> tuple[float, float]:

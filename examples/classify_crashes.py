@@ -6,8 +6,8 @@ replay (``started_unsafe``, ``after_break``, ``from_safe_state``, ``after_fallba
 counts them), the crash partner (:func:`safelane.running.counterexamples.crash_partner`) and, for a crash
 after a break, the leave-one-out culprits of the last break before it
 (:func:`~safelane.running.counterexamples.break_culprits`, read from the same folder). A crash is
-``outside_model`` when its partner moved backwards, or when a culprit of that break started to roll
-back or rolled back faster during the decision (the rule's leader bound lets a braking car stop, or keep
+``outside_model`` when its partner, or a culprit of that break, started to roll back or rolled back
+faster during a decision between the break and the crash (the rule's leader bound lets a braking car stop, or keep
 a reverse speed it already has — ``shield.reversing_leaders`` — but not accelerate backwards:
 highway-env lets a jammed IDM car's speed go below zero, which the driver model does not intend;
 docs/safety.md §6f). Crashes that started unsafe are counted, not analysed.
@@ -19,6 +19,7 @@ docs/safety.md §6f). Crashes that started unsafe are counted, not analysed.
 from __future__ import annotations
 
 import argparse
+import itertools
 import json
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
@@ -53,8 +54,18 @@ def classify(path: str) -> dict[str, Any]:
         return row
     partner = crash_partner(cx)
     row["partner"] = partner
-    reasons = ["partner_reversing"] if partner["reversing"] else []
+    reasons = []
     breaks = [d.step for d in result.decisions[:-1] if d.invariant_break]
+    # The partner's speed at each decision from the first break (or the last decision) to the crash.
+    since = breaks[0] - 1 if breaks else len(result.decisions) - 1
+    speeds = [
+        next((v["speed"] for v in d.nearby if v["vehicle"] == partner["vehicle"]), None)
+        for d in result.decisions[since:]
+    ] + [next((v["speed"] for v in result.final["nearby"] if v["vehicle"] == partner["vehicle"]), None)]
+    row["partner_speeds"] = speeds
+    known = [v for v in speeds if v is not None]
+    if any(b < min(a, 0.0) - REVERSING_MARGIN for a, b in itertools.pairwise(known)):
+        reasons.append("partner_rolled_back")
     if breaks:
         stem = Path(path).name.split("-collision-")[0]
         break_file = Path(path).parent / f"{stem}-invariant_break-step{breaks[-1]}.json"

@@ -90,3 +90,21 @@ def test_crash_partner_tells_a_reversing_car_from_one_inside_the_model() -> None
     breaks = sorted((CAMPAIGN / "grid" / "counterexamples").glob("*invariant_break*.json"))
     with pytest.raises(ConfigError, match="collisions only"):
         crash_partner(load_counterexample(breaks[0]))
+
+
+def test_classify_crashes_finds_the_agents_crashes_after_breaks_outside_the_model(tmp_path: Path) -> None:
+    """examples/classify_crashes.py on the trained agents' 4 crashes after breaks (and the breaks before
+    them): every one is outside the model — a vehicle rolled back faster than the rule's bound lets it (a
+    reversing car keeps its speed): cell 615's partner (−0.35 → −3.01 m/s in the break's decision), cell
+    760's break culprit (the leader 44 m ahead, −0.43 → −1.26 m/s)."""
+    import sys
+
+    folder = CAMPAIGN / "grid_agents_level_entering" / "counterexamples"
+    out = tmp_path / "classes.json"
+    script = Path(__file__).resolve().parents[1] / "examples" / "classify_crashes.py"
+    subprocess.run([sys.executable, str(script), str(folder), "--workers", "1", "--out", str(out)], check=True)
+    summary = json.loads(out.read_text())
+    assert summary["contexts"] == {"after_break": 4} and summary["outside_model"] == 4 and summary["holes"] == []
+    reasons = {r["file"].split("-")[0]: r["outside_model"] for r in summary["rows"]}
+    assert reasons["cell00760"] == ["break_culprit_rolled_back"]
+    assert "partner_rolled_back" in reasons["cell00615"]

@@ -272,6 +272,22 @@ def test_least_bad_joint_bit_identical_and_only_the_fallback_choice(case: tuple)
 
 
 @PROPERTY_SETTINGS
+@given(case=road(rates=True))
+def test_full_horizon_bit_identical_at_every_rate_and_unchanged_at_one_per_second(case: tuple) -> None:
+    """shield.full_horizon (default): at 1 decision per second the horizon is the one it always was (13 s),
+    to the bit; at 2, 3 and 5 per second it spans the same seconds (26, 39, 65 decisions) and both engines
+    agree, in both modes."""
+    state, dyn, _ = case
+    short, full = (dataclasses.replace(dyn, full_horizon=v) for v in (False, True))
+    assert full.horizon_decisions * full.decision_period >= short.horizon_decisions * 1.0 - 1e-9
+    assert mismatches(state, full) == [] and mismatches(state, short) == []
+    if dyn.decision_period == 1.0:
+        assert full.horizon_decisions == short.horizon_decisions
+        for mode in MODES:
+            assert_same(model.evaluate(state, short, mode), model.evaluate(state, full, mode))
+
+
+@PROPERTY_SETTINGS
 @given(case=road())
 def test_linear_mobil_bit_identical_and_only_looser(case: tuple) -> None:
     """shield.linear_mobil judges Linear-model cut-ins by their criterion: the same in both engines either

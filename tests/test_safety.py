@@ -69,6 +69,9 @@ EXPECTED = {
     # A car two lanes over, level with the ego, may change into the lane the ego is changing into
     # (shield.level_entering, robust only): LANE_RIGHT is unsafe. FASTER closes on the leader 52 m ahead.
     "car_two_lanes_over": {"nominal": mask_of(I, R, S), "robust": mask_of(I, S)},
+    # 5 decisions per second, closing in on a slower car: with the horizon in seconds (shield.full_horizon)
+    # no action keeps 1 m; the least-bad SLOWER is flagged, in both modes.
+    "closing_in_at_five_per_second": {"nominal": mask_of(S), "robust": mask_of(S)},
 }
 
 
@@ -81,6 +84,7 @@ def test_scenario_masks(name: str, mode: str, engine: str) -> None:
     fallbacks = {("dense_jam", "nominal"), ("dense_jam", "robust"), ("leader_braking", "robust")}
     fallbacks |= {("linear_car_alongside", "robust"), ("reversing_leader", "nominal"), ("reversing_leader", "robust")}
     fallbacks.add(("car_being_overtaken", "robust"))
+    fallbacks |= {("closing_in_at_five_per_second", "nominal"), ("closing_in_at_five_per_second", "robust")}
     assert scene.result.fallback == ((name, mode) in fallbacks)
     available = scene.env.unwrapped.action_type.get_available_actions()
     assert set(np.flatnonzero(scene.mask)) <= set(available)
@@ -209,6 +213,26 @@ def test_level_entering_sees_a_car_two_lanes_over_change_into_the_ego_s_new_lane
     behind = scenarios.build_scene(0, 20.6, far, mode="robust", lanes_count=3, ego_target_speed=20.0,
                                    **{"shield.engine": engine})  # fmt: skip
     assert behind.mask[R]
+
+
+@pytest.mark.parametrize("engine", ["numpy", "compiled"])
+@pytest.mark.parametrize("mode", ["nominal", "robust"])
+def test_full_horizon_sees_the_ego_stop_at_five_decisions_per_second(engine: str, mode: str) -> None:
+    """shield.full_horizon (default): 65 decisions (13 s) at 5 per second. The ego needs ≈ 6 s to stop
+    from 27.66 m/s; within the earlier 13-decision horizon (2.6 s) it is still at 8.6 m/s, and the tail
+    credited beyond assumed a set-point of 0 at once (v/KP_A = 5.2 m) where SLOWER really steps it down
+    from the speed's own index (6.2 m): IDLE and SLOWER kept 1.476 m and were allowed — cell 812's break
+    one decision later, then its crash. With the horizon in seconds both keep −0.52 m: a fallback."""
+    full = scenarios.SCENARIOS["closing_in_at_five_per_second"](mode=mode, **{"shield.engine": engine})
+    assert full.result.fallback and full.mask.tolist() == mask_of(S)
+    assert full.result.min_gap[[I, F, S]] == pytest.approx([-0.52, -8.52, -0.52], abs=0.01)
+    short = scenarios.SCENARIOS["closing_in_at_five_per_second"](
+        mode=mode, **{"shield.engine": engine, "shield.full_horizon": False}
+    )
+    assert not short.result.fallback and short.mask.tolist() == mask_of(I, S)
+    assert short.result.min_gap[[I, S]] == pytest.approx([1.476, 1.476], abs=0.001)
+    assert scenarios.find_shield(full.env).dynamics.horizon_decisions == 65
+    assert scenarios.find_shield(short.env).dynamics.horizon_decisions == 13
 
 
 @pytest.mark.parametrize("engine", ["numpy", "compiled"])
@@ -371,11 +395,11 @@ def test_shield_on_real_traffic_nests_masks() -> None:
 SPEEDS = (0.0, 5.0, 10.0, 15.0, 20.0, 25.0, 30.0)
 
 
-def dynamics(lanes: int, sim_hz: int) -> Dynamics:
+def dynamics(lanes: int, sim_hz: int, policy_hz: int = 1) -> Dynamics:
     return Dynamics(
-        decision_period=1.0,
+        decision_period=1.0 / policy_hz,
         frame_dt=1.0 / sim_hz,
-        frames_per_decision=sim_hz,
+        frames_per_decision=sim_hz // policy_hz,
         ego_kp=1 / 0.6,
         target_speeds=SPEEDS,
         lane_width=4.0,
@@ -402,9 +426,15 @@ def vehicle(draw: st.DrawFn, lanes: int, extreme: bool = False) -> dict[str, flo
 
 
 @st.composite
-def road(draw: st.DrawFn, extreme: bool = False) -> tuple[RoadState, Dynamics, list[dict[str, float]]]:
+def road(
+    draw: st.DrawFn, extreme: bool = False, rates: bool = False
+) -> tuple[RoadState, Dynamics, list[dict[str, float]]]:
+    """A random road at 1 decision per second, or (``rates``) at the falsification grid's 1, 2, 3 or 5."""
     lanes = draw(st.integers(1, 5))
     sim_hz = draw(st.sampled_from([5, 15]))
+    policy_hz = 1
+    if rates:
+        policy_hz, sim_hz = draw(st.sampled_from([(1, 5), (2, 10), (3, 15), (5, 15)]))
     ego_lane = draw(st.integers(0, lanes - 1))
     change = draw(st.sampled_from([-1, 0, 1]))
     target_lane = int(np.clip(ego_lane + change, 0, lanes - 1))
@@ -412,7 +442,7 @@ def road(draw: st.DrawFn, extreme: bool = False) -> tuple[RoadState, Dynamics, l
     cars = draw(st.lists(vehicle(lanes, extreme), max_size=10))
     ego_x = 200.0
     state = make_state(ego_x, ego_lane, target_lane, draw(st.floats(0.0, 40.0 if extreme else 32.0)), idx, cars)
-    return state, dynamics(lanes, sim_hz), cars
+    return state, dynamics(lanes, sim_hz, policy_hz), cars
 
 
 def make_state(

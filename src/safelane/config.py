@@ -172,6 +172,13 @@ class ShieldConfig(_Section):
         "(a follower or a car alongside counts as much as a leader); false (default): to the vehicles ahead "
         "first, the ego's own responsibility (docs/safety.md §6f).",
     )
+    full_horizon: bool = Field(
+        True,
+        strict=True,
+        description="The rule's horizon spans the same seconds at every decision rate (13 s with set-points 0-30 "
+        "m/s); false: the same number of decisions, 2.6 s at 5 per second, too short for the ego to stop "
+        "(docs/safety.md §6f). On by default since issue 15's sixth session; false gives the earlier rule.",
+    )
 
     def rule_options(self) -> dict[str, bool]:
         """The rule's on/off options by name, as :class:`safelane.safety.shield.SafetyShield` and
@@ -577,13 +584,14 @@ RENAMED_KEYS: dict[str, tuple[str, dict[Any, Any]]] = {
 
 RULE_OPTIONS = (
     "projected_cut_ins", "body_extent", "linear_mobil", "reversing_leaders", "level_cut_ins", "level_incentive",
-    "level_entering", "least_bad_joint",
+    "level_entering", "least_bad_joint", "full_horizon",
 )  # fmt: skip
 """The :class:`ShieldConfig` fields that switch parts of the safety rule on or off (``ShieldConfig.rule_options``)."""
 
 
 RULE_CHANGES: dict[str, Any] = {
     "body_extent": False, "reversing_leaders": False, "level_cut_ins": False, "level_entering": False,
+    "full_horizon": False,
 }  # fmt: skip
 """Shield keys added with a new default that changes the rule: a *recorded* configuration (a run's
 config.yaml, a counterexample file) written before the key existed had the old behaviour, given here,

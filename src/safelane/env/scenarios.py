@@ -236,6 +236,18 @@ def car_two_lanes_over(mode: Mode = "robust", **kw: Any) -> Scene:
     return build_scene(0, 20.6, specs, mode=mode, lanes_count=3, ego_target_speed=20.0, **kw)
 
 
+def closing_in_at_five_per_second(mode: Mode = "robust", **kw: Any) -> Scene:
+    """5 decisions per second (15 Hz physics), one lane: the ego at 27.66 m/s (set-point 25) closes in on a
+    car 39.22 m ahead at 15.82 m/s — the falsification grid's cell 812 (``cell00812-seed4008120005``, step 6)
+    one decision before its invariant break. Braking from here takes the ego ≈ 6 s; the rule's horizon of
+    13 *decisions* is 2.6 s at this rate, and the tail it credits beyond (the ego decaying to a set-point
+    of 0) ends 1 m short of where the ego really stops. ``shield.full_horizon`` (on by default; false: the
+    earlier rule) makes the horizon 13 *seconds* at every rate: nothing is safe here."""
+    rate = {"env.policy_frequency": 5, "env.simulation_frequency": 15}
+    specs = [VehicleSpec(0, 39.22, 15.82)]
+    return build_scene(0, 27.66, specs, mode=mode, lanes_count=1, ego_target_speed=25.0, **rate, **kw)
+
+
 SCENARIOS: dict[str, Callable[..., Scene]] = {
     "leader_braking": leader_braking,
     "stopped_car_ahead": stopped_car_ahead,
@@ -253,6 +265,7 @@ SCENARIOS: dict[str, Callable[..., Scene]] = {
     "reversing_leader": reversing_leader,
     "car_being_overtaken": car_being_overtaken,
     "car_two_lanes_over": car_two_lanes_over,
+    "closing_in_at_five_per_second": closing_in_at_five_per_second,
 }
 """Every scenario by name."""
 

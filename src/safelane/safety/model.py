@@ -56,6 +56,9 @@ MAX_HOLD_DECISIONS = 3
 follower be handled together: keep speed now, brake later)."""
 TAIL_DECISIONS = 2
 """Decisions simulated after the speed target reaches its minimum (the P-controller's exponential tail)."""
+BASE_DECISION_PERIOD = 1.0
+"""[s] The decision period the horizon's decision count was designed at (the paper's 1 decision per second):
+with ``Dynamics.full_horizon`` the horizon spans at least as many seconds at every decision rate."""
 RELEVANCE_RANGE = 250.0  # [m] vehicles farther than this (longitudinally) cannot matter in the horizon
 LATERAL_MOTION_THRESHOLD = 0.01  # [rad] |heading| above which a vehicle counts as changing lane (robust)
 MOBIL_MIN_ACC_GAIN = 0.2  # [m/s²] highway-env's IDMVehicle.LANE_CHANGE_MIN_ACC_GAIN (its POLITENESS is 0)
@@ -101,11 +104,19 @@ class Dynamics:
     level_incentive: bool = True  # level_cut_ins: only if MOBIL's incentive (its gain behind the ego) allows it
     level_entering: bool = True  # level_incentive: not into a lane the ego is only entering (any level car there)
     least_bad_joint: bool = False  # no safe action: rank by the gap to everybody first (else: to vehicles ahead)
+    full_horizon: bool = True  # the horizon spans the same seconds at every decision rate (else: the same decisions)
 
     @property
     def horizon_decisions(self) -> int:
-        """Decisions simulated: the action, the longest hold, braking to standstill, the tail."""
-        return 1 + MAX_HOLD_DECISIONS + len(self.target_speeds) + TAIL_DECISIONS
+        """Decisions simulated: the action, the longest hold, braking to standstill, the tail — counted at
+        :data:`BASE_DECISION_PERIOD`; with ``full_horizon``, as many seconds at a faster rate. (13 decisions
+        are 2.6 s at 5 per second: the ego, the P-controller lagging its falling set-point, is still at
+        8 m/s there, and the tail credited beyond the horizon assumes a set-point of 0 it has not reached —
+        issue 15, the invariant breaks after which 11 of the grid's crashes happened at 5 per second.)"""
+        base = 1 + MAX_HOLD_DECISIONS + len(self.target_speeds) + TAIL_DECISIONS
+        if not self.full_horizon:
+            return base
+        return max(base, math.ceil(base * BASE_DECISION_PERIOD / self.decision_period - 1e-9))
 
     @property
     def times(self) -> np.ndarray:

@@ -82,6 +82,7 @@ def dynamics_of(
     level_incentive: bool = True,
     level_entering: bool = True,
     least_bad_joint: bool = False,
+    full_horizon: bool = True,
 ) -> Dynamics:
     """The :class:`Dynamics` constants of the simulated world a snapshot was taken in; ``margin`` [m]: the
     bumper-to-bumper gap the rule keeps under its worst case; the rule's options as in :class:`Dynamics`."""
@@ -106,6 +107,7 @@ def dynamics_of(
         level_incentive=level_incentive,
         level_entering=level_entering,
         least_bad_joint=least_bad_joint,
+        full_horizon=full_horizon,
         # The widest other body (every highway-env vehicle has Vehicle.WIDTH): the occupancy bound.
         body_width=float(np.max(snap.width)) if len(snap.width) else 2.0,
     )
@@ -189,6 +191,7 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
     ``level_incentive``: only when MOBIL's incentive lets it (else any such car may);
     ``level_entering``: any such car into a lane the ego is only entering (the incentive assumes it there).
     ``least_bad_joint``: with no safe action, rank by the worst gap to anybody first (else: to vehicles ahead).
+    ``full_horizon``: the rule's horizon spans the same seconds at every decision rate (else: decisions).
     """
 
     def __init__(
@@ -207,6 +210,7 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
         level_incentive: bool = True,
         level_entering: bool = True,
         least_bad_joint: bool = False,
+        full_horizon: bool = True,
     ) -> None:
         if not (math.isfinite(margin) and margin >= 0):
             raise ValueError(f"shield.margin: must be a finite number >= 0 [m] (got {margin!r})")
@@ -231,6 +235,7 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
             level_incentive=level_incentive,
             level_entering=level_entering,
             least_bad_joint=least_bad_joint,
+            full_horizon=full_horizon,
         )
         try:
             env.get_wrapper_attr("road_snapshot")
@@ -250,6 +255,7 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
         self.level_incentive = bool(level_incentive)
         self.level_entering = bool(level_entering)
         self.least_bad_joint = bool(least_bad_joint)
+        self.full_horizon = bool(full_horizon)
         self._rule_options = {name: getattr(self, name) for name in RULE_OPTIONS}  # dynamics_of's keywords
         self.dynamics: Dynamics | None = None
         self.result: SafetyResult | None = None

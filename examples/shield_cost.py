@@ -6,11 +6,16 @@ path (``compute_result``: the state built inside the kernel) and ``road_state``.
 decision of the fast simulator into simulator (everything below the shield) and shield.
 
     PYTHONPATH=src python examples/shield_cost.py --simulator fast --episodes 3
+
+``--rate P/S`` plays P decisions per second on S Hz physics; ``--compare OPTION`` also times the compiled
+kernel with that rule option (a ``Dynamics`` field, e.g. ``full_horizon``) off and on, side by side on the
+same states (interleaved, so the machine's noise hits both alike).
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import time
 from collections.abc import Callable
 from typing import Any
@@ -39,13 +44,20 @@ def main() -> None:
     parser.add_argument("--simulator", default="fast", choices=["fast", "highway-env"])
     parser.add_argument("--episodes", type=int, default=3)
     parser.add_argument("--reps", type=int, default=20)
+    parser.add_argument("--rate", default=None, help="P/S: P decisions per second on S Hz physics.")
+    parser.add_argument("--compare", default=None, help="A rule option (Dynamics field) to time off and on.")
     args = parser.parse_args()
 
-    env = make_env(args.preset, simulator=args.simulator, **{"shield.mode": "robust", "shield.override": True})
+    sets: dict[str, Any] = {"shield.mode": "robust", "shield.override": True}
+    if args.rate:
+        policy_hz, sim_hz = (int(v) for v in args.rate.split("/"))
+        sets.update({"env.policy_frequency": policy_hz, "env.simulation_frequency": sim_hz})
+    env = make_env(args.preset, simulator=args.simulator, **sets)
     assert isinstance(env, SafetyShield)
     rng = np.random.default_rng(0)
     rows: dict[str, list[float]] = {k: [] for k in ("numpy", "compiled", "shield", "road_state", "sim", "step")}
     n_near = []
+    recorded = []
     for episode in range(args.episodes):
         _, info = env.reset(seed=episode)
         done = False
@@ -53,6 +65,7 @@ def main() -> None:
             snap = info["snapshot"]
             state, dyn = env.state_and_dynamics(snap)
             n_near.append(state.n)
+            recorded.append((state, dyn))
             # (the lambdas run at once, inside the loop: binding the loop variables late is what is meant)
             rows["numpy"].append(best_of(lambda: evaluate(state, dyn, "robust"), max(2, args.reps // 10)))  # noqa: B023
             rows["compiled"].append(best_of(lambda: evaluate_compiled(state, dyn, "robust"), args.reps))  # noqa: B023
@@ -76,6 +89,16 @@ def main() -> None:
             del env.env.step
             rows["sim"].append(spent[0] * 1e6)
             done = terminated or truncated
+    if args.compare:
+        for flag in (False, True):
+            rows[f"{args.compare}={flag}"] = []
+        for state, dyn in recorded:
+            for flag in (False, True):
+                variant = dataclasses.replace(dyn, **{args.compare: flag})
+                evaluate_compiled(state, variant, "robust")  # compile / warm up outside the timing
+                rows[f"{args.compare}={flag}"].append(
+                    best_of(lambda: evaluate_compiled(state, variant, "robust"), args.reps)  # noqa: B023
+                )
     med = {k: float(np.median(v)) for k, v in rows.items()}
     print(f"{args.preset}/{args.simulator}: {len(n_near)} states, median {np.median(n_near):.0f} vehicles in range")
     print(f"robust mask, numpy evaluate      : {med['numpy']:9.1f} µs")
@@ -87,6 +110,9 @@ def main() -> None:
         f"shielded decision {med['step']:.1f} µs = below the shield {med['sim']:.1f} µs + shield {shield_part:.1f} µs "
         f"({100 * shield_part / med['step']:.0f} %)"
     )
+    if args.compare:
+        off, on = med[f"{args.compare}=False"], med[f"{args.compare}=True"]
+        print(f"compiled mask, {args.compare} off / on : {off:9.1f} / {on:.1f} µs (x{on / off:.2f})")
 
 
 if __name__ == "__main__":

@@ -313,6 +313,26 @@ def test_robust_options_on_recorded_states(option: str) -> None:
     assert n >= 160
 
 
+def test_ego_speed_magnitude_on_recorded_states() -> None:
+    """shield.ego_speed_magnitude (default): the ego's speed in the rule is its controller's; false, its
+    component along the road. Both ways the reference, the compiled kernel and the shield's fast path (which
+    builds the state in the kernel) agree, on random-policy episodes full of lane changes; the two speeds
+    differ exactly when the ego's heading does not follow the road."""
+    n = turning = 0
+    for shield, snap in recorded("fast", "fast", True, episodes=4, seed=5, max_steps=60):
+        assert shield.dynamics is not None
+        speeds = []
+        for value in (False, True):
+            shield.dynamics = dataclasses.replace(shield.dynamics, ego_speed_magnitude=value)
+            n += check_recorded(shield, snap)
+            speeds.append(shield.state_and_dynamics(snap)[0].ego_speed)
+        e = snap.ego
+        assert speeds[1] == float(snap.speed[e])
+        assert (speeds[0] != speeds[1]) == (math.cos(float(snap.heading[e])) != 1.0)
+        turning += speeds[0] != speeds[1]
+    assert n >= 240 and turning >= 5
+
+
 @pytest.mark.parametrize("simulator", ["fast", "highway-env"])
 def test_linear_drivers_mobil_on_recorded_states(simulator: str) -> None:
     """Linear-model drivers (their MOBIL criterion judges the ego with the linear formula and their own

@@ -248,4 +248,7 @@ def test_every_rule_option_reaches_the_shield_of_make_env_and_of_the_batch() -> 
         batch.reset_envs(np.array([0]), [0])
         assert batch._kernel_args is not None
         constants = KernelConstants(*batch._kernel_args[7:])  # after the leave times, speed limit and lane frame
-        assert getattr(constants, name) is (not defaults[name])
+        if name == "full_horizon":  # not a kernel flag: it sets the horizon's length
+            assert constants.horizon == env.dynamics.horizon_decisions
+        else:
+            assert getattr(constants, name) is (not defaults[name])

@@ -72,6 +72,10 @@ EXPECTED = {
     # 5 decisions per second, closing in on a slower car: with the horizon in seconds (shield.full_horizon)
     # no action keeps 1 m; the least-bad SLOWER is flagged, in both modes.
     "closing_in_at_five_per_second": {"nominal": mask_of(S), "robust": mask_of(S)},
+    # The ego mid lane change at 3 decisions per second: SLOWER's set-point from the controller's speed
+    # (shield.ego_speed_magnitude) leaves 0.5 m to the car ahead; nominal still lets the ego turn back left
+    # (11.3 m), robust has nothing safe and flags the same least-bad LANE_LEFT.
+    "ego_turning_into_its_lane": {"nominal": mask_of(L), "robust": mask_of(L)},
 }
 
 
@@ -85,6 +89,7 @@ def test_scenario_masks(name: str, mode: str, engine: str) -> None:
     fallbacks |= {("linear_car_alongside", "robust"), ("reversing_leader", "nominal"), ("reversing_leader", "robust")}
     fallbacks.add(("car_being_overtaken", "robust"))
     fallbacks |= {("closing_in_at_five_per_second", "nominal"), ("closing_in_at_five_per_second", "robust")}
+    fallbacks.add(("ego_turning_into_its_lane", "robust"))
     assert scene.result.fallback == ((name, mode) in fallbacks)
     available = scene.env.unwrapped.action_type.get_available_actions()
     assert set(np.flatnonzero(scene.mask)) <= set(available)
@@ -233,6 +238,32 @@ def test_full_horizon_sees_the_ego_stop_at_five_decisions_per_second(engine: str
     assert short.result.min_gap[[I, S]] == pytest.approx([1.476, 1.476], abs=0.001)
     assert scenarios.find_shield(full.env).dynamics.horizon_decisions == 65
     assert scenarios.find_shield(short.env).dynamics.horizon_decisions == 13
+
+
+@pytest.mark.parametrize("engine", ["numpy", "compiled"])
+@pytest.mark.parametrize("mode", ["nominal", "robust"])
+def test_ego_speed_magnitude_takes_slower_where_highway_env_does(engine: str, mode: str) -> None:
+    """shield.ego_speed_magnitude (default): mid lane change (heading 0.206 rad) the ego's controller runs
+    at 22.77 m/s, which MDPVehicle rounds to the 25 m/s set-point: SLOWER goes to 20 m/s and keeps 0.496 m
+    to the car 20 m ahead. The earlier rule used the speed along the road (22.77·cos 0.206 = 22.29 m/s,
+    rounding to 20): SLOWER to 15 m/s, 7.45 m — allowed, and cell 573's break followed."""
+    now = scenarios.SCENARIOS["ego_turning_into_its_lane"](mode=mode, **{"shield.engine": engine})
+    assert now.result.min_gap[S] == pytest.approx(0.496, abs=0.001) and not now.result.safe[S]
+    earlier = scenarios.SCENARIOS["ego_turning_into_its_lane"](
+        mode=mode, **{"shield.engine": engine, "shield.ego_speed_magnitude": False}
+    )
+    assert earlier.result.min_gap[S] == pytest.approx(7.452, abs=0.001) and earlier.result.safe[S]
+    assert not earlier.result.fallback
+    # Straight in its lane the two speeds are the same, and so are the verdicts.
+    straight = [
+        scenarios.build_scene(
+            2, 22.77, [scenarios.VehicleSpec(2, 20.07, 17.58)], mode=mode, lanes_count=3, ego_target_speed=20.0,
+            **{"env.policy_frequency": 3, "env.simulation_frequency": 15, "shield.engine": engine,
+               "shield.ego_speed_magnitude": value},
+        ).result.min_gap.tolist()
+        for value in (False, True)
+    ]  # fmt: skip
+    assert straight[0] == straight[1]
 
 
 @pytest.mark.parametrize("engine", ["numpy", "compiled"])

@@ -179,6 +179,14 @@ class ShieldConfig(_Section):
         "m/s); false: the same number of decisions, 2.6 s at 5 per second, too short for the ego to stop "
         "(docs/safety.md §6f). On by default since issue 15's sixth session; false gives the earlier rule.",
     )
+    ego_speed_magnitude: bool = Field(
+        True,
+        strict=True,
+        description="The ego's speed in the rule is its speed controller's (highway-env's vehicle.speed, what "
+        "SLOWER's set-point and the P-controller use); false: its component along the road, which a lane "
+        "change's heading lowers (docs/safety.md §6f). On by default since issue 15's sixth session; false "
+        "gives the earlier rule.",
+    )
 
     def rule_options(self) -> dict[str, bool]:
         """The rule's on/off options by name, as :class:`safelane.safety.shield.SafetyShield` and
@@ -584,14 +592,14 @@ RENAMED_KEYS: dict[str, tuple[str, dict[Any, Any]]] = {
 
 RULE_OPTIONS = (
     "projected_cut_ins", "body_extent", "linear_mobil", "reversing_leaders", "level_cut_ins", "level_incentive",
-    "level_entering", "least_bad_joint", "full_horizon",
+    "level_entering", "least_bad_joint", "full_horizon", "ego_speed_magnitude",
 )  # fmt: skip
 """The :class:`ShieldConfig` fields that switch parts of the safety rule on or off (``ShieldConfig.rule_options``)."""
 
 
 RULE_CHANGES: dict[str, Any] = {
     "body_extent": False, "reversing_leaders": False, "level_cut_ins": False, "level_entering": False,
-    "full_horizon": False,
+    "full_horizon": False, "ego_speed_magnitude": False,
 }  # fmt: skip
 """Shield keys added with a new default that changes the rule: a *recorded* configuration (a run's
 config.yaml, a counterexample file) written before the key existed had the old behaviour, given here,

@@ -73,9 +73,12 @@ def build_scene(
     lanes_count: int = 4,
     ego_target_speed: float | None = None,
     preset: str = "fast",
+    ego_lateral: float = 0.0,
+    ego_heading: float = 0.0,
     **overrides: Any,
 ) -> Scene:
-    """Place the ego at ``x = 200 m`` in ``ego_lane`` at ``ego_speed`` [m/s] and ``vehicles`` around it."""
+    """Place the ego at ``x = 200 m`` in ``ego_lane`` at ``ego_speed`` [m/s] and ``vehicles`` around it;
+    ``ego_lateral`` [m] off the lane's centre and ``ego_heading`` [rad] off its direction (mid lane change)."""
     env = make_env(
         preset,
         seed=0,
@@ -88,8 +91,8 @@ def build_scene(
     _from, _to = next(iter(road.network.graph.items()))[0], None
     _to = next(iter(road.network.graph[_from]))
     ego_lane_obj = road.network.get_lane((_from, _to, ego_lane))
-    ego.position = ego_lane_obj.position(200.0, 0.0)
-    ego.heading = ego_lane_obj.heading_at(200.0)
+    ego.position = ego_lane_obj.position(200.0, ego_lateral)
+    ego.heading = ego_lane_obj.heading_at(200.0) + ego_heading
     ego.speed = float(ego_speed)
     ego.lane_index = ego.target_lane_index = (_from, _to, ego_lane)
     ego.lane = ego_lane_obj
@@ -248,6 +251,22 @@ def closing_in_at_five_per_second(mode: Mode = "robust", **kw: Any) -> Scene:
     return build_scene(0, 27.66, specs, mode=mode, lanes_count=1, ego_target_speed=25.0, **rate, **kw)
 
 
+def ego_turning_into_its_lane(mode: Mode = "robust", **kw: Any) -> Scene:
+    """3 decisions per second, 3 lanes: the ego finishing a lane change into lane 2 (1.91 m short of its
+    centre, heading 0.206 rad) at 22.77 m/s, set-point 20, a car 20.07 m ahead in lane 2 at 17.58 m/s —
+    the falsification grid's cell 573 (``cell00573-seed4005730010``) one decision before its break. Along
+    the road the ego moves at 22.29 m/s, which rounds to the 20 m/s set-point, so the earlier rule
+    (``shield.ego_speed_magnitude: false``) took SLOWER to 15 m/s; highway-env rounds the controller's
+    22.77 m/s to 25 and SLOWER goes to 20 m/s, 7 m less room. With the controller's speed (the default)
+    SLOWER keeps 0.5 m, less than the margin."""
+    rate = {"env.policy_frequency": 3, "env.simulation_frequency": 15}
+    specs = [VehicleSpec(2, 20.07, 17.58)]
+    return build_scene(
+        2, 22.77, specs, mode=mode, lanes_count=3, ego_target_speed=20.0, ego_lateral=-1.91, ego_heading=0.206,
+        **rate, **kw,
+    )  # fmt: skip
+
+
 SCENARIOS: dict[str, Callable[..., Scene]] = {
     "leader_braking": leader_braking,
     "stopped_car_ahead": stopped_car_ahead,
@@ -266,6 +285,7 @@ SCENARIOS: dict[str, Callable[..., Scene]] = {
     "car_being_overtaken": car_being_overtaken,
     "car_two_lanes_over": car_two_lanes_over,
     "closing_in_at_five_per_second": closing_in_at_five_per_second,
+    "ego_turning_into_its_lane": ego_turning_into_its_lane,
 }
 """Every scenario by name."""
 

@@ -540,7 +540,7 @@ def _evaluate_snapshot(
     lanes_count: int, follower_reaction: float, ego_leave_time: float, cut_in_time: float, margin: float,
     relevance: float, lateral_threshold: float, robust: bool, projected_cut_ins: bool, body_extent: bool,
     body_width: float, linear_mobil: bool, reversing_leaders: bool, level_cut_ins: bool, level_incentive: bool,
-    level_entering: bool, least_bad_joint: bool, min_acc_gain: float,
+    level_entering: bool, least_bad_joint: bool, ego_speed_magnitude: bool, min_acc_gain: float,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, bool]:  # fmt: skip
     """``shield.road_state`` then :func:`_evaluate`, without building the state in Python.
 
@@ -552,7 +552,8 @@ def _evaluate_snapshot(
     e0 = position[ego, 0] - origin[0]
     e1 = position[ego, 1] - origin[1]
     ego_x = e0 * direction[0] + e1 * direction[1]
-    ego_speed = speed[ego] * math.cos(heading[ego] - lane_heading)
+    # shield.road_state: the controller's speed, or (the earlier rule) its component along the road.
+    ego_speed = speed[ego] if ego_speed_magnitude else speed[ego] * math.cos(heading[ego] - lane_heading)
     keep = np.empty(n, dtype=np.int64)
     xk = np.empty(n)
     m = 0
@@ -673,6 +674,7 @@ class KernelConstants(NamedTuple):
     level_incentive: bool
     level_entering: bool
     least_bad_joint: bool
+    ego_speed_magnitude: bool
     min_acc_gain: float
 
 
@@ -682,7 +684,7 @@ def kernel_constants(dyn: Dynamics) -> KernelConstants:
     return KernelConstants(
         *args[:12], *args[13:], dyn.projected_cut_ins, dyn.body_extent, dyn.body_width, dyn.linear_mobil,
         dyn.reversing_leaders, dyn.level_cut_ins, dyn.level_incentive, dyn.level_entering,
-        dyn.least_bad_joint, _MIN_ACC_GAIN,
+        dyn.least_bad_joint, dyn.ego_speed_magnitude, _MIN_ACC_GAIN,
     )
 
 
@@ -746,6 +748,6 @@ def evaluate_snapshot(
         snap.lane_origin, snap.lane_direction, snap.lane_lateral, lane_heading, snap.speed_limit,
         *_dynamics_args(dyn, ego_leave_time), mode == "robust", dyn.projected_cut_ins, dyn.body_extent,
         dyn.body_width, dyn.linear_mobil, dyn.reversing_leaders, dyn.level_cut_ins, dyn.level_incentive,
-        dyn.level_entering, dyn.least_bad_joint, _MIN_ACC_GAIN,
+        dyn.level_entering, dyn.least_bad_joint, dyn.ego_speed_magnitude, _MIN_ACC_GAIN,
     )  # fmt: skip
     return _result(out)

@@ -105,6 +105,7 @@ class Dynamics:
     level_entering: bool = True  # level_incentive: not into a lane the ego is only entering (any level car there)
     least_bad_joint: bool = False  # no safe action: rank by the gap to everybody first (else: to vehicles ahead)
     full_horizon: bool = True  # the horizon spans the same seconds at every decision rate (else: the same decisions)
+    ego_speed_magnitude: bool = True  # RoadState.ego_speed is the controller's speed (else: along the road)
 
     @property
     def horizon_decisions(self) -> int:

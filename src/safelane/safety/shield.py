@@ -83,6 +83,7 @@ def dynamics_of(
     level_entering: bool = True,
     least_bad_joint: bool = False,
     full_horizon: bool = True,
+    ego_speed_magnitude: bool = True,
 ) -> Dynamics:
     """The :class:`Dynamics` constants of the simulated world a snapshot was taken in; ``margin`` [m]: the
     bumper-to-bumper gap the rule keeps under its worst case; the rule's options as in :class:`Dynamics`."""
@@ -108,6 +109,7 @@ def dynamics_of(
         level_entering=level_entering,
         least_bad_joint=least_bad_joint,
         full_horizon=full_horizon,
+        ego_speed_magnitude=ego_speed_magnitude,
         # The widest other body (every highway-env vehicle has Vehicle.WIDTH): the occupancy bound.
         body_width=float(np.max(snap.width)) if len(snap.width) else 2.0,
     )
@@ -133,8 +135,15 @@ def ego_leave_times(dyn: Dynamics) -> np.ndarray:
     return np.array([ego_leave_time_at(dyn, k / 2) for k in range(count)])
 
 
-def road_state(snap: RoadSnapshot) -> RoadState:
+def road_state(snap: RoadSnapshot, ego_speed_magnitude: bool = True) -> RoadState:
     """The scene around the ego in lane coordinates (metres, m/s) for the safety model.
+
+    ``ego_speed_magnitude`` (``shield.ego_speed_magnitude``): the ego's speed is its speed controller's
+    (highway-env's ``vehicle.speed``: what MDPVehicle's set-points and its P-controller act on, exact
+    for the model's ego trajectories, and along its path an upper bound on its progress along the road);
+    false: the component along the road, which the heading of a lane change lowers (issue 15, the grid's
+    cells 573, 708 and 861: the rule then predicted a shorter stop, by up to 6.7 m, and picked a lower
+    SLOWER set-point than highway-env's).
 
     Only bodies within :data:`safelane.safety.model.RELEVANCE_RANGE` [m] of the ego along the road are
     included — the ones :func:`safelane.safety.model.evaluate` considers.
@@ -156,7 +165,7 @@ def road_state(snap: RoadSnapshot) -> RoadState:
     return RoadState(
         ego_x=ego_x,
         ego_y=float(ego_rel @ lateral),
-        ego_speed=float(snap.speed[e] * math.cos(ego_heading)),
+        ego_speed=float(snap.speed[e]) if ego_speed_magnitude else float(snap.speed[e] * math.cos(ego_heading)),
         ego_lane=int(snap.lane[e]),
         ego_target_lane=int(snap.target_lane[e]),
         ego_target_speed=snap.ego_target_speed,
@@ -192,6 +201,7 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
     ``level_entering``: any such car into a lane the ego is only entering (the incentive assumes it there).
     ``least_bad_joint``: with no safe action, rank by the worst gap to anybody first (else: to vehicles ahead).
     ``full_horizon``: the rule's horizon spans the same seconds at every decision rate (else: decisions).
+    ``ego_speed_magnitude``: the ego's speed is its controller's (else: its component along the road).
     """
 
     def __init__(
@@ -211,6 +221,7 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
         level_entering: bool = True,
         least_bad_joint: bool = False,
         full_horizon: bool = True,
+        ego_speed_magnitude: bool = True,
     ) -> None:
         if not (math.isfinite(margin) and margin >= 0):
             raise ValueError(f"shield.margin: must be a finite number >= 0 [m] (got {margin!r})")
@@ -236,6 +247,7 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
             level_entering=level_entering,
             least_bad_joint=least_bad_joint,
             full_horizon=full_horizon,
+            ego_speed_magnitude=ego_speed_magnitude,
         )
         try:
             env.get_wrapper_attr("road_snapshot")
@@ -256,6 +268,7 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
         self.level_entering = bool(level_entering)
         self.least_bad_joint = bool(least_bad_joint)
         self.full_horizon = bool(full_horizon)
+        self.ego_speed_magnitude = bool(ego_speed_magnitude)
         self._rule_options = {name: getattr(self, name) for name in RULE_OPTIONS}  # dynamics_of's keywords
         self.dynamics: Dynamics | None = None
         self.result: SafetyResult | None = None
@@ -274,14 +287,16 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
             # The fast path: the RoadState is built inside the kernel (identical to road_state's).
             return evaluate_snapshot(snap, dyn, self.mode, lane_heading=lane_heading, ego_leave_time=leave)
         evaluator = evaluate_compiled if self.engine == "compiled" else evaluate
-        return evaluator(road_state(snap), dataclasses.replace(dyn, ego_leave_time=leave), self.mode, self.formula)
+        state = road_state(snap, dyn.ego_speed_magnitude)
+        return evaluator(state, dataclasses.replace(dyn, ego_leave_time=leave), self.mode, self.formula)
 
     def state_and_dynamics(self, snap: RoadSnapshot) -> tuple[RoadState, Dynamics]:
         """The (RoadState, Dynamics) that :meth:`compute_result` evaluates for ``snap`` (the numpy engine's
         inputs; the compiled engine builds the same state inside its kernel)."""
         _, leave = self._ego_leave_time(snap)
         assert self.dynamics is not None
-        return road_state(snap), dataclasses.replace(self.dynamics, ego_leave_time=leave)
+        dyn = self.dynamics
+        return road_state(snap, dyn.ego_speed_magnitude), dataclasses.replace(dyn, ego_leave_time=leave)
 
     def _ego_leave_time(self, snap: RoadSnapshot) -> tuple[float, float]:
         """(lane heading [rad], the time [s] the ego takes to leave its lane) for ``snap``."""

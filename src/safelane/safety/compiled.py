@@ -730,7 +730,8 @@ def axis_aligned(snap: RoadSnapshot) -> bool:
 def evaluate_snapshot(
     snap: RoadSnapshot, dyn: Dynamics, mode: Mode = "robust", *, lane_heading: float, ego_leave_time: float
 ) -> SafetyResult:
-    """``evaluate_compiled(road_state(snap), replace(dyn, ego_leave_time=...), mode)`` in one kernel.
+    """``evaluate_compiled(road_state(snap, dyn.ego_speed_magnitude), replace(dyn, ego_leave_time=...), mode)``
+    in one kernel.
 
     The shield's fast path (formula ``kinematic``): the :class:`RoadState` is built inside the kernel,
     bit for bit as :func:`safelane.safety.shield.road_state` builds it, for an :func:`axis_aligned`

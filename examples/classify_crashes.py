@@ -6,7 +6,7 @@ replay (``started_unsafe``, ``after_break``, ``from_safe_state``, ``after_fallba
 counts them), the crash partner (:func:`safelane.running.counterexamples.crash_partner`) and, for a crash
 after a break, the leave-one-out culprits of the last break before it
 (:func:`~safelane.running.counterexamples.break_culprits`, read from the same folder). A crash is
-``outside_model`` when its partner, or a culprit of that break, started to roll back or rolled back
+``outside_model`` when its partner, or every culprit of that break, started to roll back or rolled back
 faster during a decision between the break and the crash (the rule's leader bound lets a braking car stop, or keep
 a reverse speed it already has — ``shield.reversing_leaders`` — but not accelerate backwards:
 highway-env lets a jammed IDM car's speed go below zero, which the driver model does not intend;
@@ -72,11 +72,11 @@ def classify(path: str) -> dict[str, Any]:
         if break_file.exists():
             culprits = break_culprits(load_counterexample(break_file))
             row["break"] = {"file": break_file.name, "role": culprits["role"], "culprits": culprits["culprits"]}
-            for c in culprits["culprits"]:
-                before, after = c["speed"]
-                if after < min(before, 0.0) - REVERSING_MARGIN:
-                    reasons.append("break_culprit_rolled_back")
-                    break
+            rolled = [c["speed"][1] < min(c["speed"][0], 0.0) - REVERSING_MARGIN for c in culprits["culprits"]]
+            # Every culprit (each alone is needed for the break) left the model: with one inside it, the
+            # break may not need the roll-back at all, so it stays a hole.
+            if rolled and all(rolled):
+                reasons.append("break_culprits_rolled_back")
     row["outside_model"] = sorted(set(reasons))
     return row
 

@@ -106,5 +106,5 @@ def test_classify_crashes_finds_the_agents_crashes_after_breaks_outside_the_mode
     summary = json.loads(out.read_text())
     assert summary["contexts"] == {"after_break": 4} and summary["outside_model"] == 4 and summary["holes"] == []
     reasons = {r["file"].split("-")[0]: r["outside_model"] for r in summary["rows"]}
-    assert reasons["cell00760"] == ["break_culprit_rolled_back"]
+    assert reasons["cell00760"] == ["break_culprits_rolled_back"]
     assert "partner_rolled_back" in reasons["cell00615"]

@@ -163,7 +163,7 @@ class ShieldConfig(_Section):
         strict=True,
         description="With level_incentive: into a lane the ego is only entering (a lane change's new lane) every "
         "level car counts, unfiltered: MOBIL's incentive there is judged without the ego in the lane (docs/safety.md "
-        "§6f). On by default since issue 15's sixth session; false gives the earlier rule.",
+        "§6f). On by default since issue 15's fifth session; false gives the earlier rule.",
     )
     least_bad_joint: bool = Field(
         False,
@@ -177,14 +177,14 @@ class ShieldConfig(_Section):
         strict=True,
         description="The rule's horizon spans the same seconds at every decision rate (13 s with set-points 0-30 "
         "m/s); false: the same number of decisions, 2.6 s at 5 per second, too short for the ego to stop "
-        "(docs/safety.md §6f). On by default since issue 15's sixth session; false gives the earlier rule.",
+        "(docs/safety.md §6f). On by default since issue 15's fifth session; false gives the earlier rule.",
     )
     ego_speed_magnitude: bool = Field(
         True,
         strict=True,
         description="The ego's speed in the rule is its speed controller's (highway-env's vehicle.speed, what "
         "SLOWER's set-point and the P-controller use); false: its component along the road, which a lane "
-        "change's heading lowers (docs/safety.md §6f). On by default since issue 15's sixth session; false "
+        "change's heading lowers (docs/safety.md §6f). On by default since issue 15's fifth session; false "
         "gives the earlier rule.",
     )
 

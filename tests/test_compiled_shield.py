@@ -288,6 +288,20 @@ def test_full_horizon_bit_identical_at_every_rate_and_unchanged_at_one_per_secon
 
 
 @PROPERTY_SETTINGS
+@given(case=road(rates=True))
+def test_turning_leaders_bit_identical(case: tuple) -> None:
+    """shield.turning_leaders (experimental): moving leaders brake from their speed along their path less
+    lane_width·tan(π/8); both engines agree either way, at every decision rate; without a moving vehicle
+    ahead nothing changes."""
+    state, dyn, _ = case
+    off, on = (dataclasses.replace(dyn, turning_leaders=v) for v in (False, True))
+    assert mismatches(state, off) == [] and mismatches(state, on) == []
+    if not ((state.x >= state.ego_x) & (state.vx > 0) & ~state.crashed).any():
+        for mode in MODES:
+            assert_same(model.evaluate(state, off, mode), model.evaluate(state, on, mode))
+
+
+@PROPERTY_SETTINGS
 @given(case=road())
 def test_linear_mobil_bit_identical_and_only_looser(case: tuple) -> None:
     """shield.linear_mobil judges Linear-model cut-ins by their criterion: the same in both engines either

@@ -250,5 +250,7 @@ def test_every_rule_option_reaches_the_shield_of_make_env_and_of_the_batch() -> 
         constants = KernelConstants(*batch._kernel_args[7:])  # after the leave times, speed limit and lane frame
         if name == "full_horizon":  # not a kernel flag: it sets the horizon's length
             assert constants.horizon == env.dynamics.horizon_decisions
+        elif name == "turning_leaders":  # the kernel takes the allowance it implies [m] (0: off)
+            assert (constants.turning_allowance > 0.0) is (not defaults[name])
         else:
             assert getattr(constants, name) is (not defaults[name])

@@ -76,6 +76,9 @@ EXPECTED = {
     # (shield.ego_speed_magnitude) leaves 0.5 m to the car ahead; nominal still lets the ego turn back left
     # (11.3 m), robust has nothing safe and flags the same least-bad LANE_LEFT.
     "ego_turning_into_its_lane": {"nominal": mask_of(L), "robust": mask_of(L)},
+    # A braking leader 24.62 m ahead at 2 decisions per second: IDLE keeps 2.17 m by default (the
+    # experimental shield.turning_leaders takes 1.66 m more: test below).
+    "leader_may_turn_out": {"nominal": mask_of(I, S), "robust": mask_of(I, S)},
 }
 
 
@@ -264,6 +267,31 @@ def test_ego_speed_magnitude_takes_slower_where_highway_env_does(engine: str, mo
         for value in (False, True)
     ]  # fmt: skip
     assert straight[0] == straight[1]
+
+
+@pytest.mark.parametrize("engine", ["numpy", "compiled"])
+@pytest.mark.parametrize("mode", ["nominal", "robust"])
+def test_turning_leaders_leaves_room_for_a_leader_turning_out(engine: str, mode: str) -> None:
+    """shield.turning_leaders (experimental): IDLE's 2.167 m behind the braking leader becomes 0.51 m (less
+    1.66 m = 4 m·tan(π/8), one lane change at highway-env's steepest heading), so only SLOWER is allowed —
+    cell 332's break came a decision after IDLE. The next state of that episode (the leader 22.97 m ahead at
+    20.25 m/s, heading 0.249 rad): by default its bound, braking from 20.25·cos 0.249 = 19.63 m/s, leaves
+    SLOWER 0.067 m; braking from 20.25 m/s less the allowance, 0.485 m — the bound grows across the
+    decision instead of shrinking."""
+    kw = {"shield.engine": engine}
+    now = scenarios.SCENARIOS["leader_may_turn_out"](mode=mode, **kw, **{"shield.turning_leaders": True})
+    assert now.mask.tolist() == mask_of(S) and not now.result.fallback
+    assert now.result.min_gap[[I, S]] == pytest.approx([0.51, 13.01], abs=0.01)
+    default = scenarios.SCENARIOS["leader_may_turn_out"](mode=mode, **kw)
+    assert default.result.min_gap[[I, S]] == pytest.approx([2.167, 14.667], abs=0.001)
+    rate = {"env.policy_frequency": 2, "env.simulation_frequency": 10}
+    turned = scenarios.VehicleSpec(0, 22.97, 20.25, heading=0.249, target_lane=0)
+    gaps = [
+        scenarios.build_scene(0, 25.0, [turned], mode=mode, lanes_count=1, ego_target_speed=25.0, **rate, **kw,
+                              **{"shield.turning_leaders": on}).result.min_gap[S]
+        for on in (False, True)
+    ]  # fmt: skip
+    assert gaps == pytest.approx([0.067, 0.485], abs=0.001)
 
 
 @pytest.mark.parametrize("engine", ["numpy", "compiled"])

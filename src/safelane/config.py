@@ -187,6 +187,13 @@ class ShieldConfig(_Section):
         "change's heading lowers (docs/safety.md §6f). On by default since issue 15's fifth session; false "
         "gives the earlier rule.",
     )
+    turning_leaders: bool = Field(
+        False,
+        strict=True,
+        description="Experimental: a moving leader brakes from its speed along its path, less what one lane change "
+        "can cost it along the road (lane_width·tan(π/8) = 1.66 m), instead of from its speed along the road, "
+        "which a lane change's heading lowers (docs/safety.md §6f). Off by default: measured on the grid only.",
+    )
 
     def rule_options(self) -> dict[str, bool]:
         """The rule's on/off options by name, as :class:`safelane.safety.shield.SafetyShield` and
@@ -592,7 +599,7 @@ RENAMED_KEYS: dict[str, tuple[str, dict[Any, Any]]] = {
 
 RULE_OPTIONS = (
     "projected_cut_ins", "body_extent", "linear_mobil", "reversing_leaders", "level_cut_ins", "level_incentive",
-    "level_entering", "least_bad_joint", "full_horizon", "ego_speed_magnitude",
+    "level_entering", "least_bad_joint", "full_horizon", "ego_speed_magnitude", "turning_leaders",
 )  # fmt: skip
 """The :class:`ShieldConfig` fields that switch parts of the safety rule on or off (``ShieldConfig.rule_options``)."""
 

@@ -267,6 +267,18 @@ def ego_turning_into_its_lane(mode: Mode = "robust", **kw: Any) -> Scene:
     )  # fmt: skip
 
 
+def leader_may_turn_out(mode: Mode = "robust", **kw: Any) -> Scene:
+    """2 decisions per second, one lane: the ego at 25 m/s (set-point 25) 24.62 m behind a car at 23.25 m/s —
+    the 100 800-episode campaign's cell 332 (``cell00332-seed4003320017``) one decision before its break:
+    the car braked at its limit *and* turned out of the lane (heading 0.25 rad), so its speed along the road
+    fell faster than braking alone allows, and the next state's leader bound ended 2.1 m shorter.
+    ``shield.turning_leaders`` (experimental, off) brakes a moving leader from its speed along its path less
+    one lane change's cost along the road (1.66 m): IDLE is then unsafe here."""
+    rate = {"env.policy_frequency": 2, "env.simulation_frequency": 10}
+    return build_scene(0, 25.0, [VehicleSpec(0, 24.62, 23.25)], mode=mode, lanes_count=1, ego_target_speed=25.0,
+                       **rate, **kw)  # fmt: skip
+
+
 SCENARIOS: dict[str, Callable[..., Scene]] = {
     "leader_braking": leader_braking,
     "stopped_car_ahead": stopped_car_ahead,
@@ -286,6 +298,7 @@ SCENARIOS: dict[str, Callable[..., Scene]] = {
     "car_two_lanes_over": car_two_lanes_over,
     "closing_in_at_five_per_second": closing_in_at_five_per_second,
     "ego_turning_into_its_lane": ego_turning_into_its_lane,
+    "leader_may_turn_out": leader_may_turn_out,
 }
 """Every scenario by name."""
 

@@ -154,7 +154,7 @@ def _evaluate(
     lanes_count: int, follower_reaction: float, ego_leave_time: float, cut_in_time: float, margin: float,
     relevance: float, lateral_threshold: float, robust: bool, projected_cut_ins: bool, body_extent: bool,
     body_width: float, linear_mobil: bool, reversing_leaders: bool, level_cut_ins: bool, level_incentive: bool,
-    level_entering: bool, least_bad_joint: bool, min_acc_gain: float,
+    level_entering: bool, least_bad_joint: bool, turning_allowance: float, min_acc_gain: float,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, bool]:  # fmt: skip
     """``model.evaluate`` (formula ``kinematic``) of one state: (mask, safe, available, min_gap, fallback)."""
     n_ts = ts.shape[0]
@@ -248,6 +248,11 @@ def _evaluate(
         is_ahead[r] = x[i] - ego_x >= 0
         if is_ahead[r]:  # braking_positions; a crashed vehicle is a wall where it stands
             v_signed = 0.0 if crashed[i] else vx[i]
+            # model.evaluate's turning_leaders: a moving leader brakes along its path (its speed), less
+            # what a lane change can cost along the road (turning_allowance > 0 when the option is on).
+            turning = turning_allowance > 0.0 and v_signed > 0.0
+            if turning:
+                v_signed = math.sqrt(vx[i] * vx[i] + vy[i] * vy[i])
             v0 = _nmax(v_signed, 0.0)
             b = _nmax(1e9 if crashed[i] else brake_max[i], 1e-6)
             stop = v0 / b
@@ -258,6 +263,8 @@ def _evaluate(
                 other_x[r, j] = x[i] + v0 * tt - hb * (tt * tt)
                 if back:
                     other_x[r, j] = other_x[r, j] + v_signed * t[j]
+                if turning:
+                    other_x[r, j] = other_x[r, j] - turning_allowance
         else:  # follower_positions
             _follower_row(other_x[r], x[i], vx[i], accel_max[i], brake_max[i], t_r, t)
     # level_cut_ins: a car turning in behind the ego follows it, wherever it is now (ahead rows too).
@@ -540,7 +547,8 @@ def _evaluate_snapshot(
     lanes_count: int, follower_reaction: float, ego_leave_time: float, cut_in_time: float, margin: float,
     relevance: float, lateral_threshold: float, robust: bool, projected_cut_ins: bool, body_extent: bool,
     body_width: float, linear_mobil: bool, reversing_leaders: bool, level_cut_ins: bool, level_incentive: bool,
-    level_entering: bool, least_bad_joint: bool, ego_speed_magnitude: bool, min_acc_gain: float,
+    level_entering: bool, least_bad_joint: bool, ego_speed_magnitude: bool, turning_allowance: float,
+    min_acc_gain: float,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, bool]:  # fmt: skip
     """``shield.road_state`` then :func:`_evaluate`, without building the state in Python.
 
@@ -587,7 +595,7 @@ def _evaluate_snapshot(
         ts, t, powers, tie_break, decision_period, frame_dt, frames, horizon, ego_kp, lane_width, lanes_count,
         follower_reaction, ego_leave_time, cut_in_time, margin, relevance, lateral_threshold, robust,
         projected_cut_ins, body_extent, body_width, linear_mobil, reversing_leaders, level_cut_ins, level_incentive,
-        level_entering, least_bad_joint, min_acc_gain,
+        level_entering, least_bad_joint, turning_allowance, min_acc_gain,
     )  # fmt: skip
 
 
@@ -675,6 +683,7 @@ class KernelConstants(NamedTuple):
     level_entering: bool
     least_bad_joint: bool
     ego_speed_magnitude: bool
+    turning_allowance: float
     min_acc_gain: float
 
 
@@ -684,7 +693,7 @@ def kernel_constants(dyn: Dynamics) -> KernelConstants:
     return KernelConstants(
         *args[:12], *args[13:], dyn.projected_cut_ins, dyn.body_extent, dyn.body_width, dyn.linear_mobil,
         dyn.reversing_leaders, dyn.level_cut_ins, dyn.level_incentive, dyn.level_entering,
-        dyn.least_bad_joint, dyn.ego_speed_magnitude, _MIN_ACC_GAIN,
+        dyn.least_bad_joint, dyn.ego_speed_magnitude, model.turning_allowance(dyn), _MIN_ACC_GAIN,
     )
 
 
@@ -715,7 +724,7 @@ def evaluate_compiled(
         s.linear_speed_difference_gain, s.linear_distance_gain,
         *_dynamics_args(dyn, dyn.ego_leave_time), mode == "robust", dyn.projected_cut_ins, dyn.body_extent,
         dyn.body_width, dyn.linear_mobil, dyn.reversing_leaders, dyn.level_cut_ins, dyn.level_incentive,
-        dyn.level_entering, dyn.least_bad_joint, _MIN_ACC_GAIN,
+        dyn.level_entering, dyn.least_bad_joint, model.turning_allowance(dyn), _MIN_ACC_GAIN,
     )  # fmt: skip
     return _result(out)
 
@@ -749,6 +758,7 @@ def evaluate_snapshot(
         snap.lane_origin, snap.lane_direction, snap.lane_lateral, lane_heading, snap.speed_limit,
         *_dynamics_args(dyn, ego_leave_time), mode == "robust", dyn.projected_cut_ins, dyn.body_extent,
         dyn.body_width, dyn.linear_mobil, dyn.reversing_leaders, dyn.level_cut_ins, dyn.level_incentive,
-        dyn.level_entering, dyn.least_bad_joint, dyn.ego_speed_magnitude, _MIN_ACC_GAIN,
+        dyn.level_entering, dyn.least_bad_joint, dyn.ego_speed_magnitude, model.turning_allowance(dyn),
+        _MIN_ACC_GAIN,
     )  # fmt: skip
     return _result(out)

@@ -106,6 +106,7 @@ class Dynamics:
     least_bad_joint: bool = False  # no safe action: rank by the gap to everybody first (else: to vehicles ahead)
     full_horizon: bool = True  # the horizon spans the same seconds at every decision rate (else: the same decisions)
     ego_speed_magnitude: bool = True  # RoadState.ego_speed is the controller's speed (else: along the road)
+    turning_leaders: bool = False  # a moving leader brakes along its path, less a lane change's cost (experimental)
 
     @property
     def horizon_decisions(self) -> int:
@@ -259,6 +260,18 @@ def ego_trajectories(state: RoadState, dyn: Dynamics) -> tuple[np.ndarray, np.nd
 # --------------------------------------------------------------------------------------------
 # Other vehicles' worst cases.
 # --------------------------------------------------------------------------------------------
+
+
+def turning_allowance(dyn: Dynamics) -> float:
+    """[m] What a lane change can cost a leader along the road, with ``Dynamics.turning_leaders`` (else 0).
+
+    The leader bound brakes from the car's speed along the road, ``v·cos h``: a car turning out of the ego's
+    lane has a lower one, which the next decision's bound keeps for the whole horizon — not nested in time
+    (issue 15: 21 of the 22 holes of the 100 800-episode campaign). With the option a moving leader brakes
+    from its speed along its path, less this allowance: highway-env's steering turns a car at most π/4 off
+    the road, so a lateral move of one lane width costs at most ``lane_width·tan(π/8)`` along it (1.66 m);
+    the same for a straight and a turning car (one lane change within the horizon)."""
+    return dyn.lane_width * math.tan(math.pi / 8) if dyn.turning_leaders else 0.0
 
 
 def braking_positions(
@@ -527,9 +540,15 @@ def evaluate(state: RoadState, dyn: Dynamics, mode: Mode = "robust", formula: Fo
     # Worst-case longitudinal motion of every nearby vehicle: leaders brake, followers surge.
     stopped = state.crashed  # a crashed vehicle is treated as a wall where it stands
     brake = np.where(stopped, 1e9, state.brake_max)
-    lead_x = braking_positions(
-        state.x[near], np.where(stopped[near], 0.0, state.vx[near]), brake[near], t, dyn.reversing_leaders
-    )
+    lead_v = np.where(stopped[near], 0.0, state.vx[near])
+    allowance = turning_allowance(dyn)
+    turning = (lead_v > 0.0) & (allowance > 0.0)
+    if allowance > 0.0:  # turning_leaders: along its path, from its speed (issue 15, docs/safety.md §6f)
+        vx_n, vy_n = state.vx[near], state.vy[near]
+        lead_v = np.where(turning, np.sqrt(vx_n * vx_n + vy_n * vy_n), lead_v)
+    lead_x = braking_positions(state.x[near], lead_v, brake[near], t, dyn.reversing_leaders)
+    if allowance > 0.0:
+        lead_x = np.where(turning[:, None], lead_x - allowance, lead_x)
     foll_x = follower_positions(
         state.x[near], state.vx[near], state.accel_max[near], state.brake_max[near], dyn.follower_reaction, t
     )

@@ -84,6 +84,7 @@ def dynamics_of(
     least_bad_joint: bool = False,
     full_horizon: bool = True,
     ego_speed_magnitude: bool = True,
+    turning_leaders: bool = False,
 ) -> Dynamics:
     """The :class:`Dynamics` constants of the simulated world a snapshot was taken in; ``margin`` [m]: the
     bumper-to-bumper gap the rule keeps under its worst case; the rule's options as in :class:`Dynamics`."""
@@ -110,6 +111,7 @@ def dynamics_of(
         least_bad_joint=least_bad_joint,
         full_horizon=full_horizon,
         ego_speed_magnitude=ego_speed_magnitude,
+        turning_leaders=turning_leaders,
         # The widest other body (every highway-env vehicle has Vehicle.WIDTH): the occupancy bound.
         body_width=float(np.max(snap.width)) if len(snap.width) else 2.0,
     )
@@ -202,6 +204,7 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
     ``least_bad_joint``: with no safe action, rank by the worst gap to anybody first (else: to vehicles ahead).
     ``full_horizon``: the rule's horizon spans the same seconds at every decision rate (else: decisions).
     ``ego_speed_magnitude``: the ego's speed is its controller's (else: its component along the road).
+    ``turning_leaders`` (experimental): a moving leader brakes along its path, less a lane change's cost.
     """
 
     def __init__(
@@ -222,6 +225,7 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
         least_bad_joint: bool = False,
         full_horizon: bool = True,
         ego_speed_magnitude: bool = True,
+        turning_leaders: bool = False,
     ) -> None:
         if not (math.isfinite(margin) and margin >= 0):
             raise ValueError(f"shield.margin: must be a finite number >= 0 [m] (got {margin!r})")
@@ -248,6 +252,7 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
             least_bad_joint=least_bad_joint,
             full_horizon=full_horizon,
             ego_speed_magnitude=ego_speed_magnitude,
+            turning_leaders=turning_leaders,
         )
         try:
             env.get_wrapper_attr("road_snapshot")
@@ -269,6 +274,7 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
         self.least_bad_joint = bool(least_bad_joint)
         self.full_horizon = bool(full_horizon)
         self.ego_speed_magnitude = bool(ego_speed_magnitude)
+        self.turning_leaders = bool(turning_leaders)
         self._rule_options = {name: getattr(self, name) for name in RULE_OPTIONS}  # dynamics_of's keywords
         self.dynamics: Dynamics | None = None
         self.result: SafetyResult | None = None

@@ -137,6 +137,11 @@ def test_setting_a_value_below_a_value_is_an_error() -> None:
         (" env.duration = 7", ("env.duration", 7)),
         ("env.duration=", ("env.duration", None)),
         ("a=b=c", ("a", "b=c")),
+        # YAML 1.1 reads an exponent without a dot as a string; --set means a number, at any depth
+        ("reward.c=1e-3", ("reward.c", 0.001)),
+        ("env.action.target_speeds=[1e-09, 1e-09]", ("env.action.target_speeds", [1e-09, 1e-09])),
+        ("env.action.target_speeds=[0, 1.5e1, -2E+1]", ("env.action.target_speeds", [0, 15.0, -20.0])),
+        ('shield.mode="1e-3"', ("shield.mode", "1e-3")),  # quoted: a string
     ],
 )
 def test_parse_set(assignment: str, expected: tuple[str, object]) -> None:

@@ -273,16 +273,20 @@ def parse_set(assignment: str) -> tuple[str, Any]:
     if not key:
         raise ConfigError(f"--set '{assignment}': empty key")
     try:
-        value = yaml.safe_load(raw) if raw.strip() else None
+        value = yaml.load(raw, Loader=_SetLoader) if raw.strip() else None
     except yaml.YAMLError:
         value = raw
-    if isinstance(value, str) and _EXPONENT_NUMBER.fullmatch(value.strip()) and value == raw.strip():
-        value = float(value)  # YAML 1.1 reads 1e-3 (no dot) as a string; an unquoted number is meant
     return key, value
 
 
-_EXPONENT_NUMBER = re.compile(r"[-+]?(\d+\.?\d*|\.\d+)[eE][-+]?\d+")
-"""A number in exponent notation, which PyYAML (YAML 1.1) only reads as a float when it has a dot."""
+class _SetLoader(yaml.SafeLoader):
+    """PyYAML's safe loader, reading an unquoted ``1e-3`` (no dot) as a number at any depth, as YAML 1.2
+    does: YAML 1.1 makes it a string, which ``--set env.action.target_speeds=[0, 1e1]`` never means."""
+
+
+_SetLoader.add_implicit_resolver(
+    "tag:yaml.org,2002:float", re.compile(r"^[-+]?(\d+\.?\d*|\.\d+)[eE][-+]?\d+$"), list("-+0123456789.")
+)
 
 
 def _assign(tree: dict[str, Any], dotted: str, value: Any) -> None:

@@ -235,6 +235,17 @@ def replay(cx: Counterexample, simulator: str | None = None) -> ReplayResult:
     return ReplayResult(cx, cfg.simulator, decisions, bool(reproduced), kind, final)
 
 
+def _snapshots_around_event(env: Any, cx: Counterexample) -> tuple[Any, Any]:
+    """Play ``cx`` on the open ``env`` up to its event: the road snapshots of the state its last decision
+    was taken in and of the event's state."""
+    _, info = env.reset(seed=cx.seed)
+    before = info["snapshot"]
+    for action in cx.actions[: cx.step]:
+        before = info["snapshot"]
+        _, _, _, _, info = env.step(int(action))
+    return before, info["snapshot"]
+
+
 def crash_partner(cx: Counterexample, simulator: str | None = None) -> dict[str, Any]:
     """Who the ego crashed into, and whether that vehicle stayed inside the rule's model: replay the crash
     ``cx`` and return the partner's index, its lane relative to the ego's, its offset along the road [m] and
@@ -249,12 +260,7 @@ def crash_partner(cx: Counterexample, simulator: str | None = None) -> dict[str,
         raise ConfigError(f"{cx.kind}: a crash partner is defined for collisions only")
     env = make_env(cx.env_config(simulator))
     try:
-        _, info = env.reset(seed=cx.seed)
-        before = info["snapshot"]
-        for action in cx.actions[: cx.step]:
-            before = info["snapshot"]
-            _, _, _, _, info = env.step(int(action))
-        crash = info["snapshot"]
+        before, crash = _snapshots_around_event(env, cx)
     finally:
         env.close()
     j = collision_partner(crash)
@@ -350,12 +356,7 @@ def break_culprits(cx: Counterexample, simulator: str | None = None) -> dict[str
         raise ConfigError(f"{cx.kind}: culprits are defined for invariant breaks only")
     env = make_env(cx.env_config(simulator))
     try:
-        _, info = env.reset(seed=cx.seed)
-        before = info["snapshot"]
-        for action in cx.actions[: cx.step]:
-            before = info["snapshot"]
-            _, _, _, _, info = env.step(int(action))
-        after = info["snapshot"]
+        before, after = _snapshots_around_event(env, cx)
         unwrapped_shield = env
         while not hasattr(unwrapped_shield, "state_and_dynamics"):
             unwrapped_shield = unwrapped_shield.env

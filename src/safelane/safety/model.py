@@ -542,7 +542,7 @@ def evaluate(state: RoadState, dyn: Dynamics, mode: Mode = "robust", formula: Fo
     brake = np.where(stopped, 1e9, state.brake_max)
     lead_v = np.where(stopped[near], 0.0, state.vx[near])
     allowance = turning_allowance(dyn)
-    turning = (lead_v > 0.0) & (allowance > 0.0)
+    turning = lead_v > 0.0
     if allowance > 0.0:  # turning_leaders: along its path, from its speed (issue 15, docs/safety.md §6f)
         vx_n, vy_n = state.vx[near], state.vy[near]
         lead_v = np.where(turning, np.sqrt(vx_n * vx_n + vy_n * vy_n), lead_v)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Callable
 
 import numpy as np
@@ -292,6 +293,47 @@ def test_turning_leaders_leaves_room_for_a_leader_turning_out(engine: str, mode:
         for on in (False, True)
     ]  # fmt: skip
     assert gaps == pytest.approx([0.067, 0.485], abs=0.001)
+
+
+def test_turning_allowance_covers_highway_env_s_lane_change() -> None:
+    """The allowance is checked against highway-env's own controller, not against the geometry alone: the car
+    moves along ``heading + β`` (the slip angle, up to arctan(tan(π/3)/2) = 0.71 rad at low speed), so its
+    path can leave the road at more than the π/4 its heading is held to. A ControlledVehicle changes one lane
+    while braking at a constant rate (0–ACC_MAX) from 1–30 m/s, at 5, 10 and 15 Hz physics; from *every*
+    frame of it (straight or mid-turn, its speed as the bound's speed), its position along the road stays
+    within the allowance of the rule's braking bound (``model.braking_positions``) for the next 15 s. The
+    worst shortfall, 1.59 m (7 m/s, braking at 6 m/s², 15 Hz), is the allowance's size: a bound without it
+    is short by more than 1.4 m."""
+    from highway_env.road.road import Road, RoadNetwork
+    from highway_env.vehicle.behavior import IDMVehicle
+    from highway_env.vehicle.controller import ControlledVehicle
+
+    from safelane.safety.model import braking_positions, turning_allowance
+
+    dyn = scenarios.ego_leftmost_lane(mode="robust").shield.dynamics
+    allowance = turning_allowance(dataclasses.replace(dyn, turning_leaders=True))
+    network = RoadNetwork.straight_road_network(2, length=10_000.0)
+    road = Road(network, np_random=np.random.RandomState(0))
+    worst = 0.0
+    for hz in (5, 10, 15):
+        for v0 in (1.0, 3.0, 5.0, 7.0, 8.5, 10.0, 12.5, 15.0, 20.0, 25.0, 30.0):
+            for brake in (0.0, 2.0, 4.0, IDMVehicle.ACC_MAX):
+                car = ControlledVehicle(road, network.get_lane(("0", "1", 0)).position(0.0, 0.0), speed=v0)
+                car.target_lane_index = ("0", "1", 1)
+                xs, vs = [car.position[0]], [car.speed]
+                for _ in range(15 * hz):
+                    car.act()
+                    car.action["acceleration"] = -brake if car.speed > 0.0 else 0.0
+                    car.step(1.0 / hz)
+                    car.speed = max(car.speed, 0.0)
+                    xs.append(car.position[0])
+                    vs.append(car.speed)
+                t = np.arange(len(xs)) / hz
+                for k in range(len(xs)):
+                    bound = braking_positions(np.array([xs[k]]), np.array([vs[k]]), np.array([IDMVehicle.ACC_MAX]),
+                                              t[: len(xs) - k])[0]  # fmt: skip
+                    worst = max(worst, float(np.max(bound - np.array(xs[k:]))))
+    assert 1.4 < worst <= allowance == pytest.approx(4.0 * np.tan(np.pi / 8))
 
 
 @pytest.mark.parametrize("engine", ["numpy", "compiled"])

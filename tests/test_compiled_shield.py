@@ -272,6 +272,25 @@ def test_least_bad_joint_bit_identical_and_only_the_fallback_choice(case: tuple)
 
 
 @PROPERTY_SETTINGS
+@given(case=road())
+def test_robust_fallback_bit_identical_and_only_the_fallback_choice(case: tuple) -> None:
+    """shield.robust_fallback: the same in both engines; the same safe set and gaps either way, the same mask
+    whenever some action is safe, one available action allowed otherwise (which one: the scenario test in
+    tests/test_safety.py); nominal mode untouched."""
+    state, dyn, _ = case
+    off, on = (dataclasses.replace(dyn, robust_fallback=v) for v in (False, True))
+    assert mismatches(state, off) == [] and mismatches(state, on) == []
+    assert_same(model.evaluate(state, off, "nominal"), model.evaluate(state, on, "nominal"))
+    a, b = model.evaluate(state, off, "robust"), model.evaluate(state, on, "robust")
+    assert a.safe.tolist() == b.safe.tolist() and a.fallback == b.fallback
+    assert np.array_equal(a.min_gap, b.min_gap, equal_nan=True)
+    if not b.fallback:
+        assert a.mask.tolist() == b.mask.tolist()
+        return
+    assert b.mask.sum() == 1 and b.available[b.mask].all()
+
+
+@PROPERTY_SETTINGS
 @given(case=road(rates=True))
 def test_full_horizon_bit_identical_at_every_rate_and_unchanged_at_one_per_second(case: tuple) -> None:
     """shield.full_horizon (default): at 1 decision per second the horizon is the one it always was (13 s),

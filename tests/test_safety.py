@@ -357,6 +357,29 @@ def test_least_bad_joint_ranks_the_fallback_by_the_gap_to_anybody(engine: str) -
 
 
 @pytest.mark.parametrize("engine", ["numpy", "compiled"])
+def test_robust_fallback_takes_the_best_robust_gap_not_a_nominally_safe_lane_change(engine: str) -> None:
+    """2 lanes, the ego in lane 0 at 25 m/s, a leader 12 m ahead at 22 m/s, lane 1 empty (a dense spawn, as in
+    the grid's cell 520): nothing is robustly safe. The nominal rule calls LANE_RIGHT safe (its old lane counts
+    only until the ego has left it), so by default the robust fallback is LANE_RIGHT, whose robust worst gap
+    is IDLE's (-42.67 m: the leader may cut into lane 1 too); shield.robust_fallback ranks every available
+    action by its robust gaps and brakes (SLOWER, -17.67 m)."""
+    specs = [scenarios.VehicleSpec(0, 12.0, 22.0)]
+    chosen = {}
+    for on in (False, True):
+        scene = scenarios.build_scene(
+            0, 25.0, specs, mode="robust", lanes_count=2, ego_target_speed=25.0,
+            **{"shield.engine": engine, "shield.robust_fallback": on},
+        )  # fmt: skip
+        assert scene.result.fallback and not scene.result.safe.any()
+        assert scene.result.min_gap[[I, R, S]] == pytest.approx([-42.67, -42.67, -17.67], abs=0.01)
+        chosen[on] = scene.mask.tolist()
+    nominal = scenarios.build_scene(0, 25.0, specs, mode="nominal", lanes_count=2, ego_target_speed=25.0,
+                                    **{"shield.engine": engine})  # fmt: skip
+    assert nominal.result.safe.tolist() == mask_of(R)
+    assert chosen[False] == mask_of(R) and chosen[True] == mask_of(S)
+
+
+@pytest.mark.parametrize("engine", ["numpy", "compiled"])
 def test_level_incentive_lets_a_car_in_free_flow_stay_in_its_lane(engine: str) -> None:
     """A car 3 m behind the ego in the next lane at the ego's 25 m/s, nothing ahead of it; a leader 40 m ahead
     of the ego at 20 m/s. Behind the ego, 3 m centre to centre, IDM would brake it at 3·(47.5 / 3)² ≈ 750 m/s²

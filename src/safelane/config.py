@@ -194,6 +194,13 @@ class ShieldConfig(_Section):
         "can cost it along the road (lane_width·tan(π/8) = 1.66 m), instead of from its speed along the road, "
         "which a lane change's heading lowers (docs/safety.md §6f). Off by default: measured on the grid only.",
     )
+    robust_fallback: bool = Field(
+        False,
+        strict=True,
+        description="Experimental: when no action is safe, robust mode allows the least-bad of every available "
+        "action by its robust worst-case gaps; false (default): of the nominally safe actions when there are "
+        "some, so the final robust mask stays inside the nominal one (docs/safety.md §6g).",
+    )
 
     def rule_options(self) -> dict[str, bool]:
         """The rule's on/off options by name, as :class:`safelane.safety.shield.SafetyShield` and
@@ -604,6 +611,7 @@ RENAMED_KEYS: dict[str, tuple[str, dict[Any, Any]]] = {
 RULE_OPTIONS = (
     "projected_cut_ins", "body_extent", "linear_mobil", "reversing_leaders", "level_cut_ins", "level_incentive",
     "level_entering", "least_bad_joint", "full_horizon", "ego_speed_magnitude", "turning_leaders",
+    "robust_fallback",
 )  # fmt: skip
 """The :class:`ShieldConfig` fields that switch parts of the safety rule on or off (``ShieldConfig.rule_options``)."""
 

@@ -154,7 +154,8 @@ def _evaluate(
     lanes_count: int, follower_reaction: float, ego_leave_time: float, cut_in_time: float, margin: float,
     relevance: float, lateral_threshold: float, robust: bool, projected_cut_ins: bool, body_extent: bool,
     body_width: float, linear_mobil: bool, reversing_leaders: bool, level_cut_ins: bool, level_incentive: bool,
-    level_entering: bool, least_bad_joint: bool, turning_allowance: float, min_acc_gain: float,
+    level_entering: bool, least_bad_joint: bool, robust_fallback: bool, turning_allowance: float,
+    min_acc_gain: float,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, bool]:  # fmt: skip
     """``model.evaluate`` (formula ``kinematic``) of one state: (mask, safe, available, min_gap, fallback)."""
     n_ts = ts.shape[0]
@@ -503,7 +504,10 @@ def _evaluate(
     if safe.any():
         return safe.copy(), safe, available, best_gap, False
     pool = nominal_ok & available
-    if robust and pool.any():
+    if robust and robust_fallback:  # model.evaluate: every available action, by its robust gaps
+        pool = available
+        ahead_of, gaps_of = ahead_gap, joint_gap
+    elif robust and pool.any():
         ahead_of, gaps_of = ahead_gap, joint_gap
     else:
         pool = available
@@ -547,7 +551,8 @@ def _evaluate_snapshot(
     lanes_count: int, follower_reaction: float, ego_leave_time: float, cut_in_time: float, margin: float,
     relevance: float, lateral_threshold: float, robust: bool, projected_cut_ins: bool, body_extent: bool,
     body_width: float, linear_mobil: bool, reversing_leaders: bool, level_cut_ins: bool, level_incentive: bool,
-    level_entering: bool, least_bad_joint: bool, ego_speed_magnitude: bool, turning_allowance: float,
+    level_entering: bool, least_bad_joint: bool, robust_fallback: bool, ego_speed_magnitude: bool,
+    turning_allowance: float,
     min_acc_gain: float,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, bool]:  # fmt: skip
     """``shield.road_state`` then :func:`_evaluate`, without building the state in Python.
@@ -595,7 +600,7 @@ def _evaluate_snapshot(
         ts, t, powers, tie_break, decision_period, frame_dt, frames, horizon, ego_kp, lane_width, lanes_count,
         follower_reaction, ego_leave_time, cut_in_time, margin, relevance, lateral_threshold, robust,
         projected_cut_ins, body_extent, body_width, linear_mobil, reversing_leaders, level_cut_ins, level_incentive,
-        level_entering, least_bad_joint, turning_allowance, min_acc_gain,
+        level_entering, least_bad_joint, robust_fallback, turning_allowance, min_acc_gain,
     )  # fmt: skip
 
 
@@ -682,6 +687,7 @@ class KernelConstants(NamedTuple):
     level_incentive: bool
     level_entering: bool
     least_bad_joint: bool
+    robust_fallback: bool
     ego_speed_magnitude: bool
     turning_allowance: float
     min_acc_gain: float
@@ -693,7 +699,8 @@ def kernel_constants(dyn: Dynamics) -> KernelConstants:
     return KernelConstants(
         *args[:12], *args[13:], dyn.projected_cut_ins, dyn.body_extent, dyn.body_width, dyn.linear_mobil,
         dyn.reversing_leaders, dyn.level_cut_ins, dyn.level_incentive, dyn.level_entering,
-        dyn.least_bad_joint, dyn.ego_speed_magnitude, model.turning_allowance(dyn), _MIN_ACC_GAIN,
+        dyn.least_bad_joint, dyn.robust_fallback, dyn.ego_speed_magnitude, model.turning_allowance(dyn),
+        _MIN_ACC_GAIN,
     )
 
 
@@ -724,7 +731,7 @@ def evaluate_compiled(
         s.linear_speed_difference_gain, s.linear_distance_gain,
         *_dynamics_args(dyn, dyn.ego_leave_time), mode == "robust", dyn.projected_cut_ins, dyn.body_extent,
         dyn.body_width, dyn.linear_mobil, dyn.reversing_leaders, dyn.level_cut_ins, dyn.level_incentive,
-        dyn.level_entering, dyn.least_bad_joint, model.turning_allowance(dyn), _MIN_ACC_GAIN,
+        dyn.level_entering, dyn.least_bad_joint, dyn.robust_fallback, model.turning_allowance(dyn), _MIN_ACC_GAIN,
     )  # fmt: skip
     return _result(out)
 
@@ -758,7 +765,8 @@ def evaluate_snapshot(
         snap.lane_origin, snap.lane_direction, snap.lane_lateral, lane_heading, snap.speed_limit,
         *_dynamics_args(dyn, ego_leave_time), mode == "robust", dyn.projected_cut_ins, dyn.body_extent,
         dyn.body_width, dyn.linear_mobil, dyn.reversing_leaders, dyn.level_cut_ins, dyn.level_incentive,
-        dyn.level_entering, dyn.least_bad_joint, dyn.ego_speed_magnitude, model.turning_allowance(dyn),
+        dyn.level_entering, dyn.least_bad_joint, dyn.robust_fallback, dyn.ego_speed_magnitude,
+        model.turning_allowance(dyn),
         _MIN_ACC_GAIN,
     )  # fmt: skip
     return _result(out)

@@ -107,6 +107,7 @@ class Dynamics:
     full_horizon: bool = True  # the horizon spans the same seconds at every decision rate (else: the same decisions)
     ego_speed_magnitude: bool = True  # RoadState.ego_speed is the controller's speed (else: along the road)
     turning_leaders: bool = False  # a moving leader brakes along its path, less a lane change's cost (experimental)
+    robust_fallback: bool = False  # robust, nothing safe: least-bad of all available by robust gaps (experimental)
 
     @property
     def horizon_decisions(self) -> int:
@@ -656,7 +657,9 @@ def evaluate(state: RoadState, dyn: Dynamics, mode: Mode = "robust", formula: Fo
     # Least-bad choice. Robust picks among the nominally safe actions when there are some (so that
     # robust ⊆ nominal holds for the final masks too), else exactly what nominal would pick.
     nominal_safe = nominal_ok & available
-    if mode == "robust" and nominal_safe.any():
+    if mode == "robust" and dyn.robust_fallback:  # every available action, by its robust gaps
+        first, second, pool = ahead_gap, joint_gap, available
+    elif mode == "robust" and nominal_safe.any():
         first, second, pool = ahead_gap, joint_gap, nominal_safe
     else:
         first, second, pool = nominal_ahead, nominal_joint, available

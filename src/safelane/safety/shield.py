@@ -85,6 +85,7 @@ def dynamics_of(
     full_horizon: bool = True,
     ego_speed_magnitude: bool = True,
     turning_leaders: bool = False,
+    robust_fallback: bool = False,
 ) -> Dynamics:
     """The :class:`Dynamics` constants of the simulated world a snapshot was taken in; ``margin`` [m]: the
     bumper-to-bumper gap the rule keeps under its worst case; the rule's options as in :class:`Dynamics`."""
@@ -112,6 +113,7 @@ def dynamics_of(
         full_horizon=full_horizon,
         ego_speed_magnitude=ego_speed_magnitude,
         turning_leaders=turning_leaders,
+        robust_fallback=robust_fallback,
         # The widest other body (every highway-env vehicle has Vehicle.WIDTH): the occupancy bound.
         body_width=float(np.max(snap.width)) if len(snap.width) else 2.0,
     )
@@ -205,6 +207,8 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
     ``full_horizon``: the rule's horizon spans the same seconds at every decision rate (else: decisions).
     ``ego_speed_magnitude``: the ego's speed is its controller's (else: its component along the road).
     ``turning_leaders`` (experimental): a moving leader brakes along its path, less a lane change's cost.
+    ``robust_fallback`` (experimental): with no safe action, robust mode takes the least-bad of every available
+    action by its robust gaps (else: of the nominally safe ones when there are some).
     """
 
     def __init__(
@@ -226,6 +230,7 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
         full_horizon: bool = True,
         ego_speed_magnitude: bool = True,
         turning_leaders: bool = False,
+        robust_fallback: bool = False,
     ) -> None:
         if not (math.isfinite(margin) and margin >= 0):
             raise ValueError(f"shield.margin: must be a finite number >= 0 [m] (got {margin!r})")
@@ -253,6 +258,7 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
             full_horizon=full_horizon,
             ego_speed_magnitude=ego_speed_magnitude,
             turning_leaders=turning_leaders,
+            robust_fallback=robust_fallback,
         )
         try:
             env.get_wrapper_attr("road_snapshot")
@@ -275,6 +281,7 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
         self.full_horizon = bool(full_horizon)
         self.ego_speed_magnitude = bool(ego_speed_magnitude)
         self.turning_leaders = bool(turning_leaders)
+        self.robust_fallback = bool(robust_fallback)
         self._rule_options = {name: getattr(self, name) for name in RULE_OPTIONS}  # dynamics_of's keywords
         self.dynamics: Dynamics | None = None
         self.result: SafetyResult | None = None

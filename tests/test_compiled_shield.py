@@ -75,9 +75,7 @@ def recorded(
     """Every decision's snapshot of random-policy episodes, under the robust shield (``override``: it
     replaces the unsafe choices, so the episodes last; else the random actions are executed as chosen)."""
     try:
-        env = make_env(
-            preset, simulator=simulator, **{"shield.mode": "robust", "shield.override": override, **sets}
-        )
+        env = make_env(preset, simulator=simulator, **{"shield.mode": "robust", "shield.override": override, **sets})
     except NotSupported as err:
         pytest.skip(str(err))
     rng = np.random.default_rng(seed)

@@ -127,9 +127,9 @@ def test_threads_give_the_same_rows() -> None:
         vector = make_vector_env("fast", num_envs=6, seed=5, threads=threads, **SHORT)
         rng = np.random.default_rng(2)
         steps = [vector.step(rng.integers(5, size=6)) for _ in range(9)]
-        rows.append([
-            (o, r, te, tr, i["action_mask"], i["fallback"], i["invariant_break"]) for o, r, te, tr, i in steps
-        ])
+        rows.append(
+            [(o, r, te, tr, i["action_mask"], i["fallback"], i["invariant_break"]) for o, r, te, tr, i in steps]
+        )
         vector.close()
     for one, two in zip(*rows, strict=True):
         assert all(np.array_equal(a, b) for a, b in zip(one, two, strict=True))

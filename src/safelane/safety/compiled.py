@@ -697,9 +697,20 @@ def kernel_constants(dyn: Dynamics) -> KernelConstants:
     """``dyn``'s constants in :data:`snapshot_kernel`'s form (the arrays computed as the reference does)."""
     args = _dynamics_args(dyn, dyn.ego_leave_time)
     return KernelConstants(
-        *args[:12], *args[13:], dyn.projected_cut_ins, dyn.body_extent, dyn.body_width, dyn.linear_mobil,
-        dyn.reversing_leaders, dyn.level_cut_ins, dyn.level_incentive, dyn.level_entering,
-        dyn.least_bad_joint, dyn.robust_fallback, dyn.ego_speed_magnitude, model.turning_allowance(dyn),
+        *args[:12],
+        *args[13:],
+        dyn.projected_cut_ins,
+        dyn.body_extent,
+        dyn.body_width,
+        dyn.linear_mobil,
+        dyn.reversing_leaders,
+        dyn.level_cut_ins,
+        dyn.level_incentive,
+        dyn.level_entering,
+        dyn.least_bad_joint,
+        dyn.robust_fallback,
+        dyn.ego_speed_magnitude,
+        model.turning_allowance(dyn),
         _MIN_ACC_GAIN,
     )
 

@@ -5,12 +5,14 @@ For every collision file of a folder (``safelane falsify``'s ``counterexamples/`
 replay (``started_unsafe``, ``after_break``, ``from_safe_state``, ``after_fallback``, as the campaign
 counts them), the crash partner (:func:`safelane.running.counterexamples.crash_partner`) and, for a crash
 after a break, the leave-one-out culprits of the last break before it
-(:func:`~safelane.running.counterexamples.break_culprits`, read from the same folder). A crash is
-``outside_model`` when its partner, or every culprit of that break, started to roll back or rolled back
-faster during a decision between the break and the crash (the rule's leader bound lets a braking car stop, or keep
-a reverse speed it already has — ``shield.reversing_leaders`` — but not accelerate backwards:
-highway-env lets a jammed IDM car's speed go below zero, which the driver model does not intend;
-docs/safety.md §6f). Crashes that started unsafe are counted, not analysed.
+(:func:`~safelane.running.counterexamples.break_culprits`) and its repair
+(:func:`~safelane.running.counterexamples.repair_break`), read from the same folder. A crash is
+``outside_model`` when its partner started to roll back or rolled back faster during a decision between the
+break and the crash (``partner_rolled_back``), or when the break's state, with every vehicle that did so
+in the break's decision put back inside the model, has a safe action (``break_repaired``). The rule's
+leader bound lets a braking car stop, or keep a reverse speed it already has — ``shield.reversing_leaders``
+— but not accelerate backwards: highway-env lets a jammed IDM car's speed go below zero, which the driver
+model does not intend (docs/safety.md §6f, §6g). Crashes that started unsafe are counted, not analysed.
 
     .venv/bin/python examples/classify_crashes.py runs/falsify/grid_e20/counterexamples \
         --out runs/falsify/grid_e20/crash_classes.json
@@ -26,11 +28,14 @@ from pathlib import Path
 from typing import Any
 
 from safelane.core.files import atomic_write_text
-from safelane.running.counterexamples import break_culprits, crash_partner, load_counterexample, replay
-
-REVERSING_MARGIN = 0.1
-"""[m/s] A culprit rolled back beyond the model when its speed after the decision is this much below
-min(its speed before, 0)."""
+from safelane.running.counterexamples import (
+    REVERSING_MARGIN,
+    break_culprits,
+    crash_partner,
+    load_counterexample,
+    repair_break,
+    replay,
+)
 
 
 def context_of(decisions: list[Any]) -> str:
@@ -71,12 +76,18 @@ def classify(path: str) -> dict[str, Any]:
         break_file = Path(path).parent / f"{stem}-invariant_break-step{breaks[-1]}.json"
         if break_file.exists():
             culprits = break_culprits(load_counterexample(break_file))
-            row["break"] = {"file": break_file.name, "role": culprits["role"], "culprits": culprits["culprits"]}
-            rolled = [c["speed"][1] < min(c["speed"][0], 0.0) - REVERSING_MARGIN for c in culprits["culprits"]]
-            # Every culprit (each alone is needed for the break) left the model: with one inside it, the
-            # break may not need the roll-back at all, so it stays a hole.
-            if rolled and all(rolled):
-                reasons.append("break_culprits_rolled_back")
+            repair = repair_break(load_counterexample(break_file))
+            row["break"] = {
+                "file": break_file.name,
+                "role": culprits["role"],
+                "culprits": culprits["culprits"],
+                "repair": repair,
+            }
+            # The break's state with every vehicle that rolled back put back inside the model has a safe
+            # action: the break needed the roll-back. (Leave-one-out would also excuse a break whose
+            # rolled-back culprit merely stands beside an in-model hole.)
+            if repair["safe_after_repair"]:
+                reasons.append("break_repaired")
     row["outside_model"] = sorted(set(reasons))
     return row
 

@@ -10,7 +10,7 @@ from pathlib import Path
 import pytest
 
 from safelane.config import ConfigError, load_config
-from safelane.running.counterexamples import crash_partner, load_counterexample, replay
+from safelane.running.counterexamples import crash_partner, load_counterexample, repair_break, replay
 from safelane.running.evaluation import evaluate_fixed
 
 FAST = {"simulator": "fast"}
@@ -95,8 +95,9 @@ def test_crash_partner_tells_a_reversing_car_from_one_inside_the_model() -> None
 def test_classify_crashes_finds_the_agents_crashes_after_breaks_outside_the_model(tmp_path: Path) -> None:
     """examples/classify_crashes.py on the trained agents' 4 crashes after breaks (and the breaks before
     them): every one is outside the model — a vehicle rolled back faster than the rule's bound lets it (a
-    reversing car keeps its speed): cell 615's partner (−0.35 → −3.01 m/s in the break's decision), cell
-    760's break culprit (the leader 44 m ahead, −0.43 → −1.26 m/s)."""
+    reversing car keeps its speed): cell 615's partner (−0.35 → −3.01 m/s in the break's decision); cell
+    760's break has a safe action (SLOWER) once the leader 44 m ahead (−0.43 → −1.26 m/s) is put back
+    inside the model."""
     import sys
 
     folder = CAMPAIGN / "grid_agents_level_entering" / "counterexamples"
@@ -106,5 +107,21 @@ def test_classify_crashes_finds_the_agents_crashes_after_breaks_outside_the_mode
     summary = json.loads(out.read_text())
     assert summary["contexts"] == {"after_break": 4} and summary["outside_model"] == 4 and summary["holes"] == []
     reasons = {r["file"].split("-")[0]: r["outside_model"] for r in summary["rows"]}
-    assert reasons["cell00760"] == ["break_culprits_rolled_back"]
-    assert "partner_rolled_back" in reasons["cell00615"]
+    assert reasons["cell00760"] == ["break_repaired"]
+    assert reasons["cell00615"] == ["partner_rolled_back"]
+
+
+def test_repair_break_excuses_a_break_only_when_the_roll_back_was_needed() -> None:
+    """repair_break: the in-model adversaries' cell 6 (highway-env: a stopped car 34 m ahead rolled back
+    0.48 → −0.28 m/s while the ego braked; two cars beside the ego block the lane changes) has SLOWER safe
+    again once that car is put back where it stopped — outside the model, although leave-one-out also
+    names the two cars beside it. The 100 800-episode campaign's turning-leader hole (cell 2270, fast
+    simulator: nobody rolled back) repairs nothing and stays a break. Crash files are refused."""
+    adversary = CAMPAIGN / "adversaries_session11" / "counterexamples"
+    repaired = repair_break(load_counterexample(adversary / "cell00006-seed4000060000-invariant_break-step8.json"))
+    assert repaired == {"repaired": [6], "safe_after_repair": True, "unlocks": [4]}
+    hole = CAMPAIGN / "grid_100k_behind_turning_leaders" / "counterexamples"
+    kept = repair_break(load_counterexample(hole / "cell02270-seed4022700029-invariant_break-step2.json"))
+    assert kept == {"repaired": [], "safe_after_repair": False, "unlocks": []}
+    with pytest.raises(ConfigError, match="invariant breaks only"):
+        repair_break(load_counterexample(adversary / "cell00006-seed4000060000-collision-step9.json"))

@@ -402,3 +402,55 @@ def break_culprits(cx: Counterexample, simulator: str | None = None) -> dict[str
         "chosen": int(cx.actions[cx.step - 1]),
         "fallback_confirmed": bool(base.fallback),
     }
+
+
+REVERSING_MARGIN = 0.1
+"""[m/s] A vehicle rolled back beyond the rule's model during a decision when its speed after it is this
+much below ``min(its speed before, 0)`` (the leader bound lets a car stop, or keep a reverse speed it
+already has — ``shield.reversing_leaders`` — but not start or speed up backwards)."""
+
+
+def repair_break(cx: Counterexample, simulator: str | None = None) -> dict[str, Any]:
+    """Whether an invariant break is the model's fault or a vehicle's: replay ``cx`` to the state before its
+    event and the event's state (no safe action), put every vehicle that rolled back beyond the model
+    during that decision (:data:`REVERSING_MARGIN`) back inside it — at ``max(x, x_before + min(v_before,
+    0)·T)`` [m] along the road and ``max(v, min(v_before, 0))`` [m/s], where the rule's bound from the
+    state before allowed it to be — and evaluate the repaired state. ``repaired``: those vehicles;
+    ``safe_after_repair``: it has a safe action (the break needed the roll-back: outside the model, as the
+    invariant promises a safe action only while the others stay inside it); ``unlocks``: the safe actions.
+    Unlike leave-one-out (:func:`break_culprits`) it changes only what left the model, so a roll-back
+    beside an in-model hole does not excuse it. Uses the numpy reference model on the shield's inputs."""
+    import dataclasses
+
+    from safelane.env.factory import make_env
+    from safelane.safety.model import evaluate
+
+    if cx.kind != "invariant_break":
+        raise ConfigError(f"{cx.kind}: a repair is defined for invariant breaks only")
+    env = make_env(cx.env_config(simulator))
+    try:
+        before, after = _snapshots_around_event(env, cx)
+        shield = env
+        while not hasattr(shield, "state_and_dynamics"):
+            shield = shield.env
+        state_and_dynamics, mode = shield.state_and_dynamics, shield.mode
+    finally:
+        env.close()
+    period = float(after.time - before.time)
+    position, speed = after.position.copy(), after.speed.copy()
+    repaired = []
+    for j in range(after.n):
+        if j == after.ego:
+            continue
+        v_before = float(before.speed[j])
+        floor = min(v_before, 0.0)
+        if float(after.speed[j]) < floor - REVERSING_MARGIN:
+            repaired.append(j)
+            speed[j] = floor
+            position[j, 0] = max(float(position[j, 0]), float(before.position[j, 0]) + floor * period)
+    result = evaluate(*state_and_dynamics(dataclasses.replace(after, position=position, speed=speed)), mode)
+    return {
+        "repaired": repaired,
+        "safe_after_repair": bool(repaired) and not result.fallback,
+        "unlocks": [int(a) for a in np.flatnonzero(result.safe)] if repaired else [],
+    }

@@ -1,0 +1,56 @@
+"""How many of a campaign's invariant breaks lie outside the rule's model: every break file of a folder
+(``safelane falsify``'s ``counterexamples/``, or a random sample of them) replayed to its state and
+repaired (:func:`safelane.running.counterexamples.repair_break`: every vehicle that rolled back beyond the
+model in the break's decision put back inside it). A break whose repaired state has a safe action needed
+the roll-back (outside the model); the rest are holes of the rule.
+
+    .venv/bin/python examples/repair_breaks.py runs/falsify/grid/counterexamples --sample 600 \
+        --out runs/falsify/grid/break_repairs.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import random
+from concurrent.futures import ProcessPoolExecutor
+from pathlib import Path
+from typing import Any
+
+from safelane.core.files import atomic_write_text
+from safelane.running.counterexamples import load_counterexample, repair_break
+
+
+def repair(path: str) -> dict[str, Any]:
+    """One break file: its name and :func:`repair_break`'s verdict."""
+    return {"file": Path(path).name, **repair_break(load_counterexample(path))}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("folder", type=Path)
+    parser.add_argument("--sample", type=int, default=None, help="At most this many files, drawn at random.")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--workers", type=int, default=2)
+    parser.add_argument("--out", type=Path, required=True)
+    args = parser.parse_args()
+    files = sorted(str(p) for p in args.folder.glob("*-invariant_break-*.json"))
+    if args.sample is not None and args.sample < len(files):
+        files = sorted(random.Random(args.seed).sample(files, args.sample))
+    with ProcessPoolExecutor(args.workers) as pool:
+        rows = list(pool.map(repair, files, chunksize=8))
+    outside = [r for r in rows if r["safe_after_repair"]]
+    summary = {
+        "folder": str(args.folder),
+        "breaks": len(rows),
+        "with_roll_back": sum(bool(r["repaired"]) for r in rows),
+        "outside_model": len(outside),
+        "holes": len(rows) - len(outside),
+        "rows": rows,
+    }
+    atomic_write_text(args.out, json.dumps(summary, indent=1))
+    print(json.dumps({k: v for k, v in summary.items() if k != "rows"}))
+
+
+if __name__ == "__main__":
+    main()

@@ -5,7 +5,7 @@ model in the break's decision put back inside it). A break whose repaired state 
 the roll-back (outside the model); the rest are holes of the rule.
 
     .venv/bin/python examples/repair_breaks.py runs/falsify/grid/counterexamples --sample 600 \
-        --out runs/falsify/grid/break_repairs.json
+        --out runs/falsify/grid/break_repairs.json [--culprits]
 """
 
 from __future__ import annotations
@@ -13,17 +13,23 @@ from __future__ import annotations
 import argparse
 import json
 import random
+from collections import Counter
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 from typing import Any
 
 from safelane.core.files import atomic_write_text
-from safelane.running.counterexamples import load_counterexample, repair_break
+from safelane.running.counterexamples import break_culprits, load_counterexample, repair_break
 
 
-def repair(path: str) -> dict[str, Any]:
-    """One break file: its name and :func:`repair_break`'s verdict."""
-    return {"file": Path(path).name, **repair_break(load_counterexample(path))}
+def repair(path: str, culprits: bool = False) -> dict[str, Any]:
+    """One break file: its name, :func:`repair_break`'s verdict and, with ``culprits``, the role of its first
+    leave-one-out culprit (:func:`~safelane.running.counterexamples.break_culprits`)."""
+    cx = load_counterexample(path)
+    row: dict[str, Any] = {"file": Path(path).name, **repair_break(cx)}
+    if culprits:
+        row["role"] = break_culprits(cx)["role"]
+    return row
 
 
 def main() -> None:
@@ -31,6 +37,7 @@ def main() -> None:
     parser.add_argument("folder", type=Path)
     parser.add_argument("--sample", type=int, default=None, help="At most this many files, drawn at random.")
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--culprits", action="store_true", help="Also the role of each break's first culprit.")
     parser.add_argument("--workers", type=int, default=2)
     parser.add_argument("--out", type=Path, required=True)
     args = parser.parse_args()
@@ -38,7 +45,7 @@ def main() -> None:
     if args.sample is not None and args.sample < len(files):
         files = sorted(random.Random(args.seed).sample(files, args.sample))
     with ProcessPoolExecutor(args.workers) as pool:
-        rows = list(pool.map(repair, files, chunksize=8))
+        rows = list(pool.map(repair, files, [args.culprits] * len(files), chunksize=8))
     outside = [r for r in rows if r["safe_after_repair"]]
     summary = {
         "folder": str(args.folder),
@@ -46,6 +53,7 @@ def main() -> None:
         "with_roll_back": sum(bool(r["repaired"]) for r in rows),
         "outside_model": len(outside),
         "holes": len(rows) - len(outside),
+        **({"roles": dict(Counter(r["role"] for r in rows).most_common())} if args.culprits else {}),
         "rows": rows,
     }
     atomic_write_text(args.out, json.dumps(summary, indent=1))

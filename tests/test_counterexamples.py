@@ -125,3 +125,21 @@ def test_repair_break_excuses_a_break_only_when_the_roll_back_was_needed() -> No
     assert kept == {"repaired": [], "safe_after_repair": False, "unlocks": []}
     with pytest.raises(ConfigError, match="invariant breaks only"):
         repair_break(load_counterexample(adversary / "cell00006-seed4000060000-collision-step9.json"))
+
+
+def test_repair_breaks_counts_a_campaign_s_breaks_outside_the_model(tmp_path: Path) -> None:
+    """examples/repair_breaks.py on the turning-leaders campaign's 10 breaks (the ones before its crashes):
+    3 with a vehicle rolling back beyond the model, 2 that needed it (cells 1842 and 2710; cell 694's two
+    rolled-back cars were not what broke it), the first culprits' roles counted."""
+    import sys
+
+    folder = CAMPAIGN / "grid_100k_behind_turning_leaders" / "counterexamples"
+    out = tmp_path / "repairs.json"
+    script = Path(__file__).resolve().parents[1] / "examples" / "repair_breaks.py"
+    args = [sys.executable, str(script), str(folder), "--culprits", "--workers", "1", "--out", str(out)]
+    subprocess.run(args, check=True, capture_output=True)
+    summary = json.loads(out.read_text())
+    assert (summary["breaks"], summary["with_roll_back"], summary["outside_model"]) == (10, 3, 2)
+    outside = sorted(r["file"].split("-")[0] for r in summary["rows"] if r["safe_after_repair"])
+    assert outside == ["cell01842", "cell02710"]
+    assert sum(summary["roles"].values()) == 10 and summary["roles"]["leader"] == 5

@@ -15,6 +15,7 @@ at the same decision; ``simulator=`` replays a fast-simulator finding on highway
 from __future__ import annotations
 
 import json
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
@@ -246,6 +247,31 @@ def _snapshots_around_event(env: Any, cx: Counterexample) -> tuple[Any, Any]:
     return before, info["snapshot"]
 
 
+def _break_states(cx: Counterexample, simulator: str | None, what: str) -> tuple[Any, Any, Callable[[Any], Any]]:
+    """Replay the invariant break ``cx``: the road snapshots of the state before its event and of the
+    event's state, and ``judge(snapshot)``, the numpy reference model on the shield's own inputs for a
+    (possibly edited) snapshot of that episode. ``what`` names the caller's product in the one-line error
+    for a file that is not a break."""
+    from safelane.env.factory import make_env
+    from safelane.safety.model import evaluate
+
+    if cx.kind != "invariant_break":
+        raise ConfigError(f"{cx.kind}: {what} defined for invariant breaks only")
+    env = make_env(cx.env_config(simulator))
+    try:
+        before, after = _snapshots_around_event(env, cx)
+        shield = env
+        while not hasattr(shield, "state_and_dynamics"):
+            shield = shield.env
+    finally:
+        env.close()
+
+    def judge(snap: Any) -> Any:
+        return evaluate(*shield.state_and_dynamics(snap), shield.mode)
+
+    return before, after, judge
+
+
 def crash_partner(cx: Counterexample, simulator: str | None = None) -> dict[str, Any]:
     """Who the ego crashed into, and whether that vehicle stayed inside the rule's model: replay the crash
     ``cx`` and return the partner's index, its lane relative to the ego's, its offset along the road [m] and
@@ -349,22 +375,8 @@ def break_culprits(cx: Counterexample, simulator: str | None = None) -> dict[str
     first), ``joint`` if there is none. Uses the numpy reference model on the shield's own inputs."""
     import dataclasses
 
-    from safelane.env.factory import make_env
-    from safelane.safety.model import evaluate
-
-    if cx.kind != "invariant_break":
-        raise ConfigError(f"{cx.kind}: culprits are defined for invariant breaks only")
-    env = make_env(cx.env_config(simulator))
-    try:
-        before, after = _snapshots_around_event(env, cx)
-        unwrapped_shield = env
-        while not hasattr(unwrapped_shield, "state_and_dynamics"):
-            unwrapped_shield = unwrapped_shield.env
-        state_and_dynamics = unwrapped_shield.state_and_dynamics
-        mode = unwrapped_shield.mode
-        base = evaluate(*state_and_dynamics(after), mode)
-    finally:
-        env.close()
+    before, after, judge = _break_states(cx, simulator, "culprits are")
+    base = judge(after)
     e = after.ego
     ego_lane_before, ego_lane_after = int(before.lane[before.ego]), int(after.lane[e])
     order = sorted(
@@ -377,7 +389,7 @@ def break_culprits(cx: Counterexample, simulator: str | None = None) -> dict[str
             continue
         position = after.position.copy()
         position[j, 0] += 1e6  # far beyond the model's range (250 m): as if the vehicle were not there
-        result = evaluate(*state_and_dynamics(dataclasses.replace(after, position=position)), mode)
+        result = judge(dataclasses.replace(after, position=position))
         if result.fallback:
             continue
         dx_before = float(before.position[j, 0] - before.position[before.ego, 0])
@@ -422,20 +434,7 @@ def repair_break(cx: Counterexample, simulator: str | None = None) -> dict[str, 
     beside an in-model hole does not excuse it. Uses the numpy reference model on the shield's inputs."""
     import dataclasses
 
-    from safelane.env.factory import make_env
-    from safelane.safety.model import evaluate
-
-    if cx.kind != "invariant_break":
-        raise ConfigError(f"{cx.kind}: a repair is defined for invariant breaks only")
-    env = make_env(cx.env_config(simulator))
-    try:
-        before, after = _snapshots_around_event(env, cx)
-        shield = env
-        while not hasattr(shield, "state_and_dynamics"):
-            shield = shield.env
-        state_and_dynamics, mode = shield.state_and_dynamics, shield.mode
-    finally:
-        env.close()
+    before, after, judge = _break_states(cx, simulator, "a repair is")
     period = float(after.time - before.time)
     position, speed = after.position.copy(), after.speed.copy()
     repaired = []
@@ -448,7 +447,7 @@ def repair_break(cx: Counterexample, simulator: str | None = None) -> dict[str, 
             repaired.append(j)
             speed[j] = floor
             position[j, 0] = max(float(position[j, 0]), float(before.position[j, 0]) + floor * period)
-    result = evaluate(*state_and_dynamics(dataclasses.replace(after, position=position, speed=speed)), mode)
+    result = judge(dataclasses.replace(after, position=position, speed=speed))
     return {
         "repaired": repaired,
         "safe_after_repair": bool(repaired) and not result.fallback,

@@ -289,6 +289,23 @@ def test_robust_fallback_bit_identical_and_only_the_fallback_choice(case: tuple)
 
 
 @PROPERTY_SETTINGS
+@given(case=road())
+def test_linear_incentive_bit_identical_and_only_removes_linear_turn_ins(case: tuple) -> None:
+    """shield.linear_incentive: the same in both engines; it only filters Linear-model drivers' turn-ins behind
+    the ego, so no conflict is added — every action safe without it stays safe, no worst gap shrinks — nominal
+    mode is untouched, and a road without Linear-model drivers gives the same result to the bit."""
+    state, dyn, _ = case
+    off, on = (dataclasses.replace(dyn, linear_incentive=v) for v in (False, True))
+    assert mismatches(state, on) == []
+    assert_same(model.evaluate(state, off, "nominal"), model.evaluate(state, on, "nominal"))
+    a, b = model.evaluate(state, off, "robust"), model.evaluate(state, on, "robust")
+    assert not (a.safe & ~b.safe).any()
+    assert not (b.min_gap < a.min_gap).any()
+    if not np.isfinite(state.linear_speed_gain).any():
+        assert_same(a, b)
+
+
+@PROPERTY_SETTINGS
 @given(case=road(rates=True))
 def test_full_horizon_bit_identical_at_every_rate_and_unchanged_at_one_per_second(case: tuple) -> None:
     """shield.full_horizon (default): at 1 decision per second the horizon is the one it always was (13 s),

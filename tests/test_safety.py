@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import math
 from collections.abc import Callable
 
 import numpy as np
@@ -422,6 +423,50 @@ def test_linear_mobil_lets_a_car_alongside_stay_where_it_is(engine: str) -> None
     assert level.result.fallback and level.result.min_gap[S] == pytest.approx(-11.39, abs=0.01)
     default = scenarios.SCENARIOS["linear_car_alongside"](mode="robust", **{"shield.engine": engine})
     assert default.result.fallback and (default.result.min_gap < 0).all()
+
+
+@pytest.mark.parametrize("engine", ["numpy", "compiled"])
+def test_linear_incentive_keeps_a_car_alongside_in_its_lane(engine: str) -> None:
+    """shield.linear_incentive: the same Linear driver level with the ego (0.1 m behind its centre, 20.25 m/s;
+    its leader 42 m ahead at 17.3 m/s) gains nothing by moving behind the ego — by its own model
+    (k₁·min(v_front − v, 0) + k₂·min(d − d_safe, 0), d_safe = 10 + 2.5·20.25 = 60.6 m) −121.3 m/s² behind the
+    ego against −37.9 behind its leader, a gain of −83 m/s² < 0.2 — so it does not turn in behind the ego.
+    With linear_mobil also on (it cannot cut in ahead either) SLOWER is safe again (20.33 m), no fallback;
+    with either option alone it is still a fallback at −11.39 m (the turn-in, or the cut-in, remains)."""
+    both = scenarios.SCENARIOS["linear_car_alongside"](
+        mode="robust", **{"shield.engine": engine, "shield.linear_mobil": True, "shield.linear_incentive": True}
+    )
+    assert both.mask.tolist() == mask_of(S) and not both.result.fallback
+    assert both.result.min_gap[[I, S]] == pytest.approx([0.33, 20.33], abs=0.01)
+    for option in ("shield.linear_mobil", "shield.linear_incentive"):
+        alone = scenarios.SCENARIOS["linear_car_alongside"](mode="robust", **{"shield.engine": engine, option: True})
+        assert alone.result.fallback and alone.result.min_gap[S] == pytest.approx(-11.39, abs=0.01)
+
+
+@pytest.mark.parametrize("engine", ["numpy", "compiled"])
+def test_linear_incentive_drops_the_free_car_and_keeps_the_one_stuck_behind_it(engine: str) -> None:
+    """Two Linear drivers in the next lane behind the ego (lane 0, 20 m/s): A 10 m behind at 15 m/s with a
+    free lane ahead, B 20 m behind at 20 m/s closing on A. By their own model A loses 75 m/s² by moving
+    behind the ego (nothing ahead of it: its term is 0; behind the ego 2·min(10 − 47.5, 0)) and B gains
+    21.5 m/s² (−80 behind the ego, 2·(20 − 60) against −101.5 behind A, 0.3·(15 − 20) + 2·(10 − 60)).
+    Default: any Linear-model car may turn in, and A bounds IDLE at 5.0 m; shield.linear_incentive keeps only
+    B (IDLE 13.5 m); without level_cut_ins neither counts (IDLE unbounded)."""
+    from highway_env.vehicle.behavior import LinearVehicle
+
+    queue = [
+        scenarios.VehicleSpec(1, -20.0, 20.0, vehicle_class=LinearVehicle),
+        scenarios.VehicleSpec(1, -10.0, 15.0, vehicle_class=LinearVehicle),
+    ]
+
+    def idle_gap(**options: object) -> float:
+        scene = scenarios.build_scene(0, 20.0, queue, mode="robust", ego_target_speed=20.0, **options)
+        assert scene.result.safe.tolist() == mask_of(I, R, F, S)
+        return float(scene.result.min_gap[I])
+
+    base = {"shield.engine": engine}
+    assert idle_gap(**base) == pytest.approx(5.0, abs=0.01)
+    assert idle_gap(**base, **{"shield.linear_incentive": True}) == pytest.approx(13.5, abs=0.01)
+    assert idle_gap(**base, **{"shield.level_cut_ins": False}) == math.inf
 
 
 @pytest.mark.parametrize("engine", ["numpy", "compiled"])

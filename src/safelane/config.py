@@ -201,6 +201,13 @@ class ShieldConfig(_Section):
         "action by its robust worst-case gaps; false (default): of the nominally safe actions when there are "
         "some, so the final robust mask stays inside the nominal one (docs/safety.md §6g).",
     )
+    linear_incentive: bool = Field(
+        False,
+        strict=True,
+        description="With level_incentive: a Linear, Aggressive or Defensive driver level with or behind the ego "
+        "turns in behind it only if MOBIL's incentive, with its own linear acceleration model and gains, lets it "
+        "(as IDM drivers); false: any such car may (docs/safety.md §6h).",
+    )
 
     def rule_options(self) -> dict[str, bool]:
         """The rule's on/off options by name, as :class:`safelane.safety.shield.SafetyShield` and
@@ -611,7 +618,7 @@ RENAMED_KEYS: dict[str, tuple[str, dict[Any, Any]]] = {
 RULE_OPTIONS = (
     "projected_cut_ins", "body_extent", "linear_mobil", "reversing_leaders", "level_cut_ins", "level_incentive",
     "level_entering", "least_bad_joint", "full_horizon", "ego_speed_magnitude", "turning_leaders",
-    "robust_fallback",
+    "robust_fallback", "linear_incentive",
 )  # fmt: skip
 """The :class:`ShieldConfig` fields that switch parts of the safety rule on or off (``ShieldConfig.rule_options``)."""
 

@@ -154,7 +154,8 @@ def _evaluate(
     lanes_count: int, follower_reaction: float, ego_leave_time: float, cut_in_time: float, margin: float,
     relevance: float, lateral_threshold: float, robust: bool, projected_cut_ins: bool, body_extent: bool,
     body_width: float, linear_mobil: bool, reversing_leaders: bool, level_cut_ins: bool, level_incentive: bool,
-    level_entering: bool, least_bad_joint: bool, robust_fallback: bool, turning_allowance: float,
+    level_entering: bool, least_bad_joint: bool, robust_fallback: bool, linear_incentive: bool,
+    turning_allowance: float,
     min_acc_gain: float,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, bool]:  # fmt: skip
     """``model.evaluate`` (formula ``kinematic``) of one state: (mask, safe, available, min_gap, fallback)."""
@@ -404,6 +405,31 @@ def _evaluate(
                         level[slot, r] = can and (
                             (d_now <= 0 and gain_now >= min_acc_gain) or (d_end <= 0 and gain_end >= min_acc_gain)
                         )
+                    elif level_rows and level_incentive and linear_incentive:
+                        # model.linear_turn_in_incentive: the linear model's gain behind the ego.
+                        k1, k2, v = lin_k1[i], lin_k2[i], vx[i]
+                        d_safe = idm_distance_wanted[i] + _nmax(v, 0.0) * idm_time_wanted[i]
+                        lead_now = lead_end = 0.0  # the most negative term over the vehicles ahead in its lane
+                        found = False
+                        for k in range(m):
+                            lx = x[near[k]]
+                            if lanes_near[k] == lanes_near[r] and lx > x[i]:
+                                lv = vx[near[k]]
+                                closing = k1 * _nmin(lv - v, 0.0)
+                                gap_end = (lx + lv * decision_period) - (x[i] + v * decision_period)
+                                an = closing + k2 * _nmin((lx - x[i]) - d_safe, 0.0)
+                                ae = closing + k2 * _nmin(gap_end - d_safe, 0.0)
+                                if found:
+                                    lead_now, lead_end = _nmin(lead_now, an), _nmin(lead_end, ae)
+                                else:
+                                    lead_now, lead_end, found = an, ae, True
+                        ego_now = k1 * _nmin(ego_speed - v, 0.0) + k2 * _nmin(-d_now - d_safe, 0.0)
+                        ego_end = k1 * _nmin(kv - v, 0.0) + k2 * _nmin(-d_end - d_safe, 0.0)
+                        gain_now = ego_now - lead_now
+                        gain_end = ego_end - lead_end
+                        level[slot, r] = can and (
+                            (d_now <= 0 and gain_now >= min_acc_gain) or (d_end <= 0 and gain_end >= min_acc_gain)
+                        )
                     else:
                         level[slot, r] = level_any[slot, r]
                     if can and ahead_c:
@@ -551,7 +577,8 @@ def _evaluate_snapshot(
     lanes_count: int, follower_reaction: float, ego_leave_time: float, cut_in_time: float, margin: float,
     relevance: float, lateral_threshold: float, robust: bool, projected_cut_ins: bool, body_extent: bool,
     body_width: float, linear_mobil: bool, reversing_leaders: bool, level_cut_ins: bool, level_incentive: bool,
-    level_entering: bool, least_bad_joint: bool, robust_fallback: bool, ego_speed_magnitude: bool,
+    level_entering: bool, least_bad_joint: bool, robust_fallback: bool, linear_incentive: bool,
+    ego_speed_magnitude: bool,
     turning_allowance: float,
     min_acc_gain: float,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, bool]:  # fmt: skip
@@ -600,7 +627,7 @@ def _evaluate_snapshot(
         ts, t, powers, tie_break, decision_period, frame_dt, frames, horizon, ego_kp, lane_width, lanes_count,
         follower_reaction, ego_leave_time, cut_in_time, margin, relevance, lateral_threshold, robust,
         projected_cut_ins, body_extent, body_width, linear_mobil, reversing_leaders, level_cut_ins, level_incentive,
-        level_entering, least_bad_joint, robust_fallback, turning_allowance, min_acc_gain,
+        level_entering, least_bad_joint, robust_fallback, linear_incentive, turning_allowance, min_acc_gain,
     )  # fmt: skip
 
 
@@ -688,6 +715,7 @@ class KernelConstants(NamedTuple):
     level_entering: bool
     least_bad_joint: bool
     robust_fallback: bool
+    linear_incentive: bool
     ego_speed_magnitude: bool
     turning_allowance: float
     min_acc_gain: float
@@ -709,6 +737,7 @@ def kernel_constants(dyn: Dynamics) -> KernelConstants:
         dyn.level_entering,
         dyn.least_bad_joint,
         dyn.robust_fallback,
+        dyn.linear_incentive,
         dyn.ego_speed_magnitude,
         model.turning_allowance(dyn),
         _MIN_ACC_GAIN,
@@ -742,7 +771,8 @@ def evaluate_compiled(
         s.linear_speed_difference_gain, s.linear_distance_gain,
         *_dynamics_args(dyn, dyn.ego_leave_time), mode == "robust", dyn.projected_cut_ins, dyn.body_extent,
         dyn.body_width, dyn.linear_mobil, dyn.reversing_leaders, dyn.level_cut_ins, dyn.level_incentive,
-        dyn.level_entering, dyn.least_bad_joint, dyn.robust_fallback, model.turning_allowance(dyn), _MIN_ACC_GAIN,
+        dyn.level_entering, dyn.least_bad_joint, dyn.robust_fallback, dyn.linear_incentive,
+        model.turning_allowance(dyn), _MIN_ACC_GAIN,
     )  # fmt: skip
     return _result(out)
 
@@ -776,7 +806,7 @@ def evaluate_snapshot(
         snap.lane_origin, snap.lane_direction, snap.lane_lateral, lane_heading, snap.speed_limit,
         *_dynamics_args(dyn, ego_leave_time), mode == "robust", dyn.projected_cut_ins, dyn.body_extent,
         dyn.body_width, dyn.linear_mobil, dyn.reversing_leaders, dyn.level_cut_ins, dyn.level_incentive,
-        dyn.level_entering, dyn.least_bad_joint, dyn.robust_fallback, dyn.ego_speed_magnitude,
+        dyn.level_entering, dyn.least_bad_joint, dyn.robust_fallback, dyn.linear_incentive, dyn.ego_speed_magnitude,
         model.turning_allowance(dyn),
         _MIN_ACC_GAIN,
     )  # fmt: skip

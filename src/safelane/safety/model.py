@@ -108,6 +108,7 @@ class Dynamics:
     ego_speed_magnitude: bool = True  # RoadState.ego_speed is the controller's speed (else: along the road)
     turning_leaders: bool = False  # a moving leader brakes along its path, less a lane change's cost (experimental)
     robust_fallback: bool = False  # robust, nothing safe: least-bad of all available by robust gaps (experimental)
+    linear_incentive: bool = False  # level_incentive: linear-model drivers' incentive with their formula (else any)
 
     @property
     def horizon_decisions(self) -> int:
@@ -473,9 +474,12 @@ def _cut_in_candidates(
     ahead = (d_now > 0) | (d_end > 0)
     level_any = (d_now <= 0) | (d_end <= 0)
     if dyn.level_cut_ins and dyn.level_incentive:
-        # Linear-model drivers' incentive uses their own formula, not modelled: any turn-in is assumed.
         incentive = turn_in_incentive(state, dyn, near, d_now, d_end, ego_v_end)
-        level = np.where(linear, level_any, incentive)
+        if dyn.linear_incentive:  # linear-model drivers' incentive with their own formula
+            linear_gain = linear_turn_in_incentive(state, dyn, near, d_now, d_end, ego_v_end)
+            level = np.where(linear, linear_gain, incentive)
+        else:  # the earlier rule: their incentive was not modelled, so any turn-in was assumed
+            level = np.where(linear, level_any, incentive)
     else:
         level = level_any
     level_entering = level_any if dyn.level_entering else level
@@ -521,6 +525,40 @@ def turn_in_incentive(
     q_ego_end = _gap_ratio(state, near, np.full(near.size, ego_v_end), -d_end)
     gain_now = acc * lead_now - acc * (q_ego_now * q_ego_now)
     gain_end = acc * lead_end - acc * (q_ego_end * q_ego_end)
+    return ((d_now <= 0) & (gain_now >= MOBIL_MIN_ACC_GAIN)) | ((d_end <= 0) & (gain_end >= MOBIL_MIN_ACC_GAIN))
+
+
+def linear_turn_in_incentive(
+    state: RoadState, dyn: Dynamics, near: np.ndarray, d_now: np.ndarray, d_end: np.ndarray, ego_v_end: float
+) -> np.ndarray:
+    """:func:`turn_in_incentive` for drivers with the linear acceleration model (Linear, Aggressive,
+    Defensive; NaN gains elsewhere give False), with their own formula, as highway-env's ``IDMVehicle.mobil``
+    applies it through ``LinearVehicle.acceleration``: politeness 0, so the gain is
+    ``a(behind the ego) − a(behind its leader)``, and the target-speed term ``k₀·(v* − v)`` cancels, leaving
+    ``k₁·min(v_front − v, 0) + k₂·min(d − d_safe, 0)`` per front vehicle, ``d_safe = DISTANCE_WANTED +
+    max(v, 0)·TIME_WANTED`` [m], ``d`` [m] centre to centre. No leader: its term is 0, so a car on a free lane
+    never gains by moving behind the ego. The leader's term is the most negative over every vehicle ahead of
+    it in its lane (monotone, as for IDM). The threshold is :data:`MOBIL_MIN_ACC_GAIN` (0.2 m/s², Linear's);
+    Aggressive and Defensive drivers need 1.0, so the rule assumes more turn-ins than they make."""
+    x, v, t = state.x[near], state.vx[near], dyn.decision_period
+    lanes = state.lane_of(state.y[near], dyn.lanes_count, dyn.lane_width)
+    k1, k2 = state.linear_speed_difference_gain[near], state.linear_distance_gain[near]
+    d_safe = state.idm_distance_wanted[near] + np.maximum(v, 0.0) * state.idm_time_wanted[near]
+    lead_now = np.zeros(near.size)
+    lead_end = np.zeros(near.size)
+    for j in range(near.size):
+        if not np.isfinite(state.linear_speed_gain[near[j]]):
+            continue
+        rows = np.flatnonzero((lanes == lanes[j]) & (x > x[j]))  # every vehicle ahead of it in its lane
+        if rows.size:
+            closing = k1[j] * np.minimum(v[rows] - v[j], 0.0)
+            gap_end = (x[rows] + v[rows] * t) - (x[j] + v[j] * t)
+            lead_now[j] = (closing + k2[j] * np.minimum((x[rows] - x[j]) - d_safe[j], 0.0)).min()
+            lead_end[j] = (closing + k2[j] * np.minimum(gap_end - d_safe[j], 0.0)).min()
+    ego_now = k1 * np.minimum(state.ego_speed - v, 0.0) + k2 * np.minimum(-d_now - d_safe, 0.0)
+    ego_end = k1 * np.minimum(ego_v_end - v, 0.0) + k2 * np.minimum(-d_end - d_safe, 0.0)
+    gain_now = ego_now - lead_now
+    gain_end = ego_end - lead_end
     return ((d_now <= 0) & (gain_now >= MOBIL_MIN_ACC_GAIN)) | ((d_end <= 0) & (gain_end >= MOBIL_MIN_ACC_GAIN))
 
 

@@ -86,6 +86,7 @@ def dynamics_of(
     ego_speed_magnitude: bool = True,
     turning_leaders: bool = False,
     robust_fallback: bool = False,
+    linear_incentive: bool = False,
 ) -> Dynamics:
     """The :class:`Dynamics` constants of the simulated world a snapshot was taken in; ``margin`` [m]: the
     bumper-to-bumper gap the rule keeps under its worst case; the rule's options as in :class:`Dynamics`."""
@@ -114,6 +115,7 @@ def dynamics_of(
         ego_speed_magnitude=ego_speed_magnitude,
         turning_leaders=turning_leaders,
         robust_fallback=robust_fallback,
+        linear_incentive=linear_incentive,
         # The widest other body (every highway-env vehicle has Vehicle.WIDTH): the occupancy bound.
         body_width=float(np.max(snap.width)) if len(snap.width) else 2.0,
     )
@@ -209,6 +211,8 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
     ``turning_leaders`` (experimental): a moving leader brakes along its path, less a lane change's cost.
     ``robust_fallback`` (experimental): with no safe action, robust mode takes the least-bad of every available
     action by its robust gaps (else: of the nominally safe ones when there are some).
+    ``linear_incentive``: with ``level_incentive``, a Linear, Aggressive or Defensive driver turns in behind the
+    ego only when MOBIL's incentive with its own linear model lets it (else any such car may).
     """
 
     def __init__(
@@ -231,6 +235,7 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
         ego_speed_magnitude: bool = True,
         turning_leaders: bool = False,
         robust_fallback: bool = False,
+        linear_incentive: bool = False,
     ) -> None:
         if not (math.isfinite(margin) and margin >= 0):
             raise ValueError(f"shield.margin: must be a finite number >= 0 [m] (got {margin!r})")
@@ -259,6 +264,7 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
             ego_speed_magnitude=ego_speed_magnitude,
             turning_leaders=turning_leaders,
             robust_fallback=robust_fallback,
+            linear_incentive=linear_incentive,
         )
         try:
             env.get_wrapper_attr("road_snapshot")
@@ -282,6 +288,7 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
         self.ego_speed_magnitude = bool(ego_speed_magnitude)
         self.turning_leaders = bool(turning_leaders)
         self.robust_fallback = bool(robust_fallback)
+        self.linear_incentive = bool(linear_incentive)
         self._rule_options = {name: getattr(self, name) for name in RULE_OPTIONS}  # dynamics_of's keywords
         self.dynamics: Dynamics | None = None
         self.result: SafetyResult | None = None

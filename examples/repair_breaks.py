@@ -18,8 +18,13 @@ from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from safelane.core.files import atomic_write_text
 from safelane.running.counterexamples import break_culprits, load_counterexample, repair_break
+
+QUANTILES = (0.0, 0.1, 0.25, 0.5, 0.75, 0.9, 1.0)
+"""The quantiles of the breaks' best gap [m] the summary prints."""
 
 
 def repair(path: str, culprits: bool = False) -> dict[str, Any]:
@@ -53,6 +58,12 @@ def main() -> None:
         "with_roll_back": sum(bool(r["repaired"]) for r in rows),
         "outside_model": len(outside),
         "holes": len(rows) - len(outside),
+        # How deep below the margin the breaks go: a break at >= 0 m still has a fallback the model calls
+        # collision-free (the margin was eaten), one below 0 m does not.
+        "best_gap_below_zero": sum(r["best_gap"] < 0.0 for r in rows),
+        "best_gap_quantiles": [round(float(q), 3) for q in np.quantile([r["best_gap"] for r in rows], QUANTILES)]
+        if rows
+        else [],
         **({"roles": dict(Counter(r["role"] for r in rows).most_common())} if args.culprits else {}),
         "rows": rows,
     }

@@ -293,16 +293,22 @@ def test_robust_fallback_bit_identical_and_only_the_fallback_choice(case: tuple)
 def test_linear_incentive_bit_identical_and_only_removes_linear_turn_ins(case: tuple) -> None:
     """shield.linear_incentive: the same in both engines; it only filters Linear-model drivers' turn-ins behind
     the ego, so no conflict is added — every action safe without it stays safe, no worst gap shrinks — nominal
-    mode is untouched, and a road without Linear-model drivers gives the same result to the bit."""
+    mode is untouched, and a road without Linear-model drivers gives the same result to the bit.
+    shield.linear_incentive_braking (the incentive also at every frame, the driver's leaders braking) lies in
+    between: the same in both engines, never a gap above the plain incentive's nor below the unfiltered rule's."""
     state, dyn, _ = case
-    off, on = (dataclasses.replace(dyn, linear_incentive=v) for v in (False, True))
-    assert mismatches(state, on) == []
+    off, on = (dataclasses.replace(dyn, linear_incentive=v, linear_incentive_braking=False) for v in (False, True))
+    braking = dataclasses.replace(on, linear_incentive_braking=True)
+    assert mismatches(state, on) == [] and mismatches(state, braking) == []
     assert_same(model.evaluate(state, off, "nominal"), model.evaluate(state, on, "nominal"))
+    assert_same(model.evaluate(state, on, "nominal"), model.evaluate(state, braking, "nominal"))
     a, b = model.evaluate(state, off, "robust"), model.evaluate(state, on, "robust")
-    assert not (a.safe & ~b.safe).any()
-    assert not (b.min_gap < a.min_gap).any()
+    mid = model.evaluate(state, braking, "robust")
+    assert not (a.safe & ~mid.safe).any() and not (mid.safe & ~b.safe).any()
+    assert not (b.min_gap < mid.min_gap).any() and not (mid.min_gap < a.min_gap).any()
     if not np.isfinite(state.linear_speed_gain).any():
         assert_same(a, b)
+        assert_same(b, mid)
 
 
 @PROPERTY_SETTINGS

@@ -116,13 +116,14 @@ def test_repair_break_excuses_a_break_only_when_the_roll_back_was_needed() -> No
     0.48 → −0.28 m/s while the ego braked; two cars beside the ego block the lane changes) has SLOWER safe
     again once that car is put back where it stopped — outside the model, although leave-one-out also
     names the two cars beside it. The 100 800-episode campaign's turning-leader hole (cell 2270, fast
-    simulator: nobody rolled back) repairs nothing and stays a break. Crash files are refused."""
+    simulator: nobody rolled back) repairs nothing and stays a break. ``best_gap``, the break state's largest
+    worst-case gap as it is: 0.944 m (just under the 1 m margin) and −9.049 m. Crash files are refused."""
     adversary = CAMPAIGN / "adversaries_session11" / "counterexamples"
     repaired = repair_break(load_counterexample(adversary / "cell00006-seed4000060000-invariant_break-step8.json"))
-    assert repaired == {"repaired": [6], "safe_after_repair": True, "unlocks": [4]}
+    assert repaired == {"best_gap": 0.944, "repaired": [6], "safe_after_repair": True, "unlocks": [4]}
     hole = CAMPAIGN / "grid_100k_behind_turning_leaders" / "counterexamples"
     kept = repair_break(load_counterexample(hole / "cell02270-seed4022700029-invariant_break-step2.json"))
-    assert kept == {"repaired": [], "safe_after_repair": False, "unlocks": []}
+    assert kept == {"best_gap": -9.049, "repaired": [], "safe_after_repair": False, "unlocks": []}
     with pytest.raises(ConfigError, match="invariant breaks only"):
         repair_break(load_counterexample(adversary / "cell00006-seed4000060000-collision-step9.json"))
 
@@ -143,3 +144,6 @@ def test_repair_breaks_counts_a_campaign_s_breaks_outside_the_model(tmp_path: Pa
     outside = sorted(r["file"].split("-")[0] for r in summary["rows"] if r["safe_after_repair"])
     assert outside == ["cell01842", "cell02710"]
     assert sum(summary["roles"].values()) == 10 and summary["roles"]["leader"] == 5
+    gaps = sorted(r["best_gap"] for r in summary["rows"])
+    assert summary["best_gap_below_zero"] == sum(g < 0 for g in gaps) and max(gaps) < 1.0
+    assert summary["best_gap_quantiles"][0] == gaps[0] and summary["best_gap_quantiles"][-1] == gaps[-1]

@@ -172,6 +172,13 @@ CRASHES = Path(__file__).resolve().parents[1] / "docs" / "results" / "falsify" /
         ("cell00018-seed4000180007-collision-step3.json", "started_unsafe"),  # spawned into a crash
         ("cell00444-seed4004440003-collision-step7.json", "after_break"),
         ("cell00537-seed4005370010-collision-step122.json", "from_safe_state"),  # the rule's own hole
+        # FASTER chosen, overridden to SLOWER (safe, 15.2 m), then a Linear car stuck behind a slow one turned
+        # in behind the ego within the decision: from a safe state, once filed as "after_fallback" because
+        # the *chosen* action was unsafe (issue 15, seventh session; docs/safety.md §6h).
+        (
+            "../../grid_100k_behind_linear_mobil_incentive/counterexamples/cell00535-seed4005350015-collision-step3.json",
+            "from_safe_state",
+        ),
     ],
 )
 def test_collision_context_says_where_a_crash_stands_against_the_promise(name: str, context: str) -> None:

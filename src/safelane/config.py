@@ -129,12 +129,12 @@ class ShieldConfig(_Section):
         "since issue 15's campaign; false gives the earlier rule.",
     )
     linear_mobil: bool = Field(
-        False,
+        True,
         strict=True,
-        description="Robust mode, measured but not adopted: a Linear, Aggressive or Defensive driver cuts in "
-        "only if its MOBIL criterion, with its own linear acceleration model and gains, allows it (as for IDM "
-        "drivers). Off: any such cut-in is assumed. On the campaign's grid it removes a third of the invariant "
-        "breaks but lets more crashes follow the rest (docs/safety.md §6b).",
+        description="Robust mode: a Linear, Aggressive or Defensive driver cuts in only if its MOBIL criterion, "
+        "with its own linear acceleration model and gains, allows it (as for IDM drivers); false: any such "
+        "cut-in is assumed. On by default since issue 15's seventh session, with linear_incentive (docs/safety.md "
+        "§6h; measured alone in §6b); false gives the earlier rule.",
     )
     reversing_leaders: bool = Field(
         True,
@@ -202,11 +202,19 @@ class ShieldConfig(_Section):
         "some, so the final robust mask stays inside the nominal one (docs/safety.md §6g).",
     )
     linear_incentive: bool = Field(
-        False,
+        True,
         strict=True,
         description="With level_incentive: a Linear, Aggressive or Defensive driver level with or behind the ego "
         "turns in behind it only if MOBIL's incentive, with its own linear acceleration model and gains, lets it "
-        "(as IDM drivers); false: any such car may (docs/safety.md §6h).",
+        "(as IDM drivers); false: any such car may. On by default since issue 15's seventh session (docs/safety.md "
+        "§6h); false gives the earlier rule.",
+    )
+    linear_incentive_braking: bool = Field(
+        False,
+        strict=True,
+        description="With linear_incentive: that incentive is also checked at every physics frame of the decision "
+        "with the driver's own leaders braking at their maximum (else: now and at the end, everybody at constant "
+        "speed — a Linear car closing fast on a slow one turned in within the decision; docs/safety.md §6h).",
     )
 
     def rule_options(self) -> dict[str, bool]:
@@ -618,14 +626,15 @@ RENAMED_KEYS: dict[str, tuple[str, dict[Any, Any]]] = {
 RULE_OPTIONS = (
     "projected_cut_ins", "body_extent", "linear_mobil", "reversing_leaders", "level_cut_ins", "level_incentive",
     "level_entering", "least_bad_joint", "full_horizon", "ego_speed_magnitude", "turning_leaders",
-    "robust_fallback", "linear_incentive",
+    "robust_fallback", "linear_incentive", "linear_incentive_braking",
 )  # fmt: skip
 """The :class:`ShieldConfig` fields that switch parts of the safety rule on or off (``ShieldConfig.rule_options``)."""
 
 
 RULE_CHANGES: dict[str, Any] = {
     "body_extent": False, "reversing_leaders": False, "level_cut_ins": False, "level_entering": False,
-    "full_horizon": False, "ego_speed_magnitude": False,
+    "full_horizon": False, "ego_speed_magnitude": False, "linear_mobil": False, "linear_incentive": False,
+    "linear_incentive_braking": False,
 }  # fmt: skip
 """Shield keys added with a new default that changes the rule: a *recorded* configuration (a run's
 config.yaml, a counterexample file) written before the key existed had the old behaviour, given here,

@@ -431,7 +431,10 @@ def repair_break(cx: Counterexample, simulator: str | None = None) -> dict[str, 
     ``safe_after_repair``: it has a safe action (the break needed the roll-back: outside the model, as the
     invariant promises a safe action only while the others stay inside it); ``unlocks``: the safe actions.
     Unlike leave-one-out (:func:`break_culprits`) it changes only what left the model, so a roll-back
-    beside an in-model hole does not excuse it. Uses the numpy reference model on the shield's inputs."""
+    beside an in-model hole does not excuse it. ``best_gap`` [m]: the break state's largest worst-case gap
+    over the available actions, as it is (below the margin, as a break is; ≥ 0: the model still has a
+    collision-free fallback, only the margin was eaten). Uses the numpy reference model on the shield's
+    inputs."""
     import dataclasses
 
     before, after, judge = _break_states(cx, simulator, "a repair is")
@@ -448,7 +451,9 @@ def repair_break(cx: Counterexample, simulator: str | None = None) -> dict[str, 
             speed[j] = floor
             position[j, 0] = max(float(position[j, 0]), float(before.position[j, 0]) + floor * period)
     result = judge(dataclasses.replace(after, position=position, speed=speed))
+    plain = judge(after) if repaired else result
     return {
+        "best_gap": round(float(np.max(np.where(plain.available, plain.min_gap, -np.inf))), 3),
         "repaired": repaired,
         "safe_after_repair": bool(repaired) and not result.fallback,
         "unlocks": [int(a) for a in np.flatnonzero(result.safe)] if repaired else [],

@@ -233,8 +233,10 @@ COLLISION_CONTEXTS: tuple[str, ...] = ("started_unsafe", "after_break", "from_sa
 safe action, the next state has one again, while the others stay inside the model): ``started_unsafe``
 — no state of the episode before the crash had a safe action (outside the promise: the scene was
 spawned inside a crash); ``after_break`` — an invariant break came first (the hole is that break);
-``from_safe_state`` — the crashing action was allowed in a state with a safe action (a hole of the
-rule itself); ``after_fallback`` — anything else (e.g. an unsafe action chosen without override)."""
+``from_safe_state`` — the action executed was allowed in a state with a safe action (a hole of the
+rule itself; an unsafe choice the override replaced counts here: issue 15's seventh session found such a
+crash filed as ``after_fallback``); ``after_fallback`` — anything else (an unsafe action executed without
+override, or a crash right after a fallback state that no break led to)."""
 
 ProgressCallback = Callable[[int, EpisodeRecord], None]
 """Called as ``progress(episode_index, record)`` after each episode."""
@@ -285,11 +287,14 @@ class EpisodeTally:
             self.time_to_collision = info["snapshot"].time
             if self.shielded:
                 earlier_break = bool(self.breaks) and self.breaks[0] < self.steps
+                # The action *executed* was outside the mask: chosen unsafe and not overridden (an overridden
+                # choice executes an allowed action, so its crash is the rule's, from a safe state).
+                executed_unsafe = info.get("unsafe_action", False) and not info.get("shield_intervened", False)
                 if not self.safe_seen:
                     self.context = "started_unsafe"
                 elif earlier_break:
                     self.context = "after_break"
-                elif self.state_safe and not info.get("unsafe_action", False):
+                elif self.state_safe and not executed_unsafe:
                     self.context = "from_safe_state"
                 else:
                     self.context = "after_fallback"

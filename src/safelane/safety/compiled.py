@@ -155,7 +155,7 @@ def _evaluate(
     relevance: float, lateral_threshold: float, robust: bool, projected_cut_ins: bool, body_extent: bool,
     body_width: float, linear_mobil: bool, reversing_leaders: bool, level_cut_ins: bool, level_incentive: bool,
     level_entering: bool, least_bad_joint: bool, robust_fallback: bool, linear_incentive: bool,
-    turning_allowance: float,
+    linear_incentive_braking: bool, turning_allowance: float,
     min_acc_gain: float,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, bool]:  # fmt: skip
     """``model.evaluate`` (formula ``kinematic``) of one state: (mask, safe, available, min_gap, fallback)."""
@@ -430,6 +430,33 @@ def _evaluate(
                         level[slot, r] = can and (
                             (d_now <= 0 and gain_now >= min_acc_gain) or (d_end <= 0 and gain_end >= min_acc_gain)
                         )
+                        if linear_incentive_braking and can and not level[slot, r]:
+                            # model.linear_turn_in_incentive_braking: at every frame of the decision, the
+                            # vehicles ahead of it in its lane braking at their maximum, itself at constant speed.
+                            for f in range(frames + 1):
+                                tau = t[f]
+                                own_x = x[i] + v * tau
+                                d = own_x - xs[a, f, 0]
+                                if not d <= 0:
+                                    continue
+                                ego_vf = kv if f == frames else (ego_speed - kt) * powers[f] + kt
+                                ego_term = k1 * _nmin(ego_vf - v, 0.0) + k2 * _nmin(-d - d_safe, 0.0)
+                                lead_term = 0.0
+                                found = False
+                                for k in range(m):
+                                    ii = near[k]
+                                    if lanes_near[k] == lanes_near[r] and x[ii] > x[i]:
+                                        lv0 = 0.0 if crashed[ii] else _nmax(vx[ii], 0.0)
+                                        lb = _nmax(1e9 if crashed[ii] else brake_max[ii], 1e-6)
+                                        tt = _nmin(tau, lv0 / lb)
+                                        lx = x[ii] + lv0 * tt - 0.5 * lb * (tt * tt)
+                                        lv = lv0 - lb * tt
+                                        term = k1 * _nmin(lv - v, 0.0) + k2 * _nmin((lx - own_x) - d_safe, 0.0)
+                                        lead_term = _nmin(lead_term, term) if found else term
+                                        found = True
+                                if ego_term - lead_term >= min_acc_gain:
+                                    level[slot, r] = True
+                                    break
                     else:
                         level[slot, r] = level_any[slot, r]
                     if can and ahead_c:
@@ -578,7 +605,7 @@ def _evaluate_snapshot(
     relevance: float, lateral_threshold: float, robust: bool, projected_cut_ins: bool, body_extent: bool,
     body_width: float, linear_mobil: bool, reversing_leaders: bool, level_cut_ins: bool, level_incentive: bool,
     level_entering: bool, least_bad_joint: bool, robust_fallback: bool, linear_incentive: bool,
-    ego_speed_magnitude: bool,
+    linear_incentive_braking: bool, ego_speed_magnitude: bool,
     turning_allowance: float,
     min_acc_gain: float,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, bool]:  # fmt: skip
@@ -627,7 +654,8 @@ def _evaluate_snapshot(
         ts, t, powers, tie_break, decision_period, frame_dt, frames, horizon, ego_kp, lane_width, lanes_count,
         follower_reaction, ego_leave_time, cut_in_time, margin, relevance, lateral_threshold, robust,
         projected_cut_ins, body_extent, body_width, linear_mobil, reversing_leaders, level_cut_ins, level_incentive,
-        level_entering, least_bad_joint, robust_fallback, linear_incentive, turning_allowance, min_acc_gain,
+        level_entering, least_bad_joint, robust_fallback, linear_incentive, linear_incentive_braking,
+        turning_allowance, min_acc_gain,
     )  # fmt: skip
 
 
@@ -716,6 +744,7 @@ class KernelConstants(NamedTuple):
     least_bad_joint: bool
     robust_fallback: bool
     linear_incentive: bool
+    linear_incentive_braking: bool
     ego_speed_magnitude: bool
     turning_allowance: float
     min_acc_gain: float
@@ -738,6 +767,7 @@ def kernel_constants(dyn: Dynamics) -> KernelConstants:
         dyn.least_bad_joint,
         dyn.robust_fallback,
         dyn.linear_incentive,
+        dyn.linear_incentive_braking,
         dyn.ego_speed_magnitude,
         model.turning_allowance(dyn),
         _MIN_ACC_GAIN,
@@ -772,7 +802,7 @@ def evaluate_compiled(
         *_dynamics_args(dyn, dyn.ego_leave_time), mode == "robust", dyn.projected_cut_ins, dyn.body_extent,
         dyn.body_width, dyn.linear_mobil, dyn.reversing_leaders, dyn.level_cut_ins, dyn.level_incentive,
         dyn.level_entering, dyn.least_bad_joint, dyn.robust_fallback, dyn.linear_incentive,
-        model.turning_allowance(dyn), _MIN_ACC_GAIN,
+        dyn.linear_incentive_braking, model.turning_allowance(dyn), _MIN_ACC_GAIN,
     )  # fmt: skip
     return _result(out)
 
@@ -806,7 +836,8 @@ def evaluate_snapshot(
         snap.lane_origin, snap.lane_direction, snap.lane_lateral, lane_heading, snap.speed_limit,
         *_dynamics_args(dyn, ego_leave_time), mode == "robust", dyn.projected_cut_ins, dyn.body_extent,
         dyn.body_width, dyn.linear_mobil, dyn.reversing_leaders, dyn.level_cut_ins, dyn.level_incentive,
-        dyn.level_entering, dyn.least_bad_joint, dyn.robust_fallback, dyn.linear_incentive, dyn.ego_speed_magnitude,
+        dyn.level_entering, dyn.least_bad_joint, dyn.robust_fallback, dyn.linear_incentive,
+        dyn.linear_incentive_braking, dyn.ego_speed_magnitude,
         model.turning_allowance(dyn),
         _MIN_ACC_GAIN,
     )  # fmt: skip

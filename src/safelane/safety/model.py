@@ -98,7 +98,7 @@ class Dynamics:
     projected_cut_ins: bool = False  # robust: a vehicle moving sideways may also cut in from the lane it moves to
     body_extent: bool = True  # robust: a vehicle also occupies every lane its rotated body overlaps
     body_width: float = 2.0  # [m] the other vehicles' width (highway-env's Vehicle.WIDTH), for body_extent
-    linear_mobil: bool = False  # robust: linear-model drivers' MOBIL criterion with their formula (else: any cut-in)
+    linear_mobil: bool = True  # robust: linear-model drivers' MOBIL criterion with their formula (else: any cut-in)
     reversing_leaders: bool = True  # a leader moving backwards keeps its reverse speed (else: taken as stopped)
     level_cut_ins: bool = True  # robust: a car level with or behind the ego in a next lane may turn in behind it
     level_incentive: bool = True  # level_cut_ins: only if MOBIL's incentive (its gain behind the ego) allows it
@@ -108,7 +108,8 @@ class Dynamics:
     ego_speed_magnitude: bool = True  # RoadState.ego_speed is the controller's speed (else: along the road)
     turning_leaders: bool = False  # a moving leader brakes along its path, less a lane change's cost (experimental)
     robust_fallback: bool = False  # robust, nothing safe: least-bad of all available by robust gaps (experimental)
-    linear_incentive: bool = False  # level_incentive: linear-model drivers' incentive with their formula (else any)
+    linear_incentive: bool = True  # level_incentive: linear-model drivers' incentive with their formula (else any)
+    linear_incentive_braking: bool = False  # linear_incentive: also at every frame, their leaders braking fully
 
     @property
     def horizon_decisions(self) -> int:
@@ -428,7 +429,13 @@ def _occupancy(state: RoadState, dyn: Dynamics, mode: Mode, near: np.ndarray) ->
 
 
 def _cut_in_candidates(
-    state: RoadState, dyn: Dynamics, near: np.ndarray, ego_x_end: float, ego_v_end: float, ego_target: float
+    state: RoadState,
+    dyn: Dynamics,
+    near: np.ndarray,
+    ego_x_end: float,
+    ego_v_end: float,
+    ego_target: float,
+    ego_path: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Vehicles that may change into a lane the ego uses: (ahead, into a lane the ego is in; ahead, into a
     lane the ego is entering; level with or behind the ego, into a lane the ego is in; level with or behind
@@ -453,6 +460,8 @@ def _cut_in_candidates(
     not hold either (issue 15, the trained agents' cells 169 and 440: a car two lanes over, level with the
     ego, changed into the lane the ego was changing into — it saw no ego there when it decided): with
     ``level_entering`` every level car counts there.
+    ``ego_path``: the ego's positions [m] and speeds [m/s] at the decision's frames (0 … frames), for
+    ``linear_incentive_braking``.
     """
     if near.size == 0:
         return (np.zeros(0, dtype=bool),) * 4
@@ -477,6 +486,8 @@ def _cut_in_candidates(
         incentive = turn_in_incentive(state, dyn, near, d_now, d_end, ego_v_end)
         if dyn.linear_incentive:  # linear-model drivers' incentive with their own formula
             linear_gain = linear_turn_in_incentive(state, dyn, near, d_now, d_end, ego_v_end)
+            if dyn.linear_incentive_braking and ego_path is not None:
+                linear_gain = linear_gain | linear_turn_in_incentive_braking(state, dyn, near, *ego_path)
             level = np.where(linear, linear_gain, incentive)
         else:  # the earlier rule: their incentive was not modelled, so any turn-in was assumed
             level = np.where(linear, level_any, incentive)
@@ -562,6 +573,50 @@ def linear_turn_in_incentive(
     return ((d_now <= 0) & (gain_now >= MOBIL_MIN_ACC_GAIN)) | ((d_end <= 0) & (gain_end >= MOBIL_MIN_ACC_GAIN))
 
 
+def linear_turn_in_incentive_braking(
+    state: RoadState, dyn: Dynamics, near: np.ndarray, ego_xs: np.ndarray, ego_vs: np.ndarray
+) -> np.ndarray:
+    """:func:`linear_turn_in_incentive` at every physics frame of the decision (``ego_xs`` [m], ``ego_vs``
+    [m/s]: the ego's positions and speeds at its frames 0 … frames) with every vehicle ahead of the driver in
+    its lane braking at its maximum from now (a crashed one stopped), the driver itself at constant speed:
+    ``shield.linear_incentive_braking``. Its leader braking only makes the driver's own lane worse, so this
+    can only find more turn-ins than the check now and at the end at constant speeds (which it is OR-ed
+    with). Why (issue 15, seventh session, cell 535): a Linear car closing on a slow car 9 m ahead at 7.5
+    m/s gained −5.4 m/s² now and −1 at the end by moving behind the ego, and turned in within the decision
+    as its leader braked."""
+    x, v = state.x[near], state.vx[near]
+    lanes = state.lane_of(state.y[near], dyn.lanes_count, dyn.lane_width)
+    k1, k2 = state.linear_speed_difference_gain[near], state.linear_distance_gain[near]
+    d_safe = state.idm_distance_wanted[near] + np.maximum(v, 0.0) * state.idm_time_wanted[near]
+    lead_v0 = np.where(state.crashed[near], 0.0, np.maximum(v, 0.0))
+    lead_b = np.maximum(np.where(state.crashed[near], 1e9, state.brake_max[near]), 1e-6)
+    times = np.arange(ego_xs.shape[0]) * dyn.frame_dt
+    out = np.zeros(near.size, dtype=bool)
+    for j in range(near.size):
+        if not np.isfinite(state.linear_speed_gain[near[j]]):
+            continue
+        rows = np.flatnonzero((lanes == lanes[j]) & (x > x[j]))
+        for f in range(times.size):
+            tau = times[f]
+            own_x = x[j] + v[j] * tau
+            d = own_x - ego_xs[f]
+            if not d <= 0:
+                continue
+            # np.minimum, not min: NaN propagates as in the compiled kernel.
+            ego_term = k1[j] * np.minimum(ego_vs[f] - v[j], 0.0) + k2[j] * np.minimum(-d - d_safe[j], 0.0)
+            lead_term = 0.0
+            for q, r in enumerate(rows):
+                tt = np.minimum(tau, lead_v0[r] / lead_b[r])
+                lx = x[r] + lead_v0[r] * tt - 0.5 * lead_b[r] * (tt * tt)
+                lv = lead_v0[r] - lead_b[r] * tt
+                term = k1[j] * np.minimum(lv - v[j], 0.0) + k2[j] * np.minimum((lx - own_x) - d_safe[j], 0.0)
+                lead_term = term if q == 0 else np.minimum(lead_term, term)
+            if ego_term - lead_term >= MOBIL_MIN_ACC_GAIN:
+                out[j] = True
+                break
+    return out
+
+
 def evaluate(state: RoadState, dyn: Dynamics, mode: Mode = "robust", formula: Formula = "kinematic") -> SafetyResult:
     """The safety mask of ``state`` (see the module docstring for the rule and the modes)."""
     if mode not in ("nominal", "robust"):
@@ -625,7 +680,8 @@ def evaluate(state: RoadState, dyn: Dynamics, mode: Mode = "robust", formula: Fo
             # IDLE and the lane changes share one longitudinal trajectory: compute their cut-ins once.
             key = (float(ego_x[a, 0, frames]), float(ego_v[a, 0, frames]), float(targets[a]))
             if key not in cut_ins:
-                cut_ins[key] = _cut_in_candidates(state, dyn, near, *key)
+                path = (ego_x[a, 0, : frames + 1], ego_v[a, 0, : frames + 1])
+                cut_ins[key] = _cut_in_candidates(state, dyn, near, *key, path)
             permitted, unfiltered, level, level_entering = cut_ins[key]
             extra_v, extra_l = [], []
             for lane, _ in ego_lanes:

@@ -76,7 +76,7 @@ def dynamics_of(
     margin: float = DEFAULT_MARGIN,
     projected_cut_ins: bool = False,
     body_extent: bool = True,
-    linear_mobil: bool = False,
+    linear_mobil: bool = True,
     reversing_leaders: bool = True,
     level_cut_ins: bool = True,
     level_incentive: bool = True,
@@ -86,7 +86,8 @@ def dynamics_of(
     ego_speed_magnitude: bool = True,
     turning_leaders: bool = False,
     robust_fallback: bool = False,
-    linear_incentive: bool = False,
+    linear_incentive: bool = True,
+    linear_incentive_braking: bool = False,
 ) -> Dynamics:
     """The :class:`Dynamics` constants of the simulated world a snapshot was taken in; ``margin`` [m]: the
     bumper-to-bumper gap the rule keeps under its worst case; the rule's options as in :class:`Dynamics`."""
@@ -116,6 +117,7 @@ def dynamics_of(
         turning_leaders=turning_leaders,
         robust_fallback=robust_fallback,
         linear_incentive=linear_incentive,
+        linear_incentive_braking=linear_incentive_braking,
         # The widest other body (every highway-env vehicle has Vehicle.WIDTH): the occupancy bound.
         body_width=float(np.max(snap.width)) if len(snap.width) else 2.0,
     )
@@ -212,7 +214,8 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
     ``robust_fallback`` (experimental): with no safe action, robust mode takes the least-bad of every available
     action by its robust gaps (else: of the nominally safe ones when there are some).
     ``linear_incentive``: with ``level_incentive``, a Linear, Aggressive or Defensive driver turns in behind the
-    ego only when MOBIL's incentive with its own linear model lets it (else any such car may).
+    ego only when MOBIL's incentive with its own linear model lets it (else any such car may);
+    ``linear_incentive_braking``: that incentive also at every frame of the decision, its leaders braking fully.
     """
 
     def __init__(
@@ -225,7 +228,7 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
         margin: float = DEFAULT_MARGIN,
         projected_cut_ins: bool = False,
         body_extent: bool = True,
-        linear_mobil: bool = False,
+        linear_mobil: bool = True,
         reversing_leaders: bool = True,
         level_cut_ins: bool = True,
         level_incentive: bool = True,
@@ -235,7 +238,8 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
         ego_speed_magnitude: bool = True,
         turning_leaders: bool = False,
         robust_fallback: bool = False,
-        linear_incentive: bool = False,
+        linear_incentive: bool = True,
+        linear_incentive_braking: bool = False,
     ) -> None:
         if not (math.isfinite(margin) and margin >= 0):
             raise ValueError(f"shield.margin: must be a finite number >= 0 [m] (got {margin!r})")
@@ -265,6 +269,7 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
             turning_leaders=turning_leaders,
             robust_fallback=robust_fallback,
             linear_incentive=linear_incentive,
+            linear_incentive_braking=linear_incentive_braking,
         )
         try:
             env.get_wrapper_attr("road_snapshot")
@@ -289,6 +294,7 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
         self.turning_leaders = bool(turning_leaders)
         self.robust_fallback = bool(robust_fallback)
         self.linear_incentive = bool(linear_incentive)
+        self.linear_incentive_braking = bool(linear_incentive_braking)
         self._rule_options = {name: getattr(self, name) for name in RULE_OPTIONS}  # dynamics_of's keywords
         self.dynamics: Dynamics | None = None
         self.result: SafetyResult | None = None

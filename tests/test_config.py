@@ -207,13 +207,8 @@ def test_recorded_configs_keep_the_rule_they_ran_with() -> None:
     assert recorded_config(old).shield.body_extent is False
     assert build_config(old).shield.body_extent is True
     assert recorded_config(data).shield.body_extent is True
-    # Linear-model drivers' MOBIL rule with their own model: on by default since issue 15's seventh session
-    # (docs/safety.md §6h); a file written before either key existed replays with the rule that assumed any
-    # of their lane changes.
-    assert data["shield"]["linear_mobil"] is True and data["shield"]["linear_incentive"] is True
-    linear_keys = ("linear_mobil", "linear_incentive")
-    before = {**data, "shield": {k: v for k, v in data["shield"].items() if k not in linear_keys}}
-    assert not recorded_config(before).shield.linear_mobil and not recorded_config(before).shield.linear_incentive
+    # Linear-model drivers' MOBIL rule with their own model: measured, not adopted (docs/safety.md §6b, §6h).
+    assert data["shield"]["linear_mobil"] is False and data["shield"]["linear_incentive"] is False
 
 
 def test_a_check_record_of_an_earlier_rule_is_not_resumed(tmp_path) -> None:

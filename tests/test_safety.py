@@ -55,10 +55,10 @@ EXPECTED = {
     # the gap. Nominal misses it (the campaign's crash cell00537); the lane changes are unsafe at 5 m/s
     # (too slow to leave the lane in time).
     "slow_car_turning_out": {"nominal": mask_of(I, F, S), "robust": mask_of(S)},
-    # A Linear driver level with the ego in the next lane: by its own MOBIL rule (shield.linear_mobil and
-    # shield.linear_incentive, on by default) it can neither cut in at the ego's nose nor gain by turning in
-    # behind it; robust, like nominal, has only the leader 42 m ahead to keep clear of: SLOWER keeps the gap
-    # (IDLE leaves 0.33 m < 1 m). The earlier rule assumed any of its lane changes: a fallback (test below).
+    # A Linear driver level with the ego in the next lane: robust assumes by default it may cut in at the
+    # ego's nose or turn in behind it (its MOBIL rule is modelled only with shield.linear_mobil and
+    # shield.linear_incentive), so nothing is safe: SLOWER, the least bad, is flagged as a fallback. Nominal:
+    # only the leader 42 m ahead matters, SLOWER keeps the gap (IDLE leaves 0.33 m < 1 m).
     "linear_car_alongside": {"nominal": mask_of(S), "robust": mask_of(S)},
     # A car 7 m ahead rolling backwards at 2 m/s toward the nearly stopped ego (shield.reversing_leaders, both
     # modes): nothing is safe, the least-bad IDLE is flagged as a fallback.
@@ -91,7 +91,7 @@ def test_scenario_masks(name: str, mode: str, engine: str) -> None:
     scene = scenarios.SCENARIOS[name](mode=mode, **{"shield.engine": engine})
     assert scene.mask.tolist() == EXPECTED[name][mode]
     fallbacks = {("dense_jam", "nominal"), ("dense_jam", "robust"), ("leader_braking", "robust")}
-    fallbacks |= {("reversing_leader", "nominal"), ("reversing_leader", "robust")}
+    fallbacks |= {("linear_car_alongside", "robust"), ("reversing_leader", "nominal"), ("reversing_leader", "robust")}
     fallbacks.add(("car_being_overtaken", "robust"))
     fallbacks |= {("closing_in_at_five_per_second", "nominal"), ("closing_in_at_five_per_second", "robust")}
     fallbacks.add(("ego_turning_into_its_lane", "robust"))
@@ -406,36 +406,40 @@ def test_level_incentive_lets_a_car_in_free_flow_stay_in_its_lane(engine: str) -
 
 @pytest.mark.parametrize("engine", ["numpy", "compiled"])
 def test_linear_mobil_lets_a_car_alongside_stay_where_it_is(engine: str) -> None:
-    """shield.linear_mobil (default): the Linear driver level with the ego would impose on the ego, as its new
+    """shield.linear_mobil: the Linear driver level with the ego would impose on the ego, as its new
     follower 0.1 m behind, 0.3·0.65 + 2·min(−0.1 − (10 + 2.5·19.35), 0) ≈ −117 m/s² by its own formula, far
     below −2: no cut-in. Under the rule without level_cut_ins, SLOWER is then safe (worst gap 20.3 m); the
-    rule that assumed any Linear-model cut-in put the car in the ego's lane at its nose, nothing safe (a
-    fallback) — 1 051 of the first campaign's ``adjacent_behind`` breaks."""
+    default rule assumes any Linear-model cut-in: the car appears in the ego's lane at its nose, nothing is
+    safe (a fallback) — 1 051 of the first campaign's ``adjacent_behind`` breaks."""
     options = {"shield.engine": engine, "shield.level_cut_ins": False}
-    with_criterion = scenarios.SCENARIOS["linear_car_alongside"](mode="robust", **options)
+    with_criterion = scenarios.SCENARIOS["linear_car_alongside"](
+        mode="robust", **options, **{"shield.linear_mobil": True}
+    )
     assert with_criterion.mask.tolist() == mask_of(S) and not with_criterion.result.fallback
     assert with_criterion.result.min_gap[S] > 20
-    earlier = scenarios.SCENARIOS["linear_car_alongside"](mode="robust", **options, **{"shield.linear_mobil": False})
-    assert earlier.result.fallback and (earlier.result.min_gap < 0).all()
+    default = scenarios.SCENARIOS["linear_car_alongside"](mode="robust", **options)
+    assert default.result.fallback and (default.result.min_gap < 0).all()
 
 
 @pytest.mark.parametrize("engine", ["numpy", "compiled"])
 def test_linear_incentive_keeps_a_car_alongside_in_its_lane(engine: str) -> None:
-    """shield.linear_incentive (default): the same Linear driver level with the ego (0.1 m behind its centre,
-    20.25 m/s; its leader 42 m ahead at 17.3 m/s) gains nothing by moving behind the ego — by its own model
+    """shield.linear_incentive: the same Linear driver level with the ego (0.1 m behind its centre, 20.25 m/s;
+    its leader 42 m ahead at 17.3 m/s) gains nothing by moving behind the ego — by its own model
     (k₁·min(v_front − v, 0) + k₂·min(d − d_safe, 0), d_safe = 10 + 2.5·20.25 = 60.6 m) −121.3 m/s² behind the
     ego against −37.9 behind its leader, a gain of −83 m/s² < 0.2 — so it does not turn in behind the ego.
-    With linear_mobil also on (it cannot cut in ahead either), today's default, SLOWER is safe (20.33 m), no
-    fallback; with either option off, or both (the earlier rule), it is a fallback at −11.39 m (the turn-in,
-    or the cut-in, remains)."""
-    default = scenarios.SCENARIOS["linear_car_alongside"](mode="robust", **{"shield.engine": engine})
-    assert default.mask.tolist() == mask_of(S) and not default.result.fallback
-    assert default.result.min_gap[[I, S]] == pytest.approx([0.33, 20.33], abs=0.01)
+    With linear_mobil also on (it cannot cut in ahead either) SLOWER is safe (20.33 m), no fallback; with
+    either option alone, or neither (the default rule), it is a fallback at −11.39 m (the turn-in, or the
+    cut-in, remains)."""
     mobil, incentive = "shield.linear_mobil", "shield.linear_incentive"
-    for off in ([mobil], [incentive], [mobil, incentive]):
-        options = {"shield.engine": engine, **dict.fromkeys(off, False)}
-        earlier = scenarios.SCENARIOS["linear_car_alongside"](mode="robust", **options)
-        assert earlier.result.fallback and earlier.result.min_gap[S] == pytest.approx(-11.39, abs=0.01)
+    both = scenarios.SCENARIOS["linear_car_alongside"](
+        mode="robust", **{"shield.engine": engine, mobil: True, incentive: True}
+    )
+    assert both.mask.tolist() == mask_of(S) and not both.result.fallback
+    assert both.result.min_gap[[I, S]] == pytest.approx([0.33, 20.33], abs=0.01)
+    for on in ([mobil], [incentive], []):
+        options = {"shield.engine": engine, **dict.fromkeys(on, True)}
+        partial = scenarios.SCENARIOS["linear_car_alongside"](mode="robust", **options)
+        assert partial.result.fallback and partial.result.min_gap[S] == pytest.approx(-11.39, abs=0.01)
 
 
 @pytest.mark.parametrize("engine", ["numpy", "compiled"])
@@ -444,9 +448,8 @@ def test_linear_incentive_drops_the_free_car_and_keeps_the_one_stuck_behind_it(e
     free lane ahead, B 20 m behind at 20 m/s closing on A. By their own model A loses 75 m/s² by moving
     behind the ego (nothing ahead of it: its term is 0; behind the ego 2·min(10 − 47.5, 0)) and B gains
     21.5 m/s² (−80 behind the ego, 2·(20 − 60) against −101.5 behind A, 0.3·(15 − 20) + 2·(10 − 60)).
-    shield.linear_incentive (default) keeps only B (IDLE 13.5 m); the earlier rule (false) let any
-    Linear-model car turn in, and A bounds IDLE at 5.0 m; without level_cut_ins neither counts (IDLE
-    unbounded)."""
+    shield.linear_incentive keeps only B (IDLE 13.5 m); the default rule lets any Linear-model car turn in,
+    and A bounds IDLE at 5.0 m; without level_cut_ins neither counts (IDLE unbounded)."""
     from highway_env.vehicle.behavior import LinearVehicle
 
     queue = [
@@ -460,8 +463,8 @@ def test_linear_incentive_drops_the_free_car_and_keeps_the_one_stuck_behind_it(e
         return float(scene.result.min_gap[I])
 
     base = {"shield.engine": engine}
-    assert idle_gap(**base) == pytest.approx(13.5, abs=0.01)
-    assert idle_gap(**base, **{"shield.linear_incentive": False}) == pytest.approx(5.0, abs=0.01)
+    assert idle_gap(**base) == pytest.approx(5.0, abs=0.01)
+    assert idle_gap(**base, **{"shield.linear_incentive": True}) == pytest.approx(13.5, abs=0.01)
     assert idle_gap(**base, **{"shield.level_cut_ins": False}) == math.inf
 
 

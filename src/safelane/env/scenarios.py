@@ -196,9 +196,9 @@ def linear_car_alongside(mode: Mode = "robust", **kw: Any) -> Scene:
     just level with it (its centre 0.1 m behind the ego's) at 20.25 m/s, and a Linear leader 42 m ahead at
     17.3 m/s: the falsification campaign's most common break with those drivers (``adjacent_behind``,
     cell00011). By its own MOBIL rule with the linear formula the car alongside can neither cut in (the ego
-    would be its new follower at a gap far below its safe distance: ``shield.linear_mobil``) nor gain by
-    turning in behind the ego (``shield.linear_incentive``), both on by default; the earlier rule assumed
-    either, and then nothing is safe."""
+    would be its new follower at a gap far below its safe distance: ``shield.linear_mobil: true``) nor gain
+    by turning in behind the ego (``shield.linear_incentive: true``); the default rule assumes either, and
+    then nothing is safe."""
     from highway_env.vehicle.behavior import LinearVehicle
 
     specs = [

@@ -98,7 +98,7 @@ class Dynamics:
     projected_cut_ins: bool = False  # robust: a vehicle moving sideways may also cut in from the lane it moves to
     body_extent: bool = True  # robust: a vehicle also occupies every lane its rotated body overlaps
     body_width: float = 2.0  # [m] the other vehicles' width (highway-env's Vehicle.WIDTH), for body_extent
-    linear_mobil: bool = True  # robust: linear-model drivers' MOBIL criterion with their formula (else: any cut-in)
+    linear_mobil: bool = False  # robust: linear-model drivers' MOBIL criterion with their formula (else: any cut-in)
     reversing_leaders: bool = True  # a leader moving backwards keeps its reverse speed (else: taken as stopped)
     level_cut_ins: bool = True  # robust: a car level with or behind the ego in a next lane may turn in behind it
     level_incentive: bool = True  # level_cut_ins: only if MOBIL's incentive (its gain behind the ego) allows it
@@ -108,7 +108,7 @@ class Dynamics:
     ego_speed_magnitude: bool = True  # RoadState.ego_speed is the controller's speed (else: along the road)
     turning_leaders: bool = False  # a moving leader brakes along its path, less a lane change's cost (experimental)
     robust_fallback: bool = False  # robust, nothing safe: least-bad of all available by robust gaps (experimental)
-    linear_incentive: bool = True  # level_incentive: linear-model drivers' incentive with their formula (else any)
+    linear_incentive: bool = False  # level_incentive: linear-model drivers' incentive with their formula (else any)
     linear_incentive_braking: bool = False  # linear_incentive: also at every frame, their leaders braking fully
 
     @property

@@ -76,7 +76,7 @@ def dynamics_of(
     margin: float = DEFAULT_MARGIN,
     projected_cut_ins: bool = False,
     body_extent: bool = True,
-    linear_mobil: bool = True,
+    linear_mobil: bool = False,
     reversing_leaders: bool = True,
     level_cut_ins: bool = True,
     level_incentive: bool = True,
@@ -86,7 +86,7 @@ def dynamics_of(
     ego_speed_magnitude: bool = True,
     turning_leaders: bool = False,
     robust_fallback: bool = False,
-    linear_incentive: bool = True,
+    linear_incentive: bool = False,
     linear_incentive_braking: bool = False,
 ) -> Dynamics:
     """The :class:`Dynamics` constants of the simulated world a snapshot was taken in; ``margin`` [m]: the
@@ -228,7 +228,7 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
         margin: float = DEFAULT_MARGIN,
         projected_cut_ins: bool = False,
         body_extent: bool = True,
-        linear_mobil: bool = True,
+        linear_mobil: bool = False,
         reversing_leaders: bool = True,
         level_cut_ins: bool = True,
         level_incentive: bool = True,
@@ -238,7 +238,7 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
         ego_speed_magnitude: bool = True,
         turning_leaders: bool = False,
         robust_fallback: bool = False,
-        linear_incentive: bool = True,
+        linear_incentive: bool = False,
         linear_incentive_braking: bool = False,
     ) -> None:
         if not (math.isfinite(margin) and margin >= 0):

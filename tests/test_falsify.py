@@ -179,6 +179,9 @@ CRASHES = Path(__file__).resolve().parents[1] / "docs" / "results" / "falsify" /
             "../../grid_100k_behind_linear_mobil_incentive/counterexamples/cell00535-seed4005350015-collision-step3.json",
             "from_safe_state",
         ),
+        # The first 100 800-episode campaign's one "after_fallback" crash, the same kind: FASTER overridden to
+        # IDLE at 29.9 m/s beside a car level with the ego (the class level_cut_ins closed later, §6e).
+        ("../../grid_100k/counterexamples/cell00649-seed4006490057-collision-step12.json", "from_safe_state"),
     ],
 )
 def test_collision_context_says_where_a_crash_stands_against_the_promise(name: str, context: str) -> None:

@@ -469,6 +469,35 @@ def test_linear_incentive_drops_the_free_car_and_keeps_the_one_stuck_behind_it(e
 
 
 @pytest.mark.parametrize("engine", ["numpy", "compiled"])
+def test_linear_incentive_braking_sees_the_car_closing_on_a_slow_one(engine: str) -> None:
+    """The claim's campaign's crash from a safe state under linear_mobil + linear_incentive (cell 535, seed
+    4005350015, rebuilt): the ego in lane 0 at 15.75 m/s (set-point 15); a Linear car in lane 1 5.5 m behind
+    it at 17.6 m/s, closing at 7.5 m/s on a Linear car 9.4 m ahead of it at 10.1 m/s. Now and at the end of
+    the decision at constant speeds it gains nothing by moving behind the ego, so SLOWER has no conflict at
+    all (gap unbounded) and is the one safe action; with shield.linear_incentive_braking its leader may brake
+    within the decision, which makes the turn-in pay: SLOWER −9.99 m, nothing safe (a fallback), as the
+    default rule (any Linear-model turn-in: SLOWER −20.02 m) also says."""
+    from highway_env.vehicle.behavior import LinearVehicle
+
+    specs = [
+        scenarios.VehicleSpec(1, -5.5, 17.6, vehicle_class=LinearVehicle),
+        scenarios.VehicleSpec(1, 3.9, 10.1, vehicle_class=LinearVehicle),
+    ]
+    linear = {"shield.engine": engine, "shield.linear_mobil": True, "shield.linear_incentive": True}
+
+    def scene(**options: object) -> scenarios.Scene:
+        return scenarios.build_scene(0, 15.75, specs, mode="robust", ego_target_speed=15.0, **options)
+
+    plain = scene(**linear)
+    assert plain.result.safe.tolist() == mask_of(S) and plain.result.min_gap[S] == math.inf
+    braking = scene(**linear, **{"shield.linear_incentive_braking": True})
+    assert braking.result.fallback and not braking.result.safe.any()
+    assert braking.result.min_gap[S] == pytest.approx(-9.99, abs=0.01)
+    default = scene(**{"shield.engine": engine})
+    assert default.result.fallback and default.result.min_gap[S] == pytest.approx(-20.02, abs=0.01)
+
+
+@pytest.mark.parametrize("engine", ["numpy", "compiled"])
 def test_paper_eq12_is_unsound_here(engine: str) -> None:
     """Eq. 12's denominator is negative in highway-env (ego brakes at 8.3 m/s² > 6): it lets the ego
     drive on at 25 m/s towards a stopped car 60 m ahead, which the kinematic rule forbids."""

@@ -435,7 +435,7 @@ def _cut_in_candidates(
     ego_x_end: float,
     ego_v_end: float,
     ego_target: float,
-    ego_path: tuple[np.ndarray, np.ndarray] | None = None,
+    ego_path: tuple[np.ndarray, np.ndarray],
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Vehicles that may change into a lane the ego uses: (ahead, into a lane the ego is in; ahead, into a
     lane the ego is entering; level with or behind the ego, into a lane the ego is in; level with or behind
@@ -486,7 +486,7 @@ def _cut_in_candidates(
         incentive = turn_in_incentive(state, dyn, near, d_now, d_end, ego_v_end)
         if dyn.linear_incentive:  # linear-model drivers' incentive with their own formula
             linear_gain = linear_turn_in_incentive(state, dyn, near, d_now, d_end, ego_v_end)
-            if dyn.linear_incentive_braking and ego_path is not None:
+            if dyn.linear_incentive_braking:
                 linear_gain = linear_gain | linear_turn_in_incentive_braking(state, dyn, near, *ego_path)
             level = np.where(linear, linear_gain, incentive)
         else:  # the earlier rule: their incentive was not modelled, so any turn-in was assumed

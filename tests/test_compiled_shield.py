@@ -342,6 +342,32 @@ def test_turning_leaders_bit_identical(case: tuple) -> None:
 
 
 @PROPERTY_SETTINGS
+@given(case=road(rates=True))
+def test_straight_fallback_bit_identical_and_only_the_fallback_mask(case: tuple) -> None:
+    """shield.straight_fallback (with turning_leaders): the same in both engines at every rate; the safe set,
+    gaps and fallback flag are turning_leaders' own; only a state it leaves without a safe action changes, and
+    there the mask is exactly what the rule without turning_leaders allows; off turning_leaders, no effect."""
+    state, dyn, _ = case
+    turning = dataclasses.replace(dyn, turning_leaders=True)
+    on = dataclasses.replace(turning, straight_fallback=True)
+    assert mismatches(state, on) == []
+    assert_same(model.evaluate(state, on, "nominal"), model.evaluate(state, turning, "nominal"))
+    for robust_fallback in (False, True):  # without turning_leaders the option does nothing, in both modes
+        plain = dataclasses.replace(dyn, turning_leaders=False, robust_fallback=robust_fallback)
+        for mode in MODES:
+            assert_same(model.evaluate(state, plain, mode),
+                        model.evaluate(state, dataclasses.replace(plain, straight_fallback=True), mode))  # fmt: skip
+    a, b = model.evaluate(state, turning, "robust"), model.evaluate(state, on, "robust")
+    straight = model.evaluate(state, dataclasses.replace(dyn, turning_leaders=False), "robust")
+    assert a.safe.tolist() == b.safe.tolist() and a.fallback == b.fallback
+    assert np.array_equal(a.min_gap, b.min_gap, equal_nan=True)
+    if not b.fallback:
+        assert a.mask.tolist() == b.mask.tolist()
+    else:
+        assert b.mask.tolist() == straight.mask.tolist()
+
+
+@PROPERTY_SETTINGS
 @given(case=road())
 def test_linear_mobil_bit_identical_and_only_looser(case: tuple) -> None:
     """shield.linear_mobil judges Linear-model cut-ins by their criterion: the same in both engines either

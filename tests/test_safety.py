@@ -381,6 +381,34 @@ def test_robust_fallback_takes_the_best_robust_gap_not_a_nominally_safe_lane_cha
 
 
 @pytest.mark.parametrize("engine", ["numpy", "compiled"])
+def test_straight_fallback_brakes_where_turning_leaders_alone_changes_lane(engine: str) -> None:
+    """The grid's cell 520 spawn (3 decisions/s, 2 lanes): the ego in lane 0 at 25 m/s, 14.4 m behind a car
+    at 22 m/s, lane 1 empty. Today's rule allows SLOWER (1.40 m). shield.turning_leaders takes the leader's
+    lane-change allowance off its bound: SLOWER keeps -0.26 m, nothing is safe, and its fallback is the
+    nominally safe LANE_RIGHT (-8.59 m) — the episode that was rear-ended at its eighth decision.
+    shield.straight_fallback keeps turning_leaders' verdict (nothing safe, the same gaps: a fallback state
+    outside the promise) but allows what the rule without it allows: SLOWER."""
+    specs = [scenarios.VehicleSpec(0, 14.4, 22.0)]
+    rate = {"env.policy_frequency": 3, "env.simulation_frequency": 15, "shield.engine": engine}
+    scenes = {
+        name: scenarios.build_scene(0, 25.0, specs, mode="robust", lanes_count=2, ego_target_speed=25.0,
+                                    **rate, **options).result
+        for name, options in {
+            "today": {},
+            "turning": {"shield.turning_leaders": True},
+            "straight": {"shield.turning_leaders": True, "shield.straight_fallback": True},
+        }.items()
+    }  # fmt: skip
+    today, turning, straight = scenes["today"], scenes["turning"], scenes["straight"]
+    assert today.mask.tolist() == mask_of(S) and not today.fallback
+    assert today.min_gap[[R, S]] == pytest.approx([-6.93, 1.4], abs=0.01)
+    assert turning.mask.tolist() == mask_of(R) and turning.fallback and not turning.safe.any()
+    assert turning.min_gap[[R, S]] == pytest.approx([-8.59, -0.26], abs=0.01)
+    assert straight.mask.tolist() == mask_of(S) and straight.fallback and not straight.safe.any()
+    assert np.array_equal(straight.min_gap, turning.min_gap)
+
+
+@pytest.mark.parametrize("engine", ["numpy", "compiled"])
 def test_level_incentive_lets_a_car_in_free_flow_stay_in_its_lane(engine: str) -> None:
     """A car 3 m behind the ego in the next lane at the ego's 25 m/s, nothing ahead of it; a leader 40 m ahead
     of the ego at 20 m/s. Behind the ego, 3 m centre to centre, IDM would brake it at 3·(47.5 / 3)² ≈ 750 m/s²

@@ -201,6 +201,13 @@ class ShieldConfig(_Section):
         "action by its robust worst-case gaps; false (default): of the nominally safe actions when there are "
         "some, so the final robust mask stays inside the nominal one (docs/safety.md §6g).",
     )
+    straight_fallback: bool = Field(
+        False,
+        strict=True,
+        description="Experimental, with turning_leaders: when no action is safe under it, allow what the rule "
+        "without turning_leaders allows (its safe actions, else its least-bad one), so that the stricter leader "
+        "bound narrows the promise but not the fallback (docs/safety.md §6i).",
+    )
     linear_incentive: bool = Field(
         False,
         strict=True,
@@ -625,7 +632,7 @@ RENAMED_KEYS: dict[str, tuple[str, dict[Any, Any]]] = {
 RULE_OPTIONS = (
     "projected_cut_ins", "body_extent", "linear_mobil", "reversing_leaders", "level_cut_ins", "level_incentive",
     "level_entering", "least_bad_joint", "full_horizon", "ego_speed_magnitude", "turning_leaders",
-    "robust_fallback", "linear_incentive", "linear_incentive_braking",
+    "robust_fallback", "straight_fallback", "linear_incentive", "linear_incentive_braking",
 )  # fmt: skip
 """The :class:`ShieldConfig` fields that switch parts of the safety rule on or off (``ShieldConfig.rule_options``)."""
 

@@ -141,7 +141,7 @@ def _follower_row(
 
 
 @njit(cache=True, error_model="numpy")
-def _evaluate(
+def _evaluate_rule(
     ego_x: float, ego_speed: float, ego_lane: int, ego_target_lane: int, ego_target_speed: float,
     ego_speed_index: int, ego_length: float, speed_limit: float,
     x: np.ndarray, y: np.ndarray, vx: np.ndarray, vy: np.ndarray, heading: np.ndarray, length: np.ndarray,
@@ -591,6 +591,51 @@ def _evaluate(
 
 
 @njit(cache=True, error_model="numpy")
+def _evaluate(
+    ego_x: float, ego_speed: float, ego_lane: int, ego_target_lane: int, ego_target_speed: float,
+    ego_speed_index: int, ego_length: float, speed_limit: float,
+    x: np.ndarray, y: np.ndarray, vx: np.ndarray, vy: np.ndarray, heading: np.ndarray, length: np.ndarray,
+    crashed: np.ndarray, brake_max: np.ndarray, accel_max: np.ndarray, can_change_lane: np.ndarray,
+    idm_delta: np.ndarray, idm_comfort_acc: np.ndarray, idm_comfort_dec: np.ndarray,
+    idm_distance_wanted: np.ndarray, idm_time_wanted: np.ndarray, max_braking_imposed: np.ndarray,
+    lin_k0: np.ndarray, lin_k1: np.ndarray, lin_k2: np.ndarray,
+    ts: np.ndarray, t: np.ndarray, powers: np.ndarray, tie_break: np.ndarray,
+    decision_period: float, frame_dt: float, frames: int, horizon: int, ego_kp: float, lane_width: float,
+    lanes_count: int, follower_reaction: float, ego_leave_time: float, cut_in_time: float, margin: float,
+    relevance: float, lateral_threshold: float, robust: bool, projected_cut_ins: bool, body_extent: bool,
+    body_width: float, linear_mobil: bool, reversing_leaders: bool, level_cut_ins: bool, level_incentive: bool,
+    level_entering: bool, least_bad_joint: bool, robust_fallback: bool, straight_fallback: bool,
+    linear_incentive: bool, linear_incentive_braking: bool, turning_allowance: float,
+    min_acc_gain: float,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, bool]:  # fmt: skip
+    """:func:`_evaluate_rule`, and with ``straight_fallback`` (``model.evaluate``) a state the turning
+    allowance leaves without a safe action gets the mask of the rule without it."""
+    out = _evaluate_rule(
+        ego_x, ego_speed, ego_lane, ego_target_lane, ego_target_speed, ego_speed_index, ego_length, speed_limit,
+        x, y, vx, vy, heading, length, crashed, brake_max, accel_max, can_change_lane, idm_delta,
+        idm_comfort_acc, idm_comfort_dec, idm_distance_wanted, idm_time_wanted, max_braking_imposed,
+        lin_k0, lin_k1, lin_k2, ts, t, powers, tie_break, decision_period, frame_dt, frames, horizon, ego_kp,
+        lane_width, lanes_count, follower_reaction, ego_leave_time, cut_in_time, margin, relevance,
+        lateral_threshold, robust, projected_cut_ins, body_extent, body_width, linear_mobil, reversing_leaders,
+        level_cut_ins, level_incentive, level_entering, least_bad_joint, robust_fallback, linear_incentive,
+        linear_incentive_braking, turning_allowance, min_acc_gain,
+    )  # fmt: skip
+    if not (out[4] and robust and straight_fallback and turning_allowance > 0.0):
+        return out
+    straight = _evaluate_rule(
+        ego_x, ego_speed, ego_lane, ego_target_lane, ego_target_speed, ego_speed_index, ego_length, speed_limit,
+        x, y, vx, vy, heading, length, crashed, brake_max, accel_max, can_change_lane, idm_delta,
+        idm_comfort_acc, idm_comfort_dec, idm_distance_wanted, idm_time_wanted, max_braking_imposed,
+        lin_k0, lin_k1, lin_k2, ts, t, powers, tie_break, decision_period, frame_dt, frames, horizon, ego_kp,
+        lane_width, lanes_count, follower_reaction, ego_leave_time, cut_in_time, margin, relevance,
+        lateral_threshold, robust, projected_cut_ins, body_extent, body_width, linear_mobil, reversing_leaders,
+        level_cut_ins, level_incentive, level_entering, least_bad_joint, robust_fallback, linear_incentive,
+        linear_incentive_braking, 0.0, min_acc_gain,
+    )  # fmt: skip
+    return straight[0].copy(), out[1], out[2], out[3], True
+
+
+@njit(cache=True, error_model="numpy")
 def _evaluate_snapshot(
     position: np.ndarray, speed: np.ndarray, heading: np.ndarray, length: np.ndarray, crashed: np.ndarray,
     brake_max: np.ndarray, accel_max: np.ndarray, can_change_lane: np.ndarray, idm_delta: np.ndarray,
@@ -604,8 +649,8 @@ def _evaluate_snapshot(
     lanes_count: int, follower_reaction: float, ego_leave_time: float, cut_in_time: float, margin: float,
     relevance: float, lateral_threshold: float, robust: bool, projected_cut_ins: bool, body_extent: bool,
     body_width: float, linear_mobil: bool, reversing_leaders: bool, level_cut_ins: bool, level_incentive: bool,
-    level_entering: bool, least_bad_joint: bool, robust_fallback: bool, linear_incentive: bool,
-    linear_incentive_braking: bool, ego_speed_magnitude: bool,
+    level_entering: bool, least_bad_joint: bool, robust_fallback: bool, straight_fallback: bool,
+    linear_incentive: bool, linear_incentive_braking: bool, ego_speed_magnitude: bool,
     turning_allowance: float,
     min_acc_gain: float,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, bool]:  # fmt: skip
@@ -654,8 +699,8 @@ def _evaluate_snapshot(
         ts, t, powers, tie_break, decision_period, frame_dt, frames, horizon, ego_kp, lane_width, lanes_count,
         follower_reaction, ego_leave_time, cut_in_time, margin, relevance, lateral_threshold, robust,
         projected_cut_ins, body_extent, body_width, linear_mobil, reversing_leaders, level_cut_ins, level_incentive,
-        level_entering, least_bad_joint, robust_fallback, linear_incentive, linear_incentive_braking,
-        turning_allowance, min_acc_gain,
+        level_entering, least_bad_joint, robust_fallback, straight_fallback, linear_incentive,
+        linear_incentive_braking, turning_allowance, min_acc_gain,
     )  # fmt: skip
 
 
@@ -743,6 +788,7 @@ class KernelConstants(NamedTuple):
     level_entering: bool
     least_bad_joint: bool
     robust_fallback: bool
+    straight_fallback: bool
     linear_incentive: bool
     linear_incentive_braking: bool
     ego_speed_magnitude: bool
@@ -766,6 +812,7 @@ def kernel_constants(dyn: Dynamics) -> KernelConstants:
         dyn.level_entering,
         dyn.least_bad_joint,
         dyn.robust_fallback,
+        dyn.straight_fallback,
         dyn.linear_incentive,
         dyn.linear_incentive_braking,
         dyn.ego_speed_magnitude,
@@ -801,7 +848,7 @@ def evaluate_compiled(
         s.linear_speed_difference_gain, s.linear_distance_gain,
         *_dynamics_args(dyn, dyn.ego_leave_time), mode == "robust", dyn.projected_cut_ins, dyn.body_extent,
         dyn.body_width, dyn.linear_mobil, dyn.reversing_leaders, dyn.level_cut_ins, dyn.level_incentive,
-        dyn.level_entering, dyn.least_bad_joint, dyn.robust_fallback, dyn.linear_incentive,
+        dyn.level_entering, dyn.least_bad_joint, dyn.robust_fallback, dyn.straight_fallback, dyn.linear_incentive,
         dyn.linear_incentive_braking, model.turning_allowance(dyn), _MIN_ACC_GAIN,
     )  # fmt: skip
     return _result(out)
@@ -836,7 +883,7 @@ def evaluate_snapshot(
         snap.lane_origin, snap.lane_direction, snap.lane_lateral, lane_heading, snap.speed_limit,
         *_dynamics_args(dyn, ego_leave_time), mode == "robust", dyn.projected_cut_ins, dyn.body_extent,
         dyn.body_width, dyn.linear_mobil, dyn.reversing_leaders, dyn.level_cut_ins, dyn.level_incentive,
-        dyn.level_entering, dyn.least_bad_joint, dyn.robust_fallback, dyn.linear_incentive,
+        dyn.level_entering, dyn.least_bad_joint, dyn.robust_fallback, dyn.straight_fallback, dyn.linear_incentive,
         dyn.linear_incentive_braking, dyn.ego_speed_magnitude,
         model.turning_allowance(dyn),
         _MIN_ACC_GAIN,

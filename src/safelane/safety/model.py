@@ -41,7 +41,7 @@ joint fallback. The mask is never empty: when no action is safe the least-bad on
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Literal
 
 import numpy as np
@@ -108,6 +108,7 @@ class Dynamics:
     ego_speed_magnitude: bool = True  # RoadState.ego_speed is the controller's speed (else: along the road)
     turning_leaders: bool = False  # a moving leader brakes along its path, less a lane change's cost (experimental)
     robust_fallback: bool = False  # robust, nothing safe: least-bad of all available by robust gaps (experimental)
+    straight_fallback: bool = False  # turning_leaders, nothing safe: the mask of the rule without it (experimental)
     linear_incentive: bool = False  # level_incentive: linear-model drivers' incentive with their formula (else any)
     linear_incentive_braking: bool = False  # linear_incentive: also at every frame, their leaders braking fully
 
@@ -748,6 +749,12 @@ def evaluate(state: RoadState, dyn: Dynamics, mode: Mode = "robust", formula: Fo
         nominal_ok[[LANE_LEFT, LANE_RIGHT]] = False
     if safe.any():
         return SafetyResult(safe.copy(), safe, available, False, best_gap)
+    if mode == "robust" and dyn.straight_fallback and allowance > 0.0:
+        # The stricter leader bound narrows what the rule promises, not what it falls back to: a spawned
+        # scene the turning allowance leaves without a safe action is driven as the rule without it drives
+        # it (issue 15: with turning_leaders alone its least-bad choice crashed more of those scenes).
+        straight = evaluate(state, replace(dyn, turning_leaders=False), mode, formula)
+        return SafetyResult(straight.mask.copy(), safe, available, True, best_gap)
     # Least-bad choice. Robust picks among the nominally safe actions when there are some (so that
     # robust ⊆ nominal holds for the final masks too), else exactly what nominal would pick.
     nominal_safe = nominal_ok & available

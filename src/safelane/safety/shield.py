@@ -86,6 +86,7 @@ def dynamics_of(
     ego_speed_magnitude: bool = True,
     turning_leaders: bool = False,
     robust_fallback: bool = False,
+    straight_fallback: bool = False,
     linear_incentive: bool = False,
     linear_incentive_braking: bool = False,
 ) -> Dynamics:
@@ -116,6 +117,7 @@ def dynamics_of(
         ego_speed_magnitude=ego_speed_magnitude,
         turning_leaders=turning_leaders,
         robust_fallback=robust_fallback,
+        straight_fallback=straight_fallback,
         linear_incentive=linear_incentive,
         linear_incentive_braking=linear_incentive_braking,
         # The widest other body (every highway-env vehicle has Vehicle.WIDTH): the occupancy bound.
@@ -213,6 +215,8 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
     ``turning_leaders`` (experimental): a moving leader brakes along its path, less a lane change's cost.
     ``robust_fallback`` (experimental): with no safe action, robust mode takes the least-bad of every available
     action by its robust gaps (else: of the nominally safe ones when there are some).
+    ``straight_fallback`` (experimental): with ``turning_leaders`` and no safe action, the mask of the rule
+    without ``turning_leaders`` (its safe actions, else its least-bad one).
     ``linear_incentive``: with ``level_incentive``, a Linear, Aggressive or Defensive driver turns in behind the
     ego only when MOBIL's incentive with its own linear model lets it (else any such car may);
     ``linear_incentive_braking``: that incentive also at every frame of the decision, its leaders braking fully.
@@ -238,6 +242,7 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
         ego_speed_magnitude: bool = True,
         turning_leaders: bool = False,
         robust_fallback: bool = False,
+        straight_fallback: bool = False,
         linear_incentive: bool = False,
         linear_incentive_braking: bool = False,
     ) -> None:
@@ -268,6 +273,7 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
             ego_speed_magnitude=ego_speed_magnitude,
             turning_leaders=turning_leaders,
             robust_fallback=robust_fallback,
+            straight_fallback=straight_fallback,
             linear_incentive=linear_incentive,
             linear_incentive_braking=linear_incentive_braking,
         )
@@ -293,6 +299,7 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
         self.ego_speed_magnitude = bool(ego_speed_magnitude)
         self.turning_leaders = bool(turning_leaders)
         self.robust_fallback = bool(robust_fallback)
+        self.straight_fallback = bool(straight_fallback)
         self.linear_incentive = bool(linear_incentive)
         self.linear_incentive_braking = bool(linear_incentive_braking)
         self._rule_options = {name: getattr(self, name) for name in RULE_OPTIONS}  # dynamics_of's keywords

@@ -424,3 +424,19 @@ def test_linear_drivers_mobil_on_recorded_states(simulator: str) -> None:
         assert np.isfinite(snap.linear_speed_gain[1:]).all() and np.isnan(snap.linear_speed_gain[0])
         n += check_recorded(shield, snap)
     assert n >= 2 * steps
+
+
+@PROPERTY_SETTINGS
+@given(case=road(extreme=True, rates=True))
+def test_reversing_cut_ins_bit_identical_and_only_stricter(case: tuple) -> None:
+    """shield.reversing_cut_ins: the same in both engines at every rate; it only adds conflicts (a car moving
+    backwards may change into the ego's lane whatever MOBIL says), so no action safe with it is unsafe
+    without it and no worst gap grows; a road without a car moving backwards is unchanged to the bit."""
+    state, dyn, _ = case
+    off, on = (dataclasses.replace(dyn, reversing_cut_ins=v) for v in (False, True))
+    assert mismatches(state, on) == []
+    for mode in MODES:
+        a, b = model.evaluate(state, off, mode), model.evaluate(state, on, mode)
+        assert not (b.safe & ~a.safe).any() and not (b.min_gap > a.min_gap).any()
+        if not (state.vx < 0).any():
+            assert_same(a, b)

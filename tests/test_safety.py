@@ -81,6 +81,10 @@ EXPECTED = {
     # A braking leader 24.62 m ahead at 2 decisions per second: IDLE keeps 2.17 m by default (the
     # experimental shield.turning_leaders takes 1.66 m more: test below).
     "leader_may_turn_out": {"nominal": mask_of(I, S), "robust": mask_of(I, S)},
+    # An Aggressive driver 8.9 m ahead in the next lane rolling backwards: robust assumes by default any cut-in
+    # of a linear-model driver, so nothing is safe (test below for shield.linear_mobil and reversing_cut_ins).
+    # Nominal: the leader 22.6 m ahead only.
+    "reversing_car_beside": {"nominal": mask_of(I, F, S), "robust": mask_of(S)},
 }
 
 
@@ -94,7 +98,7 @@ def test_scenario_masks(name: str, mode: str, engine: str) -> None:
     fallbacks |= {("linear_car_alongside", "robust"), ("reversing_leader", "nominal"), ("reversing_leader", "robust")}
     fallbacks.add(("car_being_overtaken", "robust"))
     fallbacks |= {("closing_in_at_five_per_second", "nominal"), ("closing_in_at_five_per_second", "robust")}
-    fallbacks.add(("ego_turning_into_its_lane", "robust"))
+    fallbacks |= {("ego_turning_into_its_lane", "robust"), ("reversing_car_beside", "robust")}
     assert scene.result.fallback == ((name, mode) in fallbacks)
     available = scene.env.unwrapped.action_type.get_available_actions()
     assert set(np.flatnonzero(scene.mask)) <= set(available)
@@ -406,6 +410,26 @@ def test_straight_fallback_brakes_where_turning_leaders_alone_changes_lane(engin
     assert turning.min_gap[[R, S]] == pytest.approx([-8.59, -0.26], abs=0.01)
     assert straight.mask.tolist() == mask_of(S) and straight.fallback and not straight.safe.any()
     assert np.array_equal(straight.min_gap, turning.min_gap)
+
+
+@pytest.mark.parametrize("engine", ["numpy", "compiled"])
+def test_reversing_cut_ins_sees_a_reversing_car_beside(engine: str) -> None:
+    """The trained agents' cell 615 (robust shield with linear drivers' MOBIL, the hole of docs/safety.md §6i):
+    an Aggressive driver 8.9 m ahead in the next lane rolls backwards at 3.01 m/s. By its own MOBIL rule
+    it would not cut in, so IDLE (15.94 m), FASTER (1.51 m) and SLOWER are safe — and within the decision it
+    began a lane change away from the ego, whose steering, reversing, swung its nose into the ego. With
+    shield.reversing_cut_ins a car moving backwards may enter the ego's lane whatever MOBIL says: nothing is
+    safe (IDLE -56.29 m), SLOWER is the least bad."""
+    options = {
+        "shield.engine": engine, "shield.linear_mobil": True, "shield.linear_incentive": True,
+        "shield.linear_incentive_braking": True, "shield.turning_leaders": True, "shield.straight_fallback": True,
+    }  # fmt: skip
+    mobil = scenarios.SCENARIOS["reversing_car_beside"](**options).result
+    assert mobil.mask.tolist() == mask_of(I, F, S) and not mobil.fallback
+    assert mobil.min_gap[[I, F, S]] == pytest.approx([15.94, 1.51, 15.94], abs=0.01)
+    reversing = scenarios.SCENARIOS["reversing_car_beside"](**options, **{"shield.reversing_cut_ins": True}).result
+    assert reversing.mask.tolist() == mask_of(S) and reversing.fallback and not reversing.safe.any()
+    assert reversing.min_gap[[I, F, S]] == pytest.approx([-56.29, -71.29, -46.29], abs=0.01)
 
 
 @pytest.mark.parametrize("engine", ["numpy", "compiled"])

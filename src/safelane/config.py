@@ -222,6 +222,14 @@ class ShieldConfig(_Section):
         "with the driver's own leaders braking at their maximum (else: now and at the end, everybody at constant "
         "speed — a Linear car closing fast on a slow one turned in within the decision; docs/safety.md §6h).",
     )
+    reversing_cut_ins: bool = Field(
+        False,
+        strict=True,
+        description="A vehicle in a next lane moving backwards may change into the ego's lane whatever MOBIL says: "
+        "highway-env's steering assumes forward motion, so reversing, a lane change away from the ego swings the "
+        "car's nose into the ego's lane (the agents' cell 615; docs/safety.md §6i). False: MOBIL's verdict, as "
+        "for any car.",
+    )
 
     def rule_options(self) -> dict[str, bool]:
         """The rule's on/off options by name, as :class:`safelane.safety.shield.SafetyShield` and
@@ -632,7 +640,7 @@ RENAMED_KEYS: dict[str, tuple[str, dict[Any, Any]]] = {
 RULE_OPTIONS = (
     "projected_cut_ins", "body_extent", "linear_mobil", "reversing_leaders", "level_cut_ins", "level_incentive",
     "level_entering", "least_bad_joint", "full_horizon", "ego_speed_magnitude", "turning_leaders",
-    "robust_fallback", "straight_fallback", "linear_incentive", "linear_incentive_braking",
+    "robust_fallback", "straight_fallback", "linear_incentive", "linear_incentive_braking", "reversing_cut_ins",
 )  # fmt: skip
 """The :class:`ShieldConfig` fields that switch parts of the safety rule on or off (``ShieldConfig.rule_options``)."""
 

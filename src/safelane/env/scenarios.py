@@ -280,6 +280,25 @@ def leader_may_turn_out(mode: Mode = "robust", **kw: Any) -> Scene:
                        **rate, **kw)  # fmt: skip
 
 
+def reversing_car_beside(mode: Mode = "robust", **kw: Any) -> Scene:
+    """5 lanes; the ego in lane 0 at 10.1 m/s (set-point 10), a leader 22.6 m ahead at 16.11 m/s; in lane 1 an
+    Aggressive driver 8.9 m ahead rolls *backwards* at 3.01 m/s behind a car at 1.77 m/s, 15 m ahead — the
+    trained agents' cell 615 (``cell00615-seed4006150077``) at the decision before its crash. Within that
+    decision the reversing car began a lane change *away* from the ego: highway-env's steering assumes
+    forward motion, so reversing, its nose swung 0.49 rad into the ego's lane and hit it. By its MOBIL rule
+    (``shield.linear_mobil``) it would not cut in, and IDLE, FASTER and SLOWER are safe; with
+    ``shield.reversing_cut_ins`` a car moving backwards may enter the ego's lane whatever MOBIL says, and
+    nothing is safe. The default rule assumes any cut-in of a linear-model driver: nothing is safe either."""
+    from highway_env.vehicle.behavior import AggressiveVehicle
+
+    specs = [
+        VehicleSpec(1, 8.9, -3.01, vehicle_class=AggressiveVehicle),
+        VehicleSpec(1, 15.0, 1.77, vehicle_class=AggressiveVehicle),
+        VehicleSpec(0, 22.6, 16.11, vehicle_class=AggressiveVehicle),
+    ]
+    return build_scene(0, 10.1, specs, mode=mode, lanes_count=5, ego_target_speed=10.0, **kw)
+
+
 SCENARIOS: dict[str, Callable[..., Scene]] = {
     "leader_braking": leader_braking,
     "stopped_car_ahead": stopped_car_ahead,
@@ -300,6 +319,7 @@ SCENARIOS: dict[str, Callable[..., Scene]] = {
     "closing_in_at_five_per_second": closing_in_at_five_per_second,
     "ego_turning_into_its_lane": ego_turning_into_its_lane,
     "leader_may_turn_out": leader_may_turn_out,
+    "reversing_car_beside": reversing_car_beside,
 }
 """Every scenario by name."""
 

@@ -155,7 +155,7 @@ def _evaluate_rule(
     relevance: float, lateral_threshold: float, robust: bool, projected_cut_ins: bool, body_extent: bool,
     body_width: float, linear_mobil: bool, reversing_leaders: bool, level_cut_ins: bool, level_incentive: bool,
     level_entering: bool, least_bad_joint: bool, robust_fallback: bool, linear_incentive: bool,
-    linear_incentive_braking: bool, turning_allowance: float,
+    linear_incentive_braking: bool, reversing_cut_ins: bool, turning_allowance: float,
     min_acc_gain: float,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, bool]:  # fmt: skip
     """``model.evaluate`` (formula ``kinematic``) of one state: (mask, safe, available, min_gap, fallback)."""
@@ -459,6 +459,8 @@ def _evaluate_rule(
                                     break
                     else:
                         level[slot, r] = level_any[slot, r]
+                    if reversing_cut_ins and can and vx[i] < 0.0:  # model._cut_in_candidates: any lane change
+                        level[slot, r] = level[slot, r] or level_any[slot, r]
                     if can and ahead_c:
                         acc, delta, dec = idm_comfort_acc[i], idm_delta[i], idm_comfort_dec[i]
                         dw, tw = idm_distance_wanted[i], idm_time_wanted[i]
@@ -474,7 +476,7 @@ def _evaluate_rule(
                             ok = _idm_behind(acc, delta, dec, dw, tw, vx[i], d_now, ego_speed, target_clip) >= limit
                             if not ok:  # the end-of-period check only matters when the one of now fails
                                 ok = _idm_behind(acc, delta, dec, dw, tw, vx[i], d_end, kv, target_clip) >= limit
-                        permitted[slot, r] = ok
+                        permitted[slot, r] = ok or (reversing_cut_ins and vx[i] < 0.0)
                     else:
                         permitted[slot, r] = False
 
@@ -605,7 +607,7 @@ def _evaluate(
     relevance: float, lateral_threshold: float, robust: bool, projected_cut_ins: bool, body_extent: bool,
     body_width: float, linear_mobil: bool, reversing_leaders: bool, level_cut_ins: bool, level_incentive: bool,
     level_entering: bool, least_bad_joint: bool, robust_fallback: bool, straight_fallback: bool,
-    linear_incentive: bool, linear_incentive_braking: bool, turning_allowance: float,
+    linear_incentive: bool, linear_incentive_braking: bool, reversing_cut_ins: bool, turning_allowance: float,
     min_acc_gain: float,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, bool]:  # fmt: skip
     """:func:`_evaluate_rule`, and with ``straight_fallback`` (``model.evaluate``) a state the turning
@@ -618,7 +620,7 @@ def _evaluate(
         lane_width, lanes_count, follower_reaction, ego_leave_time, cut_in_time, margin, relevance,
         lateral_threshold, robust, projected_cut_ins, body_extent, body_width, linear_mobil, reversing_leaders,
         level_cut_ins, level_incentive, level_entering, least_bad_joint, robust_fallback, linear_incentive,
-        linear_incentive_braking, turning_allowance, min_acc_gain,
+        linear_incentive_braking, reversing_cut_ins, turning_allowance, min_acc_gain,
     )  # fmt: skip
     if not (out[4] and robust and straight_fallback and turning_allowance > 0.0):
         return out
@@ -630,7 +632,7 @@ def _evaluate(
         lane_width, lanes_count, follower_reaction, ego_leave_time, cut_in_time, margin, relevance,
         lateral_threshold, robust, projected_cut_ins, body_extent, body_width, linear_mobil, reversing_leaders,
         level_cut_ins, level_incentive, level_entering, least_bad_joint, robust_fallback, linear_incentive,
-        linear_incentive_braking, 0.0, min_acc_gain,
+        linear_incentive_braking, reversing_cut_ins, 0.0, min_acc_gain,
     )  # fmt: skip
     return straight[0].copy(), out[1], out[2], out[3], True
 
@@ -650,7 +652,7 @@ def _evaluate_snapshot(
     relevance: float, lateral_threshold: float, robust: bool, projected_cut_ins: bool, body_extent: bool,
     body_width: float, linear_mobil: bool, reversing_leaders: bool, level_cut_ins: bool, level_incentive: bool,
     level_entering: bool, least_bad_joint: bool, robust_fallback: bool, straight_fallback: bool,
-    linear_incentive: bool, linear_incentive_braking: bool, ego_speed_magnitude: bool,
+    linear_incentive: bool, linear_incentive_braking: bool, reversing_cut_ins: bool, ego_speed_magnitude: bool,
     turning_allowance: float,
     min_acc_gain: float,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, bool]:  # fmt: skip
@@ -700,7 +702,7 @@ def _evaluate_snapshot(
         follower_reaction, ego_leave_time, cut_in_time, margin, relevance, lateral_threshold, robust,
         projected_cut_ins, body_extent, body_width, linear_mobil, reversing_leaders, level_cut_ins, level_incentive,
         level_entering, least_bad_joint, robust_fallback, straight_fallback, linear_incentive,
-        linear_incentive_braking, turning_allowance, min_acc_gain,
+        linear_incentive_braking, reversing_cut_ins, turning_allowance, min_acc_gain,
     )  # fmt: skip
 
 
@@ -791,6 +793,7 @@ class KernelConstants(NamedTuple):
     straight_fallback: bool
     linear_incentive: bool
     linear_incentive_braking: bool
+    reversing_cut_ins: bool
     ego_speed_magnitude: bool
     turning_allowance: float
     min_acc_gain: float
@@ -815,6 +818,7 @@ def kernel_constants(dyn: Dynamics) -> KernelConstants:
         dyn.straight_fallback,
         dyn.linear_incentive,
         dyn.linear_incentive_braking,
+        dyn.reversing_cut_ins,
         dyn.ego_speed_magnitude,
         model.turning_allowance(dyn),
         _MIN_ACC_GAIN,
@@ -849,7 +853,7 @@ def evaluate_compiled(
         *_dynamics_args(dyn, dyn.ego_leave_time), mode == "robust", dyn.projected_cut_ins, dyn.body_extent,
         dyn.body_width, dyn.linear_mobil, dyn.reversing_leaders, dyn.level_cut_ins, dyn.level_incentive,
         dyn.level_entering, dyn.least_bad_joint, dyn.robust_fallback, dyn.straight_fallback, dyn.linear_incentive,
-        dyn.linear_incentive_braking, model.turning_allowance(dyn), _MIN_ACC_GAIN,
+        dyn.linear_incentive_braking, dyn.reversing_cut_ins, model.turning_allowance(dyn), _MIN_ACC_GAIN,
     )  # fmt: skip
     return _result(out)
 
@@ -884,7 +888,7 @@ def evaluate_snapshot(
         *_dynamics_args(dyn, ego_leave_time), mode == "robust", dyn.projected_cut_ins, dyn.body_extent,
         dyn.body_width, dyn.linear_mobil, dyn.reversing_leaders, dyn.level_cut_ins, dyn.level_incentive,
         dyn.level_entering, dyn.least_bad_joint, dyn.robust_fallback, dyn.straight_fallback, dyn.linear_incentive,
-        dyn.linear_incentive_braking, dyn.ego_speed_magnitude,
+        dyn.linear_incentive_braking, dyn.reversing_cut_ins, dyn.ego_speed_magnitude,
         model.turning_allowance(dyn),
         _MIN_ACC_GAIN,
     )  # fmt: skip

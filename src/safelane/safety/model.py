@@ -111,6 +111,7 @@ class Dynamics:
     straight_fallback: bool = False  # turning_leaders, nothing safe: the mask of the rule without it (experimental)
     linear_incentive: bool = False  # level_incentive: linear-model drivers' incentive with their formula (else any)
     linear_incentive_braking: bool = False  # linear_incentive: also at every frame, their leaders braking fully
+    reversing_cut_ins: bool = False  # a car moving backwards may change into the ego's lane whatever MOBIL says
 
     @property
     def horizon_decisions(self) -> int:
@@ -494,8 +495,12 @@ def _cut_in_candidates(
             level = np.where(linear, level_any, incentive)
     else:
         level = level_any
+    permitted = (a_now >= limit) | (a_end >= limit)
+    if dyn.reversing_cut_ins:  # steering assumes forward motion: reversing, a lane change away swings its nose in
+        reversing = state.vx[near] < 0.0
+        permitted, level = permitted | reversing, level | (reversing & level_any)
     level_entering = level_any if dyn.level_entering else level
-    return can & ahead & ((a_now >= limit) | (a_end >= limit)), can & ahead, can & level, can & level_entering
+    return can & ahead & permitted, can & ahead, can & level, can & level_entering
 
 
 def _gap_ratio(state: RoadState, who: np.ndarray, front_speed: np.ndarray, gap: np.ndarray) -> np.ndarray:

@@ -89,6 +89,7 @@ def dynamics_of(
     straight_fallback: bool = False,
     linear_incentive: bool = False,
     linear_incentive_braking: bool = False,
+    reversing_cut_ins: bool = False,
 ) -> Dynamics:
     """The :class:`Dynamics` constants of the simulated world a snapshot was taken in; ``margin`` [m]: the
     bumper-to-bumper gap the rule keeps under its worst case; the rule's options as in :class:`Dynamics`."""
@@ -120,6 +121,7 @@ def dynamics_of(
         straight_fallback=straight_fallback,
         linear_incentive=linear_incentive,
         linear_incentive_braking=linear_incentive_braking,
+        reversing_cut_ins=reversing_cut_ins,
         # The widest other body (every highway-env vehicle has Vehicle.WIDTH): the occupancy bound.
         body_width=float(np.max(snap.width)) if len(snap.width) else 2.0,
     )
@@ -220,6 +222,8 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
     ``linear_incentive``: with ``level_incentive``, a Linear, Aggressive or Defensive driver turns in behind the
     ego only when MOBIL's incentive with its own linear model lets it (else any such car may);
     ``linear_incentive_braking``: that incentive also at every frame of the decision, its leaders braking fully.
+    ``reversing_cut_ins``: a car in a next lane moving backwards may change into the ego's lane whatever MOBIL
+    says (highway-env's steering assumes forward motion: reversing, a lane change away swings its nose in).
     """
 
     def __init__(
@@ -245,6 +249,7 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
         straight_fallback: bool = False,
         linear_incentive: bool = False,
         linear_incentive_braking: bool = False,
+        reversing_cut_ins: bool = False,
     ) -> None:
         if not (math.isfinite(margin) and margin >= 0):
             raise ValueError(f"shield.margin: must be a finite number >= 0 [m] (got {margin!r})")
@@ -276,6 +281,7 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
             straight_fallback=straight_fallback,
             linear_incentive=linear_incentive,
             linear_incentive_braking=linear_incentive_braking,
+            reversing_cut_ins=reversing_cut_ins,
         )
         try:
             env.get_wrapper_attr("road_snapshot")
@@ -302,6 +308,7 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
         self.straight_fallback = bool(straight_fallback)
         self.linear_incentive = bool(linear_incentive)
         self.linear_incentive_braking = bool(linear_incentive_braking)
+        self.reversing_cut_ins = bool(reversing_cut_ins)
         self._rule_options = {name: getattr(self, name) for name in RULE_OPTIONS}  # dynamics_of's keywords
         self.dynamics: Dynamics | None = None
         self.result: SafetyResult | None = None

@@ -274,9 +274,9 @@ def test_least_bad_joint_bit_identical_and_only_the_fallback_choice(case: tuple)
 def test_robust_fallback_bit_identical_and_only_the_fallback_choice(case: tuple) -> None:
     """shield.robust_fallback: the same in both engines; the same safe set and gaps either way, the same mask
     whenever some action is safe, one available action allowed otherwise (which one: the scenario test in
-    tests/test_safety.py); nominal mode untouched."""
+    tests/test_safety.py); nominal mode untouched. (Without the straight fallback, which would replace it.)"""
     state, dyn, _ = case
-    off, on = (dataclasses.replace(dyn, robust_fallback=v) for v in (False, True))
+    off, on = (dataclasses.replace(dyn, robust_fallback=v, straight_fallback=False) for v in (False, True))
     assert mismatches(state, off) == [] and mismatches(state, on) == []
     assert_same(model.evaluate(state, off, "nominal"), model.evaluate(state, on, "nominal"))
     a, b = model.evaluate(state, off, "robust"), model.evaluate(state, on, "robust")

@@ -207,8 +207,12 @@ def test_recorded_configs_keep_the_rule_they_ran_with() -> None:
     assert recorded_config(old).shield.body_extent is False
     assert build_config(old).shield.body_extent is True
     assert recorded_config(data).shield.body_extent is True
-    # Linear-model drivers' MOBIL rule with their own model: measured, not adopted (docs/safety.md §6b, §6h).
-    assert data["shield"]["linear_mobil"] is False and data["shield"]["linear_incentive"] is False
+    # The ninth session's options (docs/safety.md §6i): on for a new configuration, off for one written before.
+    ninth = ("linear_mobil", "linear_incentive", "linear_incentive_braking", "turning_leaders", "straight_fallback",
+             "reversing_cut_ins")  # fmt: skip
+    assert all(data["shield"][name] is True for name in ninth)
+    older = {**data, "shield": {k: v for k, v in data["shield"].items() if k not in ninth}}
+    assert all(getattr(recorded_config(older).shield, name) is False for name in ninth)
 
 
 def test_a_check_record_of_an_earlier_rule_is_not_resumed(tmp_path) -> None:

@@ -27,6 +27,14 @@ def mask_of(*actions: int) -> list[bool]:
     return [a in actions for a in range(5)]
 
 
+EARLIER_RULE = {
+    f"shield.{name}": False
+    for name in ("linear_mobil", "linear_incentive", "linear_incentive_braking", "turning_leaders",
+                 "straight_fallback", "reversing_cut_ins")
+}  # fmt: skip
+"""The options adopted in issue 15's ninth session, off: the rule under which a test of an earlier part of the
+rule derived its scene's exact gaps (each such test is about its own part; EXPECTED holds today's masks)."""
+
 # Expected masks for every scenario and both modes (LANE_LEFT, IDLE, LANE_RIGHT, FASTER, SLOWER).
 EXPECTED = {
     # A leader 25 m ahead at 15 m/s: too close to stop behind under full braking even with SLOWER;
@@ -52,13 +60,14 @@ EXPECTED = {
     "second_lane_car_moving_over": {"nominal": mask_of(I, R, S), "robust": mask_of(I, S)},
     # A nearly stopped car turning hard out of the ego's lane: by its centre it is in lane 1 (moving to 0),
     # but its rotated body reaches into the ego's lane (shield.body_extent, robust only): only SLOWER keeps
-    # the gap. Nominal misses it (the campaign's crash cell00537); the lane changes are unsafe at 5 m/s
+    # the gap (2.17 m), and with the turning leaders' 1.66 m allowance not even SLOWER (0.68 m < 1 m): a fallback,
+    # SLOWER. Nominal misses it (the campaign's crash cell00537); the lane changes are unsafe at 5 m/s
     # (too slow to leave the lane in time).
     "slow_car_turning_out": {"nominal": mask_of(I, F, S), "robust": mask_of(S)},
-    # A Linear driver level with the ego in the next lane: robust assumes by default it may cut in at the
-    # ego's nose or turn in behind it (its MOBIL rule is modelled only with shield.linear_mobil and
-    # shield.linear_incentive), so nothing is safe: SLOWER, the least bad, is flagged as a fallback. Nominal:
-    # only the leader 42 m ahead matters, SLOWER keeps the gap (IDLE leaves 0.33 m < 1 m).
+    # A Linear driver level with the ego in the next lane: by its own MOBIL rule (shield.linear_mobil and
+    # shield.linear_incentive) it neither cuts in at the ego's nose nor turns in behind it; SLOWER keeps 18.67 m
+    # (the earlier rule assumed either: nothing safe). Nominal: only the leader 42 m ahead matters, SLOWER keeps
+    # the gap (IDLE leaves 0.33 m < 1 m).
     "linear_car_alongside": {"nominal": mask_of(S), "robust": mask_of(S)},
     # A car 7 m ahead rolling backwards at 2 m/s toward the nearly stopped ego (shield.reversing_leaders, both
     # modes): nothing is safe, the least-bad IDLE is flagged as a fallback.
@@ -78,12 +87,11 @@ EXPECTED = {
     # (shield.ego_speed_magnitude) leaves 0.5 m to the car ahead; nominal still lets the ego turn back left
     # (11.3 m), robust has nothing safe and flags the same least-bad LANE_LEFT.
     "ego_turning_into_its_lane": {"nominal": mask_of(L), "robust": mask_of(L)},
-    # A braking leader 24.62 m ahead at 2 decisions per second: IDLE keeps 2.17 m by default (the
-    # experimental shield.turning_leaders takes 1.66 m more: test below).
-    "leader_may_turn_out": {"nominal": mask_of(I, S), "robust": mask_of(I, S)},
-    # An Aggressive driver 8.9 m ahead in the next lane rolling backwards: robust assumes by default any cut-in
-    # of a linear-model driver, so nothing is safe (test below for shield.linear_mobil and reversing_cut_ins).
-    # Nominal: the leader 22.6 m ahead only.
+    # A braking leader 24.62 m ahead at 2 decisions per second: IDLE keeps 2.17 m under the straight bound
+    # (nominal), 0.51 m with shield.turning_leaders (robust: 1.66 m less; test below).
+    "leader_may_turn_out": {"nominal": mask_of(I, S), "robust": mask_of(S)},
+    # An Aggressive driver 8.9 m ahead in the next lane rolling backwards: it may enter the ego's lane whatever
+    # MOBIL says (shield.reversing_cut_ins), so nothing is safe (test below). Nominal: the leader 22.6 m ahead.
     "reversing_car_beside": {"nominal": mask_of(I, F, S), "robust": mask_of(S)},
 }
 
@@ -95,7 +103,7 @@ def test_scenario_masks(name: str, mode: str, engine: str) -> None:
     scene = scenarios.SCENARIOS[name](mode=mode, **{"shield.engine": engine})
     assert scene.mask.tolist() == EXPECTED[name][mode]
     fallbacks = {("dense_jam", "nominal"), ("dense_jam", "robust"), ("leader_braking", "robust")}
-    fallbacks |= {("linear_car_alongside", "robust"), ("reversing_leader", "nominal"), ("reversing_leader", "robust")}
+    fallbacks |= {("slow_car_turning_out", "robust"), ("reversing_leader", "nominal"), ("reversing_leader", "robust")}
     fallbacks.add(("car_being_overtaken", "robust"))
     fallbacks |= {("closing_in_at_five_per_second", "nominal"), ("closing_in_at_five_per_second", "robust")}
     fallbacks |= {("ego_turning_into_its_lane", "robust"), ("reversing_car_beside", "robust")}
@@ -121,20 +129,20 @@ def test_body_extent_sees_the_corner_of_a_car_turning_out(engine: str) -> None:
     across) overlaps lane 2's band (from 6 m): the car is a leader in the ego's lane, 10 m ahead at 2 m/s.
     Holding 5 m/s for a decision runs into it (worst gap −2.8 m); only SLOWER keeps the gap (2.2 m). The
     earlier rule (body_extent false) allowed IDLE and FASTER here — the crash of cell00537. Nominal is
-    unchanged: the option belongs to the robust rule."""
-    robust = scenarios.SCENARIOS["slow_car_turning_out"](mode="robust", **{"shield.engine": engine})
+    unchanged: the option belongs to the robust rule. (The straight leader bound; with the ninth session's
+    turning allowance SLOWER keeps 0.68 m and the state is a fallback: EXPECTED.)"""
+    kw = {"shield.engine": engine, **EARLIER_RULE}
+    robust = scenarios.SCENARIOS["slow_car_turning_out"](mode="robust", **kw)
     assert robust.mask.tolist() == mask_of(S) and not robust.result.fallback
     assert robust.result.min_gap[I] < 0 < robust.result.min_gap[S]
-    earlier = scenarios.SCENARIOS["slow_car_turning_out"](
-        mode="robust", **{"shield.engine": engine, "shield.body_extent": False}
-    )
+    earlier = scenarios.SCENARIOS["slow_car_turning_out"](mode="robust", **{**kw, "shield.body_extent": False})
     assert earlier.mask.tolist() == mask_of(I, F, S)
     nominal = scenarios.SCENARIOS["slow_car_turning_out"](mode="nominal", **{"shield.engine": engine})
     assert nominal.mask.tolist() == EXPECTED["slow_car_turning_out"]["nominal"]
     # Turned straight, the same car no longer reaches the ego's lane: the option adds nothing.
     straight = scenarios.build_scene(
         2, 5.0, [scenarios.VehicleSpec(1, 10.0, 2.0, lateral_offset=0.85)], mode="robust", ego_target_speed=5.0,
-        **{"shield.engine": engine, "shield.body_extent": True},
+        **{**kw, "shield.body_extent": True},
     )  # fmt: skip
     assert straight.mask.tolist() == mask_of(I, F, S)
 
@@ -145,13 +153,12 @@ def test_a_reversing_leader_keeps_its_reverse_speed(engine: str, mode: str) -> N
     """shield.reversing_leaders (default): the car 7 m ahead (2 m bumper to bumper) rolling back at 2 m/s
     keeps doing so over the 13 s horizon, 26 m: every action's worst gap is −24.06 m, no action is safe and
     the state is a fallback (cells 38 and 86 of the campaign crashed from here, called safe). The earlier
-    rule (false) took the car as stopped and kept IDLE's 1.94 m gap as safe."""
-    now = scenarios.SCENARIOS["reversing_leader"](mode=mode, **{"shield.engine": engine})
+    rule (false) took the car as stopped and kept IDLE's 1.94 m gap as safe. (The straight leader bound.)"""
+    kw = {"shield.engine": engine, **EARLIER_RULE}
+    now = scenarios.SCENARIOS["reversing_leader"](mode=mode, **kw)
     assert now.result.fallback and not now.result.safe.any()
     assert now.result.min_gap[I] == pytest.approx(-24.06, abs=0.01)
-    earlier = scenarios.SCENARIOS["reversing_leader"](
-        mode=mode, **{"shield.engine": engine, "shield.reversing_leaders": False}
-    )
+    earlier = scenarios.SCENARIOS["reversing_leader"](mode=mode, **{**kw, "shield.reversing_leaders": False})
     assert earlier.result.safe.tolist() == mask_of(I) and not earlier.result.fallback
     assert earlier.result.min_gap[I] == pytest.approx(1.94, abs=0.01)
     # Rolling forward at 2 m/s instead, the same car is an ordinary leader: both rules give the same gaps.
@@ -159,8 +166,7 @@ def test_a_reversing_leader_keeps_its_reverse_speed(engine: str, mode: str) -> N
     gaps = []
     for reversing in (False, True):
         scene = scenarios.build_scene(
-            1, 0.1, forward, mode=mode, ego_target_speed=0.0,
-            **{"shield.engine": engine, "shield.reversing_leaders": reversing},
+            1, 0.1, forward, mode=mode, ego_target_speed=0.0, **{**kw, "shield.reversing_leaders": reversing},
         )  # fmt: skip
         assert scene.result.safe.tolist() == mask_of(I)
         gaps.append(scene.result.min_gap)
@@ -210,22 +216,21 @@ def test_level_entering_sees_a_car_two_lanes_over_change_into_the_ego_s_new_lane
     the ego's centre). MOBIL's incentive judged with the ego already in lane 1 keeps it out (a follower 2 m
     behind a car would brake at hundreds of m/s²): the earlier rule (false), like the rule without level
     cut-ins, allowed LANE_RIGHT with 24.97 m — the trained agents' side impact of cell 169. Into the ego's
-    own lane the filter still holds: IDLE's and SLOWER's gaps are the same under every rule."""
-    scene = scenarios.SCENARIOS["car_two_lanes_over"](mode="robust", **{"shield.engine": engine})
+    own lane the filter still holds: IDLE's and SLOWER's gaps are the same under every rule. (The straight
+    leader bound.)"""
+    kw = {"shield.engine": engine, **EARLIER_RULE}
+    scene = scenarios.SCENARIOS["car_two_lanes_over"](mode="robust", **kw)
     assert scene.mask.tolist() == mask_of(I, S) and not scene.result.fallback
     assert scene.result.min_gap[[I, R, S]] == pytest.approx([24.97, -4.07, 44.97], abs=0.01)
     for options in ({"shield.level_entering": False}, {"shield.level_cut_ins": False}):
-        earlier = scenarios.SCENARIOS["car_two_lanes_over"](mode="robust", **{"shield.engine": engine}, **options)
+        earlier = scenarios.SCENARIOS["car_two_lanes_over"](mode="robust", **kw, **options)
         assert earlier.mask.tolist() == mask_of(I, R, S)
         assert earlier.result.min_gap[[I, R, S]] == pytest.approx([24.97, 24.97, 44.97], abs=0.01)
-    anyone = scenarios.SCENARIOS["car_two_lanes_over"](
-        mode="robust", **{"shield.engine": engine, "shield.level_incentive": False}
-    )
+    anyone = scenarios.SCENARIOS["car_two_lanes_over"](mode="robust", **kw, **{"shield.level_incentive": False})
     assert anyone.result.min_gap.tolist() == scene.result.min_gap.tolist()
     # The same car 30 m behind the ego is not level with it at the end of the lane change's first part.
     far = [scenarios.VehicleSpec(2, -30.0, 21.0), scenarios.VehicleSpec(0, 52.0, 22.0)]
-    behind = scenarios.build_scene(0, 20.6, far, mode="robust", lanes_count=3, ego_target_speed=20.0,
-                                   **{"shield.engine": engine})  # fmt: skip
+    behind = scenarios.build_scene(0, 20.6, far, mode="robust", lanes_count=3, ego_target_speed=20.0, **kw)
     assert behind.mask[R]
 
 
@@ -236,13 +241,13 @@ def test_full_horizon_sees_the_ego_stop_at_five_decisions_per_second(engine: str
     from 27.66 m/s; within the earlier 13-decision horizon (2.6 s) it is still at 8.6 m/s, and the tail
     credited beyond assumed a set-point of 0 at once (v/KP_A = 5.2 m) where SLOWER really steps it down
     from the speed's own index (6.2 m): IDLE and SLOWER kept 1.476 m and were allowed — cell 812's break
-    one decision later, then its crash. With the horizon in seconds both keep −0.52 m: a fallback."""
-    full = scenarios.SCENARIOS["closing_in_at_five_per_second"](mode=mode, **{"shield.engine": engine})
+    one decision later, then its crash. With the horizon in seconds both keep −0.52 m: a fallback. (The
+    straight leader bound.)"""
+    kw = {"shield.engine": engine, **EARLIER_RULE}
+    full = scenarios.SCENARIOS["closing_in_at_five_per_second"](mode=mode, **kw)
     assert full.result.fallback and full.mask.tolist() == mask_of(S)
     assert full.result.min_gap[[I, F, S]] == pytest.approx([-0.52, -8.52, -0.52], abs=0.01)
-    short = scenarios.SCENARIOS["closing_in_at_five_per_second"](
-        mode=mode, **{"shield.engine": engine, "shield.full_horizon": False}
-    )
+    short = scenarios.SCENARIOS["closing_in_at_five_per_second"](mode=mode, **kw, **{"shield.full_horizon": False})
     assert not short.result.fallback and short.mask.tolist() == mask_of(I, S)
     assert short.result.min_gap[[I, S]] == pytest.approx([1.476, 1.476], abs=0.001)
     assert scenarios.find_shield(full.env).dynamics.horizon_decisions == 65
@@ -255,20 +260,19 @@ def test_ego_speed_magnitude_takes_slower_where_highway_env_does(engine: str, mo
     """shield.ego_speed_magnitude (default): mid lane change (heading 0.206 rad) the ego's controller runs
     at 22.77 m/s, which MDPVehicle rounds to the 25 m/s set-point: SLOWER goes to 20 m/s and keeps 0.496 m
     to the car 20 m ahead. The earlier rule used the speed along the road (22.77·cos 0.206 = 22.29 m/s,
-    rounding to 20): SLOWER to 15 m/s, 7.45 m — allowed, and cell 573's break followed."""
-    now = scenarios.SCENARIOS["ego_turning_into_its_lane"](mode=mode, **{"shield.engine": engine})
+    rounding to 20): SLOWER to 15 m/s, 7.45 m — allowed, and cell 573's break followed. (The straight leader
+    bound.)"""
+    kw = {"shield.engine": engine, **EARLIER_RULE}
+    now = scenarios.SCENARIOS["ego_turning_into_its_lane"](mode=mode, **kw)
     assert now.result.min_gap[S] == pytest.approx(0.496, abs=0.001) and not now.result.safe[S]
-    earlier = scenarios.SCENARIOS["ego_turning_into_its_lane"](
-        mode=mode, **{"shield.engine": engine, "shield.ego_speed_magnitude": False}
-    )
+    earlier = scenarios.SCENARIOS["ego_turning_into_its_lane"](mode=mode, **{**kw, "shield.ego_speed_magnitude": False})
     assert earlier.result.min_gap[S] == pytest.approx(7.452, abs=0.001) and earlier.result.safe[S]
     assert not earlier.result.fallback
     # Straight in its lane the two speeds are the same, and so are the verdicts.
     straight = [
         scenarios.build_scene(
             2, 22.77, [scenarios.VehicleSpec(2, 20.07, 17.58)], mode=mode, lanes_count=3, ego_target_speed=20.0,
-            **{"env.policy_frequency": 3, "env.simulation_frequency": 15, "shield.engine": engine,
-               "shield.ego_speed_magnitude": value},
+            **{"env.policy_frequency": 3, "env.simulation_frequency": 15, **kw, "shield.ego_speed_magnitude": value},
         ).result.min_gap.tolist()
         for value in (False, True)
     ]  # fmt: skip
@@ -278,18 +282,22 @@ def test_ego_speed_magnitude_takes_slower_where_highway_env_does(engine: str, mo
 @pytest.mark.parametrize("engine", ["numpy", "compiled"])
 @pytest.mark.parametrize("mode", ["nominal", "robust"])
 def test_turning_leaders_leaves_room_for_a_leader_turning_out(engine: str, mode: str) -> None:
-    """shield.turning_leaders (experimental): IDLE's 2.167 m behind the braking leader becomes 0.51 m (less
-    1.66 m = 4 m·tan(π/8), one lane change at highway-env's steepest heading), so only SLOWER is allowed —
-    cell 332's break came a decision after IDLE. The next state of that episode (the leader 22.97 m ahead at
-    20.25 m/s, heading 0.249 rad): by default its bound, braking from 20.25·cos 0.249 = 19.63 m/s, leaves
-    SLOWER 0.067 m; braking from 20.25 m/s less the allowance, 0.485 m — the bound grows across the
-    decision instead of shrinking."""
+    """shield.turning_leaders (robust, default since issue 15's ninth session): IDLE's 2.167 m behind the
+    braking leader becomes 0.51 m (less 1.66 m = 4 m·tan(π/8), one lane change at highway-env's steepest
+    heading), so only SLOWER is allowed — cell 332's break came a decision after IDLE. The next state of that
+    episode (the leader 22.97 m ahead at 20.25 m/s, heading 0.249 rad): the straight bound, braking from
+    20.25·cos 0.249 = 19.63 m/s, leaves SLOWER 0.067 m; braking from 20.25 m/s less the allowance, 0.485 m —
+    the bound grows across the decision instead of shrinking. Nominal keeps the straight bound either way."""
     kw = {"shield.engine": engine}
-    now = scenarios.SCENARIOS["leader_may_turn_out"](mode=mode, **kw, **{"shield.turning_leaders": True})
+    now = scenarios.SCENARIOS["leader_may_turn_out"](mode=mode, **kw)
+    earlier = scenarios.SCENARIOS["leader_may_turn_out"](mode=mode, **kw, **{"shield.turning_leaders": False})
+    assert earlier.mask.tolist() == mask_of(I, S) and not earlier.result.fallback
+    assert earlier.result.min_gap[[I, S]] == pytest.approx([2.167, 14.667], abs=0.001)
+    if mode == "nominal":
+        assert now.result.min_gap.tolist() == earlier.result.min_gap.tolist()
+        return
     assert now.mask.tolist() == mask_of(S) and not now.result.fallback
     assert now.result.min_gap[[I, S]] == pytest.approx([0.51, 13.01], abs=0.01)
-    default = scenarios.SCENARIOS["leader_may_turn_out"](mode=mode, **kw)
-    assert default.result.min_gap[[I, S]] == pytest.approx([2.167, 14.667], abs=0.001)
     rate = {"env.policy_frequency": 2, "env.simulation_frequency": 10}
     turned = scenarios.VehicleSpec(0, 22.97, 20.25, heading=0.249, target_lane=0)
     gaps = [
@@ -367,13 +375,13 @@ def test_robust_fallback_takes_the_best_robust_gap_not_a_nominally_safe_lane_cha
     the grid's cell 520): nothing is robustly safe. The nominal rule calls LANE_RIGHT safe (its old lane counts
     only until the ego has left it), so by default the robust fallback is LANE_RIGHT, whose robust worst gap
     is IDLE's (-42.67 m: the leader may cut into lane 1 too); shield.robust_fallback ranks every available
-    action by its robust gaps and brakes (SLOWER, -17.67 m)."""
+    action by its robust gaps and brakes (SLOWER, -17.67 m). (The straight leader bound.)"""
     specs = [scenarios.VehicleSpec(0, 12.0, 22.0)]
     chosen = {}
     for on in (False, True):
         scene = scenarios.build_scene(
             0, 25.0, specs, mode="robust", lanes_count=2, ego_target_speed=25.0,
-            **{"shield.engine": engine, "shield.robust_fallback": on},
+            **{"shield.engine": engine, **EARLIER_RULE, "shield.robust_fallback": on},
         )  # fmt: skip
         assert scene.result.fallback and not scene.result.safe.any()
         assert scene.result.min_gap[[I, R, S]] == pytest.approx([-42.67, -42.67, -17.67], abs=0.01)
@@ -387,9 +395,9 @@ def test_robust_fallback_takes_the_best_robust_gap_not_a_nominally_safe_lane_cha
 @pytest.mark.parametrize("engine", ["numpy", "compiled"])
 def test_straight_fallback_brakes_where_turning_leaders_alone_changes_lane(engine: str) -> None:
     """The grid's cell 520 spawn (3 decisions/s, 2 lanes): the ego in lane 0 at 25 m/s, 14.4 m behind a car
-    at 22 m/s, lane 1 empty. Today's rule allows SLOWER (1.40 m). shield.turning_leaders takes the leader's
-    lane-change allowance off its bound: SLOWER keeps -0.26 m, nothing is safe, and its fallback is the
-    nominally safe LANE_RIGHT (-8.59 m) — the episode that was rear-ended at its eighth decision.
+    at 22 m/s, lane 1 empty. The rule before the ninth session allows SLOWER (1.40 m). shield.turning_leaders
+    takes the leader's lane-change allowance off its bound: SLOWER keeps -0.26 m, nothing is safe, and its
+    fallback is the nominally safe LANE_RIGHT (-8.59 m) — the episode that was rear-ended at its eighth decision.
     shield.straight_fallback keeps turning_leaders' verdict (nothing safe, the same gaps: a fallback state
     outside the promise) but allows what the rule without it allows: SLOWER."""
     specs = [scenarios.VehicleSpec(0, 14.4, 22.0)]
@@ -398,9 +406,9 @@ def test_straight_fallback_brakes_where_turning_leaders_alone_changes_lane(engin
         name: scenarios.build_scene(0, 25.0, specs, mode="robust", lanes_count=2, ego_target_speed=25.0,
                                     **rate, **options).result
         for name, options in {
-            "today": {},
-            "turning": {"shield.turning_leaders": True},
-            "straight": {"shield.turning_leaders": True, "shield.straight_fallback": True},
+            "today": EARLIER_RULE,
+            "turning": {**EARLIER_RULE, "shield.turning_leaders": True},
+            "straight": {},  # the default since issue 15's ninth session
         }.items()
     }  # fmt: skip
     today, turning, straight = scenes["today"], scenes["turning"], scenes["straight"]
@@ -419,15 +427,15 @@ def test_reversing_cut_ins_sees_a_reversing_car_beside(engine: str) -> None:
     it would not cut in, so IDLE (15.94 m), FASTER (1.51 m) and SLOWER are safe — and within the decision it
     began a lane change away from the ego, whose steering, reversing, swung its nose into the ego. With
     shield.reversing_cut_ins a car moving backwards may enter the ego's lane whatever MOBIL says: nothing is
-    safe (IDLE -56.29 m), SLOWER is the least bad."""
+    safe (IDLE -56.29 m), SLOWER is the least bad (the default since issue 15's ninth session)."""
     options = {
         "shield.engine": engine, "shield.linear_mobil": True, "shield.linear_incentive": True,
         "shield.linear_incentive_braking": True, "shield.turning_leaders": True, "shield.straight_fallback": True,
     }  # fmt: skip
-    mobil = scenarios.SCENARIOS["reversing_car_beside"](**options).result
+    mobil = scenarios.SCENARIOS["reversing_car_beside"](**options, **{"shield.reversing_cut_ins": False}).result
     assert mobil.mask.tolist() == mask_of(I, F, S) and not mobil.fallback
     assert mobil.min_gap[[I, F, S]] == pytest.approx([15.94, 1.51, 15.94], abs=0.01)
-    reversing = scenarios.SCENARIOS["reversing_car_beside"](**options, **{"shield.reversing_cut_ins": True}).result
+    reversing = scenarios.SCENARIOS["reversing_car_beside"](**{"shield.engine": engine}).result  # the default
     assert reversing.mask.tolist() == mask_of(S) and reversing.fallback and not reversing.safe.any()
     assert reversing.min_gap[[I, F, S]] == pytest.approx([-56.29, -71.29, -46.29], abs=0.01)
 
@@ -462,10 +470,11 @@ def test_linear_mobil_lets_a_car_alongside_stay_where_it_is(engine: str) -> None
     follower 0.1 m behind, 0.3·0.65 + 2·min(−0.1 − (10 + 2.5·19.35), 0) ≈ −117 m/s² by its own formula, far
     below −2: no cut-in. Under the rule without level_cut_ins, SLOWER is then safe (worst gap 20.3 m); the
     default rule assumes any Linear-model cut-in: the car appears in the ego's lane at its nose, nothing is
-    safe (a fallback) — 1 051 of the first campaign's ``adjacent_behind`` breaks."""
-    options = {"shield.engine": engine, "shield.level_cut_ins": False}
+    safe (a fallback) — 1 051 of the first campaign's ``adjacent_behind`` breaks. (The rule before the ninth
+    session, which made linear_mobil the default.)"""
+    options = {"shield.engine": engine, **EARLIER_RULE, "shield.level_cut_ins": False}
     with_criterion = scenarios.SCENARIOS["linear_car_alongside"](
-        mode="robust", **options, **{"shield.linear_mobil": True}
+        mode="robust", **{**options, "shield.linear_mobil": True}
     )
     assert with_criterion.mask.tolist() == mask_of(S) and not with_criterion.result.fallback
     assert with_criterion.result.min_gap[S] > 20
@@ -480,16 +489,15 @@ def test_linear_incentive_keeps_a_car_alongside_in_its_lane(engine: str) -> None
     (k₁·min(v_front − v, 0) + k₂·min(d − d_safe, 0), d_safe = 10 + 2.5·20.25 = 60.6 m) −121.3 m/s² behind the
     ego against −37.9 behind its leader, a gain of −83 m/s² < 0.2 — so it does not turn in behind the ego.
     With linear_mobil also on (it cannot cut in ahead either) SLOWER is safe (20.33 m), no fallback; with
-    either option alone, or neither (the default rule), it is a fallback at −11.39 m (the turn-in, or the
-    cut-in, remains)."""
+    either option alone, or neither (the rule before the ninth session), it is a fallback at −11.39 m (the
+    turn-in, or the cut-in, remains). (The straight leader bound and no per-frame incentive, as then.)"""
     mobil, incentive = "shield.linear_mobil", "shield.linear_incentive"
-    both = scenarios.SCENARIOS["linear_car_alongside"](
-        mode="robust", **{"shield.engine": engine, mobil: True, incentive: True}
-    )
+    base = {"shield.engine": engine, **EARLIER_RULE}
+    both = scenarios.SCENARIOS["linear_car_alongside"](mode="robust", **{**base, mobil: True, incentive: True})
     assert both.mask.tolist() == mask_of(S) and not both.result.fallback
     assert both.result.min_gap[[I, S]] == pytest.approx([0.33, 20.33], abs=0.01)
     for on in ([mobil], [incentive], []):
-        options = {"shield.engine": engine, **dict.fromkeys(on, True)}
+        options = {**base, **dict.fromkeys(on, True)}
         partial = scenarios.SCENARIOS["linear_car_alongside"](mode="robust", **options)
         assert partial.result.fallback and partial.result.min_gap[S] == pytest.approx(-11.39, abs=0.01)
 
@@ -500,8 +508,9 @@ def test_linear_incentive_drops_the_free_car_and_keeps_the_one_stuck_behind_it(e
     free lane ahead, B 20 m behind at 20 m/s closing on A. By their own model A loses 75 m/s² by moving
     behind the ego (nothing ahead of it: its term is 0; behind the ego 2·min(10 − 47.5, 0)) and B gains
     21.5 m/s² (−80 behind the ego, 2·(20 − 60) against −101.5 behind A, 0.3·(15 − 20) + 2·(10 − 60)).
-    shield.linear_incentive keeps only B (IDLE 13.5 m); the default rule lets any Linear-model car turn in,
-    and A bounds IDLE at 5.0 m; without level_cut_ins neither counts (IDLE unbounded)."""
+    shield.linear_incentive (default since issue 15's ninth session) keeps only B (IDLE 13.5 m); the earlier
+    rule lets any Linear-model car turn in, and A bounds IDLE at 5.0 m; without level_cut_ins neither counts
+    (IDLE unbounded)."""
     from highway_env.vehicle.behavior import LinearVehicle
 
     queue = [
@@ -514,9 +523,10 @@ def test_linear_incentive_drops_the_free_car_and_keeps_the_one_stuck_behind_it(e
         assert scene.result.safe.tolist() == mask_of(I, R, F, S)
         return float(scene.result.min_gap[I])
 
-    base = {"shield.engine": engine}
+    base = {"shield.engine": engine, **EARLIER_RULE}  # the rule before the ninth session: any turn-in
     assert idle_gap(**base) == pytest.approx(5.0, abs=0.01)
-    assert idle_gap(**base, **{"shield.linear_incentive": True}) == pytest.approx(13.5, abs=0.01)
+    assert idle_gap(**{**base, "shield.linear_incentive": True}) == pytest.approx(13.5, abs=0.01)
+    assert idle_gap(**{"shield.engine": engine}) == pytest.approx(13.5, abs=0.01)  # today's default
     assert idle_gap(**base, **{"shield.level_cut_ins": False}) == math.inf
 
 
@@ -528,25 +538,29 @@ def test_linear_incentive_braking_sees_the_car_closing_on_a_slow_one(engine: str
     the decision at constant speeds it gains nothing by moving behind the ego, so SLOWER has no conflict at
     all (gap unbounded) and is the one safe action; with shield.linear_incentive_braking its leader may brake
     within the decision, which makes the turn-in pay: SLOWER −9.99 m, nothing safe (a fallback), as the
-    default rule (any Linear-model turn-in: SLOWER −20.02 m) also says."""
+    rule before the ninth session (any Linear-model turn-in: SLOWER −20.02 m) also says; the three options
+    are today's default."""
     from highway_env.vehicle.behavior import LinearVehicle
 
     specs = [
         scenarios.VehicleSpec(1, -5.5, 17.6, vehicle_class=LinearVehicle),
         scenarios.VehicleSpec(1, 3.9, 10.1, vehicle_class=LinearVehicle),
     ]
-    linear = {"shield.engine": engine, "shield.linear_mobil": True, "shield.linear_incentive": True}
+    earlier = {"shield.engine": engine, **EARLIER_RULE}
+    linear = {**earlier, "shield.linear_mobil": True, "shield.linear_incentive": True}
 
     def scene(**options: object) -> scenarios.Scene:
         return scenarios.build_scene(0, 15.75, specs, mode="robust", ego_target_speed=15.0, **options)
 
     plain = scene(**linear)
     assert plain.result.safe.tolist() == mask_of(S) and plain.result.min_gap[S] == math.inf
-    braking = scene(**linear, **{"shield.linear_incentive_braking": True})
+    braking = scene(**{**linear, "shield.linear_incentive_braking": True})
     assert braking.result.fallback and not braking.result.safe.any()
     assert braking.result.min_gap[S] == pytest.approx(-9.99, abs=0.01)
-    default = scene(**{"shield.engine": engine})
-    assert default.result.fallback and default.result.min_gap[S] == pytest.approx(-20.02, abs=0.01)
+    before = scene(**earlier)
+    assert before.result.fallback and before.result.min_gap[S] == pytest.approx(-20.02, abs=0.01)
+    today = scene(**{"shield.engine": engine})
+    assert today.result.fallback and not today.result.safe.any()
 
 
 @pytest.mark.parametrize("engine", ["numpy", "compiled"])

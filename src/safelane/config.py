@@ -129,12 +129,12 @@ class ShieldConfig(_Section):
         "since issue 15's campaign; false gives the earlier rule.",
     )
     linear_mobil: bool = Field(
-        False,
+        True,
         strict=True,
-        description="Robust mode, measured but not adopted: a Linear, Aggressive or Defensive driver cuts in "
-        "only if its MOBIL criterion, with its own linear acceleration model and gains, allows it (as for IDM "
-        "drivers). Off: any such cut-in is assumed. With linear_incentive it removes three breaks in four, but "
-        "more crashes follow the rest (docs/safety.md §6b, §6h).",
+        description="Robust mode: a Linear, Aggressive or Defensive driver cuts in only if its MOBIL criterion, "
+        "with its own linear acceleration model and gains, allows it (as for IDM drivers), as highway-env does. "
+        "On by default since issue 15's ninth session (docs/safety.md §6b, §6h, §6i); false: any such cut-in is "
+        "assumed (the earlier rule).",
     )
     reversing_leaders: bool = Field(
         True,
@@ -188,11 +188,12 @@ class ShieldConfig(_Section):
         "gives the earlier rule.",
     )
     turning_leaders: bool = Field(
-        False,
+        True,
         strict=True,
-        description="Experimental: a moving leader brakes from its speed along its path, less what one lane change "
+        description="Robust mode: a moving leader brakes from its speed along its path, less what one lane change "
         "can cost it along the road (lane_width·tan(π/8) = 1.66 m), instead of from its speed along the road, "
-        "which a lane change's heading lowers (docs/safety.md §6f). Off by default: measured on the grid only.",
+        "which a lane change's heading lowers (docs/safety.md §6f). On by default since issue 15's ninth session "
+        "(§6i); false gives the earlier rule.",
     )
     robust_fallback: bool = Field(
         False,
@@ -202,33 +203,36 @@ class ShieldConfig(_Section):
         "some, so the final robust mask stays inside the nominal one (docs/safety.md §6g).",
     )
     straight_fallback: bool = Field(
-        False,
+        True,
         strict=True,
-        description="Experimental, with turning_leaders: when no action is safe under it, allow what the rule "
+        description="With turning_leaders, robust mode: when no action is safe under it, allow what the rule "
         "without turning_leaders allows (its safe actions, else its least-bad one), so that the stricter leader "
-        "bound narrows the promise but not the fallback (docs/safety.md §6i).",
+        "bound narrows the promise but not the fallback (docs/safety.md §6i). On by default since issue 15's "
+        "ninth session; false: the fallback of the turning bound itself.",
     )
     linear_incentive: bool = Field(
-        False,
+        True,
         strict=True,
-        description="With level_incentive, measured but not adopted: a Linear, Aggressive or Defensive driver level "
-        "with or behind the ego turns in behind it only if MOBIL's incentive, with its own linear acceleration "
-        "model and gains, lets it (as IDM drivers); false: any such car may (docs/safety.md §6h).",
+        description="With level_incentive: a Linear, Aggressive or Defensive driver level with or behind the ego "
+        "turns in behind it only if MOBIL's incentive, with its own linear acceleration model and gains, lets it "
+        "(as IDM drivers). On by default since issue 15's ninth session (docs/safety.md §6h, §6i); false: any "
+        "such car may (the earlier rule).",
     )
     linear_incentive_braking: bool = Field(
-        False,
+        True,
         strict=True,
         description="With linear_incentive: that incentive is also checked at every physics frame of the decision "
         "with the driver's own leaders braking at their maximum (else: now and at the end, everybody at constant "
-        "speed — a Linear car closing fast on a slow one turned in within the decision; docs/safety.md §6h).",
+        "speed — a Linear car closing fast on a slow one turned in within the decision; docs/safety.md §6h). On "
+        "by default since issue 15's ninth session.",
     )
     reversing_cut_ins: bool = Field(
-        False,
+        True,
         strict=True,
         description="A vehicle in a next lane moving backwards may change into the ego's lane whatever MOBIL says: "
         "highway-env's steering assumes forward motion, so reversing, a lane change away from the ego swings the "
-        "car's nose into the ego's lane (the agents' cell 615; docs/safety.md §6i). False: MOBIL's verdict, as "
-        "for any car.",
+        "car's nose into the ego's lane (the agents' cell 615; docs/safety.md §6i). On by default since issue "
+        "15's ninth session; false: MOBIL's verdict, as for any car.",
     )
 
     def rule_options(self) -> dict[str, bool]:
@@ -648,6 +652,9 @@ RULE_OPTIONS = (
 RULE_CHANGES: dict[str, Any] = {
     "body_extent": False, "reversing_leaders": False, "level_cut_ins": False, "level_entering": False,
     "full_horizon": False, "ego_speed_magnitude": False,
+    # issue 15's ninth session (docs/safety.md §6i)
+    "linear_mobil": False, "linear_incentive": False, "linear_incentive_braking": False, "turning_leaders": False,
+    "straight_fallback": False, "reversing_cut_ins": False,
 }  # fmt: skip
 """Shield keys added with a new default that changes the rule: a *recorded* configuration (a run's
 config.yaml, a counterexample file) written before the key existed had the old behaviour, given here,

@@ -611,7 +611,11 @@ def _evaluate(
     min_acc_gain: float,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, bool]:  # fmt: skip
     """:func:`_evaluate_rule`, and with ``straight_fallback`` (``model.evaluate``) a state the turning
-    allowance leaves without a safe action gets the mask of the rule without it."""
+    allowance leaves without a safe action gets the mask of the rule without it. The allowance is robust only
+    (``model.evaluate``: nominal keeps the straight leader bound)."""
+    allowance = turning_allowance
+    if not robust:
+        allowance = 0.0
     out = _evaluate_rule(
         ego_x, ego_speed, ego_lane, ego_target_lane, ego_target_speed, ego_speed_index, ego_length, speed_limit,
         x, y, vx, vy, heading, length, crashed, brake_max, accel_max, can_change_lane, idm_delta,
@@ -620,7 +624,7 @@ def _evaluate(
         lane_width, lanes_count, follower_reaction, ego_leave_time, cut_in_time, margin, relevance,
         lateral_threshold, robust, projected_cut_ins, body_extent, body_width, linear_mobil, reversing_leaders,
         level_cut_ins, level_incentive, level_entering, least_bad_joint, robust_fallback, linear_incentive,
-        linear_incentive_braking, reversing_cut_ins, turning_allowance, min_acc_gain,
+        linear_incentive_braking, reversing_cut_ins, allowance, min_acc_gain,
     )  # fmt: skip
     if not (out[4] and robust and straight_fallback and turning_allowance > 0.0):
         return out

@@ -98,7 +98,7 @@ class Dynamics:
     projected_cut_ins: bool = False  # robust: a vehicle moving sideways may also cut in from the lane it moves to
     body_extent: bool = True  # robust: a vehicle also occupies every lane its rotated body overlaps
     body_width: float = 2.0  # [m] the other vehicles' width (highway-env's Vehicle.WIDTH), for body_extent
-    linear_mobil: bool = False  # robust: linear-model drivers' MOBIL criterion with their formula (else: any cut-in)
+    linear_mobil: bool = True  # robust: linear-model drivers' MOBIL criterion with their formula (else: any cut-in)
     reversing_leaders: bool = True  # a leader moving backwards keeps its reverse speed (else: taken as stopped)
     level_cut_ins: bool = True  # robust: a car level with or behind the ego in a next lane may turn in behind it
     level_incentive: bool = True  # level_cut_ins: only if MOBIL's incentive (its gain behind the ego) allows it
@@ -106,12 +106,12 @@ class Dynamics:
     least_bad_joint: bool = False  # no safe action: rank by the gap to everybody first (else: to vehicles ahead)
     full_horizon: bool = True  # the horizon spans the same seconds at every decision rate (else: the same decisions)
     ego_speed_magnitude: bool = True  # RoadState.ego_speed is the controller's speed (else: along the road)
-    turning_leaders: bool = False  # a moving leader brakes along its path, less a lane change's cost (experimental)
+    turning_leaders: bool = True  # a moving leader brakes along its path, less a lane change's cost
     robust_fallback: bool = False  # robust, nothing safe: least-bad of all available by robust gaps (experimental)
-    straight_fallback: bool = False  # turning_leaders, nothing safe: the mask of the rule without it (experimental)
-    linear_incentive: bool = False  # level_incentive: linear-model drivers' incentive with their formula (else any)
-    linear_incentive_braking: bool = False  # linear_incentive: also at every frame, their leaders braking fully
-    reversing_cut_ins: bool = False  # a car moving backwards may change into the ego's lane whatever MOBIL says
+    straight_fallback: bool = True  # turning_leaders, nothing safe: the mask of the rule without it
+    linear_incentive: bool = True  # level_incentive: linear-model drivers' incentive with their formula (else any)
+    linear_incentive_braking: bool = True  # linear_incentive: also at every frame, their leaders braking fully
+    reversing_cut_ins: bool = True  # a car moving backwards may change into the ego's lane whatever MOBIL says
 
     @property
     def horizon_decisions(self) -> int:
@@ -644,7 +644,9 @@ def evaluate(state: RoadState, dyn: Dynamics, mode: Mode = "robust", formula: Fo
     stopped = state.crashed  # a crashed vehicle is treated as a wall where it stands
     brake = np.where(stopped, 1e9, state.brake_max)
     lead_v = np.where(stopped[near], 0.0, state.vx[near])
-    allowance = turning_allowance(dyn)
+    # A heading effect, like cut-ins and body extent: robust only, so that nominal ⊇ robust stays true of the
+    # final masks with the straight fallback below (its mask is the straight rule's, inside nominal's).
+    allowance = turning_allowance(dyn) if mode == "robust" else 0.0
     turning = lead_v > 0.0
     if allowance > 0.0:  # turning_leaders: along its path, from its speed (issue 15, docs/safety.md §6f)
         vx_n, vy_n = state.vx[near], state.vy[near]

@@ -76,7 +76,7 @@ def dynamics_of(
     margin: float = DEFAULT_MARGIN,
     projected_cut_ins: bool = False,
     body_extent: bool = True,
-    linear_mobil: bool = False,
+    linear_mobil: bool = True,
     reversing_leaders: bool = True,
     level_cut_ins: bool = True,
     level_incentive: bool = True,
@@ -84,12 +84,12 @@ def dynamics_of(
     least_bad_joint: bool = False,
     full_horizon: bool = True,
     ego_speed_magnitude: bool = True,
-    turning_leaders: bool = False,
+    turning_leaders: bool = True,
     robust_fallback: bool = False,
-    straight_fallback: bool = False,
-    linear_incentive: bool = False,
-    linear_incentive_braking: bool = False,
-    reversing_cut_ins: bool = False,
+    straight_fallback: bool = True,
+    linear_incentive: bool = True,
+    linear_incentive_braking: bool = True,
+    reversing_cut_ins: bool = True,
 ) -> Dynamics:
     """The :class:`Dynamics` constants of the simulated world a snapshot was taken in; ``margin`` [m]: the
     bumper-to-bumper gap the rule keeps under its worst case; the rule's options as in :class:`Dynamics`."""
@@ -214,10 +214,10 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
     ``least_bad_joint``: with no safe action, rank by the worst gap to anybody first (else: to vehicles ahead).
     ``full_horizon``: the rule's horizon spans the same seconds at every decision rate (else: decisions).
     ``ego_speed_magnitude``: the ego's speed is its controller's (else: its component along the road).
-    ``turning_leaders`` (experimental): a moving leader brakes along its path, less a lane change's cost.
+    ``turning_leaders``: robust mode, a moving leader brakes along its path, less a lane change's cost.
     ``robust_fallback`` (experimental): with no safe action, robust mode takes the least-bad of every available
     action by its robust gaps (else: of the nominally safe ones when there are some).
-    ``straight_fallback`` (experimental): with ``turning_leaders`` and no safe action, the mask of the rule
+    ``straight_fallback``: with ``turning_leaders`` and no safe action, the mask of the rule
     without ``turning_leaders`` (its safe actions, else its least-bad one).
     ``linear_incentive``: with ``level_incentive``, a Linear, Aggressive or Defensive driver turns in behind the
     ego only when MOBIL's incentive with its own linear model lets it (else any such car may);
@@ -236,7 +236,7 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
         margin: float = DEFAULT_MARGIN,
         projected_cut_ins: bool = False,
         body_extent: bool = True,
-        linear_mobil: bool = False,
+        linear_mobil: bool = True,
         reversing_leaders: bool = True,
         level_cut_ins: bool = True,
         level_incentive: bool = True,
@@ -244,12 +244,12 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
         least_bad_joint: bool = False,
         full_horizon: bool = True,
         ego_speed_magnitude: bool = True,
-        turning_leaders: bool = False,
+        turning_leaders: bool = True,
         robust_fallback: bool = False,
-        straight_fallback: bool = False,
-        linear_incentive: bool = False,
-        linear_incentive_braking: bool = False,
-        reversing_cut_ins: bool = False,
+        straight_fallback: bool = True,
+        linear_incentive: bool = True,
+        linear_incentive_braking: bool = True,
+        reversing_cut_ins: bool = True,
     ) -> None:
         if not (math.isfinite(margin) and margin >= 0):
             raise ValueError(f"shield.margin: must be a finite number >= 0 [m] (got {margin!r})")

@@ -440,3 +440,17 @@ def test_reversing_cut_ins_bit_identical_and_only_stricter(case: tuple) -> None:
         assert not (b.safe & ~a.safe).any() and not (b.min_gap > a.min_gap).any()
         if not (state.vx < 0).any():
             assert_same(a, b)
+
+
+@PROPERTY_SETTINGS
+@given(case=road(extreme=True, rates=True))
+def test_the_ninth_session_s_rule_leaves_nominal_untouched(case: tuple) -> None:
+    """The options made default in issue 15's ninth session (linear drivers' MOBIL, turning leaders, the
+    straight fallback, reversing cut-ins) are all robust-mode parts: nominal (Q-masking) gives the same result
+    to the bit with or without them, in both engines."""
+    state, dyn, _ = case
+    names = ("linear_mobil", "linear_incentive", "linear_incentive_braking", "turning_leaders",
+             "straight_fallback", "reversing_cut_ins")  # fmt: skip
+    on, off = (dataclasses.replace(dyn, **dict.fromkeys(names, v)) for v in (True, False))
+    assert_same(model.evaluate(state, on, "nominal"), model.evaluate(state, off, "nominal"))
+    assert_same(compiled.evaluate_compiled(state, on, "nominal"), compiled.evaluate_compiled(state, off, "nominal"))

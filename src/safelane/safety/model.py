@@ -462,6 +462,9 @@ def _cut_in_candidates(
     not hold either (issue 15, the trained agents' cells 169 and 440: a car two lanes over, level with the
     ego, changed into the lane the ego was changing into — it saw no ego there when it decided): with
     ``level_entering`` every level car counts there.
+    A car moving backwards steers the wrong way (highway-env's steering assumes forward motion: a lane change
+    away from the ego swings its nose into the ego's lane; the trained agents' cell 615): with
+    ``reversing_cut_ins`` it may enter the ego's lanes whatever MOBIL says, ahead or level.
     ``ego_path``: the ego's positions [m] and speeds [m/s] at the decision's frames (0 … frames), for
     ``linear_incentive_braking``.
     """

@@ -7,9 +7,9 @@ decision of the fast simulator into simulator (everything below the shield) and 
 
     PYTHONPATH=src python examples/shield_cost.py --simulator fast --episodes 3
 
-``--rate P/S`` plays P decisions per second on S Hz physics; ``--compare OPTION`` also times the compiled
-kernel with that rule option (a ``Dynamics`` field, e.g. ``full_horizon``) off and on, side by side on the
-same states (interleaved, so the machine's noise hits both alike).
+``--rate P/S`` plays P decisions per second on S Hz physics; ``--compare OPTION[,OPTION…]`` also times the
+compiled kernel with those rule options (``Dynamics`` fields, e.g. ``full_horizon``) all off and all on, side
+by side on the same states (interleaved, so the machine's noise hits both alike).
 """
 
 from __future__ import annotations
@@ -45,7 +45,9 @@ def main() -> None:
     parser.add_argument("--episodes", type=int, default=3)
     parser.add_argument("--reps", type=int, default=20)
     parser.add_argument("--rate", default=None, help="P/S: P decisions per second on S Hz physics.")
-    parser.add_argument("--compare", default=None, help="A rule option (Dynamics field) to time off and on.")
+    parser.add_argument(
+        "--compare", default=None, help="Rule options (Dynamics fields, comma-separated) to time all off and all on."
+    )
     args = parser.parse_args()
 
     sets: dict[str, Any] = {"shield.mode": "robust", "shield.override": True}
@@ -94,7 +96,7 @@ def main() -> None:
             rows[f"{args.compare}={flag}"] = []
         for state, dyn in recorded:
             for flag in (False, True):
-                variant = dataclasses.replace(dyn, **{args.compare: flag})
+                variant = dataclasses.replace(dyn, **dict.fromkeys(args.compare.split(","), flag))
                 evaluate_compiled(state, variant, "robust")  # compile / warm up outside the timing
                 rows[f"{args.compare}={flag}"].append(
                     best_of(lambda: evaluate_compiled(state, variant, "robust"), args.reps)  # noqa: B023

@@ -288,7 +288,8 @@ def reversing_car_beside(mode: Mode = "robust", **kw: Any) -> Scene:
     forward motion, so reversing, its nose swung 0.49 rad into the ego's lane and hit it. By its MOBIL rule
     (``shield.linear_mobil``) it would not cut in, and IDLE, FASTER and SLOWER are safe; with
     ``shield.reversing_cut_ins`` a car moving backwards may enter the ego's lane whatever MOBIL says, and
-    nothing is safe. The default rule assumes any cut-in of a linear-model driver: nothing is safe either."""
+    nothing is safe (today's default, both options on). The rule before issue 15's ninth session assumed any
+    cut-in of a linear-model driver: nothing safe either."""
     from highway_env.vehicle.behavior import AggressiveVehicle
 
     specs = [

@@ -17,7 +17,7 @@ from safelane.env.factory import make_env
 from safelane.safety import compiled, model
 from safelane.safety.model import Dynamics, RoadState, SafetyResult
 from safelane.safety.shield import SafetyShield
-from test_safety import PROPERTY_SETTINGS, road
+from test_safety import NINTH_SESSION_OPTIONS, PROPERTY_SETTINGS, road
 
 MODES = ("nominal", "robust")
 
@@ -452,8 +452,6 @@ def test_the_ninth_session_s_rule_leaves_nominal_untouched(case: tuple) -> None:
     straight fallback, reversing cut-ins) are all robust-mode parts: nominal (Q-masking) gives the same result
     to the bit with or without them, in both engines."""
     state, dyn, _ = case
-    names = ("linear_mobil", "linear_incentive", "linear_incentive_braking", "turning_leaders",
-             "straight_fallback", "reversing_cut_ins")  # fmt: skip
-    on, off = (dataclasses.replace(dyn, **dict.fromkeys(names, v)) for v in (True, False))
+    on, off = (dataclasses.replace(dyn, **dict.fromkeys(NINTH_SESSION_OPTIONS, v)) for v in (True, False))
     assert_same(model.evaluate(state, on, "nominal"), model.evaluate(state, off, "nominal"))
     assert_same(compiled.evaluate_compiled(state, on, "nominal"), compiled.evaluate_compiled(state, off, "nominal"))

@@ -208,8 +208,8 @@ def test_recorded_configs_keep_the_rule_they_ran_with() -> None:
     assert build_config(old).shield.body_extent is True
     assert recorded_config(data).shield.body_extent is True
     # The ninth session's options (docs/safety.md §6i): on for a new configuration, off for one written before.
-    ninth = ("linear_mobil", "linear_incentive", "linear_incentive_braking", "turning_leaders", "straight_fallback",
-             "reversing_cut_ins")  # fmt: skip
+    from test_safety import NINTH_SESSION_OPTIONS as ninth
+
     assert all(data["shield"][name] is True for name in ninth)
     older = {**data, "shield": {k: v for k, v in data["shield"].items() if k not in ninth}}
     assert all(getattr(recorded_config(older).shield, name) is False for name in ninth)

@@ -27,11 +27,12 @@ def mask_of(*actions: int) -> list[bool]:
     return [a in actions for a in range(5)]
 
 
-EARLIER_RULE = {
-    f"shield.{name}": False
-    for name in ("linear_mobil", "linear_incentive", "linear_incentive_braking", "turning_leaders",
-                 "straight_fallback", "reversing_cut_ins")
-}  # fmt: skip
+NINTH_SESSION_OPTIONS = (
+    "linear_mobil", "linear_incentive", "linear_incentive_braking", "turning_leaders", "straight_fallback",
+    "reversing_cut_ins",
+)  # fmt: skip
+"""The rule options made default in issue 15's ninth session (docs/safety.md §6i)."""
+EARLIER_RULE = {f"shield.{name}": False for name in NINTH_SESSION_OPTIONS}
 """The options adopted in issue 15's ninth session, off: the rule under which a test of an earlier part of the
 rule derived its scene's exact gaps (each such test is about its own part; EXPECTED holds today's masks)."""
 

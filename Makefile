@@ -10,6 +10,8 @@ DEMO_OUT ?= runs/demo
 # numpy's AVX-512 tan/arctan differ from libm's in the last bit; the fast simulator (numba → libm)
 # matches highway-env bit for bit only with numpy on libm (safelane.sim.fast.libm). Ignored elsewhere.
 export NPY_DISABLE_CPU_FEATURES ?= X86_V4 AVX512_ICL AVX512_SPR
+# OpenBLAS's AVX-512 ddot fuses multiply-adds (LinearVehicle's np.dot steering): keep it on SSE kernels (libm.py).
+export OPENBLAS_CORETYPE ?= Nehalem
 
 $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)

@@ -8,6 +8,7 @@ os.environ.setdefault("SDL_VIDEODRIVER", "dummy")  # highway-env imports pygame;
 # numpy's AVX-512 tan/arctan are not libm's: keep numpy on libm so highway-env and the fast simulator
 # compute the same bits (safelane.sim.fast.libm; must precede numpy's import, the Makefile exports it too)
 os.environ.setdefault("NPY_DISABLE_CPU_FEATURES", "X86_V4 AVX512_ICL AVX512_SPR")
+os.environ.setdefault("OPENBLAS_CORETYPE", "Nehalem")  # no fused multiply-adds in np.dot (libm.py)
 
 import shutil
 import sys

@@ -446,6 +446,25 @@ def test_reversing_cut_ins_bit_identical_and_only_stricter(case: tuple) -> None:
 
 
 @PROPERTY_SETTINGS
+@given(case=road(extreme=True, rates=True, chained=True))
+def test_crossed_lanes_bit_identical_and_only_stricter(case: tuple) -> None:
+    """shield.crossed_lanes: the same in both engines at every rate, with the ego's target up to two lanes away;
+    it only adds the lanes the ego crosses (or keeps one it crosses for longer), so no action safe with it is
+    unsafe without it and no worst gap grows; an ego keeping its lane crosses nothing and is unchanged to the
+    bit. Both modes take the same lanes, so robust ⊆ nominal still holds for the final masks."""
+    state, dyn, _ = case
+    off, on = (dataclasses.replace(dyn, crossed_lanes=v) for v in (False, True))
+    assert mismatches(state, on) == [] and mismatches(state, off) == []
+    for mode in MODES:
+        a, b = model.evaluate(state, off, mode), model.evaluate(state, on, mode)
+        assert not (b.safe & ~a.safe).any() and not (b.min_gap > a.min_gap).any()
+        if state.ego_target_lane == state.ego_lane:
+            assert_same(a, b)
+    robust, nominal = model.evaluate(state, on, "robust"), model.evaluate(state, on, "nominal")
+    assert not (robust.mask & ~nominal.mask).any()
+
+
+@PROPERTY_SETTINGS
 @given(case=road(extreme=True, rates=True))
 def test_the_ninth_session_s_rule_leaves_nominal_untouched(case: tuple) -> None:
     """The options made default in issue 15's ninth session (linear drivers' MOBIL, turning leaders, the

@@ -94,6 +94,9 @@ EXPECTED = {
     # An Aggressive driver 8.9 m ahead in the next lane rolling backwards: it may enter the ego's lane whatever
     # MOBIL says (shield.reversing_cut_ins), so nothing is safe (test below). Nominal: the leader 22.6 m ahead.
     "reversing_car_beside": {"nominal": mask_of(I, F, S), "robust": mask_of(S)},
+    # The ego in lane 1 already heading for lane 3, a car 7.16 m behind in lane 2 at 19.95 m/s: the ego crosses
+    # lane 2 whole (shield.crossed_lanes, both modes), so nothing is safe; the least-bad FASTER is flagged.
+    "ego_crossing_a_lane": {"nominal": mask_of(F), "robust": mask_of(F)},
 }
 
 
@@ -108,6 +111,7 @@ def test_scenario_masks(name: str, mode: str, engine: str) -> None:
     fallbacks.add(("car_being_overtaken", "robust"))
     fallbacks |= {("closing_in_at_five_per_second", "nominal"), ("closing_in_at_five_per_second", "robust")}
     fallbacks |= {("ego_turning_into_its_lane", "robust"), ("reversing_car_beside", "robust")}
+    fallbacks |= {("ego_crossing_a_lane", "nominal"), ("ego_crossing_a_lane", "robust")}
     assert scene.result.fallback == ((name, mode) in fallbacks)
     available = scene.env.unwrapped.action_type.get_available_actions()
     assert set(np.flatnonzero(scene.mask)) <= set(available)
@@ -442,6 +446,25 @@ def test_reversing_cut_ins_sees_a_reversing_car_beside(engine: str) -> None:
 
 
 @pytest.mark.parametrize("engine", ["numpy", "compiled"])
+@pytest.mark.parametrize("mode", ["nominal", "robust"])
+def test_crossed_lanes_sees_the_lane_the_ego_crosses(engine: str, mode: str) -> None:
+    """The 100 800-episode campaign's cell 2833 at its break (docs/safety.md §6j): the ego in lane 1 heading for
+    lane 3, a car 7.16 m behind in lane 2 closing at 9.5 m/s. The earlier rule put the ego in lanes 1 and 3
+    only: IDLE, LANE_RIGHT, FASTER and SLOWER were safe (7.11 m robust, 8.77 m nominal: the car 13.77 m ahead
+    in lane 1) and the ego was rear-ended in lane 2 two decisions later. With shield.crossed_lanes (the
+    default since issue 15's tenth session) lane 2 is the ego's until it is through: the car there is a
+    follower it cannot outrun, nothing is safe (IDLE -35.22 m) and the least bad is FASTER (-27.25 m)."""
+    kw = {"shield.engine": engine}
+    earlier = scenarios.SCENARIOS["ego_crossing_a_lane"](mode=mode, **kw, **{"shield.crossed_lanes": False}).result
+    assert earlier.mask.tolist() == mask_of(I, R, F, S) and not earlier.fallback
+    kept = 7.11 if mode == "robust" else 8.77
+    assert earlier.min_gap[[I, R, F, S]] == pytest.approx([kept] * 4, abs=0.01)
+    crossed = scenarios.SCENARIOS["ego_crossing_a_lane"](mode=mode, **kw).result  # the default
+    assert crossed.mask.tolist() == mask_of(F) and crossed.fallback and not crossed.safe.any()
+    assert crossed.min_gap[[I, R, F, S]] == pytest.approx([-35.22, -35.22, -27.25, -42.21], abs=0.01)
+
+
+@pytest.mark.parametrize("engine", ["numpy", "compiled"])
 def test_level_incentive_lets_a_car_in_free_flow_stay_in_its_lane(engine: str) -> None:
     """A car 3 m behind the ego in the next lane at the ego's 25 m/s, nothing ahead of it; a leader 40 m ahead
     of the ego at 20 m/s. Behind the ego, 3 m centre to centre, IDM would brake it at 3·(47.5 / 3)² ≈ 750 m/s²
@@ -691,16 +714,17 @@ def vehicle(draw: st.DrawFn, lanes: int, extreme: bool = False) -> dict[str, flo
 
 @st.composite
 def road(
-    draw: st.DrawFn, extreme: bool = False, rates: bool = False
+    draw: st.DrawFn, extreme: bool = False, rates: bool = False, chained: bool = False
 ) -> tuple[RoadState, Dynamics, list[dict[str, float]]]:
-    """A random road at 1 decision per second, or (``rates``) at the falsification grid's 1, 2, 3 or 5."""
+    """A random road at 1 decision per second, or (``rates``) at the falsification grid's 1, 2, 3 or 5;
+    ``chained``: the ego's target lane may also be two lanes away (a lane change chained onto one under way)."""
     lanes = draw(st.integers(1, 5))
     sim_hz = draw(st.sampled_from([5, 15]))
     policy_hz = 1
     if rates:
         policy_hz, sim_hz = draw(st.sampled_from([(1, 5), (2, 10), (3, 15), (5, 15)]))
     ego_lane = draw(st.integers(0, lanes - 1))
-    change = draw(st.sampled_from([-1, 0, 1]))
+    change = draw(st.sampled_from([-2, -1, 0, 1, 2] if chained else [-1, 0, 1]))
     target_lane = int(np.clip(ego_lane + change, 0, lanes - 1))
     idx = draw(st.integers(0, len(SPEEDS) - 1))
     cars = draw(st.lists(vehicle(lanes, extreme), max_size=10))

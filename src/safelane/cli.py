@@ -182,7 +182,7 @@ def warn_if_numpy_is_not_libm() -> None:
     if not numpy_matches_libm():
         setting = " ".join(f"{k}='{v}'" for k, v in LIBM_NUMPY_ENV.items())
         stderr.print(
-            f"warning: numpy's tan/arctan are not libm's on this CPU (AVX-512): highway-env and the fast "
+            f"warning: numpy's tan/arctan or dot are not libm's on this CPU (AVX-512): highway-env and the fast "
             f"simulator will drift apart by ~1e-6 m; run with {setting} for identical trajectories",
             markup=False,
             highlight=False,

@@ -234,6 +234,14 @@ class ShieldConfig(_Section):
         "car's nose into the ego's lane (the agents' cell 615; docs/safety.md §6i). On by default since issue "
         "15's ninth session; false: MOBIL's verdict, as for any car.",
     )
+    crossed_lanes: bool = Field(
+        True,
+        strict=True,
+        description="The ego occupies every lane between its lane and its target lane until it is through, not "
+        "only those two: a lane change chained onto one under way (lane 0 → 1, then right again → 2) crosses "
+        "lane 1 whole, and a car there is a conflict for as long as the ego may be in it (cells 2009 and 2833; "
+        "docs/safety.md §6j). On by default since issue 15's tenth session; false: the earlier rule.",
+    )
 
     def rule_options(self) -> dict[str, bool]:
         """The rule's on/off options by name, as :class:`safelane.safety.shield.SafetyShield` and
@@ -645,6 +653,7 @@ RULE_OPTIONS = (
     "projected_cut_ins", "body_extent", "linear_mobil", "reversing_leaders", "level_cut_ins", "level_incentive",
     "level_entering", "least_bad_joint", "full_horizon", "ego_speed_magnitude", "turning_leaders",
     "robust_fallback", "straight_fallback", "linear_incentive", "linear_incentive_braking", "reversing_cut_ins",
+    "crossed_lanes",
 )  # fmt: skip
 """The :class:`ShieldConfig` fields that switch parts of the safety rule on or off (``ShieldConfig.rule_options``)."""
 
@@ -655,6 +664,8 @@ RULE_CHANGES: dict[str, Any] = {
     # issue 15's ninth session (docs/safety.md §6i)
     "linear_mobil": False, "linear_incentive": False, "linear_incentive_braking": False, "turning_leaders": False,
     "straight_fallback": False, "reversing_cut_ins": False,
+    # issue 15's tenth session (docs/safety.md §6j)
+    "crossed_lanes": False,
 }  # fmt: skip
 """Shield keys added with a new default that changes the rule: a *recorded* configuration (a run's
 config.yaml, a counterexample file) written before the key existed had the old behaviour, given here,

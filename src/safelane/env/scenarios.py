@@ -75,10 +75,12 @@ def build_scene(
     preset: str = "fast",
     ego_lateral: float = 0.0,
     ego_heading: float = 0.0,
+    ego_target_lane: int | None = None,
     **overrides: Any,
 ) -> Scene:
     """Place the ego at ``x = 200 m`` in ``ego_lane`` at ``ego_speed`` [m/s] and ``vehicles`` around it;
-    ``ego_lateral`` [m] off the lane's centre and ``ego_heading`` [rad] off its direction (mid lane change)."""
+    ``ego_lateral`` [m] off the lane's centre and ``ego_heading`` [rad] off its direction (mid lane change),
+    heading for ``ego_target_lane`` (None: its own lane)."""
     env = make_env(
         preset,
         seed=0,
@@ -95,6 +97,8 @@ def build_scene(
     ego.heading = ego_lane_obj.heading_at(200.0) + ego_heading
     ego.speed = float(ego_speed)
     ego.lane_index = ego.target_lane_index = (_from, _to, ego_lane)
+    if ego_target_lane is not None:
+        ego.target_lane_index = (_from, _to, ego_target_lane)
     ego.lane = ego_lane_obj
     target = ego_speed if ego_target_speed is None else ego_target_speed
     ego.speed_index = int(ego.speed_to_index(target))
@@ -300,6 +304,28 @@ def reversing_car_beside(mode: Mode = "robust", **kw: Any) -> Scene:
     return build_scene(0, 10.1, specs, mode=mode, lanes_count=5, ego_target_speed=10.0, **kw)
 
 
+def ego_crossing_a_lane(mode: Mode = "robust", **kw: Any) -> Scene:
+    """5 decisions per second, 6 lanes: the ego in lane 1 at 10.43 m/s (set-point 10), 1.90 m right of its
+    centre and turning at 0.764 rad, already heading for lane **3** (a lane change chained onto one under
+    way); a Defensive driver 7.16 m behind in lane 2 — the lane the ego must cross — at 19.95 m/s, another
+    13.77 m ahead in lane 1 at 18.01 m/s: the 100 800-episode campaign's cell 2833 (``cell02833-seed4028330025``)
+    at its break, one decision before the ego was rear-ended in lane 2. The earlier rule put the ego in its
+    lane and its target only, so the car in lane 2 was nobody's follower and IDLE, FASTER and SLOWER kept
+    7.11 m; with ``shield.crossed_lanes`` (today's default) lane 2 is the ego's until it is through, and
+    nothing is safe."""
+    from highway_env.vehicle.behavior import DefensiveVehicle
+
+    rate = {"env.policy_frequency": 5, "env.simulation_frequency": 15}
+    specs = [
+        VehicleSpec(2, -7.16, 19.95, vehicle_class=DefensiveVehicle),
+        VehicleSpec(1, 13.77, 18.01, vehicle_class=DefensiveVehicle),
+    ]
+    return build_scene(
+        1, 10.43, specs, mode=mode, lanes_count=6, ego_target_speed=10.0, ego_lateral=1.90, ego_heading=0.764,
+        ego_target_lane=3, **rate, **kw,
+    )  # fmt: skip
+
+
 SCENARIOS: dict[str, Callable[..., Scene]] = {
     "leader_braking": leader_braking,
     "stopped_car_ahead": stopped_car_ahead,
@@ -321,6 +347,7 @@ SCENARIOS: dict[str, Callable[..., Scene]] = {
     "ego_turning_into_its_lane": ego_turning_into_its_lane,
     "leader_may_turn_out": leader_may_turn_out,
     "reversing_car_beside": reversing_car_beside,
+    "ego_crossing_a_lane": ego_crossing_a_lane,
 }
 """Every scenario by name."""
 

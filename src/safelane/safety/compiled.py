@@ -155,7 +155,7 @@ def _evaluate_rule(
     relevance: float, lateral_threshold: float, robust: bool, projected_cut_ins: bool, body_extent: bool,
     body_width: float, linear_mobil: bool, reversing_leaders: bool, level_cut_ins: bool, level_incentive: bool,
     level_entering: bool, least_bad_joint: bool, robust_fallback: bool, linear_incentive: bool,
-    linear_incentive_braking: bool, reversing_cut_ins: bool, turning_allowance: float,
+    linear_incentive_braking: bool, reversing_cut_ins: bool, crossed_lanes: bool, turning_allowance: float,
     min_acc_gain: float,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, bool]:  # fmt: skip
     """``model.evaluate`` (formula ``kinematic``) of one state: (mask, safe, available, min_gap, fallback)."""
@@ -335,28 +335,31 @@ def _evaluate_rule(
     unfiltered = np.zeros((N_ACTIONS, m), dtype=np.bool_)
     level = np.zeros((N_ACTIONS, m), dtype=np.bool_)  # level with or behind the ego (level_cut_ins)
     level_any = np.zeros((N_ACTIONS, m), dtype=np.bool_)  # the same, no incentive filter (level_entering)
-    ego_lanes = np.empty(3, dtype=np.int64)
-    ego_until_leave = np.empty(3, dtype=np.bool_)  # until = ego_leave_time (else inf)
+    ego_lanes = np.empty(lanes_count + 1, dtype=np.int64)
+    ego_until_leave = np.empty(lanes_count + 1, dtype=np.bool_)  # until = ego_leave_time (else inf)
     target_clip = 0.0
     for a in range(N_ACTIONS):
         if not available[a]:
             continue
-        # _action_lanes: the sorted set {ego_lane, ego_target_lane}, then a lane change's new lane.
+        # _action_lanes: the sorted set {ego_lane, ego_target_lane} (with crossed_lanes every lane between
+        # them), then a lane change's new lane.
         lo_l, hi_l = min(ego_lane, ego_target_lane), max(ego_lane, ego_target_lane)
         n_el = 0
         if a != LANE_LEFT and a != LANE_RIGHT:
-            ego_lanes[0], ego_until_leave[0] = lo_l, False
-            n_el = 1
-            if hi_l != lo_l:
-                ego_lanes[1], ego_until_leave[1] = hi_l, False
-                n_el = 2
+            for lane in range(lo_l, hi_l + 1):
+                if lane == lo_l or lane == hi_l or crossed_lanes:
+                    ego_lanes[n_el], ego_until_leave[n_el] = lane, False
+                    n_el += 1
         else:
             step = -1 if a == LANE_LEFT else 1
             new_target = min(max(ego_target_lane + step, 0), lanes_count - 1)
-            for q in range(1 if hi_l == lo_l else 2):
-                lane = lo_l if q == 0 else hi_l
-                if lane != new_target:  # still overlapped until the ego has left it
-                    ego_lanes[n_el], ego_until_leave[n_el] = lane, True
+            lo_x, hi_x = min(ego_lane, new_target), max(ego_lane, new_target)  # crossed: strictly between
+            for lane in range(min(lo_l, lo_x), max(hi_l, hi_x) + 1):
+                if lane == new_target:
+                    continue
+                crossed = crossed_lanes and lo_x < lane < hi_x
+                if crossed or lane == lo_l or lane == hi_l:  # still overlapped until the ego has left it
+                    ego_lanes[n_el], ego_until_leave[n_el] = lane, not crossed
                     n_el += 1
             ego_lanes[n_el], ego_until_leave[n_el] = new_target, False
             n_el += 1
@@ -607,7 +610,7 @@ def _evaluate(
     relevance: float, lateral_threshold: float, robust: bool, projected_cut_ins: bool, body_extent: bool,
     body_width: float, linear_mobil: bool, reversing_leaders: bool, level_cut_ins: bool, level_incentive: bool,
     level_entering: bool, least_bad_joint: bool, robust_fallback: bool, straight_fallback: bool,
-    linear_incentive: bool, linear_incentive_braking: bool, reversing_cut_ins: bool, turning_allowance: float,
+    linear_incentive: bool, linear_incentive_braking: bool, reversing_cut_ins: bool, crossed_lanes: bool, turning_allowance: float,
     min_acc_gain: float,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, bool]:  # fmt: skip
     """:func:`_evaluate_rule`, and with ``straight_fallback`` (``model.evaluate``) a state the turning
@@ -624,7 +627,7 @@ def _evaluate(
         lane_width, lanes_count, follower_reaction, ego_leave_time, cut_in_time, margin, relevance,
         lateral_threshold, robust, projected_cut_ins, body_extent, body_width, linear_mobil, reversing_leaders,
         level_cut_ins, level_incentive, level_entering, least_bad_joint, robust_fallback, linear_incentive,
-        linear_incentive_braking, reversing_cut_ins, allowance, min_acc_gain,
+        linear_incentive_braking, reversing_cut_ins, crossed_lanes, allowance, min_acc_gain,
     )  # fmt: skip
     if not (out[4] and robust and straight_fallback and turning_allowance > 0.0):
         return out
@@ -636,7 +639,7 @@ def _evaluate(
         lane_width, lanes_count, follower_reaction, ego_leave_time, cut_in_time, margin, relevance,
         lateral_threshold, robust, projected_cut_ins, body_extent, body_width, linear_mobil, reversing_leaders,
         level_cut_ins, level_incentive, level_entering, least_bad_joint, robust_fallback, linear_incentive,
-        linear_incentive_braking, reversing_cut_ins, 0.0, min_acc_gain,
+        linear_incentive_braking, reversing_cut_ins, crossed_lanes, 0.0, min_acc_gain,
     )  # fmt: skip
     return straight[0].copy(), out[1], out[2], out[3], True
 
@@ -656,7 +659,7 @@ def _evaluate_snapshot(
     relevance: float, lateral_threshold: float, robust: bool, projected_cut_ins: bool, body_extent: bool,
     body_width: float, linear_mobil: bool, reversing_leaders: bool, level_cut_ins: bool, level_incentive: bool,
     level_entering: bool, least_bad_joint: bool, robust_fallback: bool, straight_fallback: bool,
-    linear_incentive: bool, linear_incentive_braking: bool, reversing_cut_ins: bool, ego_speed_magnitude: bool,
+    linear_incentive: bool, linear_incentive_braking: bool, reversing_cut_ins: bool, crossed_lanes: bool, ego_speed_magnitude: bool,
     turning_allowance: float,
     min_acc_gain: float,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, bool]:  # fmt: skip
@@ -706,7 +709,7 @@ def _evaluate_snapshot(
         follower_reaction, ego_leave_time, cut_in_time, margin, relevance, lateral_threshold, robust,
         projected_cut_ins, body_extent, body_width, linear_mobil, reversing_leaders, level_cut_ins, level_incentive,
         level_entering, least_bad_joint, robust_fallback, straight_fallback, linear_incentive,
-        linear_incentive_braking, reversing_cut_ins, turning_allowance, min_acc_gain,
+        linear_incentive_braking, reversing_cut_ins, crossed_lanes, turning_allowance, min_acc_gain,
     )  # fmt: skip
 
 
@@ -798,6 +801,7 @@ class KernelConstants(NamedTuple):
     linear_incentive: bool
     linear_incentive_braking: bool
     reversing_cut_ins: bool
+    crossed_lanes: bool
     ego_speed_magnitude: bool
     turning_allowance: float
     min_acc_gain: float
@@ -822,7 +826,7 @@ def kernel_constants(dyn: Dynamics) -> KernelConstants:
         dyn.straight_fallback,
         dyn.linear_incentive,
         dyn.linear_incentive_braking,
-        dyn.reversing_cut_ins,
+        dyn.reversing_cut_ins, dyn.crossed_lanes,
         dyn.ego_speed_magnitude,
         model.turning_allowance(dyn),
         _MIN_ACC_GAIN,
@@ -857,7 +861,7 @@ def evaluate_compiled(
         *_dynamics_args(dyn, dyn.ego_leave_time), mode == "robust", dyn.projected_cut_ins, dyn.body_extent,
         dyn.body_width, dyn.linear_mobil, dyn.reversing_leaders, dyn.level_cut_ins, dyn.level_incentive,
         dyn.level_entering, dyn.least_bad_joint, dyn.robust_fallback, dyn.straight_fallback, dyn.linear_incentive,
-        dyn.linear_incentive_braking, dyn.reversing_cut_ins, model.turning_allowance(dyn), _MIN_ACC_GAIN,
+        dyn.linear_incentive_braking, dyn.reversing_cut_ins, dyn.crossed_lanes, model.turning_allowance(dyn), _MIN_ACC_GAIN,
     )  # fmt: skip
     return _result(out)
 
@@ -892,7 +896,7 @@ def evaluate_snapshot(
         *_dynamics_args(dyn, ego_leave_time), mode == "robust", dyn.projected_cut_ins, dyn.body_extent,
         dyn.body_width, dyn.linear_mobil, dyn.reversing_leaders, dyn.level_cut_ins, dyn.level_incentive,
         dyn.level_entering, dyn.least_bad_joint, dyn.robust_fallback, dyn.straight_fallback, dyn.linear_incentive,
-        dyn.linear_incentive_braking, dyn.reversing_cut_ins, dyn.ego_speed_magnitude,
+        dyn.linear_incentive_braking, dyn.reversing_cut_ins, dyn.crossed_lanes, dyn.ego_speed_magnitude,
         model.turning_allowance(dyn),
         _MIN_ACC_GAIN,
     )  # fmt: skip

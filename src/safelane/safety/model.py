@@ -112,6 +112,7 @@ class Dynamics:
     linear_incentive: bool = True  # level_incentive: linear-model drivers' incentive with their formula (else any)
     linear_incentive_braking: bool = True  # linear_incentive: also at every frame, their leaders braking fully
     reversing_cut_ins: bool = True  # a car moving backwards may change into the ego's lane whatever MOBIL says
+    crossed_lanes: bool = True  # the ego occupies every lane between its lane and its target, until it is through
 
     @property
     def horizon_decisions(self) -> int:
@@ -362,14 +363,22 @@ def linear_acceleration_behind(
 
 
 def _action_lanes(state: RoadState, dyn: Dynamics, action: int) -> list[tuple[int, float]]:
-    """Lanes the ego occupies under ``action``, each with the time [s] until which it does (inf)."""
+    """Lanes the ego occupies under ``action``, each with the time [s] until which it does (inf).
+
+    With ``Dynamics.crossed_lanes`` also every lane the ego crosses on the way to its target: a lane
+    change chained onto one under way (lane 0 → 1, then RIGHT again → 2) takes the ego through lane 1 whole,
+    which the leave time of one lane change does not bound (issue 15, cells 2009 and 2833)."""
     base = {state.ego_lane, state.ego_target_lane}
     if action not in (LANE_LEFT, LANE_RIGHT):
+        if dyn.crossed_lanes:
+            base |= set(range(min(base), max(base) + 1))
         return [(lane, math.inf) for lane in sorted(base)]
     step = -1 if action == LANE_LEFT else 1
     new_target = int(np.clip(state.ego_target_lane + step, 0, dyn.lanes_count - 1))
-    lanes = [(lane, dyn.ego_leave_time) for lane in sorted(base) if lane != new_target]
-    return [*lanes, (new_target, math.inf)]
+    low, high = sorted((state.ego_lane, new_target))
+    crossed = set(range(low + 1, high)) if dyn.crossed_lanes else set()
+    lanes = [(lane, math.inf if lane in crossed else dyn.ego_leave_time) for lane in sorted(base | crossed)]
+    return [*[(lane, until) for lane, until in lanes if lane != new_target], (new_target, math.inf)]
 
 
 def available_actions(state: RoadState, dyn: Dynamics) -> np.ndarray:
@@ -821,7 +830,7 @@ def _paper_eq12(state: RoadState, dyn: Dynamics) -> tuple[np.ndarray, np.ndarray
     gaps = np.full(N_ACTIONS, np.inf)
     half = 0.5 * (state.length + state.ego_length)
     for a in range(N_ACTIONS):
-        for lane, _ in _action_lanes(state, dyn, a):
+        for lane, _ in _action_lanes(state, replace(dyn, crossed_lanes=False), a):  # as printed: two lanes
             for i in np.flatnonzero(lanes == lane):
                 denom = 2.0 * (abs(state.brake_max[i]) - ego_brake)
                 p_safe = (state.vx[i] - state.ego_speed) ** 2 / denom if denom > 0 else 0.0

@@ -90,6 +90,7 @@ def dynamics_of(
     linear_incentive: bool = True,
     linear_incentive_braking: bool = True,
     reversing_cut_ins: bool = True,
+    crossed_lanes: bool = True,
 ) -> Dynamics:
     """The :class:`Dynamics` constants of the simulated world a snapshot was taken in; ``margin`` [m]: the
     bumper-to-bumper gap the rule keeps under its worst case; the rule's options as in :class:`Dynamics`."""
@@ -122,6 +123,7 @@ def dynamics_of(
         linear_incentive=linear_incentive,
         linear_incentive_braking=linear_incentive_braking,
         reversing_cut_ins=reversing_cut_ins,
+        crossed_lanes=crossed_lanes,
         # The widest other body (every highway-env vehicle has Vehicle.WIDTH): the occupancy bound.
         body_width=float(np.max(snap.width)) if len(snap.width) else 2.0,
     )
@@ -224,6 +226,8 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
     ``linear_incentive_braking``: that incentive also at every frame of the decision, its leaders braking fully.
     ``reversing_cut_ins``: a car in a next lane moving backwards may change into the ego's lane whatever MOBIL
     says (highway-env's steering assumes forward motion: reversing, a lane change away swings its nose in).
+    ``crossed_lanes``: the ego occupies every lane between its lane and its target (a lane change chained onto
+    one under way crosses the lane in between whole), not only the two.
     """
 
     def __init__(
@@ -250,6 +254,7 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
         linear_incentive: bool = True,
         linear_incentive_braking: bool = True,
         reversing_cut_ins: bool = True,
+        crossed_lanes: bool = True,
     ) -> None:
         if not (math.isfinite(margin) and margin >= 0):
             raise ValueError(f"shield.margin: must be a finite number >= 0 [m] (got {margin!r})")
@@ -282,6 +287,7 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
             linear_incentive=linear_incentive,
             linear_incentive_braking=linear_incentive_braking,
             reversing_cut_ins=reversing_cut_ins,
+            crossed_lanes=crossed_lanes,
         )
         try:
             env.get_wrapper_attr("road_snapshot")
@@ -309,6 +315,7 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
         self.linear_incentive = bool(linear_incentive)
         self.linear_incentive_braking = bool(linear_incentive_braking)
         self.reversing_cut_ins = bool(reversing_cut_ins)
+        self.crossed_lanes = bool(crossed_lanes)
         self._rule_options = {name: getattr(self, name) for name in RULE_OPTIONS}  # dynamics_of's keywords
         self.dynamics: Dynamics | None = None
         self.result: SafetyResult | None = None

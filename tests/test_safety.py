@@ -14,7 +14,8 @@ from hypothesis import strategies as st
 from safelane.core.spaces import FASTER, IDLE, LANE_LEFT, LANE_RIGHT, SLOWER
 from safelane.env import scenarios
 from safelane.safety.compiled import evaluate_compiled
-from safelane.safety.model import Dynamics, RoadState, SafetyResult, ego_trajectories, evaluate
+from safelane.safety.model import Dynamics, RoadState, SafetyResult, ego_lane_windows, ego_trajectories, evaluate
+from safelane.safety.shield import ego_leave_time_at
 
 EVALUATORS = pytest.mark.parametrize("evaluate", [evaluate, evaluate_compiled], ids=["numpy", "compiled"])
 """Every test that calls the safety model runs on the reference and on its compiled port."""
@@ -97,6 +98,10 @@ EXPECTED = {
     # The ego in lane 1 already heading for lane 3, a car 7.16 m behind in lane 2 at 19.95 m/s: the ego crosses
     # lane 2 whole (shield.crossed_lanes, both modes), so nothing is safe; the least-bad FASTER is flagged.
     "ego_crossing_a_lane": {"nominal": mask_of(F), "robust": mask_of(F)},
+    # The ego 0.2 s into a change to lane 0, a hard-braking queue ahead in lane 1: LANE_LEFT keeps the change
+    # under way and is safe; IDLE, which keeps it under way too, counts lane 1 as the ego's for good (unless
+    # shield.lateral_schedule, experimental: test below).
+    "ego_leaving_its_lane": {"nominal": mask_of(L), "robust": mask_of(L)},
 }
 
 
@@ -464,6 +469,46 @@ def test_crossed_lanes_sees_the_lane_the_ego_crosses(engine: str, mode: str) -> 
     assert crossed.min_gap[[I, R, F, S]] == pytest.approx([-35.22, -35.22, -27.25, -42.21], abs=0.01)
 
 
+@pytest.mark.parametrize(("policy_hz", "sim_hz"), [(1, 5), (2, 10), (3, 15), (5, 15)])
+def test_lateral_schedule_from_a_lane_centre_is_the_leave_time(policy_hz: int, sim_hz: int) -> None:
+    """shield.lateral_schedule simulates highway-env's lateral controller itself; from a lane centre, heading
+    along the road, its time in the old lane is exactly the leave time the shield takes from highway-env's own
+    ControlledVehicle (``lane_change_timing``, plus one frame), at every speed the shield uses (0 to 40 m/s by
+    0.5; at a standstill the ego never leaves: inf; below about 1 m/s lane_change_timing gives up after 6 s, the
+    schedule runs the horizon), and IDLE with no lane change under way keeps the lane."""
+    dyn = dataclasses.replace(dynamics(4, sim_hz, policy_hz), lateral_schedule=True)
+    for row in range(81):
+        speed = row / 2
+        at = dataclasses.replace(dyn, ego_lateral_speed=speed)
+        state = RoadState(ego_x=0.0, ego_y=4.0, ego_speed=speed, ego_lane=1, ego_target_lane=1,
+                          ego_target_speed=0.0, ego_speed_index=0)  # fmt: skip
+        leave = ego_leave_time_at(dyn, speed)
+        for final in (0, 2):
+            windows = ego_lane_windows(state, at, final)
+            assert windows[1:] == [(final, math.inf)] and windows[0][0] == 1
+            if math.isfinite(leave):
+                assert windows[0][1] == leave, (speed, final)
+            else:  # lane_change_timing gives up after 6 s; the schedule runs the whole horizon
+                assert windows[0][1] > 6.0, (speed, final)
+        assert ego_lane_windows(state, at, 1) == [(1, math.inf)]
+
+
+@pytest.mark.parametrize("engine", ["numpy", "compiled"])
+def test_lateral_schedule_does_not_restart_the_ego_s_leave_time(engine: str) -> None:
+    """The 100 800-episode campaign's cell 2569 at its break (docs/safety.md §6j), rebuilt: 5 decisions per
+    second, the ego in lane 1 already 0.2 s into a change to lane 0 (heading -0.163 rad) at 27.53 m/s behind a
+    hard-braking queue. The earlier rule timed its exit from lane 1 from a lane centre at every decision, so the
+    exit it promised slid 0.2 s later each decision and the state after LANE_LEFT had no safe action; IDLE,
+    which keeps the change under way, counted lane 1 as the ego's for good. With shield.lateral_schedule the
+    exit is simulated from where the ego is: IDLE and SLOWER are as safe as LANE_LEFT."""
+    kw = {"shield.engine": engine}
+    earlier = scenarios.SCENARIOS["ego_leaving_its_lane"](**kw).result
+    assert earlier.mask.tolist() == mask_of(L) and not earlier.fallback
+    schedule = scenarios.SCENARIOS["ego_leaving_its_lane"](**kw, **{"shield.lateral_schedule": True}).result
+    assert schedule.mask.tolist() == mask_of(L, I, S) and not schedule.fallback
+    assert schedule.min_gap[[L, I, S]] == pytest.approx([earlier.min_gap[L]] * 3, abs=1e-9)
+
+
 @pytest.mark.parametrize("engine", ["numpy", "compiled"])
 def test_level_incentive_lets_a_car_in_free_flow_stay_in_its_lane(engine: str) -> None:
     """A car 3 m behind the ego in the next lane at the ego's 25 m/s, nothing ahead of it; a leader 40 m ahead
@@ -714,10 +759,12 @@ def vehicle(draw: st.DrawFn, lanes: int, extreme: bool = False) -> dict[str, flo
 
 @st.composite
 def road(
-    draw: st.DrawFn, extreme: bool = False, rates: bool = False, chained: bool = False
+    draw: st.DrawFn, extreme: bool = False, rates: bool = False, chained: bool = False, lateral: bool = False
 ) -> tuple[RoadState, Dynamics, list[dict[str, float]]]:
     """A random road at 1 decision per second, or (``rates``) at the falsification grid's 1, 2, 3 or 5;
-    ``chained``: the ego's target lane may also be two lanes away (a lane change chained onto one under way)."""
+    ``chained``: the ego's target lane may also be two lanes away (a lane change chained onto one under way);
+    ``lateral``: the ego off its lane's centre and turned, with the speed its lateral motion is simulated at
+    (``Dynamics.ego_lateral_speed``, a multiple of 0.5 m/s as the shield takes it) and its leave time."""
     lanes = draw(st.integers(1, 5))
     sim_hz = draw(st.sampled_from([5, 15]))
     policy_hz = 1
@@ -730,7 +777,13 @@ def road(
     cars = draw(st.lists(vehicle(lanes, extreme), max_size=10))
     ego_x = 200.0
     state = make_state(ego_x, ego_lane, target_lane, draw(st.floats(0.0, 40.0 if extreme else 32.0)), idx, cars)
-    return state, dynamics(lanes, sim_hz, policy_hz), cars
+    dyn = dynamics(lanes, sim_hz, policy_hz)
+    if lateral:
+        offset, heading = draw(st.floats(-2.0, 2.0)), draw(st.floats(-0.8, 0.8))
+        state = dataclasses.replace(state, ego_y=state.ego_y + offset, ego_heading=heading)
+        speed = draw(st.integers(0, 80)) / 2
+        dyn = dataclasses.replace(dyn, ego_lateral_speed=speed, ego_leave_time=ego_leave_time_at(dyn, speed))
+    return state, dyn, cars
 
 
 def make_state(

@@ -242,6 +242,14 @@ class ShieldConfig(_Section):
         "lane 1 whole, and a car there is a conflict for as long as the ego may be in it (cells 2009 and 2833; "
         "docs/safety.md §6j). On by default since issue 15's tenth session; false: the earlier rule.",
     )
+    lateral_schedule: bool = Field(
+        False,
+        strict=True,
+        description="Experimental: the time the ego spends in each lane it overlaps, simulated with highway-env's "
+        "lateral controller from its lateral position and heading, instead of a lane change's leave time from a "
+        "lane centre restarted at every decision (cell 2569; docs/safety.md §6j). Replaces crossed_lanes' "
+        "bookkeeping when on.",
+    )
 
     def rule_options(self) -> dict[str, bool]:
         """The rule's on/off options by name, as :class:`safelane.safety.shield.SafetyShield` and
@@ -653,7 +661,7 @@ RULE_OPTIONS = (
     "projected_cut_ins", "body_extent", "linear_mobil", "reversing_leaders", "level_cut_ins", "level_incentive",
     "level_entering", "least_bad_joint", "full_horizon", "ego_speed_magnitude", "turning_leaders",
     "robust_fallback", "straight_fallback", "linear_incentive", "linear_incentive_braking", "reversing_cut_ins",
-    "crossed_lanes",
+    "crossed_lanes", "lateral_schedule",
 )  # fmt: skip
 """The :class:`ShieldConfig` fields that switch parts of the safety rule on or off (``ShieldConfig.rule_options``)."""
 

@@ -121,7 +121,8 @@ def _observe_one(
     kernel_lanes_count, follower_reaction, cut_in_time, margin, relevance, lateral_threshold,
     projected_cut_ins, body_extent, body_width, linear_mobil, reversing_leaders, level_cut_ins, level_incentive,
     level_entering, least_bad_joint, robust_fallback, straight_fallback, linear_incentive, linear_incentive_braking,
-    reversing_cut_ins, crossed_lanes, ego_speed_magnitude,
+    reversing_cut_ins, crossed_lanes, lateral_schedule, ego_width, kp_lateral, kp_heading, max_steering,
+    ego_speed_magnitude,
     turning_allowance, min_acc_gain,
     obs, masks, fallback, forward, crashed_ego, speed_ego, bad,
 ):  # fmt: skip
@@ -165,22 +166,25 @@ def _observe_one(
     slowest = min(ego_speed, target) - slowdown
     top = leave_table.shape[0] - 1  # the table's last entry: the fastest speed it holds
     if slowest * 2 >= top:
-        leave = leave_table[top]
+        row = top
     elif slowest < 0.0:
-        leave = leave_table[0]
+        row = 0
     else:
-        leave = leave_table[math.floor(slowest * 2)]
+        row = math.floor(slowest * 2)
+    leave = leave_table[row]
+    lateral_speed = row / 2  # the speed the leave time is taken at (Dynamics.ego_lateral_speed)
     d = drivers[i]
     out = snapshot_kernel(
         position, speed, heading, length[i], crashed, d[0], d[1], can_change_lane[i], d[2], d[3], d[4],
         d[5], d[6], d[7], d[8], d[9], d[10],
         0, lane[0], G[i, 0, K.TLANE], target, E[i, 0], origin, direction, lateral, lane_heading,
         speed_limit, ts, t, powers, tie_break, decision_period, frame_dt, frames, horizon, ego_kp,
-        kernel_lane_width, kernel_lanes_count, follower_reaction, leave, cut_in_time, margin, relevance,
+        kernel_lane_width, kernel_lanes_count, follower_reaction, leave, lateral_speed, cut_in_time, margin, relevance,
         lateral_threshold, robust, projected_cut_ins, body_extent, body_width, linear_mobil, reversing_leaders,
         level_cut_ins, level_incentive, level_entering, least_bad_joint, robust_fallback, straight_fallback,
         linear_incentive,
-        linear_incentive_braking, reversing_cut_ins, crossed_lanes, ego_speed_magnitude,
+        linear_incentive_braking, reversing_cut_ins, crossed_lanes, lateral_schedule, ego_width, kp_lateral,
+        kp_heading, max_steering, ego_speed_magnitude,
         turning_allowance, min_acc_gain,
     )  # fmt: skip
     masks[i] = out[0]
@@ -433,7 +437,7 @@ _NO_FRAME = tuple(_readonly(np.zeros(2)) for _ in range(3))
 _NO_SHIELD = (
     _readonly(np.zeros(1)), _readonly(np.zeros(1)), _readonly(np.zeros(1)), np.zeros(1, dtype=np.int64), 1.0, 1.0,
     1, 1, 1.0, 4.0, 1, 0.0, 0.0, 0.0, 0.0, 0.0, False, False, 0.0, False, False, False, False, False,
-    False, False, False, False, False, False, False, False, 0.0, 0.0,
+    False, False, False, False, False, False, False, False, 2.0, 1.0, 1.0, 1.0, False, 0.0, 0.0,
 )  # fmt: skip
 """Placeholders of :class:`safelane.safety.compiled.KernelConstants`'s fields when no shield runs (typed
 as the real ones, so both cases share one compiled kernel)."""

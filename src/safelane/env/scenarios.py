@@ -326,6 +326,28 @@ def ego_crossing_a_lane(mode: Mode = "robust", **kw: Any) -> Scene:
     )  # fmt: skip
 
 
+def ego_leaving_its_lane(mode: Mode = "robust", **kw: Any) -> Scene:
+    """5 decisions per second, 4 lanes of Aggressive drivers braking hard: the ego in lane 1, 0.80 m left of its
+    centre and turned -0.163 rad, 0.2 s into a change to lane 0, at 27.53 m/s (set-point 30); cars 20.9 and
+    31.55 m ahead in lane 1, 41.03 and 51.44 m ahead in lane 0, followers in every lane — the 100 800-episode
+    campaign's cell 2569 (``cell02569-seed4025690016``) at the decision before its break. LANE_LEFT keeps the
+    change under way and is safe (2.74 m): the ego is out of lane 1 before the braking leader there matters.
+    The earlier rule timed that exit from a lane centre at every decision, so one decision later it promised it
+    0.2 s later than now, and nothing was safe (the break); and IDLE, which in highway-env keeps the change
+    under way just as LANE_LEFT does, counted lane 1 as the ego's for good. ``shield.lateral_schedule``
+    simulates the exit from where the ego is."""
+    from highway_env.vehicle.behavior import AggressiveVehicle
+
+    rate = {"env.policy_frequency": 5, "env.simulation_frequency": 15}
+    cars = [(2, 9.65, 20.12), (1, 20.9, 21.08), (1, 31.55, 23.31), (0, 41.03, 19.56), (0, 51.44, 22.66),
+            (2, -11.96, 23.54), (1, -23.65, 24.47), (0, -34.97, 26.94), (3, -48.0, 28.01)]  # fmt: skip
+    specs = [VehicleSpec(lane, dx, speed, vehicle_class=AggressiveVehicle) for lane, dx, speed in cars]
+    return build_scene(
+        1, 27.53, specs, mode=mode, lanes_count=4, ego_target_speed=30.0, ego_lateral=-0.80, ego_heading=-0.163,
+        ego_target_lane=0, **rate, **kw,
+    )  # fmt: skip
+
+
 SCENARIOS: dict[str, Callable[..., Scene]] = {
     "leader_braking": leader_braking,
     "stopped_car_ahead": stopped_car_ahead,
@@ -348,6 +370,7 @@ SCENARIOS: dict[str, Callable[..., Scene]] = {
     "leader_may_turn_out": leader_may_turn_out,
     "reversing_car_beside": reversing_car_beside,
     "ego_crossing_a_lane": ego_crossing_a_lane,
+    "ego_leaving_its_lane": ego_leaving_its_lane,
 }
 """Every scenario by name."""
 

@@ -141,9 +141,53 @@ def _follower_row(
 
 
 @njit(cache=True, error_model="numpy")
+def _ego_lane_windows(
+    y: float, heading: float, ego_length: float, final: int, lanes: int, width: float, dt: float, frames: int,
+    speed: float, ego_width: float, body_width: float, kp_lateral: float, kp_heading: float, max_steering: float,
+    last: np.ndarray, out_lanes: np.ndarray, out_until: np.ndarray,
+) -> int:  # fmt: skip
+    """``model.ego_lane_windows`` line for line: the lanes into ``out_lanes`` and their times [s] into
+    ``out_until`` (``last``: scratch, one entry per lane); returns how many."""
+    half_length = 0.5 * ego_length
+    target_y = final * width
+    for lane in range(lanes):
+        last[lane] = -1
+    end = frames
+    for k in range(frames + 1):
+        reach = 0.5 * ego_width * math.cos(heading) + half_length * abs(math.sin(heading))
+        alone = True
+        for lane in range(lanes):
+            if abs(y - lane * width) < reach + 0.5 * body_width:
+                last[lane] = k
+                alone = alone and lane == final
+        end = k
+        if k == frames or not speed > 0.0 or (alone and (y - target_y) * heading <= 0.0):
+            break
+        lateral_speed_command = -kp_lateral * (y - target_y)
+        heading_command = math.asin(min(max(lateral_speed_command / speed, -1.0), 1.0))
+        heading_ref = min(max(heading_command, -0.25 * math.pi), 0.25 * math.pi)
+        heading_rate_command = kp_heading * (heading_ref - heading)
+        slip = math.asin(min(max(half_length / speed * heading_rate_command, -1.0), 1.0))
+        steering = min(max(math.atan(2.0 * math.tan(slip)), -max_steering), max_steering)
+        beta = math.atan(0.5 * math.tan(steering))
+        y = y + speed * math.sin(heading + beta) * dt
+        heading = heading + speed * math.sin(beta) / half_length * dt
+    n = 0
+    for lane in range(lanes):
+        if lane == final or last[lane] < 0:
+            continue
+        out_lanes[n] = lane
+        out_until[n] = math.inf if last[lane] == end else (last[lane] + 1) * dt + dt
+        n += 1
+    out_lanes[n] = final
+    out_until[n] = math.inf
+    return n + 1
+
+
+@njit(cache=True, error_model="numpy")
 def _evaluate_rule(
     ego_x: float, ego_speed: float, ego_lane: int, ego_target_lane: int, ego_target_speed: float,
-    ego_speed_index: int, ego_length: float, speed_limit: float,
+    ego_speed_index: int, ego_length: float, speed_limit: float, ego_y: float, ego_heading: float,
     x: np.ndarray, y: np.ndarray, vx: np.ndarray, vy: np.ndarray, heading: np.ndarray, length: np.ndarray,
     crashed: np.ndarray, brake_max: np.ndarray, accel_max: np.ndarray, can_change_lane: np.ndarray,
     idm_delta: np.ndarray, idm_comfort_acc: np.ndarray, idm_comfort_dec: np.ndarray,
@@ -151,11 +195,14 @@ def _evaluate_rule(
     lin_k0: np.ndarray, lin_k1: np.ndarray, lin_k2: np.ndarray,
     ts: np.ndarray, t: np.ndarray, powers: np.ndarray, tie_break: np.ndarray,
     decision_period: float, frame_dt: float, frames: int, horizon: int, ego_kp: float, lane_width: float,
-    lanes_count: int, follower_reaction: float, ego_leave_time: float, cut_in_time: float, margin: float,
+    lanes_count: int, follower_reaction: float, ego_leave_time: float, ego_lateral_speed: float,
+    cut_in_time: float, margin: float,
     relevance: float, lateral_threshold: float, robust: bool, projected_cut_ins: bool, body_extent: bool,
     body_width: float, linear_mobil: bool, reversing_leaders: bool, level_cut_ins: bool, level_incentive: bool,
     level_entering: bool, least_bad_joint: bool, robust_fallback: bool, linear_incentive: bool,
-    linear_incentive_braking: bool, reversing_cut_ins: bool, crossed_lanes: bool, turning_allowance: float,
+    linear_incentive_braking: bool, reversing_cut_ins: bool, crossed_lanes: bool, lateral_schedule: bool,
+    ego_width: float, kp_lateral: float,
+    kp_heading: float, max_steering: float, turning_allowance: float,
     min_acc_gain: float,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, bool]:  # fmt: skip
     """``model.evaluate`` (formula ``kinematic``) of one state: (mask, safe, available, min_gap, fallback)."""
@@ -316,10 +363,6 @@ def _evaluate_rule(
     lo_cut = 0
     while lo_cut < n_t and not (t[lo_cut] >= cut_in_time):
         lo_cut += 1
-    hi_leave = n_t - 1
-    while hi_leave >= 0 and not (t[hi_leave] <= ego_leave_time):
-        hi_leave -= 1
-    hi_inf = n_t - 1
 
     inf = math.inf
     joint_gap = np.full((N_ACTIONS, N_FALLBACKS), inf)
@@ -336,19 +379,30 @@ def _evaluate_rule(
     level = np.zeros((N_ACTIONS, m), dtype=np.bool_)  # level with or behind the ego (level_cut_ins)
     level_any = np.zeros((N_ACTIONS, m), dtype=np.bool_)  # the same, no incentive filter (level_entering)
     ego_lanes = np.empty(lanes_count + 1, dtype=np.int64)
-    ego_until_leave = np.empty(lanes_count + 1, dtype=np.bool_)  # until = ego_leave_time (else inf)
+    ego_until = np.empty(lanes_count + 1)  # [s] until when the ego is in the lane (inf: for good)
+    ego_hi = np.empty(lanes_count + 1, dtype=np.int64)  # the last frame of that window
+    last_frame = np.empty(lanes_count, dtype=np.int64)
     target_clip = 0.0
     for a in range(N_ACTIONS):
         if not available[a]:
             continue
         # _action_lanes: the sorted set {ego_lane, ego_target_lane} (with crossed_lanes every lane between
-        # them), then a lane change's new lane.
+        # them), then a lane change's new lane; with lateral_schedule, model.ego_lane_windows.
         lo_l, hi_l = min(ego_lane, ego_target_lane), max(ego_lane, ego_target_lane)
         n_el = 0
-        if a != LANE_LEFT and a != LANE_RIGHT:
+        if lateral_schedule:
+            final = ego_target_lane
+            if a == LANE_LEFT or a == LANE_RIGHT:  # noqa: SIM109 (numba)
+                final = min(max(ego_target_lane + (-1 if a == LANE_LEFT else 1), 0), lanes_count - 1)
+            n_el = _ego_lane_windows(
+                ego_y, ego_heading, ego_length, final, lanes_count, lane_width, frame_dt, n_t - 1,
+                ego_lateral_speed, ego_width, body_width, kp_lateral, kp_heading, max_steering, last_frame,
+                ego_lanes, ego_until,
+            )  # fmt: skip
+        elif a != LANE_LEFT and a != LANE_RIGHT:
             for lane in range(lo_l, hi_l + 1):
-                if lane == lo_l or lane == hi_l or crossed_lanes:
-                    ego_lanes[n_el], ego_until_leave[n_el] = lane, False
+                if lane == lo_l or lane == hi_l or crossed_lanes:  # noqa: SIM109 (numba)
+                    ego_lanes[n_el], ego_until[n_el] = lane, inf
                     n_el += 1
         else:
             step = -1 if a == LANE_LEFT else 1
@@ -358,11 +412,16 @@ def _evaluate_rule(
                 if lane == new_target:
                     continue
                 crossed = crossed_lanes and lo_x < lane < hi_x
-                if crossed or lane == lo_l or lane == hi_l:  # still overlapped until the ego has left it
-                    ego_lanes[n_el], ego_until_leave[n_el] = lane, not crossed
+                if crossed or lane == lo_l or lane == hi_l:  # noqa: SIM109 (numba) still overlapped until it has left
+                    ego_lanes[n_el], ego_until[n_el] = lane, inf if crossed else ego_leave_time
                     n_el += 1
-            ego_lanes[n_el], ego_until_leave[n_el] = new_target, False
+            ego_lanes[n_el], ego_until[n_el] = new_target, inf
             n_el += 1
+        for e in range(n_el):  # the model's window t <= until: its last frame
+            hi_e = n_t - 1
+            while hi_e >= 0 and not (t[hi_e] <= ego_until[e]):
+                hi_e -= 1
+            ego_hi[e] = hi_e
 
         slot = -1
         if robust:
@@ -519,7 +578,7 @@ def _evaluate_rule(
             for e in range(n_el):
                 if ego_lanes[e] != lane_c:
                     continue
-                hi = hi_leave if ego_until_leave[e] else hi_inf
+                hi = ego_hi[e]
                 ahead_r = is_ahead[r] and not follows
                 sign = 1.0 if ahead_r else -1.0
                 motion = foll_x if follows else other_x
@@ -598,7 +657,7 @@ def _evaluate_rule(
 @njit(cache=True, error_model="numpy")
 def _evaluate(
     ego_x: float, ego_speed: float, ego_lane: int, ego_target_lane: int, ego_target_speed: float,
-    ego_speed_index: int, ego_length: float, speed_limit: float,
+    ego_speed_index: int, ego_length: float, speed_limit: float, ego_y: float, ego_heading: float,
     x: np.ndarray, y: np.ndarray, vx: np.ndarray, vy: np.ndarray, heading: np.ndarray, length: np.ndarray,
     crashed: np.ndarray, brake_max: np.ndarray, accel_max: np.ndarray, can_change_lane: np.ndarray,
     idm_delta: np.ndarray, idm_comfort_acc: np.ndarray, idm_comfort_dec: np.ndarray,
@@ -606,11 +665,14 @@ def _evaluate(
     lin_k0: np.ndarray, lin_k1: np.ndarray, lin_k2: np.ndarray,
     ts: np.ndarray, t: np.ndarray, powers: np.ndarray, tie_break: np.ndarray,
     decision_period: float, frame_dt: float, frames: int, horizon: int, ego_kp: float, lane_width: float,
-    lanes_count: int, follower_reaction: float, ego_leave_time: float, cut_in_time: float, margin: float,
+    lanes_count: int, follower_reaction: float, ego_leave_time: float, ego_lateral_speed: float,
+    cut_in_time: float, margin: float,
     relevance: float, lateral_threshold: float, robust: bool, projected_cut_ins: bool, body_extent: bool,
     body_width: float, linear_mobil: bool, reversing_leaders: bool, level_cut_ins: bool, level_incentive: bool,
     level_entering: bool, least_bad_joint: bool, robust_fallback: bool, straight_fallback: bool,
-    linear_incentive: bool, linear_incentive_braking: bool, reversing_cut_ins: bool, crossed_lanes: bool, turning_allowance: float,
+    linear_incentive: bool, linear_incentive_braking: bool, reversing_cut_ins: bool, crossed_lanes: bool,
+    lateral_schedule: bool, ego_width: float, kp_lateral: float,
+    kp_heading: float, max_steering: float, turning_allowance: float,
     min_acc_gain: float,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, bool]:  # fmt: skip
     """:func:`_evaluate_rule`, and with ``straight_fallback`` (``model.evaluate``) a state the turning
@@ -621,25 +683,29 @@ def _evaluate(
         allowance = 0.0
     out = _evaluate_rule(
         ego_x, ego_speed, ego_lane, ego_target_lane, ego_target_speed, ego_speed_index, ego_length, speed_limit,
+        ego_y, ego_heading,
         x, y, vx, vy, heading, length, crashed, brake_max, accel_max, can_change_lane, idm_delta,
         idm_comfort_acc, idm_comfort_dec, idm_distance_wanted, idm_time_wanted, max_braking_imposed,
         lin_k0, lin_k1, lin_k2, ts, t, powers, tie_break, decision_period, frame_dt, frames, horizon, ego_kp,
-        lane_width, lanes_count, follower_reaction, ego_leave_time, cut_in_time, margin, relevance,
+        lane_width, lanes_count, follower_reaction, ego_leave_time, ego_lateral_speed, cut_in_time, margin, relevance,
         lateral_threshold, robust, projected_cut_ins, body_extent, body_width, linear_mobil, reversing_leaders,
         level_cut_ins, level_incentive, level_entering, least_bad_joint, robust_fallback, linear_incentive,
-        linear_incentive_braking, reversing_cut_ins, crossed_lanes, allowance, min_acc_gain,
+        linear_incentive_braking, reversing_cut_ins, crossed_lanes, lateral_schedule, ego_width, kp_lateral,
+        kp_heading, max_steering, allowance, min_acc_gain,
     )  # fmt: skip
     if not (out[4] and robust and straight_fallback and turning_allowance > 0.0):
         return out
     straight = _evaluate_rule(
         ego_x, ego_speed, ego_lane, ego_target_lane, ego_target_speed, ego_speed_index, ego_length, speed_limit,
+        ego_y, ego_heading,
         x, y, vx, vy, heading, length, crashed, brake_max, accel_max, can_change_lane, idm_delta,
         idm_comfort_acc, idm_comfort_dec, idm_distance_wanted, idm_time_wanted, max_braking_imposed,
         lin_k0, lin_k1, lin_k2, ts, t, powers, tie_break, decision_period, frame_dt, frames, horizon, ego_kp,
-        lane_width, lanes_count, follower_reaction, ego_leave_time, cut_in_time, margin, relevance,
+        lane_width, lanes_count, follower_reaction, ego_leave_time, ego_lateral_speed, cut_in_time, margin, relevance,
         lateral_threshold, robust, projected_cut_ins, body_extent, body_width, linear_mobil, reversing_leaders,
         level_cut_ins, level_incentive, level_entering, least_bad_joint, robust_fallback, linear_incentive,
-        linear_incentive_braking, reversing_cut_ins, crossed_lanes, 0.0, min_acc_gain,
+        linear_incentive_braking, reversing_cut_ins, crossed_lanes, lateral_schedule, ego_width, kp_lateral,
+        kp_heading, max_steering, 0.0, min_acc_gain,
     )  # fmt: skip
     return straight[0].copy(), out[1], out[2], out[3], True
 
@@ -655,11 +721,14 @@ def _evaluate_snapshot(
     origin: np.ndarray, direction: np.ndarray, lateral: np.ndarray, lane_heading: float, speed_limit: float,
     ts: np.ndarray, t: np.ndarray, powers: np.ndarray, tie_break: np.ndarray,
     decision_period: float, frame_dt: float, frames: int, horizon: int, ego_kp: float, lane_width: float,
-    lanes_count: int, follower_reaction: float, ego_leave_time: float, cut_in_time: float, margin: float,
+    lanes_count: int, follower_reaction: float, ego_leave_time: float, ego_lateral_speed: float,
+    cut_in_time: float, margin: float,
     relevance: float, lateral_threshold: float, robust: bool, projected_cut_ins: bool, body_extent: bool,
     body_width: float, linear_mobil: bool, reversing_leaders: bool, level_cut_ins: bool, level_incentive: bool,
     level_entering: bool, least_bad_joint: bool, robust_fallback: bool, straight_fallback: bool,
-    linear_incentive: bool, linear_incentive_braking: bool, reversing_cut_ins: bool, crossed_lanes: bool, ego_speed_magnitude: bool,
+    linear_incentive: bool, linear_incentive_braking: bool, reversing_cut_ins: bool, crossed_lanes: bool,
+    lateral_schedule: bool, ego_width: float, kp_lateral: float,
+    kp_heading: float, max_steering: float, ego_speed_magnitude: bool,
     turning_allowance: float,
     min_acc_gain: float,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, bool]:  # fmt: skip
@@ -699,17 +768,20 @@ def _evaluate_snapshot(
         vx[r] = speed[k] * c
         vy[r] = speed[k] * s
         rel_heading[r] = np.arctan2(s, c)
+    ego_y = e0 * lateral[0] + e1 * lateral[1]  # road_state's ego_rel @ lateral (axis-aligned: exact)
     return _evaluate(
         ego_x, ego_speed, ego_lane, ego_target_lane, ego_target_speed, ego_speed_index, length[ego], speed_limit,
-        x, y, vx, vy, rel_heading, length[keep], crashed[keep], brake_max[keep], accel_max[keep],
+        ego_y, heading[ego] - lane_heading, x, y, vx, vy, rel_heading, length[keep], crashed[keep], brake_max[keep],
+        accel_max[keep],
         can_change_lane[keep], idm_delta[keep], idm_comfort_acc[keep], idm_comfort_dec[keep],
         idm_distance_wanted[keep], idm_time_wanted[keep], max_braking_imposed[keep],
         lin_k0[keep], lin_k1[keep], lin_k2[keep],
         ts, t, powers, tie_break, decision_period, frame_dt, frames, horizon, ego_kp, lane_width, lanes_count,
-        follower_reaction, ego_leave_time, cut_in_time, margin, relevance, lateral_threshold, robust,
+        follower_reaction, ego_leave_time, ego_lateral_speed, cut_in_time, margin, relevance, lateral_threshold, robust,
         projected_cut_ins, body_extent, body_width, linear_mobil, reversing_leaders, level_cut_ins, level_incentive,
         level_entering, least_bad_joint, robust_fallback, straight_fallback, linear_incentive,
-        linear_incentive_braking, reversing_cut_ins, crossed_lanes, turning_allowance, min_acc_gain,
+        linear_incentive_braking, reversing_cut_ins, crossed_lanes, lateral_schedule, ego_width, kp_lateral,
+        kp_heading, max_steering, turning_allowance, min_acc_gain,
     )  # fmt: skip
 
 
@@ -743,8 +815,8 @@ _ARGS: dict[tuple[int, float], tuple[Dynamics, tuple]] = {}
 for a whole episode with a handful of leave times, and building them costs as much as a small kernel."""
 
 
-def _dynamics_args(dyn: Dynamics, ego_leave_time: float) -> tuple:
-    key = (id(dyn), ego_leave_time)
+def _dynamics_args(dyn: Dynamics, ego_leave_time: float, ego_lateral_speed: float) -> tuple:
+    key = (id(dyn), ego_leave_time, ego_lateral_speed)
     hit = _ARGS.get(key)
     if hit is not None and hit[0] is dyn:  # the entry holds dyn, so its id is not reused meanwhile
         return hit[1]
@@ -754,7 +826,7 @@ def _dynamics_args(dyn: Dynamics, ego_leave_time: float) -> tuple:
     args = (
         ts, t, powers, _TIE_BREAK, dyn.decision_period, dyn.frame_dt, dyn.frames_per_decision,
         dyn.horizon_decisions, dyn.ego_kp, dyn.lane_width, dyn.lanes_count, dyn.follower_reaction,
-        ego_leave_time, dyn.cut_in_time, dyn.margin, _RELEVANCE, _LATERAL,
+        ego_leave_time, ego_lateral_speed, dyn.cut_in_time, dyn.margin, _RELEVANCE, _LATERAL,
     )  # fmt: skip
     if len(_ARGS) >= 256:
         _ARGS.clear()
@@ -765,11 +837,13 @@ def _dynamics_args(dyn: Dynamics, ego_leave_time: float) -> tuple:
 snapshot_kernel = _evaluate_snapshot
 """The njit kernel behind :func:`evaluate_snapshot` (its arguments: the snapshot's arrays, the ego's
 lane, target lane, set-point [m/s] and speed index, the lane frame, then :func:`kernel_constants`'s
-fields around ``ego_leave_time``): for a caller that evaluates many scenes inside one numba call."""
+fields around ``ego_leave_time`` and ``ego_lateral_speed``): for a caller that evaluates many scenes inside one
+numba call."""
 
 
 class KernelConstants(NamedTuple):
-    """A :class:`Dynamics` as :data:`snapshot_kernel` takes it (everything but ``ego_leave_time``)."""
+    """A :class:`Dynamics` as :data:`snapshot_kernel` takes it (everything but ``ego_leave_time`` and
+    ``ego_lateral_speed``, the per-state two)."""
 
     ts: np.ndarray
     t: np.ndarray
@@ -802,6 +876,11 @@ class KernelConstants(NamedTuple):
     linear_incentive_braking: bool
     reversing_cut_ins: bool
     crossed_lanes: bool
+    lateral_schedule: bool
+    ego_width: float
+    kp_lateral: float
+    kp_heading: float
+    max_steering: float
     ego_speed_magnitude: bool
     turning_allowance: float
     min_acc_gain: float
@@ -809,10 +888,10 @@ class KernelConstants(NamedTuple):
 
 def kernel_constants(dyn: Dynamics) -> KernelConstants:
     """``dyn``'s constants in :data:`snapshot_kernel`'s form (the arrays computed as the reference does)."""
-    args = _dynamics_args(dyn, dyn.ego_leave_time)
+    args = _dynamics_args(dyn, dyn.ego_leave_time, dyn.ego_lateral_speed)
     return KernelConstants(
         *args[:12],
-        *args[13:],
+        *args[14:],
         dyn.projected_cut_ins,
         dyn.body_extent,
         dyn.body_width,
@@ -826,7 +905,13 @@ def kernel_constants(dyn: Dynamics) -> KernelConstants:
         dyn.straight_fallback,
         dyn.linear_incentive,
         dyn.linear_incentive_braking,
-        dyn.reversing_cut_ins, dyn.crossed_lanes,
+        dyn.reversing_cut_ins,
+        dyn.crossed_lanes,
+        dyn.lateral_schedule,
+        dyn.ego_width,
+        dyn.kp_lateral,
+        dyn.kp_heading,
+        dyn.max_steering,
         dyn.ego_speed_magnitude,
         model.turning_allowance(dyn),
         _MIN_ACC_GAIN,
@@ -854,14 +939,18 @@ def evaluate_compiled(
     s = state
     out = _evaluate(
         s.ego_x, s.ego_speed, s.ego_lane, s.ego_target_lane, s.ego_target_speed, s.ego_speed_index,
-        s.ego_length, s.speed_limit, s.x, s.y, s.vx, s.vy, s.heading, s.length, s.crashed, s.brake_max,
+        s.ego_length, s.speed_limit, s.ego_y, s.ego_heading, s.x, s.y, s.vx, s.vy, s.heading, s.length, s.crashed,
+        s.brake_max,
         s.accel_max, s.can_change_lane, s.idm_delta, s.idm_comfort_acc, s.idm_comfort_dec,
         s.idm_distance_wanted, s.idm_time_wanted, s.max_braking_imposed, s.linear_speed_gain,
         s.linear_speed_difference_gain, s.linear_distance_gain,
-        *_dynamics_args(dyn, dyn.ego_leave_time), mode == "robust", dyn.projected_cut_ins, dyn.body_extent,
+        *_dynamics_args(dyn, dyn.ego_leave_time, dyn.ego_lateral_speed), mode == "robust", dyn.projected_cut_ins,
+        dyn.body_extent,
         dyn.body_width, dyn.linear_mobil, dyn.reversing_leaders, dyn.level_cut_ins, dyn.level_incentive,
         dyn.level_entering, dyn.least_bad_joint, dyn.robust_fallback, dyn.straight_fallback, dyn.linear_incentive,
-        dyn.linear_incentive_braking, dyn.reversing_cut_ins, dyn.crossed_lanes, model.turning_allowance(dyn), _MIN_ACC_GAIN,
+        dyn.linear_incentive_braking, dyn.reversing_cut_ins, dyn.crossed_lanes, dyn.lateral_schedule, dyn.ego_width,
+        dyn.kp_lateral, dyn.kp_heading,
+        dyn.max_steering, model.turning_allowance(dyn), _MIN_ACC_GAIN,
     )  # fmt: skip
     return _result(out)
 
@@ -874,7 +963,13 @@ def axis_aligned(snap: RoadSnapshot) -> bool:
 
 
 def evaluate_snapshot(
-    snap: RoadSnapshot, dyn: Dynamics, mode: Mode = "robust", *, lane_heading: float, ego_leave_time: float
+    snap: RoadSnapshot,
+    dyn: Dynamics,
+    mode: Mode = "robust",
+    *,
+    lane_heading: float,
+    ego_leave_time: float,
+    ego_lateral_speed: float = math.nan,
 ) -> SafetyResult:
     """``evaluate_compiled(road_state(snap, dyn.ego_speed_magnitude), replace(dyn, ego_leave_time=...), mode)``
     in one kernel.
@@ -882,7 +977,7 @@ def evaluate_snapshot(
     The shield's fast path (formula ``kinematic``): the :class:`RoadState` is built inside the kernel,
     bit for bit as :func:`safelane.safety.shield.road_state` builds it, for an :func:`axis_aligned`
     snapshot (the caller checks). ``lane_heading`` [rad]: ``atan2`` of the lane direction, computed
-    once per episode; ``ego_leave_time`` [s] replaces ``dyn.ego_leave_time``.
+    once per episode; ``ego_leave_time`` [s] and ``ego_lateral_speed`` [m/s] replace ``dyn``'s.
     """
     _check(mode, "kinematic")
     e = snap.ego
@@ -893,10 +988,13 @@ def evaluate_snapshot(
         snap.linear_speed_difference_gain, snap.linear_distance_gain,
         e, int(snap.lane[e]), int(snap.target_lane[e]), snap.ego_target_speed, snap.ego_speed_index,
         snap.lane_origin, snap.lane_direction, snap.lane_lateral, lane_heading, snap.speed_limit,
-        *_dynamics_args(dyn, ego_leave_time), mode == "robust", dyn.projected_cut_ins, dyn.body_extent,
+        *_dynamics_args(dyn, ego_leave_time, ego_lateral_speed), mode == "robust", dyn.projected_cut_ins,
+        dyn.body_extent,
         dyn.body_width, dyn.linear_mobil, dyn.reversing_leaders, dyn.level_cut_ins, dyn.level_incentive,
         dyn.level_entering, dyn.least_bad_joint, dyn.robust_fallback, dyn.straight_fallback, dyn.linear_incentive,
-        dyn.linear_incentive_braking, dyn.reversing_cut_ins, dyn.crossed_lanes, dyn.ego_speed_magnitude,
+        dyn.linear_incentive_braking, dyn.reversing_cut_ins, dyn.crossed_lanes, dyn.lateral_schedule, dyn.ego_width,
+        dyn.kp_lateral, dyn.kp_heading,
+        dyn.max_steering, dyn.ego_speed_magnitude,
         model.turning_allowance(dyn),
         _MIN_ACC_GAIN,
     )  # fmt: skip

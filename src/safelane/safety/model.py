@@ -113,6 +113,12 @@ class Dynamics:
     linear_incentive_braking: bool = True  # linear_incentive: also at every frame, their leaders braking fully
     reversing_cut_ins: bool = True  # a car moving backwards may change into the ego's lane whatever MOBIL says
     crossed_lanes: bool = True  # the ego occupies every lane between its lane and its target, until it is through
+    lateral_schedule: bool = False  # the ego's time in each lane simulated from its lateral position and heading
+    ego_lateral_speed: float = math.nan  # [m/s] the speed that simulation runs at (per state, like ego_leave_time)
+    ego_width: float = 2.0  # [m] the ego's width (Vehicle.WIDTH)
+    kp_lateral: float = 1.0 / 0.6  # [1/s] ControlledVehicle.KP_LATERAL
+    kp_heading: float = 1.0 / 0.2  # [1/s] ControlledVehicle.KP_HEADING
+    max_steering: float = math.pi / 3  # [rad] ControlledVehicle.MAX_STEERING_ANGLE
 
     @property
     def horizon_decisions(self) -> int:
@@ -149,6 +155,7 @@ class RoadState:
     ego_target_speed: float  # [m/s] current speed set-point
     ego_speed_index: int  # index of the current set-point in Dynamics.target_speeds
     ego_length: float = 5.0  # [m]
+    ego_heading: float = 0.0  # [rad] relative to the road (a lane change under way turns it)
     x: np.ndarray = field(default_factory=lambda: np.zeros(0))  # [m]
     y: np.ndarray = field(default_factory=lambda: np.zeros(0))  # [m]
     vx: np.ndarray = field(default_factory=lambda: np.zeros(0))  # [m/s]
@@ -368,6 +375,8 @@ def _action_lanes(state: RoadState, dyn: Dynamics, action: int) -> list[tuple[in
     With ``Dynamics.crossed_lanes`` also every lane the ego crosses on the way to its target: a lane
     change chained onto one under way (lane 0 → 1, then RIGHT again → 2) takes the ego through lane 1 whole,
     which the leave time of one lane change does not bound (issue 15, cells 2009 and 2833)."""
+    if dyn.lateral_schedule:
+        return ego_lane_windows(state, dyn, final_lane(state, dyn, action))
     base = {state.ego_lane, state.ego_target_lane}
     if action not in (LANE_LEFT, LANE_RIGHT):
         if dyn.crossed_lanes:
@@ -379,6 +388,65 @@ def _action_lanes(state: RoadState, dyn: Dynamics, action: int) -> list[tuple[in
     crossed = set(range(low + 1, high)) if dyn.crossed_lanes else set()
     lanes = [(lane, math.inf if lane in crossed else dyn.ego_leave_time) for lane in sorted(base | crossed)]
     return [*[(lane, until) for lane, until in lanes if lane != new_target], (new_target, math.inf)]
+
+
+def final_lane(state: RoadState, dyn: Dynamics, action: int) -> int:
+    """The lane the ego steers for after ``action``: highway-env moves the *target* lane one step (clipped to
+    the road), and IDLE, FASTER and SLOWER keep a lane change under way."""
+    if action not in (LANE_LEFT, LANE_RIGHT):
+        return state.ego_target_lane
+    step = -1 if action == LANE_LEFT else 1
+    return min(max(state.ego_target_lane + step, 0), dyn.lanes_count - 1)
+
+
+def ego_lane_windows(state: RoadState, dyn: Dynamics, final: int) -> list[tuple[int, float]]:
+    """``Dynamics.lateral_schedule``: the lanes the ego's body overlaps (a vehicle of ``body_width`` centred in
+    them) while it steers for lane ``final``, each with the time [s] until which it does, one frame added as
+    :func:`safelane.safety.shield.ego_leave_time_at` adds it (inf: still there at the horizon's end); ``final``
+    always, from now on.
+
+    highway-env's own lateral controller (``ControlledVehicle.steering_control``: lateral P-control to a
+    heading reference, heading P-control to a slip angle, the bicycle model of ``Vehicle.step``) simulated from
+    the ego's lateral position and heading at ``ego_lateral_speed`` (the slowest speed the ego may have while
+    changing lane), on a straight road. It replaces the leave time of a lane change from a lane centre, which
+    each decision restarted: at 3 and 5 decisions per second the rule promised the ego out of its lane by
+    then and, one decision later, by a fifth of a second later (issue 15, cell 2569). It stops once the body
+    overlaps ``final`` alone and no longer moves away from its centre. Scalar arithmetic in a fixed order,
+    the compiled engine's ``_ego_lane_windows`` line for line (bit-identical)."""
+    lanes, width = dyn.lanes_count, dyn.lane_width
+    frames = dyn.horizon_decisions * dyn.frames_per_decision
+    dt, speed = dyn.frame_dt, dyn.ego_lateral_speed
+    half_length = 0.5 * state.ego_length
+    y, heading = state.ego_y, state.ego_heading
+    target_y = final * width
+    last = [-1] * lanes
+    end = frames  # the frame the simulation ended at
+    for k in range(frames + 1):
+        reach = 0.5 * dyn.ego_width * math.cos(heading) + half_length * abs(math.sin(heading))
+        alone = True
+        for lane in range(lanes):
+            if abs(y - lane * width) < reach + 0.5 * dyn.body_width:
+                last[lane] = k
+                alone = alone and lane == final
+        end = k
+        if k == frames or not speed > 0.0 or (alone and (y - target_y) * heading <= 0.0):
+            break
+        lateral_speed_command = -dyn.kp_lateral * (y - target_y)
+        heading_command = math.asin(min(max(lateral_speed_command / speed, -1.0), 1.0))
+        heading_ref = min(max(heading_command, -0.25 * math.pi), 0.25 * math.pi)
+        heading_rate_command = dyn.kp_heading * (heading_ref - heading)
+        slip = math.asin(min(max(half_length / speed * heading_rate_command, -1.0), 1.0))
+        steering = min(max(math.atan(2.0 * math.tan(slip)), -dyn.max_steering), dyn.max_steering)
+        beta = math.atan(0.5 * math.tan(steering))
+        y = y + speed * math.sin(heading + beta) * dt
+        heading = heading + speed * math.sin(beta) / half_length * dt
+    windows = []
+    for lane in range(lanes):
+        if lane == final or last[lane] < 0:
+            continue
+        # Still overlapped when the simulation ended without settling (the horizon, a standstill): for good.
+        windows.append((lane, math.inf if last[lane] == end else (last[lane] + 1) * dt + dt))  # clear, +1 frame
+    return [*windows, (final, math.inf)]
 
 
 def available_actions(state: RoadState, dyn: Dynamics) -> np.ndarray:

@@ -31,6 +31,7 @@ from typing import Any, Literal
 
 import gymnasium as gym
 import numpy as np
+from highway_env.vehicle.controller import ControlledVehicle
 
 from safelane.config import RULE_OPTIONS
 from safelane.core.snapshot import DRIVER_FIELDS, RoadSnapshot
@@ -91,6 +92,7 @@ def dynamics_of(
     linear_incentive_braking: bool = True,
     reversing_cut_ins: bool = True,
     crossed_lanes: bool = True,
+    lateral_schedule: bool = False,
 ) -> Dynamics:
     """The :class:`Dynamics` constants of the simulated world a snapshot was taken in; ``margin`` [m]: the
     bumper-to-bumper gap the rule keeps under its worst case; the rule's options as in :class:`Dynamics`."""
@@ -124,6 +126,12 @@ def dynamics_of(
         linear_incentive_braking=linear_incentive_braking,
         reversing_cut_ins=reversing_cut_ins,
         crossed_lanes=crossed_lanes,
+        lateral_schedule=lateral_schedule,
+        # highway-env's lateral controller, read from the class the ego is built from (ControlledVehicle's).
+        ego_width=float(snap.width[snap.ego]) if len(snap.width) else 2.0,
+        kp_lateral=float(ControlledVehicle.KP_LATERAL),
+        kp_heading=float(ControlledVehicle.KP_HEADING),
+        max_steering=float(ControlledVehicle.MAX_STEERING_ANGLE),
         # The widest other body (every highway-env vehicle has Vehicle.WIDTH): the occupancy bound.
         body_width=float(np.max(snap.width)) if len(snap.width) else 2.0,
     )
@@ -185,6 +193,7 @@ def road_state(snap: RoadSnapshot, ego_speed_magnitude: bool = True) -> RoadStat
         ego_target_speed=snap.ego_target_speed,
         ego_speed_index=snap.ego_speed_index,
         ego_length=float(snap.length[e]),
+        ego_heading=ego_heading,
         x=x_all[near],
         y=(pos @ lateral)[near] if n else np.zeros(0),
         vx=speed * np.cos(heading),
@@ -228,6 +237,9 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
     says (highway-env's steering assumes forward motion: reversing, a lane change away swings its nose in).
     ``crossed_lanes``: the ego occupies every lane between its lane and its target (a lane change chained onto
     one under way crosses the lane in between whole), not only the two.
+    ``lateral_schedule`` (experimental): the ego's time in each lane simulated with highway-env's lateral
+    controller from its lateral position and heading (else: a lane change from a lane centre, restarted at
+    every decision).
     """
 
     def __init__(
@@ -255,6 +267,7 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
         linear_incentive_braking: bool = True,
         reversing_cut_ins: bool = True,
         crossed_lanes: bool = True,
+        lateral_schedule: bool = False,
     ) -> None:
         if not (math.isfinite(margin) and margin >= 0):
             raise ValueError(f"shield.margin: must be a finite number >= 0 [m] (got {margin!r})")
@@ -288,6 +301,7 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
             linear_incentive_braking=linear_incentive_braking,
             reversing_cut_ins=reversing_cut_ins,
             crossed_lanes=crossed_lanes,
+            lateral_schedule=lateral_schedule,
         )
         try:
             env.get_wrapper_attr("road_snapshot")
@@ -316,6 +330,7 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
         self.linear_incentive_braking = bool(linear_incentive_braking)
         self.reversing_cut_ins = bool(reversing_cut_ins)
         self.crossed_lanes = bool(crossed_lanes)
+        self.lateral_schedule = bool(lateral_schedule)
         self._rule_options = {name: getattr(self, name) for name in RULE_OPTIONS}  # dynamics_of's keywords
         self.dynamics: Dynamics | None = None
         self.result: SafetyResult | None = None
@@ -327,26 +342,31 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
         snap = self.snapshot if snap is None else snap
         if snap is None:
             raise RuntimeError("SafetyShield: reset the environment first")
-        lane_heading, leave = self._ego_leave_time(snap)
+        lane_heading, leave, lateral_speed = self._ego_leave_time(snap)
         dyn = self.dynamics
         assert dyn is not None
         if self.engine == "compiled" and (self.mode, self.formula) != ("nominal", "paper") and axis_aligned(snap):
             # The fast path: the RoadState is built inside the kernel (identical to road_state's).
-            return evaluate_snapshot(snap, dyn, self.mode, lane_heading=lane_heading, ego_leave_time=leave)
+            return evaluate_snapshot(
+                snap, dyn, self.mode, lane_heading=lane_heading, ego_leave_time=leave, ego_lateral_speed=lateral_speed
+            )
         evaluator = evaluate_compiled if self.engine == "compiled" else evaluate
         state = road_state(snap, dyn.ego_speed_magnitude)
-        return evaluator(state, dataclasses.replace(dyn, ego_leave_time=leave), self.mode, self.formula)
+        dyn = dataclasses.replace(dyn, ego_leave_time=leave, ego_lateral_speed=lateral_speed)
+        return evaluator(state, dyn, self.mode, self.formula)
 
     def state_and_dynamics(self, snap: RoadSnapshot) -> tuple[RoadState, Dynamics]:
         """The (RoadState, Dynamics) that :meth:`compute_result` evaluates for ``snap`` (the numpy engine's
         inputs; the compiled engine builds the same state inside its kernel)."""
-        _, leave = self._ego_leave_time(snap)
+        _, leave, lateral_speed = self._ego_leave_time(snap)
         assert self.dynamics is not None
         dyn = self.dynamics
-        return road_state(snap, dyn.ego_speed_magnitude), dataclasses.replace(dyn, ego_leave_time=leave)
+        state = road_state(snap, dyn.ego_speed_magnitude)
+        return state, dataclasses.replace(dyn, ego_leave_time=leave, ego_lateral_speed=lateral_speed)
 
-    def _ego_leave_time(self, snap: RoadSnapshot) -> tuple[float, float]:
-        """(lane heading [rad], the time [s] the ego takes to leave its lane) for ``snap``."""
+    def _ego_leave_time(self, snap: RoadSnapshot) -> tuple[float, float, float]:
+        """(lane heading [rad], the time [s] the ego takes to leave its lane, the speed [m/s] that time is
+        taken at — ``Dynamics.ego_lateral_speed``) for ``snap``."""
         if self.dynamics is None:
             self.dynamics = dynamics_of(snap, self.margin, **self._rule_options)
         dyn = self.dynamics
@@ -365,7 +385,7 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
             speed = min(max(math.floor(slowest * 2) / 2, 0.0), LEAVE_TIME_MAX_SPEED)
         else:
             speed = float(np.clip(np.floor(slowest * 2) / 2, 0.0, LEAVE_TIME_MAX_SPEED))
-        return lane_heading, ego_leave_time_at(dyn, speed)
+        return lane_heading, ego_leave_time_at(dyn, speed), speed
 
     def refresh(self) -> SafetyResult:
         """Re-read the scene from the simulator and recompute the verdict (after editing the road by hand)."""

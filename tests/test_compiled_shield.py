@@ -468,6 +468,22 @@ def test_crossed_lanes_bit_identical_and_only_stricter(case: tuple) -> None:
 
 
 @PROPERTY_SETTINGS
+@given(case=road(extreme=True, rates=True))
+def test_reversing_noses_bit_identical_and_only_stricter(case: tuple) -> None:
+    """shield.reversing_noses (experimental): the same in both engines at every rate; it only adds a lane to a car
+    rolling backwards with its nose turned, so nothing becomes safe and no worst gap grows; a road without such
+    a car, and nominal mode, are unchanged to the bit."""
+    state, dyn, _ = case
+    off, on = (dataclasses.replace(dyn, reversing_noses=v) for v in (False, True))
+    assert mismatches(state, on) == []
+    for mode in MODES:
+        a, b = model.evaluate(state, off, mode), model.evaluate(state, on, mode)
+        assert not (b.safe & ~a.safe).any() and not (b.min_gap > a.min_gap).any()
+        if mode == "nominal" or not ((state.vx < 0) & (np.abs(state.heading) > model.LATERAL_MOTION_THRESHOLD)).any():
+            assert_same(a, b)
+
+
+@PROPERTY_SETTINGS
 @given(case=road(extreme=True, rates=True, chained=True, lateral=True))
 def test_lateral_schedule_bit_identical(case: tuple) -> None:
     """shield.lateral_schedule (experimental): the same in both engines at every rate, with the ego off its

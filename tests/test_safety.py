@@ -102,6 +102,10 @@ EXPECTED = {
     # under way and is safe; IDLE, which keeps it under way too, counts lane 1 as the ego's for good (unless
     # shield.lateral_schedule, experimental: test below).
     "ego_leaving_its_lane": {"nominal": mask_of(L), "robust": mask_of(L)},
+    # A jammed car 22 m ahead in the next lane, turned toward the ego's lane but rolling backwards: its lateral
+    # motion points away, so today's rule keeps IDLE, FASTER and SLOWER (shield.reversing_noses, experimental:
+    # only SLOWER; test below).
+    "car_rolling_back_turned_in": {"nominal": mask_of(I, F, S), "robust": mask_of(I, F, S)},
 }
 
 
@@ -507,6 +511,25 @@ def test_lateral_schedule_does_not_restart_the_ego_s_leave_time(engine: str) -> 
     schedule = scenarios.SCENARIOS["ego_leaving_its_lane"](**kw, **{"shield.lateral_schedule": True}).result
     assert schedule.mask.tolist() == mask_of(L, I, S) and not schedule.fallback
     assert schedule.min_gap[[L, I, S]] == pytest.approx([earlier.min_gap[L]] * 3, abs=1e-9)
+
+
+@pytest.mark.parametrize("engine", ["numpy", "compiled"])
+def test_reversing_noses_sees_a_car_rolling_back_toward_its_turn(engine: str) -> None:
+    """The trained agents' cell 126 at its break (docs/safety.md §6j): a car 22.38 m ahead in the next lane, nose
+    turned 0.166 rad toward the ego's lane, rolling backwards at 0.086 m/s. Its lateral speed points away, so the
+    heading projection put it in lane -1 (off the road) and IDLE kept 18.15 m; a decision later it moved
+    forward, into the ego's lane. With shield.reversing_noses it is in the lane its nose points to as well:
+    IDLE -4.72 m, only SLOWER (5.28 m). Nominal is unchanged (robust-only option)."""
+    kw = {"shield.engine": engine}
+    earlier = scenarios.SCENARIOS["car_rolling_back_turned_in"](**kw).result
+    assert earlier.mask.tolist() == mask_of(I, F, S) and not earlier.fallback
+    assert earlier.min_gap[[I, F, S]] == pytest.approx([18.15, 3.15, 28.15], abs=0.01)
+    noses = scenarios.SCENARIOS["car_rolling_back_turned_in"](**kw, **{"shield.reversing_noses": True}).result
+    assert noses.mask.tolist() == mask_of(S) and not noses.fallback
+    assert noses.min_gap[[I, F, S]] == pytest.approx([-4.72, -19.72, 5.28], abs=0.01)
+    options = {**kw, "shield.reversing_noses": True}
+    nominal = scenarios.SCENARIOS["car_rolling_back_turned_in"](mode="nominal", **options)
+    assert nominal.mask.tolist() == EXPECTED["car_rolling_back_turned_in"]["nominal"]
 
 
 @pytest.mark.parametrize("engine", ["numpy", "compiled"])

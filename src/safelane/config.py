@@ -250,6 +250,13 @@ class ShieldConfig(_Section):
         "lane centre restarted at every decision (cell 2569; docs/safety.md §6j). Replaces crossed_lanes' "
         "bookkeeping when on.",
     )
+    reversing_noses: bool = Field(
+        False,
+        strict=True,
+        description="Experimental: a car rolling backwards with its nose turned toward a lane is also in that "
+        "lane (robust mode): backwards it moves away from it, and it drives there as soon as it moves forward "
+        "again (a jammed IDM car, the trained agents' cell 126; docs/safety.md §6j).",
+    )
 
     def rule_options(self) -> dict[str, bool]:
         """The rule's on/off options by name, as :class:`safelane.safety.shield.SafetyShield` and
@@ -661,7 +668,7 @@ RULE_OPTIONS = (
     "projected_cut_ins", "body_extent", "linear_mobil", "reversing_leaders", "level_cut_ins", "level_incentive",
     "level_entering", "least_bad_joint", "full_horizon", "ego_speed_magnitude", "turning_leaders",
     "robust_fallback", "straight_fallback", "linear_incentive", "linear_incentive_braking", "reversing_cut_ins",
-    "crossed_lanes", "lateral_schedule",
+    "crossed_lanes", "lateral_schedule", "reversing_noses",
 )  # fmt: skip
 """The :class:`ShieldConfig` fields that switch parts of the safety rule on or off (``ShieldConfig.rule_options``)."""
 

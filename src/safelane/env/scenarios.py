@@ -348,6 +348,23 @@ def ego_leaving_its_lane(mode: Mode = "robust", **kw: Any) -> Scene:
     )  # fmt: skip
 
 
+def car_rolling_back_turned_in(mode: Mode = "robust", **kw: Any) -> Scene:
+    """2 lanes, a jam in lane 0: the ego in lane 1 at 10 m/s (set-point 10); 22.38 m ahead in lane 0 a car
+    changing into the ego's lane (0.44 m off its centre, nose turned 0.166 rad toward lane 1) but rolling
+    *backwards* at 0.086 m/s, as highway-env's IDM lets a jammed car do; more cars ahead — the trained agents'
+    cell 126 (``cell00126-seed4001260042``, the tenth session's agents) at its break. Backwards, its lateral
+    motion points away from the ego, so the rule's heading projection put it in no lane of the ego's and IDLE
+    kept 18.16 m; one decision later it moved forward, into the ego's lane, and nothing was safe (it hit the
+    car two decisions later). ``shield.reversing_noses`` (experimental) puts a car rolling backwards in the lane
+    its nose points to: only SLOWER is safe (5.28 m)."""
+    specs = [
+        VehicleSpec(0, 22.38, -0.086, heading=0.1659, target_lane=1, lateral_offset=0.441),
+        VehicleSpec(0, 32.74, 0.956),
+        VehicleSpec(1, 45.19, 2.728, heading=0.4665, target_lane=1, lateral_offset=1.372),
+    ]
+    return build_scene(1, 10.0, specs, mode=mode, lanes_count=2, ego_target_speed=10.0, **kw)
+
+
 SCENARIOS: dict[str, Callable[..., Scene]] = {
     "leader_braking": leader_braking,
     "stopped_car_ahead": stopped_car_ahead,
@@ -371,6 +388,7 @@ SCENARIOS: dict[str, Callable[..., Scene]] = {
     "reversing_car_beside": reversing_car_beside,
     "ego_crossing_a_lane": ego_crossing_a_lane,
     "ego_leaving_its_lane": ego_leaving_its_lane,
+    "car_rolling_back_turned_in": car_rolling_back_turned_in,
 }
 """Every scenario by name."""
 

@@ -201,6 +201,7 @@ def _evaluate_rule(
     body_width: float, linear_mobil: bool, reversing_leaders: bool, level_cut_ins: bool, level_incentive: bool,
     level_entering: bool, least_bad_joint: bool, robust_fallback: bool, linear_incentive: bool,
     linear_incentive_braking: bool, reversing_cut_ins: bool, crossed_lanes: bool, lateral_schedule: bool,
+    reversing_noses: bool,
     ego_width: float, kp_lateral: float,
     kp_heading: float, max_steering: float, turning_allowance: float,
     min_acc_gain: float,
@@ -327,9 +328,9 @@ def _evaluate_rule(
             foll_x[r] = other_x[r]
 
     # --- _occupancy: (row, lane, nominal); every entry starts at t = 0 -------------------------
-    occ_row = np.empty(3 * m, dtype=np.int64)
-    occ_lane = np.empty(3 * m, dtype=np.int64)
-    occ_nominal = np.empty(3 * m, dtype=np.bool_)
+    occ_row = np.empty(4 * m, dtype=np.int64)
+    occ_lane = np.empty(4 * m, dtype=np.int64)
+    occ_nominal = np.empty(4 * m, dtype=np.bool_)
     n_occ = 0
     projected = np.full(m, -10, dtype=np.int64)  # the lane a sideways-moving vehicle moves to (-10: none)
     for r in range(m):
@@ -345,6 +346,11 @@ def _evaluate_rule(
                 if robust:
                     occ_row[n_occ], occ_lane[n_occ], occ_nominal[n_occ] = r, nxt, False
                     n_occ += 1
+        if robust and reversing_noses and vx[i] < 0.0 and abs(heading[i]) > lateral_threshold:
+            nose = own + (1 if heading[i] > 0 else -1)  # model._occupancy: the lane its nose points to
+            if nose != nxt and 0 <= nose < lanes_count:
+                occ_row[n_occ], occ_lane[n_occ], occ_nominal[n_occ] = r, nose, False
+                n_occ += 1
         if robust and body_extent:  # model._occupancy: every lane the rotated body overlaps
             reach = abs(0.5 * length[i] * math.sin(heading[i])) + abs(0.5 * body_width * math.cos(heading[i]))
             for side in (own - 1, own + 1):
@@ -671,7 +677,7 @@ def _evaluate(
     body_width: float, linear_mobil: bool, reversing_leaders: bool, level_cut_ins: bool, level_incentive: bool,
     level_entering: bool, least_bad_joint: bool, robust_fallback: bool, straight_fallback: bool,
     linear_incentive: bool, linear_incentive_braking: bool, reversing_cut_ins: bool, crossed_lanes: bool,
-    lateral_schedule: bool, ego_width: float, kp_lateral: float,
+    lateral_schedule: bool, reversing_noses: bool, ego_width: float, kp_lateral: float,
     kp_heading: float, max_steering: float, turning_allowance: float,
     min_acc_gain: float,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, bool]:  # fmt: skip
@@ -690,7 +696,8 @@ def _evaluate(
         lane_width, lanes_count, follower_reaction, ego_leave_time, ego_lateral_speed, cut_in_time, margin, relevance,
         lateral_threshold, robust, projected_cut_ins, body_extent, body_width, linear_mobil, reversing_leaders,
         level_cut_ins, level_incentive, level_entering, least_bad_joint, robust_fallback, linear_incentive,
-        linear_incentive_braking, reversing_cut_ins, crossed_lanes, lateral_schedule, ego_width, kp_lateral,
+        linear_incentive_braking, reversing_cut_ins, crossed_lanes, lateral_schedule,
+        reversing_noses, ego_width, kp_lateral,
         kp_heading, max_steering, allowance, min_acc_gain,
     )  # fmt: skip
     if not (out[4] and robust and straight_fallback and turning_allowance > 0.0):
@@ -704,7 +711,8 @@ def _evaluate(
         lane_width, lanes_count, follower_reaction, ego_leave_time, ego_lateral_speed, cut_in_time, margin, relevance,
         lateral_threshold, robust, projected_cut_ins, body_extent, body_width, linear_mobil, reversing_leaders,
         level_cut_ins, level_incentive, level_entering, least_bad_joint, robust_fallback, linear_incentive,
-        linear_incentive_braking, reversing_cut_ins, crossed_lanes, lateral_schedule, ego_width, kp_lateral,
+        linear_incentive_braking, reversing_cut_ins, crossed_lanes, lateral_schedule,
+        reversing_noses, ego_width, kp_lateral,
         kp_heading, max_steering, 0.0, min_acc_gain,
     )  # fmt: skip
     return straight[0].copy(), out[1], out[2], out[3], True
@@ -727,7 +735,7 @@ def _evaluate_snapshot(
     body_width: float, linear_mobil: bool, reversing_leaders: bool, level_cut_ins: bool, level_incentive: bool,
     level_entering: bool, least_bad_joint: bool, robust_fallback: bool, straight_fallback: bool,
     linear_incentive: bool, linear_incentive_braking: bool, reversing_cut_ins: bool, crossed_lanes: bool,
-    lateral_schedule: bool, ego_width: float, kp_lateral: float,
+    lateral_schedule: bool, reversing_noses: bool, ego_width: float, kp_lateral: float,
     kp_heading: float, max_steering: float, ego_speed_magnitude: bool,
     turning_allowance: float,
     min_acc_gain: float,
@@ -780,7 +788,8 @@ def _evaluate_snapshot(
         follower_reaction, ego_leave_time, ego_lateral_speed, cut_in_time, margin, relevance, lateral_threshold, robust,
         projected_cut_ins, body_extent, body_width, linear_mobil, reversing_leaders, level_cut_ins, level_incentive,
         level_entering, least_bad_joint, robust_fallback, straight_fallback, linear_incentive,
-        linear_incentive_braking, reversing_cut_ins, crossed_lanes, lateral_schedule, ego_width, kp_lateral,
+        linear_incentive_braking, reversing_cut_ins, crossed_lanes, lateral_schedule,
+        reversing_noses, ego_width, kp_lateral,
         kp_heading, max_steering, turning_allowance, min_acc_gain,
     )  # fmt: skip
 
@@ -877,6 +886,7 @@ class KernelConstants(NamedTuple):
     reversing_cut_ins: bool
     crossed_lanes: bool
     lateral_schedule: bool
+    reversing_noses: bool
     ego_width: float
     kp_lateral: float
     kp_heading: float
@@ -908,6 +918,7 @@ def kernel_constants(dyn: Dynamics) -> KernelConstants:
         dyn.reversing_cut_ins,
         dyn.crossed_lanes,
         dyn.lateral_schedule,
+        dyn.reversing_noses,
         dyn.ego_width,
         dyn.kp_lateral,
         dyn.kp_heading,
@@ -948,7 +959,8 @@ def evaluate_compiled(
         dyn.body_extent,
         dyn.body_width, dyn.linear_mobil, dyn.reversing_leaders, dyn.level_cut_ins, dyn.level_incentive,
         dyn.level_entering, dyn.least_bad_joint, dyn.robust_fallback, dyn.straight_fallback, dyn.linear_incentive,
-        dyn.linear_incentive_braking, dyn.reversing_cut_ins, dyn.crossed_lanes, dyn.lateral_schedule, dyn.ego_width,
+        dyn.linear_incentive_braking, dyn.reversing_cut_ins, dyn.crossed_lanes, dyn.lateral_schedule,
+        dyn.reversing_noses, dyn.ego_width,
         dyn.kp_lateral, dyn.kp_heading,
         dyn.max_steering, model.turning_allowance(dyn), _MIN_ACC_GAIN,
     )  # fmt: skip
@@ -992,7 +1004,8 @@ def evaluate_snapshot(
         dyn.body_extent,
         dyn.body_width, dyn.linear_mobil, dyn.reversing_leaders, dyn.level_cut_ins, dyn.level_incentive,
         dyn.level_entering, dyn.least_bad_joint, dyn.robust_fallback, dyn.straight_fallback, dyn.linear_incentive,
-        dyn.linear_incentive_braking, dyn.reversing_cut_ins, dyn.crossed_lanes, dyn.lateral_schedule, dyn.ego_width,
+        dyn.linear_incentive_braking, dyn.reversing_cut_ins, dyn.crossed_lanes, dyn.lateral_schedule,
+        dyn.reversing_noses, dyn.ego_width,
         dyn.kp_lateral, dyn.kp_heading,
         dyn.max_steering, dyn.ego_speed_magnitude,
         model.turning_allowance(dyn),

@@ -114,6 +114,7 @@ class Dynamics:
     reversing_cut_ins: bool = True  # a car moving backwards may change into the ego's lane whatever MOBIL says
     crossed_lanes: bool = True  # the ego occupies every lane between its lane and its target, until it is through
     lateral_schedule: bool = False  # the ego's time in each lane simulated from its lateral position and heading
+    reversing_noses: bool = False  # robust: a car rolling backwards, turned, is also in the lane its nose points to
     ego_lateral_speed: float = math.nan  # [m/s] the speed that simulation runs at (per state, like ego_leave_time)
     ego_width: float = 2.0  # [m] the ego's width (Vehicle.WIDTH)
     kp_lateral: float = 1.0 / 0.6  # [1/s] ControlledVehicle.KP_LATERAL
@@ -491,6 +492,12 @@ def _occupancy(state: RoadState, dyn: Dynamics, mode: Mode, near: np.ndarray) ->
             nxt = own + direction
             if 0 <= nxt < dyn.lanes_count:
                 occ.add(int(i), nxt, 0.0, False)
+        if dyn.reversing_noses and state.vx[i] < 0.0 and abs(state.heading[i]) > LATERAL_MOTION_THRESHOLD:
+            # Rolling backwards it moves away from the lane its nose points to, and drives there as soon as
+            # it moves forward again (a jammed IDM car: issue 15, the agents' cell 126).
+            nose = own + (1 if state.heading[i] > 0 else -1)
+            if nose != nxt and 0 <= nose < dyn.lanes_count:
+                occ.add(int(i), nose, 0.0, False)
         if dyn.body_extent:
             # Its body, rotated by its heading, reaches this far either side of its centre [m]; it is
             # in every lane whose band that overlaps (a slow car turning hard sticks its rear corner

@@ -93,6 +93,7 @@ def dynamics_of(
     reversing_cut_ins: bool = True,
     crossed_lanes: bool = True,
     lateral_schedule: bool = False,
+    reversing_noses: bool = False,
 ) -> Dynamics:
     """The :class:`Dynamics` constants of the simulated world a snapshot was taken in; ``margin`` [m]: the
     bumper-to-bumper gap the rule keeps under its worst case; the rule's options as in :class:`Dynamics`."""
@@ -127,6 +128,7 @@ def dynamics_of(
         reversing_cut_ins=reversing_cut_ins,
         crossed_lanes=crossed_lanes,
         lateral_schedule=lateral_schedule,
+        reversing_noses=reversing_noses,
         # highway-env's lateral controller, read from the class the ego is built from (ControlledVehicle's).
         ego_width=float(snap.width[snap.ego]) if len(snap.width) else 2.0,
         kp_lateral=float(ControlledVehicle.KP_LATERAL),
@@ -240,6 +242,8 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
     ``lateral_schedule`` (experimental): the ego's time in each lane simulated with highway-env's lateral
     controller from its lateral position and heading (else: a lane change from a lane centre, restarted at
     every decision).
+    ``reversing_noses`` (experimental): robust mode also puts a car rolling backwards with its nose turned in the
+    lane its nose points to (it moves there as soon as it moves forward again).
     """
 
     def __init__(
@@ -268,6 +272,7 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
         reversing_cut_ins: bool = True,
         crossed_lanes: bool = True,
         lateral_schedule: bool = False,
+        reversing_noses: bool = False,
     ) -> None:
         if not (math.isfinite(margin) and margin >= 0):
             raise ValueError(f"shield.margin: must be a finite number >= 0 [m] (got {margin!r})")
@@ -302,6 +307,7 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
             reversing_cut_ins=reversing_cut_ins,
             crossed_lanes=crossed_lanes,
             lateral_schedule=lateral_schedule,
+            reversing_noses=reversing_noses,
         )
         try:
             env.get_wrapper_attr("road_snapshot")
@@ -331,6 +337,7 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
         self.reversing_cut_ins = bool(reversing_cut_ins)
         self.crossed_lanes = bool(crossed_lanes)
         self.lateral_schedule = bool(lateral_schedule)
+        self.reversing_noses = bool(reversing_noses)
         self._rule_options = {name: getattr(self, name) for name in RULE_OPTIONS}  # dynamics_of's keywords
         self.dynamics: Dynamics | None = None
         self.result: SafetyResult | None = None

@@ -375,7 +375,8 @@ def _action_lanes(state: RoadState, dyn: Dynamics, action: int) -> list[tuple[in
 
     With ``Dynamics.crossed_lanes`` also every lane the ego crosses on the way to its target: a lane
     change chained onto one under way (lane 0 → 1, then RIGHT again → 2) takes the ego through lane 1 whole,
-    which the leave time of one lane change does not bound (issue 15, cells 2009 and 2833)."""
+    which the leave time of one lane change does not bound (issue 15, cells 2009 and 2833). With
+    ``Dynamics.lateral_schedule`` (experimental) the lanes and times of :func:`ego_lane_windows` instead."""
     if dyn.lateral_schedule:
         return ego_lane_windows(state, dyn, final_lane(state, dyn, action))
     base = {state.ego_lane, state.ego_target_lane}
@@ -402,9 +403,10 @@ def final_lane(state: RoadState, dyn: Dynamics, action: int) -> int:
 
 def ego_lane_windows(state: RoadState, dyn: Dynamics, final: int) -> list[tuple[int, float]]:
     """``Dynamics.lateral_schedule``: the lanes the ego's body overlaps (a vehicle of ``body_width`` centred in
-    them) while it steers for lane ``final``, each with the time [s] until which it does, one frame added as
-    :func:`safelane.safety.shield.ego_leave_time_at` adds it (inf: still there at the horizon's end); ``final``
-    always, from now on.
+    them) while it steers for lane ``final``, each with the time [s] until which it does: the first frame it is
+    clear of the lane plus one frame, as :func:`safelane.safety.shield.ego_leave_time_at` counts (from a lane
+    centre, exactly that function's leave time); inf: still overlapped when the simulation ended unsettled (the
+    horizon, a standstill). ``final`` always, from now on.
 
     highway-env's own lateral controller (``ControlledVehicle.steering_control``: lateral P-control to a
     heading reference, heading P-control to a slip angle, the bicycle model of ``Vehicle.step``) simulated from
@@ -905,7 +907,8 @@ def _paper_eq12(state: RoadState, dyn: Dynamics) -> tuple[np.ndarray, np.ndarray
     gaps = np.full(N_ACTIONS, np.inf)
     half = 0.5 * (state.length + state.ego_length)
     for a in range(N_ACTIONS):
-        for lane, _ in _action_lanes(state, replace(dyn, crossed_lanes=False), a):  # as printed: two lanes
+        printed = replace(dyn, crossed_lanes=False, lateral_schedule=False)  # as printed: the two lanes
+        for lane, _ in _action_lanes(state, printed, a):
             for i in np.flatnonzero(lanes == lane):
                 denom = 2.0 * (abs(state.brake_max[i]) - ego_brake)
                 p_safe = (state.vx[i] - state.ego_speed) ** 2 / denom if denom > 0 else 0.0

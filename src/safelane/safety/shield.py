@@ -129,7 +129,7 @@ def dynamics_of(
         crossed_lanes=crossed_lanes,
         lateral_schedule=lateral_schedule,
         reversing_noses=reversing_noses,
-        # highway-env's lateral controller, read from the class the ego is built from (ControlledVehicle's).
+        # highway-env's lateral controller: ControlledVehicle's gains, which MDPVehicle (the ego) inherits.
         ego_width=float(snap.width[snap.ego]) if len(snap.width) else 2.0,
         kp_lateral=float(ControlledVehicle.KP_LATERAL),
         kp_heading=float(ControlledVehicle.KP_HEADING),

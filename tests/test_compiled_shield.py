@@ -470,7 +470,7 @@ def test_crossed_lanes_bit_identical_and_only_stricter(case: tuple) -> None:
 @PROPERTY_SETTINGS
 @given(case=road(extreme=True, rates=True))
 def test_reversing_noses_bit_identical_and_only_stricter(case: tuple) -> None:
-    """shield.reversing_noses (experimental): the same in both engines at every rate; it only adds a lane to a car
+    """shield.reversing_noses: the same in both engines at every rate; it only adds a lane to a car
     rolling backwards with its nose turned, so nothing becomes safe and no worst gap grows; a road without such
     a car, and nominal mode, are unchanged to the bit."""
     state, dyn, _ = case

@@ -251,11 +251,12 @@ class ShieldConfig(_Section):
         "bookkeeping when on.",
     )
     reversing_noses: bool = Field(
-        False,
+        True,
         strict=True,
-        description="Experimental: a car rolling backwards with its nose turned toward a lane is also in that "
-        "lane (robust mode): backwards it moves away from it, and it drives there as soon as it moves forward "
-        "again (a jammed IDM car, the trained agents' cell 126; docs/safety.md §6j).",
+        description="A car rolling backwards with its nose turned toward a lane is also in that lane (robust "
+        "mode): backwards it moves away from it, and it drives there as soon as it moves forward again (a jammed "
+        "IDM car, the trained agents' cell 126; docs/safety.md §6j). On by default since issue 15's tenth "
+        "session; false: the earlier rule.",
     )
 
     def rule_options(self) -> dict[str, bool]:
@@ -680,7 +681,7 @@ RULE_CHANGES: dict[str, Any] = {
     "linear_mobil": False, "linear_incentive": False, "linear_incentive_braking": False, "turning_leaders": False,
     "straight_fallback": False, "reversing_cut_ins": False,
     # issue 15's tenth session (docs/safety.md §6j)
-    "crossed_lanes": False,
+    "crossed_lanes": False, "reversing_noses": False,
 }  # fmt: skip
 """Shield keys added with a new default that changes the rule: a *recorded* configuration (a run's
 config.yaml, a counterexample file) written before the key existed had the old behaviour, given here,

@@ -355,8 +355,8 @@ def car_rolling_back_turned_in(mode: Mode = "robust", **kw: Any) -> Scene:
     cell 126 (``cell00126-seed4001260042``, the tenth session's agents) at its break. Backwards, its lateral
     motion points away from the ego, so the rule's heading projection put it in no lane of the ego's and IDLE
     kept 18.16 m; one decision later it moved forward, into the ego's lane, and nothing was safe (it hit the
-    car two decisions later). ``shield.reversing_noses`` (experimental) puts a car rolling backwards in the lane
-    its nose points to: only SLOWER is safe (5.28 m)."""
+    car two decisions later). ``shield.reversing_noses`` (today's default) puts a car rolling backwards in the
+    lane its nose points to: only SLOWER is safe (5.28 m)."""
     specs = [
         VehicleSpec(0, 22.38, -0.086, heading=0.1659, target_lane=1, lateral_offset=0.441),
         VehicleSpec(0, 32.74, 0.956),

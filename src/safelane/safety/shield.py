@@ -93,7 +93,7 @@ def dynamics_of(
     reversing_cut_ins: bool = True,
     crossed_lanes: bool = True,
     lateral_schedule: bool = False,
-    reversing_noses: bool = False,
+    reversing_noses: bool = True,
 ) -> Dynamics:
     """The :class:`Dynamics` constants of the simulated world a snapshot was taken in; ``margin`` [m]: the
     bumper-to-bumper gap the rule keeps under its worst case; the rule's options as in :class:`Dynamics`."""
@@ -242,7 +242,7 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
     ``lateral_schedule`` (experimental): the ego's time in each lane simulated with highway-env's lateral
     controller from its lateral position and heading (else: a lane change from a lane centre, restarted at
     every decision).
-    ``reversing_noses`` (experimental): robust mode also puts a car rolling backwards with its nose turned in the
+    ``reversing_noses``: robust mode also puts a car rolling backwards with its nose turned in the
     lane its nose points to (it moves there as soon as it moves forward again).
     """
 
@@ -272,7 +272,7 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
         reversing_cut_ins: bool = True,
         crossed_lanes: bool = True,
         lateral_schedule: bool = False,
-        reversing_noses: bool = False,
+        reversing_noses: bool = True,
     ) -> None:
         if not (math.isfinite(margin) and margin >= 0):
             raise ValueError(f"shield.margin: must be a finite number >= 0 [m] (got {margin!r})")

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from typing import Any
 
 import numpy as np
@@ -42,6 +42,25 @@ def mismatches(state: RoadState, dyn: Dynamics) -> list[str]:
         except AssertionError as err:
             bad.append(str(err))
     return bad
+
+
+def assert_only_stricter(state: RoadState, off: Dynamics, on: Dynamics, unchanged: Callable[[str], bool]) -> None:
+    """In both modes, ``on`` makes no action safe that ``off`` does not and grows no worst gap; in the modes
+    where ``unchanged(mode)`` it gives the same result to the bit."""
+    for mode in MODES:
+        a, b = model.evaluate(state, off, mode), model.evaluate(state, on, mode)
+        assert not (b.safe & ~a.safe).any() and not (b.min_gap > a.min_gap).any()
+        if unchanged(mode):
+            assert_same(a, b)
+
+
+def assert_nested(state: RoadState, dyn: Dynamics) -> None:
+    """robust ⊆ nominal for the final masks — for headings up to 0.3 rad, as test_masks_are_never_empty_and_nested
+    draws them (at 1 rad turning_leaders brakes a leader from its speed along its path, more than nominal's
+    along the road: hypothesis found it)."""
+    if (np.abs(state.heading) <= 0.3).all():
+        robust, nominal = model.evaluate(state, dyn, "robust"), model.evaluate(state, dyn, "nominal")
+        assert not (robust.mask & ~nominal.mask).any()
 
 
 @PROPERTY_SETTINGS
@@ -438,11 +457,7 @@ def test_reversing_cut_ins_bit_identical_and_only_stricter(case: tuple) -> None:
     state, dyn, _ = case
     off, on = (dataclasses.replace(dyn, reversing_cut_ins=v) for v in (False, True))
     assert mismatches(state, on) == []
-    for mode in MODES:
-        a, b = model.evaluate(state, off, mode), model.evaluate(state, on, mode)
-        assert not (b.safe & ~a.safe).any() and not (b.min_gap > a.min_gap).any()
-        if not (state.vx < 0).any():
-            assert_same(a, b)
+    assert_only_stricter(state, off, on, lambda mode: not (state.vx < 0).any())
 
 
 @PROPERTY_SETTINGS
@@ -451,20 +466,12 @@ def test_crossed_lanes_bit_identical_and_only_stricter(case: tuple) -> None:
     """shield.crossed_lanes: the same in both engines at every rate, with the ego's target up to two lanes away;
     it only adds the lanes the ego crosses (or keeps one it crosses for longer), so no action safe with it is
     unsafe without it and no worst gap grows; an ego keeping its lane crosses nothing and is unchanged to the
-    bit. Both modes take the same lanes, so robust ⊆ nominal still holds for the final masks (for headings
-    up to 0.3 rad, as test_masks_are_never_empty_and_nested draws them: at 1 rad turning_leaders brakes a
-    leader from its speed along its path, more than nominal's along the road — hypothesis found it)."""
+    bit. Both modes take the same lanes, so robust ⊆ nominal still holds for the final masks."""
     state, dyn, _ = case
     off, on = (dataclasses.replace(dyn, crossed_lanes=v) for v in (False, True))
     assert mismatches(state, on) == [] and mismatches(state, off) == []
-    for mode in MODES:
-        a, b = model.evaluate(state, off, mode), model.evaluate(state, on, mode)
-        assert not (b.safe & ~a.safe).any() and not (b.min_gap > a.min_gap).any()
-        if state.ego_target_lane == state.ego_lane:
-            assert_same(a, b)
-    if (np.abs(state.heading) <= 0.3).all():  # beyond, turning_leaders' path speed can exceed nominal's vx
-        robust, nominal = model.evaluate(state, on, "robust"), model.evaluate(state, on, "nominal")
-        assert not (robust.mask & ~nominal.mask).any()
+    assert_only_stricter(state, off, on, lambda mode: state.ego_target_lane == state.ego_lane)
+    assert_nested(state, on)
 
 
 @PROPERTY_SETTINGS
@@ -476,11 +483,8 @@ def test_reversing_noses_bit_identical_and_only_stricter(case: tuple) -> None:
     state, dyn, _ = case
     off, on = (dataclasses.replace(dyn, reversing_noses=v) for v in (False, True))
     assert mismatches(state, on) == []
-    for mode in MODES:
-        a, b = model.evaluate(state, off, mode), model.evaluate(state, on, mode)
-        assert not (b.safe & ~a.safe).any() and not (b.min_gap > a.min_gap).any()
-        if mode == "nominal" or not ((state.vx < 0) & (np.abs(state.heading) > model.LATERAL_MOTION_THRESHOLD)).any():
-            assert_same(a, b)
+    turned_back = ((state.vx < 0) & (np.abs(state.heading) > model.LATERAL_MOTION_THRESHOLD)).any()
+    assert_only_stricter(state, off, on, lambda mode: mode == "nominal" or not turned_back)
 
 
 @PROPERTY_SETTINGS
@@ -492,9 +496,7 @@ def test_lateral_schedule_bit_identical(case: tuple) -> None:
     state, dyn, _ = case
     on = dataclasses.replace(dyn, lateral_schedule=True)
     assert mismatches(state, on) == []
-    if (np.abs(state.heading) <= 0.3).all():  # beyond, turning_leaders' path speed can exceed nominal's vx
-        robust, nominal = model.evaluate(state, on, "robust"), model.evaluate(state, on, "nominal")
-        assert not (robust.mask & ~nominal.mask).any()
+    assert_nested(state, on)
 
 
 @PROPERTY_SETTINGS

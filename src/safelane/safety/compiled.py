@@ -386,48 +386,51 @@ def _evaluate_rule(
     level_any = np.zeros((N_ACTIONS, m), dtype=np.bool_)  # the same, no incentive filter (level_entering)
     ego_lanes = np.empty(lanes_count + 1, dtype=np.int64)
     ego_until = np.empty(lanes_count + 1)  # [s] until when the ego is in the lane (inf: for good)
-    ego_hi = np.empty(lanes_count + 1, dtype=np.int64)  # the last frame of that window
+    ego_hi = np.empty(lanes_count + 1, dtype=np.int64)  # the last frame of that window (t <= until)
     last_frame = np.empty(lanes_count, dtype=np.int64)
+    hi_leave = n_t - 1
+    while hi_leave >= 0 and not (t[hi_leave] <= ego_leave_time):
+        hi_leave -= 1
+    hi_inf = n_t - 1
     target_clip = 0.0
     for a in range(N_ACTIONS):
         if not available[a]:
             continue
         # _action_lanes: the sorted set {ego_lane, ego_target_lane} (with crossed_lanes every lane between
-        # them), then a lane change's new lane; with lateral_schedule, model.ego_lane_windows.
+        # them), then a lane change's new lane (model.final_lane); with lateral_schedule, model.ego_lane_windows.
+        lane_change = (a == LANE_LEFT) | (a == LANE_RIGHT)
+        final = ego_target_lane
+        if lane_change:
+            final = min(max(ego_target_lane + (-1 if a == LANE_LEFT else 1), 0), lanes_count - 1)
         lo_l, hi_l = min(ego_lane, ego_target_lane), max(ego_lane, ego_target_lane)
         n_el = 0
         if lateral_schedule:
-            final = ego_target_lane
-            if a == LANE_LEFT or a == LANE_RIGHT:  # noqa: SIM109 (numba)
-                final = min(max(ego_target_lane + (-1 if a == LANE_LEFT else 1), 0), lanes_count - 1)
             n_el = _ego_lane_windows(
                 ego_y, ego_heading, ego_length, final, lanes_count, lane_width, frame_dt, n_t - 1,
                 ego_lateral_speed, ego_width, body_width, kp_lateral, kp_heading, max_steering, last_frame,
                 ego_lanes, ego_until,
             )  # fmt: skip
-        elif a != LANE_LEFT and a != LANE_RIGHT:
+            for e in range(n_el):  # the times are the schedule's: find each window's last frame
+                hi_e = n_t - 1
+                while hi_e >= 0 and not (t[hi_e] <= ego_until[e]):
+                    hi_e -= 1
+                ego_hi[e] = hi_e
+        elif not lane_change:
             for lane in range(lo_l, hi_l + 1):
                 if lane == lo_l or lane == hi_l or crossed_lanes:  # noqa: SIM109 (numba)
-                    ego_lanes[n_el], ego_until[n_el] = lane, inf
+                    ego_lanes[n_el], ego_hi[n_el] = lane, hi_inf
                     n_el += 1
         else:
-            step = -1 if a == LANE_LEFT else 1
-            new_target = min(max(ego_target_lane + step, 0), lanes_count - 1)
-            lo_x, hi_x = min(ego_lane, new_target), max(ego_lane, new_target)  # crossed: strictly between
+            lo_x, hi_x = min(ego_lane, final), max(ego_lane, final)  # crossed: strictly between
             for lane in range(min(lo_l, lo_x), max(hi_l, hi_x) + 1):
-                if lane == new_target:
+                if lane == final:
                     continue
                 crossed = crossed_lanes and lo_x < lane < hi_x
                 if crossed or lane == lo_l or lane == hi_l:  # noqa: SIM109 (numba) still overlapped until it has left
-                    ego_lanes[n_el], ego_until[n_el] = lane, inf if crossed else ego_leave_time
+                    ego_lanes[n_el], ego_hi[n_el] = lane, hi_inf if crossed else hi_leave
                     n_el += 1
-            ego_lanes[n_el], ego_until[n_el] = new_target, inf
+            ego_lanes[n_el], ego_hi[n_el] = final, hi_inf
             n_el += 1
-        for e in range(n_el):  # the model's window t <= until: its last frame
-            hi_e = n_t - 1
-            while hi_e >= 0 and not (t[hi_e] <= ego_until[e]):
-                hi_e -= 1
-            ego_hi[e] = hi_e
 
         slot = -1
         if robust:

@@ -384,8 +384,7 @@ def _action_lanes(state: RoadState, dyn: Dynamics, action: int) -> list[tuple[in
         if dyn.crossed_lanes:
             base |= set(range(min(base), max(base) + 1))
         return [(lane, math.inf) for lane in sorted(base)]
-    step = -1 if action == LANE_LEFT else 1
-    new_target = int(np.clip(state.ego_target_lane + step, 0, dyn.lanes_count - 1))
+    new_target = final_lane(state, dyn, action)
     low, high = sorted((state.ego_lane, new_target))
     crossed = set(range(low + 1, high)) if dyn.crossed_lanes else set()
     lanes = [(lane, math.inf if lane in crossed else dyn.ego_leave_time) for lane in sorted(base | crossed)]

@@ -500,6 +500,23 @@ def test_lateral_schedule_bit_identical(case: tuple) -> None:
 
 
 @PROPERTY_SETTINGS
+@given(case=road(extreme=True, rates=True, chained=True, follower=True))
+def test_follower_idm_bit_identical(case: tuple) -> None:
+    """shield.follower_idm (experimental): the same in both engines at every rate (IDM followers of every kind,
+    crashed cars, cars between a follower and the ego); robust ⊆ nominal still holds for the final masks (both
+    modes take the same follower bound); a road without an IDM car behind the ego in its lane is unchanged to
+    the bit."""
+    state, dyn, _ = case
+    off, on = (dataclasses.replace(dyn, follower_idm=v) for v in (False, True))
+    assert mismatches(state, on) == []
+    assert_nested(state, on)
+    near = np.flatnonzero(np.abs(state.x - state.ego_x) < model.RELEVANCE_RANGE)
+    if not model.idm_followers(state, on, near).any():
+        for mode in ("nominal", "robust"):
+            assert_same(model.evaluate(state, off, mode), model.evaluate(state, on, mode), mode)
+
+
+@PROPERTY_SETTINGS
 @given(case=road(extreme=True, rates=True))
 def test_the_ninth_session_s_rule_leaves_nominal_untouched(case: tuple) -> None:
     """The options made default in issue 15's ninth session (linear drivers' MOBIL, turning leaders, the

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import itertools
 import math
 from collections.abc import Callable
 
@@ -14,7 +15,15 @@ from hypothesis import strategies as st
 from safelane.core.spaces import FASTER, IDLE, LANE_LEFT, LANE_RIGHT, SLOWER
 from safelane.env import scenarios
 from safelane.safety.compiled import evaluate_compiled
-from safelane.safety.model import Dynamics, RoadState, SafetyResult, ego_lane_windows, ego_trajectories, evaluate
+from safelane.safety.model import (
+    Dynamics,
+    RoadState,
+    SafetyResult,
+    ego_lane_windows,
+    ego_trajectories,
+    evaluate,
+    idm_follower_positions,
+)
 from safelane.safety.shield import ego_leave_time_at
 
 EVALUATORS = pytest.mark.parametrize("evaluate", [evaluate, evaluate_compiled], ids=["numpy", "compiled"])
@@ -106,6 +115,10 @@ EXPECTED = {
     # motion points away, but it is also in the lane its nose points to (shield.reversing_noses, robust only):
     # only SLOWER (test below). Nominal: IDLE, FASTER and SLOWER.
     "car_rolling_back_turned_in": {"nominal": mask_of(I, F, S), "robust": mask_of(S)},
+    # Behind a leader braking at its limit 9.36 m ahead, an IDM car 36.3 m behind: the follower bound restarted at
+    # every decision leaves robust nothing safe (IDLE and SLOWER 0.745 m), its least-bad IDLE and SLOWER; unless
+    # shield.follower_idm (experimental: test below). Nominal: IDLE and SLOWER.
+    "squeezed_by_a_follower": {"nominal": mask_of(I, S), "robust": mask_of(I, S)},
 }
 
 
@@ -121,6 +134,7 @@ def test_scenario_masks(name: str, mode: str, engine: str) -> None:
     fallbacks |= {("closing_in_at_five_per_second", "nominal"), ("closing_in_at_five_per_second", "robust")}
     fallbacks |= {("ego_turning_into_its_lane", "robust"), ("reversing_car_beside", "robust")}
     fallbacks |= {("ego_crossing_a_lane", "nominal"), ("ego_crossing_a_lane", "robust")}
+    fallbacks.add(("squeezed_by_a_follower", "robust"))
     assert scene.result.fallback == ((name, mode) in fallbacks)
     available = scene.env.unwrapped.action_type.get_available_actions()
     assert set(np.flatnonzero(scene.mask)) <= set(available)
@@ -363,6 +377,57 @@ def test_turning_allowance_covers_highway_env_s_lane_change() -> None:
     assert 1.4 < worst <= allowance == pytest.approx(4.0 * np.tan(np.pi / 8))
 
 
+def test_idm_follower_bound_against_highway_env_s_idm() -> None:
+    """shield.follower_idm's follower (``model.idm_follower_positions``) against highway-env's own IDMVehicle,
+    which brakes for the ego at every frame: the ego drives each of IDLE's, FASTER's and SLOWER's fallbacks
+    (at 1 decision per second with 5 Hz physics and 5 per second with 15 Hz), the follower starts 7–40 m behind
+    at −6 to +15 m/s of the ego's speed, with its own set-point 10 or 40 m/s (which the bound does not
+    know: it takes the free-road term at its largest). Not a position envelope — a follower whose set-point is
+    below its speed brakes harder at first and may later be up to ≈2 m ahead of the bound's path, where the
+    bound, closer, brakes harder — but what the rule uses it for holds: wherever the bound's worst gap to the
+    ego keeps the margin, the real follower's keeps it too, and is never more than 1 cm smaller."""
+    from highway_env.road.road import Road, RoadNetwork
+    from highway_env.vehicle.behavior import IDMVehicle
+    from highway_env.vehicle.kinematics import Vehicle
+
+    margin, kept, shorter, worst_shortfall = 1.0, 0, 0, 0.0
+    for policy_hz, sim_hz in ((1, 5), (5, 15)):
+        dyn = dataclasses.replace(dynamics(1, sim_hz, policy_hz), follower_idm=True)
+        for ego_v, gap, closing, set_point in itertools.product(
+            (5.0, 25.0), (7.0, 15.0, 40.0), (-6.0, 6.0, 15.0), (10.0, 40.0)
+        ):
+            follower_v = max(ego_v + closing, 0.0)
+            idx = int(np.argmin(np.abs(np.array(SPEEDS) - ego_v)))
+            car = {"x": 200.0 - gap, "y": 0.0, "speed": follower_v, "heading": 0.0, "crashed": False,
+                   "delta": IDMVehicle.DELTA, "idm": True}  # fmt: skip
+            state = make_state(200.0, 0, 0, ego_v, idx, [car])
+            ego_x, ego_v_all = ego_trajectories(state, dyn)
+            for action in (I, F, S):
+                bound = idm_follower_positions(state, dyn, 0, ego_x[action], ego_v_all[action])
+                for k in range(ego_x.shape[1]):
+                    network = RoadNetwork.straight_road_network(1, length=10_000.0)
+                    road = Road(network, np_random=np.random.RandomState(0))
+                    ego = Vehicle(road, np.array([200.0, 0.0]), speed=ego_v)
+                    follower = IDMVehicle(road, np.array([200.0 - gap, 0.0]), speed=follower_v, target_speed=set_point)
+                    road.vehicles = [ego, follower]
+                    xs = [follower.position[0]]
+                    for j in range(ego_x.shape[2] - 1):  # the ego on the rule's path; the follower by its IDM
+                        ego.position = np.array([ego_x[action, k, j], 0.0])
+                        ego.speed = ego_v_all[action, k, j]
+                        follower.act()
+                        follower.step(dyn.frame_dt)
+                        xs.append(follower.position[0])
+                    bound_gap = float((ego_x[action, k, :-1] - bound[k, :-1] - 5.0).min())
+                    real_gap = float((ego_x[action, k, :-1] - np.array(xs[:-1]) - 5.0).min())
+                    if bound_gap >= margin:
+                        kept += 1
+                        assert real_gap >= margin, (policy_hz, ego_v, gap, closing, set_point, action, k)
+                        if real_gap < bound_gap:
+                            shorter += 1
+                            worst_shortfall = max(worst_shortfall, bound_gap - real_gap)
+    assert kept > 250 and worst_shortfall < 0.01, (kept, shorter, worst_shortfall)
+
+
 @pytest.mark.parametrize("engine", ["numpy", "compiled"])
 def test_least_bad_joint_ranks_the_fallback_by_the_gap_to_anybody(engine: str) -> None:
     """2 lanes, the ego in lane 0 at 20 m/s between a leader 9 m ahead at 15 m/s and a follower 8 m behind at
@@ -531,6 +596,31 @@ def test_reversing_noses_sees_a_car_rolling_back_toward_its_turn(engine: str) ->
     options = {**kw, "shield.reversing_noses": True}
     nominal = scenarios.SCENARIOS["car_rolling_back_turned_in"](mode="nominal", **options)
     assert nominal.mask.tolist() == EXPECTED["car_rolling_back_turned_in"]["nominal"]
+
+
+@pytest.mark.parametrize("engine", ["numpy", "compiled"])
+def test_follower_idm_lets_the_car_behind_brake_for_the_ego(engine: str) -> None:
+    """The 100 800-episode campaign's cell 2415 at its break (docs/safety.md §6k), rebuilt: 5 decisions per
+    second, the ego at 18.32 m/s between a leader 9.36 m ahead (braking at its limit) and an IDM car 36.3 m
+    behind at 21.57 m/s. The follower bound accelerates that car for 0.5 s whatever the ego does and starts
+    again at every decision: IDLE and SLOWER keep 0.745 m, nothing is safe. With shield.follower_idm the car
+    brakes by IDM's response to each fallback of the ego (its free-road term at its largest): they keep
+    1.415 m — the leader's gap, the follower no longer the tighter one. Nominal keeps its masks, with more
+    room (1.08 → 3.07 m)."""
+    kw = {"shield.engine": engine}
+    earlier = scenarios.SCENARIOS["squeezed_by_a_follower"](**kw).result
+    assert earlier.fallback and not earlier.safe.any()
+    assert earlier.min_gap[[I, S]] == pytest.approx([0.745, 0.745], abs=0.001)
+    idm = scenarios.SCENARIOS["squeezed_by_a_follower"](**kw, **{"shield.follower_idm": True}).result
+    assert idm.mask.tolist() == mask_of(I, S) and not idm.fallback
+    assert idm.min_gap[[I, S]] == pytest.approx([1.415, 1.415], abs=0.001)
+    assert idm.min_gap[[L, R, F]].tolist() == earlier.min_gap[[L, R, F]].tolist()
+    nominal = [
+        scenarios.SCENARIOS["squeezed_by_a_follower"](mode="nominal", **kw, **{"shield.follower_idm": v}).result
+        for v in (False, True)
+    ]
+    assert [r.mask.tolist() for r in nominal] == [mask_of(I, S)] * 2
+    assert [round(float(r.min_gap[I]), 2) for r in nominal] == [1.08, 3.07]
 
 
 @pytest.mark.parametrize("engine", ["numpy", "compiled"])
@@ -783,12 +873,18 @@ def vehicle(draw: st.DrawFn, lanes: int, extreme: bool = False) -> dict[str, flo
 
 @st.composite
 def road(
-    draw: st.DrawFn, extreme: bool = False, rates: bool = False, chained: bool = False, lateral: bool = False
+    draw: st.DrawFn,
+    extreme: bool = False,
+    rates: bool = False,
+    chained: bool = False,
+    lateral: bool = False,
+    follower: bool = False,
 ) -> tuple[RoadState, Dynamics, list[dict[str, float]]]:
     """A random road at 1 decision per second, or (``rates``) at the falsification grid's 1, 2, 3 or 5;
     ``chained``: the ego's target lane may also be two lanes away (a lane change chained onto one under way);
     ``lateral``: the ego off its lane's centre and turned, with the speed its lateral motion is simulated at
-    (``Dynamics.ego_lateral_speed``, a multiple of 0.5 m/s as the shield takes it) and its leave time."""
+    (``Dynamics.ego_lateral_speed``, a multiple of 0.5 m/s as the shield takes it) and its leave time;
+    ``follower``: also an IDM car driving straight behind the ego in its lane, 5.5–150 m back."""
     lanes = draw(st.integers(1, 5))
     sim_hz = draw(st.sampled_from([5, 15]))
     policy_hz = 1
@@ -800,6 +896,19 @@ def road(
     idx = draw(st.integers(0, len(SPEEDS) - 1))
     cars = draw(st.lists(vehicle(lanes, extreme), max_size=10))
     ego_x = 200.0
+    if follower:
+        behind = {
+            "x": ego_x - draw(st.floats(5.5, 150.0)),
+            "y": ego_lane * 4.0 + draw(st.floats(-1.0, 1.0)),
+            "speed": draw(st.floats(-5.0 if extreme else 0.0, 40.0)),
+            "heading": 0.0,
+            "crashed": False,
+            "delta": draw(st.floats(3.5, 4.5)),
+            "idm": True,
+            "linear": False,
+        }
+        at = draw(st.integers(0, len(cars)))
+        cars = [*cars[:at], behind, *cars[at:]]
     state = make_state(ego_x, ego_lane, target_lane, draw(st.floats(0.0, 40.0 if extreme else 32.0)), idx, cars)
     dyn = dynamics(lanes, sim_hz, policy_hz)
     if lateral:

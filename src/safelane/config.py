@@ -258,6 +258,14 @@ class ShieldConfig(_Section):
         "IDM car, the trained agents' cell 126; docs/safety.md §6j). On by default since issue 15's tenth "
         "session; false: the earlier rule.",
     )
+    follower_idm: bool = Field(
+        False,
+        strict=True,
+        description="Experimental: the IDM car right behind the ego in its lane (nothing between them) brakes "
+        "by IDM's own response to each fallback of the ego, frame by frame, its free-road term bounded by its "
+        "comfort acceleration, instead of accelerating for the reaction time whatever the ego does — a bound "
+        "that does not restart at every decision (cell 2415; docs/safety.md §6k). Both modes.",
+    )
 
     def rule_options(self) -> dict[str, bool]:
         """The rule's on/off options by name, as :class:`safelane.safety.shield.SafetyShield` and
@@ -669,7 +677,7 @@ RULE_OPTIONS = (
     "projected_cut_ins", "body_extent", "linear_mobil", "reversing_leaders", "level_cut_ins", "level_incentive",
     "level_entering", "least_bad_joint", "full_horizon", "ego_speed_magnitude", "turning_leaders",
     "robust_fallback", "straight_fallback", "linear_incentive", "linear_incentive_braking", "reversing_cut_ins",
-    "crossed_lanes", "lateral_schedule", "reversing_noses",
+    "crossed_lanes", "lateral_schedule", "reversing_noses", "follower_idm",
 )  # fmt: skip
 """The :class:`ShieldConfig` fields that switch parts of the safety rule on or off (``ShieldConfig.rule_options``)."""
 

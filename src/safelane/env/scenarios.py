@@ -365,6 +365,21 @@ def car_rolling_back_turned_in(mode: Mode = "robust", **kw: Any) -> Scene:
     return build_scene(1, 10.0, specs, mode=mode, lanes_count=2, ego_target_speed=10.0, **kw)
 
 
+def squeezed_by_a_follower(mode: Mode = "robust", **kw: Any) -> Scene:
+    """5 decisions per second, 3 lanes of IDM drivers: the ego in lane 1 at 18.32 m/s (set-point 15) 9.36 m
+    behind a car at 16.87 m/s that has braked at its limit for a second, an IDM car 36.3 m behind at 21.57 m/s,
+    both next lanes taken — the 100 800-episode campaign's cell 2415 (``cell02415-seed4024150004``) at its
+    break. One decision earlier IDLE and SLOWER kept 1.37 m; the follower bound (accelerate for the reaction
+    time, then brake) starts again at every decision, so 0.2 s later, with the follower already braking and the
+    leader no worse than its bound, they keep 0.745 m, and nothing is safe. ``shield.follower_idm``
+    (experimental) lets the car behind brake by IDM's own response to the ego: IDLE and SLOWER keep 1.415 m."""
+    rate = {"env.policy_frequency": 5, "env.simulation_frequency": 15}
+    cars = [(1, 9.36, 16.87), (1, 20.66, 17.0), (1, 32.68, 18.34), (0, 48.39, 21.82), (2, 59.65, 21.62),
+            (2, -9.98, 23.02), (0, -20.28, 25.02), (1, -36.3, 21.57), (2, -47.6, 23.71)]  # fmt: skip
+    specs = [VehicleSpec(lane, dx, speed) for lane, dx, speed in cars]
+    return build_scene(1, 18.32, specs, mode=mode, lanes_count=3, ego_target_speed=15.0, **rate, **kw)
+
+
 SCENARIOS: dict[str, Callable[..., Scene]] = {
     "leader_braking": leader_braking,
     "stopped_car_ahead": stopped_car_ahead,
@@ -389,6 +404,7 @@ SCENARIOS: dict[str, Callable[..., Scene]] = {
     "ego_crossing_a_lane": ego_crossing_a_lane,
     "ego_leaving_its_lane": ego_leaving_its_lane,
     "car_rolling_back_turned_in": car_rolling_back_turned_in,
+    "squeezed_by_a_follower": squeezed_by_a_follower,
 }
 """Every scenario by name."""
 

@@ -47,6 +47,10 @@ _TIE_BREAK = np.array(model.TIE_BREAK_ORDER, dtype=np.int64)
 _RELEVANCE = float(model.RELEVANCE_RANGE)
 _LATERAL = float(model.LATERAL_MOTION_THRESHOLD)
 _MIN_ACC_GAIN = float(model.MOBIL_MIN_ACC_GAIN)
+# Literals the kernels read as globals (frozen at compile time): checked against the model's here.
+IDM_LANE_MARGIN = 1.0
+NOT_ZERO = 1e-2
+assert (model.IDM_LANE_MARGIN, model.NOT_ZERO) == (IDM_LANE_MARGIN, NOT_ZERO), "update compiled.py"
 
 
 # --------------------------------------------------------------------------------------------
@@ -141,6 +145,44 @@ def _follower_row(
 
 
 @njit(cache=True, error_model="numpy")
+def _idm_follower_window(
+    i: int, x: np.ndarray, vx: np.ndarray, comfort_acc: np.ndarray, comfort_dec: np.ndarray,
+    distance_wanted: np.ndarray, time_wanted: np.ndarray, accel_max: np.ndarray, brake_max: np.ndarray,
+    ego_xs: np.ndarray, ego_vs: np.ndarray, frame_dt: float, reaction: float, half: float, lo: int, hi: int,
+    xf4: np.ndarray, vf4: np.ndarray, worst: np.ndarray,
+) -> None:  # fmt: skip
+    """``model.idm_follower_positions`` of follower ``i`` against one action's fallbacks (``ego_xs``,
+    ``ego_vs``: [frame, fallback]), and its worst gap [m] behind the ego over frames ``lo..hi`` into
+    ``worst`` (same operations, same order)."""
+    acc = comfort_acc[i]
+    two_sqrt_ab = 2.0 * math.sqrt(-acc * comfort_dec[i])
+    d0, tw = distance_wanted[i], time_wanted[i]
+    a_max, b_max = accel_max[i], brake_max[i]
+    last = ego_xs.shape[0] - 1
+    for k in range(N_FALLBACKS):
+        xf4[k] = x[i]
+        vf4[k] = vx[i]
+        worst[k] = math.inf
+    for j in range(hi + 1):
+        for k in range(N_FALLBACKS):
+            o = xf4[k]
+            if j == last:  # model: what the follower bound still covers beyond the last frame
+                v = _nmax(vf4[k], 0.0)
+                v1 = v + a_max * reaction
+                o = o + (v * reaction + 0.5 * a_max * (reaction * reaction) + v1 * v1 / (2.0 * max(b_max, 1e-6)))
+            if j >= lo:
+                worst[k] = _nmin(worst[k], -1.0 * (o - ego_xs[j, k]) - half)
+            if j < hi:  # IDMVehicle.act at frame j, then Vehicle.step
+                d = ego_xs[j, k] - xf4[k]
+                if not (abs(d) > NOT_ZERO):
+                    d = NOT_ZERO if d >= 0.0 else -NOT_ZERO
+                ratio = (d0 + vf4[k] * tw + vf4[k] * (vf4[k] - ego_vs[j, k]) / two_sqrt_ab) / d
+                acc_f = _nmax(_nmin(acc - acc * (ratio * ratio), a_max), -b_max)
+                xf4[k] = xf4[k] + vf4[k] * frame_dt
+                vf4[k] = vf4[k] + acc_f * frame_dt
+
+
+@njit(cache=True, error_model="numpy")
 def _ego_lane_windows(
     y: float, heading: float, ego_length: float, final: int, lanes: int, width: float, dt: float, frames: int,
     speed: float, ego_width: float, body_width: float, kp_lateral: float, kp_heading: float, max_steering: float,
@@ -201,7 +243,7 @@ def _evaluate_rule(
     body_width: float, linear_mobil: bool, reversing_leaders: bool, level_cut_ins: bool, level_incentive: bool,
     level_entering: bool, least_bad_joint: bool, robust_fallback: bool, linear_incentive: bool,
     linear_incentive_braking: bool, reversing_cut_ins: bool, crossed_lanes: bool, lateral_schedule: bool,
-    reversing_noses: bool,
+    reversing_noses: bool, follower_idm: bool,
     ego_width: float, kp_lateral: float,
     kp_heading: float, max_steering: float, turning_allowance: float,
     min_acc_gain: float,
@@ -228,6 +270,7 @@ def _evaluate_rule(
     # --- ego_trajectories: xs[a, frame, k] (the reference's (5, F, T) transposed, so the gap loop
     # below runs the 4 fallbacks side by side); the speeds only where evaluate reads them ----------
     xs = np.empty((N_ACTIONS, n_t, N_FALLBACKS))
+    vs = np.empty((N_ACTIONS, n_t if follower_idm else 0, N_FALLBACKS))  # the speeds, for IDM followers
     v_key = np.empty(N_ACTIONS)  # ego_v[a, 0, frames]: the cut-in key
     v4 = np.empty(N_FALLBACKS)  # per fallback: speed, position, set-point at the decision's start...
     x4 = np.empty(N_FALLBACKS)
@@ -245,6 +288,8 @@ def _evaluate_rule(
                 break
         if src >= 0:
             xs[a] = xs[src]
+            if follower_idm:
+                vs[a] = vs[src]
             v_key[a] = v_key[src]
             continue
         for k in range(N_FALLBACKS):
@@ -260,6 +305,8 @@ def _evaluate_rule(
                 # which can differ from v in the last bit — and ego_v[a, 0, frames] is read below.
                 xs[a, base, k] = 0.0 * frame_dt + x4[k]
                 vp4[k] = dv4[k] * powers[0] + tg4[k]
+                if follower_idm:
+                    vs[a, base, k] = vp4[k]
             if d == 1:
                 v_key[a] = vp4[0]
             for j in range(1, frames + 1):
@@ -269,6 +316,8 @@ def _evaluate_rule(
                     cov4[k] = vp4[k] if j == 1 else cov4[k] + vp4[k]
                     vp4[k] = dv4[k] * p + tg4[k]
                     xs[a, base + j, k] = cov4[k] * frame_dt + x4[k]
+                    if follower_idm:
+                        vs[a, base + j, k] = vp4[k]
             if d == 0:
                 v_key[a] = vp4[0]  # kept when the horizon is a single decision
             for k in range(N_FALLBACKS):
@@ -326,6 +375,26 @@ def _evaluate_rule(
             _follower_row(foll_x[r], x[i], vx[i], accel_max[i], brake_max[i], t_r, t)
         else:
             foll_x[r] = other_x[r]
+    # model.idm_followers: the IDM car right behind the ego in its lane, nothing between them in IDM's band.
+    by_idm = np.zeros(m, dtype=np.bool_)
+    if follower_idm:
+        centre = ego_lane * lane_width
+        band = 0.5 * lane_width + IDM_LANE_MARGIN
+        for r in range(m):
+            i = near[r]
+            if not (
+                x[i] < ego_x and not crashed[i] and can_change_lane[i] and math.isnan(lin_k0[i])
+                and abs(heading[i]) <= lateral_threshold and abs(vy[i]) <= 0.3 and lanes_near[r] == ego_lane
+            ):  # fmt: skip
+                continue
+            clear = True
+            for j in range(n):
+                if j != i and abs(y[j] - centre) <= band and x[j] >= x[i] and x[j] <= ego_x:
+                    clear = False
+                    break
+            by_idm[r] = clear
+    xf4 = np.empty(N_FALLBACKS)  # an IDM follower's position and speed per fallback
+    vf4 = np.empty(N_FALLBACKS)
 
     # --- _occupancy: (row, lane, nominal); every entry starts at t = 0 -------------------------
     occ_row = np.empty(4 * m, dtype=np.int64)
@@ -592,16 +661,22 @@ def _evaluate_rule(
                 sign = 1.0 if ahead_r else -1.0
                 motion = foll_x if follows else other_x
                 h = half[r]
-                # The where(window, gap, inf).min(axis=-1) of the reference: the window's running minimum,
-                # the 4 fallbacks side by side (independent chains; min is exact in any order).
-                w0 = w1 = w2 = w3 = inf
-                for j in range(lo, hi + 1):
-                    o = motion[r, j]
-                    w0 = _nmin(w0, sign * (o - xs[a, j, 0]) - h)
-                    w1 = _nmin(w1, sign * (o - xs[a, j, 1]) - h)
-                    w2 = _nmin(w2, sign * (o - xs[a, j, 2]) - h)
-                    w3 = _nmin(w3, sign * (o - xs[a, j, 3]) - h)
-                worst[0], worst[1], worst[2], worst[3] = w0, w1, w2, w3
+                if by_idm[r] and not follows and lane_c == ego_lane:
+                    _idm_follower_window(
+                        near[r], x, vx, idm_comfort_acc, idm_comfort_dec, idm_distance_wanted, idm_time_wanted,
+                        accel_max, brake_max, xs[a], vs[a], frame_dt, follower_reaction, h, lo, hi, xf4, vf4, worst,
+                    )  # fmt: skip
+                else:
+                    # The where(window, gap, inf).min(axis=-1) of the reference: the window's running minimum,
+                    # the 4 fallbacks side by side (independent chains; min is exact in any order).
+                    w0 = w1 = w2 = w3 = inf
+                    for j in range(lo, hi + 1):
+                        o = motion[r, j]
+                        w0 = _nmin(w0, sign * (o - xs[a, j, 0]) - h)
+                        w1 = _nmin(w1, sign * (o - xs[a, j, 1]) - h)
+                        w2 = _nmin(w2, sign * (o - xs[a, j, 2]) - h)
+                        w3 = _nmin(w3, sign * (o - xs[a, j, 3]) - h)
+                    worst[0], worst[1], worst[2], worst[3] = w0, w1, w2, w3
                 best_f = -inf
                 for f in range(N_FALLBACKS):
                     joint_gap[a, f] = _nmin(joint_gap[a, f], worst[f])
@@ -680,7 +755,7 @@ def _evaluate(
     body_width: float, linear_mobil: bool, reversing_leaders: bool, level_cut_ins: bool, level_incentive: bool,
     level_entering: bool, least_bad_joint: bool, robust_fallback: bool, straight_fallback: bool,
     linear_incentive: bool, linear_incentive_braking: bool, reversing_cut_ins: bool, crossed_lanes: bool,
-    lateral_schedule: bool, reversing_noses: bool, ego_width: float, kp_lateral: float,
+    lateral_schedule: bool, reversing_noses: bool, follower_idm: bool, ego_width: float, kp_lateral: float,
     kp_heading: float, max_steering: float, turning_allowance: float,
     min_acc_gain: float,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, bool]:  # fmt: skip
@@ -700,7 +775,7 @@ def _evaluate(
         lateral_threshold, robust, projected_cut_ins, body_extent, body_width, linear_mobil, reversing_leaders,
         level_cut_ins, level_incentive, level_entering, least_bad_joint, robust_fallback, linear_incentive,
         linear_incentive_braking, reversing_cut_ins, crossed_lanes, lateral_schedule,
-        reversing_noses, ego_width, kp_lateral,
+        reversing_noses, follower_idm, ego_width, kp_lateral,
         kp_heading, max_steering, allowance, min_acc_gain,
     )  # fmt: skip
     if not (out[4] and robust and straight_fallback and turning_allowance > 0.0):
@@ -715,7 +790,7 @@ def _evaluate(
         lateral_threshold, robust, projected_cut_ins, body_extent, body_width, linear_mobil, reversing_leaders,
         level_cut_ins, level_incentive, level_entering, least_bad_joint, robust_fallback, linear_incentive,
         linear_incentive_braking, reversing_cut_ins, crossed_lanes, lateral_schedule,
-        reversing_noses, ego_width, kp_lateral,
+        reversing_noses, follower_idm, ego_width, kp_lateral,
         kp_heading, max_steering, 0.0, min_acc_gain,
     )  # fmt: skip
     return straight[0].copy(), out[1], out[2], out[3], True
@@ -738,7 +813,7 @@ def _evaluate_snapshot(
     body_width: float, linear_mobil: bool, reversing_leaders: bool, level_cut_ins: bool, level_incentive: bool,
     level_entering: bool, least_bad_joint: bool, robust_fallback: bool, straight_fallback: bool,
     linear_incentive: bool, linear_incentive_braking: bool, reversing_cut_ins: bool, crossed_lanes: bool,
-    lateral_schedule: bool, reversing_noses: bool, ego_width: float, kp_lateral: float,
+    lateral_schedule: bool, reversing_noses: bool, follower_idm: bool, ego_width: float, kp_lateral: float,
     kp_heading: float, max_steering: float, ego_speed_magnitude: bool,
     turning_allowance: float,
     min_acc_gain: float,
@@ -792,7 +867,7 @@ def _evaluate_snapshot(
         projected_cut_ins, body_extent, body_width, linear_mobil, reversing_leaders, level_cut_ins, level_incentive,
         level_entering, least_bad_joint, robust_fallback, straight_fallback, linear_incentive,
         linear_incentive_braking, reversing_cut_ins, crossed_lanes, lateral_schedule,
-        reversing_noses, ego_width, kp_lateral,
+        reversing_noses, follower_idm, ego_width, kp_lateral,
         kp_heading, max_steering, turning_allowance, min_acc_gain,
     )  # fmt: skip
 
@@ -890,6 +965,7 @@ class KernelConstants(NamedTuple):
     crossed_lanes: bool
     lateral_schedule: bool
     reversing_noses: bool
+    follower_idm: bool
     ego_width: float
     kp_lateral: float
     kp_heading: float
@@ -922,6 +998,7 @@ def kernel_constants(dyn: Dynamics) -> KernelConstants:
         dyn.crossed_lanes,
         dyn.lateral_schedule,
         dyn.reversing_noses,
+        dyn.follower_idm,
         dyn.ego_width,
         dyn.kp_lateral,
         dyn.kp_heading,
@@ -963,7 +1040,7 @@ def evaluate_compiled(
         dyn.body_width, dyn.linear_mobil, dyn.reversing_leaders, dyn.level_cut_ins, dyn.level_incentive,
         dyn.level_entering, dyn.least_bad_joint, dyn.robust_fallback, dyn.straight_fallback, dyn.linear_incentive,
         dyn.linear_incentive_braking, dyn.reversing_cut_ins, dyn.crossed_lanes, dyn.lateral_schedule,
-        dyn.reversing_noses, dyn.ego_width,
+        dyn.reversing_noses, dyn.follower_idm, dyn.ego_width,
         dyn.kp_lateral, dyn.kp_heading,
         dyn.max_steering, model.turning_allowance(dyn), _MIN_ACC_GAIN,
     )  # fmt: skip
@@ -1008,7 +1085,7 @@ def evaluate_snapshot(
         dyn.body_width, dyn.linear_mobil, dyn.reversing_leaders, dyn.level_cut_ins, dyn.level_incentive,
         dyn.level_entering, dyn.least_bad_joint, dyn.robust_fallback, dyn.straight_fallback, dyn.linear_incentive,
         dyn.linear_incentive_braking, dyn.reversing_cut_ins, dyn.crossed_lanes, dyn.lateral_schedule,
-        dyn.reversing_noses, dyn.ego_width,
+        dyn.reversing_noses, dyn.follower_idm, dyn.ego_width,
         dyn.kp_lateral, dyn.kp_heading,
         dyn.max_steering, dyn.ego_speed_magnitude,
         model.turning_allowance(dyn),

@@ -61,6 +61,8 @@ BASE_DECISION_PERIOD = 1.0
 with ``Dynamics.full_horizon`` the horizon spans at least as many seconds at every decision rate."""
 RELEVANCE_RANGE = 250.0  # [m] vehicles farther than this (longitudinally) cannot matter in the horizon
 LATERAL_MOTION_THRESHOLD = 0.01  # [rad] |heading| above which a vehicle counts as changing lane (robust)
+IDM_LANE_MARGIN = 1.0  # [m] highway-env's IDM sees a body within half a lane + this of its lane's centre
+NOT_ZERO = 1e-2  # [m] highway-env's utils.not_zero: the smallest distance IDM divides by
 MOBIL_MIN_ACC_GAIN = 0.2  # [m/s²] highway-env's IDMVehicle.LANE_CHANGE_MIN_ACC_GAIN (its POLITENESS is 0)
 
 OVERRIDE_ORDER: dict[int, tuple[int, ...]] = {
@@ -115,6 +117,7 @@ class Dynamics:
     crossed_lanes: bool = True  # the ego occupies every lane between its lane and its target, until it is through
     lateral_schedule: bool = False  # the ego's time in each lane simulated from its lateral position and heading
     reversing_noses: bool = True  # robust: a car rolling backwards, turned, is also in the lane its nose points to
+    follower_idm: bool = False  # the IDM car right behind the ego in its lane brakes by IDM's response to the ego
     ego_lateral_speed: float = math.nan  # [m/s] the speed that simulation runs at (per state, like ego_leave_time)
     ego_width: float = 2.0  # [m] the ego's width (Vehicle.WIDTH)
     kp_lateral: float = 1.0 / 0.6  # [1/s] ControlledVehicle.KP_LATERAL
@@ -363,6 +366,73 @@ def linear_acceleration_behind(
         + state.linear_speed_difference_gain[who] * np.minimum(own_speed - ego_speed, 0.0)
         + state.linear_distance_gain[who] * np.minimum(gap_centres - d_safe, 0.0)
     )
+
+
+def idm_followers(state: RoadState, dyn: Dynamics, near: np.ndarray) -> np.ndarray:
+    """Which vehicles ``near`` follow the ego by IDM, with ``Dynamics.follower_idm`` (else none): bool per row.
+
+    highway-env's IDM brakes for the nearest body ahead of it within half a lane + 1 m of its lane's centre
+    (``Road.neighbour_vehicles``, ``Lane.on_lane(margin=1)``) at every physics frame. The car right behind the
+    ego in the ego's lane, driving straight (not moving sideways), with IDM's formula (not the linear model)
+    and a lane-change rule (a driver, not an object), has the ego as that body: nothing else's centre lies
+    between the two in the band."""
+    rows = np.zeros(near.shape[0], dtype=bool)
+    if not dyn.follower_idm:
+        return rows
+    centre = state.ego_lane * dyn.lane_width
+    in_band = np.abs(state.y - centre) <= 0.5 * dyn.lane_width + IDM_LANE_MARGIN
+    lanes = state.lane_of(state.y, dyn.lanes_count, dyn.lane_width)
+    for r, i in enumerate(near):
+        if not (
+            state.x[i] < state.ego_x
+            and not state.crashed[i]
+            and state.can_change_lane[i]
+            and np.isnan(state.linear_speed_gain[i])
+            and abs(state.heading[i]) <= LATERAL_MOTION_THRESHOLD
+            and abs(state.vy[i]) <= 0.3
+            and lanes[i] == state.ego_lane
+        ):
+            continue
+        between = in_band & (state.x >= state.x[i]) & (state.x <= state.ego_x)
+        between[i] = False
+        rows[r] = not between.any()
+    return rows
+
+
+def idm_follower_positions(state: RoadState, dyn: Dynamics, i: int, ego_x: np.ndarray, ego_v: np.ndarray) -> np.ndarray:
+    """Positions [m] of follower ``i`` (:func:`idm_followers`) braking by IDM for the ego, per fallback.
+
+    ``ego_x``, ``ego_v``: (F, T) the ego's positions [m] and speeds [m/s] of one action's fallbacks. Frame
+    by frame as highway-env's ``IDMVehicle.act`` then ``Vehicle.step``: ``a = acc·(1 − (v/v₀)^δ) −
+    acc·(d*/d)²`` with ``d* = d₀ + v·T + v·(v − v_ego)/(2√(acc·b))`` and ``d`` the centre distance, clipped to
+    ``[−brake_max, accel_max]``; then ``x += v·dt``, ``v += a·dt``. The driver's own set-point v₀ is not
+    observed, so the free-road term is bounded by ``acc`` (v₀ = ∞): an upper bound on its acceleration in
+    every state, not a proven envelope of its path (docs/safety.md §6k). Beyond the last frame the car is
+    credited what the follower bound lets it still cover (accelerate for the reaction time, then brake).
+    Returns (F, T)."""
+    acc = float(state.idm_comfort_acc[i])
+    two_sqrt_ab = 2.0 * math.sqrt(-acc * float(state.idm_comfort_dec[i]))
+    d0, tw = float(state.idm_distance_wanted[i]), float(state.idm_time_wanted[i])
+    a_max, b_max = float(state.accel_max[i]), float(state.brake_max[i])
+    dt = dyn.frame_dt
+    n_f, n_t = ego_x.shape
+    out = np.empty((n_f, n_t))
+    xf = np.full(n_f, float(state.x[i]))
+    vf = np.full(n_f, float(state.vx[i]))
+    out[:, 0] = xf
+    for k in range(n_t - 1):
+        d = ego_x[:, k] - xf
+        d = np.where(np.abs(d) > NOT_ZERO, d, np.where(d >= 0.0, NOT_ZERO, -NOT_ZERO))
+        ratio = (d0 + vf * tw + vf * (vf - ego_v[:, k]) / two_sqrt_ab) / d
+        a = np.maximum(np.minimum(acc - acc * (ratio * ratio), a_max), -b_max)
+        xf = xf + vf * dt
+        vf = vf + a * dt
+        out[:, k + 1] = xf
+    reaction = dyn.follower_reaction
+    v = np.maximum(vf, 0.0)
+    v1 = v + a_max * reaction
+    out[:, -1] += v * reaction + 0.5 * a_max * (reaction * reaction) + v1 * v1 / (2.0 * max(b_max, 1e-6))
+    return out
 
 
 # --------------------------------------------------------------------------------------------
@@ -747,6 +817,7 @@ def evaluate(state: RoadState, dyn: Dynamics, mode: Mode = "robust", formula: Fo
     )
     other_x = np.where(ahead[near][:, None], lead_x, foll_x)  # (m, T)
     row_of = {int(v): r for r, v in enumerate(near)}
+    by_idm = idm_followers(state, dyn, near)  # follower_idm: these brake for the ego by IDM, per fallback
 
     occ = _occupancy(state, dyn, mode, near)
     targets = action_targets(state, dyn)
@@ -806,7 +877,7 @@ def evaluate(state: RoadState, dyn: Dynamics, mode: Mode = "robust", formula: Fo
             as_follower = as_follower + [False] * len(extra_v) + [True] * len(behind_v)
         # Every (vehicle, lane) pair that shares a lane with the ego, with the window in which both do.
         pairs = [
-            (row_of[vi], start, until, is_nominal, follows)
+            (row_of[vi], start, until, is_nominal, follows, lane)
             for vi, lane, start, is_nominal, follows in zip(
                 vehicles, lanes_v, starts, nominal_flags, as_follower, strict=True
             )
@@ -824,8 +895,13 @@ def evaluate(state: RoadState, dyn: Dynamics, mode: Mode = "robust", formula: Fo
         vehicle = near[rows]
         is_ahead = ahead[vehicle] & ~follows
         sign = np.where(is_ahead, 1.0, -1.0)
-        motion = np.where(follows[:, None], foll_x[rows], other_x[rows])  # a car turning in behind follows
-        gap = sign[:, None, None] * (motion[:, None, :] - ego_x[a][None]) - half[vehicle][:, None, None]
+        motion = np.where(follows[:, None], foll_x[rows], other_x[rows])[:, None, :]  # a car turning in follows
+        idm_pairs = by_idm[rows] & ~follows & (np.array([p[5] for p in pairs]) == state.ego_lane)
+        if idm_pairs.any():  # follower_idm: the car behind responds to each fallback of the ego its own way
+            motion = np.repeat(motion, n_fb, axis=1)
+            for c in np.flatnonzero(idm_pairs):
+                motion[c] = idm_follower_positions(state, dyn, int(vehicle[c]), ego_x[a], ego_v[a])
+        gap = sign[:, None, None] * (motion - ego_x[a][None]) - half[vehicle][:, None, None]
         worst = np.where(window[:, None, :], gap, np.inf).min(axis=-1)  # (c, F) worst gap per fallback
         joint_gap[a] = worst.min(axis=0)
         if is_ahead.any():

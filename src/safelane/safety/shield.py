@@ -94,6 +94,7 @@ def dynamics_of(
     crossed_lanes: bool = True,
     lateral_schedule: bool = False,
     reversing_noses: bool = True,
+    follower_idm: bool = False,
 ) -> Dynamics:
     """The :class:`Dynamics` constants of the simulated world a snapshot was taken in; ``margin`` [m]: the
     bumper-to-bumper gap the rule keeps under its worst case; the rule's options as in :class:`Dynamics`."""
@@ -129,6 +130,7 @@ def dynamics_of(
         crossed_lanes=crossed_lanes,
         lateral_schedule=lateral_schedule,
         reversing_noses=reversing_noses,
+        follower_idm=follower_idm,
         # highway-env's lateral controller: ControlledVehicle's gains, which MDPVehicle (the ego) inherits.
         ego_width=float(snap.width[snap.ego]) if len(snap.width) else 2.0,
         kp_lateral=float(ControlledVehicle.KP_LATERAL),
@@ -244,6 +246,8 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
     every decision).
     ``reversing_noses``: robust mode also puts a car rolling backwards with its nose turned in the
     lane its nose points to (it moves there as soon as it moves forward again).
+    ``follower_idm`` (experimental): the IDM car right behind the ego in its lane brakes by IDM's response
+    to each fallback of the ego (else: it accelerates for the reaction time, whatever the ego does).
     """
 
     def __init__(
@@ -273,6 +277,7 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
         crossed_lanes: bool = True,
         lateral_schedule: bool = False,
         reversing_noses: bool = True,
+        follower_idm: bool = False,
     ) -> None:
         if not (math.isfinite(margin) and margin >= 0):
             raise ValueError(f"shield.margin: must be a finite number >= 0 [m] (got {margin!r})")
@@ -308,6 +313,7 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
             crossed_lanes=crossed_lanes,
             lateral_schedule=lateral_schedule,
             reversing_noses=reversing_noses,
+            follower_idm=follower_idm,
         )
         try:
             env.get_wrapper_attr("road_snapshot")
@@ -338,6 +344,7 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
         self.crossed_lanes = bool(crossed_lanes)
         self.lateral_schedule = bool(lateral_schedule)
         self.reversing_noses = bool(reversing_noses)
+        self.follower_idm = bool(follower_idm)
         self._rule_options = {name: getattr(self, name) for name in RULE_OPTIONS}  # dynamics_of's keywords
         self.dynamics: Dynamics | None = None
         self.result: SafetyResult | None = None

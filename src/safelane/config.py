@@ -259,12 +259,13 @@ class ShieldConfig(_Section):
         "session; false: the earlier rule.",
     )
     follower_idm: bool = Field(
-        False,
+        True,
         strict=True,
-        description="Experimental: the IDM car right behind the ego in its lane (nothing between them) brakes "
-        "by IDM's own response to each fallback of the ego, frame by frame, its free-road term bounded by its "
-        "comfort acceleration, instead of accelerating for the reaction time whatever the ego does — a bound "
-        "that does not restart at every decision (cell 2415; docs/safety.md §6k). Both modes.",
+        description="The IDM car right behind the ego in its lane (nothing between them) brakes by IDM's own "
+        "response to each fallback of the ego, frame by frame, its free-road term bounded by its comfort "
+        "acceleration, instead of accelerating for the reaction time whatever the ego does — a bound that does "
+        "not restart at every decision (cell 2415; docs/safety.md §6k). Both modes. On by default since issue "
+        "15's eleventh session; false: the earlier rule.",
     )
 
     def rule_options(self) -> dict[str, bool]:
@@ -690,6 +691,8 @@ RULE_CHANGES: dict[str, Any] = {
     "straight_fallback": False, "reversing_cut_ins": False,
     # issue 15's tenth session (docs/safety.md §6j)
     "crossed_lanes": False, "reversing_noses": False,
+    # issue 15's eleventh session (docs/safety.md §6k)
+    "follower_idm": False,
 }  # fmt: skip
 """Shield keys added with a new default that changes the rule: a *recorded* configuration (a run's
 config.yaml, a counterexample file) written before the key existed had the old behaviour, given here,

@@ -371,8 +371,8 @@ def squeezed_by_a_follower(mode: Mode = "robust", **kw: Any) -> Scene:
     both next lanes taken — the 100 800-episode campaign's cell 2415 (``cell02415-seed4024150004``) at its
     break. One decision earlier IDLE and SLOWER kept 1.37 m; the follower bound (accelerate for the reaction
     time, then brake) starts again at every decision, so 0.2 s later, with the follower already braking and the
-    leader no worse than its bound, they keep 0.745 m, and nothing is safe. ``shield.follower_idm``
-    (experimental) lets the car behind brake by IDM's own response to the ego: IDLE and SLOWER keep 1.415 m."""
+    leader no worse than its bound, they kept 0.745 m, and nothing was safe. ``shield.follower_idm`` (today's
+    default) lets the car behind brake by IDM's own response to the ego: IDLE and SLOWER keep 1.415 m."""
     rate = {"env.policy_frequency": 5, "env.simulation_frequency": 15}
     cars = [(1, 9.36, 16.87), (1, 20.66, 17.0), (1, 32.68, 18.34), (0, 48.39, 21.82), (2, 59.65, 21.62),
             (2, -9.98, 23.02), (0, -20.28, 25.02), (1, -36.3, 21.57), (2, -47.6, 23.71)]  # fmt: skip

@@ -117,7 +117,7 @@ class Dynamics:
     crossed_lanes: bool = True  # the ego occupies every lane between its lane and its target, until it is through
     lateral_schedule: bool = False  # the ego's time in each lane simulated from its lateral position and heading
     reversing_noses: bool = True  # robust: a car rolling backwards, turned, is also in the lane its nose points to
-    follower_idm: bool = False  # the IDM car right behind the ego in its lane brakes by IDM's response to the ego
+    follower_idm: bool = True  # the IDM car right behind the ego in its lane brakes by IDM's response to the ego
     ego_lateral_speed: float = math.nan  # [m/s] the speed that simulation runs at (per state, like ego_leave_time)
     ego_width: float = 2.0  # [m] the ego's width (Vehicle.WIDTH)
     kp_lateral: float = 1.0 / 0.6  # [1/s] ControlledVehicle.KP_LATERAL

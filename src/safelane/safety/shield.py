@@ -94,7 +94,7 @@ def dynamics_of(
     crossed_lanes: bool = True,
     lateral_schedule: bool = False,
     reversing_noses: bool = True,
-    follower_idm: bool = False,
+    follower_idm: bool = True,
 ) -> Dynamics:
     """The :class:`Dynamics` constants of the simulated world a snapshot was taken in; ``margin`` [m]: the
     bumper-to-bumper gap the rule keeps under its worst case; the rule's options as in :class:`Dynamics`."""
@@ -246,8 +246,8 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
     every decision).
     ``reversing_noses``: robust mode also puts a car rolling backwards with its nose turned in the
     lane its nose points to (it moves there as soon as it moves forward again).
-    ``follower_idm`` (experimental): the IDM car right behind the ego in its lane brakes by IDM's response
-    to each fallback of the ego (else: it accelerates for the reaction time, whatever the ego does).
+    ``follower_idm``: the IDM car right behind the ego in its lane brakes by IDM's response to each fallback
+    of the ego (else: it accelerates for the reaction time, whatever the ego does).
     """
 
     def __init__(
@@ -277,7 +277,7 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
         crossed_lanes: bool = True,
         lateral_schedule: bool = False,
         reversing_noses: bool = True,
-        follower_idm: bool = False,
+        follower_idm: bool = True,
     ) -> None:
         if not (math.isfinite(margin) and margin >= 0):
             raise ValueError(f"shield.margin: must be a finite number >= 0 [m] (got {margin!r})")

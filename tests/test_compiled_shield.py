@@ -502,14 +502,17 @@ def test_lateral_schedule_bit_identical(case: tuple) -> None:
 @PROPERTY_SETTINGS
 @given(case=road(extreme=True, rates=True, chained=True, follower=True))
 def test_follower_idm_bit_identical(case: tuple) -> None:
-    """shield.follower_idm (experimental): the same in both engines at every rate (IDM followers of every kind,
-    crashed cars, cars between a follower and the ego); robust ⊆ nominal still holds for the final masks (both
-    modes take the same follower bound); a road without an IDM car behind the ego in its lane is unchanged to
-    the bit."""
+    """shield.follower_idm: the same in both engines at every rate (IDM followers of every kind, crashed cars,
+    cars between a follower and the ego), and with follower_set_point (experimental: set-points known or not,
+    linear-model followers); robust ⊆ nominal still holds for the final masks (both modes take the same
+    follower bound); a road without an IDM car behind the ego in its lane is unchanged to the bit."""
     state, dyn, _ = case
     off, on = (dataclasses.replace(dyn, follower_idm=v) for v in (False, True))
+    set_point = dataclasses.replace(on, follower_set_point=True)
     assert mismatches(state, on) == []
+    assert mismatches(state, set_point) == []
     assert_nested(state, on)
+    assert_nested(state, set_point)
     near = np.flatnonzero(np.abs(state.x - state.ego_x) < model.RELEVANCE_RANGE)
     if not model.idm_followers(state, on, near).any():
         for mode in ("nominal", "robust"):

@@ -427,6 +427,115 @@ def test_idm_follower_bound_against_highway_env_s_idm() -> None:
     assert kept > 250 and worst_shortfall < 0.01, (kept, shorter, worst_shortfall)
 
 
+def test_follower_set_point_predicts_highway_env_s_drivers() -> None:
+    """shield.follower_set_point (experimental): with the car's own set-point, the follower of
+    ``model.idm_follower_positions`` is highway-env's — an IDMVehicle (its set-point clipped to the speed limit)
+    and a LinearVehicle (``LinearVehicle.acceleration``, its own gains and time gap) braking for an ego that
+    drives each fallback of IDLE and SLOWER at 1 and 5 decisions per second: the predicted path is the real one
+    to 1e-6 m at every frame before the two would touch (measured: to the bit, the same operations)."""
+    from highway_env.road.road import Road, RoadNetwork
+    from highway_env.vehicle.behavior import IDMVehicle, LinearVehicle
+    from highway_env.vehicle.kinematics import Vehicle
+
+    worst, runs = 0.0, 0
+    for policy_hz, sim_hz in ((1, 5), (5, 15)):
+        dyn = dataclasses.replace(dynamics(1, sim_hz, policy_hz), follower_set_point=True)
+        for driver, ego_v, gap, closing, set_point in itertools.product(
+            (IDMVehicle, LinearVehicle), (5.0, 25.0), (10.0, 40.0), (-6.0, 10.0), (15.0, 35.0)
+        ):
+            follower_v = max(ego_v + closing, 0.0)
+            idx = int(np.argmin(np.abs(np.array(SPEEDS) - ego_v)))
+            linear = driver is LinearVehicle
+            car = {"x": 200.0 - gap, "y": 0.0, "speed": follower_v, "heading": 0.0, "crashed": False,
+                   "delta": IDMVehicle.DELTA, "idm": True, "linear": linear, "target": set_point}  # fmt: skip
+            state = make_state(200.0, 0, 0, ego_v, idx, [car])
+            state = dataclasses.replace(
+                state,
+                accel_max=np.array([driver.ACC_MAX if linear else driver.COMFORT_ACC_MAX]),
+                idm_time_wanted=np.array([driver.TIME_WANTED]),
+                idm_distance_wanted=np.array([driver.DISTANCE_WANTED]),
+            )
+            ego_x, ego_v_all = ego_trajectories(state, dyn)
+            for action in (I, S):
+                predicted = idm_follower_positions(state, dyn, 0, ego_x[action], ego_v_all[action])
+                for k in range(ego_x.shape[1]):
+                    network = RoadNetwork.straight_road_network(1, length=10_000.0)
+                    road = Road(network, np_random=np.random.RandomState(0))
+                    ego = Vehicle(road, np.array([200.0, 0.0]), speed=ego_v)
+                    follower = driver(road, np.array([200.0 - gap, 0.0]), speed=follower_v, target_speed=set_point)
+                    follower.DELTA = IDMVehicle.DELTA
+                    road.vehicles = [ego, follower]
+                    xs = [follower.position[0]]
+                    for j in range(ego_x.shape[2] - 1):
+                        ego.position = np.array([ego_x[action, k, j], 0.0])
+                        ego.speed = ego_v_all[action, k, j]
+                        follower.act()
+                        follower.step(dyn.frame_dt)
+                        xs.append(follower.position[0])
+                    touch = np.flatnonzero(ego_x[action, k, :-1] - np.array(xs[:-1]) < 5.0)
+                    upto = int(touch[0]) if touch.size else len(xs) - 1
+                    worst = max(worst, float(np.max(np.abs(np.array(xs[:upto]) - predicted[k, :upto]), initial=0.0)))
+                    runs += 1
+    assert runs == 512 and worst < 1e-6, worst
+
+
+def test_linear_model_drivers_creep_into_a_stopped_car() -> None:
+    """What follower_set_point found (docs/safety.md §6k): highway-env's linear acceleration model has no
+    standstill gap of a car length. Behind a stopped car its acceleration ``k₀·(v₀ − v) + k₁·min(−v, 0) +
+    k₂·min(d − d₀ − T·v, 0)`` is zero at ``v = 0`` and centre distance ``d₀ − k₀·v₀/k₂`` — for an
+    AggressiveVehicle (k₀ = 0.107, k₂ = 0.5, d₀ = 10 m) with a 25 m/s set-point 4.67 m, less than the 5 m the two
+    bodies need: it creeps into the stopped car (highway-env, 15 Hz, from 100 m behind at 20 m/s), an IDMVehicle
+    stops 10 m (centre to centre) short. The rule's reaction-time bound has the follower brake at ACC_MAX after
+    0.5 s and stop with room to spare; the exact model (``model.idm_follower_positions`` with the set-point)
+    predicts the contact."""
+    from highway_env.road.road import Road, RoadNetwork
+    from highway_env.vehicle.behavior import AggressiveVehicle, IDMVehicle
+    from highway_env.vehicle.kinematics import Vehicle
+
+    outcome = {}
+    for driver in (IDMVehicle, AggressiveVehicle):
+        road = Road(RoadNetwork.straight_road_network(1, length=10_000.0), np_random=np.random.RandomState(0))
+        stopped = Vehicle(road, np.array([500.0, 0.0]), speed=0.0)
+        car = driver(road, np.array([400.0, 0.0]), speed=20.0, target_speed=25.0)
+        road.vehicles = [stopped, car]
+        for _ in range(15 * 30):
+            road.act()
+            road.step(1 / 15)
+            if car.crashed:
+                break
+        outcome[driver.__name__] = (car.crashed, round(float(stopped.position[0] - car.position[0]), 2))
+    assert outcome == {"IDMVehicle": (False, 10.0), "AggressiveVehicle": (True, 5.0)}
+    k0, _, k2 = AggressiveVehicle.ACCELERATION_PARAMETERS
+    assert AggressiveVehicle.DISTANCE_WANTED - k0 * 25.0 / k2 == pytest.approx(4.67, abs=0.01)
+    # The model with the set-point: the same creep, in front of an ego that stands still (speed and set-point 0).
+    dyn = dataclasses.replace(dynamics(1, 15, 1), follower_set_point=True)
+    car = {"x": 100.0, "y": 0.0, "speed": 20.0, "heading": 0.0, "crashed": False, "delta": 4.0, "idm": True,
+           "linear": True, "target": 25.0}  # fmt: skip
+    state = make_state(200.0, 0, 0, 0.0, 0, [car])
+    gains = AggressiveVehicle.ACCELERATION_PARAMETERS
+    state = dataclasses.replace(
+        state,
+        linear_speed_gain=np.array([gains[0]]),
+        linear_speed_difference_gain=np.array([gains[1]]),
+        linear_distance_gain=np.array([gains[2]]),
+        idm_time_wanted=np.array([AggressiveVehicle.TIME_WANTED]),
+    )
+    ego_x, ego_v = ego_trajectories(state, dyn)
+    creep = idm_follower_positions(state, dyn, 0, ego_x[S], ego_v[S])
+    assert float((ego_x[S, 0, :-1] - creep[0, :-1]).min()) < 5.0  # closer than two half-lengths: contact
+    bound = model_follower_bound(state, dyn)
+    assert float((ego_x[S, 0] - bound).min()) > 50.0  # the reaction-time bound stops 51 m behind
+
+
+def model_follower_bound(state: RoadState, dyn: Dynamics) -> np.ndarray:
+    """The rule's reaction-time follower bound (``model.follower_positions``) of the state's first car."""
+    from safelane.safety.model import follower_positions
+
+    return follower_positions(
+        state.x[:1], state.vx[:1], state.accel_max[:1], state.brake_max[:1], dyn.follower_reaction, dyn.times
+    )[0]
+
+
 @pytest.mark.parametrize("engine", ["numpy", "compiled"])
 def test_least_bad_joint_ranks_the_fallback_by_the_gap_to_anybody(engine: str) -> None:
     """2 lanes, the ego in lane 0 at 20 m/s between a leader 9 m ahead at 15 m/s and a follower 8 m behind at
@@ -867,6 +976,8 @@ def vehicle(draw: st.DrawFn, lanes: int, extreme: bool = False) -> dict[str, flo
         "idm": draw(st.booleans()),
         # a Linear-model driver (its MOBIL criterion uses the linear formula), with LinearVehicle's gains
         "linear": draw(st.booleans()),
+        # its speed set-point (RoadState.target_speed), unknown (NaN) for some
+        "target": draw(st.one_of(st.just(math.nan), st.floats(0.0, 40.0))),
     }
 
 
@@ -883,7 +994,7 @@ def road(
     ``chained``: the ego's target lane may also be two lanes away (a lane change chained onto one under way);
     ``lateral``: the ego off its lane's centre and turned, with the speed its lateral motion is simulated at
     (``Dynamics.ego_lateral_speed``, a multiple of 0.5 m/s as the shield takes it) and its leave time;
-    ``follower``: also an IDM car driving straight behind the ego in its lane, 5.5–150 m back."""
+    ``follower``: also an IDM or linear-model car driving straight behind the ego in its lane, 5.5–150 m back."""
     lanes = draw(st.integers(1, 5))
     sim_hz = draw(st.sampled_from([5, 15]))
     policy_hz = 1
@@ -904,7 +1015,8 @@ def road(
             "crashed": False,
             "delta": draw(st.floats(3.5, 4.5)),
             "idm": True,
-            "linear": False,
+            "linear": draw(st.booleans()),
+            "target": draw(st.one_of(st.just(math.nan), st.floats(0.0, 40.0))),
         }
         at = draw(st.integers(0, len(cars)))
         cars = [*cars[:at], behind, *cars[at:]]
@@ -957,6 +1069,7 @@ def make_state(
         linear_speed_gain=np.where(linear, 0.3, np.nan),
         linear_speed_difference_gain=np.where(linear, 0.3, np.nan),
         linear_distance_gain=np.where(linear, 2.0, np.nan),
+        target_speed=np.array([c.get("target", math.nan) for c in cars], dtype=float).reshape(n),
     )
 
 

@@ -267,6 +267,14 @@ class ShieldConfig(_Section):
         "not restart at every decision (cell 2415; docs/safety.md §6k). Both modes. On by default since issue "
         "15's eleventh session; false: the earlier rule.",
     )
+    follower_set_point: bool = Field(
+        False,
+        strict=True,
+        description="Experimental, with follower_idm: the car behind's own speed set-point, read from the "
+        "simulator like its other driver parameters, in its IDM free-road term (else that term at its largest), "
+        "and linear-model drivers behind the ego by their own formula, which is linear in that set-point (cell "
+        "2879; docs/safety.md §6k).",
+    )
 
     def rule_options(self) -> dict[str, bool]:
         """The rule's on/off options by name, as :class:`safelane.safety.shield.SafetyShield` and
@@ -678,7 +686,7 @@ RULE_OPTIONS = (
     "projected_cut_ins", "body_extent", "linear_mobil", "reversing_leaders", "level_cut_ins", "level_incentive",
     "level_entering", "least_bad_joint", "full_horizon", "ego_speed_magnitude", "turning_leaders",
     "robust_fallback", "straight_fallback", "linear_incentive", "linear_incentive_braking", "reversing_cut_ins",
-    "crossed_lanes", "lateral_schedule", "reversing_noses", "follower_idm",
+    "crossed_lanes", "lateral_schedule", "reversing_noses", "follower_idm", "follower_set_point",
 )  # fmt: skip
 """The :class:`ShieldConfig` fields that switch parts of the safety rule on or off (``ShieldConfig.rule_options``)."""
 

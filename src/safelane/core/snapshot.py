@@ -84,6 +84,9 @@ class RoadSnapshot:
     """(N,) [m/s] along the body's heading."""
     heading: np.ndarray
     """(N,) [rad] in world coordinates, as the simulator holds it (not wrapped)."""
+    target_speed: np.ndarray
+    """(N,) [m/s] each vehicle's speed set-point (its controller's ``target_speed``; NaN for a body without
+    one): the driver parameter of the free-road terms of IDM and the linear model."""
     lane: np.ndarray
     """(N,) int: the lane the simulator assigns the body to."""
     target_lane: np.ndarray

@@ -122,7 +122,7 @@ def _observe_one(
     projected_cut_ins, body_extent, body_width, linear_mobil, reversing_leaders, level_cut_ins, level_incentive,
     level_entering, least_bad_joint, robust_fallback, straight_fallback, linear_incentive, linear_incentive_braking,
     reversing_cut_ins, crossed_lanes, lateral_schedule,
-    reversing_noses, follower_idm, ego_width, kp_lateral, kp_heading, max_steering,
+    reversing_noses, follower_idm, follower_set_point, ego_width, kp_lateral, kp_heading, max_steering,
     ego_speed_magnitude,
     turning_allowance, min_acc_gain,
     obs, masks, fallback, forward, crashed_ego, speed_ego, bad,
@@ -137,7 +137,9 @@ def _observe_one(
     heading = np.empty(n)
     crashed = np.empty(n, dtype=np.bool_)
     lane = np.empty(n, dtype=np.int64)
+    target_speed = np.empty(n)  # FastHighwayEnv.snapshot: the set-points of vehicles (NaN: other bodies)
     for k in range(n):
+        target_speed[k] = F[i, k, K.TSPD] if is_vehicle[i, k] else np.nan
         position[k, 0] = F[i, k, K.X]
         position[k, 1] = F[i, k, K.Y]
         speed[k] = F[i, k, K.V]
@@ -177,7 +179,7 @@ def _observe_one(
     d = drivers[i]
     out = snapshot_kernel(
         position, speed, heading, length[i], crashed, d[0], d[1], can_change_lane[i], d[2], d[3], d[4],
-        d[5], d[6], d[7], d[8], d[9], d[10],
+        d[5], d[6], d[7], d[8], d[9], d[10], target_speed,
         0, lane[0], G[i, 0, K.TLANE], target, E[i, 0], origin, direction, lateral, lane_heading,
         speed_limit, ts, t, powers, tie_break, decision_period, frame_dt, frames, horizon, ego_kp,
         kernel_lane_width, kernel_lanes_count, follower_reaction, leave, lateral_speed, cut_in_time, margin, relevance,
@@ -185,7 +187,7 @@ def _observe_one(
         level_cut_ins, level_incentive, level_entering, least_bad_joint, robust_fallback, straight_fallback,
         linear_incentive,
         linear_incentive_braking, reversing_cut_ins, crossed_lanes, lateral_schedule,
-        reversing_noses, follower_idm, ego_width, kp_lateral,
+        reversing_noses, follower_idm, follower_set_point, ego_width, kp_lateral,
         kp_heading, max_steering, ego_speed_magnitude,
         turning_allowance, min_acc_gain,
     )  # fmt: skip
@@ -439,7 +441,8 @@ _NO_FRAME = tuple(_readonly(np.zeros(2)) for _ in range(3))
 _NO_SHIELD = (
     _readonly(np.zeros(1)), _readonly(np.zeros(1)), _readonly(np.zeros(1)), np.zeros(1, dtype=np.int64), 1.0, 1.0,
     1, 1, 1.0, 4.0, 1, 0.0, 0.0, 0.0, 0.0, 0.0, False, False, 0.0, False, False, False, False, False,
-    False, False, False, False, False, False, False, False, False, False, 2.0, 1.0, 1.0, 1.0, False, 0.0, 0.0,
+    False, False, False, False, False, False, False, False, False, False, False, 2.0, 1.0, 1.0, 1.0, False, 0.0,
+    0.0,
 )  # fmt: skip
 """Placeholders of :class:`safelane.safety.compiled.KernelConstants`'s fields when no shield runs (typed
 as the real ones, so both cases share one compiled kernel)."""

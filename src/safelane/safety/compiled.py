@@ -148,6 +148,8 @@ def _follower_row(
 def _idm_follower_window(
     i: int, x: np.ndarray, vx: np.ndarray, comfort_acc: np.ndarray, comfort_dec: np.ndarray,
     distance_wanted: np.ndarray, time_wanted: np.ndarray, accel_max: np.ndarray, brake_max: np.ndarray,
+    idm_delta: np.ndarray, lin_k0: np.ndarray, lin_k1: np.ndarray, lin_k2: np.ndarray, target_speed: np.ndarray,
+    set_point: bool, speed_limit: float,
     ego_xs: np.ndarray, ego_vs: np.ndarray, frame_dt: float, reaction: float, half: float, lo: int, hi: int,
     xf4: np.ndarray, vf4: np.ndarray, worst: np.ndarray,
 ) -> None:  # fmt: skip
@@ -158,6 +160,15 @@ def _idm_follower_window(
     two_sqrt_ab = 2.0 * math.sqrt(-acc * comfort_dec[i])
     d0, tw = distance_wanted[i], time_wanted[i]
     a_max, b_max = accel_max[i], brake_max[i]
+    v0 = target_speed[i]
+    exact = set_point and np.isfinite(v0)
+    linear = not math.isnan(lin_k0[i])
+    k0, k1, k2 = lin_k0[i], lin_k1[i], lin_k2[i]
+    target = _nmin(_nmax(v0, 0.0), speed_limit) if exact else 1.0  # min(max(·)) of Python floats: no NaN here
+    if not (abs(target) > NOT_ZERO):
+        target = NOT_ZERO if target >= 0.0 else -NOT_ZERO
+    target = abs(target)
+    delta = idm_delta[i]
     last = ego_xs.shape[0] - 1
     for k in range(N_FALLBACKS):
         xf4[k] = x[i]
@@ -173,11 +184,22 @@ def _idm_follower_window(
             if j >= lo:
                 worst[k] = _nmin(worst[k], -1.0 * (o - ego_xs[j, k]) - half)
             if j < hi:  # IDMVehicle.act at frame j, then Vehicle.step
-                d = ego_xs[j, k] - xf4[k]
-                if not (abs(d) > NOT_ZERO):
-                    d = NOT_ZERO if d >= 0.0 else -NOT_ZERO
-                ratio = (d0 + vf4[k] * tw + vf4[k] * (vf4[k] - ego_vs[j, k]) / two_sqrt_ab) / d
-                acc_f = _nmax(_nmin(acc - acc * (ratio * ratio), a_max), -b_max)
+                vf = vf4[k]
+                if linear:  # model: LinearVehicle.acceleration (only with a known set-point)
+                    d_safe = d0 + _nmax(vf, 0.0) * tw
+                    acc_f = (
+                        k0 * (v0 - vf)
+                        + k1 * _nmin(ego_vs[j, k] - vf, 0.0)
+                        + k2 * _nmin((ego_xs[j, k] - xf4[k]) - d_safe, 0.0)
+                    )
+                else:
+                    free = acc * (1.0 - (_nmax(vf, 0.0) / target) ** delta) if exact else acc
+                    d = ego_xs[j, k] - xf4[k]
+                    if not (abs(d) > NOT_ZERO):
+                        d = NOT_ZERO if d >= 0.0 else -NOT_ZERO
+                    ratio = (d0 + vf * tw + vf * (vf - ego_vs[j, k]) / two_sqrt_ab) / d
+                    acc_f = free - acc * (ratio * ratio)
+                acc_f = _nmax(_nmin(acc_f, a_max), -b_max)
                 xf4[k] = xf4[k] + vf4[k] * frame_dt
                 vf4[k] = vf4[k] + acc_f * frame_dt
 
@@ -234,7 +256,7 @@ def _evaluate_rule(
     crashed: np.ndarray, brake_max: np.ndarray, accel_max: np.ndarray, can_change_lane: np.ndarray,
     idm_delta: np.ndarray, idm_comfort_acc: np.ndarray, idm_comfort_dec: np.ndarray,
     idm_distance_wanted: np.ndarray, idm_time_wanted: np.ndarray, max_braking_imposed: np.ndarray,
-    lin_k0: np.ndarray, lin_k1: np.ndarray, lin_k2: np.ndarray,
+    lin_k0: np.ndarray, lin_k1: np.ndarray, lin_k2: np.ndarray, target_speed: np.ndarray,
     ts: np.ndarray, t: np.ndarray, powers: np.ndarray, tie_break: np.ndarray,
     decision_period: float, frame_dt: float, frames: int, horizon: int, ego_kp: float, lane_width: float,
     lanes_count: int, follower_reaction: float, ego_leave_time: float, ego_lateral_speed: float,
@@ -243,7 +265,7 @@ def _evaluate_rule(
     body_width: float, linear_mobil: bool, reversing_leaders: bool, level_cut_ins: bool, level_incentive: bool,
     level_entering: bool, least_bad_joint: bool, robust_fallback: bool, linear_incentive: bool,
     linear_incentive_braking: bool, reversing_cut_ins: bool, crossed_lanes: bool, lateral_schedule: bool,
-    reversing_noses: bool, follower_idm: bool,
+    reversing_noses: bool, follower_idm: bool, follower_set_point: bool,
     ego_width: float, kp_lateral: float,
     kp_heading: float, max_steering: float, turning_allowance: float,
     min_acc_gain: float,
@@ -383,7 +405,8 @@ def _evaluate_rule(
         for r in range(m):
             i = near[r]
             if not (
-                x[i] < ego_x and not crashed[i] and can_change_lane[i] and math.isnan(lin_k0[i])
+                x[i] < ego_x and not crashed[i] and can_change_lane[i]
+                and (math.isnan(lin_k0[i]) or (follower_set_point and np.isfinite(target_speed[i])))
                 and abs(heading[i]) <= lateral_threshold and abs(vy[i]) <= 0.3 and lanes_near[r] == ego_lane
             ):  # fmt: skip
                 continue
@@ -664,7 +687,8 @@ def _evaluate_rule(
                 if by_idm[r] and not follows and lane_c == ego_lane:
                     _idm_follower_window(
                         near[r], x, vx, idm_comfort_acc, idm_comfort_dec, idm_distance_wanted, idm_time_wanted,
-                        accel_max, brake_max, xs[a], vs[a], frame_dt, follower_reaction, h, lo, hi, xf4, vf4, worst,
+                        accel_max, brake_max, idm_delta, lin_k0, lin_k1, lin_k2, target_speed, follower_set_point,
+                        speed_limit, xs[a], vs[a], frame_dt, follower_reaction, h, lo, hi, xf4, vf4, worst,
                     )  # fmt: skip
                 else:
                     # The where(window, gap, inf).min(axis=-1) of the reference: the window's running minimum,
@@ -746,7 +770,7 @@ def _evaluate(
     crashed: np.ndarray, brake_max: np.ndarray, accel_max: np.ndarray, can_change_lane: np.ndarray,
     idm_delta: np.ndarray, idm_comfort_acc: np.ndarray, idm_comfort_dec: np.ndarray,
     idm_distance_wanted: np.ndarray, idm_time_wanted: np.ndarray, max_braking_imposed: np.ndarray,
-    lin_k0: np.ndarray, lin_k1: np.ndarray, lin_k2: np.ndarray,
+    lin_k0: np.ndarray, lin_k1: np.ndarray, lin_k2: np.ndarray, target_speed: np.ndarray,
     ts: np.ndarray, t: np.ndarray, powers: np.ndarray, tie_break: np.ndarray,
     decision_period: float, frame_dt: float, frames: int, horizon: int, ego_kp: float, lane_width: float,
     lanes_count: int, follower_reaction: float, ego_leave_time: float, ego_lateral_speed: float,
@@ -755,7 +779,8 @@ def _evaluate(
     body_width: float, linear_mobil: bool, reversing_leaders: bool, level_cut_ins: bool, level_incentive: bool,
     level_entering: bool, least_bad_joint: bool, robust_fallback: bool, straight_fallback: bool,
     linear_incentive: bool, linear_incentive_braking: bool, reversing_cut_ins: bool, crossed_lanes: bool,
-    lateral_schedule: bool, reversing_noses: bool, follower_idm: bool, ego_width: float, kp_lateral: float,
+    lateral_schedule: bool, reversing_noses: bool, follower_idm: bool, follower_set_point: bool, ego_width: float,
+    kp_lateral: float,
     kp_heading: float, max_steering: float, turning_allowance: float,
     min_acc_gain: float,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, bool]:  # fmt: skip
@@ -770,12 +795,13 @@ def _evaluate(
         ego_y, ego_heading,
         x, y, vx, vy, heading, length, crashed, brake_max, accel_max, can_change_lane, idm_delta,
         idm_comfort_acc, idm_comfort_dec, idm_distance_wanted, idm_time_wanted, max_braking_imposed,
-        lin_k0, lin_k1, lin_k2, ts, t, powers, tie_break, decision_period, frame_dt, frames, horizon, ego_kp,
+        lin_k0, lin_k1, lin_k2, target_speed, ts, t, powers, tie_break, decision_period, frame_dt, frames, horizon,
+        ego_kp,
         lane_width, lanes_count, follower_reaction, ego_leave_time, ego_lateral_speed, cut_in_time, margin, relevance,
         lateral_threshold, robust, projected_cut_ins, body_extent, body_width, linear_mobil, reversing_leaders,
         level_cut_ins, level_incentive, level_entering, least_bad_joint, robust_fallback, linear_incentive,
         linear_incentive_braking, reversing_cut_ins, crossed_lanes, lateral_schedule,
-        reversing_noses, follower_idm, ego_width, kp_lateral,
+        reversing_noses, follower_idm, follower_set_point, ego_width, kp_lateral,
         kp_heading, max_steering, allowance, min_acc_gain,
     )  # fmt: skip
     if not (out[4] and robust and straight_fallback and turning_allowance > 0.0):
@@ -785,12 +811,13 @@ def _evaluate(
         ego_y, ego_heading,
         x, y, vx, vy, heading, length, crashed, brake_max, accel_max, can_change_lane, idm_delta,
         idm_comfort_acc, idm_comfort_dec, idm_distance_wanted, idm_time_wanted, max_braking_imposed,
-        lin_k0, lin_k1, lin_k2, ts, t, powers, tie_break, decision_period, frame_dt, frames, horizon, ego_kp,
+        lin_k0, lin_k1, lin_k2, target_speed, ts, t, powers, tie_break, decision_period, frame_dt, frames, horizon,
+        ego_kp,
         lane_width, lanes_count, follower_reaction, ego_leave_time, ego_lateral_speed, cut_in_time, margin, relevance,
         lateral_threshold, robust, projected_cut_ins, body_extent, body_width, linear_mobil, reversing_leaders,
         level_cut_ins, level_incentive, level_entering, least_bad_joint, robust_fallback, linear_incentive,
         linear_incentive_braking, reversing_cut_ins, crossed_lanes, lateral_schedule,
-        reversing_noses, follower_idm, ego_width, kp_lateral,
+        reversing_noses, follower_idm, follower_set_point, ego_width, kp_lateral,
         kp_heading, max_steering, 0.0, min_acc_gain,
     )  # fmt: skip
     return straight[0].copy(), out[1], out[2], out[3], True
@@ -802,7 +829,7 @@ def _evaluate_snapshot(
     brake_max: np.ndarray, accel_max: np.ndarray, can_change_lane: np.ndarray, idm_delta: np.ndarray,
     idm_comfort_acc: np.ndarray, idm_comfort_dec: np.ndarray, idm_distance_wanted: np.ndarray,
     idm_time_wanted: np.ndarray, max_braking_imposed: np.ndarray,
-    lin_k0: np.ndarray, lin_k1: np.ndarray, lin_k2: np.ndarray,
+    lin_k0: np.ndarray, lin_k1: np.ndarray, lin_k2: np.ndarray, target_speed: np.ndarray,
     ego: int, ego_lane: int, ego_target_lane: int, ego_target_speed: float, ego_speed_index: int,
     origin: np.ndarray, direction: np.ndarray, lateral: np.ndarray, lane_heading: float, speed_limit: float,
     ts: np.ndarray, t: np.ndarray, powers: np.ndarray, tie_break: np.ndarray,
@@ -813,7 +840,8 @@ def _evaluate_snapshot(
     body_width: float, linear_mobil: bool, reversing_leaders: bool, level_cut_ins: bool, level_incentive: bool,
     level_entering: bool, least_bad_joint: bool, robust_fallback: bool, straight_fallback: bool,
     linear_incentive: bool, linear_incentive_braking: bool, reversing_cut_ins: bool, crossed_lanes: bool,
-    lateral_schedule: bool, reversing_noses: bool, follower_idm: bool, ego_width: float, kp_lateral: float,
+    lateral_schedule: bool, reversing_noses: bool, follower_idm: bool, follower_set_point: bool, ego_width: float,
+    kp_lateral: float,
     kp_heading: float, max_steering: float, ego_speed_magnitude: bool,
     turning_allowance: float,
     min_acc_gain: float,
@@ -861,13 +889,13 @@ def _evaluate_snapshot(
         accel_max[keep],
         can_change_lane[keep], idm_delta[keep], idm_comfort_acc[keep], idm_comfort_dec[keep],
         idm_distance_wanted[keep], idm_time_wanted[keep], max_braking_imposed[keep],
-        lin_k0[keep], lin_k1[keep], lin_k2[keep],
+        lin_k0[keep], lin_k1[keep], lin_k2[keep], target_speed[keep],
         ts, t, powers, tie_break, decision_period, frame_dt, frames, horizon, ego_kp, lane_width, lanes_count,
         follower_reaction, ego_leave_time, ego_lateral_speed, cut_in_time, margin, relevance, lateral_threshold, robust,
         projected_cut_ins, body_extent, body_width, linear_mobil, reversing_leaders, level_cut_ins, level_incentive,
         level_entering, least_bad_joint, robust_fallback, straight_fallback, linear_incentive,
         linear_incentive_braking, reversing_cut_ins, crossed_lanes, lateral_schedule,
-        reversing_noses, follower_idm, ego_width, kp_lateral,
+        reversing_noses, follower_idm, follower_set_point, ego_width, kp_lateral,
         kp_heading, max_steering, turning_allowance, min_acc_gain,
     )  # fmt: skip
 
@@ -966,6 +994,7 @@ class KernelConstants(NamedTuple):
     lateral_schedule: bool
     reversing_noses: bool
     follower_idm: bool
+    follower_set_point: bool
     ego_width: float
     kp_lateral: float
     kp_heading: float
@@ -999,6 +1028,7 @@ def kernel_constants(dyn: Dynamics) -> KernelConstants:
         dyn.lateral_schedule,
         dyn.reversing_noses,
         dyn.follower_idm,
+        dyn.follower_set_point,
         dyn.ego_width,
         dyn.kp_lateral,
         dyn.kp_heading,
@@ -1034,13 +1064,13 @@ def evaluate_compiled(
         s.brake_max,
         s.accel_max, s.can_change_lane, s.idm_delta, s.idm_comfort_acc, s.idm_comfort_dec,
         s.idm_distance_wanted, s.idm_time_wanted, s.max_braking_imposed, s.linear_speed_gain,
-        s.linear_speed_difference_gain, s.linear_distance_gain,
+        s.linear_speed_difference_gain, s.linear_distance_gain, model.set_points(s),
         *_dynamics_args(dyn, dyn.ego_leave_time, dyn.ego_lateral_speed), mode == "robust", dyn.projected_cut_ins,
         dyn.body_extent,
         dyn.body_width, dyn.linear_mobil, dyn.reversing_leaders, dyn.level_cut_ins, dyn.level_incentive,
         dyn.level_entering, dyn.least_bad_joint, dyn.robust_fallback, dyn.straight_fallback, dyn.linear_incentive,
         dyn.linear_incentive_braking, dyn.reversing_cut_ins, dyn.crossed_lanes, dyn.lateral_schedule,
-        dyn.reversing_noses, dyn.follower_idm, dyn.ego_width,
+        dyn.reversing_noses, dyn.follower_idm, dyn.follower_set_point, dyn.ego_width,
         dyn.kp_lateral, dyn.kp_heading,
         dyn.max_steering, model.turning_allowance(dyn), _MIN_ACC_GAIN,
     )  # fmt: skip
@@ -1077,7 +1107,7 @@ def evaluate_snapshot(
         snap.position, snap.speed, snap.heading, snap.length, snap.crashed, snap.brake_max, snap.accel_max,
         snap.can_change_lane, snap.idm_delta, snap.idm_comfort_acc, snap.idm_comfort_dec,
         snap.idm_distance_wanted, snap.idm_time_wanted, snap.max_braking_imposed, snap.linear_speed_gain,
-        snap.linear_speed_difference_gain, snap.linear_distance_gain,
+        snap.linear_speed_difference_gain, snap.linear_distance_gain, snap.target_speed,
         e, int(snap.lane[e]), int(snap.target_lane[e]), snap.ego_target_speed, snap.ego_speed_index,
         snap.lane_origin, snap.lane_direction, snap.lane_lateral, lane_heading, snap.speed_limit,
         *_dynamics_args(dyn, ego_leave_time, ego_lateral_speed), mode == "robust", dyn.projected_cut_ins,
@@ -1085,7 +1115,7 @@ def evaluate_snapshot(
         dyn.body_width, dyn.linear_mobil, dyn.reversing_leaders, dyn.level_cut_ins, dyn.level_incentive,
         dyn.level_entering, dyn.least_bad_joint, dyn.robust_fallback, dyn.straight_fallback, dyn.linear_incentive,
         dyn.linear_incentive_braking, dyn.reversing_cut_ins, dyn.crossed_lanes, dyn.lateral_schedule,
-        dyn.reversing_noses, dyn.follower_idm, dyn.ego_width,
+        dyn.reversing_noses, dyn.follower_idm, dyn.follower_set_point, dyn.ego_width,
         dyn.kp_lateral, dyn.kp_heading,
         dyn.max_steering, dyn.ego_speed_magnitude,
         model.turning_allowance(dyn),

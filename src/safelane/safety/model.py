@@ -118,6 +118,7 @@ class Dynamics:
     lateral_schedule: bool = False  # the ego's time in each lane simulated from its lateral position and heading
     reversing_noses: bool = True  # robust: a car rolling backwards, turned, is also in the lane its nose points to
     follower_idm: bool = True  # the IDM car right behind the ego in its lane brakes by IDM's response to the ego
+    follower_set_point: bool = False  # follower_idm: with its own set-point, and linear-model drivers by their formula
     ego_lateral_speed: float = math.nan  # [m/s] the speed that simulation runs at (per state, like ego_leave_time)
     ego_width: float = 2.0  # [m] the ego's width (Vehicle.WIDTH)
     kp_lateral: float = 1.0 / 0.6  # [1/s] ControlledVehicle.KP_LATERAL
@@ -183,6 +184,9 @@ class RoadState:
     linear_speed_gain: np.ndarray = field(default_factory=lambda: np.zeros(0))  # [1/s]
     linear_speed_difference_gain: np.ndarray = field(default_factory=lambda: np.zeros(0))  # [1/s]
     linear_distance_gain: np.ndarray = field(default_factory=lambda: np.zeros(0))  # [1/s²]
+    # Each vehicle's speed set-point (the simulator's ``target_speed``: a driver parameter like the ones above);
+    # empty or NaN: unknown.
+    target_speed: np.ndarray = field(default_factory=lambda: np.zeros(0))  # [m/s]
     speed_limit: float = 30.0  # [m/s] of the ego's lane (IDM clips the ego's set-point to it)
 
     @property
@@ -368,6 +372,13 @@ def linear_acceleration_behind(
     )
 
 
+def set_points(state: RoadState) -> np.ndarray:
+    """Each vehicle's speed set-point [m/s] (``RoadState.target_speed``), NaN where the state has none."""
+    if state.target_speed.shape == state.x.shape:
+        return state.target_speed
+    return np.full(state.n, np.nan)
+
+
 def idm_followers(state: RoadState, dyn: Dynamics, near: np.ndarray) -> np.ndarray:
     """Which vehicles ``near`` follow the ego by IDM, with ``Dynamics.follower_idm`` (else none): bool per row.
 
@@ -375,7 +386,9 @@ def idm_followers(state: RoadState, dyn: Dynamics, near: np.ndarray) -> np.ndarr
     (``Road.neighbour_vehicles``, ``Lane.on_lane(margin=1)``) at every physics frame. The car right behind the
     ego in the ego's lane, driving straight (not moving sideways), with IDM's formula (not the linear model)
     and a lane-change rule (a driver, not an object), has the ego as that body: nothing else's centre lies
-    between the two in the band."""
+    between the two in the band. With ``Dynamics.follower_set_point`` a linear-model driver whose set-point
+    is known counts too (its formula is linear in it, so it has no bound without it)."""
+    v0 = set_points(state)
     rows = np.zeros(near.shape[0], dtype=bool)
     if not dyn.follower_idm:
         return rows
@@ -387,7 +400,7 @@ def idm_followers(state: RoadState, dyn: Dynamics, near: np.ndarray) -> np.ndarr
             state.x[i] < state.ego_x
             and not state.crashed[i]
             and state.can_change_lane[i]
-            and np.isnan(state.linear_speed_gain[i])
+            and (np.isnan(state.linear_speed_gain[i]) or (dyn.follower_set_point and np.isfinite(v0[i])))
             and abs(state.heading[i]) <= LATERAL_MOTION_THRESHOLD
             and abs(state.vy[i]) <= 0.3
             and lanes[i] == state.ego_lane
@@ -407,13 +420,26 @@ def idm_follower_positions(state: RoadState, dyn: Dynamics, i: int, ego_x: np.nd
     acc·(d*/d)²`` with ``d* = d₀ + v·T + v·(v − v_ego)/(2√(acc·b))`` and ``d`` the centre distance, clipped to
     ``[−brake_max, accel_max]``; then ``x += v·dt``, ``v += a·dt``. The driver's own set-point v₀ is not
     observed, so the free-road term is bounded by ``acc`` (v₀ = ∞): an upper bound on its acceleration in
-    every state, not a proven envelope of its path (docs/safety.md §6k). Beyond the last frame the car is
-    credited what the follower bound lets it still cover (accelerate for the reaction time, then brake).
-    Returns (F, T)."""
+    every state, not a proven envelope of its path (docs/safety.md §6k). With ``Dynamics.follower_set_point``
+    and the set-point known, the free-road term is IDM's own (v₀ clipped to the speed limit), and a linear-model
+    driver follows ``LinearVehicle.acceleration``: ``k₀·(v₀ − v) + k₁·min(v_ego − v, 0) + k₂·min(d − d_safe,
+    0)``, ``d_safe = d₀ + max(v, 0)·T`` — the car's own path as highway-env drives it, while the ego is its
+    leader. Beyond the last frame the car is credited what the follower bound lets it still cover (accelerate
+    for the reaction time, then brake). Returns (F, T)."""
     acc = float(state.idm_comfort_acc[i])
     two_sqrt_ab = 2.0 * math.sqrt(-acc * float(state.idm_comfort_dec[i]))
     d0, tw = float(state.idm_distance_wanted[i]), float(state.idm_time_wanted[i])
     a_max, b_max = float(state.accel_max[i]), float(state.brake_max[i])
+    v0 = float(set_points(state)[i])
+    exact = dyn.follower_set_point and math.isfinite(v0)
+    linear = not math.isnan(float(state.linear_speed_gain[i]))
+    k0, k1, k2 = (float(g[i]) for g in (state.linear_speed_gain, state.linear_speed_difference_gain,
+                                        state.linear_distance_gain))  # fmt: skip
+    target = min(max(v0, 0.0), state.speed_limit) if exact else 1.0  # IDM clips it to the lane's limit
+    if not abs(target) > NOT_ZERO:
+        target = NOT_ZERO if target >= 0.0 else -NOT_ZERO
+    target = abs(target)
+    delta = float(state.idm_delta[i])
     dt = dyn.frame_dt
     n_f, n_t = ego_x.shape
     out = np.empty((n_f, n_t))
@@ -421,10 +447,20 @@ def idm_follower_positions(state: RoadState, dyn: Dynamics, i: int, ego_x: np.nd
     vf = np.full(n_f, float(state.vx[i]))
     out[:, 0] = xf
     for k in range(n_t - 1):
-        d = ego_x[:, k] - xf
-        d = np.where(np.abs(d) > NOT_ZERO, d, np.where(d >= 0.0, NOT_ZERO, -NOT_ZERO))
-        ratio = (d0 + vf * tw + vf * (vf - ego_v[:, k]) / two_sqrt_ab) / d
-        a = np.maximum(np.minimum(acc - acc * (ratio * ratio), a_max), -b_max)
+        if linear:  # only with exact: idm_followers picks linear drivers with a known set-point only
+            d_safe = d0 + np.maximum(vf, 0.0) * tw
+            a = (
+                k0 * (v0 - vf)
+                + k1 * np.minimum(ego_v[:, k] - vf, 0.0)
+                + k2 * np.minimum((ego_x[:, k] - xf) - d_safe, 0.0)
+            )
+        else:
+            free = acc * (1.0 - (np.maximum(vf, 0.0) / target) ** delta) if exact else acc
+            d = ego_x[:, k] - xf
+            d = np.where(np.abs(d) > NOT_ZERO, d, np.where(d >= 0.0, NOT_ZERO, -NOT_ZERO))
+            ratio = (d0 + vf * tw + vf * (vf - ego_v[:, k]) / two_sqrt_ab) / d
+            a = free - acc * (ratio * ratio)
+        a = np.maximum(np.minimum(a, a_max), -b_max)
         xf = xf + vf * dt
         vf = vf + a * dt
         out[:, k + 1] = xf

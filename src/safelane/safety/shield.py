@@ -95,6 +95,7 @@ def dynamics_of(
     lateral_schedule: bool = False,
     reversing_noses: bool = True,
     follower_idm: bool = True,
+    follower_set_point: bool = False,
 ) -> Dynamics:
     """The :class:`Dynamics` constants of the simulated world a snapshot was taken in; ``margin`` [m]: the
     bumper-to-bumper gap the rule keeps under its worst case; the rule's options as in :class:`Dynamics`."""
@@ -131,6 +132,7 @@ def dynamics_of(
         lateral_schedule=lateral_schedule,
         reversing_noses=reversing_noses,
         follower_idm=follower_idm,
+        follower_set_point=follower_set_point,
         # highway-env's lateral controller: ControlledVehicle's gains, which MDPVehicle (the ego) inherits.
         ego_width=float(snap.width[snap.ego]) if len(snap.width) else 2.0,
         kp_lateral=float(ControlledVehicle.KP_LATERAL),
@@ -205,6 +207,7 @@ def road_state(snap: RoadSnapshot, ego_speed_magnitude: bool = True) -> RoadStat
         heading=np.arctan2(np.sin(heading), np.cos(heading)),
         length=snap.length[nearby],
         crashed=snap.crashed[nearby],
+        target_speed=snap.target_speed[nearby],
         speed_limit=snap.speed_limit,
         **{name: getattr(snap, name)[nearby] for name in DRIVER_FIELDS},
     )
@@ -248,6 +251,8 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
     lane its nose points to (it moves there as soon as it moves forward again).
     ``follower_idm``: the IDM car right behind the ego in its lane brakes by IDM's response to each fallback
     of the ego (else: it accelerates for the reaction time, whatever the ego does).
+    ``follower_set_point`` (experimental): ``follower_idm`` with the car's own set-point read from the
+    simulator, and linear-model drivers behind the ego by their own formula.
     """
 
     def __init__(
@@ -278,6 +283,7 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
         lateral_schedule: bool = False,
         reversing_noses: bool = True,
         follower_idm: bool = True,
+        follower_set_point: bool = False,
     ) -> None:
         if not (math.isfinite(margin) and margin >= 0):
             raise ValueError(f"shield.margin: must be a finite number >= 0 [m] (got {margin!r})")
@@ -314,6 +320,7 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
             lateral_schedule=lateral_schedule,
             reversing_noses=reversing_noses,
             follower_idm=follower_idm,
+            follower_set_point=follower_set_point,
         )
         try:
             env.get_wrapper_attr("road_snapshot")
@@ -345,6 +352,7 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
         self.lateral_schedule = bool(lateral_schedule)
         self.reversing_noses = bool(reversing_noses)
         self.follower_idm = bool(follower_idm)
+        self.follower_set_point = bool(follower_set_point)
         self._rule_options = {name: getattr(self, name) for name in RULE_OPTIONS}  # dynamics_of's keywords
         self.dynamics: Dynamics | None = None
         self.result: SafetyResult | None = None

@@ -181,6 +181,7 @@ def snapshot_of(base: Any, cache: dict[int, _DriverRecord] | None = None) -> Roa
         position=np.array([o.position for o in found], dtype=float).reshape(n, 2),
         speed=np.array([o.speed for o in found], dtype=float),
         heading=np.array([o.heading for o in found], dtype=float),
+        target_speed=np.array([float(getattr(o, "target_speed", math.nan)) for o in found], dtype=float),
         lane=np.array([li[2] if li else -1 for li in lane_of], dtype=int),
         target_lane=np.array(
             [getattr(o, "target_lane_index", li)[2] if li else -1 for o, li in zip(found, lane_of, strict=True)],

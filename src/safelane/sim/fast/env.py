@@ -39,7 +39,8 @@ ACTIONS = {0: "LANE_LEFT", 1: "IDLE", 2: "LANE_RIGHT", 3: "FASTER", 4: "SLOWER"}
 _SNAPSHOT_FIELDS = (
     "time", "policy_frequency", "simulation_frequency", "lanes_count", "lane_width", "lane_origin",
     "lane_direction", "lane_lateral", "speed_limit", "ego", "ego_target_speed", "ego_speed_index",
-    "ego_target_speeds", "ego_kp", "ego_lane_offset", "position", "speed", "heading", "lane", "target_lane",
+    "ego_target_speeds", "ego_kp", "ego_lane_offset", "position", "speed", "heading", "target_speed", "lane",
+    "target_lane",
     "length", "width", "crashed", "is_vehicle", "brake_max", "accel_max", "can_change_lane", "idm_delta",
     "idm_comfort_acc", "idm_comfort_dec", "idm_distance_wanted", "idm_time_wanted", "max_braking_imposed",
     "impact_before", "impact_after", "linear_speed_gain", "linear_speed_difference_gain", "linear_distance_gain",
@@ -342,6 +343,7 @@ class FastHighwayEnv(gym.Env):
         fields["position"] = kin[: K.Y + 1].T
         fields["speed"] = kin[K.V]
         fields["heading"] = kin[K.H]
+        fields["target_speed"] = np.where(self._is_vehicle, F[:, K.TSPD], np.nan)
         fields["lane"] = ints[K.LANE]
         fields["target_lane"] = ints[K.TLANE]
         fields["crashed"] = ints[K.CRASHED].astype(bool)

@@ -15,7 +15,8 @@ bounded by their driver model's limits:
 * a vehicle ahead may brake at its maximum deceleration (IDM's ``ACC_MAX``) from now on; one moving
   backwards (highway-env's jammed IDM cars roll back) keeps its reverse speed;
 * a vehicle behind may accelerate at its maximum (IDM's ``COMFORT_ACC_MAX``) for a reaction time
-  and then brake at ``ACC_MAX``.
+  and then brake at ``ACC_MAX``; the IDM car right behind the ego in its lane instead brakes by IDM's own
+  response to the ego's fallback (``Dynamics.follower_idm``, :func:`idm_follower_positions`).
 
 Modes
 -----

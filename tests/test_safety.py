@@ -22,6 +22,7 @@ from safelane.safety.model import (
     ego_lane_windows,
     ego_trajectories,
     evaluate,
+    follower_positions,
     idm_follower_positions,
 )
 from safelane.safety.shield import ego_leave_time_at
@@ -376,6 +377,32 @@ def test_turning_allowance_covers_highway_env_s_lane_change() -> None:
     assert 1.4 < worst <= allowance == pytest.approx(4.0 * np.tan(np.pi / 8))
 
 
+def highway_env_follower_path(
+    driver: type, ego_speed: float, gap: float, speed: float, set_point: float, ego_x: np.ndarray,
+    ego_v: np.ndarray, dt: float,
+) -> np.ndarray:  # fmt: skip
+    """Positions [m] of a highway-env ``driver`` car ``gap`` m behind an ego at x = 200 m on one lane, the ego put
+    on the rule's path ``ego_x``/``ego_v`` (one fallback, per frame) and the car driven by its own ``act`` and
+    ``step`` at every frame of ``dt`` s."""
+    from highway_env.road.road import Road, RoadNetwork
+    from highway_env.vehicle.behavior import IDMVehicle
+    from highway_env.vehicle.kinematics import Vehicle
+
+    road = Road(RoadNetwork.straight_road_network(1, length=10_000.0), np_random=np.random.RandomState(0))
+    ego = Vehicle(road, np.array([200.0, 0.0]), speed=ego_speed)
+    follower = driver(road, np.array([200.0 - gap, 0.0]), speed=speed, target_speed=set_point)
+    follower.DELTA = IDMVehicle.DELTA  # unrandomised (the state's exponent)
+    road.vehicles = [ego, follower]
+    xs = [follower.position[0]]
+    for j in range(ego_x.shape[0] - 1):
+        ego.position = np.array([ego_x[j], 0.0])
+        ego.speed = ego_v[j]
+        follower.act()
+        follower.step(dt)
+        xs.append(follower.position[0])
+    return np.array(xs)
+
+
 def test_idm_follower_bound_against_highway_env_s_idm() -> None:
     """shield.follower_idm's follower (``model.idm_follower_positions``) against highway-env's own IDMVehicle,
     which brakes for the ego at every frame: the ego drives each of IDLE's, FASTER's and SLOWER's fallbacks
@@ -385,9 +412,7 @@ def test_idm_follower_bound_against_highway_env_s_idm() -> None:
     below its speed brakes harder at first and may later be up to ≈2 m ahead of the bound's path, where the
     bound, closer, brakes harder — but what the rule uses it for holds: wherever the bound's worst gap to the
     ego keeps the margin, the real follower's keeps it too, and is never more than 1 cm smaller."""
-    from highway_env.road.road import Road, RoadNetwork
     from highway_env.vehicle.behavior import IDMVehicle
-    from highway_env.vehicle.kinematics import Vehicle
 
     margin, kept, shorter, worst_shortfall = 1.0, 0, 0, 0.0
     for policy_hz, sim_hz in ((1, 5), (5, 15)):
@@ -404,20 +429,12 @@ def test_idm_follower_bound_against_highway_env_s_idm() -> None:
             for action in (I, F, S):
                 bound = idm_follower_positions(state, dyn, 0, ego_x[action], ego_v_all[action])
                 for k in range(ego_x.shape[1]):
-                    network = RoadNetwork.straight_road_network(1, length=10_000.0)
-                    road = Road(network, np_random=np.random.RandomState(0))
-                    ego = Vehicle(road, np.array([200.0, 0.0]), speed=ego_v)
-                    follower = IDMVehicle(road, np.array([200.0 - gap, 0.0]), speed=follower_v, target_speed=set_point)
-                    road.vehicles = [ego, follower]
-                    xs = [follower.position[0]]
-                    for j in range(ego_x.shape[2] - 1):  # the ego on the rule's path; the follower by its IDM
-                        ego.position = np.array([ego_x[action, k, j], 0.0])
-                        ego.speed = ego_v_all[action, k, j]
-                        follower.act()
-                        follower.step(dyn.frame_dt)
-                        xs.append(follower.position[0])
+                    xs = highway_env_follower_path(
+                        IDMVehicle, ego_v, gap, follower_v, set_point, ego_x[action, k], ego_v_all[action, k],
+                        dyn.frame_dt,
+                    )  # fmt: skip
                     bound_gap = float((ego_x[action, k, :-1] - bound[k, :-1] - 5.0).min())
-                    real_gap = float((ego_x[action, k, :-1] - np.array(xs[:-1]) - 5.0).min())
+                    real_gap = float((ego_x[action, k, :-1] - xs[:-1] - 5.0).min())
                     if bound_gap >= margin:
                         kept += 1
                         assert real_gap >= margin, (policy_hz, ego_v, gap, closing, set_point, action, k)
@@ -433,9 +450,7 @@ def test_follower_set_point_predicts_highway_env_s_drivers() -> None:
     and a LinearVehicle (``LinearVehicle.acceleration``, its own gains and time gap) braking for an ego that
     drives each fallback of IDLE and SLOWER at 1 and 5 decisions per second: the predicted path is the real one
     to 1e-6 m at every frame before the two would touch (measured: to the bit, the same operations)."""
-    from highway_env.road.road import Road, RoadNetwork
     from highway_env.vehicle.behavior import IDMVehicle, LinearVehicle
-    from highway_env.vehicle.kinematics import Vehicle
 
     worst, runs = 0.0, 0
     for policy_hz, sim_hz in ((1, 5), (5, 15)):
@@ -459,22 +474,12 @@ def test_follower_set_point_predicts_highway_env_s_drivers() -> None:
             for action in (I, S):
                 predicted = idm_follower_positions(state, dyn, 0, ego_x[action], ego_v_all[action])
                 for k in range(ego_x.shape[1]):
-                    network = RoadNetwork.straight_road_network(1, length=10_000.0)
-                    road = Road(network, np_random=np.random.RandomState(0))
-                    ego = Vehicle(road, np.array([200.0, 0.0]), speed=ego_v)
-                    follower = driver(road, np.array([200.0 - gap, 0.0]), speed=follower_v, target_speed=set_point)
-                    follower.DELTA = IDMVehicle.DELTA
-                    road.vehicles = [ego, follower]
-                    xs = [follower.position[0]]
-                    for j in range(ego_x.shape[2] - 1):
-                        ego.position = np.array([ego_x[action, k, j], 0.0])
-                        ego.speed = ego_v_all[action, k, j]
-                        follower.act()
-                        follower.step(dyn.frame_dt)
-                        xs.append(follower.position[0])
-                    touch = np.flatnonzero(ego_x[action, k, :-1] - np.array(xs[:-1]) < 5.0)
+                    xs = highway_env_follower_path(
+                        driver, ego_v, gap, follower_v, set_point, ego_x[action, k], ego_v_all[action, k], dyn.frame_dt
+                    )
+                    touch = np.flatnonzero(ego_x[action, k, :-1] - xs[:-1] < 5.0)
                     upto = int(touch[0]) if touch.size else len(xs) - 1
-                    worst = max(worst, float(np.max(np.abs(np.array(xs[:upto]) - predicted[k, :upto]), initial=0.0)))
+                    worst = max(worst, float(np.max(np.abs(xs[:upto] - predicted[k, :upto]), initial=0.0)))
                     runs += 1
     assert runs == 512 and worst < 1e-6, worst
 
@@ -523,17 +528,10 @@ def test_linear_model_drivers_creep_into_a_stopped_car() -> None:
     ego_x, ego_v = ego_trajectories(state, dyn)
     creep = idm_follower_positions(state, dyn, 0, ego_x[S], ego_v[S])
     assert float((ego_x[S, 0, :-1] - creep[0, :-1]).min()) < 5.0  # closer than two half-lengths: contact
-    bound = model_follower_bound(state, dyn)
+    bound = follower_positions(state.x, state.vx, state.accel_max, state.brake_max, dyn.follower_reaction, dyn.times)[
+        0
+    ]  # the rule's reaction-time bound
     assert float((ego_x[S, 0] - bound).min()) > 50.0  # the reaction-time bound stops 51 m behind
-
-
-def model_follower_bound(state: RoadState, dyn: Dynamics) -> np.ndarray:
-    """The rule's reaction-time follower bound (``model.follower_positions``) of the state's first car."""
-    from safelane.safety.model import follower_positions
-
-    return follower_positions(
-        state.x[:1], state.vx[:1], state.accel_max[:1], state.brake_max[:1], dyn.follower_reaction, dyn.times
-    )[0]
 
 
 @pytest.mark.parametrize("engine", ["numpy", "compiled"])

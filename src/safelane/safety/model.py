@@ -389,10 +389,10 @@ def idm_followers(state: RoadState, dyn: Dynamics, near: np.ndarray) -> np.ndarr
     and a lane-change rule (a driver, not an object), has the ego as that body: nothing else's centre lies
     between the two in the band. With ``Dynamics.follower_set_point`` a linear-model driver whose set-point
     is known counts too (its formula is linear in it, so it has no bound without it)."""
-    v0 = set_points(state)
     rows = np.zeros(near.shape[0], dtype=bool)
     if not dyn.follower_idm:
         return rows
+    v0 = set_points(state)
     centre = state.ego_lane * dyn.lane_width
     in_band = np.abs(state.y - centre) <= 0.5 * dyn.lane_width + IDM_LANE_MARGIN
     lanes = state.lane_of(state.y, dyn.lanes_count, dyn.lane_width)

@@ -328,7 +328,7 @@ class FastHighwayEnv(gym.Env):
     def snapshot(self) -> RoadSnapshot:
         """The scene as a :class:`RoadSnapshot` (fresh per-step arrays; the static ones are shared, read-only)."""
         F, G = self.F, self.G
-        kin = F[:, : K.V + 1].T.copy()  # rows x, y, heading, speed
+        kin = F[:, : K.TSPD + 1].T.copy()  # rows x, y, heading, speed, set-point
         ints = G[:, : K.CRASHED + 1].T.copy()  # rows lane, target lane, crashed
         crashed_once = bool(self._rec[0])
         # RoadSnapshot is a frozen dataclass without __post_init__: filling its __dict__ is what its
@@ -343,7 +343,7 @@ class FastHighwayEnv(gym.Env):
         fields["position"] = kin[: K.Y + 1].T
         fields["speed"] = kin[K.V]
         fields["heading"] = kin[K.H]
-        fields["target_speed"] = np.where(self._is_vehicle, F[:, K.TSPD], np.nan)
+        fields["target_speed"] = kin[K.TSPD]  # every body of this simulator is a vehicle with a set-point
         fields["lane"] = ints[K.LANE]
         fields["target_lane"] = ints[K.TLANE]
         fields["crashed"] = ints[K.CRASHED].astype(bool)

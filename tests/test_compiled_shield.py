@@ -529,3 +529,21 @@ def test_the_ninth_session_s_rule_leaves_nominal_untouched(case: tuple) -> None:
     on, off = (dataclasses.replace(dyn, **dict.fromkeys(NINTH_SESSION_OPTIONS, v)) for v in (True, False))
     assert_same(model.evaluate(state, on, "nominal"), model.evaluate(state, off, "nominal"))
     assert_same(compiled.evaluate_compiled(state, on, "nominal"), compiled.evaluate_compiled(state, off, "nominal"))
+
+
+@PROPERTY_SETTINGS
+@given(case=road(extreme=True, rates=True, follower=True))
+def test_finishing_changes_bit_identical(case: tuple) -> None:
+    """shield.finishing_changes (experimental): the same in both engines at every rate; robust ⊆ nominal still
+    holds for the final masks (it only drops a robust conflict); nominal mode, and a road without a car
+    moving forward toward its own lane's centre, are unchanged to the bit."""
+    state, dyn, _ = case
+    off, on = (dataclasses.replace(dyn, finishing_changes=v) for v in (False, True))
+    assert mismatches(state, on) == []
+    assert_nested(state, on)
+    assert_same(model.evaluate(state, off, "nominal"), model.evaluate(state, on, "nominal"), "nominal")
+    lanes = state.lane_of(state.y, dyn.lanes_count, dyn.lane_width)
+    moving = (np.abs(state.heading) > model.LATERAL_MOTION_THRESHOLD) | (np.abs(state.vy) > 0.3)
+    toward = (lanes * dyn.lane_width - state.y) * np.where(state.vy > 0, 1, -1) > 0
+    if not (moving & toward & (state.vx >= 0)).any():
+        assert_same(model.evaluate(state, off, "robust"), model.evaluate(state, on, "robust"), "robust")

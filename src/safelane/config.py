@@ -275,6 +275,14 @@ class ShieldConfig(_Section):
         "and linear-model drivers behind the ego by their own formula, which is linear in that set-point (cell "
         "2879; docs/safety.md §6k).",
     )
+    finishing_changes: bool = Field(
+        False,
+        strict=True,
+        description="Experimental (robust mode): a car moving sideways toward its own lane's centre, short of "
+        "it — finishing a lane change into that lane — is not projected into the lane beyond from now (whatever "
+        "MOBIL says) but is a cut-in candidate from its lane like any car there, MOBIL-filtered, from the cut-in "
+        "time (the 'second_lane_cut_in' breaks, cell 2087; docs/safety.md §6l).",
+    )
 
     def rule_options(self) -> dict[str, bool]:
         """The rule's on/off options by name, as :class:`safelane.safety.shield.SafetyShield` and
@@ -687,6 +695,7 @@ RULE_OPTIONS = (
     "level_entering", "least_bad_joint", "full_horizon", "ego_speed_magnitude", "turning_leaders",
     "robust_fallback", "straight_fallback", "linear_incentive", "linear_incentive_braking", "reversing_cut_ins",
     "crossed_lanes", "lateral_schedule", "reversing_noses", "follower_idm", "follower_set_point",
+    "finishing_changes",
 )  # fmt: skip
 """The :class:`ShieldConfig` fields that switch parts of the safety rule on or off (``ShieldConfig.rule_options``)."""
 

@@ -380,6 +380,23 @@ def squeezed_by_a_follower(mode: Mode = "robust", **kw: Any) -> Scene:
     return build_scene(1, 18.32, specs, mode=mode, lanes_count=3, ego_target_speed=15.0, **rate, **kw)
 
 
+def car_settling_next_to_the_ego(mode: Mode = "robust", **kw: Any) -> Scene:
+    """6 lanes; the ego in lane 5 at 29.34 m/s (set-point 30); 25.18 m ahead a car at 17.16 m/s that has just
+    crossed from lane 3 into lane 4, the lane next to the ego, 1.27 m short of its centre and still turned
+    0.188 rad toward it (its target lane is lane 4) — the 100 800-episode campaign's cell 614
+    (``cell00614-seed4006140008``, the overtaking probe, 1 decision per second) at its break, the
+    ``second_lane_cut_in`` class. The heading projection puts the car in the ego's lane from now, braking:
+    nothing is safe. With ``shield.finishing_changes`` (experimental) it is a car finishing its change into
+    lane 4, a cut-in candidate from there, and MOBIL would not let it cut in 25 m ahead of a car closing at
+    12 m/s: IDLE and SLOWER are safe."""
+    specs = [
+        VehicleSpec(3, 7.29, 15.11, heading=-0.4212, target_lane=2, lateral_offset=-1.053),
+        VehicleSpec(4, 25.18, 17.16, heading=0.1878, target_lane=4, lateral_offset=-1.267),
+        VehicleSpec(3, 44.13, 22.76),
+    ]
+    return build_scene(5, 29.34, specs, mode=mode, lanes_count=6, ego_target_speed=30.0, **kw)
+
+
 SCENARIOS: dict[str, Callable[..., Scene]] = {
     "leader_braking": leader_braking,
     "stopped_car_ahead": stopped_car_ahead,
@@ -405,6 +422,7 @@ SCENARIOS: dict[str, Callable[..., Scene]] = {
     "ego_leaving_its_lane": ego_leaving_its_lane,
     "car_rolling_back_turned_in": car_rolling_back_turned_in,
     "squeezed_by_a_follower": squeezed_by_a_follower,
+    "car_settling_next_to_the_ego": car_settling_next_to_the_ego,
 }
 """Every scenario by name."""
 

@@ -265,7 +265,7 @@ def _evaluate_rule(
     body_width: float, linear_mobil: bool, reversing_leaders: bool, level_cut_ins: bool, level_incentive: bool,
     level_entering: bool, least_bad_joint: bool, robust_fallback: bool, linear_incentive: bool,
     linear_incentive_braking: bool, reversing_cut_ins: bool, crossed_lanes: bool, lateral_schedule: bool,
-    reversing_noses: bool, follower_idm: bool, follower_set_point: bool,
+    reversing_noses: bool, follower_idm: bool, follower_set_point: bool, finishing_changes: bool,
     ego_width: float, kp_lateral: float,
     kp_heading: float, max_steering: float, turning_allowance: float,
     min_acc_gain: float,
@@ -432,12 +432,17 @@ def _evaluate_rule(
         n_occ += 1
         nxt = -10
         if abs(heading[i]) > lateral_threshold or abs(vy[i]) > 0.3:
-            nxt = own + (1 if vy[i] > 0 else -1)
+            direction = 1 if vy[i] > 0 else -1
+            nxt = own + direction
             if 0 <= nxt < lanes_count:
                 projected[r] = nxt
-                if robust:
-                    occ_row[n_occ], occ_lane[n_occ], occ_nominal[n_occ] = r, nxt, False
-                    n_occ += 1
+            # model.finishing_change: moving forward toward its own lane's centre, short of it
+            finishing = finishing_changes and vx[i] >= 0.0 and (own * lane_width - y[i]) * direction > 0.0
+            if finishing:
+                nxt = -10  # a cut-in candidate from its own lane instead (MOBIL-filtered)
+            elif robust and 0 <= nxt < lanes_count:
+                occ_row[n_occ], occ_lane[n_occ], occ_nominal[n_occ] = r, nxt, False
+                n_occ += 1
         if robust and reversing_noses and vx[i] < 0.0 and abs(heading[i]) > lateral_threshold:
             nose = own + (1 if heading[i] > 0 else -1)  # model._occupancy: the lane its nose points to
             if nose != nxt and 0 <= nose < lanes_count:
@@ -779,7 +784,9 @@ def _evaluate(
     body_width: float, linear_mobil: bool, reversing_leaders: bool, level_cut_ins: bool, level_incentive: bool,
     level_entering: bool, least_bad_joint: bool, robust_fallback: bool, straight_fallback: bool,
     linear_incentive: bool, linear_incentive_braking: bool, reversing_cut_ins: bool, crossed_lanes: bool,
-    lateral_schedule: bool, reversing_noses: bool, follower_idm: bool, follower_set_point: bool, ego_width: float,
+    lateral_schedule: bool, reversing_noses: bool, follower_idm: bool, follower_set_point: bool,
+    finishing_changes: bool,
+    ego_width: float,
     kp_lateral: float,
     kp_heading: float, max_steering: float, turning_allowance: float,
     min_acc_gain: float,
@@ -801,7 +808,7 @@ def _evaluate(
         lateral_threshold, robust, projected_cut_ins, body_extent, body_width, linear_mobil, reversing_leaders,
         level_cut_ins, level_incentive, level_entering, least_bad_joint, robust_fallback, linear_incentive,
         linear_incentive_braking, reversing_cut_ins, crossed_lanes, lateral_schedule,
-        reversing_noses, follower_idm, follower_set_point, ego_width, kp_lateral,
+        reversing_noses, follower_idm, follower_set_point, finishing_changes, ego_width, kp_lateral,
         kp_heading, max_steering, allowance, min_acc_gain,
     )  # fmt: skip
     if not (out[4] and robust and straight_fallback and turning_allowance > 0.0):
@@ -817,7 +824,7 @@ def _evaluate(
         lateral_threshold, robust, projected_cut_ins, body_extent, body_width, linear_mobil, reversing_leaders,
         level_cut_ins, level_incentive, level_entering, least_bad_joint, robust_fallback, linear_incentive,
         linear_incentive_braking, reversing_cut_ins, crossed_lanes, lateral_schedule,
-        reversing_noses, follower_idm, follower_set_point, ego_width, kp_lateral,
+        reversing_noses, follower_idm, follower_set_point, finishing_changes, ego_width, kp_lateral,
         kp_heading, max_steering, 0.0, min_acc_gain,
     )  # fmt: skip
     return straight[0].copy(), out[1], out[2], out[3], True
@@ -840,7 +847,9 @@ def _evaluate_snapshot(
     body_width: float, linear_mobil: bool, reversing_leaders: bool, level_cut_ins: bool, level_incentive: bool,
     level_entering: bool, least_bad_joint: bool, robust_fallback: bool, straight_fallback: bool,
     linear_incentive: bool, linear_incentive_braking: bool, reversing_cut_ins: bool, crossed_lanes: bool,
-    lateral_schedule: bool, reversing_noses: bool, follower_idm: bool, follower_set_point: bool, ego_width: float,
+    lateral_schedule: bool, reversing_noses: bool, follower_idm: bool, follower_set_point: bool,
+    finishing_changes: bool,
+    ego_width: float,
     kp_lateral: float,
     kp_heading: float, max_steering: float, ego_speed_magnitude: bool,
     turning_allowance: float,
@@ -895,7 +904,7 @@ def _evaluate_snapshot(
         projected_cut_ins, body_extent, body_width, linear_mobil, reversing_leaders, level_cut_ins, level_incentive,
         level_entering, least_bad_joint, robust_fallback, straight_fallback, linear_incentive,
         linear_incentive_braking, reversing_cut_ins, crossed_lanes, lateral_schedule,
-        reversing_noses, follower_idm, follower_set_point, ego_width, kp_lateral,
+        reversing_noses, follower_idm, follower_set_point, finishing_changes, ego_width, kp_lateral,
         kp_heading, max_steering, turning_allowance, min_acc_gain,
     )  # fmt: skip
 
@@ -995,6 +1004,7 @@ class KernelConstants(NamedTuple):
     reversing_noses: bool
     follower_idm: bool
     follower_set_point: bool
+    finishing_changes: bool
     ego_width: float
     kp_lateral: float
     kp_heading: float
@@ -1029,6 +1039,7 @@ def kernel_constants(dyn: Dynamics) -> KernelConstants:
         dyn.reversing_noses,
         dyn.follower_idm,
         dyn.follower_set_point,
+        dyn.finishing_changes,
         dyn.ego_width,
         dyn.kp_lateral,
         dyn.kp_heading,
@@ -1070,7 +1081,7 @@ def evaluate_compiled(
         dyn.body_width, dyn.linear_mobil, dyn.reversing_leaders, dyn.level_cut_ins, dyn.level_incentive,
         dyn.level_entering, dyn.least_bad_joint, dyn.robust_fallback, dyn.straight_fallback, dyn.linear_incentive,
         dyn.linear_incentive_braking, dyn.reversing_cut_ins, dyn.crossed_lanes, dyn.lateral_schedule,
-        dyn.reversing_noses, dyn.follower_idm, dyn.follower_set_point, dyn.ego_width,
+        dyn.reversing_noses, dyn.follower_idm, dyn.follower_set_point, dyn.finishing_changes, dyn.ego_width,
         dyn.kp_lateral, dyn.kp_heading,
         dyn.max_steering, model.turning_allowance(dyn), _MIN_ACC_GAIN,
     )  # fmt: skip
@@ -1115,7 +1126,7 @@ def evaluate_snapshot(
         dyn.body_width, dyn.linear_mobil, dyn.reversing_leaders, dyn.level_cut_ins, dyn.level_incentive,
         dyn.level_entering, dyn.least_bad_joint, dyn.robust_fallback, dyn.straight_fallback, dyn.linear_incentive,
         dyn.linear_incentive_braking, dyn.reversing_cut_ins, dyn.crossed_lanes, dyn.lateral_schedule,
-        dyn.reversing_noses, dyn.follower_idm, dyn.follower_set_point, dyn.ego_width,
+        dyn.reversing_noses, dyn.follower_idm, dyn.follower_set_point, dyn.finishing_changes, dyn.ego_width,
         dyn.kp_lateral, dyn.kp_heading,
         dyn.max_steering, dyn.ego_speed_magnitude,
         model.turning_allowance(dyn),

@@ -120,6 +120,7 @@ class Dynamics:
     reversing_noses: bool = True  # robust: a car rolling backwards, turned, is also in the lane its nose points to
     follower_idm: bool = True  # the IDM car right behind the ego in its lane brakes by IDM's response to the ego
     follower_set_point: bool = False  # follower_idm: with its own set-point, and linear-model drivers by their formula
+    finishing_changes: bool = False  # robust: a car moving toward its own lane's centre is not projected past it
     ego_lateral_speed: float = math.nan  # [m/s] the speed that simulation runs at (per state, like ego_leave_time)
     ego_width: float = 2.0  # [m] the ego's width (Vehicle.WIDTH)
     kp_lateral: float = 1.0 / 0.6  # [1/s] ControlledVehicle.KP_LATERAL
@@ -598,7 +599,9 @@ def _occupancy(state: RoadState, dyn: Dynamics, mode: Mode, near: np.ndarray) ->
         if abs(state.heading[i]) > LATERAL_MOTION_THRESHOLD or abs(state.vy[i]) > 0.3:
             direction = 1 if state.vy[i] > 0 else -1
             nxt = own + direction
-            if 0 <= nxt < dyn.lanes_count:
+            if dyn.finishing_changes and finishing_change(state, dyn, int(i), own, direction):
+                nxt = -10  # it may still cut in from its lane: a cut-in candidate there, MOBIL-filtered
+            elif 0 <= nxt < dyn.lanes_count:
                 occ.add(int(i), nxt, 0.0, False)
         if dyn.reversing_noses and state.vx[i] < 0.0 and abs(state.heading[i]) > LATERAL_MOTION_THRESHOLD:
             # Rolling backwards it moves away from the lane its nose points to, and drives there as soon as
@@ -620,6 +623,24 @@ def _occupancy(state: RoadState, dyn: Dynamics, mode: Mode, near: np.ndarray) ->
                 if state.y[i] + reach > centre - half_lane and state.y[i] - reach < centre + half_lane:
                     occ.add(int(i), side, 0.0, False)
     return occ
+
+
+def finishing_change(state: RoadState, dyn: Dynamics, i: int, own: int, direction: int) -> bool:
+    """Whether vehicle ``i``, in lane ``own`` and moving sideways in ``direction`` (±1 lane), is finishing a
+    lane change *into* that lane (``Dynamics.finishing_changes``): moving forward, its centre short of the
+    lane's centre [m] and moving toward it.
+
+    highway-env steers a car to its target lane's centre and changes the target only by a new MOBIL decision,
+    taken while its lane is its target (``IDMVehicle.change_lane_policy``). A car that has crossed into a lane
+    and is moving toward its centre is either settling there or has just decided to go on; the heading
+    projection put it in the lane beyond from now — the lane next to it, the ego's — whatever MOBIL says
+    (issue 15: 283 of 295 sampled 'second_lane_cut_in' breaks, a car from two lanes over settling in the lane
+    next to the ego). With the option it is a cut-in candidate from its own lane like any car there: into the
+    ego's lane only if MOBIL's safety criterion allows it, from the cut-in time. A car rolling backwards
+    steers the wrong way and keeps the projection."""
+    if not state.vx[i] >= 0.0:
+        return False
+    return (own * dyn.lane_width - float(state.y[i])) * direction > 0.0
 
 
 def _cut_in_candidates(

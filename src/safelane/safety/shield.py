@@ -96,6 +96,7 @@ def dynamics_of(
     reversing_noses: bool = True,
     follower_idm: bool = True,
     follower_set_point: bool = False,
+    finishing_changes: bool = False,
 ) -> Dynamics:
     """The :class:`Dynamics` constants of the simulated world a snapshot was taken in; ``margin`` [m]: the
     bumper-to-bumper gap the rule keeps under its worst case; the rule's options as in :class:`Dynamics`."""
@@ -133,6 +134,7 @@ def dynamics_of(
         reversing_noses=reversing_noses,
         follower_idm=follower_idm,
         follower_set_point=follower_set_point,
+        finishing_changes=finishing_changes,
         # highway-env's lateral controller: ControlledVehicle's gains, which MDPVehicle (the ego) inherits.
         ego_width=float(snap.width[snap.ego]) if len(snap.width) else 2.0,
         kp_lateral=float(ControlledVehicle.KP_LATERAL),
@@ -253,6 +255,9 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
     of the ego (else: it accelerates for the reaction time, whatever the ego does).
     ``follower_set_point`` (experimental): ``follower_idm`` with the car's own set-point read from the
     simulator, and linear-model drivers behind the ego by their own formula.
+    ``finishing_changes`` (experimental): robust mode does not project a car finishing a lane change into its
+    own lane (moving toward that lane's centre, short of it) into the lane beyond; it may cut in from its lane,
+    MOBIL-filtered, like any car there.
     """
 
     def __init__(
@@ -284,6 +289,7 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
         reversing_noses: bool = True,
         follower_idm: bool = True,
         follower_set_point: bool = False,
+        finishing_changes: bool = False,
     ) -> None:
         if not (math.isfinite(margin) and margin >= 0):
             raise ValueError(f"shield.margin: must be a finite number >= 0 [m] (got {margin!r})")
@@ -321,6 +327,7 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
             reversing_noses=reversing_noses,
             follower_idm=follower_idm,
             follower_set_point=follower_set_point,
+            finishing_changes=finishing_changes,
         )
         try:
             env.get_wrapper_attr("road_snapshot")
@@ -353,6 +360,7 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
         self.reversing_noses = bool(reversing_noses)
         self.follower_idm = bool(follower_idm)
         self.follower_set_point = bool(follower_set_point)
+        self.finishing_changes = bool(finishing_changes)
         self._rule_options = {name: getattr(self, name) for name in RULE_OPTIONS}  # dynamics_of's keywords
         self.dynamics: Dynamics | None = None
         self.result: SafetyResult | None = None

@@ -121,9 +121,9 @@ EXPECTED = {
     # every decision, left robust nothing safe: test below).
     "squeezed_by_a_follower": {"nominal": mask_of(I, S), "robust": mask_of(I, S)},
     # A car that has just crossed into the lane next to the ego, 25 m ahead and 12 m/s slower, turned toward its
-    # new lane's centre: robust projects it into the ego's lane, braking, so nothing is safe and the least-bad
-    # SLOWER is flagged (unless shield.finishing_changes, experimental: test below). Nominal: IDLE and SLOWER.
-    "car_settling_next_to_the_ego": {"nominal": mask_of(I, S), "robust": mask_of(S)},
+    # new lane's centre: a cut-in candidate from there, which MOBIL keeps out of the ego's lane
+    # (shield.finishing_changes, robust only; the earlier rule projected it into the ego's lane: test below).
+    "car_settling_next_to_the_ego": {"nominal": mask_of(I, S), "robust": mask_of(I, S)},
 }
 
 
@@ -139,7 +139,6 @@ def test_scenario_masks(name: str, mode: str, engine: str) -> None:
     fallbacks |= {("closing_in_at_five_per_second", "nominal"), ("closing_in_at_five_per_second", "robust")}
     fallbacks |= {("ego_turning_into_its_lane", "robust"), ("reversing_car_beside", "robust")}
     fallbacks |= {("ego_crossing_a_lane", "nominal"), ("ego_crossing_a_lane", "robust")}
-    fallbacks.add(("car_settling_next_to_the_ego", "robust"))
     assert scene.result.fallback == ((name, mode) in fallbacks)
     available = scene.env.unwrapped.action_type.get_available_actions()
     assert set(np.flatnonzero(scene.mask)) <= set(available)
@@ -738,17 +737,18 @@ def test_follower_idm_lets_the_car_behind_brake_for_the_ego(engine: str) -> None
 def test_finishing_changes_lets_a_car_settle_in_the_next_lane(engine: str) -> None:
     """The 100 800-episode campaign's cell 614 at its break (docs/safety.md §6l), rebuilt: a car that has just
     crossed from two lanes over into the lane next to the ego, 25.18 m ahead at 17.16 m/s, still turned toward
-    its new lane's centre. The heading projection puts it in the ego's lane from now, braking at its limit:
-    IDLE −79.54 m, SLOWER −49.54 m, nothing safe. With shield.finishing_changes it is finishing its change into
+    its new lane's centre. The earlier rule's heading projection put it in the ego's lane from now, braking at
+    its limit: IDLE −79.54 m, SLOWER −49.54 m, nothing safe. With shield.finishing_changes (the default since
+    issue 15's twelfth session) it is finishing its change into
     lane 4 — a cut-in candidate from there, and MOBIL's safety criterion (the ego at 29.34 m/s, 25 m behind,
     would have to brake far harder than 2 m/s²) keeps it out of the ego's lane: IDLE and SLOWER have no
     conflict. highway-env agrees: driven on with IDLE for 6 s, the car settles in lane 4 and nobody crashes.
     Nominal, which never projects, is unchanged."""
     kw = {"shield.engine": engine}
-    earlier = scenarios.SCENARIOS["car_settling_next_to_the_ego"](**kw).result
+    earlier = scenarios.SCENARIOS["car_settling_next_to_the_ego"](**kw, **{"shield.finishing_changes": False}).result
     assert earlier.fallback and not earlier.safe.any()
     assert earlier.min_gap[[I, S]] == pytest.approx([-79.54, -49.54], abs=0.01)
-    scene = scenarios.SCENARIOS["car_settling_next_to_the_ego"](**kw, **{"shield.finishing_changes": True})
+    scene = scenarios.SCENARIOS["car_settling_next_to_the_ego"](**kw)  # the default since the twelfth session
     assert scene.mask.tolist() == mask_of(I, S) and not scene.result.fallback
     assert scene.result.min_gap[[I, S]].tolist() == [math.inf, math.inf]
     nominal = [

@@ -276,12 +276,13 @@ class ShieldConfig(_Section):
         "2879; docs/safety.md §6k).",
     )
     finishing_changes: bool = Field(
-        False,
+        True,
         strict=True,
-        description="Experimental (robust mode): a car moving sideways toward its own lane's centre, short of "
-        "it — finishing a lane change into that lane — is not projected into the lane beyond from now (whatever "
-        "MOBIL says) but is a cut-in candidate from its lane like any car there, MOBIL-filtered, from the cut-in "
-        "time (the 'second_lane_cut_in' breaks, cell 2087; docs/safety.md §6l).",
+        description="Robust mode: a car moving sideways toward its own lane's centre, short of it — finishing a "
+        "lane change into that lane — is not projected into the lane beyond from now (whatever MOBIL says) but is "
+        "a cut-in candidate from its lane like any car there, MOBIL-filtered, from the cut-in time (the "
+        "'second_lane_cut_in' breaks, cell 2087; docs/safety.md §6l). On by default since issue 15's twelfth "
+        "session; false: the earlier rule.",
     )
 
     def rule_options(self) -> dict[str, bool]:
@@ -710,6 +711,8 @@ RULE_CHANGES: dict[str, Any] = {
     "crossed_lanes": False, "reversing_noses": False,
     # issue 15's eleventh session (docs/safety.md §6k)
     "follower_idm": False,
+    # issue 15's twelfth session (docs/safety.md §6l)
+    "finishing_changes": False,
 }  # fmt: skip
 """Shield keys added with a new default that changes the rule: a *recorded* configuration (a run's
 config.yaml, a counterexample file) written before the key existed had the old behaviour, given here,

@@ -385,10 +385,10 @@ def car_settling_next_to_the_ego(mode: Mode = "robust", **kw: Any) -> Scene:
     crossed from lane 3 into lane 4, the lane next to the ego, 1.27 m short of its centre and still turned
     0.188 rad toward it (its target lane is lane 4) — the 100 800-episode campaign's cell 614
     (``cell00614-seed4006140008``, the overtaking probe, 1 decision per second) at its break, the
-    ``second_lane_cut_in`` class. The heading projection puts the car in the ego's lane from now, braking:
-    nothing is safe. With ``shield.finishing_changes`` (experimental) it is a car finishing its change into
-    lane 4, a cut-in candidate from there, and MOBIL would not let it cut in 25 m ahead of a car closing at
-    12 m/s: IDLE and SLOWER are safe."""
+    ``second_lane_cut_in`` class. The earlier rule's heading projection put the car in the ego's lane from now,
+    braking: nothing was safe. With ``shield.finishing_changes`` (the default since issue 15's twelfth session)
+    it is a car finishing its change into lane 4, a cut-in candidate from there, and MOBIL would not let it cut
+    in 25 m ahead of a car closing at 12 m/s: IDLE and SLOWER are safe."""
     specs = [
         VehicleSpec(3, 7.29, 15.11, heading=-0.4212, target_lane=2, lateral_offset=-1.053),
         VehicleSpec(4, 25.18, 17.16, heading=0.1878, target_lane=4, lateral_offset=-1.267),

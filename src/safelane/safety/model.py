@@ -120,7 +120,8 @@ class Dynamics:
     reversing_noses: bool = True  # robust: a car rolling backwards, turned, is also in the lane its nose points to
     follower_idm: bool = True  # the IDM car right behind the ego in its lane brakes by IDM's response to the ego
     follower_set_point: bool = False  # follower_idm: with its own set-point, and linear-model drivers by their formula
-    finishing_changes: bool = False  # robust: a car moving toward its own lane's centre is not projected past it
+    finishing_changes: bool = True  # robust: a car moving toward its own lane's centre is not projected past it
+    cut_in_when_permitted: bool = False  # robust: a cut-in starts from the first frame MOBIL's safety criterion allows
     ego_lateral_speed: float = math.nan  # [m/s] the speed that simulation runs at (per state, like ego_leave_time)
     ego_width: float = 2.0  # [m] the ego's width (Vehicle.WIDTH)
     kp_lateral: float = 1.0 / 0.6  # [1/s] ControlledVehicle.KP_LATERAL
@@ -335,20 +336,25 @@ def follower_positions(
 
 
 def idm_acceleration_behind(
-    state: RoadState, who: np.ndarray, gap_centres: np.ndarray, ego_speed: np.ndarray, ego_target: np.ndarray
+    state: RoadState,
+    who: np.ndarray,
+    gap_centres: np.ndarray,
+    ego_speed: np.ndarray,
+    ego_target: np.ndarray,
+    own_speed: np.ndarray | None = None,
 ) -> np.ndarray:
     """IDM acceleration [m/s²] that vehicles ``who`` predict for the ego following them.
 
     This is the quantity of MOBIL's safety criterion (highway-env ``IDMVehicle.mobil``), computed
     with the cutting vehicle's own IDM parameters; ``gap_centres`` is the centre-to-centre distance
     [m] (highway-env's ``lane_distance_to``), ``ego_target`` the ego's set-point clipped to the
-    speed limit.
+    speed limit; ``own_speed`` [m/s] the cutting vehicle's speed (default: its speed now).
     """
     acc = state.idm_comfort_acc[who]
     target = np.where(np.abs(ego_target) < 1e-2, 1e-2, ego_target)
     free = acc * (1 - np.power(np.maximum(ego_speed, 0.0) / np.abs(target), state.idm_delta[who]))
     ab = -acc * state.idm_comfort_dec[who]
-    dv = ego_speed - state.vx[who]
+    dv = ego_speed - (state.vx[who] if own_speed is None else own_speed)
     d_star = (
         state.idm_distance_wanted[who] + ego_speed * state.idm_time_wanted[who] + ego_speed * dv / (2 * np.sqrt(ab))
     )
@@ -357,15 +363,21 @@ def idm_acceleration_behind(
 
 
 def linear_acceleration_behind(
-    state: RoadState, who: np.ndarray, gap_centres: np.ndarray, ego_speed: np.ndarray, ego_target: np.ndarray
+    state: RoadState,
+    who: np.ndarray,
+    gap_centres: np.ndarray,
+    ego_speed: np.ndarray,
+    ego_target: np.ndarray,
+    own_speed: np.ndarray | None = None,
 ) -> np.ndarray:
     """The acceleration [m/s²] a linear-model driver ``who`` (``LinearVehicle.acceleration``) predicts for
     the ego following it: ``k₀·(v* − v) + k₁·min(v_who − v, 0) + k₂·min(d − d_safe, 0)`` with
     ``d_safe = DISTANCE_WANTED + max(v, 0)·TIME_WANTED`` — MOBIL's safety criterion for Linear, Aggressive
     and Defensive drivers. ``gap_centres`` [m] centre to centre, ``ego_target`` [m/s] the ego's set-point
     (not clipped: highway-env reads ``target_speed``); the driver's speed is its whole speed (≥ its
-    speed along the road), which can only make the criterion allow more."""
-    own_speed = np.hypot(state.vx[who], state.vy[who])
+    speed along the road), which can only make the criterion allow more; ``own_speed`` [m/s] overrides it."""
+    if own_speed is None:
+        own_speed = np.hypot(state.vx[who], state.vy[who])
     d_safe = state.idm_distance_wanted[who] + np.maximum(ego_speed, 0.0) * state.idm_time_wanted[who]
     return (
         state.linear_speed_gain[who] * (ego_target - ego_speed)
@@ -623,6 +635,47 @@ def _occupancy(state: RoadState, dyn: Dynamics, mode: Mode, near: np.ndarray) ->
                 if state.y[i] + reach > centre - half_lane and state.y[i] - reach < centre + half_lane:
                     occ.add(int(i), side, 0.0, False)
     return occ
+
+
+def permit_times(
+    state: RoadState, dyn: Dynamics, near: np.ndarray, ego_xs: np.ndarray, ego_vs: np.ndarray, ego_target: float
+) -> np.ndarray:
+    """The first frame time [s] of the decision at which MOBIL's safety criterion lets each vehicle of ``near``
+    change into the ego's lane ahead of it, the ego its new follower (``Dynamics.cut_in_when_permitted``): the
+    criterion of :func:`_cut_in_candidates` at every frame of the decision instead of now and at its end, the
+    ego on the action's path (``ego_xs`` [m], ``ego_vs`` [m/s]: frames 0 … frames) and the car at its fastest
+    (accelerating at its limit from now, which only makes the criterion allow more and earlier); inf: at none.
+    0 for a car moving backwards with ``reversing_cut_ins`` (any lane change). With the option a permitted
+    cut-in starts at this time plus the cut-in time rather than at the cut-in time from now: the car decides
+    its lane change only when MOBIL lets it (issue 15, twelfth session: a car passing a stopped ego in the next
+    lane, 3 m ahead, is not allowed to cut in now — the ego would have to brake at 28 m/s² — but is at the end
+    of the decision, 24 m ahead; it was assumed in the ego's lane from now)."""
+    out = np.full(near.size, np.inf)
+    if near.size == 0:
+        return out
+    t = dyn.times[: ego_xs.shape[0]]
+    target = np.clip(ego_target, 0.0, state.speed_limit)
+    linear = np.isfinite(state.linear_speed_gain[near])
+    accel = np.maximum(state.accel_max[near], 0.0)
+    limit = -state.max_braking_imposed[near]
+    for f in range(t.size):
+        tau = t[f]
+        x_f = state.x[near] + state.vx[near] * tau + 0.5 * accel * tau * tau
+        v_f = state.vx[near] + accel * tau
+        d = x_f - ego_xs[f]
+        ego_v = np.full(near.size, ego_vs[f])
+        a = idm_acceleration_behind(state, near, d, ego_v, np.full(near.size, target), v_f)
+        if linear.any() and dyn.linear_mobil:
+            own = np.hypot(state.vx[near], state.vy[near]) + accel * tau
+            a_lin = linear_acceleration_behind(state, near, d, ego_v, np.full(near.size, float(ego_target)), own)
+            a = np.where(linear, a_lin, a)
+        elif linear.any():
+            a = np.where(linear, np.inf, a)
+        newly = (a >= limit) & ~np.isfinite(out)
+        out[newly] = tau
+    if dyn.reversing_cut_ins:
+        out[state.vx[near] < 0.0] = 0.0
+    return out
 
 
 def finishing_change(state: RoadState, dyn: Dynamics, i: int, own: int, direction: int) -> bool:
@@ -908,7 +961,12 @@ def evaluate(state: RoadState, dyn: Dynamics, mode: Mode = "robust", formula: Fo
                 path = (ego_x[a, 0, : frames + 1], ego_v[a, 0, : frames + 1])
                 cut_ins[key] = _cut_in_candidates(state, dyn, near, *key, path)
             permitted, unfiltered, level, level_entering = cut_ins[key]
-            extra_v, extra_l = [], []
+            permit_time = None
+            if dyn.cut_in_when_permitted:  # MOBIL at every frame of the decision: who, and from when
+                path = (ego_x[a, 0, : frames + 1], ego_v[a, 0, : frames + 1])
+                permit_time = permit_times(state, dyn, near, *path, float(targets[a]))
+                permitted = unfiltered & np.isfinite(permit_time)
+            extra_v, extra_l, extra_s = [], [], []
             for lane, _ in ego_lanes:
                 cands = permitted if lane in occupied else unfiltered
                 adjacent = np.abs(lanes_near - lane) == 1
@@ -919,6 +977,8 @@ def evaluate(state: RoadState, dyn: Dynamics, mode: Mode = "robust", formula: Fo
                 for j in np.flatnonzero(cands & adjacent):
                     extra_v.append(int(near[j]))
                     extra_l.append(lane)
+                    after = float(permit_time[j]) if permit_time is not None and lane in occupied else 0.0
+                    extra_s.append(dyn.cut_in_time + after)
             behind_v, behind_l = [], []
             if dyn.level_cut_ins:
                 # A car level with or behind the ego in a next lane may turn in behind it after the cut-in
@@ -930,7 +990,7 @@ def evaluate(state: RoadState, dyn: Dynamics, mode: Mode = "robust", formula: Fo
                         behind_l.append(lane)
             vehicles = vehicles + extra_v + behind_v
             lanes_v = lanes_v + extra_l + behind_l
-            starts = starts + [dyn.cut_in_time] * (len(extra_v) + len(behind_v))
+            starts = starts + extra_s + [dyn.cut_in_time] * len(behind_v)
             nominal_flags = nominal_flags + [False] * (len(extra_v) + len(behind_v))
             as_follower = as_follower + [False] * len(extra_v) + [True] * len(behind_v)
         # Every (vehicle, lane) pair that shares a lane with the ego, with the window in which both do.

@@ -96,7 +96,7 @@ def dynamics_of(
     reversing_noses: bool = True,
     follower_idm: bool = True,
     follower_set_point: bool = False,
-    finishing_changes: bool = False,
+    finishing_changes: bool = True,
 ) -> Dynamics:
     """The :class:`Dynamics` constants of the simulated world a snapshot was taken in; ``margin`` [m]: the
     bumper-to-bumper gap the rule keeps under its worst case; the rule's options as in :class:`Dynamics`."""
@@ -255,9 +255,9 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
     of the ego (else: it accelerates for the reaction time, whatever the ego does).
     ``follower_set_point`` (experimental): ``follower_idm`` with the car's own set-point read from the
     simulator, and linear-model drivers behind the ego by their own formula.
-    ``finishing_changes`` (experimental): robust mode does not project a car finishing a lane change into its
-    own lane (moving toward that lane's centre, short of it) into the lane beyond; it may cut in from its lane,
-    MOBIL-filtered, like any car there.
+    ``finishing_changes``: robust mode does not project a car finishing a lane change into its own lane (moving
+    toward that lane's centre, short of it) into the lane beyond; it may cut in from its lane, MOBIL-filtered,
+    like any car there.
     """
 
     def __init__(
@@ -289,7 +289,7 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
         reversing_noses: bool = True,
         follower_idm: bool = True,
         follower_set_point: bool = False,
-        finishing_changes: bool = False,
+        finishing_changes: bool = True,
     ) -> None:
         if not (math.isfinite(margin) and margin >= 0):
             raise ValueError(f"shield.margin: must be a finite number >= 0 [m] (got {margin!r})")

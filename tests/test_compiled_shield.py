@@ -547,3 +547,17 @@ def test_finishing_changes_bit_identical(case: tuple) -> None:
     toward = (lanes * dyn.lane_width - state.y) * np.where(state.vy > 0, 1, -1) > 0
     if not (moving & toward & (state.vx >= 0)).any():
         assert_same(model.evaluate(state, off, "robust"), model.evaluate(state, on, "robust"), "robust")
+
+
+@PROPERTY_SETTINGS
+@given(case=road(extreme=True, rates=True, follower=True))
+def test_cut_in_when_permitted_bit_identical(case: tuple) -> None:
+    """shield.cut_in_when_permitted (experimental): the same in both engines at every rate (IDM and linear-model
+    drivers, crashed and reversing cars); robust ⊆ nominal still holds for the final masks (it only changes robust
+    cut-ins); nominal mode is unchanged to the bit."""
+    state, dyn, _ = case
+    off, on = (dataclasses.replace(dyn, cut_in_when_permitted=v) for v in (False, True))
+    assert mismatches(state, on) == []
+    assert mismatches(state, dataclasses.replace(on, linear_mobil=False)) == []
+    assert_nested(state, on)
+    assert_same(model.evaluate(state, off, "nominal"), model.evaluate(state, on, "nominal"), "nominal")

@@ -284,6 +284,14 @@ class ShieldConfig(_Section):
         "'second_lane_cut_in' breaks, cell 2087; docs/safety.md §6l). On by default since issue 15's twelfth "
         "session; false: the earlier rule.",
     )
+    cut_in_when_permitted: bool = Field(
+        False,
+        strict=True,
+        description="Experimental (robust mode): a car ahead in a next lane cuts into a lane the ego is in only "
+        "from the first physics frame of the decision at which MOBIL's safety criterion allows it (the car at "
+        "its fastest, the ego on the action's path), plus the cut-in time — instead of from the cut-in time "
+        "whenever the criterion allows it now or at the end of the decision (docs/safety.md §6l).",
+    )
 
     def rule_options(self) -> dict[str, bool]:
         """The rule's on/off options by name, as :class:`safelane.safety.shield.SafetyShield` and
@@ -696,7 +704,7 @@ RULE_OPTIONS = (
     "level_entering", "least_bad_joint", "full_horizon", "ego_speed_magnitude", "turning_leaders",
     "robust_fallback", "straight_fallback", "linear_incentive", "linear_incentive_braking", "reversing_cut_ins",
     "crossed_lanes", "lateral_schedule", "reversing_noses", "follower_idm", "follower_set_point",
-    "finishing_changes",
+    "finishing_changes", "cut_in_when_permitted",
 )  # fmt: skip
 """The :class:`ShieldConfig` fields that switch parts of the safety rule on or off (``ShieldConfig.rule_options``)."""
 

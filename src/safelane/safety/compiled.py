@@ -266,6 +266,7 @@ def _evaluate_rule(
     level_entering: bool, least_bad_joint: bool, robust_fallback: bool, linear_incentive: bool,
     linear_incentive_braking: bool, reversing_cut_ins: bool, crossed_lanes: bool, lateral_schedule: bool,
     reversing_noses: bool, follower_idm: bool, follower_set_point: bool, finishing_changes: bool,
+    cut_in_when_permitted: bool,
     ego_width: float, kp_lateral: float,
     kp_heading: float, max_steering: float, turning_allowance: float,
     min_acc_gain: float,
@@ -478,6 +479,7 @@ def _evaluate_rule(
     keys = np.empty((N_ACTIONS, 3))
     n_keys = 0
     permitted = np.zeros((N_ACTIONS, m), dtype=np.bool_)
+    permit_lo = np.zeros((N_ACTIONS, m), dtype=np.int64)  # cut_in_when_permitted: a cut-in's first frame
     unfiltered = np.zeros((N_ACTIONS, m), dtype=np.bool_)
     level = np.zeros((N_ACTIONS, m), dtype=np.bool_)  # level with or behind the ego (level_cut_ins)
     level_any = np.zeros((N_ACTIONS, m), dtype=np.bool_)  # the same, no incentive filter (level_entering)
@@ -645,6 +647,35 @@ def _evaluate_rule(
                             if not ok:  # the end-of-period check only matters when the one of now fails
                                 ok = _idm_behind(acc, delta, dec, dw, tw, vx[i], d_end, kv, target_clip) >= limit
                         permitted[slot, r] = ok or (reversing_cut_ins and vx[i] < 0.0)
+                        if cut_in_when_permitted:
+                            # model.permit_times: the first frame MOBIL allows it, the car at its fastest.
+                            t_first = inf
+                            if np.isfinite(lin_k0[i]) and not linear_mobil:
+                                t_first = 0.0
+                            else:
+                                accel = _nmax(accel_max[i], 0.0)
+                                for f in range(frames + 1):
+                                    tau = t[f]
+                                    d = (x[i] + vx[i] * tau + 0.5 * accel * tau * tau) - xs[a, f, 0]
+                                    ego_vf = kv if f == frames else (ego_speed - kt) * powers[f] + kt
+                                    if np.isfinite(lin_k0[i]):
+                                        own = math.hypot(vx[i], vy[i]) + accel * tau
+                                        af = _linear_behind(lin_k0[i], lin_k1[i], lin_k2[i], dw, tw, own, d, ego_vf, kt)
+                                    else:
+                                        af = _idm_behind(
+                                            acc, delta, dec, dw, tw, vx[i] + accel * tau, d, ego_vf, target_clip
+                                        )
+                                    if af >= limit:
+                                        t_first = tau
+                                        break
+                            if reversing_cut_ins and vx[i] < 0.0:
+                                t_first = 0.0
+                            permitted[slot, r] = t_first < inf
+                            start = cut_in_time + t_first
+                            lo_p = 0
+                            while lo_p < n_t and not (t[lo_p] >= start):
+                                lo_p += 1
+                            permit_lo[slot, r] = lo_p
                     else:
                         permitted[slot, r] = False
 
@@ -680,7 +711,7 @@ def _evaluate_rule(
                 if not (cand and adjacent):
                     continue
                 nominal = False
-                lo = lo_cut
+                lo = permit_lo[slot, r] if cut_in_when_permitted and occupied else lo_cut
             for e in range(n_el):
                 if ego_lanes[e] != lane_c:
                     continue
@@ -785,7 +816,7 @@ def _evaluate(
     level_entering: bool, least_bad_joint: bool, robust_fallback: bool, straight_fallback: bool,
     linear_incentive: bool, linear_incentive_braking: bool, reversing_cut_ins: bool, crossed_lanes: bool,
     lateral_schedule: bool, reversing_noses: bool, follower_idm: bool, follower_set_point: bool,
-    finishing_changes: bool,
+    finishing_changes: bool, cut_in_when_permitted: bool,
     ego_width: float,
     kp_lateral: float,
     kp_heading: float, max_steering: float, turning_allowance: float,
@@ -808,7 +839,8 @@ def _evaluate(
         lateral_threshold, robust, projected_cut_ins, body_extent, body_width, linear_mobil, reversing_leaders,
         level_cut_ins, level_incentive, level_entering, least_bad_joint, robust_fallback, linear_incentive,
         linear_incentive_braking, reversing_cut_ins, crossed_lanes, lateral_schedule,
-        reversing_noses, follower_idm, follower_set_point, finishing_changes, ego_width, kp_lateral,
+        reversing_noses, follower_idm, follower_set_point, finishing_changes,
+        cut_in_when_permitted, ego_width, kp_lateral,
         kp_heading, max_steering, allowance, min_acc_gain,
     )  # fmt: skip
     if not (out[4] and robust and straight_fallback and turning_allowance > 0.0):
@@ -824,7 +856,8 @@ def _evaluate(
         lateral_threshold, robust, projected_cut_ins, body_extent, body_width, linear_mobil, reversing_leaders,
         level_cut_ins, level_incentive, level_entering, least_bad_joint, robust_fallback, linear_incentive,
         linear_incentive_braking, reversing_cut_ins, crossed_lanes, lateral_schedule,
-        reversing_noses, follower_idm, follower_set_point, finishing_changes, ego_width, kp_lateral,
+        reversing_noses, follower_idm, follower_set_point, finishing_changes,
+        cut_in_when_permitted, ego_width, kp_lateral,
         kp_heading, max_steering, 0.0, min_acc_gain,
     )  # fmt: skip
     return straight[0].copy(), out[1], out[2], out[3], True
@@ -848,7 +881,7 @@ def _evaluate_snapshot(
     level_entering: bool, least_bad_joint: bool, robust_fallback: bool, straight_fallback: bool,
     linear_incentive: bool, linear_incentive_braking: bool, reversing_cut_ins: bool, crossed_lanes: bool,
     lateral_schedule: bool, reversing_noses: bool, follower_idm: bool, follower_set_point: bool,
-    finishing_changes: bool,
+    finishing_changes: bool, cut_in_when_permitted: bool,
     ego_width: float,
     kp_lateral: float,
     kp_heading: float, max_steering: float, ego_speed_magnitude: bool,
@@ -904,7 +937,8 @@ def _evaluate_snapshot(
         projected_cut_ins, body_extent, body_width, linear_mobil, reversing_leaders, level_cut_ins, level_incentive,
         level_entering, least_bad_joint, robust_fallback, straight_fallback, linear_incentive,
         linear_incentive_braking, reversing_cut_ins, crossed_lanes, lateral_schedule,
-        reversing_noses, follower_idm, follower_set_point, finishing_changes, ego_width, kp_lateral,
+        reversing_noses, follower_idm, follower_set_point, finishing_changes,
+        cut_in_when_permitted, ego_width, kp_lateral,
         kp_heading, max_steering, turning_allowance, min_acc_gain,
     )  # fmt: skip
 
@@ -1005,6 +1039,7 @@ class KernelConstants(NamedTuple):
     follower_idm: bool
     follower_set_point: bool
     finishing_changes: bool
+    cut_in_when_permitted: bool
     ego_width: float
     kp_lateral: float
     kp_heading: float
@@ -1040,6 +1075,7 @@ def kernel_constants(dyn: Dynamics) -> KernelConstants:
         dyn.follower_idm,
         dyn.follower_set_point,
         dyn.finishing_changes,
+        dyn.cut_in_when_permitted,
         dyn.ego_width,
         dyn.kp_lateral,
         dyn.kp_heading,
@@ -1081,7 +1117,8 @@ def evaluate_compiled(
         dyn.body_width, dyn.linear_mobil, dyn.reversing_leaders, dyn.level_cut_ins, dyn.level_incentive,
         dyn.level_entering, dyn.least_bad_joint, dyn.robust_fallback, dyn.straight_fallback, dyn.linear_incentive,
         dyn.linear_incentive_braking, dyn.reversing_cut_ins, dyn.crossed_lanes, dyn.lateral_schedule,
-        dyn.reversing_noses, dyn.follower_idm, dyn.follower_set_point, dyn.finishing_changes, dyn.ego_width,
+        dyn.reversing_noses, dyn.follower_idm, dyn.follower_set_point, dyn.finishing_changes,
+        dyn.cut_in_when_permitted, dyn.ego_width,
         dyn.kp_lateral, dyn.kp_heading,
         dyn.max_steering, model.turning_allowance(dyn), _MIN_ACC_GAIN,
     )  # fmt: skip
@@ -1126,7 +1163,8 @@ def evaluate_snapshot(
         dyn.body_width, dyn.linear_mobil, dyn.reversing_leaders, dyn.level_cut_ins, dyn.level_incentive,
         dyn.level_entering, dyn.least_bad_joint, dyn.robust_fallback, dyn.straight_fallback, dyn.linear_incentive,
         dyn.linear_incentive_braking, dyn.reversing_cut_ins, dyn.crossed_lanes, dyn.lateral_schedule,
-        dyn.reversing_noses, dyn.follower_idm, dyn.follower_set_point, dyn.finishing_changes, dyn.ego_width,
+        dyn.reversing_noses, dyn.follower_idm, dyn.follower_set_point, dyn.finishing_changes,
+        dyn.cut_in_when_permitted, dyn.ego_width,
         dyn.kp_lateral, dyn.kp_heading,
         dyn.max_steering, dyn.ego_speed_magnitude,
         model.turning_allowance(dyn),

@@ -97,6 +97,7 @@ def dynamics_of(
     follower_idm: bool = True,
     follower_set_point: bool = False,
     finishing_changes: bool = True,
+    cut_in_when_permitted: bool = False,
 ) -> Dynamics:
     """The :class:`Dynamics` constants of the simulated world a snapshot was taken in; ``margin`` [m]: the
     bumper-to-bumper gap the rule keeps under its worst case; the rule's options as in :class:`Dynamics`."""
@@ -135,6 +136,7 @@ def dynamics_of(
         follower_idm=follower_idm,
         follower_set_point=follower_set_point,
         finishing_changes=finishing_changes,
+        cut_in_when_permitted=cut_in_when_permitted,
         # highway-env's lateral controller: ControlledVehicle's gains, which MDPVehicle (the ego) inherits.
         ego_width=float(snap.width[snap.ego]) if len(snap.width) else 2.0,
         kp_lateral=float(ControlledVehicle.KP_LATERAL),
@@ -258,6 +260,8 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
     ``finishing_changes``: robust mode does not project a car finishing a lane change into its own lane (moving
     toward that lane's centre, short of it) into the lane beyond; it may cut in from its lane, MOBIL-filtered,
     like any car there.
+    ``cut_in_when_permitted`` (experimental): robust mode starts a permitted cut-in at the first frame of the
+    decision at which MOBIL's safety criterion allows it, plus the cut-in time (else: from the cut-in time).
     """
 
     def __init__(
@@ -290,6 +294,7 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
         follower_idm: bool = True,
         follower_set_point: bool = False,
         finishing_changes: bool = True,
+        cut_in_when_permitted: bool = False,
     ) -> None:
         if not (math.isfinite(margin) and margin >= 0):
             raise ValueError(f"shield.margin: must be a finite number >= 0 [m] (got {margin!r})")
@@ -328,6 +333,7 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
             follower_idm=follower_idm,
             follower_set_point=follower_set_point,
             finishing_changes=finishing_changes,
+            cut_in_when_permitted=cut_in_when_permitted,
         )
         try:
             env.get_wrapper_attr("road_snapshot")
@@ -361,6 +367,7 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
         self.follower_idm = bool(follower_idm)
         self.follower_set_point = bool(follower_set_point)
         self.finishing_changes = bool(finishing_changes)
+        self.cut_in_when_permitted = bool(cut_in_when_permitted)
         self._rule_options = {name: getattr(self, name) for name in RULE_OPTIONS}  # dynamics_of's keywords
         self.dynamics: Dynamics | None = None
         self.result: SafetyResult | None = None

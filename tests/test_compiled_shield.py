@@ -561,3 +561,19 @@ def test_cut_in_when_permitted_bit_identical(case: tuple) -> None:
     assert mismatches(state, dataclasses.replace(on, linear_mobil=False)) == []
     assert_nested(state, on)
     assert_same(model.evaluate(state, off, "nominal"), model.evaluate(state, on, "nominal"), "nominal")
+
+
+@PROPERTY_SETTINGS
+@given(case=road(extreme=True, rates=True, chained=True, lateral=True))
+def test_leaving_lanes_seen_bit_identical(case: tuple) -> None:
+    """shield.leaving_lanes_seen (experimental, with lateral_schedule): the same in both engines at every rate,
+    with the ego off its lane's centre and turned; robust ⊆ nominal still holds for the final masks; without
+    lateral_schedule it changes nothing."""
+    state, dyn, _ = case
+    schedule = dataclasses.replace(dyn, lateral_schedule=True)
+    on = dataclasses.replace(schedule, leaving_lanes_seen=True)
+    assert mismatches(state, on) == []
+    assert_nested(state, on)
+    plain = dataclasses.replace(dyn, leaving_lanes_seen=True)
+    for mode in ("nominal", "robust"):
+        assert_same(model.evaluate(state, dyn, mode), model.evaluate(state, plain, mode), mode)

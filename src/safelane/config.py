@@ -292,6 +292,14 @@ class ShieldConfig(_Section):
         "its fastest, the ego on the action's path), plus the cut-in time — instead of from the cut-in time "
         "whenever the criterion allows it now or at the end of the decision (docs/safety.md §6l).",
     )
+    leaving_lanes_seen: bool = Field(
+        False,
+        strict=True,
+        description="Experimental, with lateral_schedule: a lane the ego is leaving, its centre still within "
+        "IDM's band of it (half a lane + 1 m) and never overlapping it from outside that band, keeps MOBIL's "
+        "cut-in filter after the ego's lane index has flipped to the lane it enters: highway-env's MOBIL finds "
+        "a lane's vehicles by that band (docs/safety.md §6l).",
+    )
 
     def rule_options(self) -> dict[str, bool]:
         """The rule's on/off options by name, as :class:`safelane.safety.shield.SafetyShield` and
@@ -704,7 +712,7 @@ RULE_OPTIONS = (
     "level_entering", "least_bad_joint", "full_horizon", "ego_speed_magnitude", "turning_leaders",
     "robust_fallback", "straight_fallback", "linear_incentive", "linear_incentive_braking", "reversing_cut_ins",
     "crossed_lanes", "lateral_schedule", "reversing_noses", "follower_idm", "follower_set_point",
-    "finishing_changes", "cut_in_when_permitted",
+    "finishing_changes", "cut_in_when_permitted", "leaving_lanes_seen",
 )  # fmt: skip
 """The :class:`ShieldConfig` fields that switch parts of the safety rule on or off (``ShieldConfig.rule_options``)."""
 

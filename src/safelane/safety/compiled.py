@@ -208,14 +208,17 @@ def _idm_follower_window(
 def _ego_lane_windows(
     y: float, heading: float, ego_length: float, final: int, lanes: int, width: float, dt: float, frames: int,
     speed: float, ego_width: float, body_width: float, kp_lateral: float, kp_heading: float, max_steering: float,
-    last: np.ndarray, out_lanes: np.ndarray, out_until: np.ndarray,
+    last: np.ndarray, out_lanes: np.ndarray, out_until: np.ndarray, out_seen: np.ndarray,
 ) -> int:  # fmt: skip
-    """``model.ego_lane_windows`` line for line: the lanes into ``out_lanes`` and their times [s] into
-    ``out_until`` (``last``: scratch, one entry per lane); returns how many."""
+    """``model.lateral_schedule`` line for line: the lanes into ``out_lanes`` and their times [s] into
+    ``out_until``, the lanes the ego leaves seen by MOBIL into ``out_seen`` (``last``: scratch, one entry per
+    lane); returns how many."""
     half_length = 0.5 * ego_length
     target_y = final * width
+    band = 0.5 * width + IDM_LANE_MARGIN
     for lane in range(lanes):
         last[lane] = -1
+        out_seen[lane] = abs(y - lane * width) <= band
     end = frames
     for k in range(frames + 1):
         reach = 0.5 * ego_width * math.cos(heading) + half_length * abs(math.sin(heading))
@@ -224,6 +227,8 @@ def _ego_lane_windows(
             if abs(y - lane * width) < reach + 0.5 * body_width:
                 last[lane] = k
                 alone = alone and lane == final
+                if abs(y - lane * width) > band:  # overlapped, but out of MOBIL's sight there
+                    out_seen[lane] = False
         end = k
         if k == frames or not speed > 0.0 or (alone and (y - target_y) * heading <= 0.0):
             break
@@ -245,6 +250,7 @@ def _ego_lane_windows(
         n += 1
     out_lanes[n] = final
     out_until[n] = math.inf
+    out_seen[final] = False
     return n + 1
 
 
@@ -266,7 +272,7 @@ def _evaluate_rule(
     level_entering: bool, least_bad_joint: bool, robust_fallback: bool, linear_incentive: bool,
     linear_incentive_braking: bool, reversing_cut_ins: bool, crossed_lanes: bool, lateral_schedule: bool,
     reversing_noses: bool, follower_idm: bool, follower_set_point: bool, finishing_changes: bool,
-    cut_in_when_permitted: bool,
+    cut_in_when_permitted: bool, leaving_lanes_seen: bool,
     ego_width: float, kp_lateral: float,
     kp_heading: float, max_steering: float, turning_allowance: float,
     min_acc_gain: float,
@@ -487,6 +493,7 @@ def _evaluate_rule(
     ego_until = np.empty(lanes_count + 1)  # [s] until when the ego is in the lane (inf: for good)
     ego_hi = np.empty(lanes_count + 1, dtype=np.int64)  # the last frame of that window (t <= until)
     last_frame = np.empty(lanes_count, dtype=np.int64)
+    ego_seen = np.zeros(lanes_count, dtype=np.bool_)  # leaving_lanes_seen: lanes MOBIL still sees the ego in
     hi_leave = n_t - 1
     while hi_leave >= 0 and not (t[hi_leave] <= ego_leave_time):
         hi_leave -= 1
@@ -507,7 +514,7 @@ def _evaluate_rule(
             n_el = _ego_lane_windows(
                 ego_y, ego_heading, ego_length, final, lanes_count, lane_width, frame_dt, n_t - 1,
                 ego_lateral_speed, ego_width, body_width, kp_lateral, kp_heading, max_steering, last_frame,
-                ego_lanes, ego_until,
+                ego_lanes, ego_until, ego_seen,
             )  # fmt: skip
             for e in range(n_el):  # the times are the schedule's: find each window's last frame
                 hi_e = n_t - 1
@@ -692,6 +699,7 @@ def _evaluate_rule(
                 e_idx, r = divmod(c - n_cut, m)
                 lane_c = ego_lanes[e_idx]
                 occupied = (lane_c == ego_lane) | (lane_c == ego_target_lane)
+                occupied = occupied or (lateral_schedule and leaving_lanes_seen and ego_seen[lane_c])
                 # model._cut_in_candidates: MOBIL's incentive is judged with the ego in the lane, which a
                 # lane it is only entering does not hold (level_entering: any level car there).
                 turning = level[slot, r] if occupied or not level_entering else level_any[slot, r]
@@ -704,6 +712,7 @@ def _evaluate_rule(
                 e_idx, r = divmod(c - n_occ, m)
                 lane_c = ego_lanes[e_idx]
                 occupied = (lane_c == ego_lane) | (lane_c == ego_target_lane)
+                occupied = occupied or (lateral_schedule and leaving_lanes_seen and ego_seen[lane_c])
                 cand = permitted[slot, r] if occupied else unfiltered[slot, r]
                 adjacent = abs(lanes_near[r] - lane_c) == 1
                 if projected_cut_ins and not adjacent:
@@ -816,7 +825,7 @@ def _evaluate(
     level_entering: bool, least_bad_joint: bool, robust_fallback: bool, straight_fallback: bool,
     linear_incentive: bool, linear_incentive_braking: bool, reversing_cut_ins: bool, crossed_lanes: bool,
     lateral_schedule: bool, reversing_noses: bool, follower_idm: bool, follower_set_point: bool,
-    finishing_changes: bool, cut_in_when_permitted: bool,
+    finishing_changes: bool, cut_in_when_permitted: bool, leaving_lanes_seen: bool,
     ego_width: float,
     kp_lateral: float,
     kp_heading: float, max_steering: float, turning_allowance: float,
@@ -840,7 +849,7 @@ def _evaluate(
         level_cut_ins, level_incentive, level_entering, least_bad_joint, robust_fallback, linear_incentive,
         linear_incentive_braking, reversing_cut_ins, crossed_lanes, lateral_schedule,
         reversing_noses, follower_idm, follower_set_point, finishing_changes,
-        cut_in_when_permitted, ego_width, kp_lateral,
+        cut_in_when_permitted, leaving_lanes_seen, ego_width, kp_lateral,
         kp_heading, max_steering, allowance, min_acc_gain,
     )  # fmt: skip
     if not (out[4] and robust and straight_fallback and turning_allowance > 0.0):
@@ -857,7 +866,7 @@ def _evaluate(
         level_cut_ins, level_incentive, level_entering, least_bad_joint, robust_fallback, linear_incentive,
         linear_incentive_braking, reversing_cut_ins, crossed_lanes, lateral_schedule,
         reversing_noses, follower_idm, follower_set_point, finishing_changes,
-        cut_in_when_permitted, ego_width, kp_lateral,
+        cut_in_when_permitted, leaving_lanes_seen, ego_width, kp_lateral,
         kp_heading, max_steering, 0.0, min_acc_gain,
     )  # fmt: skip
     return straight[0].copy(), out[1], out[2], out[3], True
@@ -881,7 +890,7 @@ def _evaluate_snapshot(
     level_entering: bool, least_bad_joint: bool, robust_fallback: bool, straight_fallback: bool,
     linear_incentive: bool, linear_incentive_braking: bool, reversing_cut_ins: bool, crossed_lanes: bool,
     lateral_schedule: bool, reversing_noses: bool, follower_idm: bool, follower_set_point: bool,
-    finishing_changes: bool, cut_in_when_permitted: bool,
+    finishing_changes: bool, cut_in_when_permitted: bool, leaving_lanes_seen: bool,
     ego_width: float,
     kp_lateral: float,
     kp_heading: float, max_steering: float, ego_speed_magnitude: bool,
@@ -938,7 +947,7 @@ def _evaluate_snapshot(
         level_entering, least_bad_joint, robust_fallback, straight_fallback, linear_incentive,
         linear_incentive_braking, reversing_cut_ins, crossed_lanes, lateral_schedule,
         reversing_noses, follower_idm, follower_set_point, finishing_changes,
-        cut_in_when_permitted, ego_width, kp_lateral,
+        cut_in_when_permitted, leaving_lanes_seen, ego_width, kp_lateral,
         kp_heading, max_steering, turning_allowance, min_acc_gain,
     )  # fmt: skip
 
@@ -1040,6 +1049,7 @@ class KernelConstants(NamedTuple):
     follower_set_point: bool
     finishing_changes: bool
     cut_in_when_permitted: bool
+    leaving_lanes_seen: bool
     ego_width: float
     kp_lateral: float
     kp_heading: float
@@ -1076,6 +1086,7 @@ def kernel_constants(dyn: Dynamics) -> KernelConstants:
         dyn.follower_set_point,
         dyn.finishing_changes,
         dyn.cut_in_when_permitted,
+        dyn.leaving_lanes_seen,
         dyn.ego_width,
         dyn.kp_lateral,
         dyn.kp_heading,
@@ -1118,7 +1129,7 @@ def evaluate_compiled(
         dyn.level_entering, dyn.least_bad_joint, dyn.robust_fallback, dyn.straight_fallback, dyn.linear_incentive,
         dyn.linear_incentive_braking, dyn.reversing_cut_ins, dyn.crossed_lanes, dyn.lateral_schedule,
         dyn.reversing_noses, dyn.follower_idm, dyn.follower_set_point, dyn.finishing_changes,
-        dyn.cut_in_when_permitted, dyn.ego_width,
+        dyn.cut_in_when_permitted, dyn.leaving_lanes_seen, dyn.ego_width,
         dyn.kp_lateral, dyn.kp_heading,
         dyn.max_steering, model.turning_allowance(dyn), _MIN_ACC_GAIN,
     )  # fmt: skip
@@ -1164,7 +1175,7 @@ def evaluate_snapshot(
         dyn.level_entering, dyn.least_bad_joint, dyn.robust_fallback, dyn.straight_fallback, dyn.linear_incentive,
         dyn.linear_incentive_braking, dyn.reversing_cut_ins, dyn.crossed_lanes, dyn.lateral_schedule,
         dyn.reversing_noses, dyn.follower_idm, dyn.follower_set_point, dyn.finishing_changes,
-        dyn.cut_in_when_permitted, dyn.ego_width,
+        dyn.cut_in_when_permitted, dyn.leaving_lanes_seen, dyn.ego_width,
         dyn.kp_lateral, dyn.kp_heading,
         dyn.max_steering, dyn.ego_speed_magnitude,
         model.turning_allowance(dyn),

@@ -122,6 +122,7 @@ class Dynamics:
     follower_set_point: bool = False  # follower_idm: with its own set-point, and linear-model drivers by their formula
     finishing_changes: bool = True  # robust: a car moving toward its own lane's centre is not projected past it
     cut_in_when_permitted: bool = False  # robust: a cut-in starts from the first frame MOBIL's safety criterion allows
+    leaving_lanes_seen: bool = False  # lateral_schedule: MOBIL filters cut-ins into a lane the ego leaves, seen there
     ego_lateral_speed: float = math.nan  # [m/s] the speed that simulation runs at (per state, like ego_leave_time)
     ego_width: float = 2.0  # [m] the ego's width (Vehicle.WIDTH)
     kp_lateral: float = 1.0 / 0.6  # [1/s] ControlledVehicle.KP_LATERAL
@@ -521,6 +522,11 @@ def final_lane(state: RoadState, dyn: Dynamics, action: int) -> int:
 
 
 def ego_lane_windows(state: RoadState, dyn: Dynamics, final: int) -> list[tuple[int, float]]:
+    """:func:`lateral_schedule`'s windows."""
+    return lateral_schedule(state, dyn, final)[0]
+
+
+def lateral_schedule(state: RoadState, dyn: Dynamics, final: int) -> tuple[list[tuple[int, float]], set[int]]:
     """``Dynamics.lateral_schedule``: the lanes the ego's body overlaps (a vehicle of ``body_width`` centred in
     them) while it steers for lane ``final``, each with the time [s] until which it does: the first frame it is
     clear of the lane plus one frame, as :func:`safelane.safety.shield.ego_leave_time_at` counts (from a lane
@@ -534,8 +540,18 @@ def ego_lane_windows(state: RoadState, dyn: Dynamics, final: int) -> list[tuple[
     each decision restarted: at 3 and 5 decisions per second the rule promised the ego out of its lane by
     then and, one decision later, by a fifth of a second later (issue 15, cell 2569). It stops once the body
     overlaps ``final`` alone and no longer moves away from its centre. Scalar arithmetic in a fixed order,
-    the compiled engine's ``_ego_lane_windows`` line for line (bit-identical)."""
+    the compiled engine's ``_ego_lane_windows`` line for line (bit-identical).
+
+    Also the lanes the ego leaves *seen*: its centre within IDM's band of the lane (half a lane +
+    :data:`IDM_LANE_MARGIN` from its centre) now, and never overlapping the lane from outside that band.
+    highway-env's MOBIL finds a lane's vehicles by that band (``Road.neighbour_vehicles``), not by their lane
+    index: while the ego's centre is in it, a car changing into the lane judges the ego as its new follower, so
+    with ``Dynamics.leaving_lanes_seen`` its cut-ins there are MOBIL-filtered as in the ego's own lane — after
+    the ego's lane index has flipped to the lane it enters (issue 15, tenth session: the breaks
+    ``lateral_schedule`` added, §6j)."""
     lanes, width = dyn.lanes_count, dyn.lane_width
+    band = 0.5 * width + IDM_LANE_MARGIN
+    seen = [abs(state.ego_y - lane * width) <= band for lane in range(lanes)]
     frames = dyn.horizon_decisions * dyn.frames_per_decision
     dt, speed = dyn.frame_dt, dyn.ego_lateral_speed
     half_length = 0.5 * state.ego_length
@@ -550,6 +566,8 @@ def ego_lane_windows(state: RoadState, dyn: Dynamics, final: int) -> list[tuple[
             if abs(y - lane * width) < reach + 0.5 * dyn.body_width:
                 last[lane] = k
                 alone = alone and lane == final
+                if abs(y - lane * width) > band:  # overlapped, but out of MOBIL's sight there
+                    seen[lane] = False
         end = k
         if k == frames or not speed > 0.0 or (alone and (y - target_y) * heading <= 0.0):
             break
@@ -568,7 +586,7 @@ def ego_lane_windows(state: RoadState, dyn: Dynamics, final: int) -> list[tuple[
             continue
         # Still overlapped when the simulation ended without settling (the horizon, a standstill): for good.
         windows.append((lane, math.inf if last[lane] == end else (last[lane] + 1) * dt + dt))  # clear, +1 frame
-    return [*windows, (final, math.inf)]
+    return [*windows, (final, math.inf)], {lane for lane in range(lanes) if seen[lane] and lane != final}
 
 
 def available_actions(state: RoadState, dyn: Dynamics) -> np.ndarray:
@@ -955,6 +973,8 @@ def evaluate(state: RoadState, dyn: Dynamics, mode: Mode = "robust", formula: Fo
         as_follower = [False] * len(vehicles)  # a conflict with a car turning in behind the ego (level_cut_ins)
         if mode == "robust":
             occupied = {state.ego_lane, state.ego_target_lane}
+            if dyn.lateral_schedule and dyn.leaving_lanes_seen:  # MOBIL still sees the ego in the lanes it leaves
+                occupied |= lateral_schedule(state, dyn, final_lane(state, dyn, a))[1]
             # IDLE and the lane changes share one longitudinal trajectory: compute their cut-ins once.
             key = (float(ego_x[a, 0, frames]), float(ego_v[a, 0, frames]), float(targets[a]))
             if key not in cut_ins:

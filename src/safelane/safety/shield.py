@@ -98,6 +98,7 @@ def dynamics_of(
     follower_set_point: bool = False,
     finishing_changes: bool = True,
     cut_in_when_permitted: bool = False,
+    leaving_lanes_seen: bool = False,
 ) -> Dynamics:
     """The :class:`Dynamics` constants of the simulated world a snapshot was taken in; ``margin`` [m]: the
     bumper-to-bumper gap the rule keeps under its worst case; the rule's options as in :class:`Dynamics`."""
@@ -137,6 +138,7 @@ def dynamics_of(
         follower_set_point=follower_set_point,
         finishing_changes=finishing_changes,
         cut_in_when_permitted=cut_in_when_permitted,
+        leaving_lanes_seen=leaving_lanes_seen,
         # highway-env's lateral controller: ControlledVehicle's gains, which MDPVehicle (the ego) inherits.
         ego_width=float(snap.width[snap.ego]) if len(snap.width) else 2.0,
         kp_lateral=float(ControlledVehicle.KP_LATERAL),
@@ -262,6 +264,8 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
     like any car there.
     ``cut_in_when_permitted`` (experimental): robust mode starts a permitted cut-in at the first frame of the
     decision at which MOBIL's safety criterion allows it, plus the cut-in time (else: from the cut-in time).
+    ``leaving_lanes_seen`` (experimental, with ``lateral_schedule``): cut-ins into a lane the ego is leaving, while
+    MOBIL still sees it there, are MOBIL-filtered as in its own lane.
     """
 
     def __init__(
@@ -295,6 +299,7 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
         follower_set_point: bool = False,
         finishing_changes: bool = True,
         cut_in_when_permitted: bool = False,
+        leaving_lanes_seen: bool = False,
     ) -> None:
         if not (math.isfinite(margin) and margin >= 0):
             raise ValueError(f"shield.margin: must be a finite number >= 0 [m] (got {margin!r})")
@@ -334,6 +339,7 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
             follower_set_point=follower_set_point,
             finishing_changes=finishing_changes,
             cut_in_when_permitted=cut_in_when_permitted,
+            leaving_lanes_seen=leaving_lanes_seen,
         )
         try:
             env.get_wrapper_attr("road_snapshot")
@@ -368,6 +374,7 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
         self.follower_set_point = bool(follower_set_point)
         self.finishing_changes = bool(finishing_changes)
         self.cut_in_when_permitted = bool(cut_in_when_permitted)
+        self.leaving_lanes_seen = bool(leaving_lanes_seen)
         self._rule_options = {name: getattr(self, name) for name in RULE_OPTIONS}  # dynamics_of's keywords
         self.dynamics: Dynamics | None = None
         self.result: SafetyResult | None = None

@@ -26,9 +26,10 @@ def _watch_cut(adversary: MobilCutInVehicle, ego: Any, seen: list[float]) -> Non
 def test_mobil_cut_in_changes_into_the_ego_lane_only_when_mobil_safety_allows() -> None:
     """Placed ahead in an adjacent lane, it cuts in front of the ego at the first frame where the ego,
     its new follower, would brake no harder than 2 m/s² (by the car's own IDM), and only once; the
-    robust shield drives always-FASTER through it without a collision. Seed 3 cuts in (checked)."""
+    robust shield drives always-FASTER through it without a collision. Seeds 7 and 8 cut in under today's rule
+    (checked; seeds 0–6 and 9 never find a gap MOBIL allows)."""
     cuts = 0
-    for seed in range(4):
+    for seed in (6, 7, 8):
         sets = {"traffic.adversary": "cut_in_mobil", "shield.mode": "robust", "shield.override": True}
         env = make_env("fast", seed=seed, **sets)
         ego = env.unwrapped.vehicle

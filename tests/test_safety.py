@@ -742,8 +742,9 @@ def test_finishing_changes_lets_a_car_settle_in_the_next_lane(engine: str) -> No
     issue 15's twelfth session) it is finishing its change into
     lane 4 — a cut-in candidate from there, and MOBIL's safety criterion (the ego at 29.34 m/s, 25 m behind,
     would have to brake far harder than 2 m/s²) keeps it out of the ego's lane: IDLE and SLOWER have no
-    conflict. highway-env agrees: driven on with IDLE for 6 s, the car settles in lane 4 and nobody crashes.
-    Nominal, which never projects, is unchanged."""
+    conflict; in front of an ego at 10 m/s, which MOBIL would let it cut in ahead of, it is a conflict again.
+    highway-env agrees: driven on with IDLE for 6 s, the car settles in lane 4 and nobody crashes. Nominal,
+    which never projects, is unchanged."""
     kw = {"shield.engine": engine}
     earlier = scenarios.SCENARIOS["car_settling_next_to_the_ego"](**kw, **{"shield.finishing_changes": False}).result
     assert earlier.fallback and not earlier.safe.any()
@@ -756,6 +757,11 @@ def test_finishing_changes_lets_a_car_settle_in_the_next_lane(engine: str) -> No
         for v in (False, True)
     ]
     assert [n.mask.tolist() for n in nominal] == [mask_of(I, S)] * 2
+    # Not dropped blindly: the same car 25.18 m ahead of an ego at 10 m/s, which MOBIL lets it cut in front of
+    # (the ego would brake at 1.2 m/s²), is a cut-in conflict (IDLE keeps 18.52 m, not inf).
+    car = scenarios.VehicleSpec(4, 25.18, 17.16, heading=0.1878, target_lane=4, lateral_offset=-1.267)
+    slow = scenarios.build_scene(5, 10.0, [car], lanes_count=6, ego_target_speed=10.0, **kw).result
+    assert slow.min_gap[I] == pytest.approx(18.52, abs=0.01)
     settling = scene.vehicles[1]
     for _ in range(6):
         *_, terminated, _, info = scene.env.step(I)

@@ -965,6 +965,7 @@ def evaluate(state: RoadState, dyn: Dynamics, mode: Mode = "robust", formula: Fo
     projected_near = lanes_near + np.where(state.vy[near] > 0, 1, -1)
     moving_near &= (projected_near >= 0) & (projected_near < dyn.lanes_count)
     cut_ins: dict[tuple[float, float, float], tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = {}
+    permits: dict[tuple[float, float, float], np.ndarray] = {}  # cut_in_when_permitted, on the same key
     for a in range(N_ACTIONS):
         if not available[a]:
             continue
@@ -980,11 +981,11 @@ def evaluate(state: RoadState, dyn: Dynamics, mode: Mode = "robust", formula: Fo
             if key not in cut_ins:
                 path = (ego_x[a, 0, : frames + 1], ego_v[a, 0, : frames + 1])
                 cut_ins[key] = _cut_in_candidates(state, dyn, near, *key, path)
+                if dyn.cut_in_when_permitted:  # MOBIL at every frame of the decision: who, and from when
+                    permits[key] = permit_times(state, dyn, near, *path, float(targets[a]))
             permitted, unfiltered, level, level_entering = cut_ins[key]
-            permit_time = None
-            if dyn.cut_in_when_permitted:  # MOBIL at every frame of the decision: who, and from when
-                path = (ego_x[a, 0, : frames + 1], ego_v[a, 0, : frames + 1])
-                permit_time = permit_times(state, dyn, near, *path, float(targets[a]))
+            permit_time = permits.get(key)
+            if permit_time is not None:
                 permitted = unfiltered & np.isfinite(permit_time)
             extra_v, extra_l, extra_s = [], [], []
             for lane, _ in ego_lanes:

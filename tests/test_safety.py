@@ -124,6 +124,10 @@ EXPECTED = {
     # new lane's centre: a cut-in candidate from there, which MOBIL keeps out of the ego's lane
     # (shield.finishing_changes, robust only; the earlier rule projected it into the ego's lane: test below).
     "car_settling_next_to_the_ego": {"nominal": mask_of(I, S), "robust": mask_of(I, S)},
+    # The ego stopped, a car 3.09 m ahead in the next lane passing it at 20.64 m/s: MOBIL lets it cut in only
+    # once it is well ahead, so it is a cut-in from then (shield.cut_in_when_permitted, robust only): IDLE keeps
+    # 4.21 m (the earlier rule had it cutting in from now: nothing safe, test below). Nominal: IDLE and FASTER.
+    "car_passing_a_stopped_ego": {"nominal": mask_of(I, F), "robust": mask_of(I)},
 }
 
 
@@ -767,6 +771,39 @@ def test_finishing_changes_lets_a_car_settle_in_the_next_lane(engine: str) -> No
         *_, terminated, _, info = scene.env.step(I)
         assert not terminated and not info["collision"]
     assert settling.lane_index[2] == 4 and abs(settling.lane.local_coordinates(settling.position)[1]) < 0.1
+
+
+@pytest.mark.parametrize("engine", ["numpy", "compiled"])
+def test_cut_in_when_permitted_lets_a_car_pass_a_stopped_ego(engine: str) -> None:
+    """The 100 800-episode campaign's cell 615 at its break (docs/safety.md §6l), rebuilt: the ego stopped, a car
+    3.09 m ahead in the next lane at 20.64 m/s. MOBIL's safety criterion forbids its cut-in now (the ego would
+    brake at 28 m/s²) and allows it at the end of the decision; the earlier rule then took it as cutting in from
+    the cut-in time — 0 s at 5 Hz physics, 3 m ahead: IDLE, LANE_RIGHT and FASTER all −3.57 m, nothing safe. With
+    shield.cut_in_when_permitted (the default since issue 15's thirteenth session) the cut-in starts from the
+    first frame MOBIL allows it, the car by then well ahead: IDLE keeps 4.21 m, FASTER 0.44 m (under the 1 m
+    margin). highway-env agrees: driven on with IDLE for 5 s, the car passes and nobody crashes. Nominal, which
+    has no cut-ins, is unchanged."""
+    kw = {"shield.engine": engine}
+    earlier = scenarios.SCENARIOS["car_passing_a_stopped_ego"](**kw, **{"shield.cut_in_when_permitted": False})
+    assert earlier.result.fallback and not earlier.result.safe.any()
+    assert earlier.result.min_gap[[I, R, F]] == pytest.approx([-3.567] * 3, abs=0.001)
+    earlier.env.close()
+    scene = scenarios.SCENARIOS["car_passing_a_stopped_ego"](**kw)  # the default since the thirteenth session
+    assert scene.mask.tolist() == mask_of(I) and not scene.result.fallback
+    assert scene.result.min_gap[[I, R, F]] == pytest.approx([4.209, -3.567, 0.441], abs=0.001)
+    nominal = [
+        scenarios.SCENARIOS["car_passing_a_stopped_ego"](mode="nominal", **kw, **{"shield.cut_in_when_permitted": v})
+        for v in (False, True)
+    ]
+    assert [n.mask.tolist() for n in nominal] == [mask_of(I, F)] * 2
+    for n in nominal:
+        n.env.close()
+    passing = scene.vehicles[0]
+    for _ in range(5):
+        *_, terminated, _, info = scene.env.step(I)
+        assert not terminated and not info["collision"]
+    assert passing.position[0] - scene.env.unwrapped.vehicle.position[0] > 100.0
+    scene.env.close()
 
 
 @pytest.mark.parametrize("engine", ["numpy", "compiled"])

@@ -285,12 +285,13 @@ class ShieldConfig(_Section):
         "session; false: the earlier rule.",
     )
     cut_in_when_permitted: bool = Field(
-        False,
+        True,
         strict=True,
-        description="Experimental (robust mode): a car ahead in a next lane cuts into a lane the ego is in only "
+        description="Robust mode: a car ahead in a next lane cuts into a lane the ego is in only "
         "from the first physics frame of the decision at which MOBIL's safety criterion allows it (the car at "
         "its fastest, the ego on the action's path), plus the cut-in time — instead of from the cut-in time "
-        "whenever the criterion allows it now or at the end of the decision (docs/safety.md §6l).",
+        "whenever the criterion allows it now or at the end of the decision (docs/safety.md §6l). On by default since "
+        "issue 15's thirteenth session; false: the earlier rule.",
     )
     leaving_lanes_seen: bool = Field(
         False,
@@ -729,6 +730,8 @@ RULE_CHANGES: dict[str, Any] = {
     "follower_idm": False,
     # issue 15's twelfth session (docs/safety.md §6l)
     "finishing_changes": False,
+    # issue 15's thirteenth session (docs/safety.md §6m)
+    "cut_in_when_permitted": False,
 }  # fmt: skip
 """Shield keys added with a new default that changes the rule: a *recorded* configuration (a run's
 config.yaml, a counterexample file) written before the key existed had the old behaviour, given here,

@@ -397,6 +397,17 @@ def car_settling_next_to_the_ego(mode: Mode = "robust", **kw: Any) -> Scene:
     return build_scene(5, 29.34, specs, mode=mode, lanes_count=6, ego_target_speed=30.0, **kw)
 
 
+def car_passing_a_stopped_ego(mode: Mode = "robust", **kw: Any) -> Scene:
+    """3 lanes; the ego stopped in lane 0 (set-point 0); in lane 1 a car 3.09 m ahead passing it at 20.64 m/s —
+    the 100 800-episode campaign's cell 615 (``cell00615-seed4006150027``, the random policy, 1 decision per
+    second) at its break. MOBIL's safety criterion forbids the car to cut in now (the ego, 3 m behind it, would
+    have to brake at 28 m/s²) but allows it at the end of the decision, 24 m ahead; the earlier rule took that
+    as a cut-in from the cut-in time (0 s at 5 Hz physics), 3 m ahead: nothing was safe. With
+    ``shield.cut_in_when_permitted`` (the default since issue 15's thirteenth session) the cut-in starts from
+    the first frame MOBIL allows it: IDLE is safe."""
+    return build_scene(0, 0.0, [VehicleSpec(1, 3.09, 20.64)], mode=mode, lanes_count=3, ego_target_speed=0.0, **kw)
+
+
 SCENARIOS: dict[str, Callable[..., Scene]] = {
     "leader_braking": leader_braking,
     "stopped_car_ahead": stopped_car_ahead,
@@ -423,6 +434,7 @@ SCENARIOS: dict[str, Callable[..., Scene]] = {
     "car_rolling_back_turned_in": car_rolling_back_turned_in,
     "squeezed_by_a_follower": squeezed_by_a_follower,
     "car_settling_next_to_the_ego": car_settling_next_to_the_ego,
+    "car_passing_a_stopped_ego": car_passing_a_stopped_ego,
 }
 """Every scenario by name."""
 

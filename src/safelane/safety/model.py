@@ -121,7 +121,7 @@ class Dynamics:
     follower_idm: bool = True  # the IDM car right behind the ego in its lane brakes by IDM's response to the ego
     follower_set_point: bool = False  # follower_idm: with its own set-point, and linear-model drivers by their formula
     finishing_changes: bool = True  # robust: a car moving toward its own lane's centre is not projected past it
-    cut_in_when_permitted: bool = False  # robust: a cut-in starts from the first frame MOBIL's safety criterion allows
+    cut_in_when_permitted: bool = True  # robust: a cut-in starts from the first frame MOBIL's safety criterion allows
     leaving_lanes_seen: bool = False  # lateral_schedule: MOBIL filters cut-ins into a lane the ego leaves, seen there
     ego_lateral_speed: float = math.nan  # [m/s] the speed that simulation runs at (per state, like ego_leave_time)
     ego_width: float = 2.0  # [m] the ego's width (Vehicle.WIDTH)

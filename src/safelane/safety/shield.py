@@ -97,7 +97,7 @@ def dynamics_of(
     follower_idm: bool = True,
     follower_set_point: bool = False,
     finishing_changes: bool = True,
-    cut_in_when_permitted: bool = False,
+    cut_in_when_permitted: bool = True,
     leaving_lanes_seen: bool = False,
 ) -> Dynamics:
     """The :class:`Dynamics` constants of the simulated world a snapshot was taken in; ``margin`` [m]: the
@@ -262,7 +262,7 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
     ``finishing_changes``: robust mode does not project a car finishing a lane change into its own lane (moving
     toward that lane's centre, short of it) into the lane beyond; it may cut in from its lane, MOBIL-filtered,
     like any car there.
-    ``cut_in_when_permitted`` (experimental): robust mode starts a permitted cut-in at the first frame of the
+    ``cut_in_when_permitted``: robust mode starts a permitted cut-in at the first frame of the
     decision at which MOBIL's safety criterion allows it, plus the cut-in time (else: from the cut-in time).
     ``leaving_lanes_seen`` (experimental, with ``lateral_schedule``): cut-ins into a lane the ego is leaving, while
     MOBIL still sees it there, are MOBIL-filtered as in its own lane.
@@ -298,7 +298,7 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
         follower_idm: bool = True,
         follower_set_point: bool = False,
         finishing_changes: bool = True,
-        cut_in_when_permitted: bool = False,
+        cut_in_when_permitted: bool = True,
         leaving_lanes_seen: bool = False,
     ) -> None:
         if not (math.isfinite(margin) and margin >= 0):

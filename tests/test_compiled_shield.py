@@ -559,8 +559,13 @@ def test_cut_in_when_permitted_bit_identical(case: tuple) -> None:
     off, on = (dataclasses.replace(dyn, cut_in_when_permitted=v) for v in (False, True))
     assert mismatches(state, on) == []
     assert mismatches(state, dataclasses.replace(on, linear_mobil=False)) == []
+    assert mismatches(state, dataclasses.replace(on, permit_any_speed=False)) == []  # the twelfth session's
     assert_nested(state, on)
     assert_same(model.evaluate(state, off, "nominal"), model.evaluate(state, on, "nominal"), "nominal")
+    # permit_any_speed (default) only admits cut-ins, and earlier: never fewer robust conflicts than without it.
+    loose = model.evaluate(state, on, "robust")
+    tight = model.evaluate(state, dataclasses.replace(on, permit_any_speed=False), "robust")
+    assert not (loose.safe & ~tight.safe).any()
 
 
 @PROPERTY_SETTINGS

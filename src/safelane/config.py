@@ -301,6 +301,23 @@ class ShieldConfig(_Section):
         "cut-in filter after the ego's lane index has flipped to the lane it enters: highway-env's MOBIL finds "
         "a lane's vehicles by that band (docs/safety.md §6l).",
     )
+    permit_any_speed: bool = Field(
+        True,
+        strict=True,
+        description="Robust mode, with cut_in_when_permitted: MOBIL's IDM safety criterion judged at the car's "
+        "speed within its reach that makes it loosest (IDM's desired gap falls with the car's speed and goes "
+        "negative for a car much faster than the ego; highway-env squares it), and only while the car is ahead "
+        "of the ego; false: at the car's fastest, which let highway-env's cars cut in earlier than the rule "
+        "allowed (docs/safety.md §6m). On by default since issue 15's thirteenth session.",
+    )
+    passing_cut_ins: bool = Field(
+        False,
+        strict=True,
+        description="Experimental (robust mode, with cut_in_when_permitted): a car behind the ego in a next lane "
+        "that MOBIL lets cut into the ego's lane only ahead of it is a leader once in — at least the distance "
+        "MOBIL needs ahead of the ego at its decision, then braking at its limit — instead of a follower that "
+        "drives on through the ego (docs/safety.md §6m).",
+    )
 
     def rule_options(self) -> dict[str, bool]:
         """The rule's on/off options by name, as :class:`safelane.safety.shield.SafetyShield` and
@@ -713,7 +730,7 @@ RULE_OPTIONS = (
     "level_entering", "least_bad_joint", "full_horizon", "ego_speed_magnitude", "turning_leaders",
     "robust_fallback", "straight_fallback", "linear_incentive", "linear_incentive_braking", "reversing_cut_ins",
     "crossed_lanes", "lateral_schedule", "reversing_noses", "follower_idm", "follower_set_point",
-    "finishing_changes", "cut_in_when_permitted", "leaving_lanes_seen",
+    "finishing_changes", "cut_in_when_permitted", "leaving_lanes_seen", "permit_any_speed", "passing_cut_ins",
 )  # fmt: skip
 """The :class:`ShieldConfig` fields that switch parts of the safety rule on or off (``ShieldConfig.rule_options``)."""
 
@@ -731,7 +748,7 @@ RULE_CHANGES: dict[str, Any] = {
     # issue 15's twelfth session (docs/safety.md §6l)
     "finishing_changes": False,
     # issue 15's thirteenth session (docs/safety.md §6m)
-    "cut_in_when_permitted": False,
+    "cut_in_when_permitted": False, "permit_any_speed": False,
 }  # fmt: skip
 """Shield keys added with a new default that changes the rule: a *recorded* configuration (a run's
 config.yaml, a counterexample file) written before the key existed had the old behaviour, given here,

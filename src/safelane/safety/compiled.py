@@ -110,6 +110,35 @@ def _linear_behind(
     return k0 * (ego_target - ego_speed) + k1 * _nmin(own_speed - ego_speed, 0.0) + k2 * _nmin(gap - d_safe, 0.0)
 
 
+@njit(cache=True, error_model="numpy")
+def _least_desired_gap(
+    acc: float, dec: float, wanted: float, time_wanted: float, ego_speed: float, speed_low: float, speed_high: float
+) -> float:  # fmt: skip
+    """``model.least_desired_gap`` for one vehicle (same operations, same order)."""
+    ab = -acc * dec
+    base = wanted + ego_speed * time_wanted
+    d_hi = base + ego_speed * (ego_speed - speed_high) / (2 * np.sqrt(ab))
+    d_lo = base + ego_speed * (ego_speed - speed_low) / (2 * np.sqrt(ab))
+    lo, hi = _nmin(d_hi, d_lo), _nmax(d_hi, d_lo)
+    if lo > 0.0:
+        return lo
+    if hi < 0.0:
+        return -hi
+    return 0.0
+
+
+@njit(cache=True, error_model="numpy")
+def _idm_behind_gap(
+    acc: float, delta: float, ego_speed: float, ego_target: float, gap: float, desired_gap: float
+) -> float:  # fmt: skip
+    """``model.idm_acceleration_behind_gap`` for one vehicle (same operations, same order)."""
+    target = 1e-2 if abs(ego_target) < 1e-2 else ego_target
+    free = acc * (1 - math.pow(_nmax(ego_speed, 0.0) / abs(target), delta))
+    d = 1e-2 if abs(gap) < 1e-2 else gap
+    q = desired_gap / d
+    return free - acc * (q * q)
+
+
 @njit(cache=True, inline="always")
 def _gap_ratio(
     dw: float, tw: float, acc: float, dec: float, v: float, front_speed: float, gap: float
@@ -273,6 +302,7 @@ def _evaluate_rule(
     linear_incentive_braking: bool, reversing_cut_ins: bool, crossed_lanes: bool, lateral_schedule: bool,
     reversing_noses: bool, follower_idm: bool, follower_set_point: bool, finishing_changes: bool,
     cut_in_when_permitted: bool, leaving_lanes_seen: bool,
+    permit_any_speed: bool, passing_cut_ins: bool,
     ego_width: float, kp_lateral: float,
     kp_heading: float, max_steering: float, turning_allowance: float,
     min_acc_gain: float,
@@ -668,6 +698,10 @@ def _evaluate_rule(
                                     if np.isfinite(lin_k0[i]):
                                         own = math.hypot(vx[i], vy[i]) + accel * tau
                                         af = _linear_behind(lin_k0[i], lin_k1[i], lin_k2[i], dw, tw, own, d, ego_vf, kt)
+                                    elif permit_any_speed:  # model.permit_times: IDM at its loosest speed
+                                        v_lo = _nmax(vx[i] - _nmax(brake_max[i], 1e-6) * tau, 0.0)
+                                        q = _least_desired_gap(acc, dec, dw, tw, ego_vf, v_lo, vx[i] + accel * tau)
+                                        af = _idm_behind_gap(acc, delta, ego_vf, target_clip, d, q) if d > 0.0 else -inf
                                     else:
                                         af = _idm_behind(
                                             acc, delta, dec, dw, tw, vx[i] + accel * tau, d, ego_vf, target_clip
@@ -826,6 +860,7 @@ def _evaluate(
     linear_incentive: bool, linear_incentive_braking: bool, reversing_cut_ins: bool, crossed_lanes: bool,
     lateral_schedule: bool, reversing_noses: bool, follower_idm: bool, follower_set_point: bool,
     finishing_changes: bool, cut_in_when_permitted: bool, leaving_lanes_seen: bool,
+    permit_any_speed: bool, passing_cut_ins: bool,
     ego_width: float,
     kp_lateral: float,
     kp_heading: float, max_steering: float, turning_allowance: float,
@@ -849,7 +884,7 @@ def _evaluate(
         level_cut_ins, level_incentive, level_entering, least_bad_joint, robust_fallback, linear_incentive,
         linear_incentive_braking, reversing_cut_ins, crossed_lanes, lateral_schedule,
         reversing_noses, follower_idm, follower_set_point, finishing_changes,
-        cut_in_when_permitted, leaving_lanes_seen, ego_width, kp_lateral,
+        cut_in_when_permitted, leaving_lanes_seen, permit_any_speed, passing_cut_ins, ego_width, kp_lateral,
         kp_heading, max_steering, allowance, min_acc_gain,
     )  # fmt: skip
     if not (out[4] and robust and straight_fallback and turning_allowance > 0.0):
@@ -866,7 +901,7 @@ def _evaluate(
         level_cut_ins, level_incentive, level_entering, least_bad_joint, robust_fallback, linear_incentive,
         linear_incentive_braking, reversing_cut_ins, crossed_lanes, lateral_schedule,
         reversing_noses, follower_idm, follower_set_point, finishing_changes,
-        cut_in_when_permitted, leaving_lanes_seen, ego_width, kp_lateral,
+        cut_in_when_permitted, leaving_lanes_seen, permit_any_speed, passing_cut_ins, ego_width, kp_lateral,
         kp_heading, max_steering, 0.0, min_acc_gain,
     )  # fmt: skip
     return straight[0].copy(), out[1], out[2], out[3], True
@@ -891,6 +926,7 @@ def _evaluate_snapshot(
     linear_incentive: bool, linear_incentive_braking: bool, reversing_cut_ins: bool, crossed_lanes: bool,
     lateral_schedule: bool, reversing_noses: bool, follower_idm: bool, follower_set_point: bool,
     finishing_changes: bool, cut_in_when_permitted: bool, leaving_lanes_seen: bool,
+    permit_any_speed: bool, passing_cut_ins: bool,
     ego_width: float,
     kp_lateral: float,
     kp_heading: float, max_steering: float, ego_speed_magnitude: bool,
@@ -947,7 +983,7 @@ def _evaluate_snapshot(
         level_entering, least_bad_joint, robust_fallback, straight_fallback, linear_incentive,
         linear_incentive_braking, reversing_cut_ins, crossed_lanes, lateral_schedule,
         reversing_noses, follower_idm, follower_set_point, finishing_changes,
-        cut_in_when_permitted, leaving_lanes_seen, ego_width, kp_lateral,
+        cut_in_when_permitted, leaving_lanes_seen, permit_any_speed, passing_cut_ins, ego_width, kp_lateral,
         kp_heading, max_steering, turning_allowance, min_acc_gain,
     )  # fmt: skip
 
@@ -1050,6 +1086,8 @@ class KernelConstants(NamedTuple):
     finishing_changes: bool
     cut_in_when_permitted: bool
     leaving_lanes_seen: bool
+    permit_any_speed: bool
+    passing_cut_ins: bool
     ego_width: float
     kp_lateral: float
     kp_heading: float
@@ -1087,6 +1125,8 @@ def kernel_constants(dyn: Dynamics) -> KernelConstants:
         dyn.finishing_changes,
         dyn.cut_in_when_permitted,
         dyn.leaving_lanes_seen,
+        dyn.permit_any_speed,
+        dyn.passing_cut_ins,
         dyn.ego_width,
         dyn.kp_lateral,
         dyn.kp_heading,
@@ -1129,7 +1169,7 @@ def evaluate_compiled(
         dyn.level_entering, dyn.least_bad_joint, dyn.robust_fallback, dyn.straight_fallback, dyn.linear_incentive,
         dyn.linear_incentive_braking, dyn.reversing_cut_ins, dyn.crossed_lanes, dyn.lateral_schedule,
         dyn.reversing_noses, dyn.follower_idm, dyn.follower_set_point, dyn.finishing_changes,
-        dyn.cut_in_when_permitted, dyn.leaving_lanes_seen, dyn.ego_width,
+        dyn.cut_in_when_permitted, dyn.leaving_lanes_seen, dyn.permit_any_speed, dyn.passing_cut_ins, dyn.ego_width,
         dyn.kp_lateral, dyn.kp_heading,
         dyn.max_steering, model.turning_allowance(dyn), _MIN_ACC_GAIN,
     )  # fmt: skip
@@ -1175,7 +1215,7 @@ def evaluate_snapshot(
         dyn.level_entering, dyn.least_bad_joint, dyn.robust_fallback, dyn.straight_fallback, dyn.linear_incentive,
         dyn.linear_incentive_braking, dyn.reversing_cut_ins, dyn.crossed_lanes, dyn.lateral_schedule,
         dyn.reversing_noses, dyn.follower_idm, dyn.follower_set_point, dyn.finishing_changes,
-        dyn.cut_in_when_permitted, dyn.leaving_lanes_seen, dyn.ego_width,
+        dyn.cut_in_when_permitted, dyn.leaving_lanes_seen, dyn.permit_any_speed, dyn.passing_cut_ins, dyn.ego_width,
         dyn.kp_lateral, dyn.kp_heading,
         dyn.max_steering, dyn.ego_speed_magnitude,
         model.turning_allowance(dyn),

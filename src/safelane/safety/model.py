@@ -123,6 +123,8 @@ class Dynamics:
     finishing_changes: bool = True  # robust: a car moving toward its own lane's centre is not projected past it
     cut_in_when_permitted: bool = True  # robust: a cut-in starts from the first frame MOBIL's safety criterion allows
     leaving_lanes_seen: bool = False  # lateral_schedule: MOBIL filters cut-ins into a lane the ego leaves, seen there
+    passing_cut_ins: bool = False  # cut_in_when_permitted: a car behind the ego cutting in ahead of it is a leader
+    permit_any_speed: bool = True  # cut_in_when_permitted: MOBIL's IDM criterion at the car's loosest speed
     ego_lateral_speed: float = math.nan  # [m/s] the speed that simulation runs at (per state, like ego_leave_time)
     ego_width: float = 2.0  # [m] the ego's width (Vehicle.WIDTH)
     kp_lateral: float = 1.0 / 0.6  # [1/s] ControlledVehicle.KP_LATERAL
@@ -361,6 +363,34 @@ def idm_acceleration_behind(
     )
     d = np.where(np.abs(gap_centres) < 1e-2, 1e-2, gap_centres)
     return free - acc * (d_star / d) ** 2
+
+
+def least_desired_gap(
+    state: RoadState, who: np.ndarray, ego_speed: float, speed_low: np.ndarray, speed_high: np.ndarray
+) -> np.ndarray:
+    """The least ``|d*|`` [m] of IDM's desired gap that vehicles ``who`` (their own parameters) predict for the
+    ego (at ``ego_speed`` [m/s]) following them, over their speeds in ``[speed_low, speed_high]`` [m/s]:
+    ``d* = d₀ + v·T + v·(v − v_car)/(2√(ab))`` is monotone in ``v_car``, so 0 where it changes sign in the
+    range, else its endpoint nearer 0."""
+    ab = -state.idm_comfort_acc[who] * state.idm_comfort_dec[who]
+    base = state.idm_distance_wanted[who] + ego_speed * state.idm_time_wanted[who]
+    d_hi = base + ego_speed * (ego_speed - speed_high) / (2 * np.sqrt(ab))  # the car at its fastest
+    d_lo = base + ego_speed * (ego_speed - speed_low) / (2 * np.sqrt(ab))  # at its slowest
+    lo, hi = np.minimum(d_hi, d_lo), np.maximum(d_hi, d_lo)
+    return np.where(lo > 0.0, lo, np.where(hi < 0.0, -hi, 0.0))
+
+
+def idm_acceleration_behind_gap(
+    state: RoadState, who: np.ndarray, gap_centres: np.ndarray, ego_speed: np.ndarray, ego_target: np.ndarray,
+    desired_gap: np.ndarray,
+) -> np.ndarray:  # fmt: skip
+    """:func:`idm_acceleration_behind` with IDM's desired gap ``desired_gap`` [m] given (e.g.
+    :func:`least_desired_gap`) instead of computed from one speed of the car."""
+    acc = state.idm_comfort_acc[who]
+    target = np.where(np.abs(ego_target) < 1e-2, 1e-2, ego_target)
+    free = acc * (1 - np.power(np.maximum(ego_speed, 0.0) / np.abs(target), state.idm_delta[who]))
+    d = np.where(np.abs(gap_centres) < 1e-2, 1e-2, gap_centres)
+    return free - acc * (desired_gap / d) ** 2
 
 
 def linear_acceleration_behind(
@@ -675,6 +705,7 @@ def permit_times(
     target = np.clip(ego_target, 0.0, state.speed_limit)
     linear = np.isfinite(state.linear_speed_gain[near])
     accel = np.maximum(state.accel_max[near], 0.0)
+    brake = np.maximum(state.brake_max[near], 1e-6)
     limit = -state.max_braking_imposed[near]
     for f in range(t.size):
         tau = t[f]
@@ -682,7 +713,16 @@ def permit_times(
         v_f = state.vx[near] + accel * tau
         d = x_f - ego_xs[f]
         ego_v = np.full(near.size, ego_vs[f])
-        a = idm_acceleration_behind(state, near, d, ego_v, np.full(near.size, target), v_f)
+        if dyn.permit_any_speed:
+            # IDM's desired gap d* falls with the car's speed and can go negative (a car much faster than the
+            # ego); highway-env squares d*/d, so the criterion is loosest at the car's speed with the least
+            # |d*| in [braking from now, accelerating from now], not at its fastest (issue 15, thirteenth session).
+            v_lo = np.maximum(state.vx[near] - brake * tau, 0.0)
+            q = least_desired_gap(state, near, ego_vs[f], v_lo, v_f)
+            a = idm_acceleration_behind_gap(state, near, d, ego_v, np.full(near.size, target), q)
+            a = np.where(d > 0.0, a, -np.inf)  # MOBIL sees the ego as the new follower only behind the car
+        else:
+            a = idm_acceleration_behind(state, near, d, ego_v, np.full(near.size, target), v_f)
         if linear.any() and dyn.linear_mobil:
             own = np.hypot(state.vx[near], state.vy[near]) + accel * tau
             a_lin = linear_acceleration_behind(state, near, d, ego_v, np.full(near.size, float(ego_target)), own)
@@ -693,6 +733,75 @@ def permit_times(
         out[newly] = tau
     if dyn.reversing_cut_ins:
         out[state.vx[near] < 0.0] = 0.0
+    return out
+
+
+def required_gap(
+    state: RoadState, dyn: Dynamics, i: int, ego_speed: float, ego_target: float, tau: float
+) -> float:
+    """The smallest centre distance [m] ahead of the ego at which MOBIL's safety criterion lets vehicle ``i``
+    cut in front of it at time ``tau`` [s] (the ego at ``ego_speed`` [m/s], set-point ``ego_target``), the car
+    at its fastest (accelerating at its limit from now, which only shortens the distance): the criterion of
+    :func:`permit_times` solved for the distance; inf where it allows it at none. IDM drivers:
+    ``a = free − acc·(d*/d)² ≥ −b_safe`` gives ``d ≥ |d*| / √((free + b_safe)/acc)``, and ``d*`` falls with the
+    car's speed, so ``max(d*, 0)`` at its fastest bounds it for any speed it can have; linear-model drivers
+    (with ``linear_mobil``): ``d ≥ d_safe − (C + b_safe)/k₂`` with ``C`` the formula's other terms. Never below 0:
+    MOBIL sees the ego as the new follower only while the car's centre is ahead of the ego's."""
+    limit = -float(state.max_braking_imposed[i])
+    accel = max(float(state.accel_max[i]), 0.0)
+    dw, tw = float(state.idm_distance_wanted[i]), float(state.idm_time_wanted[i])
+    if math.isfinite(float(state.linear_speed_gain[i])):
+        own = math.hypot(float(state.vx[i]), float(state.vy[i])) + accel * tau
+        k0, k1 = float(state.linear_speed_gain[i]), float(state.linear_speed_difference_gain[i])
+        k2 = float(state.linear_distance_gain[i])
+        other = k0 * (ego_target - ego_speed) + k1 * min(own - ego_speed, 0.0)
+        if not (other >= limit and k2 > 0.0):
+            return math.inf
+        d_safe = dw + max(ego_speed, 0.0) * tw
+        return max(d_safe - (other - limit) / k2, 0.0)
+    acc, delta, dec = float(state.idm_comfort_acc[i]), float(state.idm_delta[i]), float(state.idm_comfort_dec[i])
+    target = min(max(ego_target, 0.0), float(state.speed_limit))
+    target = 1e-2 if abs(target) < 1e-2 else target
+    free = acc * (1 - math.pow(max(ego_speed, 0.0) / abs(target), delta))
+    room = (free - limit) / acc
+    if not room > 0.0:
+        return math.inf
+    ab = -acc * dec
+    dv = ego_speed - (float(state.vx[i]) + accel * tau)
+    d_star = dw + ego_speed * tw + ego_speed * dv / (2 * math.sqrt(ab))
+    return max(d_star, 0.0) / math.sqrt(room)  # d* falls with the car's speed: at its fastest, the least
+
+
+def passing_positions(
+    state: RoadState, dyn: Dynamics, i: int, ego_xs: np.ndarray, ego_vs: np.ndarray, ego_target: float,
+    first: float, allowance: float,
+) -> np.ndarray:  # fmt: skip
+    """A lower bound on the position [m] along the road, at every frame of the horizon, of vehicle ``i`` — now
+    behind the ego in a next lane — once it has cut into the ego's lane *ahead* of it (``passing_cut_ins``):
+    MOBIL's safety criterion is judged with the ego as the new follower, so the car decides only while it is
+    at least :func:`required_gap` ahead, at a frame of the decision from ``first`` [s] (:func:`permit_times`)
+    on; its body is in the lane from that frame plus the cut-in time, and it brakes at its limit from its
+    lowest speed then (braking from now). The minimum over those decision frames, less ``allowance`` [m]
+    (:func:`turning_allowance`); inf before the earliest entry. ``ego_xs`` [m], ``ego_vs`` [m/s]: the ego on
+    the action's path at the decision's frames (0 … frames). Why (issue 15, thirteenth session): a car passing a
+    slow or stopped ego in the next lane, behind it now, was bounded as a follower entering the ego's lane —
+    driving on through the ego — though MOBIL lets it in only ahead."""
+    t = dyn.times
+    out = np.full(t.size, np.inf)
+    b = max(float(state.brake_max[i]), 1e-6)
+    for f in range(ego_xs.shape[0]):
+        tau = float(t[f])
+        if not tau >= first:
+            continue
+        d_req = required_gap(state, dyn, i, float(ego_vs[f]), ego_target, tau)
+        if not math.isfinite(d_req):
+            continue
+        v = max(float(state.vx[i]) - b * tau, 0.0)
+        lo = int(np.searchsorted(t, tau + dyn.cut_in_time, side="left"))
+        s = t[lo:] - tau
+        tt = np.minimum(s, v / b)
+        x = ((float(ego_xs[f]) + d_req) + (v * tt - 0.5 * b * (tt * tt))) - allowance
+        out[lo:] = np.minimum(out[lo:], x)
     return out
 
 
@@ -972,6 +1081,7 @@ def evaluate(state: RoadState, dyn: Dynamics, mode: Mode = "robust", formula: Fo
         ego_lanes = _action_lanes(state, dyn, a)
         vehicles, lanes_v, starts, nominal_flags = occ.vehicle, occ.lane, occ.start, occ.nominal
         as_follower = [False] * len(vehicles)  # a conflict with a car turning in behind the ego (level_cut_ins)
+        passing_paths: list[np.ndarray | None] = [None] * len(vehicles)  # passing_cut_ins: a leader's path
         if mode == "robust":
             occupied = {state.ego_lane, state.ego_target_lane}
             if dyn.lateral_schedule and dyn.leaving_lanes_seen:  # MOBIL still sees the ego in the lanes it leaves
@@ -987,7 +1097,7 @@ def evaluate(state: RoadState, dyn: Dynamics, mode: Mode = "robust", formula: Fo
             permit_time = permits.get(key)
             if permit_time is not None:
                 permitted = unfiltered & np.isfinite(permit_time)
-            extra_v, extra_l, extra_s = [], [], []
+            extra_v, extra_l, extra_s, extra_p = [], [], [], []
             for lane, _ in ego_lanes:
                 cands = permitted if lane in occupied else unfiltered
                 adjacent = np.abs(lanes_near - lane) == 1
@@ -1000,6 +1110,16 @@ def evaluate(state: RoadState, dyn: Dynamics, mode: Mode = "robust", formula: Fo
                     extra_l.append(lane)
                     after = float(permit_time[j]) if permit_time is not None and lane in occupied else 0.0
                     extra_s.append(dyn.cut_in_time + after)
+                    i = int(near[j])
+                    passing = (
+                        dyn.passing_cut_ins and permit_time is not None and lane in occupied and not ahead[i]
+                        and state.vx[i] >= 0.0 and (dyn.linear_mobil or not np.isfinite(state.linear_speed_gain[i]))
+                    )  # fmt: skip
+                    if passing:  # behind now, it cuts in only ahead of the ego: a leader from then
+                        path = (ego_x[a, 0, : frames + 1], ego_v[a, 0, : frames + 1])
+                        extra_p.append(passing_positions(state, dyn, i, *path, float(targets[a]), after, allowance))
+                    else:
+                        extra_p.append(None)
             behind_v, behind_l = [], []
             if dyn.level_cut_ins:
                 # A car level with or behind the ego in a next lane may turn in behind it after the cut-in
@@ -1014,11 +1134,12 @@ def evaluate(state: RoadState, dyn: Dynamics, mode: Mode = "robust", formula: Fo
             starts = starts + extra_s + [dyn.cut_in_time] * len(behind_v)
             nominal_flags = nominal_flags + [False] * (len(extra_v) + len(behind_v))
             as_follower = as_follower + [False] * len(extra_v) + [True] * len(behind_v)
+            passing_paths = passing_paths + extra_p + [None] * len(behind_v)
         # Every (vehicle, lane) pair that shares a lane with the ego, with the window in which both do.
         pairs = [
-            (row_of[vi], start, until, is_nominal, follows, lane)
-            for vi, lane, start, is_nominal, follows in zip(
-                vehicles, lanes_v, starts, nominal_flags, as_follower, strict=True
+            (row_of[vi], start, until, is_nominal, follows, lane, path)
+            for vi, lane, start, is_nominal, follows, path in zip(
+                vehicles, lanes_v, starts, nominal_flags, as_follower, passing_paths, strict=True
             )
             for ego_lane, until in ego_lanes
             if ego_lane == lane
@@ -1032,10 +1153,13 @@ def evaluate(state: RoadState, dyn: Dynamics, mode: Mode = "robust", formula: Fo
         is_nominal = np.array([p[3] for p in pairs], dtype=bool)
         follows = np.array([p[4] for p in pairs], dtype=bool)
         vehicle = near[rows]
-        is_ahead = ahead[vehicle] & ~follows
+        passing = np.array([p[6] is not None for p in pairs], dtype=bool)
+        is_ahead = (ahead[vehicle] & ~follows) | passing
         sign = np.where(is_ahead, 1.0, -1.0)
         motion = np.where(follows[:, None], foll_x[rows], other_x[rows])[:, None, :]  # a car turning in follows
-        idm_pairs = by_idm[rows] & ~follows & (np.array([p[5] for p in pairs]) == state.ego_lane)
+        for c in np.flatnonzero(passing):  # passing_cut_ins: cutting in ahead of the ego, a leader from then
+            motion[c, 0] = pairs[c][6]
+        idm_pairs = by_idm[rows] & ~follows & ~passing & (np.array([p[5] for p in pairs]) == state.ego_lane)
         if idm_pairs.any():  # follower_idm: the car behind responds to each fallback of the ego its own way
             motion = np.repeat(motion, n_fb, axis=1)
             for c in np.flatnonzero(idm_pairs):

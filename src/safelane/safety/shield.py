@@ -99,6 +99,8 @@ def dynamics_of(
     finishing_changes: bool = True,
     cut_in_when_permitted: bool = True,
     leaving_lanes_seen: bool = False,
+    permit_any_speed: bool = True,
+    passing_cut_ins: bool = False,
 ) -> Dynamics:
     """The :class:`Dynamics` constants of the simulated world a snapshot was taken in; ``margin`` [m]: the
     bumper-to-bumper gap the rule keeps under its worst case; the rule's options as in :class:`Dynamics`."""
@@ -139,6 +141,8 @@ def dynamics_of(
         finishing_changes=finishing_changes,
         cut_in_when_permitted=cut_in_when_permitted,
         leaving_lanes_seen=leaving_lanes_seen,
+        permit_any_speed=permit_any_speed,
+        passing_cut_ins=passing_cut_ins,
         # highway-env's lateral controller: ControlledVehicle's gains, which MDPVehicle (the ego) inherits.
         ego_width=float(snap.width[snap.ego]) if len(snap.width) else 2.0,
         kp_lateral=float(ControlledVehicle.KP_LATERAL),
@@ -266,6 +270,10 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
     decision at which MOBIL's safety criterion allows it, plus the cut-in time (else: from the cut-in time).
     ``leaving_lanes_seen`` (experimental, with ``lateral_schedule``): cut-ins into a lane the ego is leaving, while
     MOBIL still sees it there, are MOBIL-filtered as in its own lane.
+    ``permit_any_speed``: with ``cut_in_when_permitted``, MOBIL's IDM criterion at the car's loosest speed within
+    its reach (else at its fastest, which is not the loosest when IDM's desired gap goes negative).
+    ``passing_cut_ins`` (experimental, with ``cut_in_when_permitted``): a car behind the ego in a next lane that
+    MOBIL lets cut in ahead of it is a leader once in (else bounded as a follower).
     """
 
     def __init__(
@@ -300,6 +308,8 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
         finishing_changes: bool = True,
         cut_in_when_permitted: bool = True,
         leaving_lanes_seen: bool = False,
+    permit_any_speed: bool = True,
+    passing_cut_ins: bool = False,
     ) -> None:
         if not (math.isfinite(margin) and margin >= 0):
             raise ValueError(f"shield.margin: must be a finite number >= 0 [m] (got {margin!r})")
@@ -340,6 +350,8 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
             finishing_changes=finishing_changes,
             cut_in_when_permitted=cut_in_when_permitted,
             leaving_lanes_seen=leaving_lanes_seen,
+            permit_any_speed=permit_any_speed,
+            passing_cut_ins=passing_cut_ins,
         )
         try:
             env.get_wrapper_attr("road_snapshot")
@@ -375,6 +387,8 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
         self.finishing_changes = bool(finishing_changes)
         self.cut_in_when_permitted = bool(cut_in_when_permitted)
         self.leaving_lanes_seen = bool(leaving_lanes_seen)
+        self.permit_any_speed = bool(permit_any_speed)
+        self.passing_cut_ins = bool(passing_cut_ins)
         self._rule_options = {name: getattr(self, name) for name in RULE_OPTIONS}  # dynamics_of's keywords
         self.dynamics: Dynamics | None = None
         self.result: SafetyResult | None = None

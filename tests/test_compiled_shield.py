@@ -569,6 +569,20 @@ def test_cut_in_when_permitted_bit_identical(case: tuple) -> None:
 
 
 @PROPERTY_SETTINGS
+@given(case=road(extreme=True, rates=True, follower=True))
+def test_passing_cut_ins_bit_identical(case: tuple) -> None:
+    """shield.passing_cut_ins (experimental, with cut_in_when_permitted): the same in both engines at every rate
+    (IDM and linear-model drivers, with and without their MOBIL, crashed and reversing cars); robust ⊆ nominal
+    still holds; nominal is unchanged to the bit."""
+    state, dyn, _ = case
+    on = dataclasses.replace(dyn, cut_in_when_permitted=True, passing_cut_ins=True)
+    assert mismatches(state, on) == []
+    assert mismatches(state, dataclasses.replace(on, linear_mobil=False)) == []
+    assert_nested(state, on)
+    assert_same(model.evaluate(state, dyn, "nominal"), model.evaluate(state, on, "nominal"), "nominal")
+
+
+@PROPERTY_SETTINGS
 @given(case=road(extreme=True, rates=True, chained=True, lateral=True))
 def test_leaving_lanes_seen_bit_identical(case: tuple) -> None:
     """shield.leaving_lanes_seen (experimental, with lateral_schedule): the same in both engines at every rate,

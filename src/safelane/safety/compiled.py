@@ -139,6 +139,61 @@ def _idm_behind_gap(
     return free - acc * (q * q)
 
 
+@njit(cache=True, error_model="numpy")
+def _passing_path(
+    out: np.ndarray, i: int, x: np.ndarray, vx: np.ndarray, vy: np.ndarray, brake_max: np.ndarray,
+    accel_max: np.ndarray, max_braking_imposed: np.ndarray, dw_all: np.ndarray, tw_all: np.ndarray,
+    acc_all: np.ndarray, dec_all: np.ndarray, delta_all: np.ndarray, lin_k0: np.ndarray, lin_k1: np.ndarray,
+    lin_k2: np.ndarray, speed_limit: float, ego_xs: np.ndarray, ego_speed: float, powers: np.ndarray,
+    frames: int, kv: float, kt: float, t: np.ndarray, cut_in_time: float, first: float, allowance: float,
+) -> None:  # fmt: skip
+    """``model.passing_positions`` for vehicle ``i`` into ``out`` (same operations, same order): the ego's
+    frames from ``ego_xs[f, 0]`` and its speeds as the cut-in criterion takes them."""
+    n_t = t.shape[0]
+    for j in range(n_t):
+        out[j] = np.inf
+    b = _nmax(brake_max[i], 1e-6)
+    limit = -max_braking_imposed[i]
+    accel = _nmax(accel_max[i], 0.0)
+    dw, tw = dw_all[i], tw_all[i]
+    for f in range(frames + 1):
+        tau = t[f]
+        if not tau >= first:
+            continue
+        ego_vf = kv if f == frames else (ego_speed - kt) * powers[f] + kt
+        # model.required_gap
+        if np.isfinite(lin_k0[i]):
+            own = math.hypot(vx[i], vy[i]) + accel * tau
+            other = lin_k0[i] * (kt - ego_vf) + lin_k1[i] * min(own - ego_vf, 0.0)
+            if not (other >= limit and lin_k2[i] > 0.0):
+                continue
+            d_safe = dw + max(ego_vf, 0.0) * tw
+            d_req = max(d_safe - (other - limit) / lin_k2[i], 0.0)
+        else:
+            acc, delta, dec = acc_all[i], delta_all[i], dec_all[i]
+            target = min(max(kt, 0.0), speed_limit)
+            target = 1e-2 if abs(target) < 1e-2 else target
+            free = acc * (1 - math.pow(max(ego_vf, 0.0) / abs(target), delta))
+            room = (free - limit) / acc
+            if not room > 0.0:
+                continue
+            v_lo = max(vx[i] - b * tau, 0.0)
+            q = _least_desired_gap(acc, dec, dw, tw, ego_vf, v_lo, vx[i] + accel * tau)
+            d_req = q / math.sqrt(room)
+        if not np.isfinite(d_req):
+            continue
+        v = max(vx[i] - b * tau, 0.0)
+        start = tau + cut_in_time
+        lo = 0
+        while lo < n_t and not (t[lo] >= start):
+            lo += 1
+        for j in range(lo, n_t):
+            s = t[j] - tau
+            tt = min(s, v / b)
+            xj = ((ego_xs[f, 0] + d_req) + (v * tt - 0.5 * b * (tt * tt))) - allowance
+            out[j] = _nmin(out[j], xj)
+
+
 @njit(cache=True, inline="always")
 def _gap_ratio(
     dw: float, tw: float, acc: float, dec: float, v: float, front_speed: float, gap: float
@@ -516,6 +571,8 @@ def _evaluate_rule(
     n_keys = 0
     permitted = np.zeros((N_ACTIONS, m), dtype=np.bool_)
     permit_lo = np.zeros((N_ACTIONS, m), dtype=np.int64)  # cut_in_when_permitted: a cut-in's first frame
+    permit_first = np.full((N_ACTIONS, m), inf)  # the same as a time [s] (model.permit_times)
+    pass_x = np.empty(n_t)  # passing_cut_ins: one car's leader path (model.passing_positions)
     unfiltered = np.zeros((N_ACTIONS, m), dtype=np.bool_)
     level = np.zeros((N_ACTIONS, m), dtype=np.bool_)  # level with or behind the ego (level_cut_ins)
     level_any = np.zeros((N_ACTIONS, m), dtype=np.bool_)  # the same, no incentive filter (level_entering)
@@ -712,6 +769,7 @@ def _evaluate_rule(
                             if reversing_cut_ins and vx[i] < 0.0:
                                 t_first = 0.0
                             permitted[slot, r] = t_first < inf
+                            permit_first[slot, r] = t_first
                             start = cut_in_time + t_first
                             lo_p = 0
                             while lo_p < n_t and not (t[lo_p] >= start):
@@ -726,6 +784,7 @@ def _evaluate_rule(
         n_conf = n_cut + (n_el * m if level_rows else 0)
         for c in range(n_conf):
             follows = False
+            passing = False
             if c < n_occ:
                 r, lane_c, nominal = occ_row[c], occ_lane[c], occ_nominal[c]
                 lo = lo_now
@@ -755,15 +814,36 @@ def _evaluate_rule(
                     continue
                 nominal = False
                 lo = permit_lo[slot, r] if cut_in_when_permitted and occupied else lo_cut
+                i = near[r]
+                passing = (
+                    passing_cut_ins and cut_in_when_permitted and occupied and not is_ahead[r] and vx[i] >= 0.0
+                    and (linear_mobil or not np.isfinite(lin_k0[i]))
+                )  # fmt: skip
+                if passing:  # model.passing_positions: behind now, it cuts in only ahead of the ego
+                    _passing_path(
+                        pass_x, i, x, vx, vy, brake_max, accel_max, max_braking_imposed, idm_distance_wanted,
+                        idm_time_wanted, idm_comfort_acc, idm_comfort_dec, idm_delta, lin_k0, lin_k1, lin_k2,
+                        speed_limit, xs[a], ego_speed, powers, frames, v_key[a], targets[a], t, cut_in_time,
+                        permit_first[slot, r], turning_allowance,
+                    )  # fmt: skip
             for e in range(n_el):
                 if ego_lanes[e] != lane_c:
                     continue
                 hi = ego_hi[e]
-                ahead_r = is_ahead[r] and not follows
+                ahead_r = (is_ahead[r] and not follows) or passing
                 sign = 1.0 if ahead_r else -1.0
                 motion = foll_x if follows else other_x
                 h = half[r]
-                if by_idm[r] and not follows and lane_c == ego_lane:
+                if passing:
+                    w0 = w1 = w2 = w3 = inf
+                    for j in range(lo, hi + 1):
+                        o = pass_x[j]
+                        w0 = _nmin(w0, (o - xs[a, j, 0]) - h)
+                        w1 = _nmin(w1, (o - xs[a, j, 1]) - h)
+                        w2 = _nmin(w2, (o - xs[a, j, 2]) - h)
+                        w3 = _nmin(w3, (o - xs[a, j, 3]) - h)
+                    worst[0], worst[1], worst[2], worst[3] = w0, w1, w2, w3
+                elif by_idm[r] and not follows and lane_c == ego_lane:
                     _idm_follower_window(
                         near[r], x, vx, idm_comfort_acc, idm_comfort_dec, idm_distance_wanted, idm_time_wanted,
                         accel_max, brake_max, idm_delta, lin_k0, lin_k1, lin_k2, target_speed, follower_set_point,

@@ -736,15 +736,13 @@ def permit_times(
     return out
 
 
-def required_gap(
-    state: RoadState, dyn: Dynamics, i: int, ego_speed: float, ego_target: float, tau: float
-) -> float:
+def required_gap(state: RoadState, dyn: Dynamics, i: int, ego_speed: float, ego_target: float, tau: float) -> float:
     """The smallest centre distance [m] ahead of the ego at which MOBIL's safety criterion lets vehicle ``i``
     cut in front of it at time ``tau`` [s] (the ego at ``ego_speed`` [m/s], set-point ``ego_target``), the car
     at its fastest (accelerating at its limit from now, which only shortens the distance): the criterion of
     :func:`permit_times` solved for the distance; inf where it allows it at none. IDM drivers:
-    ``a = free − acc·(d*/d)² ≥ −b_safe`` gives ``d ≥ |d*| / √((free + b_safe)/acc)``, and ``d*`` falls with the
-    car's speed, so ``max(d*, 0)`` at its fastest bounds it for any speed it can have; linear-model drivers
+    ``a = free − acc·(d*/d)² ≥ −b_safe`` gives ``d ≥ |d*| / √((free + b_safe)/acc)``, with the least ``|d*|``
+    over the car's speeds in reach (:func:`least_desired_gap`, as ``permit_any_speed`` takes it); linear-model drivers
     (with ``linear_mobil``): ``d ≥ d_safe − (C + b_safe)/k₂`` with ``C`` the formula's other terms. Never below 0:
     MOBIL sees the ego as the new follower only while the car's centre is ahead of the ego's."""
     limit = -float(state.max_braking_imposed[i])
@@ -759,17 +757,18 @@ def required_gap(
             return math.inf
         d_safe = dw + max(ego_speed, 0.0) * tw
         return max(d_safe - (other - limit) / k2, 0.0)
-    acc, delta, dec = float(state.idm_comfort_acc[i]), float(state.idm_delta[i]), float(state.idm_comfort_dec[i])
+    acc, delta = float(state.idm_comfort_acc[i]), float(state.idm_delta[i])
     target = min(max(ego_target, 0.0), float(state.speed_limit))
     target = 1e-2 if abs(target) < 1e-2 else target
     free = acc * (1 - math.pow(max(ego_speed, 0.0) / abs(target), delta))
     room = (free - limit) / acc
     if not room > 0.0:
         return math.inf
-    ab = -acc * dec
-    dv = ego_speed - (float(state.vx[i]) + accel * tau)
-    d_star = dw + ego_speed * tw + ego_speed * dv / (2 * math.sqrt(ab))
-    return max(d_star, 0.0) / math.sqrt(room)  # d* falls with the car's speed: at its fastest, the least
+    b = max(float(state.brake_max[i]), 1e-6)
+    v_lo, v_hi = max(float(state.vx[i]) - b * tau, 0.0), float(state.vx[i]) + accel * tau
+    who = np.array([i])
+    q = float(least_desired_gap(state, who, ego_speed, np.array([v_lo]), np.array([v_hi]))[0])
+    return q / math.sqrt(room)
 
 
 def passing_positions(

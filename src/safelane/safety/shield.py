@@ -308,8 +308,8 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
         finishing_changes: bool = True,
         cut_in_when_permitted: bool = True,
         leaving_lanes_seen: bool = False,
-    permit_any_speed: bool = True,
-    passing_cut_ins: bool = False,
+        permit_any_speed: bool = True,
+        passing_cut_ins: bool = False,
     ) -> None:
         if not (math.isfinite(margin) and margin >= 0):
             raise ValueError(f"shield.margin: must be a finite number >= 0 [m] (got {margin!r})")

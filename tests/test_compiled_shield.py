@@ -583,6 +583,21 @@ def test_passing_cut_ins_bit_identical(case: tuple) -> None:
 
 
 @PROPERTY_SETTINGS
+@given(case=road(extreme=True, rates=True, follower=True))
+def test_level_when_incentive_bit_identical(case: tuple) -> None:
+    """shield.level_when_incentive (experimental): the same in both engines at every rate (IDM and linear-model
+    drivers, with and without their incentive and its braking variant); robust ⊆ nominal still holds; nominal is
+    unchanged to the bit."""
+    state, dyn, _ = case
+    on = dataclasses.replace(dyn, level_when_incentive=True)
+    assert mismatches(state, on) == []
+    assert mismatches(state, dataclasses.replace(on, linear_incentive_braking=False)) == []
+    assert mismatches(state, dataclasses.replace(on, linear_incentive=False, passing_cut_ins=True)) == []
+    assert_nested(state, on)
+    assert_same(model.evaluate(state, dyn, "nominal"), model.evaluate(state, on, "nominal"), "nominal")
+
+
+@PROPERTY_SETTINGS
 @given(case=road(extreme=True, rates=True, chained=True, lateral=True))
 def test_leaving_lanes_seen_bit_identical(case: tuple) -> None:
     """shield.leaving_lanes_seen (experimental, with lateral_schedule): the same in both engines at every rate,

@@ -318,6 +318,15 @@ class ShieldConfig(_Section):
         "MOBIL needs ahead of the ego at its decision, then braking at its limit — instead of a follower that "
         "drives on through the ego (docs/safety.md §6m).",
     )
+    level_when_incentive: bool = Field(
+        False,
+        strict=True,
+        description="Experimental (robust mode, with level_cut_ins and level_incentive): a car level with or "
+        "behind the ego in a next lane turns in behind it from the first physics frame of the decision at which "
+        "MOBIL's incentive allows it (others at constant speed, the ego on the action's path), plus the cut-in "
+        "time — instead of from the cut-in time whenever it allows it now or at the end: a car the ego is "
+        "overtaking gains by moving behind it only once the ego is ahead (docs/safety.md §6m).",
+    )
 
     def rule_options(self) -> dict[str, bool]:
         """The rule's on/off options by name, as :class:`safelane.safety.shield.SafetyShield` and
@@ -731,6 +740,7 @@ RULE_OPTIONS = (
     "robust_fallback", "straight_fallback", "linear_incentive", "linear_incentive_braking", "reversing_cut_ins",
     "crossed_lanes", "lateral_schedule", "reversing_noses", "follower_idm", "follower_set_point",
     "finishing_changes", "cut_in_when_permitted", "leaving_lanes_seen", "permit_any_speed", "passing_cut_ins",
+    "level_when_incentive",
 )  # fmt: skip
 """The :class:`ShieldConfig` fields that switch parts of the safety rule on or off (``ShieldConfig.rule_options``)."""
 

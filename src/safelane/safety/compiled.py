@@ -194,6 +194,70 @@ def _passing_path(
             out[j] = _nmin(out[j], xj)
 
 
+@njit(cache=True, error_model="numpy")
+def _incentive_first(
+    i: int, r: int, m: int, near: np.ndarray, lanes_near: np.ndarray, x: np.ndarray, vx: np.ndarray,
+    crashed: np.ndarray, brake_max: np.ndarray, lin_k0: np.ndarray, lin_k1: np.ndarray, lin_k2: np.ndarray,
+    dw_all: np.ndarray, tw_all: np.ndarray, acc_all: np.ndarray, dec_all: np.ndarray, linear_incentive: bool,
+    linear_incentive_braking: bool, ego_xs: np.ndarray, ego_speed: float, kv: float, kt: float,
+    powers: np.ndarray, frames: int, t: np.ndarray, min_acc_gain: float,
+) -> float:  # fmt: skip
+    """``model.incentive_times`` for vehicle ``i`` (row ``r``; same operations, same order): the first frame time
+    [s] at which MOBIL's incentive lets it turn in behind the ego; inf: none."""
+    v = vx[i]
+    linear = np.isfinite(lin_k0[i])
+    if linear and not linear_incentive:
+        return np.inf
+    dw, tw, acc, dec = dw_all[i], tw_all[i], acc_all[i], dec_all[i]
+    k1, k2 = lin_k1[i], lin_k2[i]
+    d_safe = dw + _nmax(v, 0.0) * tw
+    for f in range(frames + 1):
+        tau = t[f]
+        own_x = x[i] + v * tau
+        d = own_x - ego_xs[f, 0]
+        if not d <= 0:
+            continue
+        ego_vf = kv if f == frames else (ego_speed - kt) * powers[f] + kt
+        if linear:
+            ego_term = k1 * _nmin(ego_vf - v, 0.0) + k2 * _nmin(-d - d_safe, 0.0)
+            lead = braking = 0.0
+            found = False
+            for k in range(m):
+                ii = near[k]
+                if lanes_near[k] == lanes_near[r] and x[ii] > x[i]:
+                    lv = vx[ii]
+                    term = k1 * _nmin(lv - v, 0.0) + k2 * _nmin(((x[ii] + lv * tau) - own_x) - d_safe, 0.0)
+                    lv0 = 0.0 if crashed[ii] else _nmax(vx[ii], 0.0)
+                    lb = _nmax(1e9 if crashed[ii] else brake_max[ii], 1e-6)
+                    tt = _nmin(tau, lv0 / lb)
+                    lx = x[ii] + lv0 * tt - 0.5 * lb * (tt * tt)
+                    lvb = lv0 - lb * tt
+                    term_b = k1 * _nmin(lvb - v, 0.0) + k2 * _nmin((lx - own_x) - d_safe, 0.0)
+                    if found:
+                        lead, braking = _nmin(lead, term), _nmin(braking, term_b)
+                    else:
+                        lead, braking, found = term, term_b, True
+            gains = ego_term - lead >= min_acc_gain
+            if linear_incentive_braking:
+                gains = gains or ego_term - braking >= min_acc_gain
+            if gains:
+                return tau
+        else:
+            lead = 0.0
+            found = False
+            for k in range(m):
+                ii = near[k]
+                if lanes_near[k] == lanes_near[r] and x[ii] > x[i]:
+                    lv = vx[ii]
+                    q = _gap_ratio(dw, tw, acc, dec, v, lv, (x[ii] + lv * tau) - own_x)
+                    lead = _nmax(lead, q * q) if found else q * q
+                    found = True
+            q_ego = _gap_ratio(dw, tw, acc, dec, v, ego_vf, -d)
+            if acc * lead - acc * (q_ego * q_ego) >= min_acc_gain:
+                return tau
+    return np.inf
+
+
 @njit(cache=True, inline="always")
 def _gap_ratio(
     dw: float, tw: float, acc: float, dec: float, v: float, front_speed: float, gap: float
@@ -357,7 +421,7 @@ def _evaluate_rule(
     linear_incentive_braking: bool, reversing_cut_ins: bool, crossed_lanes: bool, lateral_schedule: bool,
     reversing_noses: bool, follower_idm: bool, follower_set_point: bool, finishing_changes: bool,
     cut_in_when_permitted: bool, leaving_lanes_seen: bool,
-    permit_any_speed: bool, passing_cut_ins: bool,
+    permit_any_speed: bool, passing_cut_ins: bool, level_when_incentive: bool,
     ego_width: float, kp_lateral: float,
     kp_heading: float, max_steering: float, turning_allowance: float,
     min_acc_gain: float,
@@ -801,6 +865,18 @@ def _evaluate_rule(
                 nominal = False
                 follows = True
                 lo = lo_cut
+                if level_when_incentive and occupied:  # model.incentive_times: from MOBIL's first frame
+                    t_inc = _incentive_first(
+                        near[r], r, m, near, lanes_near, x, vx, crashed, brake_max, lin_k0, lin_k1, lin_k2,
+                        idm_distance_wanted, idm_time_wanted, idm_comfort_acc, idm_comfort_dec, linear_incentive,
+                        linear_incentive_braking, xs[a], ego_speed, v_key[a], targets[a], powers, frames, t,
+                        min_acc_gain,
+                    )  # fmt: skip
+                    if t_inc < inf:
+                        start = cut_in_time + t_inc
+                        lo = 0
+                        while lo < n_t and not (t[lo] >= start):
+                            lo += 1
             else:
                 e_idx, r = divmod(c - n_occ, m)
                 lane_c = ego_lanes[e_idx]
@@ -940,7 +1016,7 @@ def _evaluate(
     linear_incentive: bool, linear_incentive_braking: bool, reversing_cut_ins: bool, crossed_lanes: bool,
     lateral_schedule: bool, reversing_noses: bool, follower_idm: bool, follower_set_point: bool,
     finishing_changes: bool, cut_in_when_permitted: bool, leaving_lanes_seen: bool,
-    permit_any_speed: bool, passing_cut_ins: bool,
+    permit_any_speed: bool, passing_cut_ins: bool, level_when_incentive: bool,
     ego_width: float,
     kp_lateral: float,
     kp_heading: float, max_steering: float, turning_allowance: float,
@@ -964,7 +1040,8 @@ def _evaluate(
         level_cut_ins, level_incentive, level_entering, least_bad_joint, robust_fallback, linear_incentive,
         linear_incentive_braking, reversing_cut_ins, crossed_lanes, lateral_schedule,
         reversing_noses, follower_idm, follower_set_point, finishing_changes,
-        cut_in_when_permitted, leaving_lanes_seen, permit_any_speed, passing_cut_ins, ego_width, kp_lateral,
+        cut_in_when_permitted, leaving_lanes_seen, permit_any_speed, passing_cut_ins, level_when_incentive,
+        ego_width, kp_lateral,
         kp_heading, max_steering, allowance, min_acc_gain,
     )  # fmt: skip
     if not (out[4] and robust and straight_fallback and turning_allowance > 0.0):
@@ -981,7 +1058,8 @@ def _evaluate(
         level_cut_ins, level_incentive, level_entering, least_bad_joint, robust_fallback, linear_incentive,
         linear_incentive_braking, reversing_cut_ins, crossed_lanes, lateral_schedule,
         reversing_noses, follower_idm, follower_set_point, finishing_changes,
-        cut_in_when_permitted, leaving_lanes_seen, permit_any_speed, passing_cut_ins, ego_width, kp_lateral,
+        cut_in_when_permitted, leaving_lanes_seen, permit_any_speed, passing_cut_ins, level_when_incentive,
+        ego_width, kp_lateral,
         kp_heading, max_steering, 0.0, min_acc_gain,
     )  # fmt: skip
     return straight[0].copy(), out[1], out[2], out[3], True
@@ -1006,7 +1084,7 @@ def _evaluate_snapshot(
     linear_incentive: bool, linear_incentive_braking: bool, reversing_cut_ins: bool, crossed_lanes: bool,
     lateral_schedule: bool, reversing_noses: bool, follower_idm: bool, follower_set_point: bool,
     finishing_changes: bool, cut_in_when_permitted: bool, leaving_lanes_seen: bool,
-    permit_any_speed: bool, passing_cut_ins: bool,
+    permit_any_speed: bool, passing_cut_ins: bool, level_when_incentive: bool,
     ego_width: float,
     kp_lateral: float,
     kp_heading: float, max_steering: float, ego_speed_magnitude: bool,
@@ -1063,7 +1141,8 @@ def _evaluate_snapshot(
         level_entering, least_bad_joint, robust_fallback, straight_fallback, linear_incentive,
         linear_incentive_braking, reversing_cut_ins, crossed_lanes, lateral_schedule,
         reversing_noses, follower_idm, follower_set_point, finishing_changes,
-        cut_in_when_permitted, leaving_lanes_seen, permit_any_speed, passing_cut_ins, ego_width, kp_lateral,
+        cut_in_when_permitted, leaving_lanes_seen, permit_any_speed, passing_cut_ins, level_when_incentive,
+        ego_width, kp_lateral,
         kp_heading, max_steering, turning_allowance, min_acc_gain,
     )  # fmt: skip
 
@@ -1168,6 +1247,7 @@ class KernelConstants(NamedTuple):
     leaving_lanes_seen: bool
     permit_any_speed: bool
     passing_cut_ins: bool
+    level_when_incentive: bool
     ego_width: float
     kp_lateral: float
     kp_heading: float
@@ -1207,6 +1287,7 @@ def kernel_constants(dyn: Dynamics) -> KernelConstants:
         dyn.leaving_lanes_seen,
         dyn.permit_any_speed,
         dyn.passing_cut_ins,
+        dyn.level_when_incentive,
         dyn.ego_width,
         dyn.kp_lateral,
         dyn.kp_heading,
@@ -1249,7 +1330,8 @@ def evaluate_compiled(
         dyn.level_entering, dyn.least_bad_joint, dyn.robust_fallback, dyn.straight_fallback, dyn.linear_incentive,
         dyn.linear_incentive_braking, dyn.reversing_cut_ins, dyn.crossed_lanes, dyn.lateral_schedule,
         dyn.reversing_noses, dyn.follower_idm, dyn.follower_set_point, dyn.finishing_changes,
-        dyn.cut_in_when_permitted, dyn.leaving_lanes_seen, dyn.permit_any_speed, dyn.passing_cut_ins, dyn.ego_width,
+        dyn.cut_in_when_permitted, dyn.leaving_lanes_seen, dyn.permit_any_speed, dyn.passing_cut_ins,
+        dyn.level_when_incentive, dyn.ego_width,
         dyn.kp_lateral, dyn.kp_heading,
         dyn.max_steering, model.turning_allowance(dyn), _MIN_ACC_GAIN,
     )  # fmt: skip
@@ -1295,7 +1377,8 @@ def evaluate_snapshot(
         dyn.level_entering, dyn.least_bad_joint, dyn.robust_fallback, dyn.straight_fallback, dyn.linear_incentive,
         dyn.linear_incentive_braking, dyn.reversing_cut_ins, dyn.crossed_lanes, dyn.lateral_schedule,
         dyn.reversing_noses, dyn.follower_idm, dyn.follower_set_point, dyn.finishing_changes,
-        dyn.cut_in_when_permitted, dyn.leaving_lanes_seen, dyn.permit_any_speed, dyn.passing_cut_ins, dyn.ego_width,
+        dyn.cut_in_when_permitted, dyn.leaving_lanes_seen, dyn.permit_any_speed, dyn.passing_cut_ins,
+        dyn.level_when_incentive, dyn.ego_width,
         dyn.kp_lateral, dyn.kp_heading,
         dyn.max_steering, dyn.ego_speed_magnitude,
         model.turning_allowance(dyn),

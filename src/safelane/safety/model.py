@@ -125,6 +125,7 @@ class Dynamics:
     leaving_lanes_seen: bool = False  # lateral_schedule: MOBIL filters cut-ins into a lane the ego leaves, seen there
     passing_cut_ins: bool = False  # cut_in_when_permitted: a car behind the ego cutting in ahead of it is a leader
     permit_any_speed: bool = True  # cut_in_when_permitted: MOBIL's IDM criterion at the car's loosest speed
+    level_when_incentive: bool = False  # level turn-ins start from the first frame MOBIL's incentive allows them
     ego_lateral_speed: float = math.nan  # [m/s] the speed that simulation runs at (per state, like ego_leave_time)
     ego_width: float = 2.0  # [m] the ego's width (Vehicle.WIDTH)
     kp_lateral: float = 1.0 / 0.6  # [1/s] ControlledVehicle.KP_LATERAL
@@ -1018,6 +1019,64 @@ def linear_turn_in_incentive_braking(
     return out
 
 
+def incentive_times(
+    state: RoadState, dyn: Dynamics, near: np.ndarray, ego_xs: np.ndarray, ego_vs: np.ndarray
+) -> np.ndarray:
+    """The first frame time [s] of the decision at which MOBIL's incentive lets each vehicle of ``near`` turn
+    in behind the ego (``Dynamics.level_when_incentive``, experimental): :func:`turn_in_incentive` (IDM) or
+    :func:`linear_turn_in_incentive` (linear-model drivers) at every frame instead of now and at the end, the
+    others at constant speed and the ego on the action's path; for linear-model drivers also
+    :func:`linear_turn_in_incentive_braking`'s frames. Its centre must be behind the ego's at that frame. inf:
+    at none (then only the now-and-end verdict, from the cut-in time)."""
+    out = np.full(near.size, np.inf)
+    x, v = state.x[near], state.vx[near]
+    lanes = state.lane_of(state.y[near], dyn.lanes_count, dyn.lane_width)
+    acc = state.idm_comfort_acc[near]
+    k1, k2 = state.linear_speed_difference_gain[near], state.linear_distance_gain[near]
+    d_safe = state.idm_distance_wanted[near] + np.maximum(v, 0.0) * state.idm_time_wanted[near]
+    lead_v0 = np.where(state.crashed[near], 0.0, np.maximum(v, 0.0))
+    lead_b = np.maximum(np.where(state.crashed[near], 1e9, state.brake_max[near]), 1e-6)
+    times = np.arange(ego_xs.shape[0]) * dyn.frame_dt
+    for j in range(near.size):
+        linear = bool(np.isfinite(state.linear_speed_gain[near[j]]))
+        rows = np.flatnonzero((lanes == lanes[j]) & (x > x[j]))
+        who = np.full(rows.size, near[j])
+        for f in range(times.size):
+            tau = times[f]
+            own_x = x[j] + v[j] * tau
+            d = own_x - ego_xs[f]
+            if not d <= 0:
+                continue
+            if linear and dyn.linear_incentive:
+                ego_term = k1[j] * np.minimum(ego_vs[f] - v[j], 0.0) + k2[j] * np.minimum(-d - d_safe[j], 0.0)
+                lead = braking = 0.0  # no vehicle ahead: its term is 0
+                if rows.size:
+                    gap = (x[rows] + v[rows] * tau) - own_x
+                    lead = (k1[j] * np.minimum(v[rows] - v[j], 0.0) + k2[j] * np.minimum(gap - d_safe[j], 0.0)).min()
+                    tt = np.minimum(tau, lead_v0[rows] / lead_b[rows])
+                    lx = x[rows] + lead_v0[rows] * tt - 0.5 * lead_b[rows] * (tt * tt)
+                    lv = lead_v0[rows] - lead_b[rows] * tt
+                    braking = (
+                        k1[j] * np.minimum(lv - v[j], 0.0) + k2[j] * np.minimum((lx - own_x) - d_safe[j], 0.0)
+                    ).min()
+                gains = ego_term - lead >= MOBIL_MIN_ACC_GAIN
+                if dyn.linear_incentive_braking:
+                    gains = gains or ego_term - braking >= MOBIL_MIN_ACC_GAIN
+                if gains:
+                    out[j] = tau
+                    break
+            elif not linear:
+                lead = 0.0
+                if rows.size:
+                    q = _gap_ratio(state, who, v[rows], (x[rows] + v[rows] * tau) - own_x)
+                    lead = float((q * q).max())
+                q_ego = float(_gap_ratio(state, near[j : j + 1], np.array([ego_vs[f]]), np.array([-d]))[0])
+                if acc[j] * lead - acc[j] * (q_ego * q_ego) >= MOBIL_MIN_ACC_GAIN:
+                    out[j] = tau
+                    break
+    return out
+
+
 def evaluate(state: RoadState, dyn: Dynamics, mode: Mode = "robust", formula: Formula = "kinematic") -> SafetyResult:
     """The safety mask of ``state`` (see the module docstring for the rule and the modes)."""
     if mode not in ("nominal", "robust"):
@@ -1119,7 +1178,11 @@ def evaluate(state: RoadState, dyn: Dynamics, mode: Mode = "robust", formula: Fo
                         extra_p.append(passing_positions(state, dyn, i, *path, float(targets[a]), after, allowance))
                     else:
                         extra_p.append(None)
-            behind_v, behind_l = [], []
+            behind_v, behind_l, behind_s = [], [], []
+            turn_time = None
+            if dyn.level_cut_ins and dyn.level_when_incentive:
+                path = (ego_x[a, 0, : frames + 1], ego_v[a, 0, : frames + 1])
+                turn_time = incentive_times(state, dyn, near, *path)
             if dyn.level_cut_ins:
                 # A car level with or behind the ego in a next lane may turn in behind it after the cut-in
                 # time and then follow it (accelerate for the reaction time, then brake): a follower.
@@ -1128,9 +1191,13 @@ def evaluate(state: RoadState, dyn: Dynamics, mode: Mode = "robust", formula: Fo
                     for j in np.flatnonzero(turning & (np.abs(lanes_near - lane) == 1)):
                         behind_v.append(int(near[j]))
                         behind_l.append(lane)
+                        later = 0.0
+                        if turn_time is not None and lane in occupied and np.isfinite(turn_time[j]):
+                            later = float(turn_time[j])
+                        behind_s.append(dyn.cut_in_time + later)
             vehicles = vehicles + extra_v + behind_v
             lanes_v = lanes_v + extra_l + behind_l
-            starts = starts + extra_s + [dyn.cut_in_time] * len(behind_v)
+            starts = starts + extra_s + behind_s
             nominal_flags = nominal_flags + [False] * (len(extra_v) + len(behind_v))
             as_follower = as_follower + [False] * len(extra_v) + [True] * len(behind_v)
             passing_paths = passing_paths + extra_p + [None] * len(behind_v)

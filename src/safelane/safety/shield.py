@@ -101,6 +101,7 @@ def dynamics_of(
     leaving_lanes_seen: bool = False,
     permit_any_speed: bool = True,
     passing_cut_ins: bool = False,
+    level_when_incentive: bool = False,
 ) -> Dynamics:
     """The :class:`Dynamics` constants of the simulated world a snapshot was taken in; ``margin`` [m]: the
     bumper-to-bumper gap the rule keeps under its worst case; the rule's options as in :class:`Dynamics`."""
@@ -143,6 +144,7 @@ def dynamics_of(
         leaving_lanes_seen=leaving_lanes_seen,
         permit_any_speed=permit_any_speed,
         passing_cut_ins=passing_cut_ins,
+        level_when_incentive=level_when_incentive,
         # highway-env's lateral controller: ControlledVehicle's gains, which MDPVehicle (the ego) inherits.
         ego_width=float(snap.width[snap.ego]) if len(snap.width) else 2.0,
         kp_lateral=float(ControlledVehicle.KP_LATERAL),
@@ -274,6 +276,8 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
     its reach (else at its fastest, which is not the loosest when IDM's desired gap goes negative).
     ``passing_cut_ins`` (experimental, with ``cut_in_when_permitted``): a car behind the ego in a next lane that
     MOBIL lets cut in ahead of it is a leader once in (else bounded as a follower).
+    ``level_when_incentive`` (experimental): a car level with or behind the ego turns in behind it from the
+    first frame MOBIL's incentive allows it (else from the cut-in time whenever it allows it now or at the end).
     """
 
     def __init__(
@@ -310,6 +314,7 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
         leaving_lanes_seen: bool = False,
         permit_any_speed: bool = True,
         passing_cut_ins: bool = False,
+        level_when_incentive: bool = False,
     ) -> None:
         if not (math.isfinite(margin) and margin >= 0):
             raise ValueError(f"shield.margin: must be a finite number >= 0 [m] (got {margin!r})")
@@ -352,6 +357,7 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
             leaving_lanes_seen=leaving_lanes_seen,
             permit_any_speed=permit_any_speed,
             passing_cut_ins=passing_cut_ins,
+            level_when_incentive=level_when_incentive,
         )
         try:
             env.get_wrapper_attr("road_snapshot")
@@ -389,6 +395,7 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
         self.leaving_lanes_seen = bool(leaving_lanes_seen)
         self.permit_any_speed = bool(permit_any_speed)
         self.passing_cut_ins = bool(passing_cut_ins)
+        self.level_when_incentive = bool(level_when_incentive)
         self._rule_options = {name: getattr(self, name) for name in RULE_OPTIONS}  # dynamics_of's keywords
         self.dynamics: Dynamics | None = None
         self.result: SafetyResult | None = None

@@ -1,0 +1,85 @@
+"""When highway-env's drivers decide a turn-in behind the ego, against the rule's incentive time.
+
+``shield.level_when_incentive`` (experimental, docs/safety.md §6m) starts a level car's turn-in behind the ego
+at the first frame of the decision at which MOBIL's incentive lets it (``model.incentive_times``: the others at
+constant speed, the ego on the action's path) instead of from now. This drives the real thing: on highway-env,
+an IDM or Linear driver in the next lane that the ego overtakes, a slow leader ahead of it (so that moving behind
+the ego pays), random rates, speeds and gaps; for every such car that decides to change into the ego's lane
+within the decision, its decision frame against the rule's incentive time.
+
+    .venv/bin/python examples/turn_in_timing.py --cases 300 --seed 0
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+
+import numpy as np
+from highway_env.vehicle.behavior import IDMVehicle, LinearVehicle
+
+from safelane.env.scenarios import VehicleSpec, build_scene, find_shield
+from safelane.safety import model
+
+
+def one_case(rng: np.random.Generator) -> dict | None:
+    """One random scene; the decision time [s] and the rule's incentive time [s], or None if no turn-in."""
+    pol, sim = [(1, 5), (2, 10), (3, 15), (5, 15)][int(rng.integers(4))]
+    ve = float(rng.choice([15.0, 20.0, 25.0, 30.0]))
+    vc = float(rng.uniform(3.0, ve - 3.0))
+    dx, gap, vl = float(rng.uniform(-4.0, 15.0)), float(rng.uniform(7.0, 30.0)), 0.0
+    vl = float(rng.uniform(0.0, vc))
+    driver = IDMVehicle if rng.random() < 0.6 else LinearVehicle
+    action = int(rng.choice([1, 3]))  # IDLE or FASTER
+    specs = [VehicleSpec(2, dx, vc, vehicle_class=driver), VehicleSpec(2, dx + gap, vl, vehicle_class=driver)]
+    sets = {"env.policy_frequency": pol, "env.simulation_frequency": sim}
+    scene = build_scene(1, ve, specs, lanes_count=3, ego_target_speed=ve, **sets)
+    car, leader = scene.vehicles
+    leader.enable_lane_change = False
+    shield = find_shield(scene.env)
+    state, dyn = shield.state_and_dynamics(shield.snapshot)
+    ego_x, ego_v = model.ego_trajectories(state, dyn)
+    frames = dyn.frames_per_decision
+    near = np.flatnonzero(np.abs(state.x - state.ego_x) > 1e-9)
+    row = int(np.argmin(np.abs(state.x[near] - (state.ego_x + dx))))
+    path = (ego_x[action, 0, : frames + 1], ego_v[action, 0, : frames + 1])
+    incentive = float(model.incentive_times(state, dyn, near, *path)[row])
+    frames_done, decided = [0], []
+    policy, step = car.change_lane_policy, car.step
+
+    def watched_policy() -> None:
+        before = car.target_lane_index[2]
+        policy()
+        if car.target_lane_index[2] == 1 and before != 1 and not decided:
+            decided.append(frames_done[0])
+
+    def watched_step(dt: float) -> None:
+        step(dt)
+        frames_done[0] += 1
+
+    car.change_lane_policy, car.step = watched_policy, watched_step
+    scene.env.step(action)
+    scene.env.close()
+    if not decided:
+        return None
+    return {"driver": driver.__name__, "rate": [pol, sim], "decided_s": decided[0] * dyn.frame_dt,
+            "incentive_s": incentive}  # fmt: skip
+
+
+def main() -> None:
+    """Parse the arguments, drive the cases, print a JSON summary."""
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--cases", type=int, default=300, help="random scenes to drive")
+    parser.add_argument("--seed", type=int, default=0)
+    args = parser.parse_args()
+    rng = np.random.default_rng(args.seed)
+    rows = [r for r in (one_case(rng) for _ in range(args.cases)) if r is not None]
+    early = [r for r in rows if r["decided_s"] < r["incentive_s"] - 1e-9]
+    never = [r for r in rows if not np.isfinite(r["incentive_s"])]
+    summary = {"cases": args.cases, "turn_ins_within_the_decision": len(rows), "before_incentive_time": len(early),
+               "incentive_never": len(never), "early": early}  # fmt: skip
+    print(json.dumps(summary, indent=1))
+
+
+if __name__ == "__main__":
+    main()

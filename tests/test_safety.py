@@ -128,10 +128,10 @@ EXPECTED = {
     # once it is well ahead, so it is a cut-in from then (shield.cut_in_when_permitted, robust only): IDLE keeps
     # 4.21 m (the earlier rule had it cutting in from now: nothing safe, test below). Nominal: IDLE and FASTER.
     "car_passing_a_stopped_ego": {"nominal": mask_of(I, F), "robust": mask_of(I)},
-    # The ego stopped, a car 1.05 m behind it in the next lane at 25.66 m/s (2 decisions per second): bounded as a
-    # follower in the ego's lane, driving through it — nothing safe, the least-bad FASTER flagged (with
-    # shield.passing_cut_ins, experimental, a leader once in: IDLE and FASTER; test below). Nominal: IDLE, FASTER.
-    "car_passing_in_the_next_lane": {"nominal": mask_of(I, F), "robust": mask_of(F)},
+    # The ego stopped, a car 1.05 m behind it in the next lane at 25.66 m/s (2 decisions per second): MOBIL lets it
+    # in only ahead of the ego, a leader once in (shield.passing_cut_ins): IDLE and FASTER (the earlier rule bounded
+    # it as a follower driving through the ego: nothing safe; test below). Nominal: IDLE, FASTER.
+    "car_passing_in_the_next_lane": {"nominal": mask_of(I, F), "robust": mask_of(I, F)},
 }
 
 
@@ -147,7 +147,6 @@ def test_scenario_masks(name: str, mode: str, engine: str) -> None:
     fallbacks |= {("closing_in_at_five_per_second", "nominal"), ("closing_in_at_five_per_second", "robust")}
     fallbacks |= {("ego_turning_into_its_lane", "robust"), ("reversing_car_beside", "robust")}
     fallbacks |= {("ego_crossing_a_lane", "nominal"), ("ego_crossing_a_lane", "robust")}
-    fallbacks.add(("car_passing_in_the_next_lane", "robust"))
     assert scene.result.fallback == ((name, mode) in fallbacks)
     available = scene.env.unwrapped.action_type.get_available_actions()
     assert set(np.flatnonzero(scene.mask)) <= set(available)
@@ -817,15 +816,15 @@ def test_passing_cut_ins_make_a_car_passing_the_ego_a_leader(engine: str) -> Non
     1.05 m behind it in the next lane at 25.66 m/s. MOBIL lets it cut in only ahead of the ego (the ego its new
     follower, braking no harder than 2 m/s²: 7.75 m ahead of a stopped ego by its IDM), but the rule bounded it
     as a follower entering the ego's lane and driving on through it: IDLE −78.63 m, nothing safe. With
-    shield.passing_cut_ins it is a leader from its cut-in — at least that distance ahead when it decides, then
-    braking at its limit: IDLE keeps 5.50 m and FASTER 1.36 m. highway-env agrees: driven on with IDLE for 3 s,
-    the car passes and nobody crashes."""
+    shield.passing_cut_ins (the default since issue 15's thirteenth session) it is a leader from its cut-in — at
+    least that distance ahead when it decides, then braking at its limit: IDLE keeps 5.50 m and FASTER 1.36 m.
+    highway-env agrees: driven on with IDLE for 3 s, the car passes and nobody crashes."""
     kw = {"shield.engine": engine}
-    earlier = scenarios.SCENARIOS["car_passing_in_the_next_lane"](**kw)
+    earlier = scenarios.SCENARIOS["car_passing_in_the_next_lane"](**kw, **{"shield.passing_cut_ins": False})
     assert earlier.result.fallback and not earlier.result.safe.any()
     assert earlier.result.min_gap[[I, F]] == pytest.approx([-78.627, -68.637], abs=0.001)
     earlier.env.close()
-    scene = scenarios.SCENARIOS["car_passing_in_the_next_lane"](**kw, **{"shield.passing_cut_ins": True})
+    scene = scenarios.SCENARIOS["car_passing_in_the_next_lane"](**kw)  # the default since the thirteenth session
     assert scene.mask.tolist() == mask_of(I, F) and not scene.result.fallback
     assert scene.result.min_gap[[I, F]] == pytest.approx([5.501, 1.362], abs=0.001)
     passing = scene.vehicles[0]

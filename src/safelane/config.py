@@ -311,12 +311,13 @@ class ShieldConfig(_Section):
         "allowed (docs/safety.md §6m). On by default since issue 15's thirteenth session.",
     )
     passing_cut_ins: bool = Field(
-        False,
+        True,
         strict=True,
-        description="Experimental (robust mode, with cut_in_when_permitted): a car behind the ego in a next lane "
+        description="Robust mode, with cut_in_when_permitted: a car behind the ego in a next lane "
         "that MOBIL lets cut into the ego's lane only ahead of it is a leader once in — at least the distance "
         "MOBIL needs ahead of the ego at its decision, then braking at its limit — instead of a follower that "
-        "drives on through the ego (docs/safety.md §6m).",
+        "drives on through the ego (docs/safety.md §6m). On by default since issue 15's thirteenth session; "
+        "false: the earlier rule.",
     )
     level_when_incentive: bool = Field(
         False,
@@ -758,7 +759,7 @@ RULE_CHANGES: dict[str, Any] = {
     # issue 15's twelfth session (docs/safety.md §6l)
     "finishing_changes": False,
     # issue 15's thirteenth session (docs/safety.md §6m)
-    "cut_in_when_permitted": False, "permit_any_speed": False,
+    "cut_in_when_permitted": False, "permit_any_speed": False, "passing_cut_ins": False,
 }  # fmt: skip
 """Shield keys added with a new default that changes the rule: a *recorded* configuration (a run's
 config.yaml, a counterexample file) written before the key existed had the old behaviour, given here,

@@ -413,8 +413,8 @@ def car_passing_in_the_next_lane(mode: Mode = "robust", **kw: Any) -> Scene:
     it at 25.66 m/s, passing — the 100 800-episode campaign's cell 723 (``cell00723-seed4007230023``, the
     overtaking probe) at its break, the largest class of the breaks left (the culprit in the next lane, behind).
     MOBIL lets it cut in only ahead of the ego, once 9–10 m ahead; the rule bounded it as a follower in the
-    ego's lane, driving on through the ego: nothing safe. With ``shield.passing_cut_ins`` (experimental) it is a
-    leader from its cut-in: IDLE keeps 5.50 m, FASTER 1.36 m."""
+    ego's lane, driving on through the ego: nothing safe. With ``shield.passing_cut_ins`` (the default since
+    issue 15's thirteenth session) it is a leader from its cut-in: IDLE keeps 5.50 m, FASTER 1.36 m."""
     sets = {"env.policy_frequency": 2, "env.simulation_frequency": 10}
     specs = [VehicleSpec(1, -1.05, 25.66)]
     return build_scene(0, 0.0, specs, mode=mode, lanes_count=2, ego_target_speed=0.0, **sets, **kw)

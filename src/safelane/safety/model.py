@@ -123,7 +123,7 @@ class Dynamics:
     finishing_changes: bool = True  # robust: a car moving toward its own lane's centre is not projected past it
     cut_in_when_permitted: bool = True  # robust: a cut-in starts from the first frame MOBIL's safety criterion allows
     leaving_lanes_seen: bool = False  # lateral_schedule: MOBIL filters cut-ins into a lane the ego leaves, seen there
-    passing_cut_ins: bool = False  # cut_in_when_permitted: a car behind the ego cutting in ahead of it is a leader
+    passing_cut_ins: bool = True  # cut_in_when_permitted: a car behind the ego cutting in ahead of it is a leader
     permit_any_speed: bool = True  # cut_in_when_permitted: MOBIL's IDM criterion at the car's loosest speed
     level_when_incentive: bool = False  # level turn-ins start from the first frame MOBIL's incentive allows them
     ego_lateral_speed: float = math.nan  # [m/s] the speed that simulation runs at (per state, like ego_leave_time)

@@ -100,7 +100,7 @@ def dynamics_of(
     cut_in_when_permitted: bool = True,
     leaving_lanes_seen: bool = False,
     permit_any_speed: bool = True,
-    passing_cut_ins: bool = False,
+    passing_cut_ins: bool = True,
     level_when_incentive: bool = False,
 ) -> Dynamics:
     """The :class:`Dynamics` constants of the simulated world a snapshot was taken in; ``margin`` [m]: the
@@ -274,7 +274,7 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
     MOBIL still sees it there, are MOBIL-filtered as in its own lane.
     ``permit_any_speed``: with ``cut_in_when_permitted``, MOBIL's IDM criterion at the car's loosest speed within
     its reach (else at its fastest, which is not the loosest when IDM's desired gap goes negative).
-    ``passing_cut_ins`` (experimental, with ``cut_in_when_permitted``): a car behind the ego in a next lane that
+    ``passing_cut_ins`` (with ``cut_in_when_permitted``): a car behind the ego in a next lane that
     MOBIL lets cut in ahead of it is a leader once in (else bounded as a follower).
     ``level_when_incentive`` (experimental): a car level with or behind the ego turns in behind it from the
     first frame MOBIL's incentive allows it (else from the cut-in time whenever it allows it now or at the end).
@@ -313,7 +313,7 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
         cut_in_when_permitted: bool = True,
         leaving_lanes_seen: bool = False,
         permit_any_speed: bool = True,
-        passing_cut_ins: bool = False,
+        passing_cut_ins: bool = True,
         level_when_incentive: bool = False,
     ) -> None:
         if not (math.isfinite(margin) and margin >= 0):

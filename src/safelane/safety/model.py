@@ -737,14 +737,15 @@ def permit_times(
     return out
 
 
-def required_gap(state: RoadState, dyn: Dynamics, i: int, ego_speed: float, ego_target: float, tau: float) -> float:
+def required_gap(state: RoadState, i: int, ego_speed: float, ego_target: float, tau: float) -> float:
     """The smallest centre distance [m] ahead of the ego at which MOBIL's safety criterion lets vehicle ``i``
-    cut in front of it at time ``tau`` [s] (the ego at ``ego_speed`` [m/s], set-point ``ego_target``), the car
-    at its fastest (accelerating at its limit from now, which only shortens the distance): the criterion of
-    :func:`permit_times` solved for the distance; inf where it allows it at none. IDM drivers:
+    cut in front of it at time ``tau`` [s] (the ego at ``ego_speed`` [m/s], set-point ``ego_target``), whatever
+    speed the car has then within its reach since now: the criterion of :func:`permit_times` solved for the
+    distance; inf where it allows it at none. IDM drivers:
     ``a = free − acc·(d*/d)² ≥ −b_safe`` gives ``d ≥ |d*| / √((free + b_safe)/acc)``, with the least ``|d*|``
-    over the car's speeds in reach (:func:`least_desired_gap`, as ``permit_any_speed`` takes it); linear-model drivers
-    (with ``linear_mobil``): ``d ≥ d_safe − (C + b_safe)/k₂`` with ``C`` the formula's other terms. Never below 0:
+    over the car's speeds in reach (:func:`least_desired_gap`, as ``permit_any_speed`` takes it); linear-model
+    drivers (with ``linear_mobil``): ``d ≥ d_safe − (C + b_safe)/k₂`` with ``C`` the formula's other terms at
+    the car's fastest (the formula grows with its speed). Never below 0:
     MOBIL sees the ego as the new follower only while the car's centre is ahead of the ego's."""
     limit = -float(state.max_braking_imposed[i])
     accel = max(float(state.accel_max[i]), 0.0)
@@ -793,7 +794,7 @@ def passing_positions(
         tau = float(t[f])
         if not tau >= first:
             continue
-        d_req = required_gap(state, dyn, i, float(ego_vs[f]), ego_target, tau)
+        d_req = required_gap(state, i, float(ego_vs[f]), ego_target, tau)
         if not math.isfinite(d_req):
             continue
         v = max(float(state.vx[i]) - b * tau, 0.0)

@@ -1,4 +1,5 @@
-"""The scripted adversaries on the real highway-env: the MOBIL-respecting cut-in (issue 15's in-model cut-in)."""
+"""The scripted adversaries on the real highway-env: the MOBIL-respecting cut-in (issue 15's in-model cut-in), and
+the rule's cut-in bounds checked against it."""
 
 from __future__ import annotations
 
@@ -6,9 +7,12 @@ import dataclasses
 import math
 from typing import Any
 
+import numpy as np
 import pytest
 
 from safelane import ConfigError, make_env
+from safelane.env.scenarios import VehicleSpec, build_scene, find_shield
+from safelane.safety import model
 from safelane.sim.adversaries import MobilCutInVehicle
 
 
@@ -83,11 +87,6 @@ def _cut_ins_from_behind(permit_any_speed: bool, cases: int = 160) -> tuple[int,
     for each that decides within the first decision, check it against the rule's bounds (model.permit_times,
     model.passing_positions): it decides no earlier than the permit time, and once its body overlaps the ego's
     lane it is never behind the passing path. Returns (cut-ins checked, violations)."""
-    import numpy as np
-
-    from safelane.env.scenarios import VehicleSpec, build_scene, find_shield
-    from safelane.safety import model
-
     rng = np.random.default_rng(15)
     checked, bad = 0, []
     for k in range(cases):

@@ -412,7 +412,7 @@ def car_passing_in_the_next_lane(mode: Mode = "robust", **kw: Any) -> Scene:
     """2 lanes, 2 decisions per second; the ego stopped in lane 0 (set-point 0); in lane 1 a car 1.05 m behind
     it at 25.66 m/s, passing — the 100 800-episode campaign's cell 723 (``cell00723-seed4007230023``, the
     overtaking probe) at its break, the largest class of the breaks left (the culprit in the next lane, behind).
-    MOBIL lets it cut in only ahead of the ego, once 9–10 m ahead; the rule bounded it as a follower in the
+    MOBIL lets it cut in only ahead of the ego, at least 7.75 m ahead; the rule bounded it as a follower in the
     ego's lane, driving on through the ego: nothing safe. With ``shield.passing_cut_ins`` (the default since
     issue 15's thirteenth session) it is a leader from its cut-in: IDLE keeps 5.50 m, FASTER 1.36 m."""
     sets = {"env.policy_frequency": 2, "env.simulation_frequency": 10}

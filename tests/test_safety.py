@@ -777,6 +777,17 @@ def test_finishing_changes_lets_a_car_settle_in_the_next_lane(engine: str) -> No
     assert settling.lane_index[2] == 4 and abs(settling.lane.local_coordinates(settling.position)[1]) < 0.1
 
 
+def _drive_idle_while_it_passes(scene: scenarios.Scene, decisions: int, ahead: float) -> None:
+    """Drive a scene's highway-env on with IDLE for ``decisions``: nobody crashes, and its first placed car ends
+    more than ``ahead`` [m] in front of the ego (it passed instead of cutting in)."""
+    passing = scene.vehicles[0]
+    for _ in range(decisions):
+        *_, terminated, _, info = scene.env.step(I)
+        assert not terminated and not info["collision"]
+    assert passing.position[0] - scene.env.unwrapped.vehicle.position[0] > ahead
+    scene.env.close()
+
+
 @pytest.mark.parametrize("engine", ["numpy", "compiled"])
 def test_cut_in_when_permitted_lets_a_car_pass_a_stopped_ego(engine: str) -> None:
     """The 100 800-episode campaign's cell 615 at its break (docs/safety.md §6l), rebuilt: the ego stopped, a car
@@ -802,12 +813,7 @@ def test_cut_in_when_permitted_lets_a_car_pass_a_stopped_ego(engine: str) -> Non
     assert [n.mask.tolist() for n in nominal] == [mask_of(I, F)] * 2
     for n in nominal:
         n.env.close()
-    passing = scene.vehicles[0]
-    for _ in range(5):
-        *_, terminated, _, info = scene.env.step(I)
-        assert not terminated and not info["collision"]
-    assert passing.position[0] - scene.env.unwrapped.vehicle.position[0] > 100.0
-    scene.env.close()
+    _drive_idle_while_it_passes(scene, decisions=5, ahead=100.0)
 
 
 @pytest.mark.parametrize("engine", ["numpy", "compiled"])
@@ -827,12 +833,7 @@ def test_passing_cut_ins_make_a_car_passing_the_ego_a_leader(engine: str) -> Non
     scene = scenarios.SCENARIOS["car_passing_in_the_next_lane"](**kw)  # the default since the thirteenth session
     assert scene.mask.tolist() == mask_of(I, F) and not scene.result.fallback
     assert scene.result.min_gap[[I, F]] == pytest.approx([5.501, 1.362], abs=0.001)
-    passing = scene.vehicles[0]
-    for _ in range(6):
-        *_, terminated, _, info = scene.env.step(I)
-        assert not terminated and not info["collision"]
-    assert passing.position[0] - scene.env.unwrapped.vehicle.position[0] > 50.0
-    scene.env.close()
+    _drive_idle_while_it_passes(scene, decisions=6, ahead=50.0)
 
 
 @pytest.mark.parametrize("engine", ["numpy", "compiled"])

@@ -44,6 +44,7 @@ def one_case(rng: np.random.Generator) -> dict | None:
     row = int(np.argmin(np.abs(state.x[near] - (state.ego_x + dx))))
     path = (ego_x[action, 0, : frames + 1], ego_v[action, 0, : frames + 1])
     incentive = float(model.incentive_times(state, dyn, near, *path)[row])
+    bound = float(model.incentive_times_any_speed(state, dyn, near, *path)[row])
     frames_done, decided = [0], []
     policy, step = car.change_lane_policy, car.step
 
@@ -63,7 +64,7 @@ def one_case(rng: np.random.Generator) -> dict | None:
     if not decided:
         return None
     return {"driver": driver.__name__, "rate": [pol, sim], "decided_s": decided[0] * dyn.frame_dt,
-            "incentive_s": incentive}  # fmt: skip
+            "incentive_s": incentive, "any_speed_s": bound}  # fmt: skip
 
 
 def main() -> None:
@@ -76,8 +77,11 @@ def main() -> None:
     rows = [r for r in (one_case(rng) for _ in range(args.cases)) if r is not None]
     early = [r for r in rows if r["decided_s"] < r["incentive_s"] - 1e-9]
     never = [r for r in rows if not np.isfinite(r["incentive_s"])]
+    early_bound = [r for r in rows if r["decided_s"] < r["any_speed_s"] - 1e-9]
     summary = {"cases": args.cases, "turn_ins_within_the_decision": len(rows), "before_incentive_time": len(early),
-               "incentive_never": len(never), "early": early}  # fmt: skip
+               "incentive_never": len(never), "before_any_speed_time": len(early_bound),
+               "any_speed_never": sum(not np.isfinite(r["any_speed_s"]) for r in rows),
+               "early": early, "early_any_speed": early_bound}  # fmt: skip
     print(json.dumps(summary, indent=1))
 
 

@@ -582,12 +582,13 @@ def test_passing_cut_ins_bit_identical(case: tuple) -> None:
 @PROPERTY_SETTINGS
 @given(case=road(extreme=True, rates=True, follower=True))
 def test_level_when_incentive_bit_identical(case: tuple) -> None:
-    """shield.level_when_incentive (experimental): the same in both engines at every rate (IDM and linear-model
-    drivers, with and without their incentive and its braking variant); robust ⊆ nominal still holds; nominal is
-    unchanged to the bit."""
+    """shield.level_when_incentive: the same in both engines at every rate (IDM and linear-model drivers, with
+    and without their incentive and its braking variant; the bound over every speed in reach and the
+    constant-speed time it replaced); robust ⊆ nominal still holds; nominal is unchanged to the bit."""
     state, dyn, _ = case
     on = dataclasses.replace(dyn, level_when_incentive=True)
     assert mismatches(state, on) == []
+    assert mismatches(state, dataclasses.replace(on, incentive_any_speed=False)) == []  # the thirteenth session's
     assert mismatches(state, dataclasses.replace(on, linear_incentive_braking=False)) == []
     assert mismatches(state, dataclasses.replace(on, linear_incentive=False, passing_cut_ins=True)) == []
     assert_nested(state, on)

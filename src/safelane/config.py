@@ -328,6 +328,14 @@ class ShieldConfig(_Section):
         "time — instead of from the cut-in time whenever it allows it now or at the end: a car the ego is "
         "overtaking gains by moving behind it only once the ego is ahead (docs/safety.md §6m).",
     )
+    incentive_any_speed: bool = Field(
+        True,
+        strict=True,
+        description="Robust mode, with level_when_incentive: the first frame MOBIL's incentive could allow the "
+        "turn-in over every speed the car and the vehicles ahead of it can reach within their braking and "
+        "acceleration limits (a bound); false: with the others at constant speed, which highway-env's drivers "
+        "beat by a physics frame (docs/safety.md §6n).",
+    )
 
     def rule_options(self) -> dict[str, bool]:
         """The rule's on/off options by name, as :class:`safelane.safety.shield.SafetyShield` and
@@ -741,7 +749,7 @@ RULE_OPTIONS = (
     "robust_fallback", "straight_fallback", "linear_incentive", "linear_incentive_braking", "reversing_cut_ins",
     "crossed_lanes", "lateral_schedule", "reversing_noses", "follower_idm", "follower_set_point",
     "finishing_changes", "cut_in_when_permitted", "leaving_lanes_seen", "permit_any_speed", "passing_cut_ins",
-    "level_when_incentive",
+    "level_when_incentive", "incentive_any_speed",
 )  # fmt: skip
 """The :class:`ShieldConfig` fields that switch parts of the safety rule on or off (``ShieldConfig.rule_options``)."""
 
@@ -760,6 +768,8 @@ RULE_CHANGES: dict[str, Any] = {
     "finishing_changes": False,
     # issue 15's thirteenth session (docs/safety.md §6m)
     "cut_in_when_permitted": False, "permit_any_speed": False, "passing_cut_ins": False,
+    # issue 15's fourteenth session (docs/safety.md §6n)
+    "incentive_any_speed": False,
 }  # fmt: skip
 """Shield keys added with a new default that changes the rule: a *recorded* configuration (a run's
 config.yaml, a counterexample file) written before the key existed had the old behaviour, given here,

@@ -259,6 +259,96 @@ def _incentive_first(
 
 
 @njit(cache=True, inline="always")
+def _desired_gap_range(
+    dw: float, tw: float, root_ab: float, v_lo: float, v_hi: float, front_lo: float, front_hi: float
+) -> tuple[float, float]:  # fmt: skip
+    """``model._desired_gap_range`` (same operations, same order): the least and largest desired gap [m]."""
+    c = 2 * root_ab
+    top_lo = dw + v_lo * tw + v_lo * (v_lo - front_lo) / c
+    top_hi = dw + v_hi * tw + v_hi * (v_hi - front_lo) / c
+    top = top_hi if top_hi > top_lo else top_lo
+    vertex = min(max(0.5 * (front_hi - tw * c), v_lo), v_hi)
+    bottom = dw + vertex * tw + vertex * (vertex - front_hi) / c
+    return bottom, top
+
+
+@njit(cache=True, error_model="numpy")
+def _incentive_first_any_speed(
+    i: int, r: int, m: int, near: np.ndarray, lanes_near: np.ndarray, x: np.ndarray, vx: np.ndarray,
+    vy: np.ndarray, crashed: np.ndarray, brake_max: np.ndarray, accel_max: np.ndarray, lin_k0: np.ndarray,
+    lin_k1: np.ndarray, lin_k2: np.ndarray, dw_all: np.ndarray, tw_all: np.ndarray, acc_all: np.ndarray,
+    dec_all: np.ndarray, linear_incentive: bool, ego_xs: np.ndarray, ego_speed: float, kv: float, kt: float,
+    powers: np.ndarray, frames: int, t: np.ndarray, min_acc_gain: float,
+) -> float:  # fmt: skip
+    """``model.incentive_times_any_speed`` for vehicle ``i`` (row ``r``; same operations, same order): the first
+    frame time [s] at which MOBIL's incentive could let it turn in behind the ego; inf: none."""
+    linear = np.isfinite(lin_k0[i])
+    if linear and not linear_incentive:
+        return np.inf
+    dw, tw, acc = dw_all[i], tw_all[i], acc_all[i]
+    k1, k2 = lin_k1[i], lin_k2[i]
+    root_ab = np.sqrt(-acc * dec_all[i])
+    v0 = 0.0 if crashed[i] else _nmax(vx[i], 0.0)
+    brake = _nmax(1e9 if crashed[i] else brake_max[i], 1e-6)
+    accel = 0.0 if crashed[i] else _nmax(accel_max[i], 0.0)
+    speed = 0.0 if crashed[i] else math.hypot(vx[i], vy[i])
+    for f in range(frames + 1):
+        tau = t[f]
+        stop = _nmin(tau, v0 / brake)
+        x_lo = x[i] + v0 * stop - 0.5 * brake * (stop * stop)
+        v_lo = v0 - brake * stop
+        x_hi = x[i] + v0 * tau + 0.5 * accel * (tau * tau)
+        v_hi = speed + accel * tau
+        if not x_lo - ego_xs[f, 0] <= 0:
+            continue
+        ego_vf = kv if f == frames else (ego_speed - kt) * powers[f] + kt
+        gap_ego = ego_xs[f, 0] - x_lo
+        if linear:
+            ego_term = k1 * min(ego_vf - v_lo, 0.0) + k2 * min(gap_ego - (dw + v_lo * tw), 0.0)
+            lead = 0.0
+            found = False
+            for k in range(m):
+                ii = near[k]
+                if lanes_near[k] == lanes_near[r] and x[ii] > x[i]:
+                    l0 = 0.0 if crashed[ii] else _nmax(vx[ii], 0.0)
+                    lb = _nmax(1e9 if crashed[ii] else brake_max[ii], 1e-6)
+                    ls = _nmin(tau, l0 / lb)
+                    lx_lo = x[ii] + l0 * ls - 0.5 * lb * (ls * ls)
+                    lv_lo = l0 - lb * ls
+                    term = k1 * _nmin(lv_lo - v_hi, 0.0) + k2 * _nmin((lx_lo - x_hi) - (dw + v_hi * tw), 0.0)
+                    lead = _nmin(lead, term) if found else term
+                    found = True
+            if ego_term - lead >= min_acc_gain:
+                return tau
+        else:
+            lo, hi = _desired_gap_range(dw, tw, root_ab, v_lo, v_hi, ego_vf, ego_vf)
+            least = lo if lo > 0.0 else (-hi if hi < 0.0 else 0.0)
+            q_ego = least / max(gap_ego, 1e-2)
+            ego_term = q_ego * q_ego
+            lead = 0.0
+            for k in range(m):
+                ii = near[k]
+                if lanes_near[k] == lanes_near[r] and x[ii] > x[i]:
+                    l0 = 0.0 if crashed[ii] else _nmax(vx[ii], 0.0)
+                    lb = _nmax(1e9 if crashed[ii] else brake_max[ii], 1e-6)
+                    la = 0.0 if crashed[ii] else _nmax(accel_max[ii], 0.0)
+                    ls = _nmin(tau, l0 / lb)
+                    lx_lo = x[ii] + l0 * ls - 0.5 * lb * (ls * ls)
+                    lv_lo = l0 - lb * ls
+                    lv_hi = (0.0 if crashed[ii] else math.hypot(vx[ii], vy[ii])) + la * tau
+                    gap = lx_lo - x_hi
+                    if not gap >= 1e-2:
+                        lead = np.inf  # the gap may close: IDM's term has no bound
+                        break
+                    lo, hi = _desired_gap_range(dw, tw, root_ab, v_lo, v_hi, lv_lo, lv_hi)
+                    q = max(hi, -lo) / gap
+                    lead = max(lead, q * q)
+            if acc * lead - acc * ego_term >= min_acc_gain:
+                return tau
+    return np.inf
+
+
+@njit(cache=True, inline="always")
 def _gap_ratio(
     dw: float, tw: float, acc: float, dec: float, v: float, front_speed: float, gap: float
 ) -> float:  # fmt: skip
@@ -421,7 +511,7 @@ def _evaluate_rule(
     linear_incentive_braking: bool, reversing_cut_ins: bool, crossed_lanes: bool, lateral_schedule: bool,
     reversing_noses: bool, follower_idm: bool, follower_set_point: bool, finishing_changes: bool,
     cut_in_when_permitted: bool, leaving_lanes_seen: bool,
-    permit_any_speed: bool, passing_cut_ins: bool, level_when_incentive: bool,
+    permit_any_speed: bool, passing_cut_ins: bool, level_when_incentive: bool, incentive_any_speed: bool,
     ego_width: float, kp_lateral: float,
     kp_heading: float, max_steering: float, turning_allowance: float,
     min_acc_gain: float,
@@ -865,13 +955,20 @@ def _evaluate_rule(
                 nominal = False
                 follows = True
                 lo = lo_cut
-                if level_when_incentive and occupied:  # model.incentive_times: from MOBIL's first frame
-                    t_inc = _incentive_first(
-                        near[r], r, m, near, lanes_near, x, vx, crashed, brake_max, lin_k0, lin_k1, lin_k2,
-                        idm_distance_wanted, idm_time_wanted, idm_comfort_acc, idm_comfort_dec, linear_incentive,
-                        linear_incentive_braking, xs[a], ego_speed, v_key[a], targets[a], powers, frames, t,
-                        min_acc_gain,
-                    )  # fmt: skip
+                if level_when_incentive and occupied:  # model.incentive_times(_any_speed): from MOBIL's first frame
+                    if incentive_any_speed:
+                        t_inc = _incentive_first_any_speed(
+                            near[r], r, m, near, lanes_near, x, vx, vy, crashed, brake_max, accel_max, lin_k0,
+                            lin_k1, lin_k2, idm_distance_wanted, idm_time_wanted, idm_comfort_acc, idm_comfort_dec,
+                            linear_incentive, xs[a], ego_speed, v_key[a], targets[a], powers, frames, t, min_acc_gain,
+                        )  # fmt: skip
+                    else:
+                        t_inc = _incentive_first(
+                            near[r], r, m, near, lanes_near, x, vx, crashed, brake_max, lin_k0, lin_k1, lin_k2,
+                            idm_distance_wanted, idm_time_wanted, idm_comfort_acc, idm_comfort_dec, linear_incentive,
+                            linear_incentive_braking, xs[a], ego_speed, v_key[a], targets[a], powers, frames, t,
+                            min_acc_gain,
+                        )  # fmt: skip
                     if t_inc < inf:
                         start = cut_in_time + t_inc
                         lo = 0
@@ -1016,7 +1113,7 @@ def _evaluate(
     linear_incentive: bool, linear_incentive_braking: bool, reversing_cut_ins: bool, crossed_lanes: bool,
     lateral_schedule: bool, reversing_noses: bool, follower_idm: bool, follower_set_point: bool,
     finishing_changes: bool, cut_in_when_permitted: bool, leaving_lanes_seen: bool,
-    permit_any_speed: bool, passing_cut_ins: bool, level_when_incentive: bool,
+    permit_any_speed: bool, passing_cut_ins: bool, level_when_incentive: bool, incentive_any_speed: bool,
     ego_width: float,
     kp_lateral: float,
     kp_heading: float, max_steering: float, turning_allowance: float,
@@ -1040,7 +1137,7 @@ def _evaluate(
         level_cut_ins, level_incentive, level_entering, least_bad_joint, robust_fallback, linear_incentive,
         linear_incentive_braking, reversing_cut_ins, crossed_lanes, lateral_schedule,
         reversing_noses, follower_idm, follower_set_point, finishing_changes,
-        cut_in_when_permitted, leaving_lanes_seen, permit_any_speed, passing_cut_ins, level_when_incentive,
+        cut_in_when_permitted, leaving_lanes_seen, permit_any_speed, passing_cut_ins, level_when_incentive, incentive_any_speed,
         ego_width, kp_lateral,
         kp_heading, max_steering, allowance, min_acc_gain,
     )  # fmt: skip
@@ -1058,7 +1155,7 @@ def _evaluate(
         level_cut_ins, level_incentive, level_entering, least_bad_joint, robust_fallback, linear_incentive,
         linear_incentive_braking, reversing_cut_ins, crossed_lanes, lateral_schedule,
         reversing_noses, follower_idm, follower_set_point, finishing_changes,
-        cut_in_when_permitted, leaving_lanes_seen, permit_any_speed, passing_cut_ins, level_when_incentive,
+        cut_in_when_permitted, leaving_lanes_seen, permit_any_speed, passing_cut_ins, level_when_incentive, incentive_any_speed,
         ego_width, kp_lateral,
         kp_heading, max_steering, 0.0, min_acc_gain,
     )  # fmt: skip
@@ -1084,7 +1181,7 @@ def _evaluate_snapshot(
     linear_incentive: bool, linear_incentive_braking: bool, reversing_cut_ins: bool, crossed_lanes: bool,
     lateral_schedule: bool, reversing_noses: bool, follower_idm: bool, follower_set_point: bool,
     finishing_changes: bool, cut_in_when_permitted: bool, leaving_lanes_seen: bool,
-    permit_any_speed: bool, passing_cut_ins: bool, level_when_incentive: bool,
+    permit_any_speed: bool, passing_cut_ins: bool, level_when_incentive: bool, incentive_any_speed: bool,
     ego_width: float,
     kp_lateral: float,
     kp_heading: float, max_steering: float, ego_speed_magnitude: bool,
@@ -1141,7 +1238,7 @@ def _evaluate_snapshot(
         level_entering, least_bad_joint, robust_fallback, straight_fallback, linear_incentive,
         linear_incentive_braking, reversing_cut_ins, crossed_lanes, lateral_schedule,
         reversing_noses, follower_idm, follower_set_point, finishing_changes,
-        cut_in_when_permitted, leaving_lanes_seen, permit_any_speed, passing_cut_ins, level_when_incentive,
+        cut_in_when_permitted, leaving_lanes_seen, permit_any_speed, passing_cut_ins, level_when_incentive, incentive_any_speed,
         ego_width, kp_lateral,
         kp_heading, max_steering, turning_allowance, min_acc_gain,
     )  # fmt: skip
@@ -1248,6 +1345,7 @@ class KernelConstants(NamedTuple):
     permit_any_speed: bool
     passing_cut_ins: bool
     level_when_incentive: bool
+    incentive_any_speed: bool
     ego_width: float
     kp_lateral: float
     kp_heading: float
@@ -1288,6 +1386,7 @@ def kernel_constants(dyn: Dynamics) -> KernelConstants:
         dyn.permit_any_speed,
         dyn.passing_cut_ins,
         dyn.level_when_incentive,
+        dyn.incentive_any_speed,
         dyn.ego_width,
         dyn.kp_lateral,
         dyn.kp_heading,
@@ -1331,7 +1430,7 @@ def evaluate_compiled(
         dyn.linear_incentive_braking, dyn.reversing_cut_ins, dyn.crossed_lanes, dyn.lateral_schedule,
         dyn.reversing_noses, dyn.follower_idm, dyn.follower_set_point, dyn.finishing_changes,
         dyn.cut_in_when_permitted, dyn.leaving_lanes_seen, dyn.permit_any_speed, dyn.passing_cut_ins,
-        dyn.level_when_incentive, dyn.ego_width,
+        dyn.level_when_incentive, dyn.incentive_any_speed, dyn.ego_width,
         dyn.kp_lateral, dyn.kp_heading,
         dyn.max_steering, model.turning_allowance(dyn), _MIN_ACC_GAIN,
     )  # fmt: skip
@@ -1378,7 +1477,7 @@ def evaluate_snapshot(
         dyn.linear_incentive_braking, dyn.reversing_cut_ins, dyn.crossed_lanes, dyn.lateral_schedule,
         dyn.reversing_noses, dyn.follower_idm, dyn.follower_set_point, dyn.finishing_changes,
         dyn.cut_in_when_permitted, dyn.leaving_lanes_seen, dyn.permit_any_speed, dyn.passing_cut_ins,
-        dyn.level_when_incentive, dyn.ego_width,
+        dyn.level_when_incentive, dyn.incentive_any_speed, dyn.ego_width,
         dyn.kp_lateral, dyn.kp_heading,
         dyn.max_steering, dyn.ego_speed_magnitude,
         model.turning_allowance(dyn),

@@ -126,6 +126,7 @@ class Dynamics:
     passing_cut_ins: bool = True  # cut_in_when_permitted: a car behind the ego cutting in ahead of it is a leader
     permit_any_speed: bool = True  # cut_in_when_permitted: MOBIL's IDM criterion at the car's loosest speed
     level_when_incentive: bool = False  # level turn-ins start from the first frame MOBIL's incentive allows them
+    incentive_any_speed: bool = True  # level_when_incentive: that frame over every speed the cars can reach
     ego_lateral_speed: float = math.nan  # [m/s] the speed that simulation runs at (per state, like ego_leave_time)
     ego_width: float = 2.0  # [m] the ego's width (Vehicle.WIDTH)
     kp_lateral: float = 1.0 / 0.6  # [1/s] ControlledVehicle.KP_LATERAL
@@ -1020,6 +1021,88 @@ def linear_turn_in_incentive_braking(
     return out
 
 
+def _desired_gap_range(
+    dw: float, tw: float, root_ab: float, v_lo: float, v_hi: float, front_lo: float, front_hi: float
+) -> tuple[float, float]:
+    """The least and largest of IDM's desired gap ``d* = d₀ + v·T + v·(v − v_front)/(2√(ab))`` [m] over a
+    driver's speeds ``v`` in ``[v_lo, v_hi]`` and its front vehicle's in ``[front_lo, front_hi]`` [m/s]
+    (``v ≥ 0``): falling in ``v_front``; convex in ``v``, so the largest at an end of the range and the least
+    at the vertex ``(v_front − T·2√(ab))/2`` clipped to it."""
+    c = 2 * root_ab
+    top = max(dw + v * tw + v * (v - front_lo) / c for v in (v_lo, v_hi))
+    vertex = min(max(0.5 * (front_hi - tw * c), v_lo), v_hi)
+    bottom = dw + vertex * tw + vertex * (vertex - front_hi) / c
+    return bottom, top
+
+
+def incentive_times_any_speed(
+    state: RoadState, dyn: Dynamics, near: np.ndarray, ego_xs: np.ndarray, ego_vs: np.ndarray
+) -> np.ndarray:
+    """:func:`incentive_times` as a bound (``Dynamics.incentive_any_speed``): the first frame time [s] of the
+    decision at which MOBIL's incentive *could* let each vehicle of ``near`` turn in behind the ego, whatever
+    it and the vehicles ahead of it in its lane do within their limits — each between braking at its limit
+    from now (a crashed one stopped) and accelerating at its limit from now, the ego on the action's path.
+    The gain ``a(behind the ego) − a(behind its leader)`` is bounded above by the least its term behind the
+    ego can be (the car slowest, farthest back) and the largest its leader's can be (the car fastest, the
+    leader slowest and nearest; a gap that can close: unbounded), the leader's term the largest over every
+    vehicle ahead of it, as :func:`turn_in_incentive` takes it. Its centre must be able to be behind the
+    ego's. inf: at none. Why: :func:`incentive_times` (others at constant speed) was decided one physics
+    frame late by 5 of 45 highway-env turn-ins (``examples/turn_in_timing.py``; issue 15, fourteenth session)."""
+    out = np.full(near.size, np.inf)
+    x, v = state.x[near], state.vx[near]
+    lanes = state.lane_of(state.y[near], dyn.lanes_count, dyn.lane_width)
+    v0 = np.where(state.crashed[near], 0.0, np.maximum(v, 0.0))
+    brake = np.maximum(np.where(state.crashed[near], 1e9, state.brake_max[near]), 1e-6)
+    accel = np.where(state.crashed[near], 0.0, np.maximum(state.accel_max[near], 0.0))
+    speed = np.where(state.crashed[near], 0.0, np.hypot(v, state.vy[near]))
+    times = np.arange(ego_xs.shape[0]) * dyn.frame_dt
+    for f in range(times.size):
+        tau = times[f]
+        stop = np.minimum(tau, v0 / brake)
+        x_lo = x + v0 * stop - 0.5 * brake * (stop * stop)  # braking at its limit from now
+        v_lo = v0 - brake * stop
+        x_hi = x + v0 * tau + 0.5 * accel * (tau * tau)  # accelerating at its limit from now
+        v_hi = speed + accel * tau  # IDM and MOBIL read the whole speed, not only along the road
+        for j in range(near.size):
+            if np.isfinite(out[j]) or not x_lo[j] - ego_xs[f] <= 0:
+                continue
+            i = near[j]
+            linear = bool(np.isfinite(state.linear_speed_gain[i]))
+            rows = np.flatnonzero((lanes == lanes[j]) & (x > x[j]))  # every vehicle ahead of it in its lane
+            gap_ego = ego_xs[f] - x_lo[j]  # [m] centre to centre, the car farthest back
+            if linear and dyn.linear_incentive:
+                k1, k2 = state.linear_speed_difference_gain[i], state.linear_distance_gain[i]
+                dw, tw = state.idm_distance_wanted[i], state.idm_time_wanted[i]
+                ego_term = k1 * min(ego_vs[f] - v_lo[j], 0.0) + k2 * min(gap_ego - (dw + v_lo[j] * tw), 0.0)
+                lead = 0.0  # no vehicle ahead: its term is 0
+                if rows.size:
+                    gap = x_lo[rows] - x_hi[j]
+                    lead = float(
+                        (k1 * np.minimum(v_lo[rows] - v_hi[j], 0.0) + k2 * np.minimum(gap - (dw + v_hi[j] * tw), 0.0)).min()
+                    )
+                if ego_term - lead >= MOBIL_MIN_ACC_GAIN:
+                    out[j] = tau
+            elif not linear:
+                acc, dw, tw = state.idm_comfort_acc[i], state.idm_distance_wanted[i], state.idm_time_wanted[i]
+                root_ab = float(np.sqrt(-acc * state.idm_comfort_dec[i]))
+                lo, hi = _desired_gap_range(dw, tw, root_ab, v_lo[j], v_hi[j], ego_vs[f], ego_vs[f])
+                least = lo if lo > 0.0 else (-hi if hi < 0.0 else 0.0)
+                q_ego = least / max(gap_ego, 1e-2)
+                ego_term = q_ego * q_ego
+                lead = 0.0
+                for r in rows:
+                    gap = x_lo[r] - x_hi[j]
+                    if not gap >= 1e-2:
+                        lead = np.inf  # the gap may close: IDM's term has no bound
+                        break
+                    lo, hi = _desired_gap_range(dw, tw, root_ab, v_lo[j], v_hi[j], v_lo[r], v_hi[r])
+                    q = max(hi, -lo) / gap
+                    lead = max(lead, q * q)
+                if acc * lead - acc * ego_term >= MOBIL_MIN_ACC_GAIN:
+                    out[j] = tau
+    return out
+
+
 def incentive_times(
     state: RoadState, dyn: Dynamics, near: np.ndarray, ego_xs: np.ndarray, ego_vs: np.ndarray
 ) -> np.ndarray:
@@ -1183,7 +1266,8 @@ def evaluate(state: RoadState, dyn: Dynamics, mode: Mode = "robust", formula: Fo
             turn_time = None
             if dyn.level_cut_ins and dyn.level_when_incentive:
                 path = (ego_x[a, 0, : frames + 1], ego_v[a, 0, : frames + 1])
-                turn_time = incentive_times(state, dyn, near, *path)
+                times_of = incentive_times_any_speed if dyn.incentive_any_speed else incentive_times
+                turn_time = times_of(state, dyn, near, *path)
             if dyn.level_cut_ins:
                 # A car level with or behind the ego in a next lane may turn in behind it after the cut-in
                 # time and then follow it (accelerate for the reaction time, then brake): a follower.

@@ -102,6 +102,7 @@ def dynamics_of(
     permit_any_speed: bool = True,
     passing_cut_ins: bool = True,
     level_when_incentive: bool = False,
+    incentive_any_speed: bool = True,
 ) -> Dynamics:
     """The :class:`Dynamics` constants of the simulated world a snapshot was taken in; ``margin`` [m]: the
     bumper-to-bumper gap the rule keeps under its worst case; the rule's options as in :class:`Dynamics`."""
@@ -145,6 +146,7 @@ def dynamics_of(
         permit_any_speed=permit_any_speed,
         passing_cut_ins=passing_cut_ins,
         level_when_incentive=level_when_incentive,
+        incentive_any_speed=incentive_any_speed,
         # highway-env's lateral controller: ControlledVehicle's gains, which MDPVehicle (the ego) inherits.
         ego_width=float(snap.width[snap.ego]) if len(snap.width) else 2.0,
         kp_lateral=float(ControlledVehicle.KP_LATERAL),
@@ -278,6 +280,8 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
     MOBIL lets cut in ahead of it is a leader once in (else bounded as a follower).
     ``level_when_incentive`` (experimental): a car level with or behind the ego turns in behind it from the
     first frame MOBIL's incentive allows it (else from the cut-in time whenever it allows it now or at the end).
+    ``incentive_any_speed`` (with ``level_when_incentive``): that first frame over every speed the car and the
+    vehicles ahead of it can reach, a bound (else with the others at constant speed, which highway-env beat).
     """
 
     def __init__(
@@ -315,6 +319,7 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
         permit_any_speed: bool = True,
         passing_cut_ins: bool = True,
         level_when_incentive: bool = False,
+        incentive_any_speed: bool = True,
     ) -> None:
         if not (math.isfinite(margin) and margin >= 0):
             raise ValueError(f"shield.margin: must be a finite number >= 0 [m] (got {margin!r})")
@@ -358,6 +363,7 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
             permit_any_speed=permit_any_speed,
             passing_cut_ins=passing_cut_ins,
             level_when_incentive=level_when_incentive,
+            incentive_any_speed=incentive_any_speed,
         )
         try:
             env.get_wrapper_attr("road_snapshot")
@@ -396,6 +402,7 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
         self.permit_any_speed = bool(permit_any_speed)
         self.passing_cut_ins = bool(passing_cut_ins)
         self.level_when_incentive = bool(level_when_incentive)
+        self.incentive_any_speed = bool(incentive_any_speed)
         self._rule_options = {name: getattr(self, name) for name in RULE_OPTIONS}  # dynamics_of's keywords
         self.dynamics: Dynamics | None = None
         self.result: SafetyResult | None = None

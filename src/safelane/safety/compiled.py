@@ -1137,7 +1137,8 @@ def _evaluate(
         level_cut_ins, level_incentive, level_entering, least_bad_joint, robust_fallback, linear_incentive,
         linear_incentive_braking, reversing_cut_ins, crossed_lanes, lateral_schedule,
         reversing_noses, follower_idm, follower_set_point, finishing_changes,
-        cut_in_when_permitted, leaving_lanes_seen, permit_any_speed, passing_cut_ins, level_when_incentive, incentive_any_speed,
+        cut_in_when_permitted, leaving_lanes_seen, permit_any_speed, passing_cut_ins, level_when_incentive,
+        incentive_any_speed,
         ego_width, kp_lateral,
         kp_heading, max_steering, allowance, min_acc_gain,
     )  # fmt: skip
@@ -1155,7 +1156,8 @@ def _evaluate(
         level_cut_ins, level_incentive, level_entering, least_bad_joint, robust_fallback, linear_incentive,
         linear_incentive_braking, reversing_cut_ins, crossed_lanes, lateral_schedule,
         reversing_noses, follower_idm, follower_set_point, finishing_changes,
-        cut_in_when_permitted, leaving_lanes_seen, permit_any_speed, passing_cut_ins, level_when_incentive, incentive_any_speed,
+        cut_in_when_permitted, leaving_lanes_seen, permit_any_speed, passing_cut_ins, level_when_incentive,
+        incentive_any_speed,
         ego_width, kp_lateral,
         kp_heading, max_steering, 0.0, min_acc_gain,
     )  # fmt: skip
@@ -1238,7 +1240,8 @@ def _evaluate_snapshot(
         level_entering, least_bad_joint, robust_fallback, straight_fallback, linear_incentive,
         linear_incentive_braking, reversing_cut_ins, crossed_lanes, lateral_schedule,
         reversing_noses, follower_idm, follower_set_point, finishing_changes,
-        cut_in_when_permitted, leaving_lanes_seen, permit_any_speed, passing_cut_ins, level_when_incentive, incentive_any_speed,
+        cut_in_when_permitted, leaving_lanes_seen, permit_any_speed, passing_cut_ins, level_when_incentive,
+        incentive_any_speed,
         ego_width, kp_lateral,
         kp_heading, max_steering, turning_allowance, min_acc_gain,
     )  # fmt: skip

@@ -1076,10 +1076,9 @@ def incentive_times_any_speed(
                 ego_term = k1 * min(ego_vs[f] - v_lo[j], 0.0) + k2 * min(gap_ego - (dw + v_lo[j] * tw), 0.0)
                 lead = 0.0  # no vehicle ahead: its term is 0
                 if rows.size:
+                    closing = k1 * np.minimum(v_lo[rows] - v_hi[j], 0.0)  # leaders slowest, the car fastest
                     gap = x_lo[rows] - x_hi[j]
-                    lead = float(
-                        (k1 * np.minimum(v_lo[rows] - v_hi[j], 0.0) + k2 * np.minimum(gap - (dw + v_hi[j] * tw), 0.0)).min()
-                    )
+                    lead = float((closing + k2 * np.minimum(gap - (dw + v_hi[j] * tw), 0.0)).min())
                 if ego_term - lead >= MOBIL_MIN_ACC_GAIN:
                     out[j] = tau
             elif not linear:

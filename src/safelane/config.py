@@ -320,13 +320,14 @@ class ShieldConfig(_Section):
         "false: the earlier rule.",
     )
     level_when_incentive: bool = Field(
-        False,
+        True,
         strict=True,
-        description="Experimental (robust mode, with level_cut_ins and level_incentive): a car level with or "
-        "behind the ego in a next lane turns in behind it from the first physics frame of the decision at which "
-        "MOBIL's incentive allows it (others at constant speed, the ego on the action's path), plus the cut-in "
-        "time — instead of from the cut-in time whenever it allows it now or at the end: a car the ego is "
-        "overtaking gains by moving behind it only once the ego is ahead (docs/safety.md §6m).",
+        description="Robust mode, with level_cut_ins and level_incentive: a car level with or behind the ego in a "
+        "next lane turns in behind it from the first physics frame of the decision at which MOBIL's incentive "
+        "allows it (with incentive_any_speed: could allow it, over every speed in reach), plus the cut-in time — "
+        "instead of from the cut-in time whenever it allows it now or at the end: a car the ego is overtaking "
+        "gains by moving behind it only once the ego is ahead (docs/safety.md §6m, §6n). On by default since "
+        "issue 15's fourteenth session; false: the earlier rule.",
     )
     incentive_any_speed: bool = Field(
         True,
@@ -769,7 +770,7 @@ RULE_CHANGES: dict[str, Any] = {
     # issue 15's thirteenth session (docs/safety.md §6m)
     "cut_in_when_permitted": False, "permit_any_speed": False, "passing_cut_ins": False,
     # issue 15's fourteenth session (docs/safety.md §6n)
-    "incentive_any_speed": False,
+    "level_when_incentive": False, "incentive_any_speed": False,
 }  # fmt: skip
 """Shield keys added with a new default that changes the rule: a *recorded* configuration (a run's
 config.yaml, a counterexample file) written before the key existed had the old behaviour, given here,

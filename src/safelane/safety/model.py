@@ -125,7 +125,7 @@ class Dynamics:
     leaving_lanes_seen: bool = False  # lateral_schedule: MOBIL filters cut-ins into a lane the ego leaves, seen there
     passing_cut_ins: bool = True  # cut_in_when_permitted: a car behind the ego cutting in ahead of it is a leader
     permit_any_speed: bool = True  # cut_in_when_permitted: MOBIL's IDM criterion at the car's loosest speed
-    level_when_incentive: bool = False  # level turn-ins start from the first frame MOBIL's incentive allows them
+    level_when_incentive: bool = True  # level turn-ins start from the first frame MOBIL's incentive allows them
     incentive_any_speed: bool = True  # level_when_incentive: that frame over every speed the cars can reach
     ego_lateral_speed: float = math.nan  # [m/s] the speed that simulation runs at (per state, like ego_leave_time)
     ego_width: float = 2.0  # [m] the ego's width (Vehicle.WIDTH)

@@ -101,7 +101,7 @@ def dynamics_of(
     leaving_lanes_seen: bool = False,
     permit_any_speed: bool = True,
     passing_cut_ins: bool = True,
-    level_when_incentive: bool = False,
+    level_when_incentive: bool = True,
     incentive_any_speed: bool = True,
 ) -> Dynamics:
     """The :class:`Dynamics` constants of the simulated world a snapshot was taken in; ``margin`` [m]: the
@@ -278,7 +278,7 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
     its reach (else at its fastest, which is not the loosest when IDM's desired gap goes negative).
     ``passing_cut_ins`` (with ``cut_in_when_permitted``): a car behind the ego in a next lane that
     MOBIL lets cut in ahead of it is a leader once in (else bounded as a follower).
-    ``level_when_incentive`` (experimental): a car level with or behind the ego turns in behind it from the
+    ``level_when_incentive``: a car level with or behind the ego turns in behind it from the
     first frame MOBIL's incentive allows it (else from the cut-in time whenever it allows it now or at the end).
     ``incentive_any_speed`` (with ``level_when_incentive``): that first frame over every speed the car and the
     vehicles ahead of it can reach, a bound (else with the others at constant speed, which highway-env beat).
@@ -318,7 +318,7 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
         leaving_lanes_seen: bool = False,
         permit_any_speed: bool = True,
         passing_cut_ins: bool = True,
-        level_when_incentive: bool = False,
+        level_when_incentive: bool = True,
         incentive_any_speed: bool = True,
     ) -> None:
         if not (math.isfinite(margin) and margin >= 0):

@@ -86,9 +86,9 @@ EXPECTED = {
     "reversing_leader": {"nominal": mask_of(I), "robust": mask_of(I)},
     # The ego overtaking a queue of slow cars in the next lane: MOBIL keeps the cars ahead out of its lane (the
     # ego would be their follower, far too close), but the one it passes within the decision may then turn in
-    # behind it (shield.level_cut_ins, robust only): nothing is safe, the least-bad IDLE is flagged. Nominal:
-    # IDLE, LANE_RIGHT and SLOWER.
-    "car_being_overtaken": {"nominal": mask_of(I, R, S), "robust": mask_of(I)},
+    # behind it (shield.level_cut_ins, robust only): nothing is safe, the least-bad SLOWER is flagged (IDLE
+    # before shield.level_when_incentive timed the turn-in). Nominal: IDLE, LANE_RIGHT and SLOWER.
+    "car_being_overtaken": {"nominal": mask_of(I, R, S), "robust": mask_of(S)},
     # A car two lanes over, level with the ego, may change into the lane the ego is changing into
     # (shield.level_entering, robust only): LANE_RIGHT is unsafe. FASTER closes on the leader 52 m ahead.
     "car_two_lanes_over": {"nominal": mask_of(I, R, S), "robust": mask_of(I, S)},
@@ -216,13 +216,28 @@ def test_a_reversing_leader_keeps_its_reverse_speed(engine: str, mode: str) -> N
 @pytest.mark.parametrize("engine", ["numpy", "compiled"])
 def test_level_cut_ins_see_the_car_being_overtaken_turn_in(engine: str) -> None:
     """shield.level_cut_ins (default): the car 3 m ahead in the next lane at 13 m/s is passed within the
-    decision (0.5 s), and may then turn in behind the ego after the cut-in time and follow it. At 0.2 s into
-    the turn the ego leads it by only 1.76 m centre to centre: every action that keeps the ego in lane 1 for
-    that long leaves a −3.24 m gap (SLOWER −3.47 m), nothing is safe. The earlier rule (false) allowed IDLE,
-    LANE_RIGHT and SLOWER (cell00470's side impact). Nominal ignores the option."""
+    decision (0.5 s), and may then turn in behind the ego after the cut-in time and follow it. Turning in from
+    the cut-in time from now (level_when_incentive false, the rule before issue 15's fourteenth session), at
+    0.2 s into the turn the ego leads it by only 1.76 m centre to centre: every action that keeps the ego in
+    lane 1 for that long leaves a −3.24 m gap (SLOWER −3.47 m), nothing is safe. With level_when_incentive and
+    incentive_any_speed (the default) it turns in from the first frame its incentive could hold, 0.2 s, plus
+    the cut-in time: IDLE and LANE_RIGHT −1.69 m, SLOWER 0.38 m (under the 1 m margin), still nothing safe.
+    The incentive judged with the others at constant speed (incentive_any_speed false: 0.3 s) called IDLE and
+    LANE_RIGHT safe with 1.39 m — as the rule before level cut-ins did (cell00470's side impact), which is why
+    that timing was never adopted. Nominal ignores the options."""
     level = scenarios.SCENARIOS["car_being_overtaken"](mode="robust", **{"shield.engine": engine})
     assert level.result.fallback and not level.result.safe.any()
-    assert level.result.min_gap[[I, R, S]] == pytest.approx([-3.24, -3.24, -3.47], abs=0.01)
+    assert level.result.min_gap[[I, R, S]] == pytest.approx([-1.69, -1.69, 0.38], abs=0.01)
+    from_now = scenarios.SCENARIOS["car_being_overtaken"](
+        mode="robust", **{"shield.engine": engine, "shield.level_when_incentive": False}
+    )
+    assert from_now.result.fallback and not from_now.result.safe.any()
+    assert from_now.result.min_gap[[I, R, S]] == pytest.approx([-3.24, -3.24, -3.47], abs=0.01)
+    constant = scenarios.SCENARIOS["car_being_overtaken"](
+        mode="robust", **{"shield.engine": engine, "shield.incentive_any_speed": False}
+    )
+    assert constant.result.safe.tolist() == mask_of(I, R)
+    assert constant.result.min_gap[[I, R]] == pytest.approx([1.39, 1.39], abs=0.01)
     earlier = scenarios.SCENARIOS["car_being_overtaken"](
         mode="robust", **{"shield.engine": engine, "shield.level_cut_ins": False}
     )
@@ -233,11 +248,12 @@ def test_level_cut_ins_see_the_car_being_overtaken_turn_in(engine: str) -> None:
     assert nominal.result.safe.tolist() == mask_of(I, R, S)
     # MOBIL's incentive (level_incentive, on by default): that car, stuck 8 m behind the next car of its queue
     # at the same speed, gains by moving behind the ego (the ego 5 m ahead and 16 m/s faster at the end of the
-    # decision): it stays a conflict. Without the incentive filter, the same.
+    # decision): it stays a conflict. Without the incentive filter (any level car, from the cut-in time: no
+    # incentive to time it by), the same as turning in from now.
     anyone = scenarios.SCENARIOS["car_being_overtaken"](
         mode="robust", **{"shield.engine": engine, "shield.level_incentive": False}
     )
-    assert anyone.result.min_gap.tolist() == level.result.min_gap.tolist()
+    assert anyone.result.min_gap.tolist() == from_now.result.min_gap.tolist()
     # Without the queue's car beside the ego (only the ones 11 m and more ahead), the option changes nothing.
     ahead_only = [scenarios.VehicleSpec(0, dx, 13.0) for dx in (11.0, 19.0)]
     rate = {"env.policy_frequency": 2, "env.simulation_frequency": 10}

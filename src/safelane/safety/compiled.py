@@ -955,7 +955,7 @@ def _evaluate_rule(
                 nominal = False
                 follows = True
                 lo = lo_cut
-                if level_when_incentive and occupied:  # model.incentive_times(_any_speed): from MOBIL's first frame
+                if level_when_incentive and level_incentive and occupied:  # model.incentive_times(_any_speed)
                     if incentive_any_speed:
                         t_inc = _incentive_first_any_speed(
                             near[r], r, m, near, lanes_near, x, vx, vy, crashed, brake_max, accel_max, lin_k0,

@@ -1263,7 +1263,7 @@ def evaluate(state: RoadState, dyn: Dynamics, mode: Mode = "robust", formula: Fo
                         extra_p.append(None)
             behind_v, behind_l, behind_s = [], [], []
             turn_time = None
-            if dyn.level_cut_ins and dyn.level_when_incentive:
+            if dyn.level_cut_ins and dyn.level_incentive and dyn.level_when_incentive:  # timing by the incentive
                 path = (ego_x[a, 0, : frames + 1], ego_v[a, 0, : frames + 1])
                 times_of = incentive_times_any_speed if dyn.incentive_any_speed else incentive_times
                 turn_time = times_of(state, dyn, near, *path)

@@ -1106,7 +1106,8 @@ def incentive_times(
     state: RoadState, dyn: Dynamics, near: np.ndarray, ego_xs: np.ndarray, ego_vs: np.ndarray
 ) -> np.ndarray:
     """The first frame time [s] of the decision at which MOBIL's incentive lets each vehicle of ``near`` turn
-    in behind the ego (``Dynamics.level_when_incentive``, experimental): :func:`turn_in_incentive` (IDM) or
+    in behind the ego (``Dynamics.level_when_incentive`` with ``incentive_any_speed`` false — issue 15's thirteenth
+    session's timing, not a bound; :func:`incentive_times_any_speed` is): :func:`turn_in_incentive` (IDM) or
     :func:`linear_turn_in_incentive` (linear-model drivers) at every frame instead of now and at the end, the
     others at constant speed and the ego on the action's path; for linear-model drivers also
     :func:`linear_turn_in_incentive_braking`'s frames. Its centre must be behind the ego's at that frame. inf:

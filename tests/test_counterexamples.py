@@ -10,7 +10,13 @@ from pathlib import Path
 import pytest
 
 from safelane.config import ConfigError, load_config
-from safelane.running.counterexamples import crash_partner, load_counterexample, repair_break, replay
+from safelane.running.counterexamples import (
+    break_under_options,
+    crash_partner,
+    load_counterexample,
+    repair_break,
+    replay,
+)
 from safelane.running.evaluation import evaluate_fixed
 
 FAST = {"simulator": "fast"}
@@ -149,3 +155,23 @@ def test_repair_breaks_counts_a_campaign_s_breaks_outside_the_model(tmp_path: Pa
     gaps = sorted(r["best_gap"] for r in summary["rows"])
     assert summary["best_gap_below_zero"] == sum(g < 0 for g in gaps) and max(gaps) < 1.0
     assert summary["best_gap_quantiles"][0] == gaps[0] and summary["best_gap_quantiles"][-1] == gaps[-1]
+
+
+def test_break_under_options_finds_the_follower_bound_in_hole_2879() -> None:
+    """break_under_options (examples/breaks_under_options.py's engine) on the claim's-grid hole 2879 (a Linear
+    follower squeeze, docs/safety.md §6k): as it ran nothing is safe (best −0.64 m); with the followers braking
+    from now (follower_reaction 0 — a diagnostic, not a bound) IDLE and SLOWER are (2.36 m): the follower's
+    bound, restarted at every decision, is what broke it. A rule option that does not touch it leaves the state
+    as it was; a name that is not a Dynamics field is a one-line error."""
+    cx = load_counterexample(
+        CAMPAIGN / "grid_100k_behind_passing_cut_ins" / "counterexamples"
+        / "cell02879-seed4028790006-invariant_break-step11.json"
+    )  # fmt: skip
+    verdict = break_under_options(cx, {"follower_reaction": 0.0})
+    assert verdict["best_gap"] == pytest.approx(-0.638, abs=1e-3)
+    assert verdict["safe_with_options"] and verdict["unlocks"] == [1, 4]
+    assert verdict["best_gap_with_options"] == pytest.approx(2.362, abs=1e-3)
+    same = break_under_options(cx, {"projected_cut_ins": False})
+    assert not same["safe_with_options"] and same["best_gap_with_options"] == same["best_gap"]
+    with pytest.raises(ConfigError, match="follower_reactions: not a rule option"):
+        break_under_options(cx, {"follower_reactions": 0.0})

@@ -247,11 +247,13 @@ def _snapshots_around_event(env: Any, cx: Counterexample) -> tuple[Any, Any]:
     return before, info["snapshot"]
 
 
-def _break_states(cx: Counterexample, simulator: str | None, what: str) -> tuple[Any, Any, Callable[[Any], Any]]:
+def _break_states(cx: Counterexample, simulator: str | None, what: str) -> tuple[Any, Any, Callable[..., Any]]:
     """Replay the invariant break ``cx``: the road snapshots of the state before its event and of the
-    event's state, and ``judge(snapshot)``, the numpy reference model on the shield's own inputs for a
-    (possibly edited) snapshot of that episode. ``what`` names the caller's product in the one-line error
-    for a file that is not a break."""
+    event's state, and ``judge(snapshot, options=None)``, the numpy reference model on the shield's own inputs
+    for a (possibly edited) snapshot of that episode, its Dynamics fields ``options`` replaced. ``what`` names
+    the caller's product in the one-line error for a file that is not a break."""
+    import dataclasses
+
     from safelane.env.factory import make_env
     from safelane.safety.model import evaluate
 
@@ -266,10 +268,41 @@ def _break_states(cx: Counterexample, simulator: str | None, what: str) -> tuple
     finally:
         env.close()
 
-    def judge(snap: Any) -> Any:
-        return evaluate(*shield.state_and_dynamics(snap), shield.mode)
+    def judge(snap: Any, options: dict[str, Any] | None = None) -> Any:
+        state, dyn = shield.state_and_dynamics(snap)
+        if options:
+            dyn = dataclasses.replace(dyn, **options)
+        return evaluate(state, dyn, shield.mode)
 
     return before, after, judge
+
+
+def break_under_options(
+    cx: Counterexample, options: dict[str, Any], simulator: str | None = None
+) -> dict[str, Any]:  # fmt: skip
+    """What a change of the rule does to an invariant break: replay ``cx`` to its event's state (no safe action
+    under the rule it ran with) and judge that state with the rule's :class:`~safelane.safety.model.Dynamics`
+    fields ``options`` replaced (e.g. ``{"follower_reaction": 0.0}``, ``{"level_when_incentive": False}``).
+    ``safe_with_options``: it then has a safe action (the change reaches what broke it — a diagnostic, not a
+    proof that the change is sound); ``unlocks``: those actions; ``best_gap`` / ``best_gap_with_options`` [m]:
+    the largest worst-case gap over the available actions, as it ran and with the options. Uses the numpy
+    reference model on the shield's inputs; an unknown field is a one-line :class:`ConfigError`."""
+    import dataclasses
+
+    from safelane.safety.model import Dynamics
+
+    fields = {f.name for f in dataclasses.fields(Dynamics)}
+    unknown = sorted(set(options) - fields)
+    if unknown:
+        raise ConfigError(f"{unknown[0]}: not a rule option; allowed: {', '.join(sorted(fields))}")
+    _, after, judge = _break_states(cx, simulator, "options are")
+    plain, changed = judge(after), judge(after, options)
+    return {
+        "best_gap": round(float(np.max(np.where(plain.available, plain.min_gap, -np.inf))), 3),
+        "best_gap_with_options": round(float(np.max(np.where(changed.available, changed.min_gap, -np.inf))), 3),
+        "safe_with_options": not changed.fallback,
+        "unlocks": [int(a) for a in np.flatnonzero(changed.safe)],
+    }
 
 
 def crash_partner(cx: Counterexample, simulator: str | None = None) -> dict[str, Any]:

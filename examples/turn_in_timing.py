@@ -1,11 +1,13 @@
-"""When highway-env's drivers decide a turn-in behind the ego, against the rule's incentive time.
+"""When highway-env's drivers decide a turn-in behind the ego, against the rule's incentive times.
 
-``shield.level_when_incentive`` (experimental, docs/safety.md §6m) starts a level car's turn-in behind the ego
-at the first frame of the decision at which MOBIL's incentive lets it (``model.incentive_times``: the others at
-constant speed, the ego on the action's path) instead of from now. This drives the real thing: on highway-env,
-an IDM or Linear driver in the next lane that the ego overtakes, a slow leader ahead of it (so that moving behind
-the ego pays), random rates, speeds and gaps; for every such car that decides to change into the ego's lane
-within the decision, its decision frame against the rule's incentive time.
+``shield.level_when_incentive`` (docs/safety.md §6m, §6n) starts a level car's turn-in behind the ego at the
+first frame of the decision at which MOBIL's incentive lets it, instead of from now: with
+``shield.incentive_any_speed`` (the default) the first frame at which it *could*, over every speed the car and
+the vehicles ahead of it can reach (``model.incentive_times_any_speed``, a bound); without, with the others at
+constant speed (``model.incentive_times``). This drives the real thing: on highway-env, an IDM or Linear driver
+in the next lane that the ego overtakes, a slow leader ahead of it (so that moving behind the ego pays), random
+rates, speeds and gaps; for every such car that decides to change into the ego's lane within the decision, its
+decision frame against both times (``before_any_speed_time`` must be 0).
 
     .venv/bin/python examples/turn_in_timing.py --cases 300 --seed 0
 """

@@ -9,7 +9,7 @@ in the next lane that the ego overtakes, a slow leader ahead of it (so that movi
 rates, speeds and gaps; for every such car that decides to change into the ego's lane within the decision, its
 decision frame against both times (``before_any_speed_time`` must be 0).
 
-    .venv/bin/python examples/turn_in_timing.py --cases 300 --seed 0
+    .venv/bin/python examples/turn_in_timing.py --cases 300 --seed 0 [--all-drivers]
 """
 
 from __future__ import annotations
@@ -18,20 +18,24 @@ import argparse
 import json
 
 import numpy as np
-from highway_env.vehicle.behavior import IDMVehicle, LinearVehicle
+from highway_env.vehicle.behavior import AggressiveVehicle, DefensiveVehicle, IDMVehicle, LinearVehicle
 
 from safelane.env.scenarios import VehicleSpec, build_scene, find_shield
 from safelane.safety import model
 
 
-def one_case(rng: np.random.Generator) -> dict | None:
-    """One random scene; the decision time [s] and the rule's incentive time [s], or None if no turn-in."""
+def one_case(rng: np.random.Generator, all_drivers: bool = False) -> dict | None:
+    """One random scene; the decision time [s] and the rule's incentive times [s], or None if no turn-in. The
+    driver: IDM (60 %) or Linear; with ``all_drivers`` IDM, Linear, Aggressive or Defensive, a quarter each."""
     pol, sim = [(1, 5), (2, 10), (3, 15), (5, 15)][int(rng.integers(4))]
     ve = float(rng.choice([15.0, 20.0, 25.0, 30.0]))
     vc = float(rng.uniform(3.0, ve - 3.0))
     dx, gap, vl = float(rng.uniform(-4.0, 15.0)), float(rng.uniform(7.0, 30.0)), 0.0
     vl = float(rng.uniform(0.0, vc))
-    driver = IDMVehicle if rng.random() < 0.6 else LinearVehicle
+    if all_drivers:
+        driver = [IDMVehicle, LinearVehicle, AggressiveVehicle, DefensiveVehicle][int(rng.integers(4))]
+    else:
+        driver = IDMVehicle if rng.random() < 0.6 else LinearVehicle
     action = int(rng.choice([1, 3]))  # IDLE or FASTER
     specs = [VehicleSpec(2, dx, vc, vehicle_class=driver), VehicleSpec(2, dx + gap, vl, vehicle_class=driver)]
     sets = {"env.policy_frequency": pol, "env.simulation_frequency": sim}
@@ -74,9 +78,10 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--cases", type=int, default=300, help="random scenes to drive")
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--all-drivers", action="store_true", help="also Aggressive and Defensive drivers")
     args = parser.parse_args()
     rng = np.random.default_rng(args.seed)
-    rows = [r for r in (one_case(rng) for _ in range(args.cases)) if r is not None]
+    rows = [r for r in (one_case(rng, args.all_drivers) for _ in range(args.cases)) if r is not None]
     early = [r for r in rows if r["decided_s"] < r["incentive_s"] - 1e-9]
     never = [r for r in rows if not np.isfinite(r["incentive_s"])]
     early_bound = [r for r in rows if r["decided_s"] < r["any_speed_s"] - 1e-9]

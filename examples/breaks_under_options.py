@@ -12,7 +12,6 @@ sound (a change can only be judged by a campaign and by highway-env).
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
 import random
 from collections import Counter
@@ -22,8 +21,12 @@ from typing import Any
 
 from safelane.core.errors import ConfigError
 from safelane.core.files import atomic_write_text
-from safelane.running.counterexamples import break_culprits, break_under_options, load_counterexample
-from safelane.safety.model import Dynamics
+from safelane.running.counterexamples import (
+    break_culprits,
+    break_under_options,
+    check_rule_options,
+    load_counterexample,
+)
 
 
 def parse_option(text: str) -> tuple[str, Any]:
@@ -57,10 +60,7 @@ def main() -> None:
     args = parser.parse_args()
     try:
         options = dict(parse_option(text) for text in args.set)
-        fields = {f.name for f in dataclasses.fields(Dynamics)}
-        for name in options:
-            if name not in fields:  # before the workers start: one line, not a worker's traceback
-                raise ConfigError(f"--set {name}: not a rule option; allowed: {', '.join(sorted(fields))}")
+        check_rule_options(options)  # before the workers start: one line, not a worker's traceback
     except ConfigError as error:
         parser.exit(2, f"error: {error}\n")
     files = sorted(str(p) for p in args.folder.glob("*-invariant_break-*.json"))

@@ -277,6 +277,19 @@ def _break_states(cx: Counterexample, simulator: str | None, what: str) -> tuple
     return before, after, judge
 
 
+def check_rule_options(options: dict[str, Any]) -> None:
+    """Raise a one-line :class:`ConfigError` naming the first key of ``options`` that is not a field of the
+    rule's :class:`~safelane.safety.model.Dynamics`, with the allowed names."""
+    import dataclasses
+
+    from safelane.safety.model import Dynamics
+
+    fields = {f.name for f in dataclasses.fields(Dynamics)}
+    unknown = sorted(set(options) - fields)
+    if unknown:
+        raise ConfigError(f"{unknown[0]}: not a rule option; allowed: {', '.join(sorted(fields))}")
+
+
 def break_under_options(
     cx: Counterexample, options: dict[str, Any], simulator: str | None = None
 ) -> dict[str, Any]:  # fmt: skip
@@ -287,14 +300,7 @@ def break_under_options(
     proof that the change is sound); ``unlocks``: those actions; ``best_gap`` / ``best_gap_with_options`` [m]:
     the largest worst-case gap over the available actions, as it ran and with the options. Uses the numpy
     reference model on the shield's inputs; an unknown field is a one-line :class:`ConfigError`."""
-    import dataclasses
-
-    from safelane.safety.model import Dynamics
-
-    fields = {f.name for f in dataclasses.fields(Dynamics)}
-    unknown = sorted(set(options) - fields)
-    if unknown:
-        raise ConfigError(f"{unknown[0]}: not a rule option; allowed: {', '.join(sorted(fields))}")
+    check_rule_options(options)
     _, after, judge = _break_states(cx, simulator, "options are")
     plain, changed = judge(after), judge(after, options)
     return {

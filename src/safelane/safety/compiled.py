@@ -194,6 +194,16 @@ def _passing_path(
             out[j] = _nmin(out[j], xj)
 
 
+@njit(cache=True, inline="always")
+def _braking_from_now(x0: float, v: float, crashed: bool, brake: float, tau: float) -> tuple[float, float]:
+    """Position [m] and speed [m/s] at ``tau`` [s] of a vehicle braking at its limit ``brake`` [m/s²] from now,
+    from its forward speed (a crashed one stopped): the model's leader braking, same operations, same order."""
+    v0 = 0.0 if crashed else _nmax(v, 0.0)
+    b = _nmax(1e9 if crashed else brake, 1e-6)
+    s = _nmin(tau, v0 / b)
+    return x0 + v0 * s - 0.5 * b * (s * s), v0 - b * s
+
+
 @njit(cache=True, error_model="numpy")
 def _incentive_first(
     i: int, r: int, m: int, near: np.ndarray, lanes_near: np.ndarray, x: np.ndarray, vx: np.ndarray,
@@ -227,11 +237,7 @@ def _incentive_first(
                 if lanes_near[k] == lanes_near[r] and x[ii] > x[i]:
                     lv = vx[ii]
                     term = k1 * _nmin(lv - v, 0.0) + k2 * _nmin(((x[ii] + lv * tau) - own_x) - d_safe, 0.0)
-                    lv0 = 0.0 if crashed[ii] else _nmax(vx[ii], 0.0)
-                    lb = _nmax(1e9 if crashed[ii] else brake_max[ii], 1e-6)
-                    tt = _nmin(tau, lv0 / lb)
-                    lx = x[ii] + lv0 * tt - 0.5 * lb * (tt * tt)
-                    lvb = lv0 - lb * tt
+                    lx, lvb = _braking_from_now(x[ii], vx[ii], crashed[ii], brake_max[ii], tau)
                     term_b = k1 * _nmin(lvb - v, 0.0) + k2 * _nmin((lx - own_x) - d_safe, 0.0)
                     if found:
                         lead, braking = _nmin(lead, term), _nmin(braking, term_b)
@@ -289,14 +295,11 @@ def _incentive_first_any_speed(
     k1, k2 = lin_k1[i], lin_k2[i]
     root_ab = np.sqrt(-acc * dec_all[i])
     v0 = 0.0 if crashed[i] else _nmax(vx[i], 0.0)
-    brake = _nmax(1e9 if crashed[i] else brake_max[i], 1e-6)
     accel = 0.0 if crashed[i] else _nmax(accel_max[i], 0.0)
     speed = 0.0 if crashed[i] else math.hypot(vx[i], vy[i])
     for f in range(frames + 1):
         tau = t[f]
-        stop = _nmin(tau, v0 / brake)
-        x_lo = x[i] + v0 * stop - 0.5 * brake * (stop * stop)
-        v_lo = v0 - brake * stop
+        x_lo, v_lo = _braking_from_now(x[i], vx[i], crashed[i], brake_max[i], tau)
         x_hi = x[i] + v0 * tau + 0.5 * accel * (tau * tau)
         v_hi = speed + accel * tau
         if not x_lo - ego_xs[f, 0] <= 0:
@@ -310,11 +313,7 @@ def _incentive_first_any_speed(
             for k in range(m):
                 ii = near[k]
                 if lanes_near[k] == lanes_near[r] and x[ii] > x[i]:
-                    l0 = 0.0 if crashed[ii] else _nmax(vx[ii], 0.0)
-                    lb = _nmax(1e9 if crashed[ii] else brake_max[ii], 1e-6)
-                    ls = _nmin(tau, l0 / lb)
-                    lx_lo = x[ii] + l0 * ls - 0.5 * lb * (ls * ls)
-                    lv_lo = l0 - lb * ls
+                    lx_lo, lv_lo = _braking_from_now(x[ii], vx[ii], crashed[ii], brake_max[ii], tau)
                     term = k1 * _nmin(lv_lo - v_hi, 0.0) + k2 * _nmin((lx_lo - x_hi) - (dw + v_hi * tw), 0.0)
                     lead = _nmin(lead, term) if found else term
                     found = True
@@ -329,12 +328,8 @@ def _incentive_first_any_speed(
             for k in range(m):
                 ii = near[k]
                 if lanes_near[k] == lanes_near[r] and x[ii] > x[i]:
-                    l0 = 0.0 if crashed[ii] else _nmax(vx[ii], 0.0)
-                    lb = _nmax(1e9 if crashed[ii] else brake_max[ii], 1e-6)
+                    lx_lo, lv_lo = _braking_from_now(x[ii], vx[ii], crashed[ii], brake_max[ii], tau)
                     la = 0.0 if crashed[ii] else _nmax(accel_max[ii], 0.0)
-                    ls = _nmin(tau, l0 / lb)
-                    lx_lo = x[ii] + l0 * ls - 0.5 * lb * (ls * ls)
-                    lv_lo = l0 - lb * ls
                     lv_hi = (0.0 if crashed[ii] else math.hypot(vx[ii], vy[ii])) + la * tau
                     gap = lx_lo - x_hi
                     if not gap >= 1e-2:
@@ -864,11 +859,7 @@ def _evaluate_rule(
                                 for k in range(m):
                                     ii = near[k]
                                     if lanes_near[k] == lanes_near[r] and x[ii] > x[i]:
-                                        lv0 = 0.0 if crashed[ii] else _nmax(vx[ii], 0.0)
-                                        lb = _nmax(1e9 if crashed[ii] else brake_max[ii], 1e-6)
-                                        tt = _nmin(tau, lv0 / lb)
-                                        lx = x[ii] + lv0 * tt - 0.5 * lb * (tt * tt)
-                                        lv = lv0 - lb * tt
+                                        lx, lv = _braking_from_now(x[ii], vx[ii], crashed[ii], brake_max[ii], tau)
                                         term = k1 * _nmin(lv - v, 0.0) + k2 * _nmin((lx - own_x) - d_safe, 0.0)
                                         lead_term = _nmin(lead_term, term) if found else term
                                         found = True

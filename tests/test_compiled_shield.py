@@ -55,11 +55,12 @@ def assert_only_stricter(state: RoadState, off: Dynamics, on: Dynamics, unchange
 
 
 def assert_nested(state: RoadState, dyn: Dynamics) -> None:
-    """robust ⊆ nominal for the final masks — for headings up to 0.3 rad, as test_masks_are_never_empty_and_nested
-    draws them (at 1 rad turning_leaders brakes a leader from its speed along its path, more than nominal's
-    along the road: hypothesis found it)."""
-    if (np.abs(state.heading) <= 0.3).all():
+    """robust ⊆ nominal for the final masks, at any heading with shield.turning_in_nominal (without it, only up to
+    0.3 rad: turning_leaders brakes a fast turning leader from its speed along its path, which can leave more
+    room than nominal's along the road — hypothesis found it at 1 rad, then at 0.25 rad and 34 m/s)."""
+    if dyn.turning_in_nominal or (np.abs(state.heading) <= 0.3).all():
         robust, nominal = model.evaluate(state, dyn, "robust"), model.evaluate(state, dyn, "nominal")
+        assert not (robust.safe & ~nominal.safe).any()
         assert not (robust.mask & ~nominal.mask).any()
 
 
@@ -379,14 +380,41 @@ def test_straight_fallback_bit_identical_and_only_the_fallback_mask(case: tuple)
         for mode in MODES:
             assert_same(model.evaluate(state, plain, mode),
                         model.evaluate(state, dataclasses.replace(plain, straight_fallback=True), mode))  # fmt: skip
-    a, b = model.evaluate(state, turning, "robust"), model.evaluate(state, on, "robust")
-    straight = model.evaluate(state, dataclasses.replace(dyn, turning_leaders=False), "robust")
-    assert a.safe.tolist() == b.safe.tolist() and a.fallback == b.fallback
-    assert np.array_equal(a.min_gap, b.min_gap, equal_nan=True)
-    if not b.fallback:
-        assert a.mask.tolist() == b.mask.tolist()
-    else:
-        assert b.mask.tolist() == straight.mask.tolist()
+    for in_nominal in (False, True):
+        a = model.evaluate(state, dataclasses.replace(turning, turning_in_nominal=in_nominal), "robust")
+        b = model.evaluate(state, dataclasses.replace(on, turning_in_nominal=in_nominal), "robust")
+        assert a.safe.tolist() == b.safe.tolist() and a.fallback == b.fallback
+        assert np.array_equal(a.min_gap, b.min_gap, equal_nan=True)
+        if not b.fallback:
+            assert a.mask.tolist() == b.mask.tolist()
+        elif not in_nominal:  # the rule without turning_leaders
+            straight = dataclasses.replace(dyn, turning_leaders=False, turning_in_nominal=False)
+            assert b.mask.tolist() == model.evaluate(state, straight, "robust").mask.tolist()
+        else:  # the rule with nominal's leader bound (turning_in_nominal)
+            nominal_leaders = model._evaluate(state, on, "robust", "kinematic", nominal_leaders=True)
+            assert b.mask.tolist() == nominal_leaders.mask.tolist()
+
+
+@PROPERTY_SETTINGS
+@given(case=road(rates=True))
+def test_turning_in_nominal_bit_identical_and_only_looser_nominal(case: tuple) -> None:
+    """shield.turning_in_nominal (default since issue 15's fifteenth session): the same in both engines at every
+    rate; robust's safe set and gaps are unchanged to the bit (only a fallback mask, chosen among nominal's
+    bounds, can change); nominal only gets looser, and only with a moving leader; robust ⊆ nominal at any
+    heading; without turning_leaders it changes nothing."""
+    state, dyn, _ = case
+    off, on = (dataclasses.replace(dyn, turning_in_nominal=v) for v in (False, True))
+    assert mismatches(state, on) == [] and mismatches(state, off) == []
+    a, b = model.evaluate(state, off, "robust"), model.evaluate(state, on, "robust")
+    assert a.safe.tolist() == b.safe.tolist() and np.array_equal(a.min_gap, b.min_gap, equal_nan=True)
+    n_off, n_on = model.evaluate(state, off, "nominal"), model.evaluate(state, on, "nominal")
+    assert not (n_off.safe & ~n_on.safe).any() and not (n_on.min_gap < n_off.min_gap).any()
+    if not ((state.x >= state.ego_x) & (state.vx > 0) & ~state.crashed).any():
+        assert_same(n_off, n_on, "nominal")
+    assert_nested(state, on)
+    plain_off, plain_on = (dataclasses.replace(d, turning_leaders=False) for d in (off, on))
+    for mode in MODES:
+        assert_same(model.evaluate(state, plain_off, mode), model.evaluate(state, plain_on, mode), mode)
 
 
 @PROPERTY_SETTINGS

@@ -335,6 +335,30 @@ def test_ego_speed_magnitude_takes_slower_where_highway_env_does(engine: str, mo
     assert straight[0] == straight[1]
 
 
+@EVALUATORS
+def test_turning_in_nominal_keeps_robust_inside_nominal(evaluate: Evaluator) -> None:
+    """hypothesis's counterexample to robust ⊆ nominal (issue 15, fifteenth session): a car 31 m ahead in the
+    ego's only lane turning at 0.25 rad and 34 m/s (8.4 m/s sideways), the ego at 23 m/s. Robust's turning bound
+    (braking from 34 m/s along its path, less 1.66 m) leaves FASTER 1.876 m; nominal's along the road (from
+    32.94 m/s) −2.363 m — robust allowed FASTER, nominal did not. With shield.turning_in_nominal nominal takes the
+    looser of the two: FASTER 1.876 m in both, robust ⊆ nominal."""
+    cars = [
+        {"x": 100.0, "y": 0.0, "speed": 0.0, "heading": 0.0, "crashed": False, "delta": 4.0, "idm": False},
+        {"x": 100.0, "y": 0.0, "speed": 0.0, "heading": 0.0, "crashed": False, "delta": 4.0, "idm": False},
+        {"x": 231.0, "y": 0.0, "speed": 34.0, "heading": 0.25, "crashed": False, "delta": 4.0, "idm": False},
+    ]
+    state = make_state(200.0, 0, 0, 23.0, 0, cars)
+    dyn = dynamics(1, 5)
+    before = dataclasses.replace(dyn, turning_in_nominal=False)
+    assert evaluate(state, before, "robust").mask.tolist() == mask_of(I, F)
+    assert evaluate(state, before, "nominal").mask.tolist() == mask_of(I)
+    assert evaluate(state, before, "nominal").min_gap[F] == pytest.approx(-2.363, abs=0.001)
+    robust, nominal = evaluate(state, dyn, "robust"), evaluate(state, dyn, "nominal")
+    assert robust.mask.tolist() == nominal.mask.tolist() == mask_of(I, F)
+    assert robust.min_gap[F] == nominal.min_gap[F] == pytest.approx(1.876, abs=0.001)
+    assert evaluate(state, dataclasses.replace(dyn, turning_leaders=False), "nominal").mask.tolist() == mask_of(I)
+
+
 @pytest.mark.parametrize("engine", ["numpy", "compiled"])
 @pytest.mark.parametrize("mode", ["nominal", "robust"])
 def test_turning_leaders_leaves_room_for_a_leader_turning_out(engine: str, mode: str) -> None:

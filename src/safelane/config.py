@@ -337,6 +337,14 @@ class ShieldConfig(_Section):
         "acceleration limits (a bound); false: with the others at constant speed, which highway-env's drivers "
         "beat by a physics frame (docs/safety.md §6n).",
     )
+    turning_in_nominal: bool = Field(
+        True,
+        strict=True,
+        description="Robust mode, with turning_leaders: a turning leader's bound (braking along its path less "
+        "a lane change's cost) is also never above braking from its speed along the road, nominal's bound — so "
+        "robust ⊆ nominal holds for a fast car changing lanes (docs/safety.md §6o). On by default since issue "
+        "15's fifteenth session; false: the earlier rule.",
+    )
 
     def rule_options(self) -> dict[str, bool]:
         """The rule's on/off options by name, as :class:`safelane.safety.shield.SafetyShield` and
@@ -750,7 +758,7 @@ RULE_OPTIONS = (
     "robust_fallback", "straight_fallback", "linear_incentive", "linear_incentive_braking", "reversing_cut_ins",
     "crossed_lanes", "lateral_schedule", "reversing_noses", "follower_idm", "follower_set_point",
     "finishing_changes", "cut_in_when_permitted", "leaving_lanes_seen", "permit_any_speed", "passing_cut_ins",
-    "level_when_incentive", "incentive_any_speed",
+    "level_when_incentive", "incentive_any_speed", "turning_in_nominal",
 )  # fmt: skip
 """The :class:`ShieldConfig` fields that switch parts of the safety rule on or off (``ShieldConfig.rule_options``)."""
 
@@ -771,6 +779,8 @@ RULE_CHANGES: dict[str, Any] = {
     "cut_in_when_permitted": False, "permit_any_speed": False, "passing_cut_ins": False,
     # issue 15's fourteenth session (docs/safety.md §6n)
     "level_when_incentive": False, "incentive_any_speed": False,
+    # issue 15's fifteenth session (docs/safety.md §6o)
+    "turning_in_nominal": False,
 }  # fmt: skip
 """Shield keys added with a new default that changes the rule: a *recorded* configuration (a run's
 config.yaml, a counterexample file) written before the key existed had the old behaviour, given here,

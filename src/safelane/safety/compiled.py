@@ -507,6 +507,7 @@ def _evaluate_rule(
     reversing_noses: bool, follower_idm: bool, follower_set_point: bool, finishing_changes: bool,
     cut_in_when_permitted: bool, leaving_lanes_seen: bool,
     permit_any_speed: bool, passing_cut_ins: bool, level_when_incentive: bool, incentive_any_speed: bool,
+    nominal_allowance: float,
     ego_width: float, kp_lateral: float,
     kp_heading: float, max_steering: float, turning_allowance: float,
     min_acc_gain: float,
@@ -620,6 +621,11 @@ def _evaluate_rule(
             stop = v0 / b
             hb = 0.5 * b
             back = reversing_leaders and v_signed < 0.0  # a leader rolling backwards keeps its speed
+            # model.evaluate's turning_in_nominal (nominal's leader bound): the looser of braking along the road
+            # and along its path less the allowance (nominal_allowance > 0 when the option is on).
+            looser = nominal_allowance > 0.0 and v_signed > 0.0
+            v_path = math.sqrt(vx[i] * vx[i] + vy[i] * vy[i]) if looser else 0.0
+            stop_path = v_path / b
             for j in range(n_t):
                 tt = _nmin(t[j], stop)
                 other_x[r, j] = x[i] + v0 * tt - hb * (tt * tt)
@@ -627,6 +633,9 @@ def _evaluate_rule(
                     other_x[r, j] = other_x[r, j] + v_signed * t[j]
                 if turning:
                     other_x[r, j] = other_x[r, j] - turning_allowance
+                if looser:
+                    tt = _nmin(t[j], stop_path)
+                    other_x[r, j] = _nmax(other_x[r, j], (x[i] + v_path * tt - hb * (tt * tt)) - nominal_allowance)
         else:  # follower_positions
             _follower_row(other_x[r], x[i], vx[i], accel_max[i], brake_max[i], t_r, t)
     # level_cut_ins: a car turning in behind the ego follows it, wherever it is now (ahead rows too).
@@ -1105,6 +1114,7 @@ def _evaluate(
     lateral_schedule: bool, reversing_noses: bool, follower_idm: bool, follower_set_point: bool,
     finishing_changes: bool, cut_in_when_permitted: bool, leaving_lanes_seen: bool,
     permit_any_speed: bool, passing_cut_ins: bool, level_when_incentive: bool, incentive_any_speed: bool,
+    turning_in_nominal: bool,
     ego_width: float,
     kp_lateral: float,
     kp_heading: float, max_steering: float, turning_allowance: float,
@@ -1116,6 +1126,9 @@ def _evaluate(
     allowance = turning_allowance
     if not robust:
         allowance = 0.0
+    # turning_in_nominal: nominal's leader bound, in nominal mode and in robust's straight fallback
+    nominal_allowance = turning_allowance if turning_in_nominal else 0.0
+    main_nominal_allowance = 0.0 if robust else nominal_allowance  # robust: turning_leaders' own bound
     out = _evaluate_rule(
         ego_x, ego_speed, ego_lane, ego_target_lane, ego_target_speed, ego_speed_index, ego_length, speed_limit,
         ego_y, ego_heading,
@@ -1130,6 +1143,7 @@ def _evaluate(
         reversing_noses, follower_idm, follower_set_point, finishing_changes,
         cut_in_when_permitted, leaving_lanes_seen, permit_any_speed, passing_cut_ins, level_when_incentive,
         incentive_any_speed,
+        main_nominal_allowance,
         ego_width, kp_lateral,
         kp_heading, max_steering, allowance, min_acc_gain,
     )  # fmt: skip
@@ -1149,6 +1163,7 @@ def _evaluate(
         reversing_noses, follower_idm, follower_set_point, finishing_changes,
         cut_in_when_permitted, leaving_lanes_seen, permit_any_speed, passing_cut_ins, level_when_incentive,
         incentive_any_speed,
+        nominal_allowance,
         ego_width, kp_lateral,
         kp_heading, max_steering, 0.0, min_acc_gain,
     )  # fmt: skip
@@ -1175,6 +1190,7 @@ def _evaluate_snapshot(
     lateral_schedule: bool, reversing_noses: bool, follower_idm: bool, follower_set_point: bool,
     finishing_changes: bool, cut_in_when_permitted: bool, leaving_lanes_seen: bool,
     permit_any_speed: bool, passing_cut_ins: bool, level_when_incentive: bool, incentive_any_speed: bool,
+    turning_in_nominal: bool,
     ego_width: float,
     kp_lateral: float,
     kp_heading: float, max_steering: float, ego_speed_magnitude: bool,
@@ -1233,6 +1249,7 @@ def _evaluate_snapshot(
         reversing_noses, follower_idm, follower_set_point, finishing_changes,
         cut_in_when_permitted, leaving_lanes_seen, permit_any_speed, passing_cut_ins, level_when_incentive,
         incentive_any_speed,
+        turning_in_nominal,
         ego_width, kp_lateral,
         kp_heading, max_steering, turning_allowance, min_acc_gain,
     )  # fmt: skip
@@ -1340,6 +1357,7 @@ class KernelConstants(NamedTuple):
     passing_cut_ins: bool
     level_when_incentive: bool
     incentive_any_speed: bool
+    turning_in_nominal: bool
     ego_width: float
     kp_lateral: float
     kp_heading: float
@@ -1381,6 +1399,7 @@ def kernel_constants(dyn: Dynamics) -> KernelConstants:
         dyn.passing_cut_ins,
         dyn.level_when_incentive,
         dyn.incentive_any_speed,
+        dyn.turning_in_nominal,
         dyn.ego_width,
         dyn.kp_lateral,
         dyn.kp_heading,
@@ -1424,7 +1443,7 @@ def evaluate_compiled(
         dyn.linear_incentive_braking, dyn.reversing_cut_ins, dyn.crossed_lanes, dyn.lateral_schedule,
         dyn.reversing_noses, dyn.follower_idm, dyn.follower_set_point, dyn.finishing_changes,
         dyn.cut_in_when_permitted, dyn.leaving_lanes_seen, dyn.permit_any_speed, dyn.passing_cut_ins,
-        dyn.level_when_incentive, dyn.incentive_any_speed, dyn.ego_width,
+        dyn.level_when_incentive, dyn.incentive_any_speed, dyn.turning_in_nominal, dyn.ego_width,
         dyn.kp_lateral, dyn.kp_heading,
         dyn.max_steering, model.turning_allowance(dyn), _MIN_ACC_GAIN,
     )  # fmt: skip
@@ -1471,7 +1490,7 @@ def evaluate_snapshot(
         dyn.linear_incentive_braking, dyn.reversing_cut_ins, dyn.crossed_lanes, dyn.lateral_schedule,
         dyn.reversing_noses, dyn.follower_idm, dyn.follower_set_point, dyn.finishing_changes,
         dyn.cut_in_when_permitted, dyn.leaving_lanes_seen, dyn.permit_any_speed, dyn.passing_cut_ins,
-        dyn.level_when_incentive, dyn.incentive_any_speed, dyn.ego_width,
+        dyn.level_when_incentive, dyn.incentive_any_speed, dyn.turning_in_nominal, dyn.ego_width,
         dyn.kp_lateral, dyn.kp_heading,
         dyn.max_steering, dyn.ego_speed_magnitude,
         model.turning_allowance(dyn),

@@ -35,8 +35,9 @@ and **one** fallback must handle every leader braking and every follower acceler
 time.
 
 ``robust ⊆ nominal ⊆ available`` holds by construction: robust adds conflicts and requires a
-joint fallback. The mask is never empty: when no action is safe the least-bad one is allowed and
-``fallback`` is set (:func:`least_bad_action`).
+joint fallback; its one looser bound, a moving leader braking along its path (``Dynamics.turning_leaders``),
+is also nominal's wherever it is the looser (``Dynamics.turning_in_nominal``). The mask is never empty:
+when no action is safe the least-bad one is allowed and ``fallback`` is set (:func:`least_bad_action`).
 """
 
 from __future__ import annotations
@@ -127,6 +128,7 @@ class Dynamics:
     permit_any_speed: bool = True  # cut_in_when_permitted: MOBIL's IDM criterion at the car's loosest speed
     level_when_incentive: bool = True  # level turn-ins start from the first frame MOBIL's incentive allows them
     incentive_any_speed: bool = True  # level_when_incentive: that frame over every speed the cars can reach
+    turning_in_nominal: bool = True  # turning_leaders: nominal's leader bound never below robust's (robust ⊆ nominal)
     ego_lateral_speed: float = math.nan  # [m/s] the speed that simulation runs at (per state, like ego_leave_time)
     ego_width: float = 2.0  # [m] the ego's width (Vehicle.WIDTH)
     kp_lateral: float = 1.0 / 0.6  # [1/s] ControlledVehicle.KP_LATERAL
@@ -1163,6 +1165,12 @@ def incentive_times(
 
 def evaluate(state: RoadState, dyn: Dynamics, mode: Mode = "robust", formula: Formula = "kinematic") -> SafetyResult:
     """The safety mask of ``state`` (see the module docstring for the rule and the modes)."""
+    return _evaluate(state, dyn, mode, formula, nominal_leaders=mode == "nominal")
+
+
+def _evaluate(state: RoadState, dyn: Dynamics, mode: Mode, formula: Formula, nominal_leaders: bool) -> SafetyResult:
+    """:func:`evaluate`; ``nominal_leaders``: the leaders bounded as nominal mode bounds them (nominal mode, and
+    robust's straight fallback), else by ``turning_leaders``' bound."""
     if mode not in ("nominal", "robust"):
         raise ValueError(f"mode: got {mode!r}; allowed: 'nominal', 'robust'")
     if formula not in ("kinematic", "paper"):
@@ -1182,9 +1190,10 @@ def evaluate(state: RoadState, dyn: Dynamics, mode: Mode = "robust", formula: Fo
     stopped = state.crashed  # a crashed vehicle is treated as a wall where it stands
     brake = np.where(stopped, 1e9, state.brake_max)
     lead_v = np.where(stopped[near], 0.0, state.vx[near])
-    # A heading effect, like cut-ins and body extent: robust only, so that nominal ⊇ robust stays true of the
-    # final masks with the straight fallback below (its mask is the straight rule's, inside nominal's).
-    allowance = turning_allowance(dyn) if mode == "robust" else 0.0
+    # A heading effect, like cut-ins and body extent: robust only. Nominal's leaders keep braking along the road
+    # (with turning_in_nominal: unless robust's bound is looser), and so does the straight fallback below: its
+    # mask is chosen among nominal's bounds, so nominal ⊇ robust stays true of the final masks.
+    allowance = 0.0 if nominal_leaders else turning_allowance(dyn)
     turning = lead_v > 0.0
     if allowance > 0.0:  # turning_leaders: along its path, from its speed (issue 15, docs/safety.md §6f)
         vx_n, vy_n = state.vx[near], state.vy[near]
@@ -1192,6 +1201,13 @@ def evaluate(state: RoadState, dyn: Dynamics, mode: Mode = "robust", formula: Fo
     lead_x = braking_positions(state.x[near], lead_v, brake[near], t, dyn.reversing_leaders)
     if allowance > 0.0:
         lead_x = np.where(turning[:, None], lead_x - allowance, lead_x)
+    elif nominal_leaders and dyn.turning_in_nominal and turning_allowance(dyn) > 0.0:
+        # Nominal keeps braking along the road, unless robust's bound along the path is looser (a fast car
+        # turning: v·sin h large): robust ⊆ nominal, by construction (issue 15, docs/safety.md §6o).
+        vx_n, vy_n = state.vx[near], state.vy[near]
+        path_v = np.where(turning, np.sqrt(vx_n * vx_n + vy_n * vy_n), lead_v)
+        path_x = braking_positions(state.x[near], path_v, brake[near], t, dyn.reversing_leaders)
+        lead_x = np.where(turning[:, None], np.maximum(lead_x, path_x - turning_allowance(dyn)), lead_x)
     foll_x = follower_positions(
         state.x[near], state.vx[near], state.accel_max[near], state.brake_max[near], dyn.follower_reaction, t
     )
@@ -1338,7 +1354,7 @@ def evaluate(state: RoadState, dyn: Dynamics, mode: Mode = "robust", formula: Fo
         # The stricter leader bound narrows what the rule promises, not what it falls back to: a spawned
         # scene the turning allowance leaves without a safe action is driven as the rule without it drives
         # it (issue 15: with turning_leaders alone its least-bad choice crashed more of those scenes).
-        straight = evaluate(state, replace(dyn, turning_leaders=False), mode, formula)
+        straight = _evaluate(state, dyn, mode, formula, nominal_leaders=True)
         return SafetyResult(straight.mask.copy(), safe, available, True, best_gap)
     # Least-bad choice. Robust picks among the nominally safe actions when there are some (so that
     # robust ⊆ nominal holds for the final masks too), else exactly what nominal would pick.

@@ -103,6 +103,7 @@ def dynamics_of(
     passing_cut_ins: bool = True,
     level_when_incentive: bool = True,
     incentive_any_speed: bool = True,
+    turning_in_nominal: bool = True,
 ) -> Dynamics:
     """The :class:`Dynamics` constants of the simulated world a snapshot was taken in; ``margin`` [m]: the
     bumper-to-bumper gap the rule keeps under its worst case; the rule's options as in :class:`Dynamics`."""
@@ -147,6 +148,7 @@ def dynamics_of(
         passing_cut_ins=passing_cut_ins,
         level_when_incentive=level_when_incentive,
         incentive_any_speed=incentive_any_speed,
+        turning_in_nominal=turning_in_nominal,
         # highway-env's lateral controller: ControlledVehicle's gains, which MDPVehicle (the ego) inherits.
         ego_width=float(snap.width[snap.ego]) if len(snap.width) else 2.0,
         kp_lateral=float(ControlledVehicle.KP_LATERAL),
@@ -282,6 +284,8 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
     first frame MOBIL's incentive allows it (else from the cut-in time whenever it allows it now or at the end).
     ``incentive_any_speed`` (with ``level_when_incentive``): that first frame over every speed the car and the
     vehicles ahead of it can reach, a bound (else with the others at constant speed, which highway-env beat).
+    ``turning_in_nominal`` (with ``turning_leaders``): a turning leader's bound is also never above braking from
+    its speed along the road, nominal's bound, so robust ⊆ nominal holds for a fast car changing lanes.
     """
 
     def __init__(
@@ -320,6 +324,7 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
         passing_cut_ins: bool = True,
         level_when_incentive: bool = True,
         incentive_any_speed: bool = True,
+        turning_in_nominal: bool = True,
     ) -> None:
         if not (math.isfinite(margin) and margin >= 0):
             raise ValueError(f"shield.margin: must be a finite number >= 0 [m] (got {margin!r})")
@@ -364,6 +369,7 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
             passing_cut_ins=passing_cut_ins,
             level_when_incentive=level_when_incentive,
             incentive_any_speed=incentive_any_speed,
+            turning_in_nominal=turning_in_nominal,
         )
         try:
             env.get_wrapper_attr("road_snapshot")
@@ -403,6 +409,7 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
         self.passing_cut_ins = bool(passing_cut_ins)
         self.level_when_incentive = bool(level_when_incentive)
         self.incentive_any_speed = bool(incentive_any_speed)
+        self.turning_in_nominal = bool(turning_in_nominal)
         self._rule_options = {name: getattr(self, name) for name in RULE_OPTIONS}  # dynamics_of's keywords
         self.dynamics: Dynamics | None = None
         self.result: SafetyResult | None = None

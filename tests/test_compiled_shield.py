@@ -552,8 +552,11 @@ def test_follower_idm_bit_identical(case: tuple) -> None:
 def test_the_ninth_session_s_rule_leaves_nominal_untouched(case: tuple) -> None:
     """The options made default in issue 15's ninth session (linear drivers' MOBIL, turning leaders, the
     straight fallback, reversing cut-ins) are all robust-mode parts: nominal (Q-masking) gives the same result
-    to the bit with or without them, in both engines."""
+    to the bit with or without them, in both engines — as that session had it, without shield.turning_in_nominal
+    (since the fifteenth session nominal takes turning_leaders' bound where it is the looser:
+    test_turning_in_nominal_bit_identical_and_only_looser_nominal)."""
     state, dyn, _ = case
+    dyn = dataclasses.replace(dyn, turning_in_nominal=False)
     on, off = (dataclasses.replace(dyn, **dict.fromkeys(NINTH_SESSION_OPTIONS, v)) for v in (True, False))
     assert_same(model.evaluate(state, on, "nominal"), model.evaluate(state, off, "nominal"))
     assert_same(compiled.evaluate_compiled(state, on, "nominal"), compiled.evaluate_compiled(state, off, "nominal"))

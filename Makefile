@@ -32,7 +32,7 @@ demo: $(STAMP)
 
 # The tests include tests/test_docs.py: the strict site build and every example of the README and the guides.
 # Two workers (pytest-xdist), a test file per worker: the CI machine has two cores and most tests use one
-# (measured on it: 737-832 s in one process from a clean clone; 404 s on two workers with numba's cache empty).
+# (measured from a clean clone on this project's 2-core machine: 737-832 s in one process, 436 s on two workers).
 # TEST_WORKERS=0 runs them in one process.
 TEST_WORKERS ?= 2
 test: $(STAMP)

@@ -340,10 +340,10 @@ class ShieldConfig(_Section):
     turning_in_nominal: bool = Field(
         True,
         strict=True,
-        description="Robust mode, with turning_leaders: a turning leader's bound (braking along its path less "
-        "a lane change's cost) is also never above braking from its speed along the road, nominal's bound — so "
-        "robust ⊆ nominal holds for a fast car changing lanes (docs/safety.md §6o). On by default since issue "
-        "15's fifteenth session; false: the earlier rule.",
+        description="Nominal mode and robust's straight fallback, with turning_leaders: a moving leader's bound is "
+        "the looser of braking from its speed along the road and robust's (braking along its path less a lane "
+        "change's cost), so robust ⊆ nominal holds with a fast car changing lanes (docs/safety.md §6o). On by "
+        "default since issue 15's fifteenth session; false: the earlier rule (nominal braking along the road only).",
     )
 
     def rule_options(self) -> dict[str, bool]:

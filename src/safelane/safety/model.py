@@ -1352,8 +1352,9 @@ def _evaluate(state: RoadState, dyn: Dynamics, mode: Mode, formula: Formula, nom
         return SafetyResult(safe.copy(), safe, available, False, best_gap)
     if mode == "robust" and dyn.straight_fallback and allowance > 0.0:
         # The stricter leader bound narrows what the rule promises, not what it falls back to: a spawned
-        # scene the turning allowance leaves without a safe action is driven as the rule without it drives
-        # it (issue 15: with turning_leaders alone its least-bad choice crashed more of those scenes).
+        # scene the turning allowance leaves without a safe action is driven as the rule with nominal's leader
+        # bound drives it — without turning_in_nominal, the rule without the allowance (issue 15: with
+        # turning_leaders alone its least-bad choice crashed more of those scenes).
         straight = _evaluate(state, dyn, mode, formula, nominal_leaders=True)
         return SafetyResult(straight.mask.copy(), safe, available, True, best_gap)
     # Least-bad choice. Robust picks among the nominally safe actions when there are some (so that

@@ -284,8 +284,9 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
     first frame MOBIL's incentive allows it (else from the cut-in time whenever it allows it now or at the end).
     ``incentive_any_speed`` (with ``level_when_incentive``): that first frame over every speed the car and the
     vehicles ahead of it can reach, a bound (else with the others at constant speed, which highway-env beat).
-    ``turning_in_nominal`` (with ``turning_leaders``): a turning leader's bound is also never above braking from
-    its speed along the road, nominal's bound, so robust ⊆ nominal holds for a fast car changing lanes.
+    ``turning_in_nominal`` (with ``turning_leaders``): nominal's bound for a moving leader, and robust's straight
+    fallback's, is the looser of braking along the road and robust's along its path, so robust ⊆ nominal holds
+    with a fast car changing lanes.
     """
 
     def __init__(

@@ -1193,21 +1193,18 @@ def _evaluate(state: RoadState, dyn: Dynamics, mode: Mode, formula: Formula, nom
     # A heading effect, like cut-ins and body extent: robust only. Nominal's leaders keep braking along the road
     # (with turning_in_nominal: unless robust's bound is looser), and so does the straight fallback below: its
     # mask is chosen among nominal's bounds, so nominal ⊇ robust stays true of the final masks.
-    allowance = 0.0 if nominal_leaders else turning_allowance(dyn)
+    path_allowance = turning_allowance(dyn)
+    allowance = 0.0 if nominal_leaders else path_allowance
     turning = lead_v > 0.0
-    if allowance > 0.0:  # turning_leaders: along its path, from its speed (issue 15, docs/safety.md §6f)
-        vx_n, vy_n = state.vx[near], state.vy[near]
-        lead_v = np.where(turning, np.sqrt(vx_n * vx_n + vy_n * vy_n), lead_v)
     lead_x = braking_positions(state.x[near], lead_v, brake[near], t, dyn.reversing_leaders)
-    if allowance > 0.0:
-        lead_x = np.where(turning[:, None], lead_x - allowance, lead_x)
-    elif nominal_leaders and dyn.turning_in_nominal and turning_allowance(dyn) > 0.0:
-        # Nominal keeps braking along the road, unless robust's bound along the path is looser (a fast car
-        # turning: v·sin h large): robust ⊆ nominal, by construction (issue 15, docs/safety.md §6o).
+    if path_allowance > 0.0 and (not nominal_leaders or dyn.turning_in_nominal):
+        # turning_leaders: along its path, from its speed (issue 15, docs/safety.md §6f); nominal takes it only
+        # where it is the looser (a fast car turning: v·sin h large), so robust ⊆ nominal by construction (§6o).
         vx_n, vy_n = state.vx[near], state.vy[near]
         path_v = np.where(turning, np.sqrt(vx_n * vx_n + vy_n * vy_n), lead_v)
         path_x = braking_positions(state.x[near], path_v, brake[near], t, dyn.reversing_leaders)
-        lead_x = np.where(turning[:, None], np.maximum(lead_x, path_x - turning_allowance(dyn)), lead_x)
+        path_x = np.where(turning[:, None], path_x - path_allowance, lead_x)
+        lead_x = np.maximum(lead_x, path_x) if nominal_leaders else path_x
     foll_x = follower_positions(
         state.x[near], state.vx[near], state.accel_max[near], state.brake_max[near], dyn.follower_reaction, t
     )

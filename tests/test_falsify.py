@@ -71,6 +71,21 @@ def test_campaign_writes_cells_skips_what_the_simulator_lacks_and_resumes(tmp_pa
     )
     files = sorted((out / "counterexamples").glob("*.json"))
     assert len(files) == summary["invariant_breaks"] + summary["collisions"]
+    # What each condition costs beside what it breaks: fallback rate and speed, over the decisions played.
+    played = [json.loads(p.read_text()) for p in sorted((out / "cells").glob("*.json"))]
+    played = [c for c in played if "skipped" not in c]
+    decisions = sum(c["decisions"] for c in played)
+    assert summary["fallback_rate"] == pytest.approx(
+        sum(c["fallback_rate"] * c["decisions"] for c in played) / decisions
+    )
+    assert summary["mean_speed"] == pytest.approx(sum(c["mean_speed"] * c["decisions"] for c in played) / decisions)
+    assert 0 < summary["mean_speed"] < 40
+    markdown = (out / "summary.md").read_text()
+    assert "## By policy" in markdown and "## By lanes" in markdown
+    header = next(line for line in markdown.splitlines() if line.startswith("| setting"))
+    assert "collisions (front / rear / side)" in header and "fallback" in header and "speed [m/s]" in header
+    policy_row = next(line for line in markdown.splitlines() if line.startswith("| random |"))
+    assert policy_row.split(" | ")[1] == "8" and policy_row.endswith(f"{summary['mean_speed']:.2f} |")
     for path in files[:2]:
         assert replay(load_counterexample(path)).reproduced
     stamps = [p.stat().st_mtime_ns for p in sorted((out / "cells").glob("*.json"))]

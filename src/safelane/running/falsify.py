@@ -371,13 +371,57 @@ def write_summary(out: Path, spec: CampaignSpec) -> dict[str, Any]:
         "invariant_breaks": breaks,
         "invariant_break_rate": breaks / decisions if decisions else None,
         "break_classes": classes,
+        # Per decision, as each cell reports them: the share of decisions the shield fell back at and the
+        # ego's mean speed [m/s] — what a condition costs, beside what it breaks.
+        "fallback_rate": _per_decision(played, "fallback_rate"),
+        "mean_speed": _per_decision(played, "mean_speed"),
     }
     atomic_write_text(out / "summary.json", json.dumps(summary, indent=1))
     atomic_write_text(out / "summary.md", _markdown(spec, summary, played))
     return summary
 
 
+def _per_decision(cells: list[dict[str, Any]], field: str) -> float | None:
+    """A per-decision figure of ``cells`` (``fallback_rate``, or ``mean_speed`` [m/s]) over all their decisions:
+    each cell's value weighted by its decisions; None without decisions."""
+    decisions = sum(c["decisions"] for c in cells)
+    return sum(c[field] * c["decisions"] for c in cells) / decisions if decisions else None
+
+
+def _group_table(title: str, key: str, played: list[dict[str, Any]]) -> list[str]:
+    """One table of the summary: every value of ``key`` (a cell's policy, or one axis's setting), with what
+    issue 15 asks per condition — episodes, collisions with their kinds and against the promise, invariant
+    breaks, fallback rate, speed."""
+    lines = [
+        f"## By {title}",
+        "",
+        "| setting | episodes | collisions (front / rear / side) | started unsafe | after a break | from safe states "
+        "| invariant breaks | breaks / 1 000 decisions | fallback | speed [m/s] |",
+        "|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    groups: dict[str, list[dict[str, Any]]] = {}
+    for r in played:
+        groups.setdefault(str(r[key]), []).append(r)
+    for value, rs in groups.items():
+        d = sum(r["decisions"] for r in rs)
+        b = sum(r["invariant_breaks"] for r in rs)
+        kinds = [sum(r["collision_kinds"].get(k, 0) for r in rs) for k in ("ego_hit_front", "rear_ended", "side")]
+        # Cells of campaigns written before the contexts were counted lack them: 0.
+        contexts = [
+            sum(r.get("collision_contexts", {}).get(c, 0) for r in rs)
+            for c in ("started_unsafe", "after_break", "from_safe_state")
+        ]
+        fallback, speed = _per_decision(rs, "fallback_rate"), _per_decision(rs, "mean_speed")
+        lines.append(
+            f"| {value} | {sum(r['episodes'] for r in rs)} | {sum(r['collisions'] for r in rs)} "
+            f"({' / '.join(map(str, kinds))}) | {' | '.join(map(str, contexts))} | {b} | {1000 * b / max(d, 1):.2f} | "
+            f"{'–' if fallback is None else f'{100 * fallback:.2f} %'} | {'–' if speed is None else f'{speed:.2f}'} |"
+        )
+    return [*lines, ""]
+
+
 def _markdown(spec: CampaignSpec, summary: dict[str, Any], played: list[dict[str, Any]]) -> str:
+    fallback, speed = summary["fallback_rate"], summary["mean_speed"]
     lines = [
         f"# Falsification campaign {spec.name}: {spec.shield} shield (override on), {spec.simulator} simulator",
         "",
@@ -387,27 +431,12 @@ def _markdown(spec: CampaignSpec, summary: dict[str, Any], played: list[dict[str
         f"supported), {summary['episodes']} episodes, {summary['decisions']} decisions: "
         f"**{summary['collisions']} collisions** {summary['collision_kinds']} "
         f"(against the rule's promise: {summary['collision_contexts']}), "
-        f"**{summary['invariant_breaks']} invariant breaks** {summary['break_classes']}.",
+        f"**{summary['invariant_breaks']} invariant breaks** {summary['break_classes']}"
+        + (f"; the shield fell back at {100 * fallback:.3f} % of decisions" if fallback is not None else "")
+        + (f", the ego's mean speed {speed:.2f} m/s." if speed is not None else "."),
         "",
     ]
+    lines += _group_table("policy", "policy", played)
     for axis in spec.axes:
-        key = f"axis_{axis}"
-        lines += [
-            f"## By {axis}",
-            "",
-            "| setting | episodes | collisions | started unsafe | invariant breaks | breaks / 1 000 decisions |",
-            "|---|---|---|---|---|---|",
-        ]
-        groups: dict[str, list[dict[str, Any]]] = {}
-        for r in played:
-            groups.setdefault(r[key], []).append(r)
-        for value, rs in groups.items():
-            d = sum(r["decisions"] for r in rs)
-            b = sum(r["invariant_breaks"] for r in rs)
-            unsafe_starts = sum(r.get("collision_contexts", {}).get("started_unsafe", 0) for r in rs)
-            lines.append(
-                f"| {value} | {sum(r['episodes'] for r in rs)} | {sum(r['collisions'] for r in rs)} | "
-                f"{unsafe_starts} | {b} | {1000 * b / max(d, 1):.2f} |"
-            )
-        lines.append("")
+        lines += _group_table(axis, f"axis_{axis}", played)
     return "\n".join(lines)

@@ -29,7 +29,7 @@ from safelane.running.foresight import ForesightPlanner, play, row_config
 
 
 def drive(path: str, horizon: float, beam: int) -> dict[str, Any]:
-    """One crash file's spawn driven by the unmasked foresight planner: did it crash, and how far it got."""
+    """One crash file's spawn driven by the unmasked foresight planner: did it crash, and its mean speed [m/s]."""
     cx = load_counterexample(path)
     cfg = row_config(cx.env_config(), "foresight")  # the fast simulator, no shield
     result = play(cfg, lambda env: ForesightPlanner(env, mask="none", horizon=horizon, beam=beam), 1, cx.seed)

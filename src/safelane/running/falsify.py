@@ -392,6 +392,8 @@ def _group_table(title: str, key: str, played: list[dict[str, Any]]) -> list[str
     """One table of the summary: every value of ``key`` (a cell's policy, or one axis's setting), with what
     issue 15 asks per condition — episodes, collisions with their kinds and against the promise, invariant
     breaks, fallback rate, speed."""
+    from safelane.running.evaluation import COLLISION_KINDS
+
     lines = [
         f"## By {title}",
         "",
@@ -405,7 +407,7 @@ def _group_table(title: str, key: str, played: list[dict[str, Any]]) -> list[str
     for value, rs in groups.items():
         d = sum(r["decisions"] for r in rs)
         b = sum(r["invariant_breaks"] for r in rs)
-        kinds = [sum(r["collision_kinds"].get(k, 0) for r in rs) for k in ("ego_hit_front", "rear_ended", "side")]
+        kinds = [sum(r["collision_kinds"].get(k, 0) for r in rs) for k in COLLISION_KINDS]  # front, rear, side
         # Cells of campaigns written before the contexts were counted lack them: 0.
         contexts = [
             sum(r.get("collision_contexts", {}).get(c, 0) for r in rs)

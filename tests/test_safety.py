@@ -132,6 +132,9 @@ EXPECTED = {
     # in only ahead of the ego, a leader once in (shield.passing_cut_ins): IDLE and FASTER (the earlier rule bounded
     # it as a follower driving through the ego: nothing safe; test below). Nominal: IDLE, FASTER.
     "car_passing_in_the_next_lane": {"nominal": mask_of(I, F), "robust": mask_of(I, F)},
+    # No safe action (a spawn): the leader 13.4 m ahead brakes at its limit for its own leader, lane 1 free for 28 m.
+    # Ranked by the worst case SLOWER is least bad; shield.forecast_fallback changes lane instead (test below).
+    "squeeze_beside_a_free_lane": {"nominal": mask_of(S), "robust": mask_of(S)},
 }
 
 
@@ -147,6 +150,7 @@ def test_scenario_masks(name: str, mode: str, engine: str) -> None:
     fallbacks |= {("closing_in_at_five_per_second", "nominal"), ("closing_in_at_five_per_second", "robust")}
     fallbacks |= {("ego_turning_into_its_lane", "robust"), ("reversing_car_beside", "robust")}
     fallbacks |= {("ego_crossing_a_lane", "nominal"), ("ego_crossing_a_lane", "robust")}
+    fallbacks |= {("squeeze_beside_a_free_lane", "nominal"), ("squeeze_beside_a_free_lane", "robust")}
     assert scene.result.fallback == ((name, mode) in fallbacks)
     available = scene.env.unwrapped.action_type.get_available_actions()
     assert set(np.flatnonzero(scene.mask)) <= set(available)

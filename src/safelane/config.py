@@ -346,6 +346,15 @@ class ShieldConfig(_Section):
         "default since issue 15's fifteenth session; false: the earlier rule (nominal braking along the road only).",
     )
 
+    forecast_fallback: bool = Field(
+        False,
+        strict=True,
+        description="When no action is safe, rank the least-bad choice first by the smallest gap a nominal forecast "
+        "predicts (every other car keeps its lane and drives by its own IDM or linear law, the ego among them), "
+        "capped at the margin; then by the worst-case gaps as before (docs/safety.md §6q). Never makes an action "
+        "safe.",
+    )
+
     def rule_options(self) -> dict[str, bool]:
         """The rule's on/off options by name, as :class:`safelane.safety.shield.SafetyShield` and
         :func:`safelane.safety.shield.dynamics_of` take them (one list for every place that builds a shield)."""
@@ -758,7 +767,7 @@ RULE_OPTIONS = (
     "robust_fallback", "straight_fallback", "linear_incentive", "linear_incentive_braking", "reversing_cut_ins",
     "crossed_lanes", "lateral_schedule", "reversing_noses", "follower_idm", "follower_set_point",
     "finishing_changes", "cut_in_when_permitted", "leaving_lanes_seen", "permit_any_speed", "passing_cut_ins",
-    "level_when_incentive", "incentive_any_speed", "turning_in_nominal",
+    "level_when_incentive", "incentive_any_speed", "turning_in_nominal", "forecast_fallback",
 )  # fmt: skip
 """The :class:`ShieldConfig` fields that switch parts of the safety rule on or off (``ShieldConfig.rule_options``)."""
 

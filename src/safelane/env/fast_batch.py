@@ -124,7 +124,7 @@ def _observe_one(
     reversing_cut_ins, crossed_lanes, lateral_schedule,
     reversing_noses, follower_idm, follower_set_point, finishing_changes,
     cut_in_when_permitted, leaving_lanes_seen, permit_any_speed, passing_cut_ins, level_when_incentive,
-    incentive_any_speed, turning_in_nominal,
+    incentive_any_speed, turning_in_nominal, forecast_fallback,
     ego_width, kp_lateral, kp_heading,
     max_steering,
     ego_speed_magnitude,
@@ -193,7 +193,7 @@ def _observe_one(
         linear_incentive_braking, reversing_cut_ins, crossed_lanes, lateral_schedule,
         reversing_noses, follower_idm, follower_set_point, finishing_changes,
         cut_in_when_permitted, leaving_lanes_seen, permit_any_speed, passing_cut_ins, level_when_incentive,
-        incentive_any_speed, turning_in_nominal,
+        incentive_any_speed, turning_in_nominal, forecast_fallback,
         ego_width, kp_lateral,
         kp_heading, max_steering, ego_speed_magnitude,
         turning_allowance, min_acc_gain,
@@ -449,7 +449,7 @@ _NO_SHIELD = (
     _readonly(np.zeros(1)), _readonly(np.zeros(1)), _readonly(np.zeros(1)), np.zeros(1, dtype=np.int64), 1.0, 1.0,
     1, 1, 1.0, 4.0, 1, 0.0, 0.0, 0.0, 0.0, 0.0, False, False, 0.0, False, False, False, False, False,
     False, False, False, False, False, False, False, False, False, False, False, False, False, False, False, False,
-    False, False, False, 2.0, 1.0, 1.0,
+    False, False, False, False, 2.0, 1.0, 1.0,
     1.0, False, 0.0, 0.0,
 )  # fmt: skip
 """Placeholders of :class:`safelane.safety.compiled.KernelConstants`'s fields when no shield runs (typed

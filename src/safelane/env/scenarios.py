@@ -380,6 +380,20 @@ def squeezed_by_a_follower(mode: Mode = "robust", **kw: Any) -> Scene:
     return build_scene(1, 18.32, specs, mode=mode, lanes_count=3, ego_target_speed=15.0, **rate, **kw)
 
 
+def squeeze_beside_a_free_lane(mode: Mode = "robust", **kw: Any) -> Scene:
+    """A spawn with no safe action, two lanes of Defensive drivers (the linear model, 2.5 s time gap): the ego
+    in lane 0 at 25 m/s, 13.4 m behind a car at 22 m/s that its own leader, 28.8 m further at 22.1 m/s, makes
+    brake at its limit; lane 1 free for 28 m (a car there at 22.7 m/s) — the claim campaign's
+    ``cell00117-seed4001170018`` at its first decision, rebuilt. Every action collides in the worst case and
+    SLOWER least; the leader's own law says it brakes now, so SLOWER runs into it and changing lane gets
+    away (``shield.forecast_fallback``)."""
+    from highway_env.vehicle.behavior import DefensiveVehicle
+
+    cars = [(0, 13.4, 22.0), (1, 28.0, 22.7), (0, 42.2, 22.1), (0, 56.9, 23.3)]
+    specs = [VehicleSpec(lane, dx, speed, vehicle_class=DefensiveVehicle) for lane, dx, speed in cars]
+    return build_scene(0, 25.0, specs, mode=mode, lanes_count=2, **kw)
+
+
 def car_settling_next_to_the_ego(mode: Mode = "robust", **kw: Any) -> Scene:
     """6 lanes; the ego in lane 5 at 29.34 m/s (set-point 30); 25.18 m ahead a car at 17.16 m/s that has just
     crossed from lane 3 into lane 4, the lane next to the ego, 1.27 m short of its centre and still turned
@@ -448,6 +462,7 @@ SCENARIOS: dict[str, Callable[..., Scene]] = {
     "car_settling_next_to_the_ego": car_settling_next_to_the_ego,
     "car_passing_a_stopped_ego": car_passing_a_stopped_ego,
     "car_passing_in_the_next_lane": car_passing_in_the_next_lane,
+    "squeeze_beside_a_free_lane": squeeze_beside_a_free_lane,
 }
 """Every scenario by name."""
 

@@ -32,6 +32,7 @@ from numba import njit
 from safelane.core import spaces
 from safelane.core.snapshot import RoadSnapshot
 from safelane.safety import model
+from safelane.safety.forecast import forecast_gaps
 from safelane.safety.model import Dynamics, Formula, Mode, RoadState, SafetyResult
 
 # The kernels use the action indices as literals (numba freezes globals at compile time, and its disk
@@ -507,7 +508,7 @@ def _evaluate_rule(
     reversing_noses: bool, follower_idm: bool, follower_set_point: bool, finishing_changes: bool,
     cut_in_when_permitted: bool, leaving_lanes_seen: bool,
     permit_any_speed: bool, passing_cut_ins: bool, level_when_incentive: bool, incentive_any_speed: bool,
-    nominal_allowance: float,
+    nominal_allowance: float, forecast_fallback: bool,
     ego_width: float, kp_lateral: float,
     kp_heading: float, max_steering: float, turning_allowance: float,
     min_acc_gain: float,
@@ -737,6 +738,7 @@ def _evaluate_rule(
     ego_lanes = np.empty(lanes_count + 1, dtype=np.int64)
     ego_until = np.empty(lanes_count + 1)  # [s] until when the ego is in the lane (inf: for good)
     ego_hi = np.empty(lanes_count + 1, dtype=np.int64)  # the last frame of that window (t <= until)
+    ego_last = np.full((N_ACTIONS, lanes_count), -1, dtype=np.int64)  # per action: the last frame in each lane
     last_frame = np.empty(lanes_count, dtype=np.int64)
     ego_seen = np.zeros(lanes_count, dtype=np.bool_)  # leaving_lanes_seen: lanes MOBIL still sees the ego in
     hi_leave = n_t - 1
@@ -782,6 +784,8 @@ def _evaluate_rule(
                     n_el += 1
             ego_lanes[n_el], ego_hi[n_el] = final, hi_inf
             n_el += 1
+        for e in range(n_el):  # forecast_fallback: model.ego_last_frames
+            ego_last[a, ego_lanes[e]] = max(ego_last[a, ego_lanes[e]], ego_hi[e])
 
         slot = -1
         if robust:
@@ -1071,10 +1075,20 @@ def _evaluate_rule(
         ahead_of, gaps_of = nominal_ahead, nominal_joint
     if least_bad_joint:  # model.evaluate: the gap to everybody first
         ahead_of, gaps_of = gaps_of, ahead_of
-    # least_bad_action: the largest (ahead gap, gap, −rank), compared as Python compares tuples.
+    # model.forecast_ranking: the forecast's gap capped at the margin, ranked first (0 for all: no forecast).
+    forecast = np.zeros(N_ACTIONS)
+    if forecast_fallback:
+        forecast = forecast_gaps(
+            xs.transpose((0, 2, 1)), ego_last, available, frame_dt, ego_x, ego_length, lanes_count, lane_width,
+            speed_limit, x, y, vx, vy, length, crashed, brake_max, accel_max, idm_delta, idm_comfort_acc,
+            idm_comfort_dec, idm_distance_wanted, idm_time_wanted, lin_k0, lin_k1, lin_k2, target_speed,
+        )  # fmt: skip
+        for a in range(N_ACTIONS):
+            forecast[a] = _nmin(forecast[a], margin)
+    # least_bad_action: the largest (forecast, ahead gap, gap, −rank), compared as Python compares tuples.
     choice = IDLE
     found = False
-    b1 = b2 = 0.0
+    b0 = b1 = b2 = 0.0
     b3 = 0
     for rank in range(tie_break.shape[0]):
         a = tie_break[rank]
@@ -1083,12 +1097,12 @@ def _evaluate_rule(
         g1, g2 = ahead_of[a, 0], gaps_of[a, 0]
         for f in range(1, N_FALLBACKS):
             g1, g2 = _nmax(g1, ahead_of[a, f]), _nmax(g2, gaps_of[a, f])
-        k1, k2, k3 = _nmin(g1, 1e6), _nmin(g2, 1e6), -rank
+        k0, k1, k2, k3 = forecast[a], _nmin(g1, 1e6), _nmin(g2, 1e6), -rank
         better = True
         if found:
-            better = k1 > b1 if k1 != b1 else (k2 > b2 if k2 != b2 else k3 > b3)
+            better = k0 > b0 if k0 != b0 else (k1 > b1 if k1 != b1 else (k2 > b2 if k2 != b2 else k3 > b3))
         if better:
-            found, b1, b2, b3, choice = True, k1, k2, k3, a
+            found, b0, b1, b2, b3, choice = True, k0, k1, k2, k3, a
     mask = np.zeros(N_ACTIONS, dtype=np.bool_)
     mask[choice] = True
     return mask, safe, available, best_gap, True
@@ -1114,7 +1128,7 @@ def _evaluate(
     lateral_schedule: bool, reversing_noses: bool, follower_idm: bool, follower_set_point: bool,
     finishing_changes: bool, cut_in_when_permitted: bool, leaving_lanes_seen: bool,
     permit_any_speed: bool, passing_cut_ins: bool, level_when_incentive: bool, incentive_any_speed: bool,
-    turning_in_nominal: bool,
+    turning_in_nominal: bool, forecast_fallback: bool,
     ego_width: float,
     kp_lateral: float,
     kp_heading: float, max_steering: float, turning_allowance: float,
@@ -1143,7 +1157,7 @@ def _evaluate(
         reversing_noses, follower_idm, follower_set_point, finishing_changes,
         cut_in_when_permitted, leaving_lanes_seen, permit_any_speed, passing_cut_ins, level_when_incentive,
         incentive_any_speed,
-        main_nominal_allowance,
+        main_nominal_allowance, forecast_fallback,
         ego_width, kp_lateral,
         kp_heading, max_steering, allowance, min_acc_gain,
     )  # fmt: skip
@@ -1163,7 +1177,7 @@ def _evaluate(
         reversing_noses, follower_idm, follower_set_point, finishing_changes,
         cut_in_when_permitted, leaving_lanes_seen, permit_any_speed, passing_cut_ins, level_when_incentive,
         incentive_any_speed,
-        nominal_allowance,
+        nominal_allowance, forecast_fallback,
         ego_width, kp_lateral,
         kp_heading, max_steering, 0.0, min_acc_gain,
     )  # fmt: skip
@@ -1190,7 +1204,7 @@ def _evaluate_snapshot(
     lateral_schedule: bool, reversing_noses: bool, follower_idm: bool, follower_set_point: bool,
     finishing_changes: bool, cut_in_when_permitted: bool, leaving_lanes_seen: bool,
     permit_any_speed: bool, passing_cut_ins: bool, level_when_incentive: bool, incentive_any_speed: bool,
-    turning_in_nominal: bool,
+    turning_in_nominal: bool, forecast_fallback: bool,
     ego_width: float,
     kp_lateral: float,
     kp_heading: float, max_steering: float, ego_speed_magnitude: bool,
@@ -1249,7 +1263,7 @@ def _evaluate_snapshot(
         reversing_noses, follower_idm, follower_set_point, finishing_changes,
         cut_in_when_permitted, leaving_lanes_seen, permit_any_speed, passing_cut_ins, level_when_incentive,
         incentive_any_speed,
-        turning_in_nominal,
+        turning_in_nominal, forecast_fallback,
         ego_width, kp_lateral,
         kp_heading, max_steering, turning_allowance, min_acc_gain,
     )  # fmt: skip
@@ -1358,6 +1372,7 @@ class KernelConstants(NamedTuple):
     level_when_incentive: bool
     incentive_any_speed: bool
     turning_in_nominal: bool
+    forecast_fallback: bool
     ego_width: float
     kp_lateral: float
     kp_heading: float
@@ -1400,6 +1415,7 @@ def kernel_constants(dyn: Dynamics) -> KernelConstants:
         dyn.level_when_incentive,
         dyn.incentive_any_speed,
         dyn.turning_in_nominal,
+        dyn.forecast_fallback,
         dyn.ego_width,
         dyn.kp_lateral,
         dyn.kp_heading,
@@ -1443,7 +1459,7 @@ def evaluate_compiled(
         dyn.linear_incentive_braking, dyn.reversing_cut_ins, dyn.crossed_lanes, dyn.lateral_schedule,
         dyn.reversing_noses, dyn.follower_idm, dyn.follower_set_point, dyn.finishing_changes,
         dyn.cut_in_when_permitted, dyn.leaving_lanes_seen, dyn.permit_any_speed, dyn.passing_cut_ins,
-        dyn.level_when_incentive, dyn.incentive_any_speed, dyn.turning_in_nominal, dyn.ego_width,
+        dyn.level_when_incentive, dyn.incentive_any_speed, dyn.turning_in_nominal, dyn.forecast_fallback, dyn.ego_width,
         dyn.kp_lateral, dyn.kp_heading,
         dyn.max_steering, model.turning_allowance(dyn), _MIN_ACC_GAIN,
     )  # fmt: skip
@@ -1490,7 +1506,7 @@ def evaluate_snapshot(
         dyn.linear_incentive_braking, dyn.reversing_cut_ins, dyn.crossed_lanes, dyn.lateral_schedule,
         dyn.reversing_noses, dyn.follower_idm, dyn.follower_set_point, dyn.finishing_changes,
         dyn.cut_in_when_permitted, dyn.leaving_lanes_seen, dyn.permit_any_speed, dyn.passing_cut_ins,
-        dyn.level_when_incentive, dyn.incentive_any_speed, dyn.turning_in_nominal, dyn.ego_width,
+        dyn.level_when_incentive, dyn.incentive_any_speed, dyn.turning_in_nominal, dyn.forecast_fallback, dyn.ego_width,
         dyn.kp_lateral, dyn.kp_heading,
         dyn.max_steering, dyn.ego_speed_magnitude,
         model.turning_allowance(dyn),

@@ -49,6 +49,7 @@ from typing import Literal
 import numpy as np
 
 from safelane.core.spaces import FASTER, IDLE, LANE_LEFT, LANE_RIGHT, N_ACTIONS, SLOWER
+from safelane.safety.forecast import forecast_gaps, forecast_paths
 
 Mode = Literal["nominal", "robust"]
 Formula = Literal["kinematic", "paper"]
@@ -129,6 +130,7 @@ class Dynamics:
     level_when_incentive: bool = True  # level turn-ins start from the first frame MOBIL's incentive allows them
     incentive_any_speed: bool = True  # level_when_incentive: that frame over every speed the cars can reach
     turning_in_nominal: bool = True  # turning_leaders: nominal's leader bound never below robust's (robust ⊆ nominal)
+    forecast_fallback: bool = False  # nothing safe: rank the least-bad choice by a nominal forecast first (forecast.py)
     ego_lateral_speed: float = math.nan  # [m/s] the speed that simulation runs at (per state, like ego_leave_time)
     ego_width: float = 2.0  # [m] the ego's width (Vehicle.WIDTH)
     kp_lateral: float = 1.0 / 0.6  # [1/s] ControlledVehicle.KP_LATERAL
@@ -1365,8 +1367,36 @@ def _evaluate(state: RoadState, dyn: Dynamics, mode: Mode, formula: Formula, nom
         first, second, pool = nominal_ahead, nominal_joint, available
     if dyn.least_bad_joint:  # the worst gap to anybody first: a follower's or a car alongside's counts as much
         first, second = second, first
-    choice = least_bad_action(first.max(axis=1), second.max(axis=1), pool)
+    forecast = forecast_ranking(state, dyn, ego_x, available) if dyn.forecast_fallback else None
+    choice = least_bad_action(first.max(axis=1), second.max(axis=1), pool, forecast)
     return _fallback(choice, safe, available, best_gap)
+
+
+def ego_last_frames(state: RoadState, dyn: Dynamics, available: np.ndarray) -> np.ndarray:
+    """(5, lanes) the last frame of the horizon (:attr:`Dynamics.times`) in which the ego occupies each lane
+    under each available action (:func:`_action_lanes`); −1: never."""
+    t = dyn.times
+    last = np.full((N_ACTIONS, dyn.lanes_count), -1, dtype=np.int64)
+    for a in np.flatnonzero(available):
+        for lane, until in _action_lanes(state, dyn, int(a)):
+            last[a, lane] = max(last[a, lane], int(np.count_nonzero(t <= until)) - 1)  # NaN: never
+    return last
+
+
+def forecast_ranking(state: RoadState, dyn: Dynamics, ego_x: np.ndarray, available: np.ndarray) -> np.ndarray:
+    """(5,) ``Dynamics.forecast_fallback``'s first key of the least-bad choice: each action's gap [m] under
+    :func:`safelane.safety.forecast.forecast_gaps` (the others as they will most likely drive), capped at
+    ``margin`` — an action the forecast keeps clear of everybody ranks by its worst-case gaps among its
+    equals, since past the margin the forecast says nothing about the risk the worst case measures.
+    ``ego_x``: (5, fallbacks, frames + 1) the ego's positions [m] (:func:`ego_trajectories`)."""
+    gaps = forecast_gaps(
+        ego_x, ego_last_frames(state, dyn, available), available, dyn.frame_dt, state.ego_x, state.ego_length,
+        dyn.lanes_count, dyn.lane_width, state.speed_limit, state.x, state.y, state.vx, state.vy, state.length,
+        state.crashed, state.brake_max, state.accel_max, state.idm_delta, state.idm_comfort_acc,
+        state.idm_comfort_dec, state.idm_distance_wanted, state.idm_time_wanted, state.linear_speed_gain,
+        state.linear_speed_difference_gain, state.linear_distance_gain, set_points(state),
+    )  # fmt: skip
+    return np.minimum(gaps, dyn.margin)
 
 
 def _finish(safe: np.ndarray, available: np.ndarray, gaps: np.ndarray, ahead_gaps: np.ndarray) -> SafetyResult:
@@ -1381,16 +1411,36 @@ def _fallback(choice: int, safe: np.ndarray, available: np.ndarray, gaps: np.nda
     return SafetyResult(mask, safe, available, True, gaps)
 
 
-def least_bad_action(ahead_gaps: np.ndarray, gaps: np.ndarray, pool: np.ndarray) -> int:
+def forecast_of(state: RoadState, dyn: Dynamics, action: int, fallback: int) -> tuple[np.ndarray, np.ndarray, float]:
+    """The nominal forecast beside one of the ego's trajectories (``action`` then fallback ``fallback``, as
+    :func:`ego_trajectories`): (indices of the forecast vehicles in ``state``, their positions [m] per frame of
+    the horizon but the last, the smallest bumper gap [m] to the ego in a lane it occupies). For inspection and
+    tests; the rule ranks by :func:`forecast_ranking`."""
+    ego_x, _ = ego_trajectories(state, dyn)
+    last = ego_last_frames(state, dyn, available_actions(state, dyn) | (np.arange(N_ACTIONS) == action))
+    return forecast_paths(
+        ego_x[action, fallback], last[action], dyn.frame_dt, state.ego_x, state.ego_length, dyn.lanes_count,
+        dyn.lane_width, state.speed_limit, state.x, state.y, state.vx, state.vy, state.length, state.crashed,
+        state.brake_max, state.accel_max, state.idm_delta, state.idm_comfort_acc, state.idm_comfort_dec,
+        state.idm_distance_wanted, state.idm_time_wanted, state.linear_speed_gain, state.linear_speed_difference_gain,
+        state.linear_distance_gain, set_points(state),
+    )  # fmt: skip
+
+
+def least_bad_action(
+    ahead_gaps: np.ndarray, gaps: np.ndarray, pool: np.ndarray, forecast: np.ndarray | None = None
+) -> int:
     """The action to allow when none is safe: largest worst-case gap [m] to vehicles *ahead* (the ego's
     own responsibility), then to everybody, then :data:`TIE_BREAK_ORDER` (``Dynamics.least_bad_joint``
-    passes the two gap arrays the other way round)."""
-    best: tuple[float, float, int] | None = None
+    passes the two gap arrays the other way round). ``forecast`` (``Dynamics.forecast_fallback``,
+    :func:`forecast_ranking`): a key [m] ranked before all of these."""
+    best: tuple[float, float, float, int] | None = None
     choice = IDLE
     for rank, a in enumerate(TIE_BREAK_ORDER):
         if not pool[a]:
             continue
-        key = (float(np.minimum(ahead_gaps[a], 1e6)), float(np.minimum(gaps[a], 1e6)), -rank)
+        first = 0.0 if forecast is None else float(forecast[a])
+        key = (first, float(np.minimum(ahead_gaps[a], 1e6)), float(np.minimum(gaps[a], 1e6)), -rank)
         if best is None or key > best:
             best, choice = key, a
     return choice

@@ -104,6 +104,7 @@ def dynamics_of(
     level_when_incentive: bool = True,
     incentive_any_speed: bool = True,
     turning_in_nominal: bool = True,
+    forecast_fallback: bool = False,
 ) -> Dynamics:
     """The :class:`Dynamics` constants of the simulated world a snapshot was taken in; ``margin`` [m]: the
     bumper-to-bumper gap the rule keeps under its worst case; the rule's options as in :class:`Dynamics`."""
@@ -149,6 +150,7 @@ def dynamics_of(
         level_when_incentive=level_when_incentive,
         incentive_any_speed=incentive_any_speed,
         turning_in_nominal=turning_in_nominal,
+        forecast_fallback=forecast_fallback,
         # highway-env's lateral controller: ControlledVehicle's gains, which MDPVehicle (the ego) inherits.
         ego_width=float(snap.width[snap.ego]) if len(snap.width) else 2.0,
         kp_lateral=float(ControlledVehicle.KP_LATERAL),
@@ -287,6 +289,9 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
     ``turning_in_nominal`` (with ``turning_leaders``): nominal's bound for a moving leader, and robust's straight
     fallback's, is the looser of braking along the road and robust's along its path, so robust ⊆ nominal holds
     with a fast car changing lanes.
+    ``forecast_fallback``: with no safe action, rank the least-bad choice first by the gap a nominal forecast of
+    the others predicts (:mod:`safelane.safety.forecast`: every car keeps its lane and drives by its own law),
+    capped at ``margin``; then as before.
     """
 
     def __init__(
@@ -326,6 +331,7 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
         level_when_incentive: bool = True,
         incentive_any_speed: bool = True,
         turning_in_nominal: bool = True,
+        forecast_fallback: bool = False,
     ) -> None:
         if not (math.isfinite(margin) and margin >= 0):
             raise ValueError(f"shield.margin: must be a finite number >= 0 [m] (got {margin!r})")
@@ -371,6 +377,7 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
             level_when_incentive=level_when_incentive,
             incentive_any_speed=incentive_any_speed,
             turning_in_nominal=turning_in_nominal,
+            forecast_fallback=forecast_fallback,
         )
         try:
             env.get_wrapper_attr("road_snapshot")
@@ -411,6 +418,7 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
         self.level_when_incentive = bool(level_when_incentive)
         self.incentive_any_speed = bool(incentive_any_speed)
         self.turning_in_nominal = bool(turning_in_nominal)
+        self.forecast_fallback = bool(forecast_fallback)
         self._rule_options = {name: getattr(self, name) for name in RULE_OPTIONS}  # dynamics_of's keywords
         self.dynamics: Dynamics | None = None
         self.result: SafetyResult | None = None

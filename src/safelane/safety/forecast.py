@@ -1,0 +1,251 @@
+"""A nominal forecast of the traffic, to rank the fallback's choices when no action is safe.
+
+The rule (:mod:`safelane.safety.model`) decides what is *safe* from worst cases only. When nothing is safe
+it still has to pick one action, and ranking the unsafe actions by their worst-case gaps alone drives badly:
+in a spawned squeeze — a leader close ahead braking for its own leader, an empty lane beside — the worst
+case says every action collides and SLOWER collides least, while the planner that knows the future changes
+lane at once and drives through (issue 15, the claim campaign's 567 crashes from unsafe spawns: 402 of
+them driven through by the foresight planner, ``examples/spawn_foresight.py``).
+
+:func:`forecast_gaps` predicts what the others will most likely do instead: every vehicle keeps its lane
+(the one it is heading to, if it is moving sideways) and drives by its own law — IDM, or the linear model
+of Linear, Aggressive and Defensive drivers, with its own parameters and set-point, accelerations clipped
+to ``[−brake_max, accel_max]`` as highway-env clips them — behind its leader in that lane, the ego among
+them wherever the ego's action takes it. It is the same integration highway-env runs (acceleration from
+the current state, then ``x += v·dt``, ``v += a·dt``), without MOBIL: no lane changes are predicted. The
+forecast never makes an action safe; it only orders the least-bad choice (``Dynamics.forecast_fallback``).
+
+One numba kernel serves both engines (the numpy reference and the compiled rule call the same function on
+the same arrays), so their fallback choices are the same bits.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+FORECAST_RANGE = 150.0
+"""[m] Vehicles farther than this from the ego along the road are left out of the forecast."""
+SIDEWAYS_LOOKAHEAD = 1.0
+"""[s] A vehicle moving sideways follows the lane its lateral speed reaches in this time (a lane change
+takes highway-env's drivers about 2 s; at 1 s the car is past the line when it is changing lane)."""
+
+
+@njit(cache=True, inline="always")
+def _lane(y: float, lane_width: float, lanes_count: int) -> int:
+    """The lane whose centre is nearest ``y`` [m] (lane i's centre at ``i · lane_width``), clipped to the road."""
+    lane = int(np.rint(y / lane_width))
+    return min(max(lane, 0), lanes_count - 1)
+
+
+@njit(cache=True, inline="always")
+def _not_zero(x: float) -> float:
+    """highway-env's ``utils.not_zero``: ``x`` moved away from 0 to at least 1e-2 in magnitude."""
+    if abs(x) > 1e-2:
+        return x
+    return 1e-2 if x >= 0 else -1e-2
+
+
+@njit(cache=True, error_model="numpy")
+def forecast_gaps(
+    xs: np.ndarray, ego_last_frame: np.ndarray, available: np.ndarray, frame_dt: float, ego_x: float,
+    ego_length: float, lanes_count: int, lane_width: float, speed_limit: float, x: np.ndarray, y: np.ndarray,
+    vx: np.ndarray, vy: np.ndarray, length: np.ndarray, crashed: np.ndarray, brake_max: np.ndarray,
+    accel_max: np.ndarray, idm_delta: np.ndarray, idm_comfort_acc: np.ndarray, idm_comfort_dec: np.ndarray,
+    idm_distance_wanted: np.ndarray, idm_time_wanted: np.ndarray, lin_k0: np.ndarray, lin_k1: np.ndarray,
+    lin_k2: np.ndarray, target_speed: np.ndarray,
+) -> np.ndarray:  # fmt: skip
+    """(5,) per action, the smallest bumper-to-bumper gap [m] to any vehicle in a lane the ego occupies, under
+    the action's best fallback (the largest over the fallbacks), if the others drive as forecast (module
+    docstring); ``-inf`` for an unavailable action, ``inf`` where nobody shares a lane with the ego (and for
+    every available action of a state without the driver models' arrays).
+
+    ``xs``: (5, fallbacks, frames + 1) the ego's positions [m] (``model.ego_trajectories``; the last frame,
+    which credits the ego's creep beyond the horizon, is not used); ``ego_last_frame``: (5, lanes) the last
+    frame the ego occupies each lane under each action (−1: never); ``available``: (5,) bool. The other
+    vehicles' arrays are the :class:`~safelane.safety.model.RoadState`'s (metres, m/s, m/s²; ``lin_k0``
+    NaN: an IDM driver; ``target_speed`` NaN: its speed is its set-point).
+    """
+    n_actions, n_fallbacks = xs.shape[0], xs.shape[1]
+    out = np.full(n_actions, -math.inf)
+    if not _complete(x, y, vx, vy, length, crashed, brake_max, accel_max, idm_delta, idm_comfort_acc,
+                     idm_comfort_dec, idm_distance_wanted, idm_time_wanted):  # fmt: skip
+        for a in range(n_actions):
+            if available[a]:
+                out[a] = math.inf
+        return out
+    # The vehicles that can share a lane with the ego: those in (or heading to) a lane it may occupy.
+    used = np.zeros(lanes_count, dtype=np.bool_)
+    for a in range(n_actions):
+        if available[a]:
+            for lane in range(lanes_count):
+                if ego_last_frame[a, lane] >= 0:
+                    used[lane] = True
+    pick, lane_now, lane_to, leader, set_point, v0 = _select(
+        used, ego_x, lanes_count, lane_width, speed_limit, x, y, vx, vy, target_speed
+    )
+    no_history = np.empty((0, 0))
+    for a in range(n_actions):
+        if not available[a]:
+            continue
+        best_fallback = -math.inf
+        for k in range(n_fallbacks):
+            smallest = _rollout(
+                xs[a, k], ego_last_frame[a], frame_dt, ego_length, pick, lane_now, lane_to, leader, set_point, v0,
+                x, vx, length, crashed, brake_max, accel_max, idm_delta, idm_comfort_acc, idm_comfort_dec,
+                idm_distance_wanted, idm_time_wanted, lin_k0, lin_k1, lin_k2, no_history,
+            )  # fmt: skip
+            best_fallback = max(best_fallback, smallest)
+        out[a] = best_fallback
+    return out
+
+
+@njit(cache=True, error_model="numpy")
+def forecast_paths(
+    ego_path: np.ndarray, ego_last_frame: np.ndarray, frame_dt: float, ego_x: float, ego_length: float,
+    lanes_count: int, lane_width: float, speed_limit: float, x: np.ndarray, y: np.ndarray, vx: np.ndarray,
+    vy: np.ndarray, length: np.ndarray, crashed: np.ndarray, brake_max: np.ndarray, accel_max: np.ndarray,
+    idm_delta: np.ndarray, idm_comfort_acc: np.ndarray, idm_comfort_dec: np.ndarray,
+    idm_distance_wanted: np.ndarray, idm_time_wanted: np.ndarray, lin_k0: np.ndarray, lin_k1: np.ndarray,
+    lin_k2: np.ndarray, target_speed: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray, float]:  # fmt: skip
+    """One ego trajectory's forecast, whole: (the forecast vehicles' indices into the arrays, their positions
+    [m] at every frame but the last (vehicles × frames), the smallest bumper gap [m] to the ego).
+
+    ``ego_path``: (frames + 1,) the ego's positions [m]; ``ego_last_frame``: (lanes,) the last frame the ego
+    occupies each lane (−1: never); the rest as :func:`forecast_gaps`. Every vehicle within range counts
+    (not only those that can meet the ego), so the whole forecast can be compared with a simulator.
+    """
+    used = np.ones(lanes_count, dtype=np.bool_)
+    pick, lane_now, lane_to, leader, set_point, v0 = _select(
+        used, ego_x, lanes_count, lane_width, speed_limit, x, y, vx, vy, target_speed
+    )
+    history = np.empty((pick.shape[0], ego_path.shape[0] - 1))
+    smallest = _rollout(
+        ego_path, ego_last_frame, frame_dt, ego_length, pick, lane_now, lane_to, leader, set_point, v0, x, vx,
+        length, crashed, brake_max, accel_max, idm_delta, idm_comfort_acc, idm_comfort_dec, idm_distance_wanted,
+        idm_time_wanted, lin_k0, lin_k1, lin_k2, history,
+    )  # fmt: skip
+    return pick, history, smallest
+
+
+@njit(cache=True)
+def _complete(
+    x: np.ndarray, y: np.ndarray, vx: np.ndarray, vy: np.ndarray, length: np.ndarray, crashed: np.ndarray,
+    brake_max: np.ndarray, accel_max: np.ndarray, idm_delta: np.ndarray, idm_comfort_acc: np.ndarray,
+    idm_comfort_dec: np.ndarray, idm_distance_wanted: np.ndarray, idm_time_wanted: np.ndarray,
+) -> bool:  # fmt: skip
+    """Whether every per-vehicle array the forecast needs has an entry per vehicle (a hand-built RoadState
+    may leave the driver models out)."""
+    n = x.shape[0]
+    ok = crashed.shape[0] == n
+    for field in (y, vx, vy, length, brake_max, accel_max, idm_delta, idm_comfort_acc, idm_comfort_dec,
+                  idm_distance_wanted, idm_time_wanted):  # fmt: skip
+        ok = ok and field.shape[0] == n
+    return ok
+
+
+@njit(cache=True, error_model="numpy")
+def _select(
+    used: np.ndarray, ego_x: float, lanes_count: int, lane_width: float, speed_limit: float, x: np.ndarray,
+    y: np.ndarray, vx: np.ndarray, vy: np.ndarray, target_speed: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:  # fmt: skip
+    """The vehicles within :data:`FORECAST_RANGE` in (or heading to) a ``used`` lane: their indices, the lane
+    they are in and the one they follow, their leader there (an index into these; −1: none), their set-point
+    [m/s] and IDM's (clipped to ``speed_limit``)."""
+    n_all = x.shape[0]
+    pick = np.empty(n_all, dtype=np.int64)
+    lane_now = np.empty(n_all, dtype=np.int64)
+    lane_to = np.empty(n_all, dtype=np.int64)
+    m = 0
+    for i in range(n_all):
+        if not abs(x[i] - ego_x) < FORECAST_RANGE:
+            continue
+        now = _lane(y[i], lane_width, lanes_count)
+        to = _lane(y[i] + vy[i] * SIDEWAYS_LOOKAHEAD, lane_width, lanes_count)
+        if used[now] or used[to]:
+            pick[m], lane_now[m], lane_to[m] = i, now, to
+            m += 1
+    # Each vehicle's leader in the lane it follows: the next one ahead there (lanes are kept and IDM does
+    # not pass, so the order of the start holds).
+    leader = np.full(m, -1, dtype=np.int64)
+    for r in range(m):
+        best = math.inf
+        for q in range(m):
+            if q != r and lane_to[q] == lane_to[r]:
+                d = x[pick[q]] - x[pick[r]]
+                if (d > 0.0 or (d == 0.0 and q > r)) and d < best:
+                    best, leader[r] = d, q
+    set_points = target_speed.shape[0] == n_all
+    set_point = np.empty(m)  # the driver's own (the linear model reads it unclipped)
+    v0 = np.empty(m)
+    for r in range(m):
+        i = pick[r]
+        set_point[r] = target_speed[i] if set_points and math.isfinite(target_speed[i]) else vx[i]
+        v0[r] = min(max(set_point[r], 0.0), speed_limit)  # IDM clips the set-point to the lane's limit
+    return pick[:m].copy(), lane_now[:m].copy(), lane_to[:m].copy(), leader, set_point, v0
+
+
+@njit(cache=True, error_model="numpy")
+def _rollout(
+    ego_path: np.ndarray, ego_last: np.ndarray, frame_dt: float, ego_length: float, pick: np.ndarray,
+    lane_now: np.ndarray, lane_to: np.ndarray, leader: np.ndarray, set_point: np.ndarray, v0: np.ndarray,
+    x: np.ndarray, vx: np.ndarray, length: np.ndarray, crashed: np.ndarray, brake_max: np.ndarray,
+    accel_max: np.ndarray, idm_delta: np.ndarray, idm_comfort_acc: np.ndarray, idm_comfort_dec: np.ndarray,
+    idm_distance_wanted: np.ndarray, idm_time_wanted: np.ndarray, lin_k0: np.ndarray, lin_k1: np.ndarray,
+    lin_k2: np.ndarray, history: np.ndarray,
+) -> float:  # fmt: skip
+    """Drive the ``pick``ed vehicles frame by frame beside one ego path (``ego_last``: the last frame it is in
+    each lane) and return the smallest bumper gap [m] to the ego in a lane it occupies; ``history`` (vehicles ×
+    frames, or empty) receives their positions [m]."""
+    m = pick.shape[0]
+    n_t = ego_path.shape[0]
+    record = history.shape[0] == m and m > 0
+    linear = lin_k0.shape[0] == x.shape[0] and lin_k1.shape[0] == x.shape[0] and lin_k2.shape[0] == x.shape[0]
+    pos = np.empty(m)
+    spd = np.empty(m)
+    acc = np.empty(m)
+    for r in range(m):
+        pos[r], spd[r] = x[pick[r]], vx[pick[r]]
+    smallest = math.inf
+    for f in range(n_t - 1):
+        ex = ego_path[f]
+        for r in range(m):
+            if record:
+                history[r, f] = pos[r]
+            if ego_last[lane_now[r]] >= f or ego_last[lane_to[r]] >= f:
+                smallest = min(smallest, abs(pos[r] - ex) - 0.5 * (length[pick[r]] + ego_length))
+        if f == n_t - 2:
+            break
+        ev = (ego_path[f + 1] - ex) / frame_dt  # the ego's speed over the frame
+        for r in range(m):
+            i = pick[r]
+            if crashed[i]:
+                acc[r] = 0.0
+                continue
+            q = leader[r]
+            has_front = q >= 0
+            d = pos[q] - pos[r] if has_front else math.inf
+            v_front = spd[q] if has_front else 0.0
+            if ego_last[lane_to[r]] >= f and ex > pos[r] and ex - pos[r] < d:
+                has_front, d, v_front = True, ex - pos[r], ev  # the ego is its leader
+            v = spd[r]
+            if linear and math.isfinite(lin_k0[i]):  # LinearVehicle.acceleration
+                d_safe = idm_distance_wanted[i] + max(v, 0.0) * idm_time_wanted[i]
+                a_r = lin_k0[i] * (set_point[r] - v)
+                if has_front:
+                    a_r += lin_k1[i] * min(v_front - v, 0.0) + lin_k2[i] * min(d - d_safe, 0.0)
+            else:  # IDMVehicle.acceleration (d: centre to centre, as highway-env's lane_distance_to)
+                comfort = idm_comfort_acc[i]
+                a_r = comfort * (1.0 - math.pow(max(v, 0.0) / abs(_not_zero(v0[r])), idm_delta[i]))
+                if has_front:
+                    ab = -comfort * idm_comfort_dec[i]
+                    d_star = idm_distance_wanted[i] + v * idm_time_wanted[i] + v * (v - v_front) / (2 * math.sqrt(ab))
+                    a_r -= comfort * (d_star / _not_zero(d)) ** 2
+            acc[r] = min(max(a_r, -brake_max[i]), accel_max[i])  # IDMVehicle.act clips to ±ACC_MAX
+        for r in range(m):  # Vehicle.step: the position with the frame's speed, then the speed
+            pos[r] += spd[r] * frame_dt
+            spd[r] += acc[r] * frame_dt
+    return smallest

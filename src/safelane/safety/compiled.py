@@ -1075,7 +1075,7 @@ def _evaluate_rule(
         ahead_of, gaps_of = nominal_ahead, nominal_joint
     if least_bad_joint:  # model.evaluate: the gap to everybody first
         ahead_of, gaps_of = gaps_of, ahead_of
-    # model.forecast_ranking: the forecast's gap capped at the margin, ranked first (0 for all: no forecast).
+    # model.forecast_ranking: the forecast's gap capped at the margin, −1 if it collides, ranked first (0: none).
     forecast = np.zeros(N_ACTIONS)
     if forecast_fallback:
         forecast = forecast_gaps(
@@ -1084,7 +1084,7 @@ def _evaluate_rule(
             idm_comfort_dec, idm_distance_wanted, idm_time_wanted, lin_k0, lin_k1, lin_k2, target_speed,
         )  # fmt: skip
         for a in range(N_ACTIONS):
-            forecast[a] = _nmin(forecast[a], margin)
+            forecast[a] = _nmin(forecast[a], margin) if forecast[a] >= 0.0 else -1.0
     # least_bad_action: the largest (forecast, ahead gap, gap, −rank), compared as Python compares tuples.
     choice = IDLE
     found = False

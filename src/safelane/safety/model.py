@@ -1386,8 +1386,10 @@ def ego_last_frames(state: RoadState, dyn: Dynamics, available: np.ndarray) -> n
 def forecast_ranking(state: RoadState, dyn: Dynamics, ego_x: np.ndarray, available: np.ndarray) -> np.ndarray:
     """(5,) ``Dynamics.forecast_fallback``'s first key of the least-bad choice: each action's gap [m] under
     :func:`safelane.safety.forecast.forecast_gaps` (the others as they will most likely drive), capped at
-    ``margin`` — an action the forecast keeps clear of everybody ranks by its worst-case gaps among its
-    equals, since past the margin the forecast says nothing about the risk the worst case measures.
+    ``margin`` — actions the forecast keeps ``margin`` clear of everybody rank among themselves by their
+    worst-case gaps, since past the margin the forecast says nothing about the risk the worst case measures —
+    and −1 for every action the forecast sees collide (they too then rank by their worst-case gaps: the depth
+    of a forecast overlap is no measure of harm; ranking by it drove FASTER into leaders, docs/safety.md §6q).
     ``ego_x``: (5, fallbacks, frames + 1) the ego's positions [m] (:func:`ego_trajectories`)."""
     gaps = forecast_gaps(
         ego_x, ego_last_frames(state, dyn, available), available, dyn.frame_dt, state.ego_x, state.ego_length,
@@ -1396,7 +1398,8 @@ def forecast_ranking(state: RoadState, dyn: Dynamics, ego_x: np.ndarray, availab
         state.idm_comfort_dec, state.idm_distance_wanted, state.idm_time_wanted, state.linear_speed_gain,
         state.linear_speed_difference_gain, state.linear_distance_gain, set_points(state),
     )  # fmt: skip
-    return np.minimum(gaps, dyn.margin)
+    # A forecast collision is a collision: how deep the forecast's bodies overlap says nothing about which is worse.
+    return np.where(gaps >= 0.0, np.minimum(gaps, dyn.margin), -1.0)
 
 
 def _finish(safe: np.ndarray, available: np.ndarray, gaps: np.ndarray, ahead_gaps: np.ndarray) -> SafetyResult:

@@ -78,8 +78,9 @@ def test_forecast_fallback_changes_lane_out_of_a_squeeze(engine: str) -> None:
     not move."""
     for mode, gap in (("nominal", -16.27), ("robust", -17.92)):
         kw = {"shield.engine": engine}
-        off = scenarios.SCENARIOS["squeeze_beside_a_free_lane"](mode=mode, **kw).result
-        on = scenarios.SCENARIOS["squeeze_beside_a_free_lane"](mode=mode, **kw, **{"shield.forecast_fallback": True})
+        earlier = {"shield.forecast_fallback": False}
+        off = scenarios.SCENARIOS["squeeze_beside_a_free_lane"](mode=mode, **kw, **earlier).result
+        on = scenarios.SCENARIOS["squeeze_beside_a_free_lane"](mode=mode, **kw)  # the default
         assert off.fallback and on.result.fallback and not on.result.safe.any()
         assert off.mask.tolist() == [False, False, False, False, True]
         assert on.mask.tolist() == [False, False, True, False, False]

@@ -347,12 +347,13 @@ class ShieldConfig(_Section):
     )
 
     forecast_fallback: bool = Field(
-        False,
+        True,
         strict=True,
         description="When no action is safe, rank the least-bad choice first by the smallest gap a nominal forecast "
         "predicts (every other car keeps its lane and drives by its own IDM or linear law, the ego among them), "
-        "capped at the margin; then by the worst-case gaps as before (docs/safety.md §6q). Never makes an action "
-        "safe.",
+        "capped at the margin, every forecast collision alike; then by the worst-case gaps (docs/safety.md §6q). "
+        "Never makes an action safe. On by default since issue 15's seventeenth session; false: the earlier "
+        "ranking (worst-case gaps only).",
     )
 
     def rule_options(self) -> dict[str, bool]:
@@ -790,6 +791,8 @@ RULE_CHANGES: dict[str, Any] = {
     "level_when_incentive": False, "incentive_any_speed": False,
     # issue 15's fifteenth session (docs/safety.md §6o)
     "turning_in_nominal": False,
+    # issue 15's seventeenth session (docs/safety.md §6q)
+    "forecast_fallback": False,
 }  # fmt: skip
 """Shield keys added with a new default that changes the rule: a *recorded* configuration (a run's
 config.yaml, a counterexample file) written before the key existed had the old behaviour, given here,

@@ -385,8 +385,8 @@ def squeeze_beside_a_free_lane(mode: Mode = "robust", **kw: Any) -> Scene:
     in lane 0 at 25 m/s, 13.4 m behind a car at 22 m/s that its own leader, 28.8 m further at 22.1 m/s, makes
     brake at its limit; lane 1 free for 28 m (a car there at 22.7 m/s) — the claim campaign's
     ``cell00117-seed4001170018`` at its first decision, rebuilt. Every action collides in the worst case and
-    SLOWER least; the leader's own law says it brakes now, so SLOWER runs into it and changing lane gets
-    away (``shield.forecast_fallback``)."""
+    SLOWER least; the forecast of the leader's own law has it brake now and SLOWER run into it, changing lane
+    get away: ``shield.forecast_fallback`` (the default since issue 15's seventeenth session) picks LANE_RIGHT."""
     from highway_env.vehicle.behavior import DefensiveVehicle
 
     cars = [(0, 13.4, 22.0), (1, 28.0, 22.7), (0, 42.2, 22.1), (0, 56.9, 23.3)]

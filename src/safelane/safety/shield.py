@@ -104,7 +104,7 @@ def dynamics_of(
     level_when_incentive: bool = True,
     incentive_any_speed: bool = True,
     turning_in_nominal: bool = True,
-    forecast_fallback: bool = False,
+    forecast_fallback: bool = True,
 ) -> Dynamics:
     """The :class:`Dynamics` constants of the simulated world a snapshot was taken in; ``margin`` [m]: the
     bumper-to-bumper gap the rule keeps under its worst case; the rule's options as in :class:`Dynamics`."""
@@ -291,7 +291,8 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
     with a fast car changing lanes.
     ``forecast_fallback``: with no safe action, rank the least-bad choice first by the gap a nominal forecast of
     the others predicts (:mod:`safelane.safety.forecast`: every car keeps its lane and drives by its own law),
-    capped at ``margin``; then as before.
+    capped at ``margin``, a forecast collision ranking as one; then as before (on by default since issue 15's
+    seventeenth session).
     """
 
     def __init__(
@@ -331,7 +332,7 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
         level_when_incentive: bool = True,
         incentive_any_speed: bool = True,
         turning_in_nominal: bool = True,
-        forecast_fallback: bool = False,
+        forecast_fallback: bool = True,
     ) -> None:
         if not (math.isfinite(margin) and margin >= 0):
             raise ValueError(f"shield.margin: must be a finite number >= 0 [m] (got {margin!r})")

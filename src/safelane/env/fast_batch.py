@@ -21,10 +21,7 @@ runner (:func:`safelane.running.evaluation.run_episodes_fast_batch`: each episod
 
 from __future__ import annotations
 
-import hashlib
 import math
-import os
-from pathlib import Path
 from typing import Any, NamedTuple
 
 import numba
@@ -33,6 +30,7 @@ from numba import njit, prange
 
 from safelane.config import ConfigError, SafelaneConfig
 from safelane.core.errors import NotSupported
+from safelane.core.kernel_cache import drop_stale_kernel_cache
 from safelane.core.snapshot import DRIVER_FIELDS, RoadSnapshot
 from safelane.core.spaces import N_ACTIONS
 from safelane.env.observations import OBS_SIZE, _lane_state_kernel, _paper_state_kernel
@@ -44,29 +42,12 @@ from safelane.sim.fast.env import FastHighwayEnv, stacked_storage
 
 
 def _drop_stale_kernel_cache() -> None:
-    """Delete numba's disk cache of this module's kernels when a kernel they call changed.
-
-    numba keys a cached function to its own source file only, but these kernels compile in the
-    simulator's, the safety model's and the observations' kernels from other files: after an edit
-    there, the cache would run the old code. A digest of those files, kept beside the cache, tells.
-    """
+    """Drop numba's disk cache of this module's kernels when a kernel they compile in changed: the simulator's,
+    the safety rule's (and its forecast's) and the observations' (:mod:`safelane.core.kernel_cache`)."""
     from safelane.env import observations
-    from safelane.safety import compiled
+    from safelane.safety import compiled, forecast
 
-    sources = (Path(__file__), Path(K.__file__), Path(compiled.__file__), Path(observations.__file__))
-    digest = hashlib.sha256(b"".join(p.read_bytes() for p in sources)).hexdigest()
-    custom = os.environ.get("NUMBA_CACHE_DIR")
-    cache_dir = Path(custom) if custom else Path(__file__).parent / "__pycache__"
-    stamp = cache_dir / "fast_batch.kernels.sha256"
-    try:
-        if stamp.is_file() and stamp.read_text() == digest:
-            return
-        for cached in cache_dir.rglob("fast_batch.*.nb[ic]") if custom else cache_dir.glob("fast_batch.*.nb[ic]"):
-            cached.unlink(missing_ok=True)
-        cache_dir.mkdir(parents=True, exist_ok=True)
-        stamp.write_text(digest)
-    except OSError:  # a read-only install: numba caches elsewhere (or not at all)
-        pass
+    drop_stale_kernel_cache(__file__, (K.__file__, compiled.__file__, forecast.__file__, observations.__file__))
 
 
 _drop_stale_kernel_cache()

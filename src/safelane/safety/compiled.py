@@ -30,10 +30,14 @@ import numpy as np
 from numba import njit
 
 from safelane.core import spaces
+from safelane.core.kernel_cache import drop_stale_kernel_cache
 from safelane.core.snapshot import RoadSnapshot
-from safelane.safety import model
+from safelane.safety import forecast, model
 from safelane.safety.forecast import forecast_gaps
 from safelane.safety.model import Dynamics, Formula, Mode, RoadState, SafetyResult
+
+# The rule's kernel compiles in the forecast's (safelane.safety.forecast): numba's cache watches this file only.
+drop_stale_kernel_cache(__file__, (forecast.__file__,))
 
 # The kernels use the action indices as literals (numba freezes globals at compile time, and its disk
 # cache only watches this file): check here that they are still the core's.

@@ -12,7 +12,8 @@ them driven through by the foresight planner, ``examples/spawn_foresight.py``).
 of Linear, Aggressive and Defensive drivers, with its own parameters and set-point, accelerations clipped
 to ``[−brake_max, accel_max]`` as highway-env clips them — behind its leader in that lane, the ego among
 them wherever the ego's action takes it. It is the same integration highway-env runs (acceleration from
-the current state, then ``x += v·dt``, ``v += a·dt``), without MOBIL: no lane changes are predicted. The
+the current state, then ``x += v·dt``, ``v += a·dt``), without MOBIL: no lane changes are predicted. A body
+without a set-point (a static object; a hand-built state's unknown one) keeps its speed, and a wreck stands. The
 forecast never makes an action safe; it only orders the least-bad choice (``Dynamics.forecast_fallback``).
 
 One numba kernel serves both engines (the numpy reference and the compiled rule call the same function on
@@ -66,7 +67,8 @@ def forecast_gaps(
     which credits the ego's creep beyond the horizon, is not used); ``ego_last_frame``: (5, lanes) the last
     frame the ego occupies each lane under each action (−1: never); ``available``: (5,) bool. The other
     vehicles' arrays are the :class:`~safelane.safety.model.RoadState`'s (metres, m/s, m/s²; ``lin_k0``
-    NaN: an IDM driver; ``target_speed`` NaN: its speed is its set-point).
+    NaN: an IDM driver; ``target_speed`` NaN or absent: a body with no known law — highway-env's static objects
+    have none — which keeps its speed).
     """
     n_actions, n_fallbacks = xs.shape[0], xs.shape[1]
     out = np.full(n_actions, -math.inf)
@@ -154,7 +156,7 @@ def _select(
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:  # fmt: skip
     """The vehicles within :data:`FORECAST_RANGE` in (or heading to) a ``used`` lane: their indices, the lane
     they are in and the one they follow, their leader there (an index into these; −1: none), their set-point
-    [m/s] and IDM's (clipped to ``speed_limit``)."""
+    [m/s] and IDM's (clipped to ``speed_limit``); NaN for a body with no set-point."""
     n_all = x.shape[0]
     pick = np.empty(n_all, dtype=np.int64)
     lane_now = np.empty(n_all, dtype=np.int64)
@@ -179,12 +181,13 @@ def _select(
                 if (d > 0.0 or (d == 0.0 and q > r)) and d < best:
                     best, leader[r] = d, q
     set_points = target_speed.shape[0] == n_all
-    set_point = np.empty(m)  # the driver's own (the linear model reads it unclipped)
-    v0 = np.empty(m)
+    set_point = np.full(m, np.nan)  # the driver's own (the linear model reads it unclipped)
+    v0 = np.full(m, np.nan)
     for r in range(m):
         i = pick[r]
-        set_point[r] = target_speed[i] if set_points and math.isfinite(target_speed[i]) else vx[i]
-        v0[r] = min(max(set_point[r], 0.0), speed_limit)  # IDM clips the set-point to the lane's limit
+        if set_points and math.isfinite(target_speed[i]):
+            set_point[r] = target_speed[i]
+            v0[r] = min(max(set_point[r], 0.0), speed_limit)  # IDM clips the set-point to the lane's limit
     return pick[:m].copy(), lane_now[:m].copy(), lane_to[:m].copy(), leader, set_point, v0
 
 
@@ -222,7 +225,7 @@ def _rollout(
         ev = (ego_path[f + 1] - ex) / frame_dt  # the ego's speed over the frame
         for r in range(m):
             i = pick[r]
-            if crashed[i]:
+            if crashed[i] or not math.isfinite(set_point[r]):  # a wreck, or a body with no known law
                 acc[r] = 0.0
                 continue
             q = leader[r]

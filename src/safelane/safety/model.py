@@ -37,7 +37,9 @@ time.
 ``robust ⊆ nominal ⊆ available`` holds by construction: robust adds conflicts and requires a
 joint fallback; its one looser bound, a moving leader braking along its path (``Dynamics.turning_leaders``),
 is also nominal's wherever it is the looser (``Dynamics.turning_in_nominal``). The mask is never empty:
-when no action is safe the least-bad one is allowed and ``fallback`` is set (:func:`least_bad_action`).
+when no action is safe the least-bad one is allowed and ``fallback`` is set (:func:`least_bad_action`), ranked
+first by a nominal forecast of the others (``Dynamics.forecast_fallback``, :mod:`safelane.safety.forecast`),
+which orders the unsafe actions and never makes one safe.
 """
 
 from __future__ import annotations

@@ -93,3 +93,22 @@ def test_forecast_fallback_changes_lane_out_of_a_squeeze(engine: str) -> None:
     ego_x, _ = model.ego_trajectories(state, dyn)
     ranking = model.forecast_ranking(state, dyn, ego_x, model.available_actions(state, dyn))
     assert ranking[LANE_RIGHT] == dyn.margin and ranking[SLOWER] == -1.0
+
+
+def test_a_state_without_driver_models_has_no_forecast() -> None:
+    """A hand-built RoadState that leaves the driver models out: the forecast refuses to guess (inspection
+    raises; the ranking gives every available action the same key, so the worst-case order decides)."""
+    state = model.RoadState(
+        ego_x=200.0, ego_y=0.0, ego_speed=25.0, ego_lane=0, ego_target_lane=0, ego_target_speed=25.0,
+        ego_speed_index=5, x=np.array([213.0]), y=np.array([0.0]), vx=np.array([22.0]), vy=np.array([0.0]),
+        heading=np.array([0.0]), length=np.array([5.0]), crashed=np.array([False]),
+    )  # fmt: skip
+    dyn = model.Dynamics(
+        decision_period=1.0, frame_dt=0.2, frames_per_decision=5, ego_kp=1 / 0.6,
+        target_speeds=(0.0, 5.0, 10.0, 15.0, 20.0, 25.0, 30.0), lane_width=4.0, lanes_count=2,
+    )  # fmt: skip
+    with pytest.raises(ValueError, match="driver models"):
+        model.forecast_of(state, dyn, IDLE, 0)
+    available = model.available_actions(state, dyn)
+    ranking = model.forecast_ranking(state, dyn, model.ego_trajectories(state, dyn)[0], available)
+    assert ranking[available].tolist() == [dyn.margin] * int(available.sum())

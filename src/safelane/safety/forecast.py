@@ -30,8 +30,7 @@ from numba import njit
 FORECAST_RANGE = 150.0
 """[m] Vehicles farther than this from the ego along the road are left out of the forecast."""
 SIDEWAYS_LOOKAHEAD = 1.0
-"""[s] A vehicle moving sideways follows the lane its lateral speed reaches in this time (a lane change
-takes highway-env's drivers about 2 s; at 1 s the car is past the line when it is changing lane)."""
+"""[s] A vehicle moving sideways is taken to follow the lane its lateral speed reaches in this time."""
 
 
 @njit(cache=True, inline="always")
@@ -120,6 +119,9 @@ def forecast_paths(
     occupies each lane (−1: never); the rest as :func:`forecast_gaps`. Every vehicle within range counts
     (not only those that can meet the ego), so the whole forecast can be compared with a simulator.
     """
+    if not _complete(x, y, vx, vy, length, crashed, brake_max, accel_max, idm_delta, idm_comfort_acc,
+                     idm_comfort_dec, idm_distance_wanted, idm_time_wanted):  # fmt: skip
+        raise ValueError("forecast_paths: the state lacks the other vehicles' driver models (brake_max, idm_*, ...)")
     used = np.ones(lanes_count, dtype=np.bool_)
     pick, lane_now, lane_to, leader, set_point, v0 = _select(
         used, ego_x, lanes_count, lane_width, speed_limit, x, y, vx, vy, target_speed

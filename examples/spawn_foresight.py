@@ -5,9 +5,9 @@ before the crash had no safe action: the rule promises nothing there. This asks 
 hopeless: for each such crash file (or a random sample), the same configuration and reset seed are played by the
 unmasked :class:`~safelane.running.foresight.ForesightPlanner` — it knows exactly what every other driver will do
 (the fast simulator's drivers are deterministic after reset) and searches meta-action sequences for the fastest
-collision-free one. A spawn it cannot drive through without a crash is one no policy of these meta-actions could
-have survived (within the planner's search: a deeper one might still find a way, so "unavoidable" is a bound from
-above on what a search of this depth finds); one it survives is a crash a better fallback choice might avoid.
+collision-free one. A spawn it cannot drive through without a crash is one this search finds no way through — a
+bound of the search only, not of what any policy could do: the forecast-ranked shield of docs/safety.md §6q drives
+96 of the claim campaign's 165 such spawns through; one it survives is a crash a better fallback choice might avoid.
 
     .venv/bin/python examples/spawn_foresight.py runs/falsify/grid_100k_behind_turning_in_nominal \
         --sample 60 --out runs/falsify/grid_100k_behind_turning_in_nominal/spawn_foresight.json

@@ -104,6 +104,17 @@ def forecast_gaps(
 
 
 @njit(cache=True, error_model="numpy")
+def forecast_keys(gaps: np.ndarray, margin: float) -> np.ndarray:
+    """The least-bad choice's first key per action from :func:`forecast_gaps`' ``gaps`` [m]: the gap capped at
+    ``margin`` [m], and −1 for a forecast collision (a negative or NaN gap) whatever its depth — the depth of a
+    forecast overlap is no measure of harm. One function for both engines, so their keys are the same bits."""
+    keys = np.empty(gaps.shape[0])
+    for a in range(gaps.shape[0]):
+        keys[a] = min(gaps[a], margin) if gaps[a] >= 0.0 else -1.0
+    return keys
+
+
+@njit(cache=True, error_model="numpy")
 def forecast_paths(
     ego_path: np.ndarray, ego_last_frame: np.ndarray, frame_dt: float, ego_x: float, ego_length: float,
     lanes_count: int, lane_width: float, speed_limit: float, x: np.ndarray, y: np.ndarray, vx: np.ndarray,

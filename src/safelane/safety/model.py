@@ -51,7 +51,7 @@ from typing import Literal
 import numpy as np
 
 from safelane.core.spaces import FASTER, IDLE, LANE_LEFT, LANE_RIGHT, N_ACTIONS, SLOWER
-from safelane.safety.forecast import forecast_gaps, forecast_paths
+from safelane.safety.forecast import forecast_gaps, forecast_keys, forecast_paths
 
 Mode = Literal["nominal", "robust"]
 Formula = Literal["kinematic", "paper"]
@@ -1400,8 +1400,7 @@ def forecast_ranking(state: RoadState, dyn: Dynamics, ego_x: np.ndarray, availab
         state.idm_comfort_dec, state.idm_distance_wanted, state.idm_time_wanted, state.linear_speed_gain,
         state.linear_speed_difference_gain, state.linear_distance_gain, set_points(state),
     )  # fmt: skip
-    # A forecast collision is a collision: how deep the forecast's bodies overlap says nothing about which is worse.
-    return np.where(gaps >= 0.0, np.minimum(gaps, dyn.margin), -1.0)
+    return forecast_keys(gaps, dyn.margin)
 
 
 def _finish(safe: np.ndarray, available: np.ndarray, gaps: np.ndarray, ahead_gaps: np.ndarray) -> SafetyResult:

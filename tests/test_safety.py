@@ -136,6 +136,10 @@ EXPECTED = {
     # shield.forecast_fallback (the default since issue 15's seventeenth session) changes lane; ranked by the worst
     # case alone SLOWER was least bad (tests/test_forecast.py).
     "squeeze_beside_a_free_lane": {"nominal": mask_of(R), "robust": mask_of(R)},
+    # A hole not closed (hole 552): the right lane a queue braking at its limit, a car 6.78 m behind in it; robust
+    # sees the car ahead in that lane as a possible cut-in: only SLOWER (test below: one decision later nothing
+    # is safe, and the car behind turns in and rear-ends the ego). Nominal: everything but LANE_RIGHT.
+    "queue_braking_beside_the_ego": {"nominal": mask_of(L, I, F, S), "robust": mask_of(S)},
 }
 
 
@@ -820,6 +824,31 @@ def test_finishing_changes_lets_a_car_settle_in_the_next_lane(engine: str) -> No
         *_, terminated, _, info = scene.env.step(I)
         assert not terminated and not info["collision"]
     assert settling.lane_index[2] == 4 and abs(settling.lane.local_coordinates(settling.position)[1]) < 0.1
+
+
+@pytest.mark.parametrize("engine", ["numpy", "compiled"])
+def test_queue_braking_beside_the_ego_is_a_hole_not_closed(engine: str) -> None:
+    """The claim campaign's hole 552 (docs/safety.md §6q), rebuilt one decision before its break and driven on
+    highway-env as the campaign drove it: SLOWER, the only safe action, keeps 18.70 m; one decision later the car
+    behind in the braking next lane is level with the ego and may turn in: nothing is safe (an invariant break,
+    the best worst-case gap −3.58 m, IDLE least bad), and during the next decision it turns in and rear-ends the
+    ego. The rule's turn-in bound is taken from one state (§6p): when a change of the rule closes this hole this
+    test fails, and the new masks belong in EXPECTED."""
+    scene = scenarios.SCENARIOS["queue_braking_beside_the_ego"](**{"shield.engine": engine})
+    assert scene.mask.tolist() == mask_of(S) and not scene.result.fallback
+    assert scene.result.min_gap[S] == pytest.approx(18.70, abs=0.01)
+    behind = scene.vehicles[4]  # 6.78 m behind in lane 4 at 23.05 m/s
+    *_, terminated, _, info = scene.env.step(S)
+    after = scene.env.get_wrapper_attr("result")
+    assert not terminated and info["invariant_break"] and after.fallback and not after.safe.any()
+    assert after.mask.tolist() == mask_of(I)
+    assert float(after.min_gap.max()) == pytest.approx(-3.58, abs=0.01)
+    assert behind.lane_index[2] == 4 and behind.position[0] - scene.env.unwrapped.vehicle.position[0] < 0
+    *_, terminated, _, info = scene.env.step(I)
+    assert terminated and info["collision"]
+    assert behind.crashed and behind.lane_index[2] == 3  # turned into the ego's lane, behind it
+    assert behind.position[0] < scene.env.unwrapped.vehicle.position[0]
+    scene.env.close()
 
 
 def _drive_idle_while_it_passes(scene: scenarios.Scene, decisions: int, ahead: float) -> None:

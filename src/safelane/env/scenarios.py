@@ -36,6 +36,13 @@ class VehicleSpec:
     target_lane: int | None = None  # a lane change already under way (None: keep the lane)
     vehicle_class: type = IDMVehicle
     lateral_offset: float = 0.0  # [m] from the lane centre, positive to the right
+    # A driver as highway-env drew it (None: the class's own, as a fresh vehicle gets): its set-point [m/s],
+    # the seconds since its last MOBIL check (it checks again once more than LANE_CHANGE_DELAY = 1 s has
+    # passed), and a linear-model driver's randomised gains (``randomize_behavior``: acceleration, steering).
+    target_speed: float | None = None
+    lane_change_timer: float | None = None
+    acceleration_parameters: tuple[float, float, float] | None = None
+    steering_parameters: tuple[float, float] | None = None
 
 
 @dataclass
@@ -76,11 +83,14 @@ def build_scene(
     ego_lateral: float = 0.0,
     ego_heading: float = 0.0,
     ego_target_lane: int | None = None,
+    others_collide: bool = True,
     **overrides: Any,
 ) -> Scene:
     """Place the ego at ``x = 200 m`` in ``ego_lane`` at ``ego_speed`` [m/s] and ``vehicles`` around it;
     ``ego_lateral`` [m] off the lane's centre and ``ego_heading`` [rad] off its direction (mid lane change),
-    heading for ``ego_target_lane`` (None: its own lane)."""
+    heading for ``ego_target_lane`` (None: its own lane). ``others_collide=False`` lets the other vehicles
+    pass through each other, as ``highway-fast-v0`` (the presets' environment) does; the ego collides either
+    way."""
     env = make_env(
         preset,
         seed=0,
@@ -112,7 +122,15 @@ def build_scene(
         )
         if spec.target_lane is not None:
             v.target_lane_index = (_from, _to, spec.target_lane)
-        v.check_collisions = True
+        if spec.target_speed is not None:
+            v.target_speed = float(spec.target_speed)
+        if spec.lane_change_timer is not None:
+            v.timer = float(spec.lane_change_timer)
+        if spec.acceleration_parameters is not None:
+            v.ACCELERATION_PARAMETERS = np.array(spec.acceleration_parameters, dtype=float)
+        if spec.steering_parameters is not None:
+            v.STEERING_PARAMETERS = np.array(spec.steering_parameters, dtype=float)
+        v.check_collisions = others_collide
         road.vehicles.append(v)
         placed.append(v)
     result = find_shield(env).refresh()
@@ -394,6 +412,46 @@ def squeeze_beside_a_free_lane(mode: Mode = "robust", **kw: Any) -> Scene:
     return build_scene(0, 25.0, specs, mode=mode, lanes_count=2, **kw)
 
 
+def queue_braking_beside_the_ego(mode: Mode = "robust", **kw: Any) -> Scene:
+    """A hole of the rule, not closed (docs/safety.md §6q, the next-lane class of §6p): 5 lanes of Aggressive
+    drivers (the linear model, each with the gains highway-env drew for it), the ego in lane 3 at 20.66 m/s
+    (set-point 20); its right lane is a queue braking at its limit, the first of it 6.88 m ahead at 16.87 m/s,
+    and 6.78 m behind in that lane a car at 23.05 m/s (set-point 29.05) — the claim campaign's
+    ``cell00552-seed4005520033`` one decision before its invariant break, rebuilt from the highway-env state
+    with the 7 cars that keep its masks, gaps, break and crash. SLOWER alone is safe (18.70 m). One decision
+    later the ego (15.75 m/s) and the car behind (17.05 m/s, braking for the queue) are level, 4.08 m apart
+    centre to centre: turning in behind the ego now pays under MOBIL, and nothing is safe. It turns in and
+    rear-ends the ego during the next decision. The car behind was not a turn-in candidate one decision before
+    (MOBIL's incentive could not pay during that decision), so the rule's one-state turn-in bound restarted;
+    extending it over the whole horizon made breaks 25 times more frequent (§6p)."""
+    from highway_env.vehicle.behavior import AggressiveVehicle
+
+    # lane, dx [m], speed [m/s], set-point [m/s], MOBIL timer [s], acceleration gains, steering gains
+    cars = [
+        (4, 6.88, 16.87, 22.87, 0.2, (0.278, 0.275, 1.408), (4.979, 7.970)),
+        (4, 15.45, 15.65, 21.65, 1.01, (0.323, 0.203, 2.828), (4.975, 7.876)),
+        (4, 31.73, 16.26, 21.27, 0.2, (0.210, 0.447, 1.191), (4.938, 7.026)),
+        (2, 68.87, 15.10, 21.10, 0.4, (0.323, 0.417, 2.514), (5.041, 8.006)),
+        (4, -6.78, 23.05, 29.05, 0.8, (0.351, 0.195, 1.687), (5.043, 9.554)),
+        (3, -23.70, 15.16, 21.16, 0.8, (0.198, 0.284, 2.967), (5.004, 8.275)),
+    ]
+    specs = [
+        VehicleSpec(
+            lane, dx, speed, vehicle_class=AggressiveVehicle, target_speed=set_point, lane_change_timer=timer,
+            acceleration_parameters=accel, steering_parameters=steer,
+        )
+        for lane, dx, speed, set_point, timer, accel, steer in cars
+    ]  # fmt: skip
+    specs.append(
+        VehicleSpec(
+            0, 53.0, 16.86, heading=0.3762, target_lane=1, vehicle_class=AggressiveVehicle, lateral_offset=0.941,
+            target_speed=22.86, lane_change_timer=0.2, acceleration_parameters=(0.162, 0.369, 2.435),
+            steering_parameters=(5.029, 8.065),
+        )
+    )  # fmt: skip
+    return build_scene(3, 20.66, specs, mode=mode, lanes_count=5, ego_target_speed=20.0, others_collide=False, **kw)
+
+
 def car_settling_next_to_the_ego(mode: Mode = "robust", **kw: Any) -> Scene:
     """6 lanes; the ego in lane 5 at 29.34 m/s (set-point 30); 25.18 m ahead a car at 17.16 m/s that has just
     crossed from lane 3 into lane 4, the lane next to the ego, 1.27 m short of its centre and still turned
@@ -463,6 +521,7 @@ SCENARIOS: dict[str, Callable[..., Scene]] = {
     "car_passing_a_stopped_ego": car_passing_a_stopped_ego,
     "car_passing_in_the_next_lane": car_passing_in_the_next_lane,
     "squeeze_beside_a_free_lane": squeeze_beside_a_free_lane,
+    "queue_braking_beside_the_ego": queue_braking_beside_the_ego,
 }
 """Every scenario by name."""
 

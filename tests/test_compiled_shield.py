@@ -295,22 +295,25 @@ def test_least_bad_joint_bit_identical_and_only_the_fallback_choice(case: tuple)
 @PROPERTY_SETTINGS
 @given(case=road(rates=True, follower=True))
 def test_forecast_fallback_bit_identical_and_only_the_fallback_choice(case: tuple) -> None:
-    """shield.forecast_fallback ranks the least-bad choice by a nominal forecast first: the same in both engines
+    """shield.forecast_fallback ranks the least-bad choice by a nominal forecast first (its collisions alike, or
+    by their first contact with shield.forecast_contact_time): the same in both engines
     (one shared kernel); the same safe set, fallback flag and gaps; the same mask whenever some action is safe;
     in a fallback state one available action, robust ⊆ nominal kept (the forecast is the same in both modes)."""
     state, dyn, _ = case
-    off, on = (dataclasses.replace(dyn, forecast_fallback=v) for v in (False, True))
-    assert mismatches(state, on) == []
-    for mode in MODES:
-        a, b = model.evaluate(state, off, mode), model.evaluate(state, on, mode)
-        assert a.safe.tolist() == b.safe.tolist() and a.fallback == b.fallback
-        assert np.array_equal(a.min_gap, b.min_gap, equal_nan=True)
-        assert a.available.tolist() == b.available.tolist()
-        if not a.fallback:
-            assert a.mask.tolist() == b.mask.tolist()
-        elif not (mode == "robust" and dyn.straight_fallback and model.turning_allowance(dyn) > 0.0):
-            assert b.mask.sum() == 1 and (b.mask & b.available).any()
-    assert_nested(state, on)
+    off = dataclasses.replace(dyn, forecast_fallback=False)
+    for contact_time in (False, True):  # shield.forecast_contact_time: forecast collisions ranked by first contact
+        on = dataclasses.replace(dyn, forecast_fallback=True, forecast_contact_time=contact_time)
+        assert mismatches(state, on) == []
+        for mode in MODES:
+            a, b = model.evaluate(state, off, mode), model.evaluate(state, on, mode)
+            assert a.safe.tolist() == b.safe.tolist() and a.fallback == b.fallback
+            assert np.array_equal(a.min_gap, b.min_gap, equal_nan=True)
+            assert a.available.tolist() == b.available.tolist()
+            if not a.fallback:
+                assert a.mask.tolist() == b.mask.tolist()
+            elif not (mode == "robust" and dyn.straight_fallback and model.turning_allowance(dyn) > 0.0):
+                assert b.mask.sum() == 1 and (b.mask & b.available).any()
+        assert_nested(state, on)
 
 
 @PROPERTY_SETTINGS

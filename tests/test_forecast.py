@@ -3,14 +3,21 @@ its predictions against the simulators, and the scene it was made for."""
 
 from __future__ import annotations
 
+import dataclasses
+import math
+from pathlib import Path
+
 import numpy as np
 import pytest
 
 from safelane.core.snapshot import RoadSnapshot
-from safelane.core.spaces import IDLE, LANE_RIGHT, SLOWER
+from safelane.core.spaces import IDLE, LANE_LEFT, LANE_RIGHT, SLOWER
 from safelane.env import scenarios
 from safelane.env.factory import make_env
+from safelane.running.counterexamples import load_counterexample
+from safelane.running.foresight import with_overrides
 from safelane.safety import model
+from safelane.safety.forecast import forecast_keys
 from safelane.safety.model import MAX_HOLD_DECISIONS, RELEVANCE_RANGE
 from safelane.safety.shield import SafetyShield
 
@@ -91,8 +98,12 @@ def test_forecast_fallback_changes_lane_out_of_a_squeeze(engine: str) -> None:
     best = {a: max(model.forecast_of(state, dyn, a, k)[2] for k in fallbacks) for a in (LANE_RIGHT, SLOWER)}
     assert best[LANE_RIGHT] > dyn.margin and best[SLOWER] < 0.0  # SLOWER runs into the braking leader in the forecast
     ego_x, _ = model.ego_trajectories(state, dyn)
-    ranking = model.forecast_ranking(state, dyn, ego_x, model.available_actions(state, dyn))
-    assert ranking[LANE_RIGHT] == dyn.margin and ranking[SLOWER] == -1.0
+    available = model.available_actions(state, dyn)
+    alike = model.forecast_ranking(state, dataclasses.replace(dyn, forecast_contact_time=False), ego_x, available)
+    assert alike[LANE_RIGHT] == dyn.margin and alike[SLOWER] == -1.0
+    # shield.forecast_contact_time (the default): SLOWER's key tells when it first touches the leader
+    ranking = model.forecast_ranking(state, dyn, ego_x, available)
+    assert ranking[LANE_RIGHT] == dyn.margin and -2.0 <= ranking[SLOWER] < -1.0
 
 
 def test_a_state_without_driver_models_has_no_forecast() -> None:
@@ -112,3 +123,48 @@ def test_a_state_without_driver_models_has_no_forecast() -> None:
     available = model.available_actions(state, dyn)
     ranking = model.forecast_ranking(state, dyn, model.ego_trajectories(state, dyn)[0], available)
     assert ranking[available].tolist() == [dyn.margin] * int(available.sum())
+
+
+def test_forecast_keys_rank_collisions_by_first_contact() -> None:
+    """forecast_keys: a clear action keeps its gap up to the margin; a forecast collision is −1 whatever its depth,
+    or with by_contact_time −2 + contact / horizon (later contact, higher key; an action with no contact time —
+    a NaN gap, or unavailable — lowest)."""
+    gaps = np.array([2.5, 0.4, -3.0, -0.2, np.nan])
+    contact = np.array([math.inf, math.inf, 9.0, 1.5, math.inf])  # [s]
+    alike = forecast_keys(gaps, contact, 1.0, 12.0, False)
+    assert alike.tolist() == [1.0, 0.4, -1.0, -1.0, -1.0]
+    by_time = forecast_keys(gaps, contact, 1.0, 12.0, True)
+    assert by_time.tolist() == [1.0, 0.4, -2.0 + 9.0 / 12.0, -2.0 + 1.5 / 12.0, -2.0]
+    assert by_time[2] > by_time[3]  # the deeper overlap, nine seconds away, ranks above the shallow one now
+
+
+SPAWN = (
+    Path(__file__).resolve().parents[1] / "docs" / "results" / "falsify" / "grid_100k_behind_forecast_fallback"
+    / "counterexamples" / "cell00127-seed4001270026-collision-step3.json"
+)  # fmt: skip
+
+
+@pytest.mark.parametrize("simulator", ["fast", "highway-env"])
+def test_contact_time_drives_a_spawn_through(simulator: str) -> None:
+    """The claim campaign's spawn ``cell00127-seed4001270026`` (2 lanes of Defensive drivers, 1 decision per
+    second; nothing safe at the start): with every forecast collision alike the shield brakes (SLOWER, the
+    worst case's least bad), brakes again, then turns left and is hit at decision 3 — the published crash. Ranked
+    by first contact, LANE_LEFT's forecast contact (a Defensive car creeping into the ego stopped at the end of
+    its braking fallback) comes later than SLOWER's (the leader ahead): the shield changes lane at once and the
+    episode runs 13 decisions without a crash. The same on both simulators."""
+    cx = load_counterexample(SPAWN)
+    executed: dict[bool, list[int]] = {}
+    for contact_time in (False, True):
+        env = make_env(with_overrides(cx.env_config(simulator), {"shield.forecast_contact_time": contact_time}))
+        env.reset(seed=cx.seed)
+        executed[contact_time], crashed = [], False
+        for action in [*cx.actions, *[IDLE] * 10]:
+            *_, terminated, truncated, info = env.step(int(action))
+            executed[contact_time].append(info["executed_action"])
+            crashed = bool(info["collision"])
+            if crashed or terminated or truncated:
+                break
+        env.close()
+        assert crashed == (not contact_time)
+    assert executed[False] == [SLOWER, SLOWER, LANE_LEFT]
+    assert executed[True][0] == LANE_LEFT and len(executed[True]) == 13

@@ -356,6 +356,14 @@ class ShieldConfig(_Section):
         "ranking (worst-case gaps only).",
     )
 
+    forecast_contact_time: bool = Field(
+        True,
+        strict=True,
+        description="With forecast_fallback: an action the forecast sees collide ranks by the time of its first "
+        "contact, the later the higher, instead of every forecast collision alike (docs/safety.md §6r). Never makes "
+        "an action safe. On by default since issue 15's eighteenth session; false: the seventeenth session's ranking.",
+    )
+
     def rule_options(self) -> dict[str, bool]:
         """The rule's on/off options by name, as :class:`safelane.safety.shield.SafetyShield` and
         :func:`safelane.safety.shield.dynamics_of` take them (one list for every place that builds a shield)."""
@@ -769,6 +777,7 @@ RULE_OPTIONS = (
     "crossed_lanes", "lateral_schedule", "reversing_noses", "follower_idm", "follower_set_point",
     "finishing_changes", "cut_in_when_permitted", "leaving_lanes_seen", "permit_any_speed", "passing_cut_ins",
     "level_when_incentive", "incentive_any_speed", "turning_in_nominal", "forecast_fallback",
+    "forecast_contact_time",
 )  # fmt: skip
 """The :class:`ShieldConfig` fields that switch parts of the safety rule on or off (``ShieldConfig.rule_options``)."""
 
@@ -793,6 +802,8 @@ RULE_CHANGES: dict[str, Any] = {
     "turning_in_nominal": False,
     # issue 15's seventeenth session (docs/safety.md §6q)
     "forecast_fallback": False,
+    # issue 15's eighteenth session (docs/safety.md §6r)
+    "forecast_contact_time": False,
 }  # fmt: skip
 """Shield keys added with a new default that changes the rule: a *recorded* configuration (a run's
 config.yaml, a counterexample file) written before the key existed had the old behaviour, given here,

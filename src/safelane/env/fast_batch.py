@@ -430,7 +430,7 @@ _NO_SHIELD = (
     _readonly(np.zeros(1)), _readonly(np.zeros(1)), _readonly(np.zeros(1)), np.zeros(1, dtype=np.int64), 1.0, 1.0,
     1, 1, 1.0, 4.0, 1, 0.0, 0.0, 0.0, 0.0, 0.0, False, False, 0.0, False, False, False, False, False,
     False, False, False, False, False, False, False, False, False, False, False, False, False, False, False, False,
-    False, False, False, False, 2.0, 1.0, 1.0,
+    False, False, False, 0, 2.0, 1.0, 1.0,
     1.0, False, 0.0, 0.0,
 )  # fmt: skip
 """Placeholders of :class:`safelane.safety.compiled.KernelConstants`'s fields when no shield runs (typed

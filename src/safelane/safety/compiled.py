@@ -43,6 +43,8 @@ drop_stale_kernel_cache(__file__, (forecast.__file__,))
 # cache only watches this file): check here that they are still the core's.
 LANE_LEFT, IDLE, LANE_RIGHT, FASTER, SLOWER = 0, 1, 2, 3, 4
 N_ACTIONS = 5
+# The forecast's ranking as one kernel argument (Dynamics.forecast_fallback, Dynamics.forecast_contact_time).
+FORECAST_OFF, FORECAST_GAP, FORECAST_CONTACT_TIME = 0, 1, 2
 N_FALLBACKS = 4  # fallbacks k = 0..MAX_HOLD_DECISIONS (a literal, so the loops over them unroll)
 assert (spaces.LANE_LEFT, spaces.IDLE, spaces.LANE_RIGHT, spaces.FASTER, spaces.SLOWER) == (0, 1, 2, 3, 4)
 assert spaces.N_ACTIONS == N_ACTIONS and model.MAX_HOLD_DECISIONS + 1 == N_FALLBACKS, "update compiled.py"
@@ -512,7 +514,7 @@ def _evaluate_rule(
     reversing_noses: bool, follower_idm: bool, follower_set_point: bool, finishing_changes: bool,
     cut_in_when_permitted: bool, leaving_lanes_seen: bool,
     permit_any_speed: bool, passing_cut_ins: bool, level_when_incentive: bool, incentive_any_speed: bool,
-    nominal_allowance: float, forecast_fallback: bool,
+    nominal_allowance: float, forecast_fallback: int,
     ego_width: float, kp_lateral: float,
     kp_heading: float, max_steering: float, turning_allowance: float,
     min_acc_gain: float,
@@ -1081,13 +1083,15 @@ def _evaluate_rule(
         ahead_of, gaps_of = gaps_of, ahead_of
     # model.forecast_ranking: the forecast's keys, ranked first (0 for every action: no forecast).
     forecast = np.zeros(N_ACTIONS)
-    if forecast_fallback:
-        gaps = forecast_gaps(
+    if forecast_fallback > 0:
+        by_contact_time = forecast_fallback == FORECAST_CONTACT_TIME
+        gaps, contact_time = forecast_gaps(
             xs.transpose((0, 2, 1)), ego_last, available, frame_dt, ego_x, ego_length, lanes_count, lane_width,
             speed_limit, x, y, vx, vy, length, crashed, brake_max, accel_max, idm_delta, idm_comfort_acc,
             idm_comfort_dec, idm_distance_wanted, idm_time_wanted, lin_k0, lin_k1, lin_k2, target_speed,
+            by_contact_time,
         )  # fmt: skip
-        forecast = forecast_keys(gaps, margin)
+        forecast = forecast_keys(gaps, contact_time, margin, frame_dt * (xs.shape[1] - 1), by_contact_time)
     # least_bad_action: the largest (forecast, ahead gap, gap, −rank), compared as Python compares tuples.
     choice = IDLE
     found = False
@@ -1131,7 +1135,7 @@ def _evaluate(
     lateral_schedule: bool, reversing_noses: bool, follower_idm: bool, follower_set_point: bool,
     finishing_changes: bool, cut_in_when_permitted: bool, leaving_lanes_seen: bool,
     permit_any_speed: bool, passing_cut_ins: bool, level_when_incentive: bool, incentive_any_speed: bool,
-    turning_in_nominal: bool, forecast_fallback: bool,
+    turning_in_nominal: bool, forecast_fallback: int,
     ego_width: float,
     kp_lateral: float,
     kp_heading: float, max_steering: float, turning_allowance: float,
@@ -1149,7 +1153,7 @@ def _evaluate(
     # With the straight fallback below, a fallback state's mask is the straight rule's: the main rule's least-bad
     # choice is discarded, so its forecast (about 0.06 ms) is not run (model.evaluate returns first).
     straight = robust and straight_fallback and turning_allowance > 0.0
-    main_forecast = forecast_fallback and not straight
+    main_forecast = 0 if straight else forecast_fallback
     out = _evaluate_rule(
         ego_x, ego_speed, ego_lane, ego_target_lane, ego_target_speed, ego_speed_index, ego_length, speed_limit,
         ego_y, ego_heading,
@@ -1211,7 +1215,7 @@ def _evaluate_snapshot(
     lateral_schedule: bool, reversing_noses: bool, follower_idm: bool, follower_set_point: bool,
     finishing_changes: bool, cut_in_when_permitted: bool, leaving_lanes_seen: bool,
     permit_any_speed: bool, passing_cut_ins: bool, level_when_incentive: bool, incentive_any_speed: bool,
-    turning_in_nominal: bool, forecast_fallback: bool,
+    turning_in_nominal: bool, forecast_fallback: int,
     ego_width: float,
     kp_lateral: float,
     kp_heading: float, max_steering: float, ego_speed_magnitude: bool,
@@ -1379,7 +1383,7 @@ class KernelConstants(NamedTuple):
     level_when_incentive: bool
     incentive_any_speed: bool
     turning_in_nominal: bool
-    forecast_fallback: bool
+    forecast_fallback: int  # forecast_level
     ego_width: float
     kp_lateral: float
     kp_heading: float
@@ -1387,6 +1391,14 @@ class KernelConstants(NamedTuple):
     ego_speed_magnitude: bool
     turning_allowance: float
     min_acc_gain: float
+
+
+def forecast_level(dyn: Dynamics) -> int:
+    """``dyn``'s forecast ranking as the kernels take it: :data:`FORECAST_OFF` (worst-case keys only),
+    :data:`FORECAST_GAP` (every forecast collision alike) or :data:`FORECAST_CONTACT_TIME` (later contact first)."""
+    if not dyn.forecast_fallback:
+        return FORECAST_OFF
+    return FORECAST_CONTACT_TIME if dyn.forecast_contact_time else FORECAST_GAP
 
 
 def kernel_constants(dyn: Dynamics) -> KernelConstants:
@@ -1422,7 +1434,7 @@ def kernel_constants(dyn: Dynamics) -> KernelConstants:
         dyn.level_when_incentive,
         dyn.incentive_any_speed,
         dyn.turning_in_nominal,
-        dyn.forecast_fallback,
+        forecast_level(dyn),
         dyn.ego_width,
         dyn.kp_lateral,
         dyn.kp_heading,
@@ -1466,7 +1478,7 @@ def evaluate_compiled(
         dyn.linear_incentive_braking, dyn.reversing_cut_ins, dyn.crossed_lanes, dyn.lateral_schedule,
         dyn.reversing_noses, dyn.follower_idm, dyn.follower_set_point, dyn.finishing_changes,
         dyn.cut_in_when_permitted, dyn.leaving_lanes_seen, dyn.permit_any_speed, dyn.passing_cut_ins,
-        dyn.level_when_incentive, dyn.incentive_any_speed, dyn.turning_in_nominal, dyn.forecast_fallback, dyn.ego_width,
+        dyn.level_when_incentive, dyn.incentive_any_speed, dyn.turning_in_nominal, forecast_level(dyn), dyn.ego_width,
         dyn.kp_lateral, dyn.kp_heading,
         dyn.max_steering, model.turning_allowance(dyn), _MIN_ACC_GAIN,
     )  # fmt: skip
@@ -1513,7 +1525,7 @@ def evaluate_snapshot(
         dyn.linear_incentive_braking, dyn.reversing_cut_ins, dyn.crossed_lanes, dyn.lateral_schedule,
         dyn.reversing_noses, dyn.follower_idm, dyn.follower_set_point, dyn.finishing_changes,
         dyn.cut_in_when_permitted, dyn.leaving_lanes_seen, dyn.permit_any_speed, dyn.passing_cut_ins,
-        dyn.level_when_incentive, dyn.incentive_any_speed, dyn.turning_in_nominal, dyn.forecast_fallback, dyn.ego_width,
+        dyn.level_when_incentive, dyn.incentive_any_speed, dyn.turning_in_nominal, forecast_level(dyn), dyn.ego_width,
         dyn.kp_lateral, dyn.kp_heading,
         dyn.max_steering, dyn.ego_speed_magnitude,
         model.turning_allowance(dyn),

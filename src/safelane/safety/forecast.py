@@ -15,6 +15,10 @@ them wherever the ego's action takes it. It is the same integration highway-env 
 the current state, then ``x += v·dt``, ``v += a·dt``), without MOBIL: no lane changes are predicted. A body
 without a set-point (a static object; a hand-built state's unknown one) keeps its speed, and a wreck stands. The
 forecast never makes an action safe; it only orders the least-bad choice (``Dynamics.forecast_fallback``).
+With ``Dynamics.forecast_contact_time`` an action the forecast sees collide ranks by *when*: the later its first
+contact, the higher (the shield chooses again at every decision, so a contact ten seconds away — a linear-model
+driver creeping into the stopped ego at the end of a braking fallback — leaves decisions to escape that a contact
+now does not).
 
 One numba kernel serves both engines (the numpy reference and the compiled rule call the same function on
 the same arrays), so their fallback choices are the same bits.
@@ -55,12 +59,14 @@ def forecast_gaps(
     vx: np.ndarray, vy: np.ndarray, length: np.ndarray, crashed: np.ndarray, brake_max: np.ndarray,
     accel_max: np.ndarray, idm_delta: np.ndarray, idm_comfort_acc: np.ndarray, idm_comfort_dec: np.ndarray,
     idm_distance_wanted: np.ndarray, idm_time_wanted: np.ndarray, lin_k0: np.ndarray, lin_k1: np.ndarray,
-    lin_k2: np.ndarray, target_speed: np.ndarray,
-) -> np.ndarray:  # fmt: skip
-    """(5,) per action, the smallest bumper-to-bumper gap [m] to any vehicle in a lane the ego occupies, under
-    the action's best fallback (the largest over the fallbacks), if the others drive as forecast (module
-    docstring); ``-inf`` for an unavailable action, ``inf`` where nobody shares a lane with the ego (and for
-    every available action of a state without the driver models' arrays).
+    lin_k2: np.ndarray, target_speed: np.ndarray, by_contact_time: bool,
+) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
+    """Per action (two (5,) arrays): the smallest bumper-to-bumper gap [m] to any vehicle in a lane the ego
+    occupies, under the action's best fallback, if the others drive as forecast (module docstring) — ``-inf``
+    for an unavailable action, ``inf`` where nobody shares a lane with the ego (and for every available action
+    of a state without the driver models' arrays) — and the time [s] of that fallback's first contact (a
+    negative gap; ``inf``: none). The best fallback has the largest gap; with ``by_contact_time``, a fallback
+    without contact beats every one with, and among those with contact the later first contact wins.
 
     ``xs``: (5, fallbacks, frames + 1) the ego's positions [m] (``model.ego_trajectories``; the last frame,
     which credits the ego's creep beyond the horizon, is not used); ``ego_last_frame``: (5, lanes) the last
@@ -71,12 +77,13 @@ def forecast_gaps(
     """
     n_actions, n_fallbacks = xs.shape[0], xs.shape[1]
     out = np.full(n_actions, -math.inf)
+    contact_time = np.full(n_actions, math.inf)
     if not _complete(x, y, vx, vy, length, crashed, brake_max, accel_max, idm_delta, idm_comfort_acc,
                      idm_comfort_dec, idm_distance_wanted, idm_time_wanted):  # fmt: skip
         for a in range(n_actions):
             if available[a]:
                 out[a] = math.inf
-        return out
+        return out, contact_time
     # The vehicles that can share a lane with the ego: those in (or heading to) a lane it may occupy.
     used = np.zeros(lanes_count, dtype=np.bool_)
     for a in range(n_actions):
@@ -91,26 +98,46 @@ def forecast_gaps(
     for a in range(n_actions):
         if not available[a]:
             continue
-        best_fallback = -math.inf
+        best_gap, best_contact = -math.inf, -1
         for k in range(n_fallbacks):
-            smallest = _rollout(
+            smallest, contact = _rollout(
                 xs[a, k], ego_last_frame[a], frame_dt, ego_length, pick, lane_now, lane_to, leader, set_point, v0,
                 x, vx, length, crashed, brake_max, accel_max, idm_delta, idm_comfort_acc, idm_comfort_dec,
                 idm_distance_wanted, idm_time_wanted, lin_k0, lin_k1, lin_k2, no_history,
             )  # fmt: skip
-            best_fallback = max(best_fallback, smallest)
-        out[a] = best_fallback
-    return out
+            if by_contact_time and k > 0 and (best_contact < 0) != (contact < 0):
+                better = contact < 0  # no contact beats any contact
+            elif by_contact_time and contact >= 0 and best_contact >= 0 and contact != best_contact:
+                better = contact > best_contact  # the later first contact
+            else:
+                better = k == 0 or smallest > best_gap
+            if better:
+                best_gap, best_contact = smallest, contact
+        out[a] = best_gap
+        if best_contact >= 0:
+            contact_time[a] = best_contact * frame_dt
+    return out, contact_time
 
 
 @njit(cache=True, error_model="numpy")
-def forecast_keys(gaps: np.ndarray, margin: float) -> np.ndarray:
-    """The least-bad choice's first key per action from :func:`forecast_gaps`' ``gaps`` [m]: the gap capped at
-    ``margin`` [m], and −1 for a forecast collision (a negative or NaN gap) whatever its depth — the depth of a
-    forecast overlap is no measure of harm. One function for both engines, so their keys are the same bits."""
+def forecast_keys(
+    gaps: np.ndarray, contact_time: np.ndarray, margin: float, horizon: float, by_contact_time: bool
+) -> np.ndarray:
+    """The least-bad choice's first key per action from :func:`forecast_gaps`' ``gaps`` [m] and
+    ``contact_time`` [s]: the gap capped at ``margin`` [m], and for a forecast collision (a negative or NaN gap)
+    −1 whatever its depth — the depth of a forecast overlap is no measure of harm — or, ``by_contact_time``,
+    ``−2 + contact_time / horizon`` (``horizon`` [s]: the forecast's length), in [−2, −1): the later the first
+    contact, the higher. One function for both engines, so their keys are the same bits."""
     keys = np.empty(gaps.shape[0])
     for a in range(gaps.shape[0]):
-        keys[a] = min(gaps[a], margin) if gaps[a] >= 0.0 else -1.0
+        if gaps[a] >= 0.0:
+            keys[a] = min(gaps[a], margin)
+        elif not by_contact_time:
+            keys[a] = -1.0
+        elif math.isfinite(contact_time[a]):
+            keys[a] = -2.0 + min(contact_time[a] / horizon, 1.0)
+        else:  # a NaN gap, or -inf (unavailable): the lowest key
+            keys[a] = -2.0
     return keys
 
 
@@ -138,7 +165,7 @@ def forecast_paths(
         used, ego_x, lanes_count, lane_width, speed_limit, x, y, vx, vy, target_speed
     )
     history = np.empty((pick.shape[0], ego_path.shape[0] - 1))
-    smallest = _rollout(
+    smallest, _contact = _rollout(
         ego_path, ego_last_frame, frame_dt, ego_length, pick, lane_now, lane_to, leader, set_point, v0, x, vx,
         length, crashed, brake_max, accel_max, idm_delta, idm_comfort_acc, idm_comfort_dec, idm_distance_wanted,
         idm_time_wanted, lin_k0, lin_k1, lin_k2, history,
@@ -212,10 +239,10 @@ def _rollout(
     accel_max: np.ndarray, idm_delta: np.ndarray, idm_comfort_acc: np.ndarray, idm_comfort_dec: np.ndarray,
     idm_distance_wanted: np.ndarray, idm_time_wanted: np.ndarray, lin_k0: np.ndarray, lin_k1: np.ndarray,
     lin_k2: np.ndarray, history: np.ndarray,
-) -> float:  # fmt: skip
+) -> tuple[float, int]:  # fmt: skip
     """Drive the ``pick``ed vehicles frame by frame beside one ego path (``ego_last``: the last frame it is in
-    each lane) and return the smallest bumper gap [m] to the ego in a lane it occupies; ``history`` (vehicles ×
-    frames, or empty) receives their positions [m]."""
+    each lane) and return the smallest bumper gap [m] to the ego in a lane it occupies and the first frame with a
+    negative one (−1: none); ``history`` (vehicles × frames, or empty) receives their positions [m]."""
     m = pick.shape[0]
     n_t = ego_path.shape[0]
     record = history.shape[0] == m and m > 0
@@ -226,13 +253,17 @@ def _rollout(
     for r in range(m):
         pos[r], spd[r] = x[pick[r]], vx[pick[r]]
     smallest = math.inf
+    contact = -1
     for f in range(n_t - 1):
         ex = ego_path[f]
         for r in range(m):
             if record:
                 history[r, f] = pos[r]
             if ego_last[lane_now[r]] >= f or ego_last[lane_to[r]] >= f:
-                smallest = min(smallest, abs(pos[r] - ex) - 0.5 * (length[pick[r]] + ego_length))
+                gap = abs(pos[r] - ex) - 0.5 * (length[pick[r]] + ego_length)
+                smallest = min(smallest, gap)
+                if gap < 0.0 and contact < 0:
+                    contact = f
         if f == n_t - 2:
             break
         ev = (ego_path[f + 1] - ex) / frame_dt  # the ego's speed over the frame
@@ -264,4 +295,4 @@ def _rollout(
         for r in range(m):  # Vehicle.step: the position with the frame's speed, then the speed
             pos[r] += spd[r] * frame_dt
             spd[r] += acc[r] * frame_dt
-    return smallest
+    return smallest, contact

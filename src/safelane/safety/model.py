@@ -38,8 +38,9 @@ time.
 joint fallback; its one looser bound, a moving leader braking along its path (``Dynamics.turning_leaders``),
 is also nominal's wherever it is the looser (``Dynamics.turning_in_nominal``). The mask is never empty:
 when no action is safe the least-bad one is allowed and ``fallback`` is set (:func:`least_bad_action`), ranked
-first by a nominal forecast of the others (``Dynamics.forecast_fallback``, :mod:`safelane.safety.forecast`),
-which orders the unsafe actions and never makes one safe.
+first by a nominal forecast of the others (``Dynamics.forecast_fallback``, :mod:`safelane.safety.forecast`;
+with ``Dynamics.forecast_contact_time`` a forecast collision ranks by when it comes), which orders the unsafe
+actions and never makes one safe.
 """
 
 from __future__ import annotations
@@ -133,6 +134,7 @@ class Dynamics:
     incentive_any_speed: bool = True  # level_when_incentive: that frame over every speed the cars can reach
     turning_in_nominal: bool = True  # turning_leaders: nominal's leader bound never below robust's (robust ⊆ nominal)
     forecast_fallback: bool = True  # nothing safe: rank the least-bad choice by a nominal forecast first (forecast.py)
+    forecast_contact_time: bool = True  # forecast_fallback: forecast collisions rank by first contact, later first
     ego_lateral_speed: float = math.nan  # [m/s] the speed that simulation runs at (per state, like ego_leave_time)
     ego_width: float = 2.0  # [m] the ego's width (Vehicle.WIDTH)
     kp_lateral: float = 1.0 / 0.6  # [1/s] ControlledVehicle.KP_LATERAL
@@ -1391,16 +1393,20 @@ def forecast_ranking(state: RoadState, dyn: Dynamics, ego_x: np.ndarray, availab
     ``margin`` — actions the forecast keeps ``margin`` clear of everybody rank among themselves by their
     worst-case gaps, since past the margin the forecast says nothing about the risk the worst case measures —
     and −1 for every action the forecast sees collide (they too then rank by their worst-case gaps: the depth
-    of a forecast overlap is no measure of harm; ranking by it drove FASTER into leaders, docs/safety.md §6q).
+    of a forecast overlap is no measure of harm; ranking by it drove FASTER into leaders, docs/safety.md §6q) —
+    or, with ``Dynamics.forecast_contact_time``, a key in [−2, −1) that grows with the time of the first
+    forecast contact (docs/safety.md §6r).
     ``ego_x``: (5, fallbacks, frames + 1) the ego's positions [m] (:func:`ego_trajectories`)."""
-    gaps = forecast_gaps(
+    gaps, contact_time = forecast_gaps(
         ego_x, ego_last_frames(state, dyn, available), available, dyn.frame_dt, state.ego_x, state.ego_length,
         dyn.lanes_count, dyn.lane_width, state.speed_limit, state.x, state.y, state.vx, state.vy, state.length,
         state.crashed, state.brake_max, state.accel_max, state.idm_delta, state.idm_comfort_acc,
         state.idm_comfort_dec, state.idm_distance_wanted, state.idm_time_wanted, state.linear_speed_gain,
         state.linear_speed_difference_gain, state.linear_distance_gain, set_points(state),
+        dyn.forecast_contact_time,
     )  # fmt: skip
-    return forecast_keys(gaps, dyn.margin)
+    horizon = dyn.frame_dt * (ego_x.shape[2] - 1)
+    return forecast_keys(gaps, contact_time, dyn.margin, horizon, dyn.forecast_contact_time)
 
 
 def _finish(safe: np.ndarray, available: np.ndarray, gaps: np.ndarray, ahead_gaps: np.ndarray) -> SafetyResult:

@@ -127,15 +127,18 @@ def test_a_state_without_driver_models_has_no_forecast() -> None:
 
 def test_forecast_keys_rank_collisions_by_first_contact() -> None:
     """forecast_keys: a clear action keeps its gap up to the margin; a forecast collision is −1 whatever its depth,
-    or with by_contact_time −2 + contact / horizon (later contact, higher key; an action with no contact time —
-    a NaN gap, or unavailable — lowest)."""
-    gaps = np.array([2.5, 0.4, -3.0, -0.2, np.nan])
-    contact = np.array([math.inf, math.inf, 9.0, 1.5, math.inf])  # [s]
-    alike = forecast_keys(gaps, contact, 1.0, 12.0, False)
-    assert alike.tolist() == [1.0, 0.4, -1.0, -1.0, -1.0]
-    by_time = forecast_keys(gaps, contact, 1.0, 12.0, True)
-    assert by_time.tolist() == [1.0, 0.4, -2.0 + 9.0 / 12.0, -2.0 + 1.5 / 12.0, -2.0]
-    assert by_time[2] > by_time[3]  # the deeper overlap, nine seconds away, ranks above the shallow one now
+    or with by_contact_time −2 + (whole decisions before the contact) · decision / horizon — later contact, higher
+    key; two contacts within one decision alike; an action with no contact time (a NaN gap, or unavailable)
+    lowest."""
+    gaps = np.array([2.5, 0.4, -3.0, -0.2, -1.0, np.nan])
+    contact = np.array([math.inf, math.inf, 9.4, 1.6, 1.2, math.inf])  # [s]
+    alike = forecast_keys(gaps, contact, 1.0, 12.0, 1.0, False)
+    assert alike.tolist() == [1.0, 0.4, -1.0, -1.0, -1.0, -1.0]
+    by_time = forecast_keys(gaps, contact, 1.0, 12.0, 1.0, True)
+    assert by_time.tolist() == [1.0, 0.4, -2.0 + 9.0 / 12.0, -2.0 + 1.0 / 12.0, -2.0 + 1.0 / 12.0, -2.0]
+    assert by_time[2] > by_time[3]  # the deeper overlap, nine decisions away, ranks above the shallow one in one
+    half = forecast_keys(gaps, contact, 1.0, 12.0, 0.5, True)  # 2 decisions per second: 1.2 s and 1.6 s differ
+    assert half[3] > half[4]
 
 
 SPAWN = (

@@ -1091,7 +1091,8 @@ def _evaluate_rule(
             idm_comfort_dec, idm_distance_wanted, idm_time_wanted, lin_k0, lin_k1, lin_k2, target_speed,
             by_contact_time,
         )  # fmt: skip
-        forecast = forecast_keys(gaps, contact_time, margin, frame_dt * (xs.shape[1] - 1), by_contact_time)
+        horizon_s = frame_dt * (xs.shape[1] - 1)
+        forecast = forecast_keys(gaps, contact_time, margin, horizon_s, decision_period, by_contact_time)
     # least_bad_action: the largest (forecast, ahead gap, gap, −rank), compared as Python compares tuples.
     choice = IDLE
     found = False

@@ -15,10 +15,10 @@ them wherever the ego's action takes it. It is the same integration highway-env 
 the current state, then ``x += v·dt``, ``v += a·dt``), without MOBIL: no lane changes are predicted. A body
 without a set-point (a static object; a hand-built state's unknown one) keeps its speed, and a wreck stands. The
 forecast never makes an action safe; it only orders the least-bad choice (``Dynamics.forecast_fallback``).
-With ``Dynamics.forecast_contact_time`` an action the forecast sees collide ranks by *when*: the later its first
-contact, the higher (the shield chooses again at every decision, so a contact ten seconds away — a linear-model
-driver creeping into the stopped ego at the end of a braking fallback — leaves decisions to escape that a contact
-now does not).
+With ``Dynamics.forecast_contact_time`` an action the forecast sees collide ranks by *when*: the more whole
+decisions before its first contact, the higher (the shield chooses again at every decision, so a contact ten
+seconds away — a linear-model driver creeping into the stopped ego at the end of a braking fallback — leaves
+decisions to escape that a contact now does not; contacts within one decision rank alike).
 
 One numba kernel serves both engines (the numpy reference and the compiled rule call the same function on
 the same arrays), so their fallback choices are the same bits.
@@ -121,13 +121,17 @@ def forecast_gaps(
 
 @njit(cache=True, error_model="numpy")
 def forecast_keys(
-    gaps: np.ndarray, contact_time: np.ndarray, margin: float, horizon: float, by_contact_time: bool
-) -> np.ndarray:
+    gaps: np.ndarray, contact_time: np.ndarray, margin: float, horizon: float, decision_period: float,
+    by_contact_time: bool,
+) -> np.ndarray:  # fmt: skip
     """The least-bad choice's first key per action from :func:`forecast_gaps`' ``gaps`` [m] and
     ``contact_time`` [s]: the gap capped at ``margin`` [m], and for a forecast collision (a negative or NaN gap)
     −1 whatever its depth — the depth of a forecast overlap is no measure of harm — or, ``by_contact_time``,
-    ``−2 + contact_time / horizon`` (``horizon`` [s]: the forecast's length), in [−2, −1): the later the first
-    contact, the higher. One function for both engines, so their keys are the same bits."""
+    ``−2 + (whole decisions before the first contact) · decision_period / horizon`` (``horizon`` [s]: the
+    forecast's length), in [−2, −1): an action that buys more decisions before its forecast contact ranks higher,
+    and contacts within the same decision rank alike (the shield cannot act in between; the worst-case keys, the
+    gap to the vehicles ahead first, then decide). One function for both engines, so their keys are the same
+    bits."""
     keys = np.empty(gaps.shape[0])
     for a in range(gaps.shape[0]):
         if gaps[a] >= 0.0:
@@ -135,7 +139,8 @@ def forecast_keys(
         elif not by_contact_time:
             keys[a] = -1.0
         elif math.isfinite(contact_time[a]):
-            keys[a] = -2.0 + min(contact_time[a] / horizon, 1.0)
+            decisions = math.floor(contact_time[a] / decision_period + 1e-9)
+            keys[a] = -2.0 + min(decisions * decision_period / horizon, 1.0)
         else:  # a NaN gap, or -inf (unavailable): the lowest key
             keys[a] = -2.0
     return keys

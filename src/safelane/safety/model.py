@@ -1394,8 +1394,8 @@ def forecast_ranking(state: RoadState, dyn: Dynamics, ego_x: np.ndarray, availab
     worst-case gaps, since past the margin the forecast says nothing about the risk the worst case measures —
     and −1 for every action the forecast sees collide (they too then rank by their worst-case gaps: the depth
     of a forecast overlap is no measure of harm; ranking by it drove FASTER into leaders, docs/safety.md §6q) —
-    or, with ``Dynamics.forecast_contact_time``, a key in [−2, −1) that grows with the time of the first
-    forecast contact (docs/safety.md §6r).
+    or, with ``Dynamics.forecast_contact_time``, a key in [−2, −1) that grows with the whole decisions before
+    the first forecast contact (docs/safety.md §6r).
     ``ego_x``: (5, fallbacks, frames + 1) the ego's positions [m] (:func:`ego_trajectories`)."""
     gaps, contact_time = forecast_gaps(
         ego_x, ego_last_frames(state, dyn, available), available, dyn.frame_dt, state.ego_x, state.ego_length,
@@ -1406,7 +1406,7 @@ def forecast_ranking(state: RoadState, dyn: Dynamics, ego_x: np.ndarray, availab
         dyn.forecast_contact_time,
     )  # fmt: skip
     horizon = dyn.frame_dt * (ego_x.shape[2] - 1)
-    return forecast_keys(gaps, contact_time, dyn.margin, horizon, dyn.forecast_contact_time)
+    return forecast_keys(gaps, contact_time, dyn.margin, horizon, dyn.decision_period, dyn.forecast_contact_time)
 
 
 def _finish(safe: np.ndarray, available: np.ndarray, gaps: np.ndarray, ahead_gaps: np.ndarray) -> SafetyResult:

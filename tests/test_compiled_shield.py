@@ -296,13 +296,17 @@ def test_least_bad_joint_bit_identical_and_only_the_fallback_choice(case: tuple)
 @given(case=road(rates=True, follower=True))
 def test_forecast_fallback_bit_identical_and_only_the_fallback_choice(case: tuple) -> None:
     """shield.forecast_fallback ranks the least-bad choice by a nominal forecast first (its collisions alike, or
-    by their first contact with shield.forecast_contact_time): the same in both engines
+    by their first contact with shield.forecast_contact_time; its cars keeping their lanes, or changing them by
+    MOBIL with shield.forecast_lane_changes): the same in both engines
     (one shared kernel); the same safe set, fallback flag and gaps; the same mask whenever some action is safe;
     in a fallback state one available action, robust ⊆ nominal kept (the forecast is the same in both modes)."""
     state, dyn, _ = case
     off = dataclasses.replace(dyn, forecast_fallback=False)
-    for contact_time in (False, True):  # shield.forecast_contact_time: forecast collisions ranked by first contact
-        on = dataclasses.replace(dyn, forecast_fallback=True, forecast_contact_time=contact_time)
+    # shield.forecast_contact_time (forecast collisions ranked by first contact), shield.forecast_lane_changes
+    for contact_time, lane_changes in ((False, False), (True, False), (True, True)):
+        on = dataclasses.replace(
+            dyn, forecast_fallback=True, forecast_contact_time=contact_time, forecast_lane_changes=lane_changes
+        )
         assert mismatches(state, on) == []
         for mode in MODES:
             a, b = model.evaluate(state, off, mode), model.evaluate(state, on, mode)

@@ -101,8 +101,8 @@ def test_forecast_fallback_changes_lane_out_of_a_squeeze(engine: str) -> None:
     available = model.available_actions(state, dyn)
     alike = model.forecast_ranking(state, dataclasses.replace(dyn, forecast_contact_time=False), ego_x, available)
     assert alike[LANE_RIGHT] == dyn.margin and alike[SLOWER] == -1.0
-    # shield.forecast_contact_time (the default): SLOWER's key tells when it first touches the leader
-    ranking = model.forecast_ranking(state, dyn, ego_x, available)
+    # shield.forecast_contact_time (experimental): SLOWER's key tells when it first touches the leader
+    ranking = model.forecast_ranking(state, dataclasses.replace(dyn, forecast_contact_time=True), ego_x, available)
     assert ranking[LANE_RIGHT] == dyn.margin and -2.0 <= ranking[SLOWER] < -1.0
 
 
@@ -171,3 +171,33 @@ def test_contact_time_drives_a_spawn_through(simulator: str) -> None:
         assert crashed == (not contact_time)
     assert executed[False] == [SLOWER, SLOWER, LANE_LEFT]
     assert executed[True][0] == LANE_LEFT and len(executed[True]) == 13
+
+
+SIMULTANEOUS = SPAWN.parent / "cell00088-seed4000880026-collision-step3.json"
+
+
+@pytest.mark.parametrize("simulator", ["fast", "highway-env"])
+def test_lane_changes_see_a_car_move_over_with_the_ego(simulator: str) -> None:
+    """The claim campaign's spawn ``cell00088-seed4000880026`` (2 lanes of Aggressive drivers, 1 decision per
+    second; nothing safe), at its first decision: the ego at 25 m/s in lane 1, a car 18.8 m ahead at 21.5 m/s
+    closing on its own leader, lane 0 empty. Keeping every car in its lane, the forecast has LANE_LEFT clear by
+    more than the margin; in the episode the ego turns left and the car ahead moves to lane 0 too (MOBIL, the
+    ego still in lane 1 for highway-env's neighbour search), and the ego hits it at decision 2. With
+    shield.forecast_lane_changes the forecast makes the same move and sees LANE_LEFT collide, and SLOWER clear.
+    (Which action the shield then allows is not asserted: here robust's straight fallback, the rule without the
+    turning allowance, has LANE_LEFT safe and decides before any ranking.)"""
+    cx = load_counterexample(SIMULTANEOUS)
+    env = make_env(cx.env_config(simulator))
+    env.reset(seed=cx.seed)
+    shield = env
+    while not isinstance(shield, SafetyShield):
+        shield = shield.env  # type: ignore[attr-defined]
+    state, dyn = shield.state_and_dynamics(shield.snapshot)
+    env.close()
+    ego_x, _ = model.ego_trajectories(state, dyn)
+    available = model.available_actions(state, dyn)
+    keeping = dataclasses.replace(dyn, forecast_contact_time=True, forecast_lane_changes=False)
+    changing = dataclasses.replace(dyn, forecast_contact_time=True, forecast_lane_changes=True)
+    kept, changed = (model.forecast_ranking(state, d, ego_x, available) for d in (keeping, changing))
+    assert kept[LANE_LEFT] == dyn.margin and kept[SLOWER] < -1.0
+    assert changed[LANE_LEFT] < -1.0 and changed[SLOWER] == dyn.margin

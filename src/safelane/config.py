@@ -357,11 +357,20 @@ class ShieldConfig(_Section):
     )
 
     forecast_contact_time: bool = Field(
+        False,
+        strict=True,
+        description="Experimental, off. With forecast_fallback: an action the forecast sees collide ranks by the whole "
+        "decisions before its first contact, the more the higher, instead of every forecast collision alike. Never "
+        "makes an action safe. Measured on the claim's campaign: more crashes (415 against 337; docs/safety.md §6r).",
+    )
+
+    forecast_lane_changes: bool = Field(
         True,
         strict=True,
-        description="With forecast_fallback: an action the forecast sees collide ranks by the time of its first "
-        "contact, the later the higher, instead of every forecast collision alike (docs/safety.md §6r). Never makes "
-        "an action safe. On by default since issue 15's eighteenth session; false: the seventeenth session's ranking.",
+        description="With forecast_fallback: the forecast's cars change lane by MOBIL (their own law and "
+        "max_braking_imposed, highway-env's IDM gain threshold, checked every frame), counting in both lanes for "
+        "2 s (docs/safety.md §6r). Never makes an action safe. On by default since issue 15's eighteenth session; "
+        "false: every car keeps its lane in the forecast.",
     )
 
     def rule_options(self) -> dict[str, bool]:
@@ -777,7 +786,7 @@ RULE_OPTIONS = (
     "crossed_lanes", "lateral_schedule", "reversing_noses", "follower_idm", "follower_set_point",
     "finishing_changes", "cut_in_when_permitted", "leaving_lanes_seen", "permit_any_speed", "passing_cut_ins",
     "level_when_incentive", "incentive_any_speed", "turning_in_nominal", "forecast_fallback",
-    "forecast_contact_time",
+    "forecast_contact_time", "forecast_lane_changes",
 )  # fmt: skip
 """The :class:`ShieldConfig` fields that switch parts of the safety rule on or off (``ShieldConfig.rule_options``)."""
 
@@ -803,7 +812,7 @@ RULE_CHANGES: dict[str, Any] = {
     # issue 15's seventeenth session (docs/safety.md §6q)
     "forecast_fallback": False,
     # issue 15's eighteenth session (docs/safety.md §6r)
-    "forecast_contact_time": False,
+    "forecast_lane_changes": False,
 }  # fmt: skip
 """Shield keys added with a new default that changes the rule: a *recorded* configuration (a run's
 config.yaml, a counterexample file) written before the key existed had the old behaviour, given here,

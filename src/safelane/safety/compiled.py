@@ -43,8 +43,9 @@ drop_stale_kernel_cache(__file__, (forecast.__file__,))
 # cache only watches this file): check here that they are still the core's.
 LANE_LEFT, IDLE, LANE_RIGHT, FASTER, SLOWER = 0, 1, 2, 3, 4
 N_ACTIONS = 5
-# The forecast's ranking as one kernel argument (Dynamics.forecast_fallback, Dynamics.forecast_contact_time).
-FORECAST_OFF, FORECAST_GAP, FORECAST_CONTACT_TIME = 0, 1, 2
+# The forecast's ranking as one kernel argument, bit flags (Dynamics.forecast_fallback, forecast_contact_time,
+# forecast_lane_changes; the last two mean nothing without the first).
+FORECAST_ON, FORECAST_BY_CONTACT_TIME, FORECAST_LANE_CHANGES = 1, 2, 4
 N_FALLBACKS = 4  # fallbacks k = 0..MAX_HOLD_DECISIONS (a literal, so the loops over them unroll)
 assert (spaces.LANE_LEFT, spaces.IDLE, spaces.LANE_RIGHT, spaces.FASTER, spaces.SLOWER) == (0, 1, 2, 3, 4)
 assert spaces.N_ACTIONS == N_ACTIONS and model.MAX_HOLD_DECISIONS + 1 == N_FALLBACKS, "update compiled.py"
@@ -1083,13 +1084,14 @@ def _evaluate_rule(
         ahead_of, gaps_of = gaps_of, ahead_of
     # model.forecast_ranking: the forecast's keys, ranked first (0 for every action: no forecast).
     forecast = np.zeros(N_ACTIONS)
-    if forecast_fallback > 0:
-        by_contact_time = forecast_fallback == FORECAST_CONTACT_TIME
+    if forecast_fallback & FORECAST_ON:
+        by_contact_time = (forecast_fallback & FORECAST_BY_CONTACT_TIME) != 0
+        lane_changes = (forecast_fallback & FORECAST_LANE_CHANGES) != 0
         gaps, contact_time = forecast_gaps(
             xs.transpose((0, 2, 1)), ego_last, available, frame_dt, ego_x, ego_length, lanes_count, lane_width,
             speed_limit, x, y, vx, vy, length, crashed, brake_max, accel_max, idm_delta, idm_comfort_acc,
             idm_comfort_dec, idm_distance_wanted, idm_time_wanted, lin_k0, lin_k1, lin_k2, target_speed,
-            by_contact_time,
+            by_contact_time, lane_changes, can_change_lane, max_braking_imposed, ego_lane,
         )  # fmt: skip
         horizon_s = frame_dt * (xs.shape[1] - 1)
         forecast = forecast_keys(gaps, contact_time, margin, horizon_s, decision_period, by_contact_time)
@@ -1395,11 +1397,12 @@ class KernelConstants(NamedTuple):
 
 
 def forecast_level(dyn: Dynamics) -> int:
-    """``dyn``'s forecast ranking as the kernels take it: :data:`FORECAST_OFF` (worst-case keys only),
-    :data:`FORECAST_GAP` (every forecast collision alike) or :data:`FORECAST_CONTACT_TIME` (later contact first)."""
+    """``dyn``'s forecast options as the kernels take them: 0 (worst-case keys only) or :data:`FORECAST_ON`
+    with :data:`FORECAST_BY_CONTACT_TIME` and :data:`FORECAST_LANE_CHANGES` as set."""
     if not dyn.forecast_fallback:
-        return FORECAST_OFF
-    return FORECAST_CONTACT_TIME if dyn.forecast_contact_time else FORECAST_GAP
+        return 0
+    contact = FORECAST_BY_CONTACT_TIME if dyn.forecast_contact_time else 0
+    return FORECAST_ON | contact | (FORECAST_LANE_CHANGES if dyn.forecast_lane_changes else 0)
 
 
 def kernel_constants(dyn: Dynamics) -> KernelConstants:

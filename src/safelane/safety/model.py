@@ -39,8 +39,9 @@ joint fallback; its one looser bound, a moving leader braking along its path (``
 is also nominal's wherever it is the looser (``Dynamics.turning_in_nominal``). The mask is never empty:
 when no action is safe the least-bad one is allowed and ``fallback`` is set (:func:`least_bad_action`), ranked
 first by a nominal forecast of the others (``Dynamics.forecast_fallback``, :mod:`safelane.safety.forecast`;
-with ``Dynamics.forecast_contact_time`` a forecast collision ranks by when it comes), which orders the unsafe
-actions and never makes one safe.
+with ``Dynamics.forecast_contact_time`` a forecast collision ranks by when it comes, with
+``Dynamics.forecast_lane_changes`` the forecast's cars change lane by MOBIL), which orders the unsafe actions and
+never makes one safe.
 """
 
 from __future__ import annotations
@@ -134,7 +135,8 @@ class Dynamics:
     incentive_any_speed: bool = True  # level_when_incentive: that frame over every speed the cars can reach
     turning_in_nominal: bool = True  # turning_leaders: nominal's leader bound never below robust's (robust ⊆ nominal)
     forecast_fallback: bool = True  # nothing safe: rank the least-bad choice by a nominal forecast first (forecast.py)
-    forecast_contact_time: bool = True  # forecast_fallback: forecast collisions rank by first contact, later first
+    forecast_contact_time: bool = False  # forecast_fallback: forecast collisions rank by first contact, later first
+    forecast_lane_changes: bool = True  # forecast_fallback: the forecast's cars change lane by MOBIL
     ego_lateral_speed: float = math.nan  # [m/s] the speed that simulation runs at (per state, like ego_leave_time)
     ego_width: float = 2.0  # [m] the ego's width (Vehicle.WIDTH)
     kp_lateral: float = 1.0 / 0.6  # [1/s] ControlledVehicle.KP_LATERAL
@@ -1403,7 +1405,8 @@ def forecast_ranking(state: RoadState, dyn: Dynamics, ego_x: np.ndarray, availab
         state.crashed, state.brake_max, state.accel_max, state.idm_delta, state.idm_comfort_acc,
         state.idm_comfort_dec, state.idm_distance_wanted, state.idm_time_wanted, state.linear_speed_gain,
         state.linear_speed_difference_gain, state.linear_distance_gain, set_points(state),
-        dyn.forecast_contact_time,
+        dyn.forecast_contact_time, dyn.forecast_lane_changes, state.can_change_lane, state.max_braking_imposed,
+        state.ego_lane,
     )  # fmt: skip
     horizon = dyn.frame_dt * (ego_x.shape[2] - 1)
     return forecast_keys(gaps, contact_time, dyn.margin, horizon, dyn.decision_period, dyn.forecast_contact_time)
@@ -1433,7 +1436,8 @@ def forecast_of(state: RoadState, dyn: Dynamics, action: int, fallback: int) -> 
         dyn.lane_width, state.speed_limit, state.x, state.y, state.vx, state.vy, state.length, state.crashed,
         state.brake_max, state.accel_max, state.idm_delta, state.idm_comfort_acc, state.idm_comfort_dec,
         state.idm_distance_wanted, state.idm_time_wanted, state.linear_speed_gain, state.linear_speed_difference_gain,
-        state.linear_distance_gain, set_points(state),
+        state.linear_distance_gain, set_points(state), dyn.forecast_lane_changes, state.can_change_lane,
+        state.max_braking_imposed, state.ego_lane,
     )  # fmt: skip
 
 

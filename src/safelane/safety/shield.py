@@ -105,7 +105,8 @@ def dynamics_of(
     incentive_any_speed: bool = True,
     turning_in_nominal: bool = True,
     forecast_fallback: bool = True,
-    forecast_contact_time: bool = True,
+    forecast_contact_time: bool = False,
+    forecast_lane_changes: bool = True,
 ) -> Dynamics:
     """The :class:`Dynamics` constants of the simulated world a snapshot was taken in; ``margin`` [m]: the
     bumper-to-bumper gap the rule keeps under its worst case; the rule's options as in :class:`Dynamics`."""
@@ -153,6 +154,7 @@ def dynamics_of(
         turning_in_nominal=turning_in_nominal,
         forecast_fallback=forecast_fallback,
         forecast_contact_time=forecast_contact_time,
+        forecast_lane_changes=forecast_lane_changes,
         # highway-env's lateral controller: ControlledVehicle's gains, which MDPVehicle (the ego) inherits.
         ego_width=float(snap.width[snap.ego]) if len(snap.width) else 2.0,
         kp_lateral=float(ControlledVehicle.KP_LATERAL),
@@ -295,8 +297,10 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
     the others predicts (:mod:`safelane.safety.forecast`: every car keeps its lane and drives by its own law),
     capped at ``margin``, a forecast collision ranking as one; then as before (on by default since issue 15's
     seventeenth session).
-    ``forecast_contact_time`` (with ``forecast_fallback``): a forecast collision ranks by the time of its first
-    contact, the later the higher (on by default since issue 15's eighteenth session).
+    ``forecast_contact_time`` (with ``forecast_fallback``, experimental, off): a forecast collision ranks by the
+    whole decisions before its first contact, the more the higher (measured worse: docs/safety.md §6r).
+    ``forecast_lane_changes`` (with ``forecast_fallback``): the forecast's cars change lane by MOBIL (on by default
+    since issue 15's eighteenth session).
     """
 
     def __init__(
@@ -337,7 +341,8 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
         incentive_any_speed: bool = True,
         turning_in_nominal: bool = True,
         forecast_fallback: bool = True,
-        forecast_contact_time: bool = True,
+        forecast_contact_time: bool = False,
+        forecast_lane_changes: bool = True,
     ) -> None:
         if not (math.isfinite(margin) and margin >= 0):
             raise ValueError(f"shield.margin: must be a finite number >= 0 [m] (got {margin!r})")
@@ -385,6 +390,7 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
             turning_in_nominal=turning_in_nominal,
             forecast_fallback=forecast_fallback,
             forecast_contact_time=forecast_contact_time,
+            forecast_lane_changes=forecast_lane_changes,
         )
         try:
             env.get_wrapper_attr("road_snapshot")
@@ -427,6 +433,7 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
         self.turning_in_nominal = bool(turning_in_nominal)
         self.forecast_fallback = bool(forecast_fallback)
         self.forecast_contact_time = bool(forecast_contact_time)
+        self.forecast_lane_changes = bool(forecast_lane_changes)
         self._rule_options = {name: getattr(self, name) for name in RULE_OPTIONS}  # dynamics_of's keywords
         self.dynamics: Dynamics | None = None
         self.result: SafetyResult | None = None

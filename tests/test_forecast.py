@@ -184,8 +184,8 @@ def test_lane_changes_see_a_car_move_over_with_the_ego(simulator: str) -> None:
     more than the margin; in the episode the ego turns left and the car ahead moves to lane 0 too (MOBIL, the
     ego still in lane 1 for highway-env's neighbour search), and the ego hits it at decision 2. With
     shield.forecast_lane_changes the forecast makes the same move and sees LANE_LEFT collide, and SLOWER clear.
-    (Which action the shield then allows is not asserted: here robust's straight fallback, the rule without the
-    turning allowance, has LANE_LEFT safe and decides before any ranking.)"""
+    (Which action the shield then allows is not asserted: nominal calls LANE_LEFT safe here, and robust picks its
+    least-bad action among nominal's safe ones, so it keeps LANE_LEFT whatever the forecast says.)"""
     cx = load_counterexample(SIMULTANEOUS)
     env = make_env(cx.env_config(simulator))
     env.reset(seed=cx.seed)

@@ -245,7 +245,7 @@ def test_every_rule_option_reaches_the_shield_of_make_env_and_of_the_batch() -> 
     from safelane.config import RULE_OPTIONS, ShieldConfig
     from safelane.env.factory import make_env
     from safelane.env.fast_batch import FastBatch
-    from safelane.safety.compiled import FORECAST_LANE_CHANGES, FORECAST_ON, KernelConstants, forecast_level
+    from safelane.safety.compiled import FORECAST_ON, KernelConstants, forecast_level
     from safelane.safety.shield import SafetyShield
 
     defaults = ShieldConfig().rule_options()
@@ -263,7 +263,6 @@ def test_every_rule_option_reaches_the_shield_of_make_env_and_of_the_batch() -> 
         elif name == "turning_leaders":  # the kernel takes the allowance it implies [m] (0: off)
             assert (constants.turning_allowance > 0.0) is (not defaults[name])
         elif name.startswith("forecast_"):  # one kernel argument, bit flags
-            default = FORECAST_ON | FORECAST_LANE_CHANGES
-            assert constants.forecast_fallback == forecast_level(env.dynamics) != default
+            assert constants.forecast_fallback == forecast_level(env.dynamics) != FORECAST_ON  # the default
         else:
             assert getattr(constants, name) is (not defaults[name])

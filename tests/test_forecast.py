@@ -154,7 +154,8 @@ def test_contact_time_drives_a_spawn_through(simulator: str) -> None:
     worst case's least bad), brakes again, then turns left and is hit at decision 3 — the published crash. Ranked
     by first contact, LANE_LEFT's forecast contact (a Defensive car creeping into the ego stopped at the end of
     its braking fallback) comes later than SLOWER's (the leader ahead): the shield changes lane at once and the
-    episode runs 13 decisions without a crash. The same on both simulators."""
+    episode runs 13 decisions without a crash. The same on both simulators. (One spawn only: over the claim's
+    whole campaign the option crashes more, docs/safety.md §6r, and it stays off.)"""
     cx = load_counterexample(SPAWN)
     executed: dict[bool, list[int]] = {}
     for contact_time in (False, True):
@@ -183,7 +184,8 @@ def test_lane_changes_see_a_car_move_over_with_the_ego(simulator: str) -> None:
     closing on its own leader, lane 0 empty. Keeping every car in its lane, the forecast has LANE_LEFT clear by
     more than the margin; in the episode the ego turns left and the car ahead moves to lane 0 too (MOBIL, the
     ego still in lane 1 for highway-env's neighbour search), and the ego hits it at decision 2. With
-    shield.forecast_lane_changes the forecast makes the same move and sees LANE_LEFT collide, and SLOWER clear.
+    shield.forecast_lane_changes (experimental: over the claim's campaign it crashes more, docs/safety.md §6r) the
+    forecast makes the same move and sees LANE_LEFT collide, and SLOWER clear.
     (Which action the shield then allows is not asserted: nominal calls LANE_LEFT safe here, and robust picks its
     least-bad action among nominal's safe ones, so it keeps LANE_LEFT whatever the forecast says.)"""
     cx = load_counterexample(SIMULTANEOUS)

@@ -365,12 +365,11 @@ class ShieldConfig(_Section):
     )
 
     forecast_lane_changes: bool = Field(
-        True,
+        False,
         strict=True,
-        description="With forecast_fallback: the forecast's cars change lane by MOBIL (their own law and "
-        "max_braking_imposed, highway-env's IDM gain threshold, checked every frame), counting in both lanes for "
-        "2 s (docs/safety.md §6r). Never makes an action safe. On by default since issue 15's eighteenth session; "
-        "false: every car keeps its lane in the forecast.",
+        description="Experimental, off. With forecast_fallback: the forecast's cars change lane by MOBIL (their own "
+        "law and max_braking_imposed, highway-env's IDM gain threshold, checked every frame), counting in both lanes "
+        "for 2 s. Never makes an action safe. Measured on the claim's campaign: more crashes (docs/safety.md §6r).",
     )
 
     def rule_options(self) -> dict[str, bool]:
@@ -811,8 +810,6 @@ RULE_CHANGES: dict[str, Any] = {
     "turning_in_nominal": False,
     # issue 15's seventeenth session (docs/safety.md §6q)
     "forecast_fallback": False,
-    # issue 15's eighteenth session (docs/safety.md §6r)
-    "forecast_lane_changes": False,
 }  # fmt: skip
 """Shield keys added with a new default that changes the rule: a *recorded* configuration (a run's
 config.yaml, a counterexample file) written before the key existed had the old behaviour, given here,

@@ -13,18 +13,18 @@ of Linear, Aggressive and Defensive drivers, with its own parameters and set-poi
 to ``[−brake_max, accel_max]`` as highway-env clips them — behind its leader in that lane, the ego among
 them wherever the ego's action takes it. It is the same integration highway-env runs (acceleration from
 the current state, then ``x += v·dt``, ``v += a·dt``). Without ``lane_changes`` no lane change is predicted;
-with it (``Dynamics.forecast_lane_changes``) every car that may change lane runs MOBIL at every frame (highway-env
-runs it once a second, at a phase the snapshot does not carry) with its own law — its new follower must not have
-to brake harder than its ``max_braking_imposed``, and its own gain must reach highway-env's IDM threshold,
-:data:`MOBIL_MIN_ACC_GAIN` (Aggressive and Defensive drivers ask for 1 m/s², which the snapshot does not tell
-apart) — and, once it starts, counts in both lanes for :data:`LANE_CHANGE_TIME`, then in its new lane; the ego
-is in the lane highway-env's neighbour search sees it in (its own until it has left it). A body
+with it (``Dynamics.forecast_lane_changes``, experimental, off: measured worse, docs/safety.md §6r) every car
+that may change lane runs MOBIL at every frame (highway-env runs it once a second, at a phase the snapshot does
+not carry) with its own law — its new follower must not have to brake harder than its ``max_braking_imposed``,
+and its own gain must reach highway-env's IDM threshold, :data:`MOBIL_MIN_ACC_GAIN` (Aggressive and Defensive
+drivers ask for 1 m/s², which the snapshot does not tell apart) — and, once it starts, counts in both lanes for
+:data:`LANE_CHANGE_TIME`, then in its new lane; the ego is in the lane highway-env's neighbour search sees it in
+(its own until it has left it). A body
 without a set-point (a static object; a hand-built state's unknown one) keeps its speed, and a wreck stands. The
 forecast never makes an action safe; it only orders the least-bad choice (``Dynamics.forecast_fallback``).
-With ``Dynamics.forecast_contact_time`` an action the forecast sees collide ranks by *when*: the more whole
-decisions before its first contact, the higher (the shield chooses again at every decision, so a contact ten
-seconds away — a linear-model driver creeping into the stopped ego at the end of a braking fallback — leaves
-decisions to escape that a contact now does not; contacts within one decision rank alike).
+With ``Dynamics.forecast_contact_time`` (experimental, off: measured worse, docs/safety.md §6r) an action the
+forecast sees collide ranks by *when*: the more whole decisions before its first contact, the higher (contacts
+within one decision rank alike).
 
 One numba kernel serves both engines (the numpy reference and the compiled rule call the same function on
 the same arrays), so their fallback choices are the same bits.
@@ -43,7 +43,7 @@ SIDEWAYS_LOOKAHEAD = 1.0
 """[s] A vehicle moving sideways is taken to follow the lane its lateral speed reaches in this time."""
 LANE_CHANGE_TIME = 2.0
 """[s] With lane changes, a car that starts one counts in both lanes this long, then in its new lane only (an
-assumption: 1 s and 3 s gave the same crashes within one in 100 on the claim campaign's spawns)."""
+assumption, not fitted to highway-env's lateral controller)."""
 MOBIL_MIN_ACC_GAIN = 0.2
 """[m/s²] MOBIL's threshold in the forecast: highway-env's IDMVehicle.LANE_CHANGE_MIN_ACC_GAIN (its POLITENESS
 is 0, so only the car's own gain counts)."""

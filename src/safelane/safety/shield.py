@@ -106,7 +106,7 @@ def dynamics_of(
     turning_in_nominal: bool = True,
     forecast_fallback: bool = True,
     forecast_contact_time: bool = False,
-    forecast_lane_changes: bool = True,
+    forecast_lane_changes: bool = False,
 ) -> Dynamics:
     """The :class:`Dynamics` constants of the simulated world a snapshot was taken in; ``margin`` [m]: the
     bumper-to-bumper gap the rule keeps under its worst case; the rule's options as in :class:`Dynamics`."""
@@ -299,8 +299,8 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
     seventeenth session).
     ``forecast_contact_time`` (with ``forecast_fallback``, experimental, off): a forecast collision ranks by the
     whole decisions before its first contact, the more the higher (measured worse: docs/safety.md §6r).
-    ``forecast_lane_changes`` (with ``forecast_fallback``): the forecast's cars change lane by MOBIL (on by default
-    since issue 15's eighteenth session).
+    ``forecast_lane_changes`` (with ``forecast_fallback``, experimental, off): the forecast's cars change lane by
+    MOBIL (measured worse: docs/safety.md §6r).
     """
 
     def __init__(
@@ -342,7 +342,7 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
         turning_in_nominal: bool = True,
         forecast_fallback: bool = True,
         forecast_contact_time: bool = False,
-        forecast_lane_changes: bool = True,
+        forecast_lane_changes: bool = False,
     ) -> None:
         if not (math.isfinite(margin) and margin >= 0):
             raise ValueError(f"shield.margin: must be a finite number >= 0 [m] (got {margin!r})")

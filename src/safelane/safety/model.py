@@ -135,8 +135,8 @@ class Dynamics:
     incentive_any_speed: bool = True  # level_when_incentive: that frame over every speed the cars can reach
     turning_in_nominal: bool = True  # turning_leaders: nominal's leader bound never below robust's (robust ⊆ nominal)
     forecast_fallback: bool = True  # nothing safe: rank the least-bad choice by a nominal forecast first (forecast.py)
-    forecast_contact_time: bool = False  # forecast_fallback: forecast collisions rank by first contact, later first
-    forecast_lane_changes: bool = False  # forecast_fallback: the forecast's cars change lane by MOBIL
+    forecast_contact_time: bool = False  # experimental: forecast collisions rank by first contact, later first
+    forecast_lane_changes: bool = False  # experimental: the forecast's cars change lane by MOBIL (forecast_fallback)
     ego_lateral_speed: float = math.nan  # [m/s] the speed that simulation runs at (per state, like ego_leave_time)
     ego_width: float = 2.0  # [m] the ego's width (Vehicle.WIDTH)
     kp_lateral: float = 1.0 / 0.6  # [1/s] ControlledVehicle.KP_LATERAL

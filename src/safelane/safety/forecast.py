@@ -330,7 +330,7 @@ def _rollout(
     return smallest, contact
 
 
-@njit(cache=True, error_model="numpy", inline="always")
+@njit(cache=True, error_model="numpy")
 def _law(
     i: int, v: float, set_point: float, v0: float, has_front: bool, d: float, v_front: float, linear: bool,
     lin_k0: np.ndarray, lin_k1: np.ndarray, lin_k2: np.ndarray, idm_delta: np.ndarray, idm_comfort_acc: np.ndarray,

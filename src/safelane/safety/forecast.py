@@ -117,19 +117,12 @@ def forecast_gaps(
             continue
         best_gap, best_contact = -math.inf, -1
         for k in range(n_fallbacks):
-            if changes:
-                smallest, contact = _rollout_changing(
-                    xs[a, k], ego_last_frame[a], frame_dt, ego_length, pick, lane_now, lane_to, set_point, v0, x,
-                    vx, length, crashed, brake_max, accel_max, idm_delta, idm_comfort_acc, idm_comfort_dec,
-                    idm_distance_wanted, idm_time_wanted, lin_k0, lin_k1, lin_k2, can_change_lane,
-                    max_braking_imposed, lanes_count, ego_lane, speed_limit, no_history,
-                )  # fmt: skip
-            else:
-                smallest, contact = _rollout(
-                    xs[a, k], ego_last_frame[a], frame_dt, ego_length, pick, lane_now, lane_to, leader, set_point,
-                    v0, x, vx, length, crashed, brake_max, accel_max, idm_delta, idm_comfort_acc, idm_comfort_dec,
-                    idm_distance_wanted, idm_time_wanted, lin_k0, lin_k1, lin_k2, no_history,
-                )  # fmt: skip
+            smallest, contact = _rollout(
+                xs[a, k], ego_last_frame[a], frame_dt, ego_length, pick, lane_now, lane_to, leader, set_point, v0,
+                x, vx, length, crashed, brake_max, accel_max, idm_delta, idm_comfort_acc, idm_comfort_dec,
+                idm_distance_wanted, idm_time_wanted, lin_k0, lin_k1, lin_k2, changes, can_change_lane,
+                max_braking_imposed, lanes_count, ego_lane, speed_limit, no_history,
+            )  # fmt: skip
             if by_contact_time and k > 0 and (best_contact < 0) != (contact < 0):
                 better = contact < 0  # no contact beats any contact
             elif by_contact_time and contact >= 0 and best_contact >= 0 and contact != best_contact:
@@ -198,19 +191,12 @@ def forecast_paths(
     )
     history = np.empty((pick.shape[0], ego_path.shape[0] - 1))
     changes = lane_changes and can_change_lane.shape[0] == x.shape[0] and max_braking_imposed.shape[0] == x.shape[0]
-    if changes:
-        smallest, _contact = _rollout_changing(
-            ego_path, ego_last_frame, frame_dt, ego_length, pick, lane_now, lane_to, set_point, v0, x, vx, length,
-            crashed, brake_max, accel_max, idm_delta, idm_comfort_acc, idm_comfort_dec, idm_distance_wanted,
-            idm_time_wanted, lin_k0, lin_k1, lin_k2, can_change_lane, max_braking_imposed, lanes_count, ego_lane,
-            speed_limit, history,
-        )  # fmt: skip
-    else:
-        smallest, _contact = _rollout(
-            ego_path, ego_last_frame, frame_dt, ego_length, pick, lane_now, lane_to, leader, set_point, v0, x, vx,
-            length, crashed, brake_max, accel_max, idm_delta, idm_comfort_acc, idm_comfort_dec, idm_distance_wanted,
-            idm_time_wanted, lin_k0, lin_k1, lin_k2, history,
-        )  # fmt: skip
+    smallest, _contact = _rollout(
+        ego_path, ego_last_frame, frame_dt, ego_length, pick, lane_now, lane_to, leader, set_point, v0, x, vx,
+        length, crashed, brake_max, accel_max, idm_delta, idm_comfort_acc, idm_comfort_dec, idm_distance_wanted,
+        idm_time_wanted, lin_k0, lin_k1, lin_k2, changes, can_change_lane, max_braking_imposed, lanes_count,
+        ego_lane, speed_limit, history,
+    )  # fmt: skip
     return pick, history, smallest
 
 
@@ -275,15 +261,19 @@ def _select(
 @njit(cache=True, error_model="numpy")
 def _rollout(
     ego_path: np.ndarray, ego_last: np.ndarray, frame_dt: float, ego_length: float, pick: np.ndarray,
-    lane_now: np.ndarray, lane_to: np.ndarray, leader: np.ndarray, set_point: np.ndarray, v0: np.ndarray,
-    x: np.ndarray, vx: np.ndarray, length: np.ndarray, crashed: np.ndarray, brake_max: np.ndarray,
+    lane_now_start: np.ndarray, lane_to_start: np.ndarray, leader: np.ndarray, set_point: np.ndarray,
+    v0: np.ndarray, x: np.ndarray, vx: np.ndarray, length: np.ndarray, crashed: np.ndarray, brake_max: np.ndarray,
     accel_max: np.ndarray, idm_delta: np.ndarray, idm_comfort_acc: np.ndarray, idm_comfort_dec: np.ndarray,
     idm_distance_wanted: np.ndarray, idm_time_wanted: np.ndarray, lin_k0: np.ndarray, lin_k1: np.ndarray,
-    lin_k2: np.ndarray, history: np.ndarray,
+    lin_k2: np.ndarray, lane_changes: bool, can_change_lane: np.ndarray, max_braking_imposed: np.ndarray,
+    lanes_count: int, ego_lane: int, speed_limit: float, history: np.ndarray,
 ) -> tuple[float, int]:  # fmt: skip
     """Drive the ``pick``ed vehicles frame by frame beside one ego path (``ego_last``: the last frame it is in
     each lane) and return the smallest bumper gap [m] to the ego in a lane it occupies and the first frame with a
-    negative one (−1: none); ``history`` (vehicles × frames, or empty) receives their positions [m]."""
+    negative one (−1: none); ``history`` (vehicles × frames, or empty) receives their positions [m]. Each car
+    follows ``leader`` (the order of the start); with ``lane_changes`` it may change lane (:func:`_mobil`), counts
+    in both lanes for :data:`LANE_CHANGE_TIME`, and its leader is found again every frame: the nearest car ahead
+    in the lane it follows."""
     m = pick.shape[0]
     n_t = ego_path.shape[0]
     record = history.shape[0] == m and m > 0
@@ -291,6 +281,9 @@ def _rollout(
     pos = np.empty(m)
     spd = np.empty(m)
     acc = np.empty(m)
+    lane_now = lane_now_start.copy()
+    lane_to = lane_to_start.copy()
+    change_end = np.full(m, -1, dtype=np.int64)
     for r in range(m):
         pos[r], spd[r] = x[pick[r]], vx[pick[r]]
     smallest = math.inf
@@ -298,6 +291,8 @@ def _rollout(
     for f in range(n_t - 1):
         ex = ego_path[f]
         for r in range(m):
+            if change_end[r] == f:
+                lane_now[r] = lane_to[r]
             if record:
                 history[r, f] = pos[r]
             if ego_last[lane_now[r]] >= f or ego_last[lane_to[r]] >= f:
@@ -308,15 +303,29 @@ def _rollout(
         if f == n_t - 2:
             break
         ev = (ego_path[f + 1] - ex) / frame_dt  # the ego's speed over the frame
+        if lane_changes:
+            _mobil(
+                f, ex, ev, ego_last, ego_lane, frame_dt, pick, lane_now, lane_to, change_end, pos, spd, set_point, v0,
+                crashed, can_change_lane, max_braking_imposed, lanes_count, speed_limit, linear, lin_k0, lin_k1,
+                lin_k2, idm_delta, idm_comfort_acc, idm_comfort_dec, idm_distance_wanted, idm_time_wanted,
+            )  # fmt: skip
         for r in range(m):
             i = pick[r]
             if crashed[i] or not math.isfinite(set_point[r]):  # a wreck, or a body with no known law
                 acc[r] = 0.0
                 continue
-            q = leader[r]
-            has_front = q >= 0
-            d = pos[q] - pos[r] if has_front else math.inf
-            v_front = spd[q] if has_front else 0.0
+            if lane_changes:  # the nearest ahead in the lane it follows (a changing car counts in both)
+                d, v_front, has_front = math.inf, 0.0, False
+                for q in range(m):
+                    if q != r and (lane_to[q] == lane_to[r] or lane_now[q] == lane_to[r]):
+                        dd = pos[q] - pos[r]
+                        if (dd > 0.0 or (dd == 0.0 and q > r)) and dd < d:
+                            d, v_front, has_front = dd, spd[q], True
+            else:
+                q = leader[r]
+                has_front = q >= 0
+                d = pos[q] - pos[r] if has_front else math.inf
+                v_front = spd[q] if has_front else 0.0
             if ego_last[lane_to[r]] >= f and ex > pos[r] and ex - pos[r] < d:
                 has_front, d, v_front = True, ex - pos[r], ev  # the ego is its leader
             a_r = _law(
@@ -328,6 +337,84 @@ def _rollout(
             pos[r] += spd[r] * frame_dt
             spd[r] += acc[r] * frame_dt
     return smallest, contact
+
+
+@njit(cache=True, error_model="numpy")
+def _mobil(
+    f: int, ex: float, ev: float, ego_last: np.ndarray, ego_lane: int, frame_dt: float, pick: np.ndarray,
+    lane_now: np.ndarray, lane_to: np.ndarray, change_end: np.ndarray, pos: np.ndarray, spd: np.ndarray,
+    set_point: np.ndarray, v0: np.ndarray, crashed: np.ndarray, can_change_lane: np.ndarray,
+    max_braking_imposed: np.ndarray, lanes_count: int, speed_limit: float, linear: bool, lin_k0: np.ndarray,
+    lin_k1: np.ndarray, lin_k2: np.ndarray, idm_delta: np.ndarray, idm_comfort_acc: np.ndarray,
+    idm_comfort_dec: np.ndarray, idm_distance_wanted: np.ndarray, idm_time_wanted: np.ndarray,
+) -> None:  # fmt: skip
+    """One frame of IDMVehicle.change_lane_policy / mobil (POLITENESS 0) for the forecast's cars at frame ``f``
+    (the ego at ``ex`` [m], ``ev`` [m/s]): every car that may change lane and is in one lane tries the side lanes
+    (highway-env's order: the lower index first) and starts the first change MOBIL accepts — ``lane_to`` and
+    ``change_end`` (the frame it is in its new lane only) are written in place."""
+    m = pick.shape[0]
+    # The ego's lane as highway-env's neighbour search sees it: its own until it has left it. (The bumper gaps
+    # count it in every lane it touches.)
+    seen_lane = ego_lane
+    if ego_last[ego_lane] < f:
+        for lane in range(lanes_count):
+            if ego_last[lane] >= f:
+                seen_lane = lane
+                break
+    for r in range(m):  # IDMVehicle.change_lane_policy / mobil, POLITENESS 0
+        i = pick[r]
+        if crashed[i] or not can_change_lane[i] or not math.isfinite(set_point[r]):
+            continue
+        if lane_now[r] != lane_to[r] or abs(spd[r]) < 1.0:
+            continue
+        d_old, v_old, has_old = math.inf, 0.0, False
+        for q in range(m):
+            if q != r and (lane_now[q] == lane_now[r] or lane_to[q] == lane_now[r]):
+                dd = pos[q] - pos[r]
+                if dd > 0.0 and dd < d_old:
+                    d_old, v_old, has_old = dd, spd[q], True
+        if seen_lane == lane_now[r] and ex > pos[r] and ex - pos[r] < d_old:
+            d_old, v_old, has_old = ex - pos[r], ev, True
+        own_now = _law(
+            i, spd[r], set_point[r], v0[r], has_old, d_old, v_old, linear, lin_k0, lin_k1, lin_k2, idm_delta,
+            idm_comfort_acc, idm_comfort_dec, idm_distance_wanted, idm_time_wanted,
+        )  # fmt: skip
+        for side in (-1, 1):
+            lane = lane_now[r] + side
+            if lane < 0 or lane >= lanes_count:
+                continue
+            d_ahead, v_ahead, has_ahead = math.inf, 0.0, False
+            d_behind, v_behind, set_behind, has_behind = math.inf, 0.0, 0.0, False
+            for q in range(m):
+                if q != r and (lane_now[q] == lane or lane_to[q] == lane):
+                    dd = pos[q] - pos[r]
+                    if dd > 0.0 and dd < d_ahead:
+                        d_ahead, v_ahead, has_ahead = dd, spd[q], True
+                    elif dd <= 0.0 and -dd < d_behind:
+                        own = set_point[q] if math.isfinite(set_point[q]) else spd[q]
+                        d_behind, v_behind, set_behind, has_behind = -dd, spd[q], own, True
+            if seen_lane == lane:  # the ego: its set-point taken as its speed (the forecast has no other)
+                dd = ex - pos[r]
+                if dd > 0.0 and dd < d_ahead:
+                    d_ahead, v_ahead, has_ahead = dd, ev, True
+                elif dd <= 0.0 and -dd < d_behind:
+                    d_behind, v_behind, set_behind, has_behind = -dd, ev, ev, True
+            if has_behind:  # the new follower must not brake harder than max_braking_imposed
+                imposed = _law(
+                    i, v_behind, set_behind, min(max(set_behind, 0.0), speed_limit), True, d_behind, spd[r], linear,
+                    lin_k0, lin_k1, lin_k2, idm_delta, idm_comfort_acc, idm_comfort_dec, idm_distance_wanted,
+                    idm_time_wanted,
+                )  # fmt: skip
+                if imposed < -max_braking_imposed[i]:
+                    continue
+            own_there = _law(
+                i, spd[r], set_point[r], v0[r], has_ahead, d_ahead, v_ahead, linear, lin_k0, lin_k1, lin_k2,
+                idm_delta, idm_comfort_acc, idm_comfort_dec, idm_distance_wanted, idm_time_wanted,
+            )  # fmt: skip
+            if own_there - own_now >= MOBIL_MIN_ACC_GAIN:
+                lane_to[r] = lane
+                change_end[r] = f + round(LANE_CHANGE_TIME / frame_dt)
+                break
 
 
 @njit(cache=True, error_model="numpy")
@@ -353,133 +440,3 @@ def _law(
         d_star = idm_distance_wanted[i] + v * idm_time_wanted[i] + v * (v - v_front) / (2 * math.sqrt(ab))
         a_r -= comfort * (d_star / _not_zero(d)) ** 2
     return a_r
-
-
-@njit(cache=True, error_model="numpy")
-def _rollout_changing(
-    ego_path: np.ndarray, ego_last: np.ndarray, frame_dt: float, ego_length: float, pick: np.ndarray,
-    lane_now_start: np.ndarray, lane_to_start: np.ndarray, set_point: np.ndarray, v0: np.ndarray, x: np.ndarray,
-    vx: np.ndarray, length: np.ndarray, crashed: np.ndarray, brake_max: np.ndarray, accel_max: np.ndarray,
-    idm_delta: np.ndarray, idm_comfort_acc: np.ndarray, idm_comfort_dec: np.ndarray,
-    idm_distance_wanted: np.ndarray, idm_time_wanted: np.ndarray, lin_k0: np.ndarray, lin_k1: np.ndarray,
-    lin_k2: np.ndarray, can_change_lane: np.ndarray, max_braking_imposed: np.ndarray, lanes_count: int,
-    ego_lane: int, speed_limit: float, history: np.ndarray,
-) -> tuple[float, int]:  # fmt: skip
-    """:func:`_rollout` with MOBIL's lane changes (module docstring): each frame, every car that may change lane
-    and is in one lane tries the side lanes (highway-env's order: the lower index first) and starts the first
-    change MOBIL accepts; a changing car counts in both lanes for :data:`LANE_CHANGE_TIME`; each car's leader
-    is the nearest car ahead in the lane it follows, found again every frame."""
-    m = pick.shape[0]
-    n_t = ego_path.shape[0]
-    record = history.shape[0] == m and m > 0
-    linear = lin_k0.shape[0] == x.shape[0] and lin_k1.shape[0] == x.shape[0] and lin_k2.shape[0] == x.shape[0]
-    pos = np.empty(m)
-    spd = np.empty(m)
-    acc = np.empty(m)
-    lane_now = lane_now_start.copy()
-    lane_to = lane_to_start.copy()
-    change_end = np.full(m, -1, dtype=np.int64)
-    change_frames = round(LANE_CHANGE_TIME / frame_dt)
-    for r in range(m):
-        pos[r], spd[r] = x[pick[r]], vx[pick[r]]
-    smallest = math.inf
-    contact = -1
-    for f in range(n_t - 1):
-        ex = ego_path[f]
-        for r in range(m):
-            if change_end[r] == f:
-                lane_now[r] = lane_to[r]
-            if record:
-                history[r, f] = pos[r]
-            if ego_last[lane_now[r]] >= f or ego_last[lane_to[r]] >= f:
-                gap = abs(pos[r] - ex) - 0.5 * (length[pick[r]] + ego_length)
-                smallest = min(smallest, gap)
-                if gap < 0.0 and contact < 0:
-                    contact = f
-        if f == n_t - 2:
-            break
-        ev = (ego_path[f + 1] - ex) / frame_dt  # the ego's speed over the frame
-        # The ego's lane as highway-env's neighbour search sees it: its own until it has left it. (The bumper
-        # gaps above count it in every lane it touches.)
-        seen_lane = ego_lane
-        if ego_last[ego_lane] < f:
-            for lane in range(lanes_count):
-                if ego_last[lane] >= f:
-                    seen_lane = lane
-                    break
-        for r in range(m):  # IDMVehicle.change_lane_policy / mobil, POLITENESS 0
-            i = pick[r]
-            if crashed[i] or not can_change_lane[i] or not math.isfinite(set_point[r]):
-                continue
-            if lane_now[r] != lane_to[r] or abs(spd[r]) < 1.0:
-                continue
-            d_old, v_old, has_old = math.inf, 0.0, False
-            for q in range(m):
-                if q != r and (lane_now[q] == lane_now[r] or lane_to[q] == lane_now[r]):
-                    dd = pos[q] - pos[r]
-                    if dd > 0.0 and dd < d_old:
-                        d_old, v_old, has_old = dd, spd[q], True
-            if seen_lane == lane_now[r] and ex > pos[r] and ex - pos[r] < d_old:
-                d_old, v_old, has_old = ex - pos[r], ev, True
-            own_now = _law(
-                i, spd[r], set_point[r], v0[r], has_old, d_old, v_old, linear, lin_k0, lin_k1, lin_k2, idm_delta,
-                idm_comfort_acc, idm_comfort_dec, idm_distance_wanted, idm_time_wanted,
-            )  # fmt: skip
-            for side in (-1, 1):
-                lane = lane_now[r] + side
-                if lane < 0 or lane >= lanes_count:
-                    continue
-                d_ahead, v_ahead, has_ahead = math.inf, 0.0, False
-                d_behind, v_behind, set_behind, has_behind = math.inf, 0.0, 0.0, False
-                for q in range(m):
-                    if q != r and (lane_now[q] == lane or lane_to[q] == lane):
-                        dd = pos[q] - pos[r]
-                        if dd > 0.0 and dd < d_ahead:
-                            d_ahead, v_ahead, has_ahead = dd, spd[q], True
-                        elif dd <= 0.0 and -dd < d_behind:
-                            own = set_point[q] if math.isfinite(set_point[q]) else spd[q]
-                            d_behind, v_behind, set_behind, has_behind = -dd, spd[q], own, True
-                if seen_lane == lane:  # the ego: its set-point taken as its speed (the forecast has no other)
-                    dd = ex - pos[r]
-                    if dd > 0.0 and dd < d_ahead:
-                        d_ahead, v_ahead, has_ahead = dd, ev, True
-                    elif dd <= 0.0 and -dd < d_behind:
-                        d_behind, v_behind, set_behind, has_behind = -dd, ev, ev, True
-                if has_behind:  # the new follower must not brake harder than max_braking_imposed
-                    imposed = _law(
-                        i, v_behind, set_behind, min(max(set_behind, 0.0), speed_limit), True, d_behind, spd[r], linear,
-                        lin_k0, lin_k1, lin_k2, idm_delta, idm_comfort_acc, idm_comfort_dec, idm_distance_wanted,
-                        idm_time_wanted,
-                    )  # fmt: skip
-                    if imposed < -max_braking_imposed[i]:
-                        continue
-                own_there = _law(
-                    i, spd[r], set_point[r], v0[r], has_ahead, d_ahead, v_ahead, linear, lin_k0, lin_k1, lin_k2,
-                    idm_delta, idm_comfort_acc, idm_comfort_dec, idm_distance_wanted, idm_time_wanted,
-                )  # fmt: skip
-                if own_there - own_now >= MOBIL_MIN_ACC_GAIN:
-                    lane_to[r] = lane
-                    change_end[r] = f + change_frames
-                    break
-        for r in range(m):
-            i = pick[r]
-            if crashed[i] or not math.isfinite(set_point[r]):  # a wreck, or a body with no known law
-                acc[r] = 0.0
-                continue
-            d, v_front, has_front = math.inf, 0.0, False  # the nearest ahead in the lane it follows
-            for q in range(m):
-                if q != r and (lane_to[q] == lane_to[r] or lane_now[q] == lane_to[r]):
-                    dd = pos[q] - pos[r]
-                    if (dd > 0.0 or (dd == 0.0 and q > r)) and dd < d:
-                        d, v_front, has_front = dd, spd[q], True
-            if ego_last[lane_to[r]] >= f and ex > pos[r] and ex - pos[r] < d:
-                has_front, d, v_front = True, ex - pos[r], ev  # the ego is its leader
-            a_r = _law(
-                i, spd[r], set_point[r], v0[r], has_front, d, v_front, linear, lin_k0, lin_k1, lin_k2, idm_delta,
-                idm_comfort_acc, idm_comfort_dec, idm_distance_wanted, idm_time_wanted,
-            )  # fmt: skip
-            acc[r] = min(max(a_r, -brake_max[i]), accel_max[i])
-        for r in range(m):
-            pos[r] += spd[r] * frame_dt
-            spd[r] += acc[r] * frame_dt
-    return smallest, contact

@@ -140,6 +140,9 @@ EXPECTED = {
     # sees the car ahead in that lane as a possible cut-in: only SLOWER (test below: one decision later nothing
     # is safe, and the car behind turns in and rear-ends the ego). Nominal: everything but LANE_RIGHT.
     "queue_braking_beside_the_ego": {"nominal": mask_of(L, I, F, S), "robust": mask_of(S)},
+    # A hole not closed (hole 2879): a leader 15 m ahead about to brake at its limit, a Linear car 77 m behind at
+    # 26 m/s; IDLE and SLOWER keep 1.32 m (nominal 1.49 m), and one decision later nothing is safe (test below).
+    "squeezed_by_a_linear_follower": {"nominal": mask_of(I, S), "robust": mask_of(I, S)},
 }
 
 
@@ -849,6 +852,46 @@ def test_queue_braking_beside_the_ego_is_a_hole_not_closed(engine: str) -> None:
     assert behind.crashed and behind.lane_index[2] == 3  # turned into the ego's lane, behind it
     assert behind.position[0] < scene.env.unwrapped.vehicle.position[0]
     scene.env.close()
+
+
+@pytest.mark.parametrize("engine", ["numpy", "compiled"])
+def test_squeezed_by_a_linear_follower_is_a_hole_not_closed(engine: str) -> None:
+    """The claim campaign's hole 2879 (docs/safety.md §6k, §6s), rebuilt one decision before its break and driven
+    on highway-env as the campaign drove it: IDLE keeps 1.32 m; 0.2 s later, the leader braking at its limit,
+    nothing is safe (an invariant break, IDLE least bad at −0.64 m). The follower bound, started again at this
+    decision, is what broke it: with the car behind braking from now (follower_reaction 0, a diagnostic) IDLE and
+    SLOWER keep 1.36 and 2.36 m; without that car the state has a safe action. The fallbacks then take IDLE twice,
+    LANE_RIGHT and SLOWER four times, and the car behind in the new lane rear-ends the ego. When a change of the
+    rule closes this hole this test fails, and the new masks belong in EXPECTED."""
+    from safelane.safety.model import evaluate
+
+    kw = {"shield.engine": engine}
+    scene = scenarios.SCENARIOS["squeezed_by_a_linear_follower"](**kw)
+    assert scene.mask.tolist() == mask_of(I, S) and not scene.result.fallback
+    assert scene.result.min_gap[[I, S]] == pytest.approx([1.32, 1.32], abs=0.01)
+    leader, follower, beside = scene.vehicles[0], scene.vehicles[8], scene.vehicles[7]
+    *_, terminated, _, info = scene.env.step(I)
+    after = scene.env.get_wrapper_attr("result")
+    assert not terminated and info["invariant_break"] and after.fallback and not after.safe.any()
+    assert after.mask.tolist() == mask_of(I) and float(after.min_gap.max()) == pytest.approx(-0.64, abs=0.01)
+    assert leader.action["acceleration"] == pytest.approx(-6.0) and follower.action["acceleration"] < 0
+    state, dyn = scene.shield.state_and_dynamics(scene.shield.snapshot)
+    reacting = evaluate(state, dataclasses.replace(dyn, follower_reaction=0.0), "robust")
+    assert reacting.mask.tolist() == mask_of(I, S) and reacting.min_gap[[I, S]] == pytest.approx([1.36, 2.36], abs=0.01)
+    for action in [I, I, R, S, S, S]:
+        assert scene.env.get_wrapper_attr("result").mask.tolist() == mask_of(action)
+        *_, terminated, _, info = scene.env.step(action)
+        assert not terminated and not info["invariant_break"]
+    *_, terminated, _, info = scene.env.step(S)
+    ego = scene.env.unwrapped.vehicle
+    assert terminated and info["collision"] and beside.crashed and ego.lane_index[2] == 1
+    assert beside.lane_index[2] == 1 and beside.position[0] < ego.position[0]  # rear-ended in the new lane
+    scene.env.close()
+    alone = scenarios.SCENARIOS["squeezed_by_a_linear_follower"](**kw)
+    alone.env.unwrapped.road.vehicles.remove(alone.vehicles[8])  # the same road without the car behind
+    alone.env.step(I)
+    assert not alone.env.get_wrapper_attr("result").fallback
+    alone.env.close()
 
 
 def _drive_idle_while_it_passes(scene: scenarios.Scene, decisions: int, ahead: float) -> None:

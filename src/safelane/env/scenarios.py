@@ -18,7 +18,7 @@ from typing import Any
 
 import gymnasium as gym
 import numpy as np
-from highway_env.vehicle.behavior import IDMVehicle
+from highway_env.vehicle.behavior import IDMVehicle, LinearVehicle
 
 from safelane.env.factory import make_env
 from safelane.safety.model import Mode, SafetyResult
@@ -221,8 +221,6 @@ def linear_car_alongside(mode: Mode = "robust", **kw: Any) -> Scene:
     would be its new follower at a gap far below its safe distance: ``shield.linear_mobil: true``) nor gain
     by turning in behind the ego (``shield.linear_incentive: true``); the default rule assumes either, and
     then nothing is safe."""
-    from highway_env.vehicle.behavior import LinearVehicle
-
     specs = [
         VehicleSpec(1, -0.1, 20.25, vehicle_class=LinearVehicle),
         VehicleSpec(0, 42.0, 17.3, vehicle_class=LinearVehicle),
@@ -452,6 +450,51 @@ def queue_braking_beside_the_ego(mode: Mode = "robust", **kw: Any) -> Scene:
     return build_scene(3, 20.66, specs, mode=mode, lanes_count=5, ego_target_speed=20.0, others_collide=False, **kw)
 
 
+def squeezed_by_a_linear_follower(mode: Mode = "robust", **kw: Any) -> Scene:
+    """A hole of the rule, not closed (docs/safety.md §6k, §6s): 5 decisions per second, Linear drivers
+    (``LinearVehicle``, each with the set-point, MOBIL timer and gains highway-env drew for it), the ego in the
+    leftmost lane at 13.34 m/s (set-point 10) 15.08 m behind a car at 9.74 m/s, a car 77.1 m behind it at
+    26.33 m/s (set-point 29.97), and in the next lane a car 19.69 m behind at 22.28 m/s — the claim campaign's
+    ``cell02879-seed4028790006`` one decision before its invariant break, rebuilt from the highway-env state
+    with the 10 cars that keep the masks of all nine states, both states' gaps, the break and the crash (on 3
+    lanes: the campaign's other 3, empty by then, change none of these). IDLE and SLOWER keep 1.32 m. 0.2 s
+    later the leader brakes at its limit and the car behind has begun to brake; the follower bound (accelerate
+    for the 0.5 s reaction time, then brake) starts again, and nothing is safe (IDLE −0.64 m); with the car
+    behind braking from now (a diagnostic, not a bound) IDLE and SLOWER would keep 1.36 and 2.36 m. Three
+    fallback decisions later the least-bad action is LANE_RIGHT, and the car behind in that lane rear-ends the
+    braking ego."""
+    rate = {"env.policy_frequency": 5, "env.simulation_frequency": 15}
+    # lane, dx [m], speed [m/s], set-point [m/s], MOBIL timer [s], acceleration gains, steering gains
+    cars = [
+        (0, 15.08, 9.74, 21.74, 0.867, (0.354, 0.224, 2.947), (5.062, 6.902)),
+        (0, 35.41, 12.04, 23.28, 1.0, (0.173, 0.213, 2.089), (4.959, 7.066)),
+        (1, 44.08, 11.20, 23.20, 0.4, (0.304, 0.204, 2.020), (5.022, 9.636)),
+        (1, 50.73, 13.62, 21.73, 0.667, (0.285, 0.368, 2.628), (4.947, 8.709)),
+        (2, 59.14, 10.40, 22.40, 0.267, (0.232, 0.157, 1.297), (5.061, 9.468)),
+        (2, 75.17, 19.67, 21.34, 0.8, (0.378, 0.433, 1.864), (5.004, 9.545)),
+        (2, -7.32, 23.01, 29.78, 0.667, (0.205, 0.340, 1.794), (5.046, 7.493)),
+        (1, -19.69, 22.28, 28.09, 0.733, (0.394, 0.273, 1.706), (5.032, 7.718)),
+        (0, -77.10, 26.33, 29.97, 0.467, (0.303, 0.284, 1.129), (4.956, 8.809)),
+    ]
+    specs = [
+        VehicleSpec(
+            lane, dx, speed, vehicle_class=LinearVehicle, target_speed=set_point, lane_change_timer=timer,
+            acceleration_parameters=accel, steering_parameters=steer,
+        )
+        for lane, dx, speed, set_point, timer, accel, steer in cars
+    ]  # fmt: skip
+    specs.append(  # finishing a change from lane 3 into lane 2
+        VehicleSpec(
+            2, -92.26, 26.0, heading=0.0569, target_lane=2, vehicle_class=LinearVehicle, lateral_offset=-0.365,
+            target_speed=27.82, lane_change_timer=1.0, acceleration_parameters=(0.377, 0.163, 1.415),
+            steering_parameters=(4.937, 9.558),
+        )
+    )  # fmt: skip
+    return build_scene(
+        0, 13.34, specs, mode=mode, lanes_count=3, ego_target_speed=10.0, others_collide=False, **rate, **kw
+    )
+
+
 def car_settling_next_to_the_ego(mode: Mode = "robust", **kw: Any) -> Scene:
     """6 lanes; the ego in lane 5 at 29.34 m/s (set-point 30); 25.18 m ahead a car at 17.16 m/s that has just
     crossed from lane 3 into lane 4, the lane next to the ego, 1.27 m short of its centre and still turned
@@ -522,6 +565,7 @@ SCENARIOS: dict[str, Callable[..., Scene]] = {
     "car_passing_in_the_next_lane": car_passing_in_the_next_lane,
     "squeeze_beside_a_free_lane": squeeze_beside_a_free_lane,
     "queue_braking_beside_the_ego": queue_braking_beside_the_ego,
+    "squeezed_by_a_linear_follower": squeezed_by_a_linear_follower,
 }
 """Every scenario by name."""
 

@@ -7,6 +7,9 @@ sound (a change can only be judged by a campaign and by highway-env).
 
     .venv/bin/python examples/breaks_under_options.py runs/falsify/grid_100k_behind/counterexamples \
         --sample 200 --set follower_reaction=0 --out runs/falsify/grid_100k_behind/breaks_under_options.json
+
+``--carried-followers`` instead judges each break with the follower bounds of the decision before it carried over
+(:func:`safelane.running.counterexamples.break_with_carried_followers`, docs/safety.md §6s).
 """
 
 from __future__ import annotations
@@ -24,6 +27,7 @@ from safelane.core.files import atomic_write_text
 from safelane.running.counterexamples import (
     break_culprits,
     break_under_options,
+    break_with_carried_followers,
     check_rule_options,
     load_counterexample,
 )
@@ -42,10 +46,16 @@ def parse_option(text: str) -> tuple[str, Any]:
         raise ConfigError(f"--set {name}: got {value!r}; expected true, false or a number") from None
 
 
-def judge(path: str, options: dict[str, Any]) -> dict[str, Any]:
-    """One break file: its name, its first culprit's role and :func:`break_under_options`'s verdict."""
+def judge(path: str, options: dict[str, Any] | None) -> dict[str, Any]:
+    """One break file: its name, its first culprit's role and :func:`break_under_options`'s verdict (``options``
+    None: :func:`break_with_carried_followers`', its ``safe_carried`` as ``safe_with_options``)."""
     cx = load_counterexample(path)
-    return {"file": Path(path).name, "role": break_culprits(cx)["role"], **break_under_options(cx, options)}
+    if options is None:
+        verdict = break_with_carried_followers(cx)
+        verdict["safe_with_options"] = verdict.pop("safe_carried")
+    else:
+        verdict = break_under_options(cx, options)
+    return {"file": Path(path).name, "role": break_culprits(cx)["role"], **verdict}
 
 
 def main() -> None:
@@ -55,23 +65,27 @@ def main() -> None:
     parser.add_argument("--sample", type=int, default=None, help="At most this many files, drawn at random.")
     parser.add_argument("--seed", type=int, default=1)
     parser.add_argument("--set", action="append", default=[], help="NAME=VALUE, a Dynamics field (repeatable).")
+    parser.add_argument("--carried-followers", action="store_true", help="Carry the follower bounds instead.")
     parser.add_argument("--workers", type=int, default=2)
     parser.add_argument("--out", type=Path, required=True)
     args = parser.parse_args()
     try:
         options = dict(parse_option(text) for text in args.set)
         check_rule_options(options)  # before the workers start: one line, not a worker's traceback
+        if args.carried_followers and options:
+            raise ConfigError("--carried-followers: judged with the rule as it ran; drop --set")
     except ConfigError as error:
         parser.exit(2, f"error: {error}\n")
     files = sorted(str(p) for p in args.folder.glob("*-invariant_break-*.json"))
     if args.sample is not None and args.sample < len(files):
         files = sorted(random.Random(args.seed).sample(files, args.sample))
     with ProcessPoolExecutor(args.workers) as pool:
-        rows = list(pool.map(judge, files, [options] * len(files), chunksize=4))
+        given = None if args.carried_followers else options
+        rows = list(pool.map(judge, files, [given] * len(files), chunksize=4))
     roles, fixed = Counter(r["role"] for r in rows), Counter(r["role"] for r in rows if r["safe_with_options"])
     summary = {
         "folder": str(args.folder),
-        "options": options,
+        "options": "carried_followers" if args.carried_followers else options,
         "breaks": len(rows),
         "safe_with_options": sum(fixed.values()),
         "by_role": {role: f"{fixed[role]}/{n}" for role, n in roles.most_common()},

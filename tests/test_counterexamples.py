@@ -12,6 +12,7 @@ import pytest
 from safelane.config import ConfigError, load_config
 from safelane.running.counterexamples import (
     break_under_options,
+    break_with_carried_followers,
     crash_partner,
     load_counterexample,
     repair_break,
@@ -155,6 +156,22 @@ def test_repair_breaks_counts_a_campaign_s_breaks_outside_the_model(tmp_path: Pa
     gaps = sorted(r["best_gap"] for r in summary["rows"])
     assert summary["best_gap_below_zero"] == sum(g < 0 for g in gaps) and max(gaps) < 1.0
     assert summary["best_gap_quantiles"][0] == gaps[0] and summary["best_gap_quantiles"][-1] == gaps[-1]
+
+
+@pytest.mark.parametrize("simulator", ["fast", "highway-env"])
+def test_carried_follower_bounds_close_hole_2879(simulator: str) -> None:
+    """docs/safety.md §6s: the claim campaign's hole 2879 judged with the follower bounds of the decision before
+    it carried over (each car behind bounded also by accelerating for the reaction time from where it was 0.2 s
+    earlier, then braking) has IDLE safe at 1.362 m, where the rule as it ran has nothing (−0.638 m): the
+    follower bound's restart is the whole of this break. The same on both simulators (one file)."""
+    cx = load_counterexample(
+        CAMPAIGN / "grid_100k_behind_forecast_fallback" / "counterexamples"
+        / "cell02879-seed4028790006-invariant_break-step11.json"
+    )  # fmt: skip
+    verdict = break_with_carried_followers(cx, simulator)
+    assert verdict["best_gap"] == pytest.approx(-0.638, abs=1e-3) and verdict["carried"] == 25
+    assert verdict["safe_carried"] and verdict["unlocks"] == [1]
+    assert verdict["best_gap_carried"] == pytest.approx(1.362, abs=1e-3)
 
 
 def test_break_under_options_finds_the_follower_bound_in_hole_2879() -> None:

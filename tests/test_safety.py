@@ -16,6 +16,7 @@ from safelane.core.spaces import FASTER, IDLE, LANE_LEFT, LANE_RIGHT, SLOWER
 from safelane.env import scenarios
 from safelane.safety.compiled import evaluate_compiled
 from safelane.safety.model import (
+    CarriedFollowers,
     Dynamics,
     RoadState,
     SafetyResult,
@@ -1296,6 +1297,30 @@ def make_state(
 
 
 PROPERTY_SETTINGS = settings(max_examples=150, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+
+
+@settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(road(rates=True, follower=True), st.data())
+def test_carried_follower_bounds_only_loosen_the_rule(case: tuple, data: st.DataObject) -> None:
+    """model.CarriedFollowers (the probe of docs/safety.md §6s): a follower bound carried from an earlier decision
+    can only move cars behind back, so it never makes a safe action unsafe nor a worst gap smaller; none carried
+    (all NaN) changes nothing, bit for bit."""
+    state, dyn, _ = case
+    n = state.x.size
+    some = np.array(data.draw(st.lists(st.booleans(), min_size=n, max_size=n)), dtype=bool)
+    back = np.array(data.draw(st.lists(st.floats(0.0, 30.0), min_size=n, max_size=n)), dtype=float)
+    speed = np.array(data.draw(st.lists(st.floats(0.0, 40.0), min_size=n, max_size=n)), dtype=float)
+    age = data.draw(st.sampled_from([dyn.decision_period, 0.2, 1.0]))
+    carried = CarriedFollowers(np.where(some, state.x - back, np.nan), np.where(some, speed, np.nan), age)
+    none = CarriedFollowers(np.full(n, np.nan), np.full(n, np.nan), age)
+    for mode in ("nominal", "robust"):
+        plain = evaluate(state, dyn, mode)
+        nested = evaluate(state, dyn, mode, carried=carried)
+        assert not (plain.safe & ~nested.safe).any()
+        assert (nested.min_gap >= plain.min_gap).all() or np.isnan(plain.min_gap).any()
+        unchanged = evaluate(state, dyn, mode, carried=none)
+        assert unchanged.mask.tolist() == plain.mask.tolist() and unchanged.fallback == plain.fallback
+        assert np.array_equal(unchanged.min_gap.view(np.int64), plain.min_gap.view(np.int64))
 
 
 @EVALUATORS

@@ -15,6 +15,7 @@ at the same decision; ``simulator=`` replays a fast-simulator finding on highway
 from __future__ import annotations
 
 import json
+import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -247,10 +248,11 @@ def _snapshots_around_event(env: Any, cx: Counterexample) -> tuple[Any, Any]:
     return before, info["snapshot"]
 
 
-def _break_states(cx: Counterexample, simulator: str | None, what: str) -> tuple[Any, Any, Callable[..., Any]]:
+def _break_states(cx: Counterexample, simulator: str | None, what: str) -> tuple[Any, Any, Callable[..., Any], Any]:
     """Replay the invariant break ``cx``: the road snapshots of the state before its event and of the
-    event's state, and ``judge(snapshot, options=None)``, the numpy reference model on the shield's own inputs
-    for a (possibly edited) snapshot of that episode, its Dynamics fields ``options`` replaced. ``what`` names
+    event's state; ``judge(snapshot, options=None, carried=None)``, the numpy reference model on the shield's own
+    inputs for a (possibly edited) snapshot of that episode, its Dynamics fields ``options`` replaced (and
+    :class:`~safelane.safety.model.CarriedFollowers` passed on); and the shield. ``what`` names
     the caller's product in the one-line error for a file that is not a break."""
     import dataclasses
 
@@ -268,13 +270,54 @@ def _break_states(cx: Counterexample, simulator: str | None, what: str) -> tuple
     finally:
         env.close()
 
-    def judge(snap: Any, options: dict[str, Any] | None = None) -> Any:
+    def judge(snap: Any, options: dict[str, Any] | None = None, carried: Any = None) -> Any:
         state, dyn = shield.state_and_dynamics(snap)
         if options:
             dyn = dataclasses.replace(dyn, **options)
-        return evaluate(state, dyn, shield.mode)
+        return evaluate(state, dyn, shield.mode, carried=carried)
 
-    return before, after, judge
+    return before, after, judge, shield
+
+
+def carried_followers(before: Any, after: Any, reaction: float) -> Any:
+    """The follower bounds of the decision ``before`` (a road snapshot) carried to the state ``after``
+    (:class:`~safelane.safety.model.CarriedFollowers`): every body of ``after``'s road state that was behind the
+    ego in ``before``, except one already beyond that bound (outside the model as ``before`` drew it). Bodies
+    are matched by their snapshot index (the fast simulator's rows, stable through an episode)."""
+    from safelane.safety.model import CarriedFollowers, follower_positions
+    from safelane.safety.shield import road_state_bodies
+
+    bodies = road_state_bodies(after)
+    x_before, x_after = before.longitudinal(), after.longitudinal()
+    heading = math.atan2(before.lane_direction[1], before.lane_direction[0])
+    vx_before = before.speed * np.cos(before.heading - heading)
+    age = float(after.time - before.time)
+    behind = x_before[bodies] < x_before[before.ego]
+    bound_now = follower_positions(
+        x_before[bodies], vx_before[bodies], after.accel_max[bodies], after.brake_max[bodies], reaction,
+        np.array([age]),
+    )[:, 0]  # fmt: skip
+    keep = behind & (x_after[bodies] <= bound_now)
+    return CarriedFollowers(np.where(keep, x_before[bodies], np.nan), np.where(keep, vx_before[bodies], np.nan), age)
+
+
+def break_with_carried_followers(cx: Counterexample, simulator: str | None = None) -> dict[str, Any]:
+    """An invariant break judged with the follower bounds of the decision before it carried over
+    (:func:`carried_followers`; docs/safety.md §6s): whether the rule's follower bound, nested in time instead of
+    started again at every decision, would leave the break state a safe action. ``carried``: how many cars
+    behind had a bound carried; ``best_gap`` / ``best_gap_carried`` [m]; ``safe_carried`` and ``unlocks`` as in
+    :func:`break_under_options`. A diagnostic: the numpy reference model, the follower bound only (the
+    IDM-response bound of ``follower_idm`` depends on the ego's path and is not carried)."""
+    before, after, judge, shield = _break_states(cx, simulator, "carried followers are")
+    carried = carried_followers(before, after, shield.dynamics.follower_reaction)
+    plain, nested = judge(after), judge(after, carried=carried)
+    return {
+        "carried": int(np.isfinite(carried.x).sum()),
+        "best_gap": round(float(np.max(np.where(plain.available, plain.min_gap, -np.inf))), 3),
+        "best_gap_carried": round(float(np.max(np.where(nested.available, nested.min_gap, -np.inf))), 3),
+        "safe_carried": not nested.fallback,
+        "unlocks": [int(a) for a in np.flatnonzero(nested.safe)],
+    }
 
 
 def check_rule_options(options: dict[str, Any]) -> None:
@@ -301,7 +344,7 @@ def break_under_options(
     the largest worst-case gap over the available actions, as it ran and with the options. Uses the numpy
     reference model on the shield's inputs; an unknown field is a one-line :class:`ConfigError`."""
     check_rule_options(options)
-    _, after, judge = _break_states(cx, simulator, "options are")
+    _, after, judge, _ = _break_states(cx, simulator, "options are")
     plain, changed = judge(after), judge(after, options)
     return {
         "best_gap": round(float(np.max(np.where(plain.available, plain.min_gap, -np.inf))), 3),
@@ -414,7 +457,7 @@ def break_culprits(cx: Counterexample, simulator: str | None = None) -> dict[str
     first), ``joint`` if there is none. Uses the numpy reference model on the shield's own inputs."""
     import dataclasses
 
-    before, after, judge = _break_states(cx, simulator, "culprits are")
+    before, after, judge, _ = _break_states(cx, simulator, "culprits are")
     base = judge(after)
     e = after.ego
     ego_lane_before, ego_lane_after = int(before.lane[before.ego]), int(after.lane[e])
@@ -476,7 +519,7 @@ def repair_break(cx: Counterexample, simulator: str | None = None) -> dict[str, 
     inputs."""
     import dataclasses
 
-    before, after, judge = _break_states(cx, simulator, "a repair is")
+    before, after, judge, _ = _break_states(cx, simulator, "a repair is")
     period = float(after.time - before.time)
     position, speed = after.position.copy(), after.speed.copy()
     repaired = []

@@ -1171,12 +1171,39 @@ def incentive_times(
     return out
 
 
-def evaluate(state: RoadState, dyn: Dynamics, mode: Mode = "robust", formula: Formula = "kinematic") -> SafetyResult:
-    """The safety mask of ``state`` (see the module docstring for the rule and the modes)."""
-    return _evaluate(state, dyn, mode, formula, nominal_leaders=mode == "nominal")
+@dataclass(frozen=True)
+class CarriedFollowers:
+    """The follower bounds an earlier decision drew, carried to this state (a probe of bounds nested in time,
+    docs/safety.md §6s; the numpy reference only): per vehicle of the state, its position ``x`` [m] along the
+    road and speed ``vx`` [m/s] ``age`` seconds ago (NaN: none carried)."""
+
+    x: np.ndarray
+    vx: np.ndarray
+    age: float
 
 
-def _evaluate(state: RoadState, dyn: Dynamics, mode: Mode, formula: Formula, nominal_leaders: bool) -> SafetyResult:
+def evaluate(
+    state: RoadState,
+    dyn: Dynamics,
+    mode: Mode = "robust",
+    formula: Formula = "kinematic",
+    carried: CarriedFollowers | None = None,
+) -> SafetyResult:
+    """The safety mask of ``state`` (see the module docstring for the rule and the modes). ``carried``: a car
+    behind is also bounded by the follower bound drawn ``carried.age`` s ago from where it was then
+    (accelerate for the reaction time from then, then brake), the nearer of the two bounds kept — the rule's
+    follower bound nested in time instead of started again (a diagnostic; the shield never passes it)."""
+    return _evaluate(state, dyn, mode, formula, nominal_leaders=mode == "nominal", carried=carried)
+
+
+def _evaluate(
+    state: RoadState,
+    dyn: Dynamics,
+    mode: Mode,
+    formula: Formula,
+    nominal_leaders: bool,
+    carried: CarriedFollowers | None = None,
+) -> SafetyResult:
     """:func:`evaluate`; ``nominal_leaders``: the leaders bounded as nominal mode bounds them (nominal mode, and
     robust's straight fallback), else by ``turning_leaders``' bound."""
     if mode not in ("nominal", "robust"):
@@ -1216,6 +1243,13 @@ def _evaluate(state: RoadState, dyn: Dynamics, mode: Mode, formula: Formula, nom
     foll_x = follower_positions(
         state.x[near], state.vx[near], state.accel_max[near], state.brake_max[near], dyn.follower_reaction, t
     )
+    if carried is not None:
+        then = np.isfinite(carried.x[near])
+        earlier = follower_positions(
+            np.where(then, carried.x[near], 0.0), np.where(then, carried.vx[near], 0.0), state.accel_max[near],
+            state.brake_max[near], dyn.follower_reaction, t + carried.age,
+        )  # fmt: skip
+        foll_x = np.where(then[:, None], np.minimum(foll_x, earlier), foll_x)
     other_x = np.where(ahead[near][:, None], lead_x, foll_x)  # (m, T)
     row_of = {int(v): r for r, v in enumerate(near)}
     by_idm = idm_followers(state, dyn, near)  # follower_idm: these brake for the ego by IDM, per fallback
@@ -1360,7 +1394,7 @@ def _evaluate(state: RoadState, dyn: Dynamics, mode: Mode, formula: Formula, nom
         # scene the turning allowance leaves without a safe action is driven as the rule with nominal's leader
         # bound drives it — without turning_in_nominal, the rule without the allowance (issue 15: with
         # turning_leaders alone its least-bad choice crashed more of those scenes).
-        straight = _evaluate(state, dyn, mode, formula, nominal_leaders=True)
+        straight = _evaluate(state, dyn, mode, formula, nominal_leaders=True, carried=carried)
         return SafetyResult(straight.mask.copy(), safe, available, True, best_gap)
     # Least-bad choice. Robust picks among the nominally safe actions when there are some (so that
     # robust ⊆ nominal holds for the final masks too), else exactly what nominal would pick.

@@ -185,6 +185,21 @@ def ego_leave_times(dyn: Dynamics) -> np.ndarray:
     return np.array([ego_leave_time_at(dyn, k / 2) for k in range(count)])
 
 
+def _relevant(x: np.ndarray, ego_x: float) -> np.ndarray:
+    """Which bodies at ``x`` [m] along the road the rule considers: within RELEVANCE_RANGE of the ego."""
+    return (np.abs(x - ego_x) < RELEVANCE_RANGE) & np.isfinite(x)
+
+
+def road_state_bodies(snap: RoadSnapshot) -> np.ndarray:
+    """The snapshot indices of the bodies :func:`road_state` keeps, in its order (its arrays' rows)."""
+    others = snap.others(vehicles_only=False)
+    if not others.size:
+        return others
+    x = (snap.position[others] - snap.lane_origin) @ snap.lane_direction
+    ego_x = float((snap.position[snap.ego] - snap.lane_origin) @ snap.lane_direction)
+    return others[_relevant(x, ego_x)]
+
+
 def road_state(snap: RoadSnapshot, ego_speed_magnitude: bool = True) -> RoadState:
     """The scene around the ego in lane coordinates (metres, m/s) for the safety model.
 
@@ -207,7 +222,7 @@ def road_state(snap: RoadSnapshot, ego_speed_magnitude: bool = True) -> RoadStat
     ego_rel = snap.position[e] - start
     ego_x = float(ego_rel @ direction)
     x_all = pos @ direction if n else np.zeros(0)
-    near = np.flatnonzero((np.abs(x_all - ego_x) < RELEVANCE_RANGE) & np.isfinite(x_all))
+    near = np.flatnonzero(_relevant(x_all, ego_x))
     nearby = others[near]
     heading = snap.heading[nearby] - lane_heading
     speed = snap.speed[nearby]

@@ -19,13 +19,16 @@ import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Literal
+from typing import TYPE_CHECKING, Any, Literal
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from safelane.config import ConfigError, SafelaneConfig, build_config, config_to_dict, recorded_config
 from safelane.core.files import atomic_write_text
+
+if TYPE_CHECKING:
+    from safelane.safety.model import CarriedFollowers
 
 NEAR = 80.0
 """[m] Vehicles within this distance of the ego, along the road, are logged."""
@@ -279,7 +282,7 @@ def _break_states(cx: Counterexample, simulator: str | None, what: str) -> tuple
     return before, after, judge, shield
 
 
-def carried_followers(before: Any, after: Any, reaction: float) -> Any:
+def carried_followers(before: Any, after: Any, reaction: float) -> CarriedFollowers:
     """The follower bounds of the decision ``before`` (a road snapshot) carried to the state ``after``
     (:class:`~safelane.safety.model.CarriedFollowers`): every body of ``after``'s road state that was behind the
     ego in ``before``, except one already beyond that bound (outside the model as ``before`` drew it). Bodies

@@ -864,8 +864,6 @@ def test_squeezed_by_a_linear_follower_is_a_hole_not_closed(engine: str) -> None
     SLOWER keep 1.36 and 2.36 m; without that car the state has a safe action. The fallbacks then take IDLE twice,
     LANE_RIGHT and SLOWER four times, and the car behind in the new lane rear-ends the ego. When a change of the
     rule closes this hole this test fails, and the new masks belong in EXPECTED."""
-    from safelane.safety.model import evaluate
-
     kw = {"shield.engine": engine}
     scene = scenarios.SCENARIOS["squeezed_by_a_linear_follower"](**kw)
     assert scene.mask.tolist() == mask_of(I, S) and not scene.result.fallback

@@ -18,7 +18,7 @@ from typing import Any
 
 import gymnasium as gym
 import numpy as np
-from highway_env.vehicle.behavior import IDMVehicle, LinearVehicle
+from highway_env.vehicle.behavior import AggressiveVehicle, IDMVehicle, LinearVehicle
 
 from safelane.env.factory import make_env
 from safelane.safety.model import Mode, SafetyResult
@@ -69,6 +69,23 @@ def find_shield(env: gym.Env) -> SafetyShield:
     while not isinstance(env, SafetyShield):
         env = env.env  # type: ignore[attr-defined]
     return env
+
+
+DrawnDriver = tuple[int, float, float, float, float, tuple[float, float, float], tuple[float, float]]
+"""lane, dx [m], speed [m/s], set-point [m/s], MOBIL timer [s], acceleration gains, steering gains."""
+
+
+def drawn_drivers(cars: list[DrawnDriver], vehicle_class: type) -> list[VehicleSpec]:
+    """Linear-model drivers (``vehicle_class``) driving straight in their lanes, each as highway-env drew it: a
+    row per car of :data:`DrawnDriver` (the set-point, MOBIL timer and ``randomize_behavior`` gains of a campaign's
+    car, for a hole rebuilt from its state)."""
+    return [
+        VehicleSpec(
+            lane, dx, speed, vehicle_class=vehicle_class, target_speed=set_point, lane_change_timer=timer,
+            acceleration_parameters=accel, steering_parameters=steer,
+        )
+        for lane, dx, speed, set_point, timer, accel, steer in cars
+    ]  # fmt: skip
 
 
 def build_scene(
@@ -310,8 +327,6 @@ def reversing_car_beside(mode: Mode = "robust", **kw: Any) -> Scene:
     ``shield.reversing_cut_ins`` a car moving backwards may enter the ego's lane whatever MOBIL says, and
     nothing is safe (today's default, both options on). The rule before issue 15's ninth session assumed any
     cut-in of a linear-model driver: nothing safe either."""
-    from highway_env.vehicle.behavior import AggressiveVehicle
-
     specs = [
         VehicleSpec(1, 8.9, -3.01, vehicle_class=AggressiveVehicle),
         VehicleSpec(1, 15.0, 1.77, vehicle_class=AggressiveVehicle),
@@ -352,8 +367,6 @@ def ego_leaving_its_lane(mode: Mode = "robust", **kw: Any) -> Scene:
     0.2 s later than now, and nothing was safe (the break); and IDLE, which in highway-env keeps the change
     under way just as LANE_LEFT does, counted lane 1 as the ego's for good. ``shield.lateral_schedule``
     simulates the exit from where the ego is."""
-    from highway_env.vehicle.behavior import AggressiveVehicle
-
     rate = {"env.policy_frequency": 5, "env.simulation_frequency": 15}
     cars = [(2, 9.65, 20.12), (1, 20.9, 21.08), (1, 31.55, 23.31), (0, 41.03, 19.56), (0, 51.44, 22.66),
             (2, -11.96, 23.54), (1, -23.65, 24.47), (0, -34.97, 26.94), (3, -48.0, 28.01)]  # fmt: skip
@@ -422,9 +435,6 @@ def queue_braking_beside_the_ego(mode: Mode = "robust", **kw: Any) -> Scene:
     rear-ends the ego during the next decision. The car behind was not a turn-in candidate one decision before
     (MOBIL's incentive could not pay during that decision), so the rule's one-state turn-in bound restarted;
     extending it over the whole horizon made breaks 25 times more frequent (§6p)."""
-    from highway_env.vehicle.behavior import AggressiveVehicle
-
-    # lane, dx [m], speed [m/s], set-point [m/s], MOBIL timer [s], acceleration gains, steering gains
     cars = [
         (4, 6.88, 16.87, 22.87, 0.2, (0.278, 0.275, 1.408), (4.979, 7.970)),
         (4, 15.45, 15.65, 21.65, 1.01, (0.323, 0.203, 2.828), (4.975, 7.876)),
@@ -433,13 +443,7 @@ def queue_braking_beside_the_ego(mode: Mode = "robust", **kw: Any) -> Scene:
         (4, -6.78, 23.05, 29.05, 0.8, (0.351, 0.195, 1.687), (5.043, 9.554)),
         (3, -23.70, 15.16, 21.16, 0.8, (0.198, 0.284, 2.967), (5.004, 8.275)),
     ]
-    specs = [
-        VehicleSpec(
-            lane, dx, speed, vehicle_class=AggressiveVehicle, target_speed=set_point, lane_change_timer=timer,
-            acceleration_parameters=accel, steering_parameters=steer,
-        )
-        for lane, dx, speed, set_point, timer, accel, steer in cars
-    ]  # fmt: skip
+    specs = drawn_drivers(cars, AggressiveVehicle)
     specs.append(
         VehicleSpec(
             0, 53.0, 16.86, heading=0.3762, target_lane=1, vehicle_class=AggressiveVehicle, lateral_offset=0.941,
@@ -464,7 +468,6 @@ def squeezed_by_a_linear_follower(mode: Mode = "robust", **kw: Any) -> Scene:
     fallback decisions later the least-bad action is LANE_RIGHT, and the car behind in that lane rear-ends the
     braking ego."""
     rate = {"env.policy_frequency": 5, "env.simulation_frequency": 15}
-    # lane, dx [m], speed [m/s], set-point [m/s], MOBIL timer [s], acceleration gains, steering gains
     cars = [
         (0, 15.08, 9.74, 21.74, 0.867, (0.354, 0.224, 2.947), (5.062, 6.902)),
         (0, 35.41, 12.04, 23.28, 1.0, (0.173, 0.213, 2.089), (4.959, 7.066)),
@@ -476,13 +479,7 @@ def squeezed_by_a_linear_follower(mode: Mode = "robust", **kw: Any) -> Scene:
         (1, -19.69, 22.28, 28.09, 0.733, (0.394, 0.273, 1.706), (5.032, 7.718)),
         (0, -77.10, 26.33, 29.97, 0.467, (0.303, 0.284, 1.129), (4.956, 8.809)),
     ]
-    specs = [
-        VehicleSpec(
-            lane, dx, speed, vehicle_class=LinearVehicle, target_speed=set_point, lane_change_timer=timer,
-            acceleration_parameters=accel, steering_parameters=steer,
-        )
-        for lane, dx, speed, set_point, timer, accel, steer in cars
-    ]  # fmt: skip
+    specs = drawn_drivers(cars, LinearVehicle)
     specs.append(  # finishing a change from lane 3 into lane 2
         VehicleSpec(
             2, -92.26, 26.0, heading=0.0569, target_lane=2, vehicle_class=LinearVehicle, lateral_offset=-0.365,

@@ -9,7 +9,8 @@ sound (a change can only be judged by a campaign and by highway-env).
         --sample 200 --set follower_reaction=0 --out runs/falsify/grid_100k_behind/breaks_under_options.json
 
 ``--carried-followers`` instead judges each break with the follower bounds of the decision before it carried over
-(:func:`safelane.running.counterexamples.break_with_carried_followers`, docs/safety.md §6s).
+(:func:`safelane.running.counterexamples.break_with_carried_followers`, docs/safety.md §6s, §6t): those of the
+cars the ego was already in front of in their lane, or with ``--all-followers`` those of every car behind.
 """
 
 from __future__ import annotations
@@ -46,12 +47,13 @@ def parse_option(text: str) -> tuple[str, Any]:
         raise ConfigError(f"--set {name}: got {value!r}; expected true, false or a number") from None
 
 
-def judge(path: str, options: dict[str, Any] | None) -> dict[str, Any]:
+def judge(path: str, options: dict[str, Any] | None, reacting_only: bool = True) -> dict[str, Any]:
     """One break file: its name, its first culprit's role and :func:`break_under_options`'s verdict (``options``
-    None: :func:`break_with_carried_followers`', its ``safe_carried`` as ``safe_with_options``)."""
+    None: :func:`break_with_carried_followers`' with ``reacting_only``, its ``safe_carried`` as
+    ``safe_with_options``)."""
     cx = load_counterexample(path)
     if options is None:
-        verdict = break_with_carried_followers(cx)
+        verdict = break_with_carried_followers(cx, reacting_only=reacting_only)
         verdict["safe_with_options"] = verdict.pop("safe_carried")
     else:
         verdict = break_under_options(cx, options)
@@ -66,6 +68,10 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=1)
     parser.add_argument("--set", action="append", default=[], help="NAME=VALUE, a Dynamics field (repeatable).")
     parser.add_argument("--carried-followers", action="store_true", help="Carry the follower bounds instead.")
+    parser.add_argument(
+        "--all-followers", action="store_true", help="With --carried-followers: carry every car behind, not only"
+        " the cars the ego was already in front of in their lane.",
+    )  # fmt: skip
     parser.add_argument("--workers", type=int, default=2)
     parser.add_argument("--out", type=Path, required=True)
     args = parser.parse_args()
@@ -74,6 +80,8 @@ def main() -> None:
         check_rule_options(options)  # before the workers start: one line, not a worker's traceback
         if args.carried_followers and options:
             raise ConfigError("--carried-followers: judged with the rule as it ran; drop --set")
+        if args.all_followers and not args.carried_followers:
+            raise ConfigError("--all-followers: a choice of --carried-followers; add it")
     except ConfigError as error:
         parser.exit(2, f"error: {error}\n")
     files = sorted(str(p) for p in args.folder.glob("*-invariant_break-*.json"))
@@ -81,11 +89,14 @@ def main() -> None:
         files = sorted(random.Random(args.seed).sample(files, args.sample))
     with ProcessPoolExecutor(args.workers) as pool:
         given = None if args.carried_followers else options
-        rows = list(pool.map(judge, files, [given] * len(files), chunksize=4))
+        reacting = [not args.all_followers] * len(files)
+        rows = list(pool.map(judge, files, [given] * len(files), reacting, chunksize=4))
     roles, fixed = Counter(r["role"] for r in rows), Counter(r["role"] for r in rows if r["safe_with_options"])
     summary = {
         "folder": str(args.folder),
-        "options": "carried_followers" if args.carried_followers else options,
+        "options": ("carried_followers_all" if args.all_followers else "carried_followers_reacting")
+        if args.carried_followers
+        else options,
         "breaks": len(rows),
         "safe_with_options": sum(fixed.values()),
         "by_role": {role: f"{fixed[role]}/{n}" for role, n in roles.most_common()},

@@ -160,18 +160,46 @@ def test_repair_breaks_counts_a_campaign_s_breaks_outside_the_model(tmp_path: Pa
 
 @pytest.mark.parametrize("simulator", ["fast", "highway-env"])
 def test_carried_follower_bounds_close_hole_2879(simulator: str) -> None:
-    """docs/safety.md §6s: the claim campaign's hole 2879 judged with the follower bounds of the decision before
-    it carried over (each car behind bounded also by accelerating for the reaction time from where it was 0.2 s
+    """docs/safety.md §6s, §6t: the claim campaign's hole 2879 judged with the follower bounds of the decision before
+    it carried over (a car behind bounded also by accelerating for the reaction time from where it was 0.2 s
     earlier, then braking) has IDLE safe at 1.362 m, where the rule as it ran has nothing (−0.638 m): the
-    follower bound's restart is the whole of this break. The same on both simulators (one file)."""
+    follower bound's restart is the whole of this break. Carrying only the 3 cars the ego was already in front of
+    in their lane (their reaction had begun, as the model reads it) closes it as carrying all 25 cars behind
+    does. The same on both simulators (one file)."""
     cx = load_counterexample(
         CAMPAIGN / "grid_100k_behind_forecast_fallback" / "counterexamples"
         / "cell02879-seed4028790006-invariant_break-step11.json"
     )  # fmt: skip
-    verdict = break_with_carried_followers(cx, simulator)
-    assert verdict["best_gap"] == pytest.approx(-0.638, abs=1e-3) and verdict["carried"] == 25
-    assert verdict["safe_carried"] and verdict["unlocks"] == [1]
-    assert verdict["best_gap_carried"] == pytest.approx(1.362, abs=1e-3)
+    reacting = break_with_carried_followers(cx, simulator)
+    every = break_with_carried_followers(cx, simulator, reacting_only=False)
+    assert reacting["carried"] == 3 and every["carried"] == 25
+    for verdict in (reacting, every):
+        assert verdict["best_gap"] == pytest.approx(-0.638, abs=1e-3)
+        assert verdict["safe_carried"] and verdict["unlocks"] == [1]
+        assert verdict["best_gap_carried"] == pytest.approx(1.362, abs=1e-3)
+
+
+def test_breaks_under_options_script_carries_the_reacting_followers(tmp_path: Path) -> None:
+    """examples/breaks_under_options.py --carried-followers on a folder holding hole 2879's break: 1 of 1 gets a
+    safe action, labelled with the cars it carried (the reacting ones by default); --all-followers alone, or
+    with --set, is a one-line error (exit 2) before any worker starts."""
+    import shutil
+    import sys
+
+    name = "cell02879-seed4028790006-invariant_break-step11.json"
+    folder = tmp_path / "breaks"
+    folder.mkdir()
+    shutil.copy(CAMPAIGN / "grid_100k_behind_forecast_fallback" / "counterexamples" / name, folder / name)
+    script = [sys.executable, str(Path(__file__).resolve().parents[1] / "examples" / "breaks_under_options.py")]
+    out = tmp_path / "verdicts.json"
+    run = [*script, str(folder), "--carried-followers", "--workers", "1", "--out", str(out)]
+    subprocess.run(run, check=True, capture_output=True)
+    summary = json.loads(out.read_text())
+    assert summary["options"] == "carried_followers_reacting" and summary["breaks"] == 1
+    assert summary["safe_with_options"] == 1 and summary["rows"][0]["carried"] == 3
+    for wrong in (["--all-followers"], ["--carried-followers", "--all-followers", "--set", "margin=2"]):
+        bad = subprocess.run([*script, str(folder), *wrong, "--out", str(out)], capture_output=True, text=True)
+        assert bad.returncode == 2 and len(bad.stderr.strip().splitlines()) == 1, bad.stderr
 
 
 def test_break_under_options_finds_the_follower_bound_in_hole_2879() -> None:

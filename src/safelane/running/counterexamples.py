@@ -32,6 +32,9 @@ if TYPE_CHECKING:
 
 NEAR = 80.0
 """[m] Vehicles within this distance of the ego, along the road, are logged."""
+NEIGHBOUR_LANE_MARGIN = 1.0
+"""[m] highway-env's ``Road.neighbour_vehicles`` counts a vehicle on a lane within half its width plus this
+(``lane.on_lane(..., margin=1)``): from then on the lane's IDM drivers react to it."""
 
 EventKind = Literal["collision", "invariant_break"]
 
@@ -282,11 +285,17 @@ def _break_states(cx: Counterexample, simulator: str | None, what: str) -> tuple
     return before, after, judge, shield
 
 
-def carried_followers(before: Any, after: Any, reaction: float) -> CarriedFollowers:
+def carried_followers(before: Any, after: Any, reaction: float, reacting_only: bool = True) -> CarriedFollowers:
     """The follower bounds of the decision ``before`` (a road snapshot) carried to the state ``after``
     (:class:`~safelane.safety.model.CarriedFollowers`): every body of ``after``'s road state that was behind the
     ego in ``before``, except one already beyond that bound (outside the model as ``before`` drew it). Bodies
-    are matched by their snapshot index (the fast simulator's rows, stable through an episode)."""
+    are matched by their snapshot index (the fast simulator's rows, stable through an episode).
+
+    ``reacting_only``: only the cars whose reaction had begun by ``before``, by the model's own reading of the
+    reaction time (docs/safety.md §3: IDM reacts once the ego is in its lane): the ego was then on the car's lane
+    or its target lane, as highway-env's ``Road.neighbour_vehicles`` sees it (within half a lane width + 1 m of
+    the lane's centre). False: every car behind (§6s's first probe; a car in the next lane had no reason to
+    react, so its carried bound is not the model's)."""
     from safelane.safety.model import CarriedFollowers, follower_positions
     from safelane.safety.shield import road_state_bodies
 
@@ -296,6 +305,14 @@ def carried_followers(before: Any, after: Any, reaction: float) -> CarriedFollow
     vx_before = before.speed * np.cos(before.heading - heading)
     age = float(after.time - before.time)
     behind = x_before[bodies] < x_before[before.ego]
+    if reacting_only:
+        ego_y = float((before.position[before.ego] - before.lane_origin) @ before.lane_lateral)
+        reach = 0.5 * before.lane_width + NEIGHBOUR_LANE_MARGIN
+
+        def ego_on(lanes: np.ndarray) -> np.ndarray:
+            return np.abs(ego_y - lanes * before.lane_width) <= reach
+
+        behind &= ego_on(before.lane[bodies]) | ego_on(before.target_lane[bodies])
     bound_now = follower_positions(
         x_before[bodies], vx_before[bodies], after.accel_max[bodies], after.brake_max[bodies], reaction,
         np.array([age]),
@@ -304,15 +321,18 @@ def carried_followers(before: Any, after: Any, reaction: float) -> CarriedFollow
     return CarriedFollowers(np.where(keep, x_before[bodies], np.nan), np.where(keep, vx_before[bodies], np.nan), age)
 
 
-def break_with_carried_followers(cx: Counterexample, simulator: str | None = None) -> dict[str, Any]:
+def break_with_carried_followers(
+    cx: Counterexample, simulator: str | None = None, reacting_only: bool = True
+) -> dict[str, Any]:  # fmt: skip
     """An invariant break judged with the follower bounds of the decision before it carried over
     (:func:`carried_followers`; docs/safety.md §6s): whether the rule's follower bound, nested in time instead of
     started again at every decision, would leave the break state a safe action. ``carried``: how many cars
     behind had a bound carried; ``best_gap`` / ``best_gap_carried`` [m]; ``safe_carried`` and ``unlocks`` as in
     :func:`break_under_options`. A diagnostic: the numpy reference model, the follower bound only (the
-    IDM-response bound of ``follower_idm`` depends on the ego's path and is not carried)."""
+    IDM-response bound of ``follower_idm`` depends on the ego's path and is not carried). ``reacting_only`` as in
+    :func:`carried_followers`."""
     before, after, judge, shield = _break_states(cx, simulator, "carried followers are")
-    carried = carried_followers(before, after, shield.dynamics.follower_reaction)
+    carried = carried_followers(before, after, shield.dynamics.follower_reaction, reacting_only)
     plain, nested = judge(after), judge(after, carried=carried)
     return {
         "carried": int(np.isfinite(carried.x).sum()),

@@ -1272,6 +1272,7 @@ def _evaluate(
     moving_near &= (projected_near >= 0) & (projected_near < dyn.lanes_count)
     cut_ins: dict[tuple[float, float, float], tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = {}
     permits: dict[tuple[float, float, float], np.ndarray] = {}  # cut_in_when_permitted, on the same key
+    idm_paths: dict[tuple[int, bytes, bytes], np.ndarray] = {}  # follower_idm: per car and ego trajectory
     for a in range(N_ACTIONS):
         if not available[a]:
             continue
@@ -1369,7 +1370,12 @@ def _evaluate(
         if idm_pairs.any():  # follower_idm: the car behind responds to each fallback of the ego its own way
             motion = np.repeat(motion, n_fb, axis=1)
             for c in np.flatnonzero(idm_pairs):
-                motion[c] = idm_follower_positions(state, dyn, int(vehicle[c]), ego_x[a], ego_v[a])
+                # IDLE and the lane changes share one longitudinal trajectory: simulate its response once
+                # (a Python loop over the horizon's frames, most of the numpy reference's time).
+                key = (int(vehicle[c]), ego_x[a].tobytes(), ego_v[a].tobytes())
+                if key not in idm_paths:
+                    idm_paths[key] = idm_follower_positions(state, dyn, key[0], ego_x[a], ego_v[a])
+                motion[c] = idm_paths[key]
         gap = sign[:, None, None] * (motion - ego_x[a][None]) - half[vehicle][:, None, None]
         worst = np.where(window[:, None, :], gap, np.inf).min(axis=-1)  # (c, F) worst gap per fallback
         joint_gap[a] = worst.min(axis=0)

@@ -101,6 +101,22 @@ def test_crash_partner_tells_a_reversing_car_from_one_inside_the_model() -> None
         crash_partner(load_counterexample(breaks[0]))
 
 
+def test_claim_campaign_crash_files_replay_to_the_same_crash_on_both_simulators() -> None:
+    """The claim campaign's crash files under today's rule (docs/results/falsify/grid_100k_behind_forecast_fallback:
+    337, all confirmed on highway-env by examples/confirm_counterexamples.py, confirm_collisions_all.json): every
+    28th of them, sorted by name (13 files: 12 unsafe spawns and hole 2879's crash after a break; 1, 2, 3 and 5
+    decisions per second; IDM, Linear, Aggressive and Defensive drivers), replays to the same crash at the same
+    decision on the fast simulator and on highway-env."""
+    files = sorted((CAMPAIGN / "grid_100k_behind_forecast_fallback" / "counterexamples").glob("*-collision-*.json"))
+    assert len(files) == 337
+    for path in files[::28]:
+        cx = load_counterexample(path)
+        for simulator in ("fast", "highway-env"):
+            result = replay(cx, simulator)
+            assert result.reproduced and result.collision_kind == cx.collision_kind, (path.name, simulator)
+            assert len(result.decisions) == cx.step and result.decisions[-1].collision
+
+
 def test_classify_crashes_finds_the_agents_crashes_after_breaks_outside_the_model(tmp_path: Path) -> None:
     """examples/classify_crashes.py on the trained agents' 4 crashes after breaks (and the breaks before
     them): every one is outside the model — a vehicle rolled back faster than the rule's bound lets it (a

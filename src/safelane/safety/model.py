@@ -1371,7 +1371,7 @@ def _evaluate(
             motion = np.repeat(motion, n_fb, axis=1)
             for c in np.flatnonzero(idm_pairs):
                 # IDLE and the lane changes share one longitudinal trajectory: simulate its response once
-                # (a Python loop over the horizon's frames, most of the numpy reference's time).
+                # (a Python loop over the horizon's frames, a large share of the numpy reference's time).
                 key = (int(vehicle[c]), ego_x[a].tobytes(), ego_v[a].tobytes())
                 if key not in idm_paths:
                     idm_paths[key] = idm_follower_positions(state, dyn, key[0], ego_x[a], ego_v[a])

@@ -117,6 +117,23 @@ def test_claim_campaign_crash_files_replay_to_the_same_crash_on_both_simulators(
             assert len(result.decisions) == cx.step and result.decisions[-1].collision
 
 
+def test_retrained_agents_crashes_after_breaks_replay_with_a_partner_rolling_back() -> None:
+    """The agents' campaign with make demo's agents retrained under today's rule (docs/results/falsify/
+    grid_agents_retrained: 1 065 crashes, 1 059 unsafe spawns, 6 after breaks, 0 from safe states): each of the 6
+    crash files after a break replays to the same crash at the same decision on both simulators, and its partner is
+    a car rolling backwards at the last decision (outside the driver model, docs/safety.md §6f)."""
+    files = sorted((CAMPAIGN / "grid_agents_retrained" / "counterexamples").glob("*-collision-*.json"))
+    assert len(files) == 6
+    for path in files:
+        cx = load_counterexample(path)
+        for simulator in ("fast", "highway-env"):
+            result = replay(cx, simulator)
+            assert result.reproduced and result.collision_kind == cx.collision_kind, (path.name, simulator)
+            assert len(result.decisions) == cx.step and result.decisions[-1].collision
+        partner = crash_partner(cx)
+        assert partner["reversing"] and partner["speed"][0] < 0.0, path.name
+
+
 def test_classify_crashes_finds_the_agents_crashes_after_breaks_outside_the_model(tmp_path: Path) -> None:
     """examples/classify_crashes.py on the trained agents' 4 crashes after breaks (and the breaks before
     them): every one is outside the model — a vehicle rolled back faster than the rule's bound lets it (a

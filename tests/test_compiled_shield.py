@@ -28,7 +28,8 @@ _evaluated_state: list[RoadState] = []
 def reference(state: RoadState, dyn: Dynamics, mode: str) -> SafetyResult:
     """``model.evaluate`` (the numpy reference), each (dynamics, mode) evaluated once per state: the property
     tests below ask the same question of one drawn state several times (the reference's IDM follower rollout, a
-    Python loop over frames, is most of this file's time). Only the latest state is kept; results are read only."""
+    Python loop over frames, is a large share of this file's time). Only the latest state is kept; results are
+    read only."""
     if not _evaluated_state or _evaluated_state[0] is not state:
         _evaluated.clear()
         _evaluated_state[:] = [state]

@@ -32,9 +32,6 @@ if TYPE_CHECKING:
 
 NEAR = 80.0
 """[m] Vehicles within this distance of the ego, along the road, are logged."""
-NEIGHBOUR_LANE_MARGIN = 1.0
-"""[m] highway-env's ``Road.neighbour_vehicles`` counts a vehicle on a lane within half its width plus this
-(``lane.on_lane(..., margin=1)``): from then on the lane's IDM drivers react to it."""
 
 EventKind = Literal["collision", "invariant_break"]
 
@@ -296,7 +293,7 @@ def carried_followers(before: Any, after: Any, reaction: float, reacting_only: b
     or its target lane, as highway-env's ``Road.neighbour_vehicles`` sees it (within half a lane width + 1 m of
     the lane's centre). False: every car behind (§6s's first probe; a car in the next lane had no reason to
     react, so its carried bound is not the model's)."""
-    from safelane.safety.model import CarriedFollowers, follower_positions
+    from safelane.safety.model import IDM_LANE_MARGIN, CarriedFollowers, follower_positions
     from safelane.safety.shield import road_state_bodies
 
     bodies = road_state_bodies(after)
@@ -307,7 +304,7 @@ def carried_followers(before: Any, after: Any, reaction: float, reacting_only: b
     behind = x_before[bodies] < x_before[before.ego]
     if reacting_only:
         ego_y = float((before.position[before.ego] - before.lane_origin) @ before.lane_lateral)
-        reach = 0.5 * before.lane_width + NEIGHBOUR_LANE_MARGIN
+        reach = 0.5 * before.lane_width + IDM_LANE_MARGIN  # highway-env's on_lane(..., margin=1)
 
         def ego_on(lanes: np.ndarray) -> np.ndarray:
             return np.abs(ego_y - lanes * before.lane_width) <= reach

@@ -2,13 +2,14 @@
 reproduce: the falsification campaign's fast-simulator findings, confirmed on the reference.
 
     .venv/bin/python examples/confirm_counterexamples.py runs/falsify/grid/counterexamples \
-        --kind collision --workers 2 --out runs/falsify/grid/confirm_collisions.json
+        --kind collision --workers 2 --out runs/falsify/grid/confirm_collisions.json [--sample 300 --seed 0]
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import random
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
@@ -35,16 +36,21 @@ def main() -> None:
     parser.add_argument("--kind", choices=["collision", "invariant_break"], default="collision")
     parser.add_argument("--simulator", default="highway-env")
     parser.add_argument("--limit", type=int, default=None, help="At most this many files (sorted by name).")
+    parser.add_argument("--sample", type=int, default=None, help="At most this many files, drawn at random.")
+    parser.add_argument("--seed", type=int, default=0, help="The draw's seed (with --sample).")
     parser.add_argument("--workers", type=int, default=2)
     parser.add_argument("--out", type=Path, required=True)
     args = parser.parse_args()
     files = sorted(str(p) for p in args.folder.glob(f"*-{args.kind}-*.json"))[: args.limit]
+    if args.sample is not None and args.sample < len(files):
+        files = sorted(random.Random(args.seed).sample(files, args.sample))
     with ProcessPoolExecutor(args.workers) as pool:
         rows = list(pool.map(confirm, files, [args.simulator] * len(files)))
     summary = {
         "simulator": args.simulator,
         "kind": args.kind,
         "files": len(rows),
+        **({"sample": args.sample, "seed": args.seed} if args.sample is not None else {}),
         "reproduced": sum(r["reproduced"] for r in rows),
         "same_collision_kind": sum(r["collision_kind"] == r["recorded_collision_kind"] for r in rows),
         "rows": rows,

@@ -11,6 +11,7 @@ import pytest
 
 from safelane.config import ConfigError, load_config
 from safelane.running.counterexamples import (
+    break_culprits,
     break_under_options,
     break_with_carried_followers,
     crash_partner,
@@ -115,6 +116,28 @@ def test_claim_campaign_crash_files_replay_to_the_same_crash_on_both_simulators(
             result = replay(cx, simulator)
             assert result.reproduced and result.collision_kind == cx.collision_kind, (path.name, simulator)
             assert len(result.decisions) == cx.step and result.decisions[-1].collision
+
+
+def test_claim_campaign_break_files_keep_their_published_classification() -> None:
+    """The claim campaign's 2 842 break files under today's rule (docs/results/falsify/
+    grid_100k_behind_forecast_fallback/breaks), classified by examples/repair_breaks.py --culprits
+    (break_repairs.json: 133 outside the model, 2 709 in it): every 400th of them, sorted by name (8 files, one
+    outside the model, five first-culprit roles), replays to a break at the same decision on the fast simulator
+    and on highway-env, and gets the published verdict again — the repair, its best gap to the millimetre and its
+    first culprit's role."""
+    folder = CAMPAIGN / "grid_100k_behind_forecast_fallback"
+    published = json.loads((folder / "break_repairs.json").read_text())
+    assert (published["breaks"], published["outside_model"], published["holes"]) == (2842, 133, 2709)
+    rows = {row["file"]: row for row in published["rows"]}
+    files = sorted((folder / "breaks").glob("*-invariant_break-*.json"))
+    assert [path.name for path in files] == sorted(rows)
+    for path in files[::400]:
+        cx = load_counterexample(path)
+        for simulator in ("fast", "highway-env"):
+            result = replay(cx, simulator)
+            assert result.reproduced and len(result.decisions) == cx.step, (path.name, simulator)
+        row = rows[path.name]
+        assert {**repair_break(cx), "role": break_culprits(cx)["role"]} == {k: v for k, v in row.items() if k != "file"}
 
 
 def test_retrained_agents_crashes_after_breaks_replay_with_a_partner_rolling_back() -> None:

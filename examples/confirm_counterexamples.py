@@ -41,6 +41,8 @@ def main() -> None:
     parser.add_argument("--workers", type=int, default=2)
     parser.add_argument("--out", type=Path, required=True)
     args = parser.parse_args()
+    if args.sample is not None and args.sample < 1:
+        parser.exit(2, f"error: --sample: got {args.sample}; allowed: a whole number of files >= 1\n")
     files = sorted(str(p) for p in args.folder.glob(f"*-{args.kind}-*.json"))[: args.limit]
     if args.sample is not None and args.sample < len(files):
         files = sorted(random.Random(args.seed).sample(files, args.sample))

@@ -258,6 +258,33 @@ def test_breaks_under_options_script_carries_the_reacting_followers(tmp_path: Pa
         assert bad.returncode == 2 and len(bad.stderr.strip().splitlines()) == 1, bad.stderr
 
 
+def test_confirm_script_replays_a_random_sample_of_a_folder(tmp_path: Path) -> None:
+    """examples/confirm_counterexamples.py --sample 1 on a folder holding the two holes' breaks replays one of
+    them, drawn by the seed, to the same break (on the fast simulator here) and records the draw; --sample 0 is a
+    one-line error (exit 2)."""
+    import shutil
+    import sys
+
+    names = [
+        "cell00552-seed4005520033-invariant_break-step2.json",
+        "cell02879-seed4028790006-invariant_break-step11.json",
+    ]
+    folder = tmp_path / "breaks"
+    folder.mkdir()
+    for name in names:
+        shutil.copy(CAMPAIGN / "grid_100k_behind_forecast_fallback" / "counterexamples" / name, folder / name)
+    script = [sys.executable, str(Path(__file__).resolve().parents[1] / "examples" / "confirm_counterexamples.py")]
+    out = tmp_path / "confirm.json"
+    common = [str(folder), "--kind", "invariant_break", "--simulator", "fast", "--workers", "1", "--out", str(out)]
+    subprocess.run([*script, *common, "--sample", "1", "--seed", "3"], check=True, capture_output=True)
+    summary = json.loads(out.read_text())
+    assert (summary["files"], summary["reproduced"], summary["sample"], summary["seed"]) == (1, 1, 1, 3)
+    assert summary["rows"][0]["file"] in names
+    bad = subprocess.run([*script, *common, "--sample", "0"], capture_output=True, text=True)
+    assert bad.returncode == 2 and len(bad.stderr.strip().splitlines()) == 1, bad.stderr
+    assert "--sample" in bad.stderr
+
+
 def test_break_under_options_finds_the_follower_bound_in_hole_2879() -> None:
     """break_under_options (examples/breaks_under_options.py's engine) on the claim's-grid hole 2879 (a Linear
     follower squeeze, docs/safety.md §6k): as it ran nothing is safe (best −0.64 m); with the followers braking

@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import random
 from collections import Counter
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
@@ -30,6 +29,7 @@ from safelane.running.counterexamples import (
     break_under_options,
     break_with_carried_followers,
     check_rule_options,
+    counterexample_files,
     load_counterexample,
 )
 
@@ -82,11 +82,9 @@ def main() -> None:
             raise ConfigError("--carried-followers: judged with the rule as it ran; drop --set")
         if args.all_followers and not args.carried_followers:
             raise ConfigError("--all-followers: a choice of --carried-followers; add it")
+        files = counterexample_files(args.folder, "invariant_break", args.sample, args.seed)
     except ConfigError as error:
         parser.exit(2, f"error: {error}\n")
-    files = sorted(str(p) for p in args.folder.glob("*-invariant_break-*.json"))
-    if args.sample is not None and args.sample < len(files):
-        files = sorted(random.Random(args.seed).sample(files, args.sample))
     with ProcessPoolExecutor(args.workers) as pool:
         given = None if args.carried_followers else options
         reacting = [not args.all_followers] * len(files)

@@ -9,12 +9,12 @@ from __future__ import annotations
 
 import argparse
 import json
-import random
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
+from safelane.core.errors import ConfigError
 from safelane.core.files import atomic_write_text
-from safelane.running.counterexamples import load_counterexample, replay
+from safelane.running.counterexamples import counterexample_files, load_counterexample, replay
 
 
 def confirm(path: str, simulator: str) -> dict:
@@ -41,11 +41,10 @@ def main() -> None:
     parser.add_argument("--workers", type=int, default=2)
     parser.add_argument("--out", type=Path, required=True)
     args = parser.parse_args()
-    if args.sample is not None and args.sample < 1:
-        parser.exit(2, f"error: --sample: got {args.sample}; allowed: a whole number of files >= 1\n")
-    files = sorted(str(p) for p in args.folder.glob(f"*-{args.kind}-*.json"))[: args.limit]
-    if args.sample is not None and args.sample < len(files):
-        files = sorted(random.Random(args.seed).sample(files, args.sample))
+    try:
+        files = counterexample_files(args.folder, args.kind, args.sample, args.seed, args.limit)
+    except ConfigError as error:
+        parser.exit(2, f"error: {error}\n")
     with ProcessPoolExecutor(args.workers) as pool:
         rows = list(pool.map(confirm, files, [args.simulator] * len(files)))
     summary = {

@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import random
 from collections import Counter
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
@@ -20,8 +19,9 @@ from typing import Any
 
 import numpy as np
 
+from safelane.core.errors import ConfigError
 from safelane.core.files import atomic_write_text
-from safelane.running.counterexamples import break_culprits, load_counterexample, repair_break
+from safelane.running.counterexamples import break_culprits, counterexample_files, load_counterexample, repair_break
 
 QUANTILES = (0.0, 0.1, 0.25, 0.5, 0.75, 0.9, 1.0)
 """The quantiles of the breaks' best gap [m] the summary prints."""
@@ -46,9 +46,10 @@ def main() -> None:
     parser.add_argument("--workers", type=int, default=2)
     parser.add_argument("--out", type=Path, required=True)
     args = parser.parse_args()
-    files = sorted(str(p) for p in args.folder.glob("*-invariant_break-*.json"))
-    if args.sample is not None and args.sample < len(files):
-        files = sorted(random.Random(args.seed).sample(files, args.sample))
+    try:
+        files = counterexample_files(args.folder, "invariant_break", args.sample, args.seed)
+    except ConfigError as error:
+        parser.exit(2, f"error: {error}\n")
     with ProcessPoolExecutor(args.workers) as pool:
         rows = list(pool.map(repair, files, [args.culprits] * len(files), chunksize=8))
     outside = [r for r in rows if r["safe_after_repair"]]

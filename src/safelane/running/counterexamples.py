@@ -71,6 +71,22 @@ def load_counterexample(path: str | Path) -> Counterexample:
         raise ConfigError(f"{path}: not a counterexample ({'.'.join(map(str, e['loc']))}: {e['msg']})") from None
 
 
+def counterexample_files(
+    folder: str | Path, kind: EventKind, sample: int | None = None, seed: int = 0, limit: int | None = None
+) -> list[str]:
+    """The paths of ``folder``'s counterexample files of ``kind``, sorted by name: the first ``limit`` of them,
+    then (with ``sample``) at most ``sample`` drawn at random with ``seed``, again sorted. A ``sample`` below 1 is
+    a one-line :class:`ConfigError`."""
+    import random
+
+    if sample is not None and sample < 1:
+        raise ConfigError(f"--sample: got {sample}; allowed: a whole number of files >= 1")
+    files = sorted(str(p) for p in Path(folder).glob(f"*-{kind}-*.json"))[:limit]
+    if sample is not None and sample < len(files):
+        files = sorted(random.Random(seed).sample(files, sample))
+    return files
+
+
 def counterexamples_of(records: list[Any], config: SafelaneConfig, source: str = "") -> list[Counterexample]:
     """One :class:`Counterexample` per collision and per invariant break in ``records``."""
     found: list[Counterexample] = []

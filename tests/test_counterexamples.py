@@ -82,7 +82,7 @@ def test_a_tampered_file_is_not_reproduced_and_a_broken_one_is_one_line(tmp_path
         load_counterexample(tmp_path / "missing.json")
 
 
-CAMPAIGN = Path(__file__).resolve().parents[1] / "docs" / "results" / "falsify"
+FIXTURES = Path(__file__).resolve().parent / "fixtures"  # pinned campaign files: fixtures/README.md
 CELL_38 = "cell00038-seed4000380020-collision-step26.json"
 CELL_169 = "cell00169-seed4001690001-collision-step34.json"
 
@@ -92,25 +92,24 @@ def test_crash_partner_tells_a_reversing_car_from_one_inside_the_model() -> None
     2 m/s into the nearly stopped ego) has its partner in the ego's lane, ahead, moving backwards; the
     trained agents' cell 169 (a car two lanes over changing into the lane the ego enters) has a partner
     moving forwards. A break file has no crash partner."""
-    reversing = crash_partner(load_counterexample(CAMPAIGN / "grid_100k" / "counterexamples" / CELL_38))
+    reversing = crash_partner(load_counterexample(FIXTURES / "grid-100k" / CELL_38))
     assert reversing["reversing"] and reversing["lane_vs_ego"] == [0, 0]
     assert reversing["dx"][0] > 0 and min(reversing["speed"]) < 0
-    side = crash_partner(load_counterexample(CAMPAIGN / "grid_agents_level_cut_ins" / "counterexamples" / CELL_169))
+    side = crash_partner(load_counterexample(FIXTURES / "agents-level-cut-ins" / CELL_169))
     assert not side["reversing"] and side["lane_vs_ego"] == [2, 1] and min(side["speed"]) > 10
-    breaks = sorted((CAMPAIGN / "grid" / "counterexamples").glob("*invariant_break*.json"))
+    breaks = sorted((FIXTURES / "grid").glob("*invariant_break*.json"))
     with pytest.raises(ConfigError, match="collisions only"):
         crash_partner(load_counterexample(breaks[0]))
 
 
 def test_claim_campaign_crash_files_replay_to_the_same_crash_on_both_simulators() -> None:
-    """The claim campaign's crash files under today's rule (docs/results/falsify/grid_100k_behind_forecast_fallback:
-    337, all confirmed on highway-env by examples/confirm_counterexamples.py, confirm_collisions_all.json): every
-    28th of them, sorted by name (13 files: 12 unsafe spawns and hole 2879's crash after a break; 1, 2, 3 and 5
-    decisions per second; IDM, Linear, Aggressive and Defensive drivers), replays to the same crash at the same
-    decision on the fast simulator and on highway-env."""
-    files = sorted((CAMPAIGN / "grid_100k_behind_forecast_fallback" / "counterexamples").glob("*-collision-*.json"))
-    assert len(files) == 337
-    for path in files[::28]:
+    """The claim campaign's crash files under the rule forecast-fallback (337, all confirmed on highway-env):
+    every 28th of them, sorted by name, and cells 88 and 127 (15 files: 14 unsafe spawns and hole 2879's crash
+    after a break; 1, 2, 3 and 5 decisions per second; IDM, Linear, Aggressive and Defensive drivers), replays to
+    the same crash at the same decision on the fast simulator and on highway-env."""
+    files = sorted((FIXTURES / "claim" / "crashes").glob("*-collision-*.json"))
+    assert len(files) == 15
+    for path in files:
         cx = load_counterexample(path)
         for simulator in ("fast", "highway-env"):
             result = replay(cx, simulator)
@@ -119,19 +118,17 @@ def test_claim_campaign_crash_files_replay_to_the_same_crash_on_both_simulators(
 
 
 def test_claim_campaign_break_files_keep_their_published_classification() -> None:
-    """The claim campaign's 2 842 break files under today's rule (docs/results/falsify/
-    grid_100k_behind_forecast_fallback/breaks), classified by examples/repair_breaks.py --culprits
-    (break_repairs.json: 133 outside the model, 2 709 in it): every 400th of them, sorted by name (8 files, one
-    outside the model, five first-culprit roles), replays to a break at the same decision on the fast simulator
-    and on highway-env, and gets the published verdict again — the repair, its best gap to the millimetre and its
-    first culprit's role."""
-    folder = CAMPAIGN / "grid_100k_behind_forecast_fallback"
+    """The claim campaign's break files under the rule forecast-fallback (2 842, classified by repair_breaks
+    --culprits: 133 outside the model, 2 709 in it): every 400th of them, sorted by name, and the two holes'
+    breaks (10 files, one outside the model, five first-culprit roles) replay to a break at the same decision on
+    the fast simulator and on highway-env, and get the published verdict again — the repair, its best gap to the
+    millimetre and its first culprit's role (their rows of the campaign's break_repairs.json)."""
+    folder = FIXTURES / "claim"
     published = json.loads((folder / "break_repairs.json").read_text())
-    assert (published["breaks"], published["outside_model"], published["holes"]) == (2842, 133, 2709)
     rows = {row["file"]: row for row in published["rows"]}
     files = sorted((folder / "breaks").glob("*-invariant_break-*.json"))
-    assert [path.name for path in files] == sorted(rows)
-    for path in files[::400]:
+    assert [path.name for path in files] == sorted(rows) and len(files) == 10
+    for path in files:
         cx = load_counterexample(path)
         for simulator in ("fast", "highway-env"):
             result = replay(cx, simulator)
@@ -141,11 +138,11 @@ def test_claim_campaign_break_files_keep_their_published_classification() -> Non
 
 
 def test_retrained_agents_crashes_after_breaks_replay_with_a_partner_rolling_back() -> None:
-    """The agents' campaign with make demo's agents retrained under today's rule (docs/results/falsify/
-    grid_agents_retrained: 1 065 crashes, 1 059 unsafe spawns, 6 after breaks, 0 from safe states): each of the 6
+    """The claim campaign's agents (make demo's agents, trained under the rule forecast-fallback: 1 065 crashes,
+    1 059 unsafe spawns, 6 after breaks, 0 from safe states): each of the 6
     crash files after a break replays to the same crash at the same decision on both simulators, and its partner is
     a car rolling backwards at the last decision (outside the driver model, docs/safety.md §6f)."""
-    files = sorted((CAMPAIGN / "grid_agents_retrained" / "counterexamples").glob("*-collision-*.json"))
+    files = sorted((FIXTURES / "claim-agents" / "crashes").glob("*-collision-*.json"))
     assert len(files) == 6
     for path in files:
         cx = load_counterexample(path)
@@ -165,7 +162,7 @@ def test_classify_crashes_finds_the_agents_crashes_after_breaks_outside_the_mode
     inside the model."""
     import sys
 
-    folder = CAMPAIGN / "grid_agents_level_entering" / "counterexamples"
+    folder = FIXTURES / "agents-level-entering"
     out = tmp_path / "classes.json"
     script = Path(__file__).resolve().parents[1] / "examples" / "classify_crashes.py"
     subprocess.run([sys.executable, str(script), str(folder), "--workers", "1", "--out", str(out)], check=True)
@@ -183,10 +180,10 @@ def test_repair_break_excuses_a_break_only_when_the_roll_back_was_needed() -> No
     names the two cars beside it. The 100 800-episode campaign's turning-leader hole (cell 2270, fast
     simulator: nobody rolled back) repairs nothing and stays a break. ``best_gap``, the break state's largest
     worst-case gap as it is: 0.944 m (just under the 1 m margin) and −9.049 m. Crash files are refused."""
-    adversary = CAMPAIGN / "adversaries_session11" / "counterexamples"
+    adversary = FIXTURES / "adversaries-stopped-car"
     repaired = repair_break(load_counterexample(adversary / "cell00006-seed4000060000-invariant_break-step8.json"))
     assert repaired == {"best_gap": 0.944, "repaired": [6], "safe_after_repair": True, "unlocks": [4]}
-    hole = CAMPAIGN / "grid_100k_behind_turning_leaders" / "counterexamples"
+    hole = FIXTURES / "turning-leaders"
     kept = repair_break(load_counterexample(hole / "cell02270-seed4022700029-invariant_break-step2.json"))
     assert kept == {"best_gap": -9.049, "repaired": [], "safe_after_repair": False, "unlocks": []}
     with pytest.raises(ConfigError, match="invariant breaks only"):
@@ -199,7 +196,7 @@ def test_repair_breaks_counts_a_campaign_s_breaks_outside_the_model(tmp_path: Pa
     rolled-back cars were not what broke it), the first culprits' roles counted."""
     import sys
 
-    folder = CAMPAIGN / "grid_100k_behind_turning_leaders" / "counterexamples"
+    folder = FIXTURES / "turning-leaders"
     out = tmp_path / "repairs.json"
     script = Path(__file__).resolve().parents[1] / "examples" / "repair_breaks.py"
     args = [sys.executable, str(script), str(folder), "--culprits", "--workers", "1", "--out", str(out)]
@@ -223,8 +220,7 @@ def test_carried_follower_bounds_close_hole_2879(simulator: str) -> None:
     in their lane (their reaction had begun, as the model reads it) closes it as carrying all 25 cars behind
     does. The same on both simulators (one file)."""
     cx = load_counterexample(
-        CAMPAIGN / "grid_100k_behind_forecast_fallback" / "counterexamples"
-        / "cell02879-seed4028790006-invariant_break-step11.json"
+        FIXTURES / "claim" / "breaks" / "cell02879-seed4028790006-invariant_break-step11.json"
     )  # fmt: skip
     reacting = break_with_carried_followers(cx, simulator)
     every = break_with_carried_followers(cx, simulator, reacting_only=False)
@@ -245,7 +241,7 @@ def test_breaks_under_options_script_carries_the_reacting_followers(tmp_path: Pa
     name = "cell02879-seed4028790006-invariant_break-step11.json"
     folder = tmp_path / "breaks"
     folder.mkdir()
-    shutil.copy(CAMPAIGN / "grid_100k_behind_forecast_fallback" / "counterexamples" / name, folder / name)
+    shutil.copy(FIXTURES / "claim" / "breaks" / name, folder / name)
     script = [sys.executable, str(Path(__file__).resolve().parents[1] / "examples" / "breaks_under_options.py")]
     out = tmp_path / "verdicts.json"
     run = [*script, str(folder), "--carried-followers", "--workers", "1", "--out", str(out)]
@@ -272,7 +268,7 @@ def test_confirm_script_replays_a_random_sample_of_a_folder(tmp_path: Path) -> N
     folder = tmp_path / "breaks"
     folder.mkdir()
     for name in names:
-        shutil.copy(CAMPAIGN / "grid_100k_behind_forecast_fallback" / "counterexamples" / name, folder / name)
+        shutil.copy(FIXTURES / "claim" / "breaks" / name, folder / name)
     script = [sys.executable, str(Path(__file__).resolve().parents[1] / "examples" / "confirm_counterexamples.py")]
     out = tmp_path / "confirm.json"
     common = [str(folder), "--kind", "invariant_break", "--simulator", "fast", "--workers", "1", "--out", str(out)]
@@ -292,8 +288,7 @@ def test_break_under_options_finds_the_follower_bound_in_hole_2879() -> None:
     bound, restarted at every decision, is what broke it. A rule option that does not touch it leaves the state
     as it was; a name that is not a Dynamics field is a one-line error."""
     cx = load_counterexample(
-        CAMPAIGN / "grid_100k_behind_passing_cut_ins" / "counterexamples"
-        / "cell02879-seed4028790006-invariant_break-step11.json"
+        FIXTURES / "passing-cut-ins" / "cell02879-seed4028790006-invariant_break-step11.json"
     )  # fmt: skip
     verdict = break_under_options(cx, {"follower_reaction": 0.0})
     assert verdict["best_gap"] == pytest.approx(-0.638, abs=1e-3)

@@ -15,6 +15,7 @@ from safelane.running.counterexamples import load_counterexample, replay
 from safelane.running.falsify import break_class, load_campaign_spec, read_spec_yaml, run_campaign
 
 GRID = Path(__file__).resolve().parents[1] / "configs" / "falsify" / "grid.yaml"
+CLAIM = GRID.parent / "claim.yaml"
 
 
 def write_spec(path: Path, **fields: object) -> Path:
@@ -44,12 +45,13 @@ def test_shipped_grid_covers_the_issues_axes() -> None:
 
 
 def test_the_claim_s_grid_has_every_axis_of_the_issue_and_100k_episodes() -> None:
-    """configs/falsify/grid_100k_behind.yaml: grid.yaml's axes, the three scripted policies and
-    traffic.vehicles_behind 0–25, ≥ 100 000 episodes, on the fast simulator; every shipped grid spec loads
-    (search specs have their own loader, tests/test_falsify_search.py)."""
+    """configs/falsify/claim.yaml: grid.yaml's axes, the three scripted policies and
+    traffic.vehicles_behind 0–25, ≥ 100 000 episodes, on the fast simulator, the rule named; every shipped grid
+    spec loads and names the rule it runs (search specs have their own loader, tests/test_falsify_search.py)."""
     shipped = [p for p in sorted(GRID.parent.glob("*.yaml")) if "search" not in read_spec_yaml(p)]
-    assert len(shipped) >= 10 and all(load_campaign_spec(p).name for p in shipped)
-    spec = load_campaign_spec(GRID.parent / "grid_100k_behind.yaml")
+    assert len(shipped) >= 5 and all(load_campaign_spec(p).name for p in shipped)
+    assert all(load_campaign_spec(p).sets == ["shield.rule=forecast-fallback"] for p in shipped)
+    spec = load_campaign_spec(CLAIM)
     assert set(spec.axes) == {"rate", "lanes", "density", "drivers", "behind"}
     behind = [s["traffic.vehicles_behind"] for s in spec.axes["behind"]]
     assert min(behind) == 0 and max(behind) == 25
@@ -178,7 +180,8 @@ def test_cell_labels_are_short() -> None:
     assert {c["labels"]["density"] for c in cells} == {f"vehicles_density={d}" for d in (0.5, 1.0, 1.5, 2.0)}
 
 
-CRASHES = Path(__file__).resolve().parents[1] / "docs" / "results" / "falsify" / "grid" / "counterexamples"
+FIXTURES = Path(__file__).resolve().parent / "fixtures"  # pinned campaign files: fixtures/README.md
+CRASHES = FIXTURES / "grid"
 
 
 @pytest.mark.parametrize(
@@ -189,14 +192,11 @@ CRASHES = Path(__file__).resolve().parents[1] / "docs" / "results" / "falsify" /
         ("cell00537-seed4005370010-collision-step122.json", "from_safe_state"),  # the rule's own hole
         # FASTER chosen, overridden to SLOWER (safe, 15.2 m), then a Linear car stuck behind a slow one turned
         # in behind the ego within the decision: from a safe state, once filed as "after_fallback" because
-        # the *chosen* action was unsafe (issue 15, seventh session; docs/safety.md §6h).
-        (
-            "../../grid_100k_behind_linear_mobil_incentive/counterexamples/cell00535-seed4005350015-collision-step3.json",
-            "from_safe_state",
-        ),
+        # the *chosen* action was unsafe.
+        ("../linear-mobil-incentive/cell00535-seed4005350015-collision-step3.json", "from_safe_state"),
         # The first 100 800-episode campaign's one "after_fallback" crash, the same kind: FASTER overridden to
-        # IDLE at 29.9 m/s beside a car level with the ego (the class level_cut_ins closed later, §6e).
-        ("../../grid_100k/counterexamples/cell00649-seed4006490057-collision-step12.json", "from_safe_state"),
+        # IDLE at 29.9 m/s beside a car level with the ego (the class level_cut_ins closed later).
+        ("../grid-100k/cell00649-seed4006490057-collision-step12.json", "from_safe_state"),
     ],
 )
 def test_collision_context_says_where_a_crash_stands_against_the_promise(name: str, context: str) -> None:

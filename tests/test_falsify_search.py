@@ -29,7 +29,7 @@ from safelane.running.falsify_search import (
     select_elite,
 )
 
-SHIPPED = Path(__file__).resolve().parents[1] / "configs" / "falsify" / "search_cem.yaml"
+SHIPPED = Path(__file__).resolve().parents[1] / "configs" / "falsify" / "search.yaml"
 
 
 def settings(**fields: Any) -> SearchSettings:

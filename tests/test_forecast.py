@@ -142,8 +142,7 @@ def test_forecast_keys_rank_collisions_by_first_contact() -> None:
 
 
 SPAWN = (
-    Path(__file__).resolve().parents[1] / "docs" / "results" / "falsify" / "grid_100k_behind_forecast_fallback"
-    / "counterexamples" / "cell00127-seed4001270026-collision-step3.json"
+    Path(__file__).resolve().parent / "fixtures" / "claim" / "crashes" / "cell00127-seed4001270026-collision-step3.json"
 )  # fmt: skip
 
 

@@ -39,8 +39,9 @@ def test_example_has_a_docstring_saying_what_how_and_how_long(name: str) -> None
     assert f"python examples/{name}.py --quick" in doc
 
 
-def test_shield_sb3_agent(tmp_path: Path) -> None:
-    out = run_example("shield_sb3_agent", "--quick", cwd=tmp_path)
+@pytest.mark.parametrize("algo", ["dqn", pytest.param("maskable-ppo", marks=pytest.mark.slow)])
+def test_shield_sb3_agent(algo: str, tmp_path: Path) -> None:
+    out = run_example("shield_sb3_agent", "--quick", "--algo", algo, cwd=tmp_path)
     rows = {line.split()[0]: line.split()[1:] for line in out.splitlines() if line.startswith(("bare", "shielded"))}
     assert set(rows) == {"bare", "shielded"}
     episodes, collisions, decisions, interventions = (int(v) for v in rows["bare"][:4])

@@ -14,7 +14,7 @@ Run:
     python examples/check_fast_simulator.py --preset paper --episodes 6
     python examples/check_fast_simulator.py --quick                  # 3 episodes of 10 s
 
-Time: about 20 s as set (highway-env plays a few dozen decisions a second); ``--quick`` about 5 s.
+Time: about 10 s as set (many episodes end early in a crash: the policies ignore the traffic); ``--quick`` about 5 s.
 """
 
 from __future__ import annotations

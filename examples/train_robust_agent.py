@@ -11,8 +11,8 @@ Run:
     python examples/train_robust_agent.py --quick          # 3 training episodes, 2 test episodes
     python examples/train_robust_agent.py --out runs/robust --episodes 50 --test-episodes 100
 
-Time: about a minute as set (training on the fast simulator runs ~1 400 decisions a second, the test episodes
-on highway-env a few dozen); ``--quick`` about 15 s. The run directory
+Time: about 40 s as set (8 000 training decisions on the fast simulator, then 800 test decisions on each
+simulator); ``--quick`` about 15 s. The run directory
 (``config.yaml``, ``metrics.csv``, ``checkpoint.pt``) is what ``safelane evaluate``, ``stress`` and ``render``
 read.
 """
@@ -67,12 +67,12 @@ def main() -> None:
         print(f"training robust Q-masking for {args.episodes} episodes into {out} …")
         train_robust(out, args.episodes, args.seed)
         test_seed = 1_000_000 + args.seed  # seeds training never resets with
-        print(f"{'simulator':12} {'episodes':>8} {'collisions':>10} {'speed m/s':>9} {'fallbacks':>9} {'breaks':>6}")
+        print(f"{'simulator':12} {'episodes':>8} {'collisions':>10} {'speed m/s':>9} {'fallback %':>10} {'breaks':>6}")
         for simulator in ("fast", "highway-env"):
             s = evaluate(out, simulator, args.test_episodes, test_seed)
             print(
                 f"{simulator:12} {s['episodes']:>8} {s['collisions']:>10} {s['mean_speed']:>9.2f} "
-                f"{s['fallback_rate']:>9.3f} {s['invariant_breaks']:>6}"
+                f"{100 * s['fallback_rate']:>10.2f} {s['invariant_breaks']:>6}"
             )
 
 

@@ -5,7 +5,8 @@ package for a caller that has not, so ``gym.make("safelane:safelane/HighwayFast-
 
 * ``safelane/Highway-v0`` — the paper's environment on highway-env, the reference simulator;
 * ``safelane/HighwayFast-v0`` — the same environment on safelane's compiled simulator (``simulator: fast``,
-  the same episodes as highway-env, checked by ``safelane sim check``; ≈100x faster, no rendering).
+  the same episodes as highway-env, checked by ``safelane sim check``; hundreds of times faster with the shield
+  on, docs/results/speed.md; no rendering).
 
 Both take the same keywords, all optional (:func:`make_highway`): ``preset`` (``"fast"``: highway-fast-v0's
 5 Hz physics; ``"paper"``: highway-v0's 15 Hz), ``shield`` (``"robust"``, ``"nominal"`` or ``"none"``),

@@ -172,6 +172,15 @@ def test_make_vec_returns_the_batched_fast_simulator() -> None:
         assert highway.action_masks().shape == (2, 5)
     finally:
         highway.close()
+    subprocesses = gym.make_vec(HIGHWAY_ID, num_envs=2, vectorization_mode="async", config=SHORT)
+    fast = gym.make(FAST_ID, config=SHORT)
+    try:  # gymnasium's own vectorizer: each subprocess builds the id from its entry point
+        obs, infos = subprocesses.reset(seed=20)
+        np.testing.assert_array_equal(obs[1], fast.reset(seed=21)[0])
+        assert infos["action_mask"].shape == (2, 5)
+    finally:
+        subprocesses.close()
+        fast.close()
 
 
 def test_cleanrl_style_loop_on_make_vec() -> None:

@@ -1,4 +1,6 @@
-"""The reproduction report: Table 4, Fig. 6, Fig. 7, speed vs safety, and the paper's claims, from data.
+"""The reproduction report: Table 4, Fig. 6, Fig. 7, speed vs safety, and the paper's claims, from data; beside
+them the distribution over runs (interquartile mean with stratified bootstrap CIs, performance profiles, learning
+curves with bands).
 
 ``write_report(out_dir)`` reads ``results.json`` and every run's ``metrics.csv`` written by
 :mod:`safelane.running.experiments` and writes ``report.md`` with PNG figures beside it. Verdicts on the

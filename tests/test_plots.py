@@ -65,3 +65,21 @@ def test_plot_training_curves_errors(tmp_path: Path) -> None:
     write_metrics(tmp_path / "run", [1.0])
     with pytest.raises(ValueError, match="labels"):
         plot_training_curves([tmp_path / "run"], labels=["a", "b"])
+
+
+def test_profile_and_band_figures_draw_one_panel_per_metric() -> None:
+    from safelane.reporting.plots import plot_curve_bands, plot_performance_profiles
+    from safelane.reporting.stats import curve_band, performance_profile
+
+    profiles = performance_profile({"a": [1.0, 2.0, 3.0], "b": [2.0, 2.0]}, np.linspace(0, 4, 9), reps=50)
+    fig = plot_performance_profiles([("speed", profiles), ("rate", profiles)], labels={"a": "A"})
+    assert len(fig.axes) == 2
+    assert [t.get_text() for t in fig.axes[0].get_legend().get_texts()] == ["A", "b"]
+    bands = {"a": curve_band(np.arange(12.0).reshape(3, 4), reps=50)}
+    fig = plot_curve_bands([("return", bands)])
+    assert len(fig.axes) == 1
+    np.testing.assert_array_equal(fig.axes[0].lines[0].get_xdata(), [1, 2, 3, 4])
+    with pytest.raises(ValueError, match="panels"):
+        plot_performance_profiles([])
+    with pytest.raises(ValueError, match="panels"):
+        plot_curve_bands([])

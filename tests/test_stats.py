@@ -6,7 +6,7 @@ import math
 
 import numpy as np
 import pytest
-from hypothesis import given
+from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from safelane.reporting import stats
@@ -150,6 +150,149 @@ def test_bootstrap_rejects_bad_arguments() -> None:
         stats.bootstrap_ci([1.0], reps=0)
     with pytest.raises(ValueError, match="alpha"):
         stats.stratified_bootstrap_ci([[1.0]], alpha=1.5)
+
+
+# --- rliable's statistics: IQM, stratified bootstrap, performance profiles, curve bands --------------
+
+finite = st.floats(-1e6, 1e6, allow_nan=False)
+run_scores = st.lists(finite, min_size=1, max_size=24)
+
+
+def test_interquartile_mean_is_iqm_and_matches_scipy() -> None:
+    scipy_stats = pytest.importorskip("scipy.stats")
+    x = np.array([3.0, -1.0, 8.0, 2.5, 2.5, 40.0, 0.0, 7.0, 1.0])
+    assert stats.interquartile_mean(x) == stats.iqm(x)
+    assert stats.interquartile_mean(x) == pytest.approx(scipy_stats.trim_mean(x, 0.25))
+
+
+@given(st.floats(-1e6, 1e6), st.integers(1, 40))
+def test_iqm_of_constant_runs_is_the_constant(value: float, n: int) -> None:
+    assert stats.interquartile_mean([value] * n) == pytest.approx(value, rel=1e-12, abs=1e-9)
+
+
+@given(st.floats(-1e3, 1e3), st.lists(st.floats(0, 1e3), min_size=1, max_size=20))
+def test_iqm_equals_the_mean_for_symmetric_data(centre: float, offsets: list[float]) -> None:
+    x = np.array([centre + d for d in offsets] + [centre - d for d in offsets])
+    assert stats.interquartile_mean(x) == pytest.approx(float(np.mean(x)), abs=1e-6)
+    assert stats.interquartile_mean(x) == pytest.approx(centre, abs=1e-6)
+
+
+@given(run_scores)
+def test_iqm_lies_between_the_quartiles(x: list[float]) -> None:
+    q1, q3 = np.percentile(x, [25, 75])
+    tol = 1e-9 * (1 + float(np.max(np.abs(x))))
+    assert q1 - tol <= stats.interquartile_mean(x) <= q3 + tol
+
+
+def test_optimality_gap_hand_worked() -> None:
+    assert stats.optimality_gap([1.0, 0.9, 0.7]) == pytest.approx(0.4 / 3)
+    assert stats.optimality_gap([20.0, 25.0, 31.0], gamma=30.0) == pytest.approx((10 + 5 + 0) / 3)
+    assert stats.optimality_gap([2.0, 3.0], gamma=1.0) == 0.0
+
+
+def test_stratified_bootstrap_hand_worked() -> None:
+    # Two runs 20 and 24: too few to trim, so the IQM is the mean 22; a quarter of the samples draw
+    # run 20 twice and a quarter run 24 twice, so the 2.5th and 97.5th percentiles are 20 and 24.
+    assert stats.stratified_bootstrap([20.0, 24.0]) == (22.0, 20.0, 24.0)
+    assert stats.stratified_bootstrap([5.0, 5.0, 5.0], stats.mean) == (5.0, 5.0, 5.0)
+    est = stats.stratified_bootstrap({"a": [0.0, 0.0], "b": [10.0, 10.0]}, stats.mean, reps=50)
+    assert est == (5.0, 5.0, 5.0)  # each task keeps its two runs' weight: the mean cannot move
+
+
+def test_stratified_bootstrap_agrees_with_the_interval_function() -> None:
+    scores = np.array([[0.0, 10.0], [1.0, 12.0], [2.0, 8.0], [0.5, 11.0]])
+    est = stats.stratified_bootstrap(scores, stats.mean, reps=500, seed=7, level=0.9)
+    assert (est.low, est.high) == pytest.approx(stats.stratified_bootstrap_ci(scores, reps=500, alpha=0.1, seed=7))
+    assert est.point == stats.mean(scores)
+
+
+@settings(max_examples=40, deadline=None)
+@given(run_scores, st.integers(0, 2**32 - 1), st.sampled_from(["iqm", "mean"]))
+def test_stratified_bootstrap_interval_contains_the_point_and_repeats(x: list[float], seed: int, name: str) -> None:
+    statistic = stats.iqm if name == "iqm" else stats.mean
+    est = stats.stratified_bootstrap(x, statistic, reps=200, seed=seed)
+    tol = 1e-9 * (1 + float(np.max(np.abs(x))))
+    assert est.low - tol <= est.point <= est.high + tol
+    assert stats.stratified_bootstrap(x, statistic, reps=200, seed=seed) == est
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.integers(1, 8), st.integers(1, 5), st.integers(0, 2**32 - 1))
+def test_stratified_resample_never_mixes_tasks(runs: int, tasks: int, seed: int) -> None:
+    # Task t's runs score 1000·t + r: a value's task is readable from the value itself.
+    scores = 1000.0 * np.arange(tasks)[None, :] + np.arange(runs)[:, None]
+    samples = stratified_resample_checked(scores, seed)
+    for t in range(tasks):
+        assert set(np.unique(samples[:, :, t])) <= set(scores[:, t])
+    by_name = {f"task{t}": scores[:, t] for t in range(tasks)}
+    np.testing.assert_array_equal(stats.stratified_resample(by_name, 30, seed), samples)
+
+
+def stratified_resample_checked(scores: np.ndarray, seed: int) -> np.ndarray:
+    samples = stats.stratified_resample(scores, 30, seed)
+    assert samples.shape == (30, *scores.shape)
+    np.testing.assert_array_equal(samples, stats.stratified_resample(scores, 30, seed))
+    return samples
+
+
+def test_stratified_bootstrap_rejects_bad_input() -> None:
+    with pytest.raises(ValueError, match="same number of runs"):
+        stats.stratified_bootstrap({"a": [1.0, 2.0], "b": [1.0]})
+    with pytest.raises(ValueError, match="level"):
+        stats.stratified_bootstrap([1.0, 2.0], level=95)
+    with pytest.raises(ValueError, match="reps"):
+        stats.stratified_resample([1.0], reps=0)
+    with pytest.raises(ValueError, match="no tasks"):
+        stats.stratified_bootstrap({})
+
+
+def test_performance_profile_hand_worked() -> None:
+    profiles = stats.performance_profile({"m": [20.0, 22.0, 24.0, 26.0], "k": [21.0, 21.0]}, [19.0, 21.0, 25.0, 26.0])
+    np.testing.assert_array_equal(profiles["m"].fraction, [1.0, 0.75, 0.25, 0.0])  # strictly above τ
+    np.testing.assert_array_equal(profiles["k"].fraction, [1.0, 0.0, 0.0, 0.0])
+    np.testing.assert_array_equal(profiles["k"].low, profiles["k"].high)  # identical runs: no spread
+    assert profiles["m"].low[0] == profiles["m"].high[0] == 1.0  # every run is above 19 in every sample
+    # per task, then averaged over tasks: task a [1, 3] → ½ above 2, task b [5, 5] → all above 2
+    two_tasks = stats.performance_profile({"m": {"a": [1.0, 3.0], "b": [5.0, 5.0]}}, [2.0])
+    assert two_tasks["m"].fraction[0] == 0.75
+
+
+@settings(max_examples=30, deadline=None)
+@given(st.lists(run_scores, min_size=1, max_size=3), st.integers(0, 1000))
+def test_performance_profile_is_monotone_bounded_and_independent_of_other_methods(
+    methods: list[list[float]], seed: int
+) -> None:
+    scores = {f"m{i}": x for i, x in enumerate(methods)}
+    taus = np.linspace(-1e6, 1e6, 9)
+    profiles = stats.performance_profile(scores, taus, reps=100, seed=seed)
+    for prof in profiles.values():
+        assert np.all(np.diff(prof.fraction) <= 0)
+        assert np.all((prof.low >= 0) & (prof.high <= 1) & (prof.low <= prof.high))
+    alone = stats.performance_profile({"m0": methods[0]}, taus, reps=100, seed=seed)["m0"]
+    np.testing.assert_array_equal(alone.low, profiles["m0"].low)
+
+
+def test_curve_band_point_is_the_iqm_at_each_episode() -> None:
+    rng = np.random.default_rng(0)
+    curves = rng.normal(size=(9, 30)).cumsum(axis=1)
+    band = stats.curve_band(curves, "iqm", reps=300)
+    np.testing.assert_allclose(band.point, [stats.iqm(curves[:, j]) for j in range(30)], rtol=1e-12)
+    assert np.all(band.low <= band.high)
+    means = stats.curve_band(curves, "mean", reps=300)
+    np.testing.assert_allclose(means.point, curves.mean(axis=0), rtol=1e-12)
+    same = stats.curve_band(np.tile([1.0, 2.0, 3.0], (4, 1)), reps=50)
+    np.testing.assert_array_equal(same.low, [1.0, 2.0, 3.0])
+    np.testing.assert_array_equal(same.high, [1.0, 2.0, 3.0])
+    first, again = stats.curve_band(curves, reps=300, seed=4), stats.curve_band(curves, reps=300, seed=4)
+    for a, b in zip(first, again, strict=True):
+        np.testing.assert_array_equal(a, b)
+
+
+def test_curve_band_rejects_bad_input() -> None:
+    with pytest.raises(ValueError, match="statistic"):
+        stats.curve_band([[1.0]], "median")  # type: ignore[arg-type]
+    with pytest.raises(ValueError, match="2-D"):
+        stats.curve_band([1.0, 2.0])
 
 
 # --- curves --------------------------------------------------------------------------------------

@@ -7,13 +7,13 @@ backend, and ``fig.savefig`` renders with Agg.
 from __future__ import annotations
 
 import csv
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 
 import numpy as np
 from matplotlib.figure import Figure
 
-from safelane.reporting.stats import scale_01, smooth
+from safelane.reporting.stats import Band, Profile, scale_01, smooth
 
 METRICS_FILE = "metrics.csv"
 """Per-episode training metrics in a run directory (columns ``episode``, ``return``, ``epsilon``…)."""
@@ -98,4 +98,65 @@ def plot_training_curves(
         ax_eps.set_axis_off()
     ax.grid(alpha=0.3)
     ax.legend(loc="best", fontsize="small")
+    return fig
+
+
+def plot_performance_profiles(
+    panels: Sequence[tuple[str, Mapping[str, Profile]]],
+    labels: Mapping[str, str] | None = None,
+    title: str = "Performance profiles",
+) -> Figure:
+    """One panel per metric: for each method the fraction of runs scoring above each threshold, with its band.
+
+    ``panels`` are ``(x-axis label, {method: Profile})`` pairs (:func:`safelane.reporting.stats.performance_profile`);
+    the fraction is drawn as a step line and its bootstrap band shaded. ``labels`` rename methods in the legend.
+    """
+    if not panels:
+        raise ValueError("panels: no performance profiles given")
+    names = dict(labels or {})
+    fig = Figure(figsize=(5 * len(panels), 4))
+    axes = fig.subplots(1, len(panels), squeeze=False)[0]
+    for ax, (xlabel, profiles) in zip(axes, panels, strict=True):
+        for i, (method, prof) in enumerate(profiles.items()):
+            colour = f"C{i % 10}"
+            ax.step(prof.thresholds, prof.fraction, where="post", color=colour, label=names.get(method, method))
+            ax.fill_between(prof.thresholds, prof.low, prof.high, step="post", color=colour, alpha=0.2, lw=0)
+        ax.set_xlabel(xlabel)
+        ax.set_ylabel("fraction of runs with score > τ")
+        ax.set_ylim(-0.02, 1.02)
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=8)
+    fig.suptitle(title)
+    fig.tight_layout()
+    return fig
+
+
+def plot_curve_bands(
+    panels: Sequence[tuple[str, Mapping[str, Band]]],
+    labels: Mapping[str, str] | None = None,
+    xlabel: str = "training episode",
+    title: str = "Learning curves",
+) -> Figure:
+    """One panel per quantity: each method's curve over runs (e.g. the IQM over seeds) with its shaded band.
+
+    ``panels`` are ``(y-axis label, {method: Band})`` pairs (:func:`safelane.reporting.stats.curve_band`);
+    point ``j`` is drawn at x = ``j + 1`` (training episodes count from 1). ``labels`` rename methods in the legend.
+    """
+    if not panels:
+        raise ValueError("panels: no curves given")
+    names = dict(labels or {})
+    fig = Figure(figsize=(5 * len(panels), 4))
+    axes = fig.subplots(1, len(panels), squeeze=False)[0]
+    for ax, (ylabel, bands) in zip(axes, panels, strict=True):
+        for i, (method, band) in enumerate(bands.items()):
+            colour = f"C{i % 10}"
+            x = np.arange(1, band.point.size + 1)
+            ax.plot(x, band.point, color=colour, label=names.get(method, method))
+            ax.fill_between(x, band.low, band.high, color=colour, alpha=0.2, lw=0)
+        ax.set_xlabel(xlabel)
+        ax.set_ylabel(ylabel)
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=8)
+    fig.suptitle(title)
+    fig.tight_layout()
     return fig

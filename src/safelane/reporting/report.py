@@ -1,4 +1,6 @@
-"""The reproduction report: Table 4, Fig. 6, Fig. 7, speed vs safety, and the paper's claims, from data.
+"""The reproduction report: Table 4, Fig. 6, Fig. 7, speed vs safety, and the paper's claims, from data; beside
+them the distribution over runs (interquartile mean with stratified bootstrap CIs, performance profiles, learning
+curves with bands).
 
 ``write_report(out_dir)`` reads ``results.json`` and every run's ``metrics.csv`` written by
 :mod:`safelane.running.experiments` and writes ``report.md`` with PNG figures beside it. Verdicts on the
@@ -16,12 +18,16 @@ from matplotlib.figure import Figure
 
 from safelane.core.files import atomic_write_text
 from safelane.reporting import stats
-from safelane.reporting.plots import read_metrics
+from safelane.reporting.plots import plot_curve_bands, plot_performance_profiles, read_metrics
 from safelane.running.experiments import ExperimentSpec, run_dir_of
 
 LABELS = {"dqn": "Traditional DQN", "constrained": "Constrained Q", "qmask": "Q-masking", "robust": "Robust Q-masking"}
 TABLE4_EPISODES = 7
 CONVERGENCE_WINDOW = 10
+BOOTSTRAP_REPS = 2000
+"""Bootstrap samples behind every interval and band of the over-runs statistics (seed 0)."""
+PROFILE_POINTS = 201
+"""Thresholds at which a performance profile is evaluated."""
 
 
 def _training_time(methods: dict[str, Any]) -> float:
@@ -116,6 +122,108 @@ def fig_speed_safety(methods: dict[str, Any]) -> Figure:
     return fig
 
 
+def run_scores(methods: dict[str, Any], key: str) -> dict[str, np.ndarray]:
+    """Per method, one value per run: results.json's ``per_seed[seed][key]`` in seed order."""
+    return {m: np.array([p[key] for p in data["per_seed"].values()], dtype=float) for m, data in methods.items()}
+
+
+def collision_free_rates(methods: dict[str, Any]) -> dict[str, np.ndarray]:
+    """Per method, each run's fraction of test episodes without a collision (1 − its collision rate)."""
+    return {m: 1.0 - rates for m, rates in run_scores(methods, "collision_rate").items()}
+
+
+def profile_thresholds(scores: dict[str, np.ndarray], upper: float | None = None) -> np.ndarray:
+    """:data:`PROFILE_POINTS` thresholds spanning every run's score, 5 % beyond each end (at most ``upper``)."""
+    values = np.concatenate(list(scores.values()))
+    lo, hi = float(values.min()), float(values.max())
+    pad = 0.05 * (hi - lo) if hi > lo else 0.01 * max(1.0, abs(lo))
+    top = hi + pad if upper is None else min(hi + pad, upper)
+    return np.linspace(lo - pad, top, PROFILE_POINTS)
+
+
+def runs_table(methods: dict[str, Any]) -> list[str]:
+    """Markdown rows: per method, the IQM over runs of mean speed and collision-free rate, stratified 95 % CIs."""
+    speeds, free = run_scores(methods, "mean_speed"), collision_free_rates(methods)
+    lines = [
+        "| method | runs | mean speed [m/s]: IQM [95 % CI] | collision-free rate: IQM [95 % CI] |",
+        "|---|---|---|---|",
+    ]
+    for m in methods:
+        sp = stats.stratified_bootstrap(speeds[m], stats.iqm, reps=BOOTSTRAP_REPS, seed=0)
+        cf = stats.stratified_bootstrap(free[m], stats.iqm, reps=BOOTSTRAP_REPS, seed=0)
+        lines.append(
+            f"| {LABELS[m]} | {speeds[m].size} | {sp.point:.2f} [{sp.low:.2f}, {sp.high:.2f}] | "
+            f"{cf.point:.4f} [{cf.low:.4f}, {cf.high:.4f}] |"
+        )
+    return lines
+
+
+def fig_performance_profiles(methods: dict[str, Any]) -> Figure:
+    """Performance profiles over runs: fraction of runs above each mean-speed and collision-free-rate threshold."""
+    speeds, free = run_scores(methods, "mean_speed"), collision_free_rates(methods)
+    panels = [
+        (
+            "mean speed τ [m/s]",
+            stats.performance_profile(speeds, profile_thresholds(speeds), reps=BOOTSTRAP_REPS, seed=0),
+        ),
+        (
+            "collision-free rate τ",
+            stats.performance_profile(free, profile_thresholds(free, upper=1.0), reps=BOOTSTRAP_REPS, seed=0),
+        ),
+    ]
+    return plot_performance_profiles(panels, LABELS, title="Performance profiles over runs (95 % bootstrap bands)")
+
+
+def learning_curve_bands(
+    curves: dict[str, list[dict[str, np.ndarray]]], column: str, reps: int = BOOTSTRAP_REPS
+) -> dict[str, stats.Band]:
+    """Per method, the IQM over seeds of each run's smoothed ``column`` per training episode, with a 95 % band.
+
+    Each run's curve is smoothed like Fig. 7 (trailing mean over ``min(10, episodes // 4)`` episodes) and cut
+    to the shortest run's length; the band resamples whole runs (:func:`safelane.reporting.stats.curve_band`).
+    """
+    out: dict[str, stats.Band] = {}
+    for method, runs in curves.items():
+        n = min(len(r[column]) for r in runs)
+        window = max(1, min(CONVERGENCE_WINDOW, n // 4 or 1))
+        stacked = np.array([stats.smooth(r[column][:n], window) for r in runs])
+        out[method] = stats.curve_band(stacked, "iqm", reps=reps, seed=0)
+    return out
+
+
+def fig_learning_curves(curves: dict[str, list[dict[str, np.ndarray]]]) -> Figure:
+    """Training return and training collision rate per episode: IQM over seeds with 95 % bootstrap bands."""
+    panels = [
+        ("return (smoothed), IQM over seeds", learning_curve_bands(curves, "return")),
+        ("collision rate (smoothed), IQM over seeds", learning_curve_bands(curves, "collision")),
+    ]
+    return plot_curve_bands(panels, LABELS, title="Learning curves (IQM over seeds, 95 % bootstrap bands)")
+
+
+def runs_statistics_lines(methods: dict[str, Any]) -> list[str]:
+    """The report's section on the distribution over runs: the IQM table and the performance profiles."""
+    fewest = min(len(data["per_seed"]) for data in methods.values())
+    return [
+        "## Over runs: interquartile mean and performance profiles",
+        "",
+        "Each run (seed) contributes one score: its mean speed, or its fraction of collision-free test "
+        "episodes. The interquartile mean (IQM) is the mean of the middle 50 % of the runs (a quarter, rounded "
+        "down, cut from each end"
+        + ("; with fewer than 4 runs nothing is cut and it is the mean" if fewest < 4 else "")
+        + f"). Intervals: percentile stratified bootstrap over runs ({BOOTSTRAP_REPS} samples, seed 0; runs "
+        "resampled within each task, here the one held-out test environment), after Agarwal et al. (2021), "
+        "*Deep RL at the edge of the statistical precipice* (rliable's practice).",
+        "",
+        *runs_table(methods),
+        "",
+        "Performance profiles: the fraction of runs scoring above each threshold τ, with its 95 % stratified "
+        "bootstrap band; a curve further right is better at every level of the run distribution.",
+        "",
+        "![performance profiles](performance_profile.png)",
+        "",
+    ]
+
+
 def _verdict(ok: bool | None) -> str:
     return {True: "reproduced", False: "not reproduced", None: "inconclusive"}[ok]
 
@@ -200,6 +308,9 @@ def write_report(out_dir: str | Path, gifs: dict[str, str] | None = None) -> Pat
     curves = training_curves(out, spec)
     convergence = convergence_episodes(curves)
     figures = {"fig6.png": fig6(methods), "fig7.png": fig7(curves), "speed_vs_safety.png": fig_speed_safety(methods)}
+    figures["performance_profile.png"] = fig_performance_profiles(methods)
+    if curves:
+        figures["learning_curves.png"] = fig_learning_curves(curves)
     for name, fig in figures.items():
         fig.savefig(out / name, dpi=110)
 
@@ -258,6 +369,7 @@ def write_report(out_dir: str | Path, gifs: dict[str, str] | None = None) -> Pat
         "excludes and highway-env turns into IDLE; the masked methods choose inside the mask (0 by "
         "construction).",
         "",
+        *runs_statistics_lines(methods),
     ]
     confirmed = {m: d["aggregate"]["confirm"] for m, d in methods.items() if "confirm" in d["aggregate"]}
     if confirmed:
@@ -301,6 +413,17 @@ def write_report(out_dir: str | Path, gifs: dict[str, str] | None = None) -> Pat
     for m, eps in convergence.items():
         lo, hi = stats.bootstrap_ci([float(e) for e in eps], seed=0)
         lines.append(f"| {LABELS[m]} | {np.mean(eps):.1f} [{lo:.1f}, {hi:.1f}] |")
+    if curves:
+        lines += [
+            "",
+            "## Learning curves over seeds",
+            "",
+            "Each run's training return and collision indicator per episode, smoothed as in Fig. 7 (not scaled); "
+            f"the line is the IQM over seeds at each episode, the band its 95 % bootstrap interval ({BOOTSTRAP_REPS} "
+            "samples of whole runs, seed 0).",
+            "",
+            "![learning curves](learning_curves.png)",
+        ]
     lines += ["", "## Speed vs safety", "", "![speed](speed_vs_safety.png)", ""]
     stress_rows = [(m, s) for m, d in methods.items() for p in d["per_seed"].values() for s in p.get("stress", [])]
     if stress_rows:

@@ -7,13 +7,19 @@ deterministic: the bootstrap draws come from ``numpy.random.default_rng(seed)``.
 Degenerate input is an error, never a silent NaN: empty arrays, NaN scores, ``n = 0`` trials, a
 non-positive window or an ``alpha`` outside (0, 1) raise :class:`ValueError` with a one-line message.
 The one exception is :func:`smooth`, which maps an empty curve to an empty curve.
+
+Why not the ``rliable`` library itself: rliable 1.2.0 needs ``arch < 8``, and ``arch`` 7.2 fails to import
+against pandas 3 (``TypeError: deprecate_kwarg() missing 1 required positional argument``), so rliable cannot
+be imported beside this project's pandas. Its few definitions used here (IQM, stratified bootstrap,
+performance profiles, optimality gap) are re-stated below with the same semantics.
 """
 
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from statistics import NormalDist
+from typing import Literal, NamedTuple
 
 import numpy as np
 from numpy.typing import ArrayLike
@@ -71,6 +77,19 @@ def iqm(x: ArrayLike) -> float:
     return trim_mean(x, IQM_TRIM)
 
 
+interquartile_mean = iqm
+"""The interquartile mean under its long name (same function as :func:`iqm`)."""
+
+
+def optimality_gap(x: ArrayLike, gamma: float = 1.0) -> float:
+    """Mean shortfall below the target ``gamma``: ``mean(max(gamma − x, 0))`` over all scores (rliable).
+
+    In the units of the scores; 0 when every run reaches ``gamma``. For a collision-free rate with
+    ``gamma = 1`` it is the mean collision rate: ``optimality_gap([1.0, 0.9, 0.7]) == 0.4 / 3``.
+    """
+    return float(np.mean(np.maximum(gamma - _scores(x), 0.0)))
+
+
 # --- interval estimates ----------------------------------------------------------------------------
 
 
@@ -106,6 +125,42 @@ def bootstrap_ci(
     return _percentile_interval(draws, alpha)
 
 
+def _task_matrix(scores_by_task: ArrayLike | Mapping[str, ArrayLike]) -> np.ndarray:
+    """``scores_by_task`` as a checked ``(runs × tasks)`` float matrix.
+
+    Accepts a ``(runs × tasks)`` array, a 1-D array (one task) or a mapping ``task → run scores``
+    (one column per task, in the mapping's order; every task needs the same number of runs).
+    """
+    if isinstance(scores_by_task, Mapping):
+        columns = {task: _scores(v, f"scores_by_task[{task!r}]", 1) for task, v in scores_by_task.items()}
+        if not columns:
+            raise ValueError("scores_by_task: no tasks given")
+        counts = {task: c.size for task, c in columns.items()}
+        if len(set(counts.values())) > 1:
+            raise ValueError(f"scores_by_task: every task needs the same number of runs, got {counts}")
+        return np.stack(list(columns.values()), axis=1)
+    arr = _scores(scores_by_task, "scores_by_task")
+    return arr[:, None] if arr.ndim == 1 else arr
+
+
+def stratified_resample(scores_by_task: ArrayLike | Mapping[str, ArrayLike], reps: int, seed: int = 0) -> np.ndarray:
+    """``reps`` stratified bootstrap samples of a ``(runs × tasks)`` score matrix: shape ``(reps, runs, tasks)``.
+
+    Agarwal et al. (2021), "Deep RL at the edge of the statistical precipice" (rliable's
+    ``StratifiedBootstrap``): each sample draws, for every task separately and independently, ``runs``
+    of that task's runs with replacement. A task's column only ever holds that task's own scores, and
+    every task keeps its weight, however the runs of the tasks differ. With one task it is the ordinary
+    bootstrap over runs. Deterministic for a given ``seed`` (``numpy.random.default_rng``).
+    """
+    arr = _task_matrix(scores_by_task)
+    if reps < 1:
+        raise ValueError(f"reps: must be at least 1, got {reps}")
+    runs, tasks = arr.shape
+    rng = np.random.default_rng(seed)
+    idx = rng.integers(0, runs, size=(reps, runs, tasks))
+    return arr[idx, np.arange(tasks)]
+
+
 def stratified_bootstrap_ci(
     scores: ArrayLike,
     statistic: Statistic = mean,
@@ -118,18 +173,158 @@ def stratified_bootstrap_ci(
 
     ``scores`` is ``(runs × tasks)`` (1-D is one task, identical to :func:`bootstrap_ci` in
     distribution). Each bootstrap sample draws, for every task column separately, ``runs`` row indices
-    with replacement, so every task keeps its weight in the statistic.
+    with replacement, so every task keeps its weight in the statistic. :func:`stratified_bootstrap` is the
+    same with the point estimate and a confidence ``level``.
     """
     arr = _scores(scores)
-    if arr.ndim == 1:
-        arr = arr[:, None]
     _check_bootstrap(alpha, reps)
-    runs, tasks = arr.shape
-    rng = np.random.default_rng(seed)
-    idx = rng.integers(0, runs, size=(reps, runs, tasks))
-    samples = arr[idx, np.arange(tasks)]  # (reps, runs, tasks)
+    samples = stratified_resample(arr, reps, seed)  # (reps, runs, tasks)
     draws = np.array([statistic(s) for s in samples])
     return _percentile_interval(draws, alpha)
+
+
+class Estimate(NamedTuple):
+    """A point estimate and its confidence interval, in the units of the scores."""
+
+    point: float
+    low: float
+    high: float
+
+
+def _check_level(level: float) -> None:
+    if not 0.0 < level < 1.0:
+        raise ValueError(f"level: must be in (0, 1), got {level}")
+
+
+def _percentiles(draws: np.ndarray, level: float) -> tuple[np.ndarray, np.ndarray]:
+    """The ``(1 − level)/2`` and ``(1 + level)/2`` percentiles of ``draws`` along axis 0."""
+    low, high = np.percentile(draws, [50 * (1 - level), 50 * (1 + level)], axis=0)
+    return low, high
+
+
+def stratified_bootstrap(
+    scores_by_task: ArrayLike | Mapping[str, ArrayLike],
+    statistic: Statistic = iqm,
+    reps: int = 2000,
+    seed: int = 0,
+    level: float = 0.95,
+) -> Estimate:
+    """``statistic`` of the runs and its stratified-bootstrap percentile interval at confidence ``level``.
+
+    Agarwal et al. (2021), rliable's practice: the ``reps`` samples of :func:`stratified_resample` (runs
+    drawn with replacement within each task independently), the aggregate ``statistic`` recomputed on
+    each ``(runs × tasks)`` sample, the interval between the ``(1 − level)/2`` and ``(1 + level)/2``
+    percentiles of those ``reps`` values. ``point`` is ``statistic`` of the scores themselves. E.g. two
+    runs scoring 20 and 24 on one task: ``point`` 22 (too few runs to trim), interval [20, 24] (a quarter of
+    the samples draw a run twice). Deterministic for a given ``seed``.
+    """
+    _check_level(level)
+    arr = _task_matrix(scores_by_task)
+    samples = stratified_resample(arr, reps, seed)
+    draws = np.array([statistic(s) for s in samples])
+    low, high = _percentiles(draws, level)
+    return Estimate(float(statistic(arr)), float(low), float(high))
+
+
+class Profile(NamedTuple):
+    """A performance profile: at each threshold, the fraction of runs scoring above it, with a band."""
+
+    thresholds: np.ndarray
+    fraction: np.ndarray
+    low: np.ndarray
+    high: np.ndarray
+
+
+_CHUNK_ELEMENTS = 4_000_000
+"""Largest intermediate array (elements) built at once by the vectorised bootstraps (≈ 32 MB of floats)."""
+
+
+def _fraction_above(samples: np.ndarray, thresholds: np.ndarray) -> np.ndarray:
+    """Per sample of ``(…, runs, tasks)``, the mean over tasks of the fraction of runs above each threshold."""
+    above = samples[..., None] > thresholds  # (…, runs, tasks, thresholds)
+    return above.mean(axis=-3).mean(axis=-2)
+
+
+def performance_profile(
+    scores_by_method: Mapping[str, ArrayLike | Mapping[str, ArrayLike]],
+    thresholds: ArrayLike,
+    reps: int = 2000,
+    seed: int = 0,
+    level: float = 0.95,
+) -> dict[str, Profile]:
+    """Each method's score distribution: the fraction of its runs with score ``> τ`` at each threshold ``τ``.
+
+    Agarwal et al. (2021), rliable's ``create_performance_profile``: per task the fraction of runs scoring
+    strictly above ``τ``, averaged over tasks. The band is the ``level`` percentile interval over ``reps``
+    stratified bootstrap samples (:func:`stratified_resample`, runs resampled within each task). Every method
+    draws from ``seed`` itself, so its band does not depend on which other methods are given. Scores of a
+    method are a ``(runs × tasks)`` array, a 1-D array (one task) or a mapping ``task → run scores``. E.g.
+    runs scoring 20, 22, 24, 26 give 0.75 at ``τ = 21`` and 0 at ``τ = 26``.
+    """
+    _check_level(level)
+    taus = _scores(thresholds, "thresholds", 1)
+    if reps < 1:
+        raise ValueError(f"reps: must be at least 1, got {reps}")
+    out: dict[str, Profile] = {}
+    for method, scores in scores_by_method.items():
+        arr = _task_matrix(scores)
+        samples = stratified_resample(arr, reps, seed)
+        chunk = max(1, _CHUNK_ELEMENTS // max(1, arr.size * taus.size))
+        draws = np.concatenate([_fraction_above(samples[i : i + chunk], taus) for i in range(0, reps, chunk)])
+        low, high = _percentiles(draws, level)
+        out[method] = Profile(taus.copy(), _fraction_above(arr, taus), low, high)
+    if not out:
+        raise ValueError("scores_by_method: no methods given")
+    return out
+
+
+def _trimmed_mean_axis(x: np.ndarray, proportion: float, axis: int) -> np.ndarray:
+    """:func:`trim_mean` along one axis (the same ``int(proportion · n)`` cut each side)."""
+    n = x.shape[axis]
+    cut = int(proportion * n)
+    return np.mean(np.take(np.sort(x, axis=axis), np.arange(cut, n - cut), axis=axis), axis=axis)
+
+
+class Band(NamedTuple):
+    """A curve over runs at each point (e.g. episode) and its pointwise confidence band."""
+
+    point: np.ndarray
+    low: np.ndarray
+    high: np.ndarray
+
+
+def curve_band(
+    curves: ArrayLike,
+    statistic: Literal["iqm", "mean"] = "iqm",
+    reps: int = 1000,
+    seed: int = 0,
+    level: float = 0.95,
+) -> Band:
+    """The IQM (or mean) over runs of ``curves`` (``runs × points``, e.g. a learning curve per seed) at each
+    point, with a pointwise percentile-bootstrap band at confidence ``level``.
+
+    A bootstrap sample draws whole runs with replacement (a run's curve stays together, as rliable's
+    learning-curve intervals); the statistic is taken over runs at every point. ``point[j]`` equals
+    ``iqm(curves[:, j])`` (or the mean). Deterministic for a given ``seed``.
+    """
+    if statistic not in ("iqm", "mean"):
+        raise ValueError(f"statistic: must be 'iqm' or 'mean', got {statistic!r}")
+    _check_level(level)
+    arr = _scores(curves, "curves")
+    if arr.ndim != 2:
+        raise ValueError(f"curves: expected 2-D (runs × points), got shape {arr.shape}")
+    if reps < 1:
+        raise ValueError(f"reps: must be at least 1, got {reps}")
+    proportion = IQM_TRIM if statistic == "iqm" else 0.0
+    runs = arr.shape[0]
+    rng = np.random.default_rng(seed)
+    idx = rng.integers(0, runs, size=(reps, runs))
+    chunk = max(1, _CHUNK_ELEMENTS // arr.size)
+    draws = np.concatenate(
+        [_trimmed_mean_axis(arr[idx[i : i + chunk]], proportion, axis=1) for i in range(0, reps, chunk)]
+    )
+    low, high = _percentiles(draws, level)
+    return Band(_trimmed_mean_axis(arr, proportion, axis=0), low, high)
 
 
 def probability_of_improvement(x: ArrayLike, y: ArrayLike) -> float:

@@ -222,36 +222,3 @@ def test_collision_context_is_none_without_a_shield() -> None:
     record = run_episode(env, fixed_policy("faster"), 0)
     env.close()
     assert record.collision and record.collision_context is None
-
-
-def test_break_culprits_name_the_vehicle_the_model_missed() -> None:
-    """Leave-one-out on a recorded break: the Linear car drawing level in the next lane is the culprit
-    (removing it alone makes SLOWER safe), not the leader 42 m ahead; a crash file is refused."""
-    from safelane.running.counterexamples import break_culprits
-
-    cx = load_counterexample(CRASHES / "cell00011-seed4000110013-invariant_break-step40.json")
-    result = break_culprits(cx)
-    assert result["fallback_confirmed"] and result["role"] == "adjacent_behind"
-    first = result["culprits"][0]
-    assert first["lane_vs_ego"] == [1, 1] and first["dx"][1] < 0 and 4 in first["unlocks"]
-    with pytest.raises(ConfigError, match="invariant breaks only"):
-        break_culprits(load_counterexample(CRASHES / "cell00018-seed4000180007-collision-step3.json"))
-
-
-@pytest.mark.parametrize(
-    ("dx", "lanes", "ego_changed", "role"),
-    [
-        ((5.0, -1.0), (0, 0), False, "overtook"),
-        ((30.0, 28.0), (2, 1), False, "came_from_two_lanes"),
-        ((-3.0, -0.1), (1, 1), False, "adjacent_behind"),
-        ((40.0, 35.0), (0, 0), False, "leader"),
-        ((-8.0, -6.0), (0, 0), False, "follower"),
-        ((20.0, 18.0), (2, 2), False, "two_lanes_away"),
-        ((10.0, 9.0), (0, -1), False, "moved_away"),
-        ((10.0, 9.0), (1, 0), True, "ego_changed_lane"),
-    ],
-)
-def test_culprit_roles(dx: tuple, lanes: tuple, ego_changed: bool, role: str) -> None:
-    from safelane.running.counterexamples import culprit_role
-
-    assert culprit_role(dx, lanes, ego_changed) == role

@@ -5,8 +5,8 @@ Making it longer (ρ = 0.5 s + one decision) should close that gap if it were th
 breaks; measured, it adds breaks instead (143 → 168 on 48 cells × 10 episodes, with the rule before
 ``shield.body_extent``).
 
-    .venv/bin/python examples/envelope_variants.py baseline --sample 48 --episodes 10 --out runs/hypo
-    .venv/bin/python examples/envelope_variants.py rho1.5 --sample 48 --episodes 10 --out runs/hypo
+    .venv/bin/python research/envelope_variants.py baseline --sample 48 --episodes 10 --out runs/hypo
+    .venv/bin/python research/envelope_variants.py rho1.5 --sample 48 --episodes 10 --out runs/hypo
 
 Runs in one process (the patched bound is a module attribute, so the cells must not go to workers).
 """

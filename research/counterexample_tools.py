@@ -165,7 +165,7 @@ def crash_partner(cx: Counterexample, simulator: str | None = None) -> dict[str,
     *starting* to reverse (highway-env lets IDM's speed go below zero in a jam) breaks its own driver
     model (docs/safety.md §6f); one already reversing keeps its speed under ``shield.reversing_leaders``."""
     from safelane.env.factory import make_env
-    from safelane.running.evaluation import collision_partner
+    from safelane.running.collisions import collision_partner
 
     if cx.kind != "collision":
         raise ConfigError(f"{cx.kind}: a crash partner is defined for collisions only")

@@ -21,7 +21,7 @@ from pathlib import Path
 from typing import Any
 
 import safelane.safety.shield as shield_module
-from safelane.running.falsify import load_campaign_spec, run_campaign
+from safelane.running.falsify.grid import load_campaign_spec, run_campaign
 
 VARIANTS = ("baseline", "rho1.5", "rho_inf", "cutin_now")
 

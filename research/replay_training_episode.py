@@ -24,7 +24,7 @@ import gymnasium as gym
 import yaml
 
 import safelane.running.training as training
-from safelane.running.evaluation import classify_collision
+from safelane.running.collisions import classify_collision
 
 NEAR = 80.0  # [m] vehicles logged around the ego, along the road
 

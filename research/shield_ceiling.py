@@ -20,7 +20,7 @@ import json
 import numpy as np
 
 from safelane.env.factory import make_env
-from safelane.running.foresight import overtaking_probe  # the heuristic described above (also --policy probe)
+from safelane.running.policies import overtaking_probe  # the heuristic described above (also --policy probe)
 
 
 def main() -> None:

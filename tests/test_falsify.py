@@ -12,7 +12,7 @@ import yaml
 
 from safelane.config import ConfigError
 from safelane.running.counterexamples import load_counterexample, replay
-from safelane.running.falsify import break_class, load_campaign_spec, read_spec_yaml, run_campaign
+from safelane.running.falsify.grid import break_class, load_campaign_spec, read_spec_yaml, run_campaign
 
 GRID = Path(__file__).resolve().parents[1] / "configs" / "falsify" / "grid.yaml"
 
@@ -100,7 +100,7 @@ def test_a_trained_agent_joins_the_campaign_where_its_interface_fits(tmp_path: P
     as one by one) and is recorded as skipped at another; a policy that is neither is one line."""
     from safelane.env.factory import make_env
     from safelane.running.evaluation import run_episodes
-    from safelane.running.falsify import cell_config
+    from safelane.running.falsify.grid import cell_config
     from safelane.running.training import load_policy, make_train_config, train
 
     run_dir = train(make_train_config(method="robust", episodes=1, seed=0, sets=["simulator=fast"]), tmp_path / "r")
@@ -216,7 +216,8 @@ def test_collision_context_says_where_a_crash_stands_against_the_promise(name: s
 def test_collision_context_is_none_without_a_shield() -> None:
     from safelane.config import load_config
     from safelane.env.factory import make_env
-    from safelane.running.evaluation import fixed_policy, run_episode
+    from safelane.running.evaluation import run_episode
+    from safelane.running.policies import fixed_policy
 
     env = make_env(load_config("fast", overrides={"simulator": "fast"}))
     record = run_episode(env, fixed_policy("faster"), 0)

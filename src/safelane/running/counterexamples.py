@@ -193,7 +193,7 @@ def replay(cx: Counterexample, simulator: str | None = None) -> ReplayResult:
     so the log still shows masks and gaps; the episode is the same.
     """
     from safelane.env.factory import make_env
-    from safelane.running.evaluation import classify_collision
+    from safelane.running.collisions import classify_collision
 
     cfg = cx.env_config(simulator)
     if cfg.shield.mode == "none":

@@ -41,7 +41,8 @@ from safelane.core.errors import ConfigError
 from safelane.core.snapshot import RoadSnapshot
 from safelane.env.factory import make_env
 from safelane.reporting import stats
-from safelane.running.evaluation import fixed_policy, run_episodes
+from safelane.running.evaluation import run_episodes
+from safelane.running.policies import fixed_policy
 
 TRAJECTORY_POLICIES: tuple[str, ...] = ("random", "faster", "robust_random")
 """Policies of the trajectory check, cycled over episodes (``robust_random``: random under the robust shield)."""

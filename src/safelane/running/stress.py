@@ -10,65 +10,18 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
-from importlib import resources
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
-
-from safelane.config import ConfigError, SafelaneConfig, load_config
+from safelane.config import ConfigError
 from safelane.core.errors import NotSupported
+from safelane.running.conditions import Condition, condition_config, load_conditions
 
 if TYPE_CHECKING:
     from safelane.running.training import RunConfig
 
 STRESS_SEED_BASE = 3_000_000_000
 """Stress episodes are reset with ``STRESS_SEED_BASE + k`` (never used in training or testing)."""
-
-
-class Condition(BaseModel):
-    """One traffic condition: an environment preset and overrides."""
-
-    model_config = ConfigDict(extra="forbid")
-
-    name: str
-    preset: str = "fast"
-    sets: dict[str, Any] = Field(default_factory=dict)
-    adversarial: bool = False
-
-
-def load_conditions(path: str | Path | None = None) -> list[Condition]:
-    """Read a conditions YAML list (default: the shipped suite)."""
-    source = Path(path) if path else Path(str(resources.files("safelane") / "presets" / "stress.yaml"))
-    try:
-        data = yaml.safe_load(source.read_text())
-    except OSError as err:
-        raise ConfigError(f"--conditions {source}: cannot read ({err.strerror})") from None
-    except yaml.YAMLError as err:
-        raise ConfigError(f"--conditions {source}: not valid YAML ({str(err).splitlines()[0]})") from None
-    if not isinstance(data, list):
-        raise ConfigError(f"--conditions {source}: expected a YAML list of conditions")
-    out = []
-    for i, item in enumerate(data):
-        try:
-            out.append(Condition.model_validate(item))
-        except ValidationError as err:
-            e = err.errors()[0]
-            loc = ".".join(str(p) for p in e["loc"])
-            raise ConfigError(f"--conditions {source}: item {i} {loc}: {e['msg']}") from None
-    return out
-
-
-def condition_config(cond: Condition, shield: str, override: bool, sets: list[str] | None = None) -> SafelaneConfig:
-    """The environment config of a condition, with the shield mode and extra ``--set`` applied on top."""
-    overrides: dict[str, Any] = dict(cond.sets)
-    overrides["shield.mode"] = shield
-    overrides["shield.override"] = override and shield != "none"
-    cfg = load_config(cond.preset, overrides=overrides)
-    if sets:
-        cfg = load_config(cond.preset, sets=sets, overrides=overrides)
-    return cfg
 
 
 def run_condition(

@@ -54,7 +54,7 @@ NEAR_CHANGE = 60.0
 
 class CampaignBase(BaseModel):
     """What every campaign names: the preset, simulator, shield, fixed ``--set`` overrides, the policies
-    (:class:`CampaignSpec` adds the grid, :class:`safelane.running.falsify_search.SearchSpec` a search)."""
+    (:class:`CampaignSpec` adds the grid, :class:`safelane.running.falsify.search.SearchSpec` a search)."""
 
     model_config = ConfigDict(extra="forbid")
 
@@ -72,7 +72,7 @@ class CampaignBase(BaseModel):
     @field_validator("policies")
     @classmethod
     def _policies(cls, policies: list[str]) -> list[str]:
-        from safelane.running.evaluation import FIXED_POLICIES
+        from safelane.running.policies import FIXED_POLICIES
 
         if not policies:
             raise ValueError("no policies; give at least one")
@@ -183,7 +183,7 @@ def break_class(result: Any) -> str:
 
 def _cell_policy(name: str, seed: int) -> Any:
     """A cell's policy: a fixed one (seeded) or a trained run's greedy policy (``run:RUN_DIR``)."""
-    from safelane.running.evaluation import fixed_policy
+    from safelane.running.policies import fixed_policy
 
     if name.startswith(RUN_PREFIX):
         from safelane.running.training import load_policy
@@ -323,7 +323,7 @@ def run_campaign(
 def write_summary(out: Path, spec: CampaignSpec) -> dict[str, Any]:
     """Rebuild cells.csv, summary.json and summary.md from the cell files."""
     from safelane.reporting import stats
-    from safelane.running.evaluation import COLLISION_CONTEXTS
+    from safelane.running.collisions import COLLISION_CONTEXTS
 
     records = [json.loads(p.read_text()) for p in sorted((out / "cells").glob("cell*.json"))]
     # The labels from the spec, not the files: cell files written before the label fix said
@@ -392,7 +392,7 @@ def _group_table(title: str, key: str, played: list[dict[str, Any]]) -> list[str
     """One table of the summary: every value of ``key`` (a cell's policy, or one axis's setting), with what
     issue 15 asks per condition — episodes, collisions with their kinds and against the promise, invariant
     breaks, fallback rate, speed."""
-    from safelane.running.evaluation import COLLISION_KINDS
+    from safelane.running.collisions import COLLISION_KINDS
 
     lines = [
         f"## By {title}",

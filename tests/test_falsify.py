@@ -95,6 +95,40 @@ def test_campaign_writes_cells_skips_what_the_simulator_lacks_and_resumes(tmp_pa
         run_campaign(load_campaign_spec(write_spec(tmp_path / "d.yaml", episodes=5)), out, workers=1)
 
 
+def test_the_traffic_seed_draws_fresh_episodes_and_zero_keeps_the_published_ones(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A campaign's traffic seed (``seed:``, ``safelane falsify --seed``): 0, the default, resets cell c's episodes
+    with FALSIFY_SEED_BASE + 10 000·c + k as always and leaves campaign.json and summary.json without it; seed 1
+    starts them 10¹⁰ further, plays other traffic and records the seed in both."""
+    import safelane.running.evaluation as evaluation
+    from safelane.running.conditions import TRAFFIC_SEED_STRIDE
+    from safelane.running.falsify.grid import CELL_SEED_STRIDE, FALSIFY_SEED_BASE
+
+    seeds: list[int] = []
+    real = evaluation.run_config
+
+    def spy(config: object, policy: object, episodes: int, seed: int, *args: object, **kwargs: object) -> object:
+        seeds.append(seed)
+        return real(config, policy, episodes, seed, *args, **kwargs)
+
+    monkeypatch.setattr(evaluation, "run_config", spy)
+    fields = {"axes": {"lanes": [{"env.lanes_count": 3}, {"env.lanes_count": 4}]}, "episodes": 2}
+    cells = {}
+    for seed in (0, 1):
+        seeds.clear()
+        spec = load_campaign_spec(write_spec(tmp_path / f"s{seed}.yaml", **fields), {"seed": seed})
+        out = tmp_path / f"out{seed}"
+        summary = run_campaign(spec, out, workers=1)
+        first = FALSIFY_SEED_BASE + seed * TRAFFIC_SEED_STRIDE
+        assert seeds == [first, first + CELL_SEED_STRIDE]
+        recorded = json.loads((out / "campaign.json").read_text())
+        assert recorded.get("seed", 0) == seed and summary.get("traffic_seed", 0) == seed
+        assert ("seed" in recorded) == ("traffic_seed" in summary) == (seed != 0)
+        cells[seed] = [json.loads(p.read_text())["mean_speed"] for p in sorted((out / "cells").glob("*.json"))]
+    assert cells[0] != cells[1]
+
+
 def test_a_trained_agent_joins_the_campaign_where_its_interface_fits(tmp_path: Path) -> None:
     """``run:RUN_DIR`` drives the cells at its own decision rate (on the fast batch, the same records
     as one by one) and is recorded as skipped at another; a policy that is neither is one line."""

@@ -73,6 +73,13 @@ TrainSimulatorOpt = Annotated[
 ]
 EpisodesOpt = Annotated[int, typer.Option("--episodes", "-n", help="Number of episodes (>= 1).")]
 SeedOpt = Annotated[int, typer.Option("--seed", help="Random seed: the same seed gives the same numbers.")]
+TrafficSeedOpt = Annotated[
+    int,
+    typer.Option(
+        "--seed",
+        help="Traffic seed: 0 plays the published episodes, another draws fresh traffic (recorded in the results).",
+    ),
+]
 JsonOpt = Annotated[bool, typer.Option("--json", help="Print one JSON object on stdout instead of a table.")]
 CounterexamplesOpt = Annotated[
     Path | None,

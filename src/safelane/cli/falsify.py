@@ -8,7 +8,7 @@ from typing import Annotated
 
 import typer
 
-from safelane.cli.common import AddressOpt, BackendOpt, JsonOpt, check_positive, cli_errors, units_progress
+from safelane.cli.common import AddressOpt, BackendOpt, JsonOpt, check_positive, check_seed, cli_errors, units_progress
 
 
 @cli_errors
@@ -26,6 +26,14 @@ def falsify(
         int | None, typer.Option("--episodes", help="Episodes per cell or search sample (overrides the spec).")
     ] = None,
     sample: Annotated[int | None, typer.Option("--sample", help="Play this many cells drawn at random.")] = None,
+    seed: Annotated[
+        int | None,
+        typer.Option(
+            "--seed",
+            help="Traffic seed (overrides the spec's; 0, the default, plays the published episodes; another draws "
+            "fresh traffic, recorded in campaign.json and summary.json).",
+        ),
+    ] = None,
     as_json: JsonOpt = False,
 ) -> None:
     """Drive the shield over a grid of traffic conditions, or search them (a spec with a search section:
@@ -36,7 +44,9 @@ def falsify(
     for option, value in (("--episodes", episodes), ("--sample", sample), ("--workers", workers)):
         if value is not None:
             check_positive(option, value)
-    spec = load_falsify_spec(spec_file, {"episodes": episodes, "sample": sample})
+    if seed is not None:
+        check_seed(seed)
+    spec = load_falsify_spec(spec_file, {"episodes": episodes, "sample": sample, "seed": seed})
     if isinstance(spec, SearchSpec):
         with units_progress(f"falsify search {spec.name} (samples)") as tick:
             summary = run_search(spec, out, backend=backend, workers=workers, address=address, progress=tick)

@@ -16,7 +16,9 @@ from safelane.cli.common import (
     SetOpt,
     ShieldOpt,
     SimulatorOpt,
+    TrafficSeedOpt,
     check_positive,
+    check_seed,
     cli_errors,
     episode_progress,
     print_json,
@@ -41,6 +43,7 @@ def stress(
     only: Annotated[list[str] | None, typer.Option("--only", help="Run only these condition names.")] = None,
     sets: SetOpt = None,
     counterexamples: CounterexamplesOpt = None,
+    seed: TrafficSeedOpt = 0,
     as_json: JsonOpt = False,
 ) -> None:
     """Run the stress suite: collisions (classified), 95 % CI, speed and interventions per condition."""
@@ -50,6 +53,7 @@ def stress(
 
     sets = with_simulator(sets, simulator)
     check_positive("--episodes", episodes)
+    check_seed(seed)
     conds = load_conditions(conditions)
     if only:
         names = {c.name for c in conds}
@@ -75,7 +79,7 @@ def stress(
         mode, override = shield or "robust", True
 
         def factory() -> Any:
-            return fixed_policy(policy, 0)
+            return fixed_policy(policy, seed)
 
     rows: list[dict[str, Any]] = []
     with episode_progress("stress (conditions)", len(conds)) as advance:
@@ -89,11 +93,15 @@ def stress(
             on_condition=lambda r: (rows.append(r), advance(len(rows) - 1, None)),
             run=run,
             counterexamples=counterexamples,
+            seed=seed,
         )
     if as_json:
         print_json(result)
         return
-    table = Table(title=f"stress: {run_dir or policy}, shield {result['shield']}, {episodes} episodes per condition")
+    seeded = f", traffic seed {seed}" if seed else ""
+    table = Table(
+        title=f"stress: {run_dir or policy}, shield {result['shield']}, {episodes} episodes per condition{seeded}"
+    )
     for col in ("condition", "collisions", "rate [95% CI]", "speed m/s", "interventions", "invariant breaks", "kinds"):
         table.add_column(col)
     for r in result["conditions"]:

@@ -15,6 +15,19 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from safelane.config import ConfigError, SafelaneConfig, load_config
 
+TRAFFIC_SEED_STRIDE = 10_000_000_000
+"""How far apart traffic seeds put a command's episode seeds: ``--seed N`` of ``safelane stress`` and ``safelane
+falsify`` shifts every episode seed by ``N × 10¹⁰``. Every seed base lies below 2³² and no command's episodes span
+10¹⁰ seeds, so seed 0 plays the published episodes and any other seed draws traffic no other seed plays."""
+
+
+def traffic_seed_base(base: int, seed: int) -> int:
+    """The first episode seed of a command whose episodes start at ``base`` under traffic seed ``seed``
+    (``base`` itself for seed 0). A negative ``seed`` is a one-line :class:`ConfigError`."""
+    if seed < 0:
+        raise ConfigError(f"--seed: must be >= 0 (got {seed})")
+    return base + seed * TRAFFIC_SEED_STRIDE
+
 
 class Condition(BaseModel):
     """One traffic condition: an environment preset and overrides."""

@@ -44,6 +44,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 
 from safelane.config import ConfigError, validation_message
 from safelane.core.files import atomic_write_text
+from safelane.running.conditions import traffic_seed_base
 from safelane.running.falsify.grid import (
     BREAK_CLASSES,
     CELL_SEED_STRIDE,
@@ -57,7 +58,8 @@ from safelane.running.falsify.grid import (
 )
 
 SEARCH_SEED_BASE = 4_200_000_000
-"""Search episodes are reset with ``SEARCH_SEED_BASE + 10 000·sample + k`` (never used elsewhere)."""
+"""Search episodes are reset with ``SEARCH_SEED_BASE + 10 000·sample + k`` (never used elsewhere); the spec's
+``seed`` ``N`` adds ``N ×`` :data:`~safelane.running.conditions.TRAFFIC_SEED_STRIDE`."""
 MAX_SAMPLES = 9_000
 """At most ``iterations × population`` samples, so that every episode seed stays below 2³²."""
 SEARCHABLE_KEYS: tuple[str, ...] = ("traffic.vehicles_behind",)
@@ -200,8 +202,8 @@ class SearchSpec(CampaignBase):
 def load_falsify_spec(path: str | Path, overrides: dict[str, Any] | None = None) -> CampaignSpec | SearchSpec:
     """A campaign YAML: a :class:`SearchSpec` if it has a ``search`` section, else a grid
     (:func:`safelane.running.falsify.grid.load_campaign_spec`). ``overrides``: ``episodes`` (episodes per
-    cell, or per sample of a search) and ``sample`` (grids only); None is ignored. Bad input: a
-    one-line ConfigError."""
+    cell, or per sample of a search), ``sample`` (grids only) and ``seed`` (the traffic seed); None is ignored.
+    Bad input: a one-line ConfigError."""
     path = Path(path)
     data = read_spec_yaml(path)
     if "search" not in data:
@@ -349,7 +351,7 @@ def _sample_task(out_dir: str, spec_json: str, cell_json: str) -> dict[str, Any]
     played = play_cell(
         spec,
         cell,
-        SEARCH_SEED_BASE + CELL_SEED_STRIDE * index,
+        traffic_seed_base(SEARCH_SEED_BASE, spec.seed) + CELL_SEED_STRIDE * index,
         spec.search.episodes_per_sample,
         out / "counterexamples",
         f"falsify search {spec.name} sample {index}",
@@ -531,6 +533,7 @@ def write_search_results(
         "simulator": spec.simulator,
         "policy": spec.policies[0],
         "seed": spec.search.seed,
+        **({"traffic_seed": spec.seed} if spec.seed else {}),  # absent: 0, the published episodes
         "iterations_done": len(rows),
         "iterations": rows,
         "final_distribution": dist,

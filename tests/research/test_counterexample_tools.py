@@ -44,7 +44,7 @@ def test_crash_partner_tells_a_reversing_car_from_one_inside_the_model() -> None
 
 
 def test_claim_campaign_break_files_keep_their_published_classification() -> None:
-    """The claim campaign's 2 842 break files under today's rule (docs/results/falsify/
+    """The claim campaign's 2 842 break files under the forecast-fallback rule (docs/results/falsify/
     grid_100k_behind_forecast_fallback/breaks), classified by research/repair_breaks.py --culprits
     (break_repairs.json: 133 outside the model, 2 709 in it): every 400th of them, sorted by name (8 files, one
     outside the model, five first-culprit roles), replays to a break at the same decision on the fast simulator
@@ -66,7 +66,7 @@ def test_claim_campaign_break_files_keep_their_published_classification() -> Non
 
 
 def test_retrained_agents_crashes_after_breaks_replay_with_a_partner_rolling_back() -> None:
-    """The agents' campaign with make demo's agents retrained under today's rule (docs/results/falsify/
+    """The agents' campaign with make demo's agents retrained under the forecast-fallback rule (docs/results/falsify/
     grid_agents_retrained: 1 065 crashes, 1 059 unsafe spawns, 6 after breaks, 0 from safe states): each of the 6
     crash files after a break replays to the same crash at the same decision on both simulators, and its partner is
     a car rolling backwards at the last decision (outside the driver model, docs/safety.md §6f)."""

@@ -338,8 +338,8 @@ def write_summary(out: Path, spec: CampaignSpec) -> dict[str, Any]:
     from safelane.running.collisions import COLLISION_CONTEXTS
 
     records = [json.loads(p.read_text()) for p in sorted((out / "cells").glob("cell*.json"))]
-    # The labels from the spec, not the files: cell files written before the label fix said
-    # "vehicles_density=5" for both 0.5 and 1.5.
+    # The labels from the spec, not the files: a cell file may carry an ambiguous label (some recorded
+    # "vehicles_density=5" for both 0.5 and 1.5).
     labels = {c["index"]: c["labels"] for c in spec.cells()}
     for r in records:
         r.update({f"axis_{k}": v for k, v in labels[r["index"]].items()})
@@ -403,7 +403,7 @@ def _per_decision(cells: list[dict[str, Any]], field: str) -> float | None:
 
 def _group_table(title: str, key: str, played: list[dict[str, Any]]) -> list[str]:
     """One table of the summary: every value of ``key`` (a cell's policy, or one axis's setting), with what
-    issue 15 asks per condition — episodes, collisions with their kinds and against the promise, invariant
+    a campaign reports per condition — episodes, collisions with their kinds and against the promise, invariant
     breaks, fallback rate, speed."""
     from safelane.running.collisions import COLLISION_KINDS
 

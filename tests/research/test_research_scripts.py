@@ -17,8 +17,7 @@ def test_spawn_foresight_drives_unsafe_spawns_with_perfect_foresight(tmp_path: P
     the IDM spawn of cell 1550 (3 decisions per second) — the first a crash a better fallback could have
     avoided, the second one no policy this search finds could."""
 
-    root = Path(__file__).resolve().parents[1]
-    campaign = root / "docs" / "results" / "falsify" / "grid_100k_behind_turning_in_nominal"
+    campaign = ROOT / "docs" / "results" / "falsify" / "grid_100k_behind_turning_in_nominal"
     out = tmp_path / "spawns.json"
     script = ROOT / "research" / "spawn_foresight.py"
     args = [sys.executable, str(script), str(campaign), "--sample", "2", "--workers", "1", "--out", str(out)]

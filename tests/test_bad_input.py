@@ -98,6 +98,8 @@ def test_not_a_run_dir(tmp_path: Path) -> None:
         (["evaluate", "--policy", "idle", "--set", "env.lanes_countt=3"], "env.lanes_countt"),
         (["evaluate", "--policy", "idle", "--set", "env.lanes_count=banana"], "env.lanes_count"),
         (["stress", "--policy", "random", "--only", "moonbase"], "moonbase"),
+        (["stress", "--policy", "random", "--seed", "-1"], "--seed: must be >= 0"),
+        (["falsify", "campaign.yaml", "--seed", "-2"], "--seed: must be >= 0"),
         (["reproduce", "--seeds", "0"], "--seeds"),
         (["reproduce", "--methods", "robust,ppo"], "--methods: got 'robust,ppo'; allowed: dqn, constrained"),
     ],

@@ -277,7 +277,7 @@ def test_allowed_edge_values_are_accepted(sets: list[str]) -> None:
 
 
 def test_every_stress_condition_is_still_valid() -> None:
-    from safelane.running.stress import condition_config, load_conditions
+    from safelane.running.conditions import condition_config, load_conditions
 
     for cond in load_conditions():
         condition_config(cond, "robust", True)

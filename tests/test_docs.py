@@ -148,9 +148,9 @@ def _specs() -> list[tuple[str, str]]:
 
 @pytest.mark.parametrize(("where", "body"), _specs(), ids=[where for where, _ in _specs()])
 def test_yaml_specs_validate(where: str, body: str, tmp_path: Path) -> None:
-    from safelane.running.falsify import load_campaign_spec
-    from safelane.running.falsify_search import SearchSpec, check_parameters, load_falsify_spec
-    from safelane.running.sweep import load_sweep_spec
+    from safelane.running.falsify.grid import load_campaign_spec
+    from safelane.running.falsify.search import SearchSpec, check_parameters, load_falsify_spec
+    from safelane.running.sweeps import load_sweep_spec
 
     data = yaml.safe_load(body)
     spec = tmp_path / "spec.yaml"

@@ -353,7 +353,7 @@ def test_compiled_states_equal_the_numpy_reference_bit_for_bit(simulator: str) -
     """The environment uses the numba forms of eq. 3 and the lanes state; the numpy functions stay as the
     readable specification and must give the same float32 numbers on every state of real episodes."""
     from safelane.env.observations import lane_state_compiled, paper_state_compiled
-    from safelane.running.evaluation import fixed_policy
+    from safelane.running.policies import fixed_policy
 
     env = make_env("fast", simulator=simulator, **{"env.lanes_count": 3})
     states = 0

@@ -13,17 +13,9 @@ import pytest
 
 from safelane.config import ConfigError, load_config
 from safelane.core.spaces import FASTER, IDLE, LANE_LEFT, LANE_RIGHT, SLOWER
-from safelane.running.evaluation import (
-    COLLISION_KINDS,
-    FIXED_POLICIES,
-    EpisodeRecord,
-    classify_collision,
-    collision_kind,
-    evaluate_fixed,
-    fixed_policy,
-    run_episodes,
-    summarize,
-)
+from safelane.running.collisions import COLLISION_KINDS, classify_collision, collision_kind
+from safelane.running.evaluation import EpisodeRecord, evaluate_fixed, run_episodes, summarize
+from safelane.running.policies import FIXED_POLICIES, fixed_policy
 
 MakeEnv = Callable[..., gym.Env]
 Scene = Callable[..., list[Any]]

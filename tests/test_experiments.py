@@ -9,9 +9,10 @@ import pytest
 
 from safelane.config import ConfigError
 from safelane.reporting.report import write_report
-from safelane.running.evaluation import fixed_policy
+from safelane.running.conditions import load_conditions
 from safelane.running.experiments import make_spec, run_dir_of, run_experiment
-from safelane.running.stress import load_conditions, run_condition
+from safelane.running.policies import fixed_policy
+from safelane.running.stress import run_condition
 
 TINY = ["env.duration=4", "env.vehicles_count=15"]
 
@@ -86,6 +87,35 @@ def test_stress_condition_record(tmp_path: Path) -> None:
     ):
         assert key in rec
     assert rec["episodes"] == 1 and rec["collision_rate_ci95"][0] == 0.0
+
+
+def test_stress_traffic_seed_draws_fresh_episodes_and_zero_keeps_the_published_ones(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """``safelane stress --seed N``: seed 0, the default, resets a condition's episodes with STRESS_SEED_BASE + k as
+    always; seed 1 starts them 10¹⁰ further and plays other traffic (the random policy seeded alike); the suite's
+    result records the seed; a negative seed is a one-line error."""
+    import safelane.running.evaluation as evaluation
+    from safelane.running.conditions import TRAFFIC_SEED_STRIDE
+    from safelane.running.stress import STRESS_SEED_BASE, run_stress
+
+    seeds: list[int] = []
+    real = evaluation.run_config
+
+    def spy(config: object, policy: object, episodes: int, seed: int, *args: object, **kwargs: object) -> object:
+        seeds.append(seed)
+        return real(config, policy, episodes, seed, *args, **kwargs)
+
+    monkeypatch.setattr(evaluation, "run_config", spy)
+    condition = [c for c in load_conditions() if c.name == "vehicles_behind_15"]
+    sets = ["env.duration=4", "simulator=fast"]
+    default = run_stress(lambda: fixed_policy("random", 0), 2, conditions=condition, sets=sets)
+    seeded = run_stress(lambda: fixed_policy("random", 1), 2, conditions=condition, sets=sets, seed=1)
+    assert seeds == [STRESS_SEED_BASE, STRESS_SEED_BASE + TRAFFIC_SEED_STRIDE]
+    assert (default["seed"], seeded["seed"]) == (0, 1)
+    assert default["conditions"][0]["mean_speed"] != seeded["conditions"][0]["mean_speed"]
+    with pytest.raises(ConfigError, match="--seed: must be >= 0"):
+        run_condition(condition[0], fixed_policy("idle"), 1, seed=-1)
 
 
 def test_stress_bad_conditions_file(tmp_path: Path) -> None:

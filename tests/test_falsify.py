@@ -12,7 +12,7 @@ import yaml
 
 from safelane.config import ConfigError
 from safelane.running.counterexamples import load_counterexample, replay
-from safelane.running.falsify import break_class, load_campaign_spec, read_spec_yaml, run_campaign
+from safelane.running.falsify.grid import break_class, load_campaign_spec, read_spec_yaml, run_campaign
 
 GRID = Path(__file__).resolve().parents[1] / "configs" / "falsify" / "grid.yaml"
 CLAIM = GRID.parent / "claim.yaml"
@@ -97,12 +97,46 @@ def test_campaign_writes_cells_skips_what_the_simulator_lacks_and_resumes(tmp_pa
         run_campaign(load_campaign_spec(write_spec(tmp_path / "d.yaml", episodes=5)), out, workers=1)
 
 
+def test_the_traffic_seed_draws_fresh_episodes_and_zero_keeps_the_published_ones(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A campaign's traffic seed (``seed:``, ``safelane falsify --seed``): 0, the default, resets cell c's episodes
+    with FALSIFY_SEED_BASE + 10 000·c + k as always and leaves campaign.json and summary.json without it; seed 1
+    starts them 10¹⁰ further, plays other traffic and records the seed in both."""
+    import safelane.running.evaluation as evaluation
+    from safelane.running.conditions import TRAFFIC_SEED_STRIDE
+    from safelane.running.falsify.grid import CELL_SEED_STRIDE, FALSIFY_SEED_BASE
+
+    seeds: list[int] = []
+    real = evaluation.run_config
+
+    def spy(config: object, policy: object, episodes: int, seed: int, *args: object, **kwargs: object) -> object:
+        seeds.append(seed)
+        return real(config, policy, episodes, seed, *args, **kwargs)
+
+    monkeypatch.setattr(evaluation, "run_config", spy)
+    fields = {"axes": {"lanes": [{"env.lanes_count": 3}, {"env.lanes_count": 4}]}, "episodes": 2}
+    cells = {}
+    for seed in (0, 1):
+        seeds.clear()
+        spec = load_campaign_spec(write_spec(tmp_path / f"s{seed}.yaml", **fields), {"seed": seed})
+        out = tmp_path / f"out{seed}"
+        summary = run_campaign(spec, out, workers=1)
+        first = FALSIFY_SEED_BASE + seed * TRAFFIC_SEED_STRIDE
+        assert seeds == [first, first + CELL_SEED_STRIDE]
+        recorded = json.loads((out / "campaign.json").read_text())
+        assert recorded.get("seed", 0) == seed and summary.get("traffic_seed", 0) == seed
+        assert ("seed" in recorded) == ("traffic_seed" in summary) == (seed != 0)
+        cells[seed] = [json.loads(p.read_text())["mean_speed"] for p in sorted((out / "cells").glob("*.json"))]
+    assert cells[0] != cells[1]
+
+
 def test_a_trained_agent_joins_the_campaign_where_its_interface_fits(tmp_path: Path) -> None:
     """``run:RUN_DIR`` drives the cells at its own decision rate (on the fast batch, the same records
     as one by one) and is recorded as skipped at another; a policy that is neither is one line."""
     from safelane.env.factory import make_env
     from safelane.running.evaluation import run_episodes
-    from safelane.running.falsify import cell_config
+    from safelane.running.falsify.grid import cell_config
     from safelane.running.training import load_policy, make_train_config, train
 
     run_dir = train(make_train_config(method="robust", episodes=1, seed=0, sets=["simulator=fast"]), tmp_path / "r")
@@ -216,42 +250,10 @@ def test_collision_context_says_where_a_crash_stands_against_the_promise(name: s
 def test_collision_context_is_none_without_a_shield() -> None:
     from safelane.config import load_config
     from safelane.env.factory import make_env
-    from safelane.running.evaluation import fixed_policy, run_episode
+    from safelane.running.evaluation import run_episode
+    from safelane.running.policies import fixed_policy
 
     env = make_env(load_config("fast", overrides={"simulator": "fast"}))
     record = run_episode(env, fixed_policy("faster"), 0)
     env.close()
     assert record.collision and record.collision_context is None
-
-
-def test_break_culprits_name_the_vehicle_the_model_missed() -> None:
-    """Leave-one-out on a recorded break: the Linear car drawing level in the next lane is the culprit
-    (removing it alone makes SLOWER safe), not the leader 42 m ahead; a crash file is refused."""
-    from safelane.running.counterexamples import break_culprits
-
-    cx = load_counterexample(CRASHES / "cell00011-seed4000110013-invariant_break-step40.json")
-    result = break_culprits(cx)
-    assert result["fallback_confirmed"] and result["role"] == "adjacent_behind"
-    first = result["culprits"][0]
-    assert first["lane_vs_ego"] == [1, 1] and first["dx"][1] < 0 and 4 in first["unlocks"]
-    with pytest.raises(ConfigError, match="invariant breaks only"):
-        break_culprits(load_counterexample(CRASHES / "cell00018-seed4000180007-collision-step3.json"))
-
-
-@pytest.mark.parametrize(
-    ("dx", "lanes", "ego_changed", "role"),
-    [
-        ((5.0, -1.0), (0, 0), False, "overtook"),
-        ((30.0, 28.0), (2, 1), False, "came_from_two_lanes"),
-        ((-3.0, -0.1), (1, 1), False, "adjacent_behind"),
-        ((40.0, 35.0), (0, 0), False, "leader"),
-        ((-8.0, -6.0), (0, 0), False, "follower"),
-        ((20.0, 18.0), (2, 2), False, "two_lanes_away"),
-        ((10.0, 9.0), (0, -1), False, "moved_away"),
-        ((10.0, 9.0), (1, 0), True, "ego_changed_lane"),
-    ],
-)
-def test_culprit_roles(dx: tuple, lanes: tuple, ego_changed: bool, role: str) -> None:
-    from safelane.running.counterexamples import culprit_role
-
-    assert culprit_role(dx, lanes, ego_changed) == role

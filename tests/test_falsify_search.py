@@ -16,8 +16,8 @@ from typer.testing import CliRunner
 from safelane.cli import app
 from safelane.config import ConfigError
 from safelane.running.counterexamples import load_counterexample, replay
-from safelane.running.falsify import CampaignSpec
-from safelane.running.falsify_search import (
+from safelane.running.falsify.grid import CampaignSpec
+from safelane.running.falsify.search import (
     SearchSettings,
     SearchSpec,
     cem_update,

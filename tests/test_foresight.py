@@ -154,26 +154,3 @@ def test_ceiling_cli_json(tmp_path: Path) -> None:
     assert result.exit_code == 0, result.output
     table = json.loads(result.output)
     assert table["rates"]["1"]["foresight"]["episodes"] == 1
-
-
-def test_spawn_foresight_drives_unsafe_spawns_with_perfect_foresight(tmp_path: Path) -> None:
-    """examples/spawn_foresight.py on two crashes from unsafe spawns of the claim's grid (tests/fixtures/spawns):
-    the unmasked planner drives the Defensive drivers' spawn of cell 1100 through without a crash and crashes in
-    the IDM spawn of cell 1550 (3 decisions per second) — the first a crash a better fallback could have
-    avoided, the second one no policy this search finds could."""
-    import subprocess
-    import sys
-
-    root = Path(__file__).resolve().parents[1]
-    campaign = root / "tests" / "fixtures" / "spawns"  # two rows of a campaign's crash_classes.json and their files
-    out = tmp_path / "spawns.json"
-    script = root / "examples" / "spawn_foresight.py"
-    args = [sys.executable, str(script), str(campaign), "--sample", "2", "--workers", "1", "--out", str(out)]
-    subprocess.run(args, check=True, capture_output=True)
-    summary = json.loads(out.read_text())
-    assert summary["started_unsafe_crashes"] == 2 and summary["replayed"] == 2
-    rows = {r["file"].split("-")[0]: r for r in summary["rows"]}
-    assert set(rows) == {"cell01100", "cell01550"}
-    assert not rows["cell01100"]["foresight_collision"] and rows["cell01100"]["drivers"] == "DefensiveVehicle"
-    assert rows["cell01550"]["foresight_collision"] and rows["cell01550"]["rate"] == 3
-    assert (summary["foresight_crashed"], summary["foresight_survived"]) == (1, 1)

@@ -8,7 +8,8 @@ from pathlib import Path
 import yaml
 from typer.testing import CliRunner
 
-from safelane.cli import app, training_simulator
+from safelane.cli import app
+from safelane.cli.common import training_simulator
 
 runner = CliRunner()
 TINY = ["--set", "env.duration=3", "--set", "env.vehicles_count=10", "--checkpoint-every", "1"]

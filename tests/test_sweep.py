@@ -19,7 +19,7 @@ import yaml
 from safelane.agents.dqn import load_agent_config
 from safelane.config import ConfigError
 from safelane.running.engine import TaskFailure, run_tasks
-from safelane.running.sweep import SweepSpec, load_sweep_spec, run_sweep
+from safelane.running.sweeps import SweepSpec, load_sweep_spec, run_sweep
 
 TINY = ["simulator=fast", "env.duration=3", "env.vehicles_count=10"]
 SWEEPS = Path(__file__).resolve().parents[1] / "configs" / "sweeps"
@@ -234,7 +234,7 @@ def test_tpe_proposals_are_seeded_typed_and_steered_by_the_constraints(tmp_path:
     """No training: the study alone. The same seed gives the same points; each key gets its kind of
     value; told "faster below, infeasible under 1 m", the model-based proposals gather near 1 m."""
     pytest.importorskip("optuna")
-    from safelane.running.tpe import TpeSearch
+    from safelane.running.sweeps.tpe import TpeSearch
 
     space = {
         "agent.lr": {"loguniform": [1e-4, 1e-2]},

@@ -28,7 +28,7 @@ from safelane.env.factory import make_env
 from safelane.env.observations import paper_state_compiled as paper_state
 from safelane.env.vector import make_vector_env
 from safelane.reporting.plots import read_metrics
-from safelane.running.evaluation import fixed_policy
+from safelane.running.policies import fixed_policy
 from safelane.running.training import METRICS_FILE, make_train_config, train
 
 BENCH_PRESET = "fast"

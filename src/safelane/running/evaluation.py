@@ -1,21 +1,18 @@
 """Run policies on the environment and summarise what happened: collisions, speed, shield activity.
 
-A policy is any callable ``policy(obs, info) -> action index`` (0..4, :mod:`safelane.core.spaces`).
-:func:`run_episodes` plays seeded episodes (episode ``i`` is reset with ``seed + i``) and returns one
-:class:`EpisodeRecord` per episode; :func:`summarize` turns records into one JSON-ready dict. The CLI's
-``safelane evaluate`` is a thin layer over :func:`evaluate_fixed`.
+A policy is any callable ``policy(obs, info) -> action index`` (0..4, :mod:`safelane.core.spaces`;
+:mod:`safelane.running.policies` has those that need no training). :func:`run_episodes` plays seeded
+episodes (episode ``i`` is reset with ``seed + i``) and returns one :class:`EpisodeRecord` per episode;
+:func:`summarize` turns records into one JSON-ready dict. The CLI's ``safelane evaluate`` is a thin layer over
+:func:`evaluate_fixed`.
 
-Collisions are classified from geometry at the moment of impact (:func:`classify_collision`):
-``ego_hit_front`` (the ego drove into a vehicle ahead in its lane), ``rear_ended`` (a vehicle behind
-drove into the ego) or ``side`` (lateral contact, i.e. during a lane change). highway-env marks both
-vehicles ``crashed`` but records nobody's fault, and after the impact it pushes the two bodies apart
-and lets the ego slide on, so the geometry at the end of a decision step is unreliable;
-the simulator records the positions of the physics frame around the impact in the road snapshot instead.
+Collisions are classified from geometry at the moment of impact
+(:func:`safelane.running.collisions.classify_collision`) and against the rule's promise
+(:data:`safelane.running.collisions.COLLISION_CONTEXTS`).
 """
 
 from __future__ import annotations
 
-import math
 import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
@@ -27,165 +24,12 @@ import numpy as np
 
 from safelane.config import ConfigError, SafelaneConfig
 from safelane.core.snapshot import RoadSnapshot
-from safelane.core.spaces import ACTION_NAMES, FASTER, IDLE, N_ACTIONS, SLOWER
+from safelane.core.spaces import ACTION_NAMES, N_ACTIONS
+from safelane.running.collisions import COLLISION_CONTEXTS, COLLISION_KINDS, classify_collision
+from safelane.running.policies import Policy, fixed_policy
 
 if TYPE_CHECKING:
     from safelane.env.fast_batch import FastBatch
-
-Policy = Callable[[np.ndarray, dict[str, Any]], int]
-"""``policy(obs, info) -> action index`` (0..4: LANE_LEFT, IDLE, LANE_RIGHT, FASTER, SLOWER)."""
-
-FIXED_POLICIES: tuple[str, ...] = ("random", "idle", "faster", "slower", "probe")
-"""Policies that need no training (``safelane evaluate --policy NAME``); ``probe`` is the FASTER-first
-overtaking heuristic that reads the road and the shield's mask
-(:func:`safelane.running.foresight.overtaking_probe`)."""
-
-COLLISION_KINDS: tuple[str, ...] = ("ego_hit_front", "rear_ended", "side")
-"""Every value :func:`classify_collision` returns for a crashed ego."""
-
-
-# --- fixed policies ------------------------------------------------------------------------------
-
-
-def fixed_policy(name: str, seed: int = 0) -> Policy:
-    """A policy that needs no training: ``random`` (uniform over the 5 actions, its own RNG seeded
-    with ``seed``), ``idle``, ``faster`` or ``slower`` (always that action) — these ignore masks: run
-    them with ``shield.override=true`` to have the shield replace unsafe actions — or ``probe`` (the
-    overtaking heuristic, which chooses among the mask's actions)."""
-    if name == "random":
-        rng = np.random.default_rng(seed)
-
-        def random_policy(obs: np.ndarray, info: dict[str, Any]) -> int:
-            return int(rng.integers(N_ACTIONS))
-
-        return random_policy
-    if name == "probe":
-        return ProbePolicy()
-    constant = {"idle": IDLE, "faster": FASTER, "slower": SLOWER}
-    if name not in constant:
-        raise ConfigError(f"policy: unknown policy '{name}'; allowed: {', '.join(FIXED_POLICIES)}")
-    return ConstantPolicy(constant[name])
-
-
-class ConstantPolicy:
-    """Always ``action`` (0–4), whatever the state; one environment or a batch (:class:`BatchPolicy`)."""
-
-    def __init__(self, action: int) -> None:
-        self.action = int(action)
-
-    def __call__(self, obs: np.ndarray, info: dict[str, Any]) -> int:
-        return self.action
-
-    def batch(self, obs: np.ndarray, infos: list[dict[str, Any]]) -> np.ndarray:
-        """``action`` for every row."""
-        return np.full(len(obs), self.action, dtype=np.int64)
-
-
-class ProbePolicy:
-    """The overtaking probe (:func:`safelane.running.foresight.overtaking_probe`) as a :class:`BatchPolicy`;
-    it reads each state's snapshot (``needs_snapshot``: a batch runner puts it in every ``info``)."""
-
-    needs_snapshot = True
-
-    def __call__(self, obs: np.ndarray, info: dict[str, Any]) -> int:
-        from safelane.running.foresight import overtaking_probe
-
-        return overtaking_probe(obs, info)
-
-    def batch(self, obs: np.ndarray, infos: list[dict[str, Any]]) -> np.ndarray:
-        """The probe's action for every row."""
-        return np.array([self(row, info) for row, info in zip(obs, infos, strict=True)], dtype=np.int64)
-
-
-# --- collision classification -----------------------------------------------------------------
-
-
-def collision_kind(
-    before: tuple[float, float],
-    after: tuple[float, float],
-    half_length: float,
-    half_width: float,
-) -> str:
-    """Classify a contact from the other vehicle's lane-local offset (δs, δr) [m] relative to the ego,
-    one physics frame before (``before``) and at (``after``) the impact; ``half_length`` /
-    ``half_width`` [m] are the sums of the two bodies' longitudinal / lateral half-extents.
-
-    The face that was hit is the axis along which the bodies came to overlap last. Entry times into
-    overlap are linear over the frame; an axis already overlapping before the frame (or not closing,
-    which a rotated body allows) entered "before". Lateral overlap first (or together) means a
-    front/rear contact: ``ego_hit_front`` if the other was ahead (δs > 0), else ``rear_ended``;
-    otherwise ``side``.
-    """
-
-    def entry(d0: float, d1: float, half: float) -> float:
-        closing = abs(d0) - abs(d1)
-        if abs(d0) < half or closing <= 0:
-            return -math.inf
-        return (abs(d0) - half) / closing
-
-    (s0, r0), (s1, r1) = before, after
-    if entry(r0, r1, half_width) > entry(s0, s1, half_length):
-        return "side"
-    return "ego_hit_front" if s0 > 0 else "rear_ended"
-
-
-def _extents(length: float, width: float, heading: float) -> tuple[float, float]:
-    """(longitudinal, lateral) half-extents [m] of a ``length`` × ``width`` body at ``heading`` [rad]
-    relative to the lane."""
-    c, s = abs(math.cos(heading)), abs(math.sin(heading))
-    return length / 2 * c + width / 2 * s, length / 2 * s + width / 2 * c
-
-
-def _lane_coordinates(snap: RoadSnapshot, lane: int, position: np.ndarray) -> tuple[float, float]:
-    """(along, across) [m] of ``position`` in ``lane``'s own frame (highway-env's ``local_coordinates``)."""
-    start = snap.lane_origin + snap.lane_lateral * (lane * snap.lane_width)
-    delta = position - start
-    return float(np.dot(delta, snap.lane_direction)), float(np.dot(delta, snap.lane_lateral))
-
-
-def collision_partner(snap: RoadSnapshot) -> int | None:
-    """The index of the body the ego crashed into: the crashed body nearest to the ego at the impact (the
-    impact frame the simulator recorded, else the current geometry); None if the ego has not crashed or no
-    partner is found."""
-    if not snap.ego_crashed:
-        return None
-    e = snap.ego
-    after = snap.impact_after if snap.impact_before is not None and snap.impact_after is not None else snap.position
-    candidates = [i for i in range(min(snap.n, after.shape[0])) if i != e and snap.crashed[i]]
-    if not candidates:
-        return None
-    # The first of equally near partners, as Python's min() picks.
-    return min(candidates, key=lambda i: float(np.hypot(*(after[i] - after[e]))))
-
-
-def classify_collision(snap: RoadSnapshot) -> str | None:
-    """The kind of the ego's crash (one of :data:`COLLISION_KINDS`), or None if it has not crashed.
-
-    The partner is the crashed body nearest to the ego at the impact; offsets are taken in the ego
-    lane's local coordinates (the road is straight along x). Uses the impact frame the simulator
-    recorded in the snapshot when there is one, else the current geometry.
-    """
-    if not snap.ego_crashed:
-        return None
-    e = snap.ego
-    if snap.impact_before is not None and snap.impact_after is not None:
-        before, after = snap.impact_before, snap.impact_after
-    else:
-        before = after = snap.position
-    other = collision_partner(snap)
-    if other is None:
-        return "side"  # no partner found (not produced by highway-env's straight roads)
-    lane = int(snap.lane[e])
-
-    def offset(positions: np.ndarray) -> tuple[float, float]:
-        s_e, r_e = _lane_coordinates(snap, lane, positions[e])
-        s_o, r_o = _lane_coordinates(snap, lane, positions[other])
-        return s_o - s_e, r_o - r_e
-
-    lane_heading = math.atan2(snap.lane_direction[1], snap.lane_direction[0])
-    ego_long, ego_lat = _extents(snap.length[e], snap.width[e], float(snap.heading[e]) - lane_heading)
-    other_long, other_lat = _extents(snap.length[other], snap.width[other], float(snap.heading[other]) - lane_heading)
-    return collision_kind(offset(before), offset(after), ego_long + other_long, ego_lat + other_lat)
 
 
 # --- episodes -----------------------------------------------------------------------------------
@@ -215,7 +59,7 @@ class EpisodeRecord:
     had one and an allowed action was taken: counterexamples to the rule's invariant."""
     collision_context: str | None = None
     """Where a collision stands with respect to the shield's promise (None without a collision or a
-    shield): see :data:`COLLISION_CONTEXTS`."""
+    shield): see :data:`~safelane.running.collisions.COLLISION_CONTEXTS`."""
     chosen_actions: list[int] = field(default_factory=list, repr=False)
     """The action the policy chose at each decision (before any override): with the seed and the
     configuration, enough to replay the episode (:mod:`safelane.running.counterexamples`). Not in
@@ -227,16 +71,6 @@ class EpisodeRecord:
         del data["chosen_actions"]
         return data
 
-
-COLLISION_CONTEXTS: tuple[str, ...] = ("started_unsafe", "after_break", "from_safe_state", "after_fallback")
-"""A shielded episode's collision, against the rule's promise (after an allowed action in a state with a
-safe action, the next state has one again, while the others stay inside the model): ``started_unsafe``
-— no state of the episode before the crash had a safe action (outside the promise: the scene was
-spawned inside a crash); ``after_break`` — an invariant break came first (the hole is that break);
-``from_safe_state`` — the action executed was allowed in a state with a safe action (a hole of the
-rule itself; an unsafe choice the override replaced counts here: issue 15's seventh session found such a
-crash filed as ``after_fallback``); ``after_fallback`` — anything else (an unsafe action executed without
-override, or a crash right after a fallback state that no break led to)."""
 
 ProgressCallback = Callable[[int, EpisodeRecord], None]
 """Called as ``progress(episode_index, record)`` after each episode."""
@@ -569,7 +403,7 @@ def evaluate_fixed(
     progress: ProgressCallback | None = None,
     counterexamples: str | Path | None = None,
 ) -> dict[str, Any]:
-    """Evaluate a fixed policy (:data:`FIXED_POLICIES`) on ``config``: the summary dict of
+    """Evaluate a fixed policy (:data:`~safelane.running.policies.FIXED_POLICIES`) on ``config``: the summary dict of
     :func:`summarize` with ``policy``, ``shield``, ``override``, ``preset``, ``env_id``, ``simulator``,
     ``neighbour_search``, ``seed`` and ``wall_time_s`` added. With a shield the config should set
     ``shield.override`` (a fixed policy cannot read the mask). ``counterexamples``: a directory where

@@ -86,8 +86,9 @@ def run_dir_of(out_dir: Path, method: str, seed: int) -> Path:
     return out_dir / "runs" / f"{method}-s{seed}"
 
 
-def _task(out_dir: str, spec_json: str, method: str, seed: int) -> dict[str, Any]:
-    """Train (or resume) one run and evaluate it; returns its evaluation record (also on disk)."""
+def run_task(out_dir: str, spec_json: str, method: str, seed: int) -> dict[str, Any]:
+    """The engine's task of an experiment: train (or resume) the (``method``, ``seed``) run of the experiment
+    ``spec_json`` under ``out_dir`` and evaluate it; returns its evaluation record (also on disk)."""
     import torch
 
     from safelane.reporting.plots import read_metrics
@@ -239,7 +240,7 @@ def run_experiment(
 
     # Absolute: a Ray worker does not run in this directory.
     run_tasks(
-        _task,
+        run_task,
         [(str(out.resolve()), spec_json, m, s) for m, s in tasks],
         backend=backend,
         workers=workers,

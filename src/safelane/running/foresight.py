@@ -10,8 +10,8 @@ first action(s). Unmasked, it bounds the speed any collision-free policy reaches
 below: a deeper search could only drive faster); restricted to the nominal or robust mask at every
 node of the search, it gives that shield's real ceiling.
 
-:func:`overtaking_probe` is the hand-written FASTER-first heuristic the README used before (it reads
-the snapshot and the mask); :func:`ceiling_table` runs the comparison at several decision rates.
+:func:`~safelane.running.policies.overtaking_probe` is a hand-written FASTER-first heuristic (it reads the
+snapshot and the mask); :func:`ceiling_table` runs the comparison at several decision rates.
 """
 
 from __future__ import annotations
@@ -24,14 +24,14 @@ import numpy as np
 
 from safelane.config import ConfigError, SafelaneConfig, apply_overrides, build_config, config_to_dict
 from safelane.core.snapshot import RoadSnapshot
-from safelane.core.spaces import ACTION_NAMES, FASTER, IDLE, LANE_LEFT, LANE_RIGHT, N_ACTIONS
+from safelane.core.spaces import ACTION_NAMES, N_ACTIONS
 from safelane.env.factory import make_env
+from safelane.running.policies import overtaking_probe, snap_of
 from safelane.safety.shield import SafetyShield
 from safelane.sim.fast.env import FastHighwayEnv, SimState
 
 PlannerMask = Literal["none", "nominal", "robust"]
 PLANNER_MASKS: tuple[str, ...] = ("none", "nominal", "robust")
-FREE_ROAD = 1e9  # [m] the room reported for a lane with no car ahead
 
 
 def fast_simulator_of(env: Any) -> FastHighwayEnv:
@@ -181,38 +181,6 @@ def diverse_beam(children: list[Node], beam: int) -> list[Node]:
         taken = set(chosen)
         chosen += [i for i in range(len(ranked)) if i not in taken][: beam - len(chosen)]
     return [ranked[i] for i in sorted(chosen)]
-
-
-def snap_of(info: dict[str, Any]) -> RoadSnapshot:
-    """The road snapshot of a step's ``info``."""
-    return info["snapshot"]
-
-
-def room_ahead(snap: RoadSnapshot, lane: int) -> float:
-    """Distance [m] along the road from the ego to the next car ahead in ``lane`` (FREE_ROAD if none)."""
-    others = snap.others()
-    dx = snap.position[others, 0] - snap.position[snap.ego, 0]
-    ahead = dx[(snap.lane[others] == lane) & (dx > 0)]
-    return float(ahead.min()) if ahead.size else FREE_ROAD
-
-
-def overtaking_probe(obs: np.ndarray, info: dict[str, Any]) -> int:
-    """The FASTER-first overtaking heuristic (reads the snapshot and the shield's mask in ``info``):
-    FASTER when allowed; else an allowed lane change into a lane whose next car is > 10 m farther than
-    in the ego's lane (the farthest); else IDLE; else the last allowed action (SLOWER first)."""
-    snap: RoadSnapshot = info["snapshot"]
-    mask = info.get("action_mask", np.ones(N_ACTIONS, dtype=bool))
-    if mask[FASTER]:
-        return FASTER
-    lane = int(snap.lane[snap.ego])
-    own = room_ahead(snap, lane)
-    options = [(room_ahead(snap, lane + (-1 if a == LANE_LEFT else 1)), a) for a in (LANE_LEFT, LANE_RIGHT) if mask[a]]
-    better = [o for o in options if o[0] > own + 10.0]
-    if better:
-        return max(better)[1]
-    if mask[IDLE]:
-        return IDLE
-    return int(np.flatnonzero(mask)[-1])
 
 
 def at_rate(cfg: SafelaneConfig, rate: int) -> SafelaneConfig:

@@ -24,7 +24,7 @@ from safelane.config import (
     parse_set,
 )
 from safelane.env.factory import check_same_interface, env_interface
-from safelane.running.stress import Condition
+from safelane.running.conditions import Condition
 from safelane.running.training import RunConfig, load_run_config
 
 SHIELD_MODES: tuple[str, ...] = get_args(ShieldConfig.model_fields["mode"].annotation)

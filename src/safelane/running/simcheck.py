@@ -41,7 +41,8 @@ from safelane.core.errors import ConfigError
 from safelane.core.snapshot import RoadSnapshot
 from safelane.env.factory import make_env
 from safelane.reporting import stats
-from safelane.running.evaluation import fixed_policy, run_episodes
+from safelane.running.evaluation import run_episodes
+from safelane.running.policies import fixed_policy
 
 TRAJECTORY_POLICIES: tuple[str, ...] = ("random", "faster", "robust_random")
 """Policies of the trajectory check, cycled over episodes (``robust_random``: random under the robust shield)."""
@@ -275,8 +276,8 @@ def _run_unit(cfg_data: dict[str, Any], seed: int, tol: float, unit: tuple[Any, 
 def _normalised(header: Any) -> Any:
     """A record header with its configuration re-validated, so that a record written before a config
     key was added still matches the same configuration now — with the value the key had then
-    (:func:`safelane.config.recorded_config`): a record made under an earlier shield rule is refused
-    rather than resumed under today's."""
+    (:func:`safelane.config.recorded_config`): a record made under another shield rule is refused
+    rather than resumed under the current one."""
     if not isinstance(header, dict) or not isinstance(header.get("config"), dict):
         return header
     try:

@@ -10,65 +10,19 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
-from importlib import resources
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
-
-from safelane.config import ConfigError, SafelaneConfig, load_config
+from safelane.config import ConfigError
 from safelane.core.errors import NotSupported
+from safelane.running.conditions import Condition, condition_config, load_conditions, traffic_seed_base
 
 if TYPE_CHECKING:
     from safelane.running.training import RunConfig
 
 STRESS_SEED_BASE = 3_000_000_000
-"""Stress episodes are reset with ``STRESS_SEED_BASE + k`` (never used in training or testing)."""
-
-
-class Condition(BaseModel):
-    """One traffic condition: an environment preset and overrides."""
-
-    model_config = ConfigDict(extra="forbid")
-
-    name: str
-    preset: str = "fast"
-    sets: dict[str, Any] = Field(default_factory=dict)
-    adversarial: bool = False
-
-
-def load_conditions(path: str | Path | None = None) -> list[Condition]:
-    """Read a conditions YAML list (default: the shipped suite)."""
-    source = Path(path) if path else Path(str(resources.files("safelane") / "presets" / "stress.yaml"))
-    try:
-        data = yaml.safe_load(source.read_text())
-    except OSError as err:
-        raise ConfigError(f"--conditions {source}: cannot read ({err.strerror})") from None
-    except yaml.YAMLError as err:
-        raise ConfigError(f"--conditions {source}: not valid YAML ({str(err).splitlines()[0]})") from None
-    if not isinstance(data, list):
-        raise ConfigError(f"--conditions {source}: expected a YAML list of conditions")
-    out = []
-    for i, item in enumerate(data):
-        try:
-            out.append(Condition.model_validate(item))
-        except ValidationError as err:
-            e = err.errors()[0]
-            loc = ".".join(str(p) for p in e["loc"])
-            raise ConfigError(f"--conditions {source}: item {i} {loc}: {e['msg']}") from None
-    return out
-
-
-def condition_config(cond: Condition, shield: str, override: bool, sets: list[str] | None = None) -> SafelaneConfig:
-    """The environment config of a condition, with the shield mode and extra ``--set`` applied on top."""
-    overrides: dict[str, Any] = dict(cond.sets)
-    overrides["shield.mode"] = shield
-    overrides["shield.override"] = override and shield != "none"
-    cfg = load_config(cond.preset, overrides=overrides)
-    if sets:
-        cfg = load_config(cond.preset, sets=sets, overrides=overrides)
-    return cfg
+"""Stress episodes are reset with ``STRESS_SEED_BASE + k`` (never used in training or testing); traffic seed ``N``
+adds ``N ×`` :data:`~safelane.running.conditions.TRAFFIC_SEED_STRIDE`."""
 
 
 def run_condition(
@@ -81,8 +35,12 @@ def run_condition(
     run: RunConfig | None = None,
     progress: Callable[[int, Any], None] | None = None,
     counterexamples: Path | None = None,
+    seed: int = 0,
 ) -> dict[str, Any]:
     """Evaluate ``policy`` on one condition; the per-condition JSON record of ``safelane stress``.
+
+    ``seed``: the traffic seed (0: the published episodes, ``STRESS_SEED_BASE + k``; another draws fresh
+    traffic, :func:`~safelane.running.conditions.traffic_seed_base`).
 
     ``counterexamples``: a directory where every crash and invariant break is saved as a replayable
     file (:mod:`safelane.running.counterexamples`), named after the condition.
@@ -102,6 +60,7 @@ def run_condition(
         condition = matches[0]
     if episodes < 1:
         raise ConfigError(f"--episodes: must be >= 1 (got {episodes})")
+    first_seed = traffic_seed_base(STRESS_SEED_BASE, seed)
     if run is not None:
         from safelane.running.runs import run_env_config
 
@@ -109,7 +68,7 @@ def run_condition(
     else:
         cfg = condition_config(condition, shield or "robust", bool(override), sets)
     start = time.perf_counter()
-    records = run_config(cfg, policy, episodes, STRESS_SEED_BASE, progress)
+    records = run_config(cfg, policy, episodes, first_seed, progress)
     s = summarize(records)
     files: list[Path] = []
     if counterexamples is not None:
@@ -146,9 +105,11 @@ def run_stress(
     on_condition: Callable[[dict[str, Any]], None] | None = None,
     run: RunConfig | None = None,
     counterexamples: Path | None = None,
+    seed: int = 0,
 ) -> dict[str, Any]:
     """Run every condition; ``policy_factory`` gives a fresh policy per condition (same seeds each);
-    ``counterexamples``: save every crash and invariant break there (:func:`run_condition`).
+    ``counterexamples``: save every crash and invariant break there; ``seed``: the traffic seed, recorded in
+    the result (:func:`run_condition`).
 
     Conditions that cannot run as asked — a trained ``run``'s policy in another decision rate, state or
     action set, a traffic option the chosen simulator does not model — are recorded as
@@ -158,7 +119,15 @@ def run_stress(
     for cond in conditions or load_conditions():
         try:
             rec = run_condition(
-                cond, policy_factory(), episodes, shield, override, sets, run=run, counterexamples=counterexamples
+                cond,
+                policy_factory(),
+                episodes,
+                shield,
+                override,
+                sets,
+                run=run,
+                counterexamples=counterexamples,
+                seed=seed,
             )
         except NotSupported as err:
             rec = {"name": cond.name, "adversarial": cond.adversarial, "skipped": str(err)}
@@ -166,4 +135,10 @@ def run_stress(
         if on_condition:
             on_condition(rec)
     mode = shield if shield is not None or run is None else run.env.shield.mode
-    return {"shield": mode, "override": override, "episodes_per_condition": episodes, "conditions": results}
+    return {
+        "shield": mode,
+        "override": override,
+        "episodes_per_condition": episodes,
+        "seed": seed,
+        "conditions": results,
+    }

@@ -10,7 +10,7 @@ rejects at 1 % between two blocks of the *same* simulator — its real size. Blo
 ``10 000 000 + k · step + [0, n)``: block 0 is highway-env's sample, block 10 (step 1 000 000) the fast
 simulator's.
 
-    .venv/bin/python examples/seed_ranges.py --preset paper --policies faster idle --blocks 100 \
+    .venv/bin/python research/seed_ranges.py --preset paper --policies faster idle --blocks 100 \
         --out docs/results/simcheck/seed-blocks-paper.json
 """
 

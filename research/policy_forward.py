@@ -1,7 +1,7 @@
 """How much one greedy decision's forward pass costs: the numba kernel (safelane.agents.inference), torch,
 and a numpy ``@`` forward, one row and a batch of 64, measured side by side in one process.
 
-    .venv/bin/python examples/policy_forward.py
+    .venv/bin/python research/policy_forward.py
 
 Prints JSON: median µs per call of each (single-threaded torch, as in training).
 """

@@ -6,7 +6,7 @@ the state it was taken in, whether the next state was a fallback (no safe action
 decision and the vehicles within 80 m before it (all read from the road snapshots), and writes the last
 ``--keep`` decisions as JSON with the crash classification.
 
-    python examples/replay_training_episode.py runs/beyond3/runs/robust-s2 --episode 199 --out crash.json
+    python research/replay_training_episode.py runs/beyond3/runs/robust-s2 --episode 199 --out crash.json
 
 Re-training costs as much as the original run up to N. ``--work DIR`` keeps the re-trained run there
 (with checkpoints every 50 episodes), so a second replay of a later episode resumes instead.
@@ -24,7 +24,7 @@ import gymnasium as gym
 import yaml
 
 import safelane.running.training as training
-from safelane.running.evaluation import classify_collision
+from safelane.running.collisions import classify_collision
 
 NEAR = 80.0  # [m] vehicles logged around the ego, along the road
 

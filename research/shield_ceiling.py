@@ -5,7 +5,7 @@ Each decision: FASTER when the mask allows it; else a lane change allowed by the
 next car ahead is more than 10 m farther than in the ego's lane (the farther one); else IDLE; else the
 last allowed action (SLOWER first). Episodes are reset with seeds ``seed … seed + episodes − 1``.
 
-    python examples/shield_ceiling.py --shield robust --episodes 10 --policy-frequency 2
+    python research/shield_ceiling.py --shield robust --episodes 10 --policy-frequency 2
 
 prints one JSON line: collisions, mean speed over all decisions [m/s], fallback rate (per decision).
 ``--policy-frequency F`` runs F decisions per second with physics at 5·F Hz (the ``fast`` preset has
@@ -20,7 +20,7 @@ import json
 import numpy as np
 
 from safelane.env.factory import make_env
-from safelane.running.foresight import overtaking_probe  # the heuristic described above (also --policy probe)
+from safelane.running.policies import overtaking_probe  # the heuristic described above (also --policy probe)
 
 
 def main() -> None:

@@ -1,6 +1,6 @@
 """A cross-entropy-method (CEM) search for the traffic conditions where the shield breaks its invariant most often.
 
-The grid campaign (:mod:`safelane.running.falsify`) plays every combination of a few settings. A
+The grid campaign (:mod:`safelane.running.falsify.grid`) plays every combination of a few settings. A
 search spec (:class:`SearchSpec`; the shipped one is ``configs/falsify/search_cem.yaml``) instead names
 traffic *parameters* — continuous ranges (``env.vehicles_density``, ``env.ego_spacing``; ``integer:
 true`` for counts such as ``traffic.vehicles_behind``) and categorical choices (``env.lanes_count``, a
@@ -9,7 +9,7 @@ distribution toward the conditions with the most invariant breaks per 1 000 deci
 
 1. draw ``population`` conditions from the current distribution (a Gaussian per range, clipped to it;
    a categorical distribution per choice), seeded by ``(search.seed, iteration)``;
-2. play each one as a campaign cell (:func:`safelane.running.falsify.play_cell`: ``episodes_per_sample``
+2. play each one as a campaign cell (:func:`safelane.running.falsify.grid.play_cell`: ``episodes_per_sample``
    episodes, every crash and break saved as a replayable file, breaks classed);
 3. rank the samples by the objective (ties: more collisions first, then the earlier sample), keep the
    best ``elite_fraction`` (:func:`select_elite`) and refit the distribution to them (:func:`cem_update`:
@@ -44,7 +44,8 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 
 from safelane.config import ConfigError, validation_message
 from safelane.core.files import atomic_write_text
-from safelane.running.falsify import (
+from safelane.running.conditions import traffic_seed_base
+from safelane.running.falsify.grid import (
     BREAK_CLASSES,
     CELL_SEED_STRIDE,
     CampaignBase,
@@ -57,7 +58,8 @@ from safelane.running.falsify import (
 )
 
 SEARCH_SEED_BASE = 4_200_000_000
-"""Search episodes are reset with ``SEARCH_SEED_BASE + 10 000·sample + k`` (never used elsewhere)."""
+"""Search episodes are reset with ``SEARCH_SEED_BASE + 10 000·sample + k`` (never used elsewhere); the spec's
+``seed`` ``N`` adds ``N ×`` :data:`~safelane.running.conditions.TRAFFIC_SEED_STRIDE`."""
 MAX_SAMPLES = 9_000
 """At most ``iterations × population`` samples, so that every episode seed stays below 2³²."""
 SEARCHABLE_KEYS: tuple[str, ...] = ("traffic.vehicles_behind",)
@@ -199,9 +201,9 @@ class SearchSpec(CampaignBase):
 
 def load_falsify_spec(path: str | Path, overrides: dict[str, Any] | None = None) -> CampaignSpec | SearchSpec:
     """A campaign YAML: a :class:`SearchSpec` if it has a ``search`` section, else a grid
-    (:func:`safelane.running.falsify.load_campaign_spec`). ``overrides``: ``episodes`` (episodes per
-    cell, or per sample of a search) and ``sample`` (grids only); None is ignored. Bad input: a
-    one-line ConfigError."""
+    (:func:`safelane.running.falsify.grid.load_campaign_spec`). ``overrides``: ``episodes`` (episodes per
+    cell, or per sample of a search), ``sample`` (grids only) and ``seed`` (the traffic seed); None is ignored.
+    Bad input: a one-line ConfigError."""
     path = Path(path)
     data = read_spec_yaml(path)
     if "search" not in data:
@@ -349,7 +351,7 @@ def _sample_task(out_dir: str, spec_json: str, cell_json: str) -> dict[str, Any]
     played = play_cell(
         spec,
         cell,
-        SEARCH_SEED_BASE + CELL_SEED_STRIDE * index,
+        traffic_seed_base(SEARCH_SEED_BASE, spec.seed) + CELL_SEED_STRIDE * index,
         spec.search.episodes_per_sample,
         out / "counterexamples",
         f"falsify search {spec.name} sample {index}",
@@ -507,7 +509,7 @@ def write_search_results(
 ) -> dict[str, Any]:
     """Write search.json, samples.csv and summary.md (atomically) from the iterations so far; returns
     search.json's dict (totals, the iterations, the final distribution, the best samples)."""
-    from safelane.running.evaluation import COLLISION_CONTEXTS
+    from safelane.running.collisions import COLLISION_CONTEXTS
 
     live = [r for r in records if "skipped" not in r]
     kinds: dict[str, int] = {}
@@ -531,6 +533,7 @@ def write_search_results(
         "simulator": spec.simulator,
         "policy": spec.policies[0],
         "seed": spec.search.seed,
+        **({"traffic_seed": spec.seed} if spec.seed else {}),  # absent: 0, the published episodes
         "iterations_done": len(rows),
         "iterations": rows,
         "final_distribution": dist,

@@ -32,10 +32,10 @@ from typing import Any
 
 from safelane.config import ConfigError
 from safelane.core.files import atomic_write_text
-from safelane.running.sweep import (
-    SweepSpec,
-    _eval_path,
-    _failure_path,
+from safelane.running.sweeps.spec import SweepSpec
+from safelane.running.sweeps.trials import (
+    eval_path,
+    failure_path,
     pooled_metrics,
     run_trial_tasks,
     trial_dir,
@@ -158,7 +158,7 @@ def trial_outcome(out: Path, spec: SweepSpec, index: int, params: dict[str, Any]
 def _seed_settled(out: Path, spec: SweepSpec, index: int, seed: int) -> bool:
     """A TPE trial's seed is settled when it has a result or a failure of any kind: once told, a
     failure stays (see the module docstring)."""
-    return _eval_path(out, spec, index, seed).is_file() or _failure_path(trial_dir(out, index), seed).is_file()
+    return eval_path(out, spec, index, seed).is_file() or failure_path(trial_dir(out, index), seed).is_file()
 
 
 def _stored_params(out: Path, index: int) -> dict[str, Any] | None:

@@ -1,6 +1,6 @@
 """Could any policy have avoided a campaign's crashes from unsafe spawns? Replay each spawn with perfect foresight.
 
-A crash counted ``started_unsafe`` (``examples/classify_crashes.py``) happened in an episode whose every state
+A crash counted ``started_unsafe`` (``research/classify_crashes.py``) happened in an episode whose every state
 before the crash had no safe action: the rule promises nothing there. This asks whether the spawn itself was
 hopeless: for each such crash file (or a random sample), the same configuration and reset seed are played by the
 unmasked :class:`~safelane.running.foresight.ForesightPlanner` — it knows exactly what every other driver will do
@@ -9,7 +9,7 @@ collision-free one. A spawn it cannot drive through without a crash is one this 
 bound of the search only, not of what any policy could do: the forecast-ranked shield of docs/safety.md §6q drives
 96 of the claim campaign's 165 such spawns through; one it survives is a crash a better fallback choice might avoid.
 
-    .venv/bin/python examples/spawn_foresight.py runs/falsify/grid_100k_behind_turning_in_nominal \
+    .venv/bin/python research/spawn_foresight.py runs/falsify/grid_100k_behind_turning_in_nominal \
         --sample 60 --out runs/falsify/grid_100k_behind_turning_in_nominal/spawn_foresight.json
 """
 

@@ -5,8 +5,8 @@ Making it longer (ρ = 0.5 s + one decision) should close that gap if it were th
 breaks; measured, it adds breaks instead (143 → 168 on 48 cells × 10 episodes, with the rule before
 ``shield.body_extent``).
 
-    .venv/bin/python examples/envelope_variants.py baseline --sample 48 --episodes 10 --out runs/hypo
-    .venv/bin/python examples/envelope_variants.py rho1.5 --sample 48 --episodes 10 --out runs/hypo
+    .venv/bin/python research/envelope_variants.py baseline --sample 48 --episodes 10 --out runs/hypo
+    .venv/bin/python research/envelope_variants.py rho1.5 --sample 48 --episodes 10 --out runs/hypo
 
 Runs in one process (the patched bound is a module attribute, so the cells must not go to workers).
 """
@@ -21,7 +21,7 @@ from pathlib import Path
 from typing import Any
 
 import safelane.safety.shield as shield_module
-from safelane.running.falsify import load_campaign_spec, run_campaign
+from safelane.running.falsify.grid import load_campaign_spec, run_campaign
 
 VARIANTS = ("baseline", "rho1.5", "rho_inf", "cutin_now")
 

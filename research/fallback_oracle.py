@@ -3,7 +3,7 @@ made by the exact future.
 
 The fast simulator's drivers are deterministic after reset, so a copy of its state
 (:meth:`safelane.sim.fast.env.FastHighwayEnv.get_state`) shows what every car will really do. Each crash file that
-``examples/classify_crashes.py`` counted ``started_unsafe`` is played again (the recorded policy actions, then IDLE
+``research/classify_crashes.py`` counted ``started_unsafe`` is played again (the recorded policy actions, then IDLE
 to the episode's end) under its recorded rule, except that in every fallback state the allowed action is chosen
 with that knowledge: each candidate action is tried on a copy, followed by holding it, braking, IDLE or FASTER for
 ``--depth`` decisions, and is *clear* when one of these continuations is collision-free. The shield's own least-bad
@@ -14,7 +14,7 @@ a change already under way goes on), which is what a forecast that keeps every c
 A bound of this search (its depth, its continuations), not of every policy; a ceiling for a ranking of the
 fallback's choice, measured on the crashes only — docs/safety.md §6r shows why such replays overstate a change.
 
-    .venv/bin/python examples/fallback_oracle.py docs/results/falsify/grid_100k_behind_forecast_fallback \
+    .venv/bin/python research/fallback_oracle.py docs/results/falsify/grid_100k_behind_forecast_fallback \
         --pool --out runs/fallback_oracle_pool.json
 """
 

@@ -9,7 +9,7 @@ in the next lane that the ego overtakes, a slow leader ahead of it (so that movi
 rates, speeds and gaps; for every such car that decides to change into the ego's lane within the decision, its
 decision frame against both times (``before_any_speed_time`` must be 0).
 
-    .venv/bin/python examples/turn_in_timing.py --cases 300 --seed 0 [--all-drivers]
+    .venv/bin/python research/turn_in_timing.py --cases 300 --seed 0 [--all-drivers]
 """
 
 from __future__ import annotations

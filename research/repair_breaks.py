@@ -1,10 +1,10 @@
 """How many of a campaign's invariant breaks lie outside the rule's model: every break file of a folder
 (``safelane falsify``'s ``counterexamples/``, or a random sample of them) replayed to its state and
-repaired (:func:`safelane.running.counterexamples.repair_break`: every vehicle that rolled back beyond the
+repaired (:func:`research.counterexample_tools.repair_break`: every vehicle that rolled back beyond the
 model in the break's decision put back inside it). A break whose repaired state has a safe action needed
 the roll-back (outside the model); the rest are holes of the rule.
 
-    .venv/bin/python examples/repair_breaks.py runs/falsify/grid/counterexamples --sample 600 \
+    .venv/bin/python research/repair_breaks.py runs/falsify/grid/counterexamples --sample 600 \
         --out runs/falsify/grid/break_repairs.json [--culprits]
 """
 
@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 from collections import Counter
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
@@ -19,9 +20,12 @@ from typing import Any
 
 import numpy as np
 
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the repository root, for `research.*`
+
+from research.counterexample_tools import break_culprits, repair_break
 from safelane.core.errors import ConfigError
 from safelane.core.files import atomic_write_text
-from safelane.running.counterexamples import break_culprits, counterexample_files, load_counterexample, repair_break
+from safelane.running.counterexamples import counterexample_files, load_counterexample
 
 QUANTILES = (0.0, 0.1, 0.25, 0.5, 0.75, 0.9, 1.0)
 """The quantiles of the breaks' best gap [m] the summary prints."""
@@ -29,7 +33,7 @@ QUANTILES = (0.0, 0.1, 0.25, 0.5, 0.75, 0.9, 1.0)
 
 def repair(path: str, culprits: bool = False) -> dict[str, Any]:
     """One break file: its name, :func:`repair_break`'s verdict and, with ``culprits``, the role of its first
-    leave-one-out culprit (:func:`~safelane.running.counterexamples.break_culprits`)."""
+    leave-one-out culprit (:func:`~research.counterexample_tools.break_culprits`)."""
     cx = load_counterexample(path)
     row: dict[str, Any] = {"file": Path(path).name, **repair_break(cx)}
     if culprits:

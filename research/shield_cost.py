@@ -5,7 +5,7 @@ recorded decision: the numpy ``evaluate``, ``evaluate_compiled`` (from a RoadSta
 path (``compute_result``: the state built inside the kernel) and ``road_state``. Then splits a shielded
 decision of the fast simulator into simulator (everything below the shield) and shield.
 
-    PYTHONPATH=src python examples/shield_cost.py --simulator fast --episodes 3
+    PYTHONPATH=src python research/shield_cost.py --simulator fast --episodes 3
 
 ``--rate P/S`` plays P decisions per second on S Hz physics; ``--compare OPTION[,OPTION…]`` also times the
 compiled kernel with those rule options (``Dynamics`` fields, e.g. ``full_horizon``) all off and all on, side

@@ -40,9 +40,11 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 
 from safelane.config import ConfigError, validation_message
 from safelane.core.files import atomic_write_text
+from safelane.running.conditions import traffic_seed_base
 
 FALSIFY_SEED_BASE = 4_000_000_000
-"""Campaign episodes are reset with ``FALSIFY_SEED_BASE + 10 000·cell + k`` (never used elsewhere)."""
+"""Campaign episodes are reset with ``FALSIFY_SEED_BASE + 10 000·cell + k`` (never used elsewhere); the spec's
+``seed`` ``N`` adds ``N ×`` :data:`~safelane.running.conditions.TRAFFIC_SEED_STRIDE`."""
 CELL_SEED_STRIDE = 10_000
 RUN_PREFIX = "run:"
 """A campaign policy ``run:RUN_DIR`` is the greedy policy of that trained run (its cells at another
@@ -54,7 +56,7 @@ NEAR_CHANGE = 60.0
 
 class CampaignBase(BaseModel):
     """What every campaign names: the preset, simulator, shield, fixed ``--set`` overrides, the policies
-    (:class:`CampaignSpec` adds the grid, :class:`safelane.running.falsify_search.SearchSpec` a search)."""
+    (:class:`CampaignSpec` adds the grid, :class:`safelane.running.falsify.search.SearchSpec` a search)."""
 
     model_config = ConfigDict(extra="forbid")
 
@@ -68,11 +70,16 @@ class CampaignBase(BaseModel):
         default_factory=lambda: ["random", "faster"],
         description="Fixed policies (random, faster, idle, slower, probe) and trained agents as 'run:RUN_DIR'.",
     )
+    seed: int = Field(
+        0,
+        ge=0,
+        description="Traffic seed: 0 plays the published episodes, another draws fresh traffic (--seed).",
+    )
 
     @field_validator("policies")
     @classmethod
     def _policies(cls, policies: list[str]) -> list[str]:
-        from safelane.running.evaluation import FIXED_POLICIES
+        from safelane.running.policies import FIXED_POLICIES
 
         if not policies:
             raise ValueError("no policies; give at least one")
@@ -80,6 +87,11 @@ class CampaignBase(BaseModel):
             if not policy.startswith(RUN_PREFIX) and policy not in FIXED_POLICIES:
                 raise ValueError(f"unknown policy '{policy}'; allowed: {', '.join(FIXED_POLICIES)} or run:RUN_DIR")
         return policies
+
+    def record_json(self) -> str:
+        """The spec as ``campaign.json`` keeps it: ``seed`` only when it is not 0, so a folder of a seed-0
+        campaign whose record predates the field resumes."""
+        return self.model_dump_json(indent=1, exclude={"seed"} if self.seed == 0 else None)
 
 
 class CampaignSpec(CampaignBase):
@@ -183,7 +195,7 @@ def break_class(result: Any) -> str:
 
 def _cell_policy(name: str, seed: int) -> Any:
     """A cell's policy: a fixed one (seeded) or a trained run's greedy policy (``run:RUN_DIR``)."""
-    from safelane.running.evaluation import fixed_policy
+    from safelane.running.policies import fixed_policy
 
     if name.startswith(RUN_PREFIX):
         from safelane.running.training import load_policy
@@ -202,7 +214,7 @@ def _cell_task(out_dir: str, spec_json: str, index: int) -> dict[str, Any]:
     cell = spec.cells()[index]
     out = Path(out_dir)
     base = {"index": index, "policy": cell["policy"], **{f"axis_{k}": v for k, v in cell["labels"].items()}}
-    seed = FALSIFY_SEED_BASE + CELL_SEED_STRIDE * index
+    seed = traffic_seed_base(FALSIFY_SEED_BASE, spec.seed) + CELL_SEED_STRIDE * index
     played = play_cell(
         spec, cell, seed, spec.episodes, out / "counterexamples", f"falsify cell {index}", f"cell{index:05d}-"
     )
@@ -269,7 +281,7 @@ def open_campaign(spec: CampaignBase, out_dir: str | Path, backend: str) -> Path
     check_backend(backend)
     check_policies(spec)
     out = Path(out_dir)
-    claim_out_dir(out, spec.model_dump_json(indent=1), "campaign.json", "campaign")
+    claim_out_dir(out, spec.record_json(), "campaign.json", "campaign")
     return out
 
 
@@ -323,11 +335,11 @@ def run_campaign(
 def write_summary(out: Path, spec: CampaignSpec) -> dict[str, Any]:
     """Rebuild cells.csv, summary.json and summary.md from the cell files."""
     from safelane.reporting import stats
-    from safelane.running.evaluation import COLLISION_CONTEXTS
+    from safelane.running.collisions import COLLISION_CONTEXTS
 
     records = [json.loads(p.read_text()) for p in sorted((out / "cells").glob("cell*.json"))]
-    # The labels from the spec, not the files: cell files written before the label fix said
-    # "vehicles_density=5" for both 0.5 and 1.5.
+    # The labels from the spec, not the files: a cell file may carry an ambiguous label (some recorded
+    # "vehicles_density=5" for both 0.5 and 1.5).
     labels = {c["index"]: c["labels"] for c in spec.cells()}
     for r in records:
         r.update({f"axis_{k}": v for k, v in labels[r["index"]].items()})
@@ -362,6 +374,7 @@ def write_summary(out: Path, spec: CampaignSpec) -> dict[str, Any]:
         "cells": len(spec.cells()),
         "cells_done": len(records),
         "cells_skipped": len(records) - len(played),
+        **({"traffic_seed": spec.seed} if spec.seed else {}),  # absent: 0, the published episodes
         "episodes": episodes,
         "decisions": decisions,
         "collisions": collisions,
@@ -390,9 +403,9 @@ def _per_decision(cells: list[dict[str, Any]], field: str) -> float | None:
 
 def _group_table(title: str, key: str, played: list[dict[str, Any]]) -> list[str]:
     """One table of the summary: every value of ``key`` (a cell's policy, or one axis's setting), with what
-    issue 15 asks per condition — episodes, collisions with their kinds and against the promise, invariant
+    a campaign reports per condition — episodes, collisions with their kinds and against the promise, invariant
     breaks, fallback rate, speed."""
-    from safelane.running.evaluation import COLLISION_KINDS
+    from safelane.running.collisions import COLLISION_KINDS
 
     lines = [
         f"## By {title}",

@@ -1,15 +1,15 @@
 """What a change of the rule does to a campaign's invariant breaks: every break file of a folder (``safelane
 falsify``'s ``counterexamples/``, or a random sample of them) replayed to its state — no safe action under the
 rule it ran with — and judged with some of the rule's Dynamics fields changed
-(:func:`safelane.running.counterexamples.break_under_options`): how many then have a safe action, by the role
+(:func:`research.counterexample_tools.break_under_options`): how many then have a safe action, by the role
 of each break's first leave-one-out culprit. A diagnostic of where breaks come from, not a proof that a change is
 sound (a change can only be judged by a campaign and by highway-env).
 
-    .venv/bin/python examples/breaks_under_options.py runs/falsify/grid_100k_behind/counterexamples \
+    .venv/bin/python research/breaks_under_options.py runs/falsify/grid_100k_behind/counterexamples \
         --sample 200 --set follower_reaction=0 --out runs/falsify/grid_100k_behind/breaks_under_options.json
 
 ``--carried-followers`` instead judges each break with the follower bounds of the decision before it carried over
-(:func:`safelane.running.counterexamples.break_with_carried_followers`, docs/safety.md §6s, §6t): those of the
+(:func:`research.counterexample_tools.break_with_carried_followers`, docs/safety.md §6s, §6t): those of the
 cars the ego was already in front of in their lane, or with ``--all-followers`` those of every car behind.
 """
 
@@ -17,21 +17,23 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 from collections import Counter
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 from typing import Any
 
-from safelane.core.errors import ConfigError
-from safelane.core.files import atomic_write_text
-from safelane.running.counterexamples import (
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the repository root, for `research.*`
+
+from research.counterexample_tools import (
     break_culprits,
     break_under_options,
     break_with_carried_followers,
     check_rule_options,
-    counterexample_files,
-    load_counterexample,
 )
+from safelane.core.errors import ConfigError
+from safelane.core.files import atomic_write_text
+from safelane.running.counterexamples import counterexample_files, load_counterexample
 
 
 def parse_option(text: str) -> tuple[str, Any]:

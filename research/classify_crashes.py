@@ -3,10 +3,10 @@ the model (rolling backwards) from the holes of the rule.
 
 For every collision file of a folder (``safelane falsify``'s ``counterexamples/``): its context from the
 replay (``started_unsafe``, ``after_break``, ``from_safe_state``, ``after_fallback``, as the campaign
-counts them), the crash partner (:func:`safelane.running.counterexamples.crash_partner`) and, for a crash
+counts them), the crash partner (:func:`research.counterexample_tools.crash_partner`) and, for a crash
 after a break, the leave-one-out culprits of the last break before it
-(:func:`~safelane.running.counterexamples.break_culprits`) and its repair
-(:func:`~safelane.running.counterexamples.repair_break`), read from the same folder. A crash is
+(:func:`~research.counterexample_tools.break_culprits`) and its repair
+(:func:`~research.counterexample_tools.repair_break`), read from the same folder. A crash is
 ``outside_model`` when its partner started to roll back or rolled back faster during a decision between the
 break and the crash (``partner_rolled_back``), or when the break's state, with every vehicle that did so
 in the break's decision put back inside the model, has a safe action (``break_repaired``). The rule's
@@ -14,7 +14,7 @@ leader bound lets a braking car stop, or keep a reverse speed it already has —
 — but not accelerate backwards: highway-env lets a jammed IDM car's speed go below zero, which the driver
 model does not intend (docs/safety.md §6f, §6g). Crashes that started unsafe are counted, not analysed.
 
-    .venv/bin/python examples/classify_crashes.py runs/falsify/grid_e20/counterexamples \
+    .venv/bin/python research/classify_crashes.py runs/falsify/grid_e20/counterexamples \
         --out runs/falsify/grid_e20/crash_classes.json
 """
 
@@ -23,19 +23,16 @@ from __future__ import annotations
 import argparse
 import itertools
 import json
+import sys
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 from typing import Any
 
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the repository root, for `research.*`
+
+from research.counterexample_tools import REVERSING_MARGIN, break_culprits, crash_partner, repair_break
 from safelane.core.files import atomic_write_text
-from safelane.running.counterexamples import (
-    REVERSING_MARGIN,
-    break_culprits,
-    crash_partner,
-    load_counterexample,
-    repair_break,
-    replay,
-)
+from safelane.running.counterexamples import load_counterexample, replay
 
 
 def context_of(decisions: list[Any]) -> str:

@@ -1,0 +1,60 @@
+"""``safelane falsify``: a falsification campaign (a grid or a search) from a YAML spec."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+from safelane.cli.common import AddressOpt, BackendOpt, JsonOpt, check_positive, check_seed, cli_errors, units_progress
+
+
+@cli_errors
+def falsify(
+    spec_file: Path = typer.Argument(
+        ..., help="Campaign spec (YAML; configs/falsify/grid.yaml, or a search: search_cem.yaml).", metavar="SPEC"
+    ),
+    out: Annotated[
+        Path, typer.Option("--out", "-o", help="Output directory (cells.csv, summary.md, counterexamples/).")
+    ] = Path("runs/falsify"),
+    backend: BackendOpt = "local",
+    address: AddressOpt = None,
+    workers: Annotated[int | None, typer.Option("--workers", help="Parallel cells (default: cores).")] = None,
+    episodes: Annotated[
+        int | None, typer.Option("--episodes", help="Episodes per cell or search sample (overrides the spec).")
+    ] = None,
+    sample: Annotated[int | None, typer.Option("--sample", help="Play this many cells drawn at random.")] = None,
+    seed: Annotated[
+        int | None,
+        typer.Option(
+            "--seed",
+            help="Traffic seed (overrides the spec's; 0, the default, plays the published episodes; another draws "
+            "fresh traffic, recorded in campaign.json and summary.json).",
+        ),
+    ] = None,
+    as_json: JsonOpt = False,
+) -> None:
+    """Drive the shield over a grid of traffic conditions, or search them (a spec with a search section:
+    cross-entropy method toward the most invariant breaks): collisions, invariant breaks (classified), files."""
+    from safelane.running.falsify.grid import run_campaign
+    from safelane.running.falsify.search import SearchSpec, load_falsify_spec, run_search
+
+    for option, value in (("--episodes", episodes), ("--sample", sample), ("--workers", workers)):
+        if value is not None:
+            check_positive(option, value)
+    if seed is not None:
+        check_seed(seed)
+    spec = load_falsify_spec(spec_file, {"episodes": episodes, "sample": sample, "seed": seed})
+    if isinstance(spec, SearchSpec):
+        with units_progress(f"falsify search {spec.name} (samples)") as tick:
+            summary = run_search(spec, out, backend=backend, workers=workers, address=address, progress=tick)
+    else:
+        with units_progress(f"falsify {spec.name} (cells)") as tick:
+            summary = run_campaign(spec, out, backend=backend, workers=workers, address=address, progress=tick)
+    if as_json:
+        typer.echo(json.dumps(summary))
+        return
+    typer.echo((out / "summary.md").read_text())
+    typer.echo(f"counterexamples: {out / 'counterexamples'} (safelane replay FILE)")

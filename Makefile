@@ -36,12 +36,12 @@ demo: $(STAMP)
 # TEST_WORKERS=0 runs them in one process.
 TEST_WORKERS ?= 2
 test: $(STAMP)
-	$(BIN)/ruff check src tests examples docs/_ext
+	$(BIN)/ruff check src tests examples research docs/_ext
 	$(BIN)/lint-imports
 	SDL_VIDEODRIVER=dummy $(BIN)/python -m pytest -q -m "not slow" --durations=25 -n $(TEST_WORKERS) --dist loadfile
 
 lint: $(STAMP)
-	$(BIN)/ruff check src tests examples docs/_ext
+	$(BIN)/ruff check src tests examples research docs/_ext
 	$(BIN)/lint-imports
 
 # The documentation site (mkdocs.yml, docs/): built strictly into site/, or served with live reload.

@@ -299,7 +299,7 @@ def test_break_under_options_finds_the_follower_bound_in_hole_2879() -> None:
     assert verdict["best_gap"] == pytest.approx(-0.638, abs=1e-3)
     assert verdict["safe_with_options"] and verdict["unlocks"] == [1, 4]
     assert verdict["best_gap_with_options"] == pytest.approx(2.362, abs=1e-3)
-    same = break_under_options(cx, {"projected_cut_ins": False})
+    same = break_under_options(cx, {"body_extent": True})
     assert not same["safe_with_options"] and same["best_gap_with_options"] == same["best_gap"]
     with pytest.raises(ConfigError, match="follower_reactions: not a rule option"):
         break_under_options(cx, {"follower_reactions": 0.0})

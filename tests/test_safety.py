@@ -20,13 +20,11 @@ from safelane.safety.model import (
     Dynamics,
     RoadState,
     SafetyResult,
-    ego_lane_windows,
     ego_trajectories,
     evaluate,
     follower_positions,
     idm_follower_positions,
 )
-from safelane.safety.shield import ego_leave_time_at
 
 EVALUATORS = pytest.mark.parametrize("evaluate", [evaluate, evaluate_compiled], ids=["numpy", "compiled"])
 """Every test that calls the safety model runs on the reference and on its compiled port."""
@@ -110,8 +108,7 @@ EXPECTED = {
     # lane 2 whole (shield.crossed_lanes, both modes), so nothing is safe; the least-bad FASTER is flagged.
     "ego_crossing_a_lane": {"nominal": mask_of(F), "robust": mask_of(F)},
     # The ego 0.2 s into a change to lane 0, a hard-braking queue ahead in lane 1: LANE_LEFT keeps the change
-    # under way and is safe; IDLE, which keeps it under way too, counts lane 1 as the ego's for good (unless
-    # shield.lateral_schedule, experimental: test below).
+    # under way and is safe; IDLE, which keeps it under way too, counts lane 1 as the ego's for good (test below).
     "ego_leaving_its_lane": {"nominal": mask_of(L), "robust": mask_of(L)},
     # A jammed car 22 m ahead in the next lane, turned toward the ego's lane but rolling backwards: its lateral
     # motion points away, but it is also in the lane its nose points to (shield.reversing_noses, robust only):
@@ -163,17 +160,6 @@ def test_scenario_masks(name: str, mode: str, engine: str) -> None:
     assert scene.result.fallback == ((name, mode) in fallbacks)
     available = scene.env.unwrapped.action_type.get_available_actions()
     assert set(np.flatnonzero(scene.mask)) <= set(available)
-
-
-@pytest.mark.parametrize("engine", ["numpy", "compiled"])
-def test_projected_cut_ins_see_the_second_lane_car(engine: str) -> None:
-    """With shield.projected_cut_ins the car moving over from two lanes away is also a cut-in candidate
-    into the ego's lane: IDLE becomes unsafe (it could cut in 45 m ahead and brake), only SLOWER is left."""
-    scene = scenarios.SCENARIOS["second_lane_car_moving_over"](
-        mode="robust", **{"shield.engine": engine, "shield.projected_cut_ins": True}
-    )
-    assert scene.mask.tolist() == mask_of(S) and not scene.result.fallback
-    assert scene.result.min_gap[I] < 0 < scene.result.min_gap[S]
 
 
 @pytest.mark.parametrize("engine", ["numpy", "compiled"])
@@ -362,14 +348,14 @@ def test_turning_in_nominal_keeps_robust_inside_nominal(evaluate: Evaluator) -> 
     ]
     state = make_state(200.0, 0, 0, 23.0, 0, cars)
     dyn = dynamics(1, 5)
-    before = dataclasses.replace(dyn, turning_in_nominal=False)
+    before = dyn.with_options(turning_in_nominal=False)
     assert evaluate(state, before, "robust").mask.tolist() == mask_of(I, F)
     assert evaluate(state, before, "nominal").mask.tolist() == mask_of(I)
     assert evaluate(state, before, "nominal").min_gap[F] == pytest.approx(-2.363, abs=0.001)
     robust, nominal = evaluate(state, dyn, "robust"), evaluate(state, dyn, "nominal")
     assert robust.mask.tolist() == nominal.mask.tolist() == mask_of(I, F)
     assert robust.min_gap[F] == nominal.min_gap[F] == pytest.approx(1.876, abs=0.001)
-    assert evaluate(state, dataclasses.replace(dyn, turning_leaders=False), "nominal").mask.tolist() == mask_of(I)
+    assert evaluate(state, dyn.with_options(turning_leaders=False), "nominal").mask.tolist() == mask_of(I)
 
 
 @pytest.mark.parametrize("engine", ["numpy", "compiled"])
@@ -417,7 +403,7 @@ def test_turning_allowance_covers_highway_env_s_lane_change() -> None:
     from safelane.safety.model import braking_positions, turning_allowance
 
     dyn = scenarios.ego_leftmost_lane(mode="robust").shield.dynamics
-    allowance = turning_allowance(dataclasses.replace(dyn, turning_leaders=True))
+    allowance = turning_allowance(dyn.with_options(turning_leaders=True))
     network = RoadNetwork.straight_road_network(2, length=10_000.0)
     road = Road(network, np_random=np.random.RandomState(0))
     worst = 0.0
@@ -481,7 +467,7 @@ def test_idm_follower_bound_against_highway_env_s_idm() -> None:
 
     margin, kept, shorter, worst_shortfall = 1.0, 0, 0, 0.0
     for policy_hz, sim_hz in ((1, 5), (5, 15)):
-        dyn = dataclasses.replace(dynamics(1, sim_hz, policy_hz), follower_idm=True)
+        dyn = dynamics(1, sim_hz, policy_hz).with_options(follower_idm=True)
         for ego_v, gap, closing, set_point in itertools.product(
             (5.0, 25.0), (7.0, 15.0, 40.0), (-6.0, 6.0, 15.0), (10.0, 40.0)
         ):
@@ -509,55 +495,14 @@ def test_idm_follower_bound_against_highway_env_s_idm() -> None:
     assert kept > 250 and worst_shortfall < 0.01, (kept, shorter, worst_shortfall)
 
 
-def test_follower_set_point_predicts_highway_env_s_drivers() -> None:
-    """shield.follower_set_point (experimental): with the car's own set-point, the follower of
-    ``model.idm_follower_positions`` is highway-env's — an IDMVehicle (its set-point clipped to the speed limit)
-    and a LinearVehicle (``LinearVehicle.acceleration``, its own gains and time gap) braking for an ego that
-    drives each fallback of IDLE and SLOWER at 1 and 5 decisions per second: the predicted path is the real one
-    to 1e-6 m at every frame before the two would touch (measured: to the bit, the same operations)."""
-    from highway_env.vehicle.behavior import IDMVehicle, LinearVehicle
-
-    worst, runs = 0.0, 0
-    for policy_hz, sim_hz in ((1, 5), (5, 15)):
-        dyn = dataclasses.replace(dynamics(1, sim_hz, policy_hz), follower_set_point=True)
-        for driver, ego_v, gap, closing, set_point in itertools.product(
-            (IDMVehicle, LinearVehicle), (5.0, 25.0), (10.0, 40.0), (-6.0, 10.0), (15.0, 35.0)
-        ):
-            follower_v = max(ego_v + closing, 0.0)
-            idx = int(np.argmin(np.abs(np.array(SPEEDS) - ego_v)))
-            linear = driver is LinearVehicle
-            car = {"x": 200.0 - gap, "y": 0.0, "speed": follower_v, "heading": 0.0, "crashed": False,
-                   "delta": IDMVehicle.DELTA, "idm": True, "linear": linear, "target": set_point}  # fmt: skip
-            state = make_state(200.0, 0, 0, ego_v, idx, [car])
-            state = dataclasses.replace(
-                state,
-                accel_max=np.array([driver.ACC_MAX if linear else driver.COMFORT_ACC_MAX]),
-                idm_time_wanted=np.array([driver.TIME_WANTED]),
-                idm_distance_wanted=np.array([driver.DISTANCE_WANTED]),
-            )
-            ego_x, ego_v_all = ego_trajectories(state, dyn)
-            for action in (I, S):
-                predicted = idm_follower_positions(state, dyn, 0, ego_x[action], ego_v_all[action])
-                for k in range(ego_x.shape[1]):
-                    xs = highway_env_follower_path(
-                        driver, ego_v, gap, follower_v, set_point, ego_x[action, k], ego_v_all[action, k], dyn.frame_dt
-                    )
-                    touch = np.flatnonzero(ego_x[action, k, :-1] - xs[:-1] < 5.0)
-                    upto = int(touch[0]) if touch.size else len(xs) - 1
-                    worst = max(worst, float(np.max(np.abs(xs[:upto] - predicted[k, :upto]), initial=0.0)))
-                    runs += 1
-    assert runs == 512 and worst < 1e-6, worst
-
-
 def test_linear_model_drivers_creep_into_a_stopped_car() -> None:
-    """What follower_set_point found (docs/safety.md §6k): highway-env's linear acceleration model has no
+    """highway-env's linear acceleration model has no
     standstill gap of a car length. Behind a stopped car its acceleration ``k₀·(v₀ − v) + k₁·min(−v, 0) +
     k₂·min(d − d₀ − T·v, 0)`` is zero at ``v = 0`` and centre distance ``d₀ − k₀·v₀/k₂`` — for an
     AggressiveVehicle (k₀ = 0.107, k₂ = 0.5, d₀ = 10 m) with a 25 m/s set-point 4.67 m, less than the 5 m the two
     bodies need: it creeps into the stopped car (highway-env, 15 Hz, from 100 m behind at 20 m/s), an IDMVehicle
     stops 10 m (centre to centre) short. The rule's reaction-time bound has the follower brake at ACC_MAX after
-    0.5 s and stop with room to spare; the exact model (``model.idm_follower_positions`` with the set-point)
-    predicts the contact."""
+    0.5 s and stop with room to spare."""
     from highway_env.road.road import Road, RoadNetwork
     from highway_env.vehicle.behavior import AggressiveVehicle, IDMVehicle
     from highway_env.vehicle.kinematics import Vehicle
@@ -577,8 +522,8 @@ def test_linear_model_drivers_creep_into_a_stopped_car() -> None:
     assert outcome == {"IDMVehicle": (False, 10.0), "AggressiveVehicle": (True, 5.0)}
     k0, _, k2 = AggressiveVehicle.ACCELERATION_PARAMETERS
     assert AggressiveVehicle.DISTANCE_WANTED - k0 * 25.0 / k2 == pytest.approx(4.67, abs=0.01)
-    # The model with the set-point: the same creep, in front of an ego that stands still (speed and set-point 0).
-    dyn = dataclasses.replace(dynamics(1, 15, 1), follower_set_point=True)
+    # The rule's bound, in front of an ego that stands still (speed and set-point 0).
+    dyn = dynamics(1, 15, 1)
     car = {"x": 100.0, "y": 0.0, "speed": 20.0, "heading": 0.0, "crashed": False, "delta": 4.0, "idm": True,
            "linear": True, "target": 25.0}  # fmt: skip
     state = make_state(200.0, 0, 0, 0.0, 0, [car])
@@ -590,9 +535,7 @@ def test_linear_model_drivers_creep_into_a_stopped_car() -> None:
         linear_distance_gain=np.array([gains[2]]),
         idm_time_wanted=np.array([AggressiveVehicle.TIME_WANTED]),
     )
-    ego_x, ego_v = ego_trajectories(state, dyn)
-    creep = idm_follower_positions(state, dyn, 0, ego_x[S], ego_v[S])
-    assert float((ego_x[S, 0, :-1] - creep[0, :-1]).min()) < 5.0  # closer than two half-lengths: contact
+    ego_x, _ = ego_trajectories(state, dyn)
     bound = follower_positions(state.x, state.vx, state.accel_max, state.brake_max, dyn.follower_reaction, dyn.times)[
         0
     ]  # the rule's reaction-time bound
@@ -600,46 +543,38 @@ def test_linear_model_drivers_creep_into_a_stopped_car() -> None:
 
 
 @pytest.mark.parametrize("engine", ["numpy", "compiled"])
-def test_least_bad_joint_ranks_the_fallback_by_the_gap_to_anybody(engine: str) -> None:
+def test_the_fallback_ranks_by_the_gap_to_the_vehicles_ahead_first(engine: str) -> None:
     """2 lanes, the ego in lane 0 at 20 m/s between a leader 9 m ahead at 15 m/s and a follower 8 m behind at
-    28 m/s, a car level with it in lane 1: nothing is safe in either mode. The default ranking (the gap to the
-    vehicles ahead first) brakes (SLOWER, the follower's problem); shield.least_bad_joint takes the largest
-    gap to anybody under the nominal conflicts, which is the lane change beside the level car (the follower's
-    surge is worse than that overlap) — the measure the campaign compares (docs/safety.md §6f)."""
+    28 m/s, a car level with it in lane 1: nothing is safe. The ranking (the gap to the vehicles ahead first,
+    the ego's own responsibility) brakes (SLOWER, the follower's problem), not the lane change beside the level
+    car that the largest gap to anybody would pick (docs/safety.md §6f)."""
     spec = scenarios.VehicleSpec
     specs = [spec(0, 9.0, 15.0), spec(0, -8.0, 28.0), spec(1, 0.0, 20.0)]
-    chosen = {}
-    for joint in (False, True):
-        scene = scenarios.build_scene(
-            0, 20.0, specs, mode="robust", lanes_count=2, ego_target_speed=20.0,
-            **{"shield.engine": engine, "shield.least_bad_joint": joint},
-        )  # fmt: skip
-        assert scene.result.fallback and not scene.result.safe.any()
-        chosen[joint] = scene.mask.tolist()
-    assert chosen[False] == mask_of(S) and chosen[True] == mask_of(R)
+    scene = scenarios.build_scene(
+        0, 20.0, specs, mode="robust", lanes_count=2, ego_target_speed=20.0, **{"shield.engine": engine}
+    )
+    assert scene.result.fallback and not scene.result.safe.any()
+    assert scene.mask.tolist() == mask_of(S)
 
 
 @pytest.mark.parametrize("engine", ["numpy", "compiled"])
-def test_robust_fallback_takes_the_best_robust_gap_not_a_nominally_safe_lane_change(engine: str) -> None:
+def test_the_robust_fallback_picks_among_the_nominally_safe_actions(engine: str) -> None:
     """2 lanes, the ego in lane 0 at 25 m/s, a leader 12 m ahead at 22 m/s, lane 1 empty (a dense spawn, as in
     the grid's cell 520): nothing is robustly safe. The nominal rule calls LANE_RIGHT safe (its old lane counts
-    only until the ego has left it), so by default the robust fallback is LANE_RIGHT, whose robust worst gap
-    is IDLE's (-42.67 m: the leader may cut into lane 1 too); shield.robust_fallback ranks every available
-    action by its robust gaps and brakes (SLOWER, -17.67 m). (The straight leader bound.)"""
+    only until the ego has left it), so the robust fallback is LANE_RIGHT, whose robust worst gap is IDLE's
+    (-42.67 m: the leader may cut into lane 1 too), not SLOWER's better -17.67 m: the final robust mask stays
+    inside the nominal one. (The straight leader bound.)"""
     specs = [scenarios.VehicleSpec(0, 12.0, 22.0)]
-    chosen = {}
-    for on in (False, True):
-        scene = scenarios.build_scene(
-            0, 25.0, specs, mode="robust", lanes_count=2, ego_target_speed=25.0,
-            **{"shield.engine": engine, **EARLIER_RULE, "shield.robust_fallback": on},
-        )  # fmt: skip
-        assert scene.result.fallback and not scene.result.safe.any()
-        assert scene.result.min_gap[[I, R, S]] == pytest.approx([-42.67, -42.67, -17.67], abs=0.01)
-        chosen[on] = scene.mask.tolist()
+    scene = scenarios.build_scene(
+        0, 25.0, specs, mode="robust", lanes_count=2, ego_target_speed=25.0,
+        **{"shield.engine": engine, **EARLIER_RULE},
+    )  # fmt: skip
+    assert scene.result.fallback and not scene.result.safe.any()
+    assert scene.result.min_gap[[I, R, S]] == pytest.approx([-42.67, -42.67, -17.67], abs=0.01)
     nominal = scenarios.build_scene(0, 25.0, specs, mode="nominal", lanes_count=2, ego_target_speed=25.0,
                                     **{"shield.engine": engine})  # fmt: skip
     assert nominal.result.safe.tolist() == mask_of(R)
-    assert chosen[False] == mask_of(R) and chosen[True] == mask_of(S)
+    assert scene.mask.tolist() == mask_of(R)
 
 
 @pytest.mark.parametrize("engine", ["numpy", "compiled"])
@@ -709,44 +644,15 @@ def test_crossed_lanes_sees_the_lane_the_ego_crosses(engine: str, mode: str) -> 
     assert crossed.min_gap[[I, R, F, S]] == pytest.approx([-35.22, -35.22, -27.25, -42.21], abs=0.01)
 
 
-@pytest.mark.parametrize(("policy_hz", "sim_hz"), [(1, 5), (2, 10), (3, 15), (5, 15)])
-def test_lateral_schedule_from_a_lane_centre_is_the_leave_time(policy_hz: int, sim_hz: int) -> None:
-    """shield.lateral_schedule simulates highway-env's lateral controller itself; from a lane centre, heading
-    along the road, its time in the old lane is exactly the leave time the shield takes from highway-env's own
-    ControlledVehicle (``lane_change_timing``, plus one frame), at every speed the shield uses (0 to 40 m/s by
-    0.5; at a standstill the ego never leaves: inf; below about 1 m/s lane_change_timing gives up after 6 s, the
-    schedule runs the horizon), and IDLE with no lane change under way keeps the lane."""
-    dyn = dataclasses.replace(dynamics(4, sim_hz, policy_hz), lateral_schedule=True)
-    for row in range(81):
-        speed = row / 2
-        at = dataclasses.replace(dyn, ego_lateral_speed=speed)
-        state = RoadState(ego_x=0.0, ego_y=4.0, ego_speed=speed, ego_lane=1, ego_target_lane=1,
-                          ego_target_speed=0.0, ego_speed_index=0)  # fmt: skip
-        leave = ego_leave_time_at(dyn, speed)
-        for final in (0, 2):
-            windows = ego_lane_windows(state, at, final)
-            assert windows[1:] == [(final, math.inf)] and windows[0][0] == 1
-            if math.isfinite(leave):
-                assert windows[0][1] == leave, (speed, final)
-            else:  # lane_change_timing gives up after 6 s; the schedule runs the whole horizon
-                assert windows[0][1] > 6.0, (speed, final)
-        assert ego_lane_windows(state, at, 1) == [(1, math.inf)]
-
-
 @pytest.mark.parametrize("engine", ["numpy", "compiled"])
-def test_lateral_schedule_does_not_restart_the_ego_s_leave_time(engine: str) -> None:
+def test_ego_leaving_its_lane_counts_the_old_lane_for_good_under_idle(engine: str) -> None:
     """The 100 800-episode campaign's cell 2569 at its break (docs/safety.md §6j), rebuilt: 5 decisions per
     second, the ego in lane 1 already 0.2 s into a change to lane 0 (heading -0.163 rad) at 27.53 m/s behind a
-    hard-braking queue. The earlier rule timed its exit from lane 1 from a lane centre at every decision, so the
-    exit it promised slid 0.2 s later each decision and the state after LANE_LEFT had no safe action; IDLE,
-    which keeps the change under way, counted lane 1 as the ego's for good. With shield.lateral_schedule the
-    exit is simulated from where the ego is: IDLE and SLOWER are as safe as LANE_LEFT."""
+    hard-braking queue. The rule times its exit from lane 1 from a lane centre: LANE_LEFT is safe; IDLE, which
+    keeps the change under way, counts lane 1 as the ego's for good, as does SLOWER."""
     kw = {"shield.engine": engine}
-    earlier = scenarios.SCENARIOS["ego_leaving_its_lane"](**kw).result
-    assert earlier.mask.tolist() == mask_of(L) and not earlier.fallback
-    schedule = scenarios.SCENARIOS["ego_leaving_its_lane"](**kw, **{"shield.lateral_schedule": True}).result
-    assert schedule.mask.tolist() == mask_of(L, I, S) and not schedule.fallback
-    assert schedule.min_gap[[L, I, S]] == pytest.approx([earlier.min_gap[L]] * 3, abs=1e-9)
+    result = scenarios.SCENARIOS["ego_leaving_its_lane"](**kw).result
+    assert result.mask.tolist() == mask_of(L) and not result.fallback
 
 
 @pytest.mark.parametrize("engine", ["numpy", "compiled"])
@@ -875,7 +781,7 @@ def test_squeezed_by_a_linear_follower_is_a_hole_not_closed(engine: str) -> None
     assert after.mask.tolist() == mask_of(I) and float(after.min_gap.max()) == pytest.approx(-0.64, abs=0.01)
     assert leader.action["acceleration"] == pytest.approx(-6.0) and follower.action["acceleration"] < 0
     state, dyn = scene.shield.state_and_dynamics(scene.shield.snapshot)
-    reacting = evaluate(state, dataclasses.replace(dyn, follower_reaction=0.0), "robust")
+    reacting = evaluate(state, dyn.with_options(follower_reaction=0.0), "robust")
     assert reacting.mask.tolist() == mask_of(I, S) and reacting.min_gap[[I, S]] == pytest.approx([1.36, 2.36], abs=0.01)
     for action in [I, I, R, S, S, S]:
         assert scene.env.get_wrapper_attr("result").mask.tolist() == mask_of(action)
@@ -1208,13 +1114,10 @@ def road(
     extreme: bool = False,
     rates: bool = False,
     chained: bool = False,
-    lateral: bool = False,
     follower: bool = False,
 ) -> tuple[RoadState, Dynamics, list[dict[str, float]]]:
     """A random road at 1 decision per second, or (``rates``) at the falsification grid's 1, 2, 3 or 5;
     ``chained``: the ego's target lane may also be two lanes away (a lane change chained onto one under way);
-    ``lateral``: the ego off its lane's centre and turned, with the speed its lateral motion is simulated at
-    (``Dynamics.ego_lateral_speed``, a multiple of 0.5 m/s as the shield takes it) and its leave time;
     ``follower``: also an IDM or linear-model car driving straight behind the ego in its lane, 5.5–150 m back."""
     lanes = draw(st.integers(1, 5))
     sim_hz = draw(st.sampled_from([5, 15]))
@@ -1243,11 +1146,6 @@ def road(
         cars = [*cars[:at], behind, *cars[at:]]
     state = make_state(ego_x, ego_lane, target_lane, draw(st.floats(0.0, 40.0 if extreme else 32.0)), idx, cars)
     dyn = dynamics(lanes, sim_hz, policy_hz)
-    if lateral:
-        offset, heading = draw(st.floats(-2.0, 2.0)), draw(st.floats(-0.8, 0.8))
-        state = dataclasses.replace(state, ego_y=state.ego_y + offset, ego_heading=heading)
-        speed = draw(st.integers(0, 80)) / 2
-        dyn = dataclasses.replace(dyn, ego_lateral_speed=speed, ego_leave_time=ego_leave_time_at(dyn, speed))
     return state, dyn, cars
 
 

@@ -16,7 +16,7 @@ from safelane.env.factory import make_env
 from safelane.safety import compiled, model
 from safelane.safety.model import Dynamics, RoadState, SafetyResult
 from safelane.safety.shield import SafetyShield
-from test_safety import NINTH_SESSION_OPTIONS, PROPERTY_SETTINGS, road
+from test_safety import LINEAR_AND_TURNING_OPTIONS, PROPERTY_SETTINGS, road
 
 MODES = ("nominal", "robust")
 
@@ -250,10 +250,10 @@ def test_reversing_leaders_bit_identical_and_only_stricter(case: tuple) -> None:
     engines agree either way (extreme roads have speeds down to −5 m/s), it never makes an action safe,
     and without a reversing leader it changes nothing, to the bit."""
     state, dyn, _ = case
-    earlier, now = (dyn.with_options(reversing_leaders=v) for v in (False, True))
-    assert mismatches(state, earlier) == [] and mismatches(state, now) == []
+    without, with_it = (dyn.with_options(reversing_leaders=v) for v in (False, True))
+    assert mismatches(state, without) == [] and mismatches(state, with_it) == []
     for mode in MODES:
-        before, after = reference(state, earlier, mode), reference(state, now, mode)
+        before, after = reference(state, without, mode), reference(state, with_it, mode)
         assert not (after.safe & ~before.safe).any()
         if not ((state.vx < 0) & ~state.crashed).any():
             assert_same(before, after)
@@ -396,7 +396,7 @@ def test_straight_fallback_bit_identical_and_only_the_fallback_mask(case: tuple)
 @PROPERTY_SETTINGS
 @given(case=road(rates=True))
 def test_turning_in_nominal_bit_identical_and_only_looser_nominal(case: tuple) -> None:
-    """shield.turning_in_nominal (default since issue 15's fifteenth session): the same in both engines at every
+    """shield.turning_in_nominal (on by default): the same in both engines at every
     rate; robust's safe set and gaps are unchanged to the bit (only a fallback mask, chosen among nominal's
     bounds, can change); nominal only gets looser, and only with a moving leader; robust ⊆ nominal at any
     heading; without turning_leaders it changes nothing."""
@@ -421,10 +421,10 @@ def test_linear_mobil_bit_identical_and_only_looser(case: tuple) -> None:
     """shield.linear_mobil judges Linear-model cut-ins by their criterion: the same in both engines either
     way, and it only removes conflicts (never makes an action unsafe); nominal ignores it."""
     state, dyn, _ = case
-    earlier, now = (dyn.with_options(linear_mobil=v) for v in (False, True))
-    assert mismatches(state, earlier) == [] and mismatches(state, now) == []
+    without, with_it = (dyn.with_options(linear_mobil=v) for v in (False, True))
+    assert mismatches(state, without) == [] and mismatches(state, with_it) == []
     for mode in MODES:
-        before, after = reference(state, earlier, mode), reference(state, now, mode)
+        before, after = reference(state, without, mode), reference(state, with_it, mode)
         assert not (before.safe & ~after.safe).any()
         if mode == "nominal":
             assert_same(before, after)
@@ -531,15 +531,14 @@ def test_follower_idm_bit_identical(case: tuple) -> None:
 
 @PROPERTY_SETTINGS
 @given(case=road(extreme=True, rates=True))
-def test_the_ninth_session_s_rule_leaves_nominal_untouched(case: tuple) -> None:
-    """The options made default in issue 15's ninth session (linear drivers' MOBIL, turning leaders, the
-    straight fallback, reversing cut-ins) are all robust-mode parts: nominal (Q-masking) gives the same result
-    to the bit with or without them, in both engines — as that session had it, without shield.turning_in_nominal
-    (since the fifteenth session nominal takes turning_leaders' bound where it is the looser:
-    test_turning_in_nominal_bit_identical_and_only_looser_nominal)."""
+def test_linear_and_turning_options_leave_nominal_untouched(case: tuple) -> None:
+    """The linear-driver and turning options (linear drivers' MOBIL, turning leaders, the straight fallback,
+    reversing cut-ins) are all robust-mode parts: nominal (Q-masking) gives the same result to the bit with or
+    without them, in both engines — without shield.turning_in_nominal (with it nominal takes turning_leaders'
+    bound where it is the looser: test_turning_in_nominal_bit_identical_and_only_looser_nominal)."""
     state, dyn, _ = case
     dyn = dyn.with_options(turning_in_nominal=False)
-    on, off = (dyn.with_options(**dict.fromkeys(NINTH_SESSION_OPTIONS, v)) for v in (True, False))
+    on, off = (dyn.with_options(**dict.fromkeys(LINEAR_AND_TURNING_OPTIONS, v)) for v in (True, False))
     assert_same(reference(state, on, "nominal"), reference(state, off, "nominal"))
     assert_same(compiled.evaluate_compiled(state, on, "nominal"), compiled.evaluate_compiled(state, off, "nominal"))
 
@@ -565,7 +564,7 @@ def test_finishing_changes_bit_identical(case: tuple) -> None:
 @PROPERTY_SETTINGS
 @given(case=road(extreme=True, rates=True, follower=True))
 def test_cut_in_when_permitted_bit_identical(case: tuple) -> None:
-    """shield.cut_in_when_permitted (default since issue 15's thirteenth session), with and without
+    """shield.cut_in_when_permitted (on by default), with and without
     shield.permit_any_speed: the same in both engines at every rate (IDM and linear-model
     drivers, crashed and reversing cars); robust ⊆ nominal still holds for the final masks (it only changes robust
     cut-ins); nominal mode is unchanged to the bit."""
@@ -573,7 +572,7 @@ def test_cut_in_when_permitted_bit_identical(case: tuple) -> None:
     off, on = (dyn.with_options(cut_in_when_permitted=v) for v in (False, True))
     assert mismatches(state, on) == []
     assert mismatches(state, on.with_options(linear_mobil=False)) == []
-    assert mismatches(state, on.with_options(permit_any_speed=False)) == []  # the twelfth session's
+    assert mismatches(state, on.with_options(permit_any_speed=False)) == []
     assert_nested(state, on)
     assert_same(reference(state, off, "nominal"), reference(state, on, "nominal"), "nominal")
 
@@ -601,7 +600,7 @@ def test_level_when_incentive_bit_identical(case: tuple) -> None:
     state, dyn, _ = case
     on = dyn.with_options(level_when_incentive=True)
     assert mismatches(state, on) == []
-    assert mismatches(state, on.with_options(incentive_any_speed=False)) == []  # the thirteenth session's
+    assert mismatches(state, on.with_options(incentive_any_speed=False)) == []
     assert mismatches(state, on.with_options(linear_incentive_braking=False)) == []
     assert mismatches(state, on.with_options(linear_incentive=False, passing_cut_ins=True)) == []
     assert_nested(state, on)

@@ -37,14 +37,15 @@ def mask_of(*actions: int) -> list[bool]:
     return [a in actions for a in range(5)]
 
 
-NINTH_SESSION_OPTIONS = (
+LINEAR_AND_TURNING_OPTIONS = (
     "linear_mobil", "linear_incentive", "linear_incentive_braking", "turning_leaders", "straight_fallback",
     "reversing_cut_ins",
 )  # fmt: skip
-"""The rule options made default in issue 15's ninth session (docs/safety.md §6i)."""
-EARLIER_RULE = {f"shield.{name}": False for name in NINTH_SESSION_OPTIONS}
-"""The options adopted in issue 15's ninth session, off: the rule under which a test of an earlier part of the
-rule derived its scene's exact gaps (each such test is about its own part; EXPECTED holds today's masks)."""
+"""The options for linear-model drivers' MOBIL, turning leaders, the straight fallback and reversing cut-ins
+(docs/safety.md §6i)."""
+WITHOUT_LINEAR_AND_TURNING = {f"shield.{name}": False for name in LINEAR_AND_TURNING_OPTIONS}
+"""Those options off: the rule under which a test of another part of the rule derived its scene's exact gaps
+(each such test is about its own part; EXPECTED holds the default rule's masks)."""
 
 # Expected masks for every scenario and both modes (LANE_LEFT, IDLE, LANE_RIGHT, FASTER, SLOWER).
 EXPECTED = {
@@ -77,7 +78,7 @@ EXPECTED = {
     "slow_car_turning_out": {"nominal": mask_of(I, F, S), "robust": mask_of(S)},
     # A Linear driver level with the ego in the next lane: by its own MOBIL rule (shield.linear_mobil and
     # shield.linear_incentive) it neither cuts in at the ego's nose nor turns in behind it; SLOWER keeps 18.67 m
-    # (the earlier rule assumed either: nothing safe). Nominal: only the leader 42 m ahead matters, SLOWER keeps
+    # (the rule without it assumed either: nothing safe). Nominal: only the leader 42 m ahead matters, SLOWER keeps
     # the gap (IDLE leaves 0.33 m < 1 m).
     "linear_car_alongside": {"nominal": mask_of(S), "robust": mask_of(S)},
     # A car 7 m ahead rolling backwards at 2 m/s toward the nearly stopped ego (shield.reversing_leaders, both
@@ -115,23 +116,23 @@ EXPECTED = {
     # only SLOWER (test below). Nominal: IDLE, FASTER and SLOWER.
     "car_rolling_back_turned_in": {"nominal": mask_of(I, F, S), "robust": mask_of(S)},
     # Behind a leader braking at its limit 9.36 m ahead, an IDM car 36.3 m behind braking by IDM's response to the
-    # ego (shield.follower_idm, both modes): IDLE and SLOWER keep 1.415 m (the earlier follower bound, restarted at
+    # ego (shield.follower_idm, both modes): IDLE and SLOWER keep 1.415 m (the follower bound without it, restarted at
     # every decision, left robust nothing safe: test below).
     "squeezed_by_a_follower": {"nominal": mask_of(I, S), "robust": mask_of(I, S)},
     # A car that has just crossed into the lane next to the ego, 25 m ahead and 12 m/s slower, turned toward its
     # new lane's centre: a cut-in candidate from there, which MOBIL keeps out of the ego's lane
-    # (shield.finishing_changes, robust only; the earlier rule projected it into the ego's lane: test below).
+    # (shield.finishing_changes, robust only; the rule without it projected it into the ego's lane: test below).
     "car_settling_next_to_the_ego": {"nominal": mask_of(I, S), "robust": mask_of(I, S)},
     # The ego stopped, a car 3.09 m ahead in the next lane passing it at 20.64 m/s: MOBIL lets it cut in only
     # once it is well ahead, so it is a cut-in from then (shield.cut_in_when_permitted, robust only): IDLE keeps
-    # 4.21 m (the earlier rule had it cutting in from now: nothing safe, test below). Nominal: IDLE and FASTER.
+    # 4.21 m (the rule without it had it cutting in from now: nothing safe, test below). Nominal: IDLE and FASTER.
     "car_passing_a_stopped_ego": {"nominal": mask_of(I, F), "robust": mask_of(I)},
     # The ego stopped, a car 1.05 m behind it in the next lane at 25.66 m/s (2 decisions per second): MOBIL lets it
-    # in only ahead of the ego, a leader once in (shield.passing_cut_ins): IDLE and FASTER (the earlier rule bounded
+    # in only ahead of the ego, a leader once in (shield.passing_cut_ins): IDLE and FASTER (the rule without it bounded
     # it as a follower driving through the ego: nothing safe; test below). Nominal: IDLE, FASTER.
     "car_passing_in_the_next_lane": {"nominal": mask_of(I, F), "robust": mask_of(I, F)},
     # No safe action (a spawn): the leader 13.4 m ahead brakes at its limit for its own leader, lane 1 free for 28 m.
-    # shield.forecast_fallback (the default since issue 15's seventeenth session) changes lane; ranked by the worst
+    # shield.forecast_fallback (the default) changes lane; ranked by the worst
     # case alone SLOWER was least bad (tests/test_forecast.py).
     "squeeze_beside_a_free_lane": {"nominal": mask_of(R), "robust": mask_of(R)},
     # A hole not closed (hole 552): the right lane a queue braking at its limit, a car 6.78 m behind in it; robust
@@ -167,15 +168,15 @@ def test_body_extent_sees_the_corner_of_a_car_turning_out(engine: str) -> None:
     """shield.body_extent: the rotated body (reach 2.5·sin 0.78 + 1·cos 0.78 = 2.47 m from a centre 4.85 m
     across) overlaps lane 2's band (from 6 m): the car is a leader in the ego's lane, 10 m ahead at 2 m/s.
     Holding 5 m/s for a decision runs into it (worst gap −2.8 m); only SLOWER keeps the gap (2.2 m). The
-    earlier rule (body_extent false) allowed IDLE and FASTER here — the crash of cell00537. Nominal is
-    unchanged: the option belongs to the robust rule. (The straight leader bound; with the ninth session's
+    rule without body_extent allowed IDLE and FASTER here — the crash of cell00537. Nominal is
+    unchanged: the option belongs to the robust rule. (The straight leader bound; with the
     turning allowance SLOWER keeps 0.68 m and the state is a fallback: EXPECTED.)"""
-    kw = {"shield.engine": engine, **EARLIER_RULE}
+    kw = {"shield.engine": engine, **WITHOUT_LINEAR_AND_TURNING}
     robust = scenarios.SCENARIOS["slow_car_turning_out"](mode="robust", **kw)
     assert robust.mask.tolist() == mask_of(S) and not robust.result.fallback
     assert robust.result.min_gap[I] < 0 < robust.result.min_gap[S]
-    earlier = scenarios.SCENARIOS["slow_car_turning_out"](mode="robust", **{**kw, "shield.body_extent": False})
-    assert earlier.mask.tolist() == mask_of(I, F, S)
+    without = scenarios.SCENARIOS["slow_car_turning_out"](mode="robust", **{**kw, "shield.body_extent": False})
+    assert without.mask.tolist() == mask_of(I, F, S)
     nominal = scenarios.SCENARIOS["slow_car_turning_out"](mode="nominal", **{"shield.engine": engine})
     assert nominal.mask.tolist() == EXPECTED["slow_car_turning_out"]["nominal"]
     # Turned straight, the same car no longer reaches the ego's lane: the option adds nothing.
@@ -191,15 +192,15 @@ def test_body_extent_sees_the_corner_of_a_car_turning_out(engine: str) -> None:
 def test_a_reversing_leader_keeps_its_reverse_speed(engine: str, mode: str) -> None:
     """shield.reversing_leaders (default): the car 7 m ahead (2 m bumper to bumper) rolling back at 2 m/s
     keeps doing so over the 13 s horizon, 26 m: every action's worst gap is −24.06 m, no action is safe and
-    the state is a fallback (cells 38 and 86 of the campaign crashed from here, called safe). The earlier
+    the state is a fallback (cells 38 and 86 of the campaign crashed from here, called safe). Without it the
     rule (false) took the car as stopped and kept IDLE's 1.94 m gap as safe. (The straight leader bound.)"""
-    kw = {"shield.engine": engine, **EARLIER_RULE}
+    kw = {"shield.engine": engine, **WITHOUT_LINEAR_AND_TURNING}
     now = scenarios.SCENARIOS["reversing_leader"](mode=mode, **kw)
     assert now.result.fallback and not now.result.safe.any()
     assert now.result.min_gap[I] == pytest.approx(-24.06, abs=0.01)
-    earlier = scenarios.SCENARIOS["reversing_leader"](mode=mode, **{**kw, "shield.reversing_leaders": False})
-    assert earlier.result.safe.tolist() == mask_of(I) and not earlier.result.fallback
-    assert earlier.result.min_gap[I] == pytest.approx(1.94, abs=0.01)
+    without = scenarios.SCENARIOS["reversing_leader"](mode=mode, **{**kw, "shield.reversing_leaders": False})
+    assert without.result.safe.tolist() == mask_of(I) and not without.result.fallback
+    assert without.result.min_gap[I] == pytest.approx(1.94, abs=0.01)
     # Rolling forward at 2 m/s instead, the same car is an ordinary leader: both rules give the same gaps.
     forward = [scenarios.VehicleSpec(1, 7.0, 2.0)]
     gaps = []
@@ -216,7 +217,7 @@ def test_a_reversing_leader_keeps_its_reverse_speed(engine: str, mode: str) -> N
 def test_level_cut_ins_see_the_car_being_overtaken_turn_in(engine: str) -> None:
     """shield.level_cut_ins (default): the car 3 m ahead in the next lane at 13 m/s is passed within the
     decision (0.5 s), and may then turn in behind the ego after the cut-in time and follow it. Turning in from
-    the cut-in time from now (level_when_incentive false, the rule before issue 15's fourteenth session), at
+    the cut-in time from now (level_when_incentive false), at
     0.2 s into the turn the ego leads it by only 1.76 m centre to centre: every action that keeps the ego in
     lane 1 for that long leaves a −3.24 m gap (SLOWER −3.47 m), nothing is safe. With level_when_incentive and
     incentive_any_speed (the default) it turns in from the first frame its incentive could hold, 0.2 s, plus
@@ -237,10 +238,10 @@ def test_level_cut_ins_see_the_car_being_overtaken_turn_in(engine: str) -> None:
     )
     assert constant.result.safe.tolist() == mask_of(I, R)
     assert constant.result.min_gap[[I, R]] == pytest.approx([1.39, 1.39], abs=0.01)
-    earlier = scenarios.SCENARIOS["car_being_overtaken"](
+    without = scenarios.SCENARIOS["car_being_overtaken"](
         mode="robust", **{"shield.engine": engine, "shield.level_cut_ins": False}
     )
-    assert earlier.result.safe.tolist() == mask_of(I, R, S)
+    assert without.result.safe.tolist() == mask_of(I, R, S)
     nominal = scenarios.SCENARIOS["car_being_overtaken"](
         mode="nominal", **{"shield.engine": engine, "shield.level_cut_ins": True}
     )
@@ -269,18 +270,18 @@ def test_level_entering_sees_a_car_two_lanes_over_change_into_the_ego_s_new_lane
     """shield.level_entering (default): the car two lanes over, 2 m behind the ego's centre, may turn into
     lane 1 while the ego changes into it: LANE_RIGHT's worst gap is −4.07 m (it ends up a follower 2 m behind
     the ego's centre). MOBIL's incentive judged with the ego already in lane 1 keeps it out (a follower 2 m
-    behind a car would brake at hundreds of m/s²): the earlier rule (false), like the rule without level
+    behind a car would brake at hundreds of m/s²): the rule without it (false), like the rule without level
     cut-ins, allowed LANE_RIGHT with 24.97 m — the trained agents' side impact of cell 169. Into the ego's
     own lane the filter still holds: IDLE's and SLOWER's gaps are the same under every rule. (The straight
     leader bound.)"""
-    kw = {"shield.engine": engine, **EARLIER_RULE}
+    kw = {"shield.engine": engine, **WITHOUT_LINEAR_AND_TURNING}
     scene = scenarios.SCENARIOS["car_two_lanes_over"](mode="robust", **kw)
     assert scene.mask.tolist() == mask_of(I, S) and not scene.result.fallback
     assert scene.result.min_gap[[I, R, S]] == pytest.approx([24.97, -4.07, 44.97], abs=0.01)
     for options in ({"shield.level_entering": False}, {"shield.level_cut_ins": False}):
-        earlier = scenarios.SCENARIOS["car_two_lanes_over"](mode="robust", **kw, **options)
-        assert earlier.mask.tolist() == mask_of(I, R, S)
-        assert earlier.result.min_gap[[I, R, S]] == pytest.approx([24.97, 24.97, 44.97], abs=0.01)
+        without = scenarios.SCENARIOS["car_two_lanes_over"](mode="robust", **kw, **options)
+        assert without.mask.tolist() == mask_of(I, R, S)
+        assert without.result.min_gap[[I, R, S]] == pytest.approx([24.97, 24.97, 44.97], abs=0.01)
     anyone = scenarios.SCENARIOS["car_two_lanes_over"](mode="robust", **kw, **{"shield.level_incentive": False})
     assert anyone.result.min_gap.tolist() == scene.result.min_gap.tolist()
     # The same car 30 m behind the ego is not level with it at the end of the lane change's first part.
@@ -293,12 +294,12 @@ def test_level_entering_sees_a_car_two_lanes_over_change_into_the_ego_s_new_lane
 @pytest.mark.parametrize("mode", ["nominal", "robust"])
 def test_full_horizon_sees_the_ego_stop_at_five_decisions_per_second(engine: str, mode: str) -> None:
     """shield.full_horizon (default): 65 decisions (13 s) at 5 per second. The ego needs ≈ 6 s to stop
-    from 27.66 m/s; within the earlier 13-decision horizon (2.6 s) it is still at 8.6 m/s, and the tail
+    from 27.66 m/s; within a 13-decision horizon (2.6 s) it is still at 8.6 m/s, and the tail
     credited beyond assumed a set-point of 0 at once (v/KP_A = 5.2 m) where SLOWER really steps it down
     from the speed's own index (6.2 m): IDLE and SLOWER kept 1.476 m and were allowed — cell 812's break
     one decision later, then its crash. With the horizon in seconds both keep −0.52 m: a fallback. (The
     straight leader bound.)"""
-    kw = {"shield.engine": engine, **EARLIER_RULE}
+    kw = {"shield.engine": engine, **WITHOUT_LINEAR_AND_TURNING}
     full = scenarios.SCENARIOS["closing_in_at_five_per_second"](mode=mode, **kw)
     assert full.result.fallback and full.mask.tolist() == mask_of(S)
     assert full.result.min_gap[[I, F, S]] == pytest.approx([-0.52, -8.52, -0.52], abs=0.01)
@@ -314,15 +315,15 @@ def test_full_horizon_sees_the_ego_stop_at_five_decisions_per_second(engine: str
 def test_ego_speed_magnitude_takes_slower_where_highway_env_does(engine: str, mode: str) -> None:
     """shield.ego_speed_magnitude (default): mid lane change (heading 0.206 rad) the ego's controller runs
     at 22.77 m/s, which MDPVehicle rounds to the 25 m/s set-point: SLOWER goes to 20 m/s and keeps 0.496 m
-    to the car 20 m ahead. The earlier rule used the speed along the road (22.77·cos 0.206 = 22.29 m/s,
+    to the car 20 m ahead. Without it the rule used the speed along the road (22.77·cos 0.206 = 22.29 m/s,
     rounding to 20): SLOWER to 15 m/s, 7.45 m — allowed, and cell 573's break followed. (The straight leader
     bound.)"""
-    kw = {"shield.engine": engine, **EARLIER_RULE}
+    kw = {"shield.engine": engine, **WITHOUT_LINEAR_AND_TURNING}
     now = scenarios.SCENARIOS["ego_turning_into_its_lane"](mode=mode, **kw)
     assert now.result.min_gap[S] == pytest.approx(0.496, abs=0.001) and not now.result.safe[S]
-    earlier = scenarios.SCENARIOS["ego_turning_into_its_lane"](mode=mode, **{**kw, "shield.ego_speed_magnitude": False})
-    assert earlier.result.min_gap[S] == pytest.approx(7.452, abs=0.001) and earlier.result.safe[S]
-    assert not earlier.result.fallback
+    without = scenarios.SCENARIOS["ego_turning_into_its_lane"](mode=mode, **{**kw, "shield.ego_speed_magnitude": False})
+    assert without.result.min_gap[S] == pytest.approx(7.452, abs=0.001) and without.result.safe[S]
+    assert not without.result.fallback
     # Straight in its lane the two speeds are the same, and so are the verdicts.
     straight = [
         scenarios.build_scene(
@@ -336,7 +337,7 @@ def test_ego_speed_magnitude_takes_slower_where_highway_env_does(engine: str, mo
 
 @EVALUATORS
 def test_turning_in_nominal_keeps_robust_inside_nominal(evaluate: Evaluator) -> None:
-    """hypothesis's counterexample to robust ⊆ nominal (issue 15, fifteenth session): a car 31 m ahead in the
+    """hypothesis's counterexample to robust ⊆ nominal : a car 31 m ahead in the
     ego's only lane turning at 0.25 rad and 34 m/s (8.4 m/s sideways), the ego at 23 m/s. Robust's turning bound
     (braking from 34 m/s along its path, less 1.66 m) leaves FASTER 1.876 m; nominal's along the road (from
     32.94 m/s) −2.363 m — robust allowed FASTER, nominal did not. With shield.turning_in_nominal nominal takes the
@@ -361,7 +362,7 @@ def test_turning_in_nominal_keeps_robust_inside_nominal(evaluate: Evaluator) -> 
 @pytest.mark.parametrize("engine", ["numpy", "compiled"])
 @pytest.mark.parametrize("mode", ["nominal", "robust"])
 def test_turning_leaders_leaves_room_for_a_leader_turning_out(engine: str, mode: str) -> None:
-    """shield.turning_leaders (robust, default since issue 15's ninth session): IDLE's 2.167 m behind the
+    """shield.turning_leaders (robust, on by default): IDLE's 2.167 m behind the
     braking leader becomes 0.51 m (less 1.66 m = 4 m·tan(π/8), one lane change at highway-env's steepest
     heading), so only SLOWER is allowed — cell 332's break came a decision after IDLE. The next state of that
     episode (the leader 22.97 m ahead at 20.25 m/s, heading 0.249 rad): the straight bound, braking from
@@ -369,11 +370,11 @@ def test_turning_leaders_leaves_room_for_a_leader_turning_out(engine: str, mode:
     the bound grows across the decision instead of shrinking. Nominal keeps the straight bound either way."""
     kw = {"shield.engine": engine}
     now = scenarios.SCENARIOS["leader_may_turn_out"](mode=mode, **kw)
-    earlier = scenarios.SCENARIOS["leader_may_turn_out"](mode=mode, **kw, **{"shield.turning_leaders": False})
-    assert earlier.mask.tolist() == mask_of(I, S) and not earlier.result.fallback
-    assert earlier.result.min_gap[[I, S]] == pytest.approx([2.167, 14.667], abs=0.001)
+    without = scenarios.SCENARIOS["leader_may_turn_out"](mode=mode, **kw, **{"shield.turning_leaders": False})
+    assert without.mask.tolist() == mask_of(I, S) and not without.result.fallback
+    assert without.result.min_gap[[I, S]] == pytest.approx([2.167, 14.667], abs=0.001)
     if mode == "nominal":
-        assert now.result.min_gap.tolist() == earlier.result.min_gap.tolist()
+        assert now.result.min_gap.tolist() == without.result.min_gap.tolist()
         return
     assert now.mask.tolist() == mask_of(S) and not now.result.fallback
     assert now.result.min_gap[[I, S]] == pytest.approx([0.51, 13.01], abs=0.01)
@@ -567,7 +568,7 @@ def test_the_robust_fallback_picks_among_the_nominally_safe_actions(engine: str)
     specs = [scenarios.VehicleSpec(0, 12.0, 22.0)]
     scene = scenarios.build_scene(
         0, 25.0, specs, mode="robust", lanes_count=2, ego_target_speed=25.0,
-        **{"shield.engine": engine, **EARLIER_RULE},
+        **{"shield.engine": engine, **WITHOUT_LINEAR_AND_TURNING},
     )  # fmt: skip
     assert scene.result.fallback and not scene.result.safe.any()
     assert scene.result.min_gap[[I, R, S]] == pytest.approx([-42.67, -42.67, -17.67], abs=0.01)
@@ -580,7 +581,8 @@ def test_the_robust_fallback_picks_among_the_nominally_safe_actions(engine: str)
 @pytest.mark.parametrize("engine", ["numpy", "compiled"])
 def test_straight_fallback_brakes_where_turning_leaders_alone_changes_lane(engine: str) -> None:
     """The grid's cell 520 spawn (3 decisions/s, 2 lanes): the ego in lane 0 at 25 m/s, 14.4 m behind a car
-    at 22 m/s, lane 1 empty. The rule before the ninth session allows SLOWER (1.40 m). shield.turning_leaders
+    at 22 m/s, lane 1 empty. Without the linear-driver and turning options the rule allows SLOWER (1.40 m).
+    shield.turning_leaders
     takes the leader's lane-change allowance off its bound: SLOWER keeps -0.26 m, nothing is safe, and its
     fallback is the nominally safe LANE_RIGHT (-8.59 m) — the episode that was rear-ended at its eighth decision.
     shield.straight_fallback keeps turning_leaders' verdict (nothing safe, the same gaps: a fallback state
@@ -591,14 +593,14 @@ def test_straight_fallback_brakes_where_turning_leaders_alone_changes_lane(engin
         name: scenarios.build_scene(0, 25.0, specs, mode="robust", lanes_count=2, ego_target_speed=25.0,
                                     **rate, **options).result
         for name, options in {
-            "today": EARLIER_RULE,
-            "turning": {**EARLIER_RULE, "shield.turning_leaders": True},
-            "straight": {},  # the default since issue 15's ninth session
+            "plain": WITHOUT_LINEAR_AND_TURNING,
+            "turning": {**WITHOUT_LINEAR_AND_TURNING, "shield.turning_leaders": True},
+            "straight": {},  # the default
         }.items()
     }  # fmt: skip
-    today, turning, straight = scenes["today"], scenes["turning"], scenes["straight"]
-    assert today.mask.tolist() == mask_of(S) and not today.fallback
-    assert today.min_gap[[R, S]] == pytest.approx([-6.93, 1.4], abs=0.01)
+    plain, turning, straight = scenes["plain"], scenes["turning"], scenes["straight"]
+    assert plain.mask.tolist() == mask_of(S) and not plain.fallback
+    assert plain.min_gap[[R, S]] == pytest.approx([-6.93, 1.4], abs=0.01)
     assert turning.mask.tolist() == mask_of(R) and turning.fallback and not turning.safe.any()
     assert turning.min_gap[[R, S]] == pytest.approx([-8.59, -0.26], abs=0.01)
     assert straight.mask.tolist() == mask_of(S) and straight.fallback and not straight.safe.any()
@@ -612,7 +614,7 @@ def test_reversing_cut_ins_sees_a_reversing_car_beside(engine: str) -> None:
     it would not cut in, so IDLE (15.94 m), FASTER (1.51 m) and SLOWER are safe — and within the decision it
     began a lane change away from the ego, whose steering, reversing, swung its nose into the ego. With
     shield.reversing_cut_ins a car moving backwards may enter the ego's lane whatever MOBIL says: nothing is
-    safe (IDLE -56.29 m), SLOWER is the least bad (the default since issue 15's ninth session)."""
+    safe (IDLE -56.29 m), SLOWER is the least bad (the default)."""
     options = {
         "shield.engine": engine, "shield.linear_mobil": True, "shield.linear_incentive": True,
         "shield.linear_incentive_braking": True, "shield.turning_leaders": True, "shield.straight_fallback": True,
@@ -629,16 +631,16 @@ def test_reversing_cut_ins_sees_a_reversing_car_beside(engine: str) -> None:
 @pytest.mark.parametrize("mode", ["nominal", "robust"])
 def test_crossed_lanes_sees_the_lane_the_ego_crosses(engine: str, mode: str) -> None:
     """The 100 800-episode campaign's cell 2833 at its break (docs/safety.md §6j): the ego in lane 1 heading for
-    lane 3, a car 7.16 m behind in lane 2 closing at 9.5 m/s. The earlier rule put the ego in lanes 1 and 3
+    lane 3, a car 7.16 m behind in lane 2 closing at 9.5 m/s. Without it the rule put the ego in lanes 1 and 3
     only: IDLE, LANE_RIGHT, FASTER and SLOWER were safe (7.11 m robust, 8.77 m nominal: the car 13.77 m ahead
     in lane 1) and the ego was rear-ended in lane 2 two decisions later. With shield.crossed_lanes (the
-    default since issue 15's tenth session) lane 2 is the ego's until it is through: the car there is a
+    on by default) lane 2 is the ego's until it is through: the car there is a
     follower it cannot outrun, nothing is safe (IDLE -35.22 m) and the least bad is FASTER (-27.25 m)."""
     kw = {"shield.engine": engine}
-    earlier = scenarios.SCENARIOS["ego_crossing_a_lane"](mode=mode, **kw, **{"shield.crossed_lanes": False}).result
-    assert earlier.mask.tolist() == mask_of(I, R, F, S) and not earlier.fallback
+    without = scenarios.SCENARIOS["ego_crossing_a_lane"](mode=mode, **kw, **{"shield.crossed_lanes": False}).result
+    assert without.mask.tolist() == mask_of(I, R, F, S) and not without.fallback
     kept = 7.11 if mode == "robust" else 8.77
-    assert earlier.min_gap[[I, R, F, S]] == pytest.approx([kept] * 4, abs=0.01)
+    assert without.min_gap[[I, R, F, S]] == pytest.approx([kept] * 4, abs=0.01)
     crossed = scenarios.SCENARIOS["ego_crossing_a_lane"](mode=mode, **kw).result  # the default
     assert crossed.mask.tolist() == mask_of(F) and crossed.fallback and not crossed.safe.any()
     assert crossed.min_gap[[I, R, F, S]] == pytest.approx([-35.22, -35.22, -27.25, -42.21], abs=0.01)
@@ -661,12 +663,12 @@ def test_reversing_noses_sees_a_car_rolling_back_toward_its_turn(engine: str) ->
     turned 0.166 rad toward the ego's lane, rolling backwards at 0.086 m/s. Its lateral speed points away, so the
     heading projection put it in lane -1 (off the road) and IDLE kept 18.15 m; a decision later it moved
     forward, into the ego's lane. With shield.reversing_noses it is in the lane its nose points to as well:
-    IDLE -4.72 m, only SLOWER (5.28 m; the default since issue 15's tenth session). Nominal is unchanged
+    IDLE -4.72 m, only SLOWER (5.28 m; the default). Nominal is unchanged
     (robust-only option)."""
     kw = {"shield.engine": engine}
-    earlier = scenarios.SCENARIOS["car_rolling_back_turned_in"](**kw, **{"shield.reversing_noses": False}).result
-    assert earlier.mask.tolist() == mask_of(I, F, S) and not earlier.fallback
-    assert earlier.min_gap[[I, F, S]] == pytest.approx([18.15, 3.15, 28.15], abs=0.01)
+    without = scenarios.SCENARIOS["car_rolling_back_turned_in"](**kw, **{"shield.reversing_noses": False}).result
+    assert without.mask.tolist() == mask_of(I, F, S) and not without.fallback
+    assert without.min_gap[[I, F, S]] == pytest.approx([18.15, 3.15, 28.15], abs=0.01)
     noses = scenarios.SCENARIOS["car_rolling_back_turned_in"](**kw).result  # the default
     assert noses.mask.tolist() == mask_of(S) and not noses.fallback
     assert noses.min_gap[[I, F, S]] == pytest.approx([-4.72, -19.72, 5.28], abs=0.01)
@@ -681,17 +683,17 @@ def test_follower_idm_lets_the_car_behind_brake_for_the_ego(engine: str) -> None
     second, the ego at 18.32 m/s between a leader 9.36 m ahead (braking at its limit) and an IDM car 36.3 m
     behind at 21.57 m/s. The follower bound accelerates that car for 0.5 s whatever the ego does and starts
     again at every decision: IDLE and SLOWER keep 0.745 m, nothing is safe. With shield.follower_idm (the
-    default since issue 15's eleventh session) the car brakes by IDM's response to each fallback of the ego (its
+    on by default) the car brakes by IDM's response to each fallback of the ego (its
     free-road term at its largest): they keep 1.415 m — the leader's gap, the follower no longer the tighter
     one. Nominal keeps its masks, with more room (1.08 → 3.07 m)."""
     kw = {"shield.engine": engine}
-    earlier = scenarios.SCENARIOS["squeezed_by_a_follower"](**kw, **{"shield.follower_idm": False}).result
-    assert earlier.fallback and not earlier.safe.any()
-    assert earlier.min_gap[[I, S]] == pytest.approx([0.745, 0.745], abs=0.001)
-    idm = scenarios.SCENARIOS["squeezed_by_a_follower"](**kw).result  # the default since the eleventh session
+    without = scenarios.SCENARIOS["squeezed_by_a_follower"](**kw, **{"shield.follower_idm": False}).result
+    assert without.fallback and not without.safe.any()
+    assert without.min_gap[[I, S]] == pytest.approx([0.745, 0.745], abs=0.001)
+    idm = scenarios.SCENARIOS["squeezed_by_a_follower"](**kw).result  # the default
     assert idm.mask.tolist() == mask_of(I, S) and not idm.fallback
     assert idm.min_gap[[I, S]] == pytest.approx([1.415, 1.415], abs=0.001)
-    assert idm.min_gap[[L, R, F]].tolist() == earlier.min_gap[[L, R, F]].tolist()
+    assert idm.min_gap[[L, R, F]].tolist() == without.min_gap[[L, R, F]].tolist()
     nominal = [
         scenarios.SCENARIOS["squeezed_by_a_follower"](mode="nominal", **kw, **{"shield.follower_idm": v}).result
         for v in (False, True)
@@ -704,19 +706,19 @@ def test_follower_idm_lets_the_car_behind_brake_for_the_ego(engine: str) -> None
 def test_finishing_changes_lets_a_car_settle_in_the_next_lane(engine: str) -> None:
     """The 100 800-episode campaign's cell 614 at its break (docs/safety.md §6l), rebuilt: a car that has just
     crossed from two lanes over into the lane next to the ego, 25.18 m ahead at 17.16 m/s, still turned toward
-    its new lane's centre. The earlier rule's heading projection put it in the ego's lane from now, braking at
-    its limit: IDLE −79.54 m, SLOWER −49.54 m, nothing safe. With shield.finishing_changes (the default since
-    issue 15's twelfth session) it is finishing its change into
+    its new lane's centre. Without it the rule's heading projection put it in the ego's lane from now, braking at
+    its limit: IDLE −79.54 m, SLOWER −49.54 m, nothing safe. With shield.finishing_changes (the default) it is
+    finishing its change into
     lane 4 — a cut-in candidate from there, and MOBIL's safety criterion (the ego at 29.34 m/s, 25 m behind,
     would have to brake far harder than 2 m/s²) keeps it out of the ego's lane: IDLE and SLOWER have no
     conflict; in front of an ego at 10 m/s, which MOBIL would let it cut in ahead of, it is a conflict again.
     highway-env agrees: driven on with IDLE for 6 s, the car settles in lane 4 and nobody crashes. Nominal,
     which never projects, is unchanged."""
     kw = {"shield.engine": engine}
-    earlier = scenarios.SCENARIOS["car_settling_next_to_the_ego"](**kw, **{"shield.finishing_changes": False}).result
-    assert earlier.fallback and not earlier.safe.any()
-    assert earlier.min_gap[[I, S]] == pytest.approx([-79.54, -49.54], abs=0.01)
-    scene = scenarios.SCENARIOS["car_settling_next_to_the_ego"](**kw)  # the default since the twelfth session
+    without = scenarios.SCENARIOS["car_settling_next_to_the_ego"](**kw, **{"shield.finishing_changes": False}).result
+    assert without.fallback and not without.safe.any()
+    assert without.min_gap[[I, S]] == pytest.approx([-79.54, -49.54], abs=0.01)
+    scene = scenarios.SCENARIOS["car_settling_next_to_the_ego"](**kw)  # the default
     assert scene.mask.tolist() == mask_of(I, S) and not scene.result.fallback
     assert scene.result.min_gap[[I, S]].tolist() == [math.inf, math.inf]
     nominal = [
@@ -814,18 +816,18 @@ def _drive_idle_while_it_passes(scene: scenarios.Scene, decisions: int, ahead: f
 def test_cut_in_when_permitted_lets_a_car_pass_a_stopped_ego(engine: str) -> None:
     """The 100 800-episode campaign's cell 615 at its break (docs/safety.md §6l), rebuilt: the ego stopped, a car
     3.09 m ahead in the next lane at 20.64 m/s. MOBIL's safety criterion forbids its cut-in now (the ego would
-    brake at 28 m/s²) and allows it at the end of the decision; the earlier rule then took it as cutting in from
+    brake at 28 m/s²) and allows it at the end of the decision; the rule without it then took it as cutting in from
     the cut-in time — 0 s at 5 Hz physics, 3 m ahead: IDLE, LANE_RIGHT and FASTER all −3.57 m, nothing safe. With
-    shield.cut_in_when_permitted (the default since issue 15's thirteenth session) the cut-in starts from the
+    shield.cut_in_when_permitted (the default) the cut-in starts from the
     first frame MOBIL allows it, the car by then well ahead: IDLE keeps 4.21 m, FASTER 0.44 m (under the 1 m
     margin). highway-env agrees: driven on with IDLE for 5 s, the car passes and nobody crashes. Nominal, which
     has no cut-ins, is unchanged."""
     kw = {"shield.engine": engine}
-    earlier = scenarios.SCENARIOS["car_passing_a_stopped_ego"](**kw, **{"shield.cut_in_when_permitted": False})
-    assert earlier.result.fallback and not earlier.result.safe.any()
-    assert earlier.result.min_gap[[I, R, F]] == pytest.approx([-3.567] * 3, abs=0.001)
-    earlier.env.close()
-    scene = scenarios.SCENARIOS["car_passing_a_stopped_ego"](**kw)  # the default since the thirteenth session
+    without = scenarios.SCENARIOS["car_passing_a_stopped_ego"](**kw, **{"shield.cut_in_when_permitted": False})
+    assert without.result.fallback and not without.result.safe.any()
+    assert without.result.min_gap[[I, R, F]] == pytest.approx([-3.567] * 3, abs=0.001)
+    without.env.close()
+    scene = scenarios.SCENARIOS["car_passing_a_stopped_ego"](**kw)  # the default
     assert scene.mask.tolist() == mask_of(I) and not scene.result.fallback
     assert scene.result.min_gap[[I, R, F]] == pytest.approx([4.209, -3.567, 0.441], abs=0.001)
     nominal = [
@@ -844,15 +846,15 @@ def test_passing_cut_ins_make_a_car_passing_the_ego_a_leader(engine: str) -> Non
     1.05 m behind it in the next lane at 25.66 m/s. MOBIL lets it cut in only ahead of the ego (the ego its new
     follower, braking no harder than 2 m/s²: 7.75 m ahead of a stopped ego by its IDM), but the rule bounded it
     as a follower entering the ego's lane and driving on through it: IDLE −78.63 m, nothing safe. With
-    shield.passing_cut_ins (the default since issue 15's thirteenth session) it is a leader from its cut-in — at
+    shield.passing_cut_ins (the default) it is a leader from its cut-in — at
     least that distance ahead when it decides, then braking at its limit: IDLE keeps 5.50 m and FASTER 1.36 m.
     highway-env agrees: driven on with IDLE for 3 s, the car passes and nobody crashes."""
     kw = {"shield.engine": engine}
-    earlier = scenarios.SCENARIOS["car_passing_in_the_next_lane"](**kw, **{"shield.passing_cut_ins": False})
-    assert earlier.result.fallback and not earlier.result.safe.any()
-    assert earlier.result.min_gap[[I, F]] == pytest.approx([-78.627, -68.637], abs=0.001)
-    earlier.env.close()
-    scene = scenarios.SCENARIOS["car_passing_in_the_next_lane"](**kw)  # the default since the thirteenth session
+    without = scenarios.SCENARIOS["car_passing_in_the_next_lane"](**kw, **{"shield.passing_cut_ins": False})
+    assert without.result.fallback and not without.result.safe.any()
+    assert without.result.min_gap[[I, F]] == pytest.approx([-78.627, -68.637], abs=0.001)
+    without.env.close()
+    scene = scenarios.SCENARIOS["car_passing_in_the_next_lane"](**kw)  # the default
     assert scene.mask.tolist() == mask_of(I, F) and not scene.result.fallback
     assert scene.result.min_gap[[I, F]] == pytest.approx([5.501, 1.362], abs=0.001)
     _drive_idle_while_it_passes(scene, decisions=6, ahead=50.0)
@@ -886,11 +888,11 @@ def test_level_incentive_lets_a_car_in_free_flow_stay_in_its_lane(engine: str) -
 def test_linear_mobil_lets_a_car_alongside_stay_where_it_is(engine: str) -> None:
     """shield.linear_mobil: the Linear driver level with the ego would impose on the ego, as its new
     follower 0.1 m behind, 0.3·0.65 + 2·min(−0.1 − (10 + 2.5·19.35), 0) ≈ −117 m/s² by its own formula, far
-    below −2: no cut-in. Under the rule without level_cut_ins, SLOWER is then safe (worst gap 20.3 m); the
-    default rule assumes any Linear-model cut-in: the car appears in the ego's lane at its nose, nothing is
-    safe (a fallback) — 1 051 of the first campaign's ``adjacent_behind`` breaks. (The rule before the ninth
-    session, which made linear_mobil the default.)"""
-    options = {"shield.engine": engine, **EARLIER_RULE, "shield.level_cut_ins": False}
+    below −2: no cut-in. Under the rule without level_cut_ins, SLOWER is then safe (worst gap 20.3 m); without
+    linear_mobil the rule assumes any Linear-model cut-in: the car appears in the ego's lane at its nose, nothing is
+    safe (a fallback) — 1 051 of the first campaign's ``adjacent_behind`` breaks. (The rule without the
+    linear-driver and turning options.)"""
+    options = {"shield.engine": engine, **WITHOUT_LINEAR_AND_TURNING, "shield.level_cut_ins": False}
     with_criterion = scenarios.SCENARIOS["linear_car_alongside"](
         mode="robust", **{**options, "shield.linear_mobil": True}
     )
@@ -907,10 +909,11 @@ def test_linear_incentive_keeps_a_car_alongside_in_its_lane(engine: str) -> None
     (k₁·min(v_front − v, 0) + k₂·min(d − d_safe, 0), d_safe = 10 + 2.5·20.25 = 60.6 m) −121.3 m/s² behind the
     ego against −37.9 behind its leader, a gain of −83 m/s² < 0.2 — so it does not turn in behind the ego.
     With linear_mobil also on (it cannot cut in ahead either) SLOWER is safe (20.33 m), no fallback; with
-    either option alone, or neither (the rule before the ninth session), it is a fallback at −11.39 m (the
+    either option alone, or neither (the rule without the linear-driver and turning options), it is a
+    fallback at −11.39 m (the
     turn-in, or the cut-in, remains). (The straight leader bound and no per-frame incentive, as then.)"""
     mobil, incentive = "shield.linear_mobil", "shield.linear_incentive"
-    base = {"shield.engine": engine, **EARLIER_RULE}
+    base = {"shield.engine": engine, **WITHOUT_LINEAR_AND_TURNING}
     both = scenarios.SCENARIOS["linear_car_alongside"](mode="robust", **{**base, mobil: True, incentive: True})
     assert both.mask.tolist() == mask_of(S) and not both.result.fallback
     assert both.result.min_gap[[I, S]] == pytest.approx([0.33, 20.33], abs=0.01)
@@ -926,8 +929,8 @@ def test_linear_incentive_drops_the_free_car_and_keeps_the_one_stuck_behind_it(e
     free lane ahead, B 20 m behind at 20 m/s closing on A. By their own model A loses 75 m/s² by moving
     behind the ego (nothing ahead of it: its term is 0; behind the ego 2·min(10 − 47.5, 0)) and B gains
     21.5 m/s² (−80 behind the ego, 2·(20 − 60) against −101.5 behind A, 0.3·(15 − 20) + 2·(10 − 60)).
-    shield.linear_incentive (default since issue 15's ninth session) keeps only B (IDLE 13.5 m); the earlier
-    rule lets any Linear-model car turn in, and A bounds IDLE at 5.0 m; without level_cut_ins neither counts
+    shield.linear_incentive (on by default) keeps only B (IDLE 13.5 m); the rule without
+    it lets any Linear-model car turn in, and A bounds IDLE at 5.0 m; without level_cut_ins neither counts
     (IDLE unbounded)."""
     from highway_env.vehicle.behavior import LinearVehicle
 
@@ -941,10 +944,10 @@ def test_linear_incentive_drops_the_free_car_and_keeps_the_one_stuck_behind_it(e
         assert scene.result.safe.tolist() == mask_of(I, R, F, S)
         return float(scene.result.min_gap[I])
 
-    base = {"shield.engine": engine, **EARLIER_RULE}  # the rule before the ninth session: any turn-in
+    base = {"shield.engine": engine, **WITHOUT_LINEAR_AND_TURNING}  # any turn-in
     assert idle_gap(**base) == pytest.approx(5.0, abs=0.01)
     assert idle_gap(**{**base, "shield.linear_incentive": True}) == pytest.approx(13.5, abs=0.01)
-    assert idle_gap(**{"shield.engine": engine}) == pytest.approx(13.5, abs=0.01)  # today's default
+    assert idle_gap(**{"shield.engine": engine}) == pytest.approx(13.5, abs=0.01)  # the default
     assert idle_gap(**base, **{"shield.level_cut_ins": False}) == math.inf
 
 
@@ -956,16 +959,16 @@ def test_linear_incentive_braking_sees_the_car_closing_on_a_slow_one(engine: str
     the decision at constant speeds it gains nothing by moving behind the ego, so SLOWER has no conflict at
     all (gap unbounded) and is the one safe action; with shield.linear_incentive_braking its leader may brake
     within the decision, which makes the turn-in pay: SLOWER −9.99 m, nothing safe (a fallback), as the
-    rule before the ninth session (any Linear-model turn-in: SLOWER −20.02 m) also says; the three options
-    are today's default."""
+    rule without the linear-driver options (any Linear-model turn-in: SLOWER −20.02 m) also says; the three options
+    are the default."""
     from highway_env.vehicle.behavior import LinearVehicle
 
     specs = [
         scenarios.VehicleSpec(1, -5.5, 17.6, vehicle_class=LinearVehicle),
         scenarios.VehicleSpec(1, 3.9, 10.1, vehicle_class=LinearVehicle),
     ]
-    earlier = {"shield.engine": engine, **EARLIER_RULE}
-    linear = {**earlier, "shield.linear_mobil": True, "shield.linear_incentive": True}
+    without = {"shield.engine": engine, **WITHOUT_LINEAR_AND_TURNING}
+    linear = {**without, "shield.linear_mobil": True, "shield.linear_incentive": True}
 
     def scene(**options: object) -> scenarios.Scene:
         return scenarios.build_scene(0, 15.75, specs, mode="robust", ego_target_speed=15.0, **options)
@@ -975,10 +978,10 @@ def test_linear_incentive_braking_sees_the_car_closing_on_a_slow_one(engine: str
     braking = scene(**{**linear, "shield.linear_incentive_braking": True})
     assert braking.result.fallback and not braking.result.safe.any()
     assert braking.result.min_gap[S] == pytest.approx(-9.99, abs=0.01)
-    before = scene(**earlier)
+    before = scene(**without)
     assert before.result.fallback and before.result.min_gap[S] == pytest.approx(-20.02, abs=0.01)
-    today = scene(**{"shield.engine": engine})
-    assert today.result.fallback and not today.result.safe.any()
+    default = scene(**{"shield.engine": engine})
+    assert default.result.fallback and not default.result.safe.any()
 
 
 @pytest.mark.parametrize("engine", ["numpy", "compiled"])

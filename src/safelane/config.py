@@ -32,7 +32,6 @@ from safelane.core.errors import ConfigError
 from safelane.safety.rule import (
     DEFAULT_RULE_NAME,
     OPTION_NAMES,
-    OPTIONS,
     RULES,
     Rule,
     rule_named,
@@ -575,18 +574,11 @@ REMOVED_OPTIONS: dict[str, bool] = {
 """Options measured and not adopted, removed from the rule, with the value they always had: a file that sets one
 to it still loads; any other value is an error (the code that ran it is at commit f9bfa5a)."""
 
-RECORDED_DEFAULTS: dict[str, bool] = {o.name: o.default for o in OPTIONS} | dict.fromkeys(
-    ("body_extent", "reversing_leaders", "level_cut_ins", "level_entering", "full_horizon", "ego_speed_magnitude",
-     "linear_mobil", "linear_incentive", "linear_incentive_braking", "turning_leaders", "straight_fallback",
-     "reversing_cut_ins", "crossed_lanes", "reversing_noses", "follower_idm", "finishing_changes",
-     "cut_in_when_permitted", "permit_any_speed", "passing_cut_ins", "level_when_incentive", "incentive_any_speed",
-     "turning_in_nominal", "forecast_fallback"),
-    False,
-)  # fmt: skip
+RECORDED_DEFAULTS: dict[str, bool] = RULES["basic"].options
 """The value a rule option has in a *recorded* configuration (a run's config.yaml, a counterexample file) that
 names neither ``shield.rule`` nor the option: such a file lists the options as keys of their own and was written
-before the keys it lacks existed, with the rule's behaviour then — each option off, which is the ``basic`` rule
-(:func:`recorded_config`)."""
+before the keys it lacks existed, with the rule's behaviour then — each such option off: the ``basic`` rule's
+values (:func:`recorded_config`)."""
 
 
 def fold_flat_options(shield: dict[str, Any]) -> dict[str, Any]:

@@ -40,7 +40,6 @@ def _break_states(cx: Counterexample, simulator: str | None, what: str) -> tuple
     inputs for a (possibly edited) snapshot of that episode, its Dynamics fields ``options`` replaced (and
     :class:`~safelane.safety.model.CarriedFollowers` passed on); and the shield. ``what`` names
     the caller's product in the one-line error for a file that is not a break."""
-    import dataclasses
 
     from safelane.env.factory import make_env
     from safelane.safety.model import evaluate
@@ -59,7 +58,7 @@ def _break_states(cx: Counterexample, simulator: str | None, what: str) -> tuple
     def judge(snap: Any, options: dict[str, Any] | None = None, carried: Any = None) -> Any:
         state, dyn = shield.state_and_dynamics(snap)
         if options:
-            dyn = dataclasses.replace(dyn, **options)
+            dyn = dyn.with_options(**options)
         return evaluate(state, dyn, shield.mode, carried=carried)
 
     return before, after, judge, shield
@@ -129,8 +128,9 @@ def check_rule_options(options: dict[str, Any]) -> None:
     import dataclasses
 
     from safelane.safety.model import Dynamics
+    from safelane.safety.rule import OPTION_NAMES
 
-    fields = {f.name for f in dataclasses.fields(Dynamics)}
+    fields = {f.name for f in dataclasses.fields(Dynamics)} | set(OPTION_NAMES)
     unknown = sorted(set(options) - fields)
     if unknown:
         raise ConfigError(f"{unknown[0]}: not a rule option; allowed: {', '.join(sorted(fields))}")

@@ -15,7 +15,6 @@ by side on the same states (interleaved, so the machine's noise hits both alike)
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import time
 from collections.abc import Callable
 from typing import Any
@@ -96,7 +95,7 @@ def main() -> None:
             rows[f"{args.compare}={flag}"] = []
         for state, dyn in recorded:
             for flag in (False, True):
-                variant = dataclasses.replace(dyn, **dict.fromkeys(args.compare.split(","), flag))
+                variant = dyn.with_options(**dict.fromkeys(args.compare.split(","), flag))
                 evaluate_compiled(state, variant, "robust")  # compile / warm up outside the timing
                 rows[f"{args.compare}={flag}"].append(
                     best_of(lambda: evaluate_compiled(state, variant, "robust"), args.reps)  # noqa: B023

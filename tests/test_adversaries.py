@@ -3,7 +3,6 @@ the rule's cut-in bounds checked against it."""
 
 from __future__ import annotations
 
-import dataclasses
 import math
 from typing import Any
 
@@ -101,7 +100,8 @@ def _cut_ins_from_behind(permit_any_speed: bool, cases: int = 160) -> tuple[int,
         car.victim = ego
         shield = find_shield(scene.env)
         state, dyn = shield.state_and_dynamics(shield.snapshot)
-        dyn = dataclasses.replace(dyn, permit_any_speed=permit_any_speed)
+        dyn = dyn.with_options(permit_any_speed=permit_any_speed)
+        ego_width = float(shield.snapshot.width[shield.snapshot.ego])  # [m]
         i = int(np.argmax(np.abs(state.x - state.ego_x)))  # the one other car
         ego_x, ego_v = model.ego_trajectories(state, dyn)
         frames = dyn.frames_per_decision
@@ -121,8 +121,8 @@ def _cut_ins_from_behind(permit_any_speed: bool, cases: int = 160) -> tuple[int,
         allowance = model.turning_allowance(dyn)
         bound = model.passing_positions(state, dyn, i, *path, target, permit, allowance)
         for f, (xc, yc, heading) in enumerate(track[: bound.size - 1], start=1):
-            reach = 0.5 * dyn.ego_width * math.cos(heading) + 2.5 * abs(math.sin(heading))
-            if abs(yc - dyn.lane_width) < 0.5 * dyn.ego_width + reach and xc < bound[f]:
+            reach = 0.5 * ego_width * math.cos(heading) + 2.5 * abs(math.sin(heading))
+            if abs(yc - dyn.lane_width) < 0.5 * ego_width + reach and xc < bound[f]:
                 bad.append(f"case {k}: frame {f} at {xc:.2f} m, bound {bound[f]:.2f} m")
     return checked, bad
 

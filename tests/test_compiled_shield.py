@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import dataclasses
 import math
 from collections.abc import Callable, Iterator
 from typing import Any
@@ -17,7 +16,7 @@ from safelane.env.factory import make_env
 from safelane.safety import compiled, model
 from safelane.safety.model import Dynamics, RoadState, SafetyResult
 from safelane.safety.shield import SafetyShield
-from test_safety import NINTH_SESSION_OPTIONS, PROPERTY_SETTINGS, road
+from test_safety import LINEAR_AND_TURNING_OPTIONS, PROPERTY_SETTINGS, road
 
 MODES = ("nominal", "robust")
 
@@ -75,7 +74,7 @@ def assert_nested(state: RoadState, dyn: Dynamics) -> None:
     """robust ⊆ nominal for the final masks, at any heading with shield.turning_in_nominal (without it, only up to
     0.3 rad: turning_leaders brakes a fast turning leader from its speed along its path, which can leave more
     room than nominal's along the road — hypothesis found it at 1 rad, then at 0.25 rad and 34 m/s)."""
-    if dyn.turning_in_nominal or (np.abs(state.heading) <= 0.3).all():
+    if dyn.rule.turning_in_nominal or (np.abs(state.heading) <= 0.3).all():
         robust, nominal = reference(state, dyn, "robust"), reference(state, dyn, "nominal")
         assert not (robust.safe & ~nominal.safe).any()
         assert not (robust.mask & ~nominal.mask).any()
@@ -95,7 +94,7 @@ def test_extreme_states_bit_identical(case: tuple) -> None:
     state, dyn, _ = case
     assert mismatches(state, dyn) == []
     # The ego that can never leave its lane (ego_leave_time = inf) and the paper's eq. 12 (delegated).
-    slow = dataclasses.replace(dyn, ego_leave_time=math.inf)
+    slow = dyn.with_options(ego_leave_time=math.inf)
     assert mismatches(state, slow) == []
     paper = compiled.evaluate_compiled(state, dyn, "nominal", "paper")
     assert_same(model.evaluate(state, dyn, "nominal", "paper"), paper)
@@ -221,13 +220,11 @@ def test_engine_is_configurable() -> None:
 
 
 # --------------------------------------------------------------------------------------------
-# The robust options (shield.projected_cut_ins, experimental; shield.body_extent, level_cut_ins, level_entering):
+# The robust options (shield.body_extent, level_cut_ins, level_entering):
 # the same in both engines, and only stricter.
 # --------------------------------------------------------------------------------------------
 
-ROBUST_OPTIONS = pytest.mark.parametrize(
-    "option", ["projected_cut_ins", "body_extent", "level_cut_ins", "level_entering"]
-)
+ROBUST_OPTIONS = pytest.mark.parametrize("option", ["body_extent", "level_cut_ins", "level_entering"])
 """The options that only add conflicts (linear_mobil removes some: tested on its own below)."""
 
 
@@ -236,8 +233,8 @@ ROBUST_OPTIONS = pytest.mark.parametrize(
 @given(case=road())
 def test_robust_options_bit_identical_and_only_stricter(option: str, case: tuple) -> None:
     state, dyn, _ = case
-    dyn = dataclasses.replace(dyn, **{option: False})
-    strict = dataclasses.replace(dyn, **{option: True})
+    dyn = dyn.with_options(**{option: False})
+    strict = dyn.with_options(**{option: True})
     assert mismatches(state, dyn) == [] and mismatches(state, strict) == []
     for mode in MODES:
         base, more = reference(state, dyn, mode), reference(state, strict, mode)
@@ -253,10 +250,10 @@ def test_reversing_leaders_bit_identical_and_only_stricter(case: tuple) -> None:
     engines agree either way (extreme roads have speeds down to −5 m/s), it never makes an action safe,
     and without a reversing leader it changes nothing, to the bit."""
     state, dyn, _ = case
-    earlier, now = (dataclasses.replace(dyn, reversing_leaders=v) for v in (False, True))
-    assert mismatches(state, earlier) == [] and mismatches(state, now) == []
+    without, with_it = (dyn.with_options(reversing_leaders=v) for v in (False, True))
+    assert mismatches(state, without) == [] and mismatches(state, with_it) == []
     for mode in MODES:
-        before, after = reference(state, earlier, mode), reference(state, now, mode)
+        before, after = reference(state, without, mode), reference(state, with_it, mode)
         assert not (after.safe & ~before.safe).any()
         if not ((state.vx < 0) & ~state.crashed).any():
             assert_same(before, after)
@@ -270,10 +267,10 @@ def test_level_incentive_bit_identical_and_between_the_rules(case: tuple) -> Non
     false), never looser than the rule without level cut-ins; with level_entering (the default) between
     the two as well, and stricter than the filter applied to every lane; the same in both engines."""
     state, dyn, _ = case
-    off = dataclasses.replace(dyn, level_cut_ins=False)
-    plain = dataclasses.replace(dyn, level_cut_ins=True, level_incentive=False)
-    incentive = dataclasses.replace(dyn, level_cut_ins=True, level_incentive=True, level_entering=True)
-    own_lanes = dataclasses.replace(incentive, level_entering=False)  # the filter into entered lanes too
+    off = dyn.with_options(level_cut_ins=False)
+    plain = dyn.with_options(level_cut_ins=True, level_incentive=False)
+    incentive = dyn.with_options(level_cut_ins=True, level_incentive=True, level_entering=True)
+    own_lanes = incentive.with_options(level_entering=False)  # the filter into entered lanes too
     for d in (plain, incentive, own_lanes):
         assert mismatches(state, d) == []
     for mode in MODES:
@@ -289,41 +286,15 @@ def test_level_incentive_bit_identical_and_between_the_rules(case: tuple) -> Non
 
 
 @PROPERTY_SETTINGS
-@given(case=road())
-def test_least_bad_joint_bit_identical_and_only_the_fallback_choice(case: tuple) -> None:
-    """shield.least_bad_joint ranks the fallback by the gap to everybody first: the same in both engines,
-    the same safe set and gaps, and the same mask whenever some action is safe. (Without the straight
-    fallback, whose mask in a fallback state is the straight rule's, possibly several actions.)"""
-    state, dyn, _ = case
-    ahead_first, joint_first = (
-        dataclasses.replace(dyn, least_bad_joint=v, straight_fallback=False) for v in (False, True)
-    )
-    assert mismatches(state, ahead_first) == [] and mismatches(state, joint_first) == []
-    for mode in MODES:
-        a, b = reference(state, ahead_first, mode), reference(state, joint_first, mode)
-        assert a.safe.tolist() == b.safe.tolist() and a.fallback == b.fallback
-        assert np.array_equal(a.min_gap, b.min_gap, equal_nan=True)
-        if not a.fallback:
-            assert a.mask.tolist() == b.mask.tolist()
-        else:
-            assert a.mask.sum() == b.mask.sum() == 1
-
-
-@PROPERTY_SETTINGS
 @given(case=road(rates=True, follower=True))
 def test_forecast_fallback_bit_identical_and_only_the_fallback_choice(case: tuple) -> None:
-    """shield.forecast_fallback ranks the least-bad choice by a nominal forecast first (its collisions alike, or
-    by their first contact with shield.forecast_contact_time; its cars keeping their lanes, or changing them by
-    MOBIL with shield.forecast_lane_changes): the same in both engines
+    """shield.forecast_fallback ranks the least-bad choice by a nominal forecast first (its collisions alike, its
+    cars keeping their lanes): the same in both engines
     (one shared kernel); the same safe set, fallback flag and gaps; the same mask whenever some action is safe;
     in a fallback state one available action, robust ⊆ nominal kept (the forecast is the same in both modes)."""
     state, dyn, _ = case
-    off = dataclasses.replace(dyn, forecast_fallback=False)
-    # shield.forecast_contact_time (forecast collisions ranked by first contact), shield.forecast_lane_changes
-    for contact_time, lane_changes in ((False, False), (True, False), (True, True)):
-        on = dataclasses.replace(
-            dyn, forecast_fallback=True, forecast_contact_time=contact_time, forecast_lane_changes=lane_changes
-        )
+    off = dyn.with_options(forecast_fallback=False)
+    for on in (dyn.with_options(forecast_fallback=True),):
         assert mismatches(state, on) == []
         for mode in MODES:
             a, b = reference(state, off, mode), reference(state, on, mode)
@@ -332,28 +303,9 @@ def test_forecast_fallback_bit_identical_and_only_the_fallback_choice(case: tupl
             assert a.available.tolist() == b.available.tolist()
             if not a.fallback:
                 assert a.mask.tolist() == b.mask.tolist()
-            elif not (mode == "robust" and dyn.straight_fallback and model.turning_allowance(dyn) > 0.0):
+            elif not (mode == "robust" and dyn.rule.straight_fallback and model.turning_allowance(dyn) > 0.0):
                 assert b.mask.sum() == 1 and (b.mask & b.available).any()
         assert_nested(state, on)
-
-
-@PROPERTY_SETTINGS
-@given(case=road())
-def test_robust_fallback_bit_identical_and_only_the_fallback_choice(case: tuple) -> None:
-    """shield.robust_fallback: the same in both engines; the same safe set and gaps either way, the same mask
-    whenever some action is safe, one available action allowed otherwise (which one: the scenario test in
-    tests/test_safety.py); nominal mode untouched. (Without the straight fallback, which would replace it.)"""
-    state, dyn, _ = case
-    off, on = (dataclasses.replace(dyn, robust_fallback=v, straight_fallback=False) for v in (False, True))
-    assert mismatches(state, off) == [] and mismatches(state, on) == []
-    assert_same(reference(state, off, "nominal"), reference(state, on, "nominal"))
-    a, b = reference(state, off, "robust"), reference(state, on, "robust")
-    assert a.safe.tolist() == b.safe.tolist() and a.fallback == b.fallback
-    assert np.array_equal(a.min_gap, b.min_gap, equal_nan=True)
-    if not b.fallback:
-        assert a.mask.tolist() == b.mask.tolist()
-        return
-    assert b.mask.sum() == 1 and b.available[b.mask].all()
 
 
 @PROPERTY_SETTINGS
@@ -365,8 +317,8 @@ def test_linear_incentive_bit_identical_and_only_removes_linear_turn_ins(case: t
     shield.linear_incentive_braking (the incentive also at every frame, the driver's leaders braking) lies in
     between: the same in both engines, never a gap above the plain incentive's nor below the unfiltered rule's."""
     state, dyn, _ = case
-    off, on = (dataclasses.replace(dyn, linear_incentive=v, linear_incentive_braking=False) for v in (False, True))
-    braking = dataclasses.replace(on, linear_incentive_braking=True)
+    off, on = (dyn.with_options(linear_incentive=v, linear_incentive_braking=False) for v in (False, True))
+    braking = on.with_options(linear_incentive_braking=True)
     assert mismatches(state, on) == [] and mismatches(state, braking) == []
     assert_same(reference(state, off, "nominal"), reference(state, on, "nominal"))
     assert_same(reference(state, on, "nominal"), reference(state, braking, "nominal"))
@@ -386,7 +338,7 @@ def test_full_horizon_bit_identical_at_every_rate_and_unchanged_at_one_per_secon
     to the bit; at 2, 3 and 5 per second it spans the same seconds (26, 39, 65 decisions) and both engines
     agree, in both modes."""
     state, dyn, _ = case
-    short, full = (dataclasses.replace(dyn, full_horizon=v) for v in (False, True))
+    short, full = (dyn.with_options(full_horizon=v) for v in (False, True))
     assert full.horizon_decisions * full.decision_period >= short.horizon_decisions * 1.0 - 1e-9
     assert mismatches(state, full) == [] and mismatches(state, short) == []
     if dyn.decision_period == 1.0:
@@ -403,7 +355,7 @@ def test_turning_leaders_bit_identical(case: tuple) -> None:
     that is ahead or may change lane nothing changes (a car behind that may change lane can pass the ego and cut
     in ahead of it, a leader from then on: shield.passing_cut_ins)."""
     state, dyn, _ = case
-    off, on = (dataclasses.replace(dyn, turning_leaders=v) for v in (False, True))
+    off, on = (dyn.with_options(turning_leaders=v) for v in (False, True))
     assert mismatches(state, off) == [] and mismatches(state, on) == []
     may_lead = (state.x >= state.ego_x) | state.can_change_lane
     if not (may_lead & (state.vx > 0) & ~state.crashed).any():
@@ -418,24 +370,23 @@ def test_straight_fallback_bit_identical_and_only_the_fallback_mask(case: tuple)
     gaps and fallback flag are turning_leaders' own; only a state it leaves without a safe action changes, and
     there the mask is exactly what the rule without turning_leaders allows; off turning_leaders, no effect."""
     state, dyn, _ = case
-    turning = dataclasses.replace(dyn, turning_leaders=True)
-    on = dataclasses.replace(turning, straight_fallback=True)
+    turning = dyn.with_options(turning_leaders=True)
+    on = turning.with_options(straight_fallback=True)
     assert mismatches(state, on) == []
     assert_same(reference(state, on, "nominal"), reference(state, turning, "nominal"))
-    for robust_fallback in (False, True):  # without turning_leaders the option does nothing, in both modes
-        plain = dataclasses.replace(dyn, turning_leaders=False, robust_fallback=robust_fallback)
+    for plain in (dyn.with_options(turning_leaders=False),):  # without turning_leaders no effect, in both modes
         for mode in MODES:
             assert_same(reference(state, plain, mode),
-                        reference(state, dataclasses.replace(plain, straight_fallback=True), mode))  # fmt: skip
+                        reference(state, plain.with_options(straight_fallback=True), mode))  # fmt: skip
     for in_nominal in (False, True):
-        a = reference(state, dataclasses.replace(turning, turning_in_nominal=in_nominal), "robust")
-        b = reference(state, dataclasses.replace(on, turning_in_nominal=in_nominal), "robust")
+        a = reference(state, turning.with_options(turning_in_nominal=in_nominal), "robust")
+        b = reference(state, on.with_options(turning_in_nominal=in_nominal), "robust")
         assert a.safe.tolist() == b.safe.tolist() and a.fallback == b.fallback
         assert np.array_equal(a.min_gap, b.min_gap, equal_nan=True)
         if not b.fallback:
             assert a.mask.tolist() == b.mask.tolist()
         elif not in_nominal:  # the rule without turning_leaders
-            straight = dataclasses.replace(dyn, turning_leaders=False, turning_in_nominal=False)
+            straight = dyn.with_options(turning_leaders=False, turning_in_nominal=False)
             assert b.mask.tolist() == reference(state, straight, "robust").mask.tolist()
         else:  # the rule with nominal's leader bound (turning_in_nominal)
             nominal_leaders = model._evaluate(state, on, "robust", "kinematic", nominal_leaders=True)
@@ -445,12 +396,12 @@ def test_straight_fallback_bit_identical_and_only_the_fallback_mask(case: tuple)
 @PROPERTY_SETTINGS
 @given(case=road(rates=True))
 def test_turning_in_nominal_bit_identical_and_only_looser_nominal(case: tuple) -> None:
-    """shield.turning_in_nominal (default since issue 15's fifteenth session): the same in both engines at every
+    """shield.turning_in_nominal (on by default): the same in both engines at every
     rate; robust's safe set and gaps are unchanged to the bit (only a fallback mask, chosen among nominal's
     bounds, can change); nominal only gets looser, and only with a moving leader; robust ⊆ nominal at any
     heading; without turning_leaders it changes nothing."""
     state, dyn, _ = case
-    off, on = (dataclasses.replace(dyn, turning_in_nominal=v) for v in (False, True))
+    off, on = (dyn.with_options(turning_in_nominal=v) for v in (False, True))
     assert mismatches(state, on) == [] and mismatches(state, off) == []
     a, b = reference(state, off, "robust"), reference(state, on, "robust")
     assert a.safe.tolist() == b.safe.tolist() and np.array_equal(a.min_gap, b.min_gap, equal_nan=True)
@@ -459,7 +410,7 @@ def test_turning_in_nominal_bit_identical_and_only_looser_nominal(case: tuple) -
     if not ((state.x >= state.ego_x) & (state.vx > 0) & ~state.crashed).any():
         assert_same(n_off, n_on, "nominal")
     assert_nested(state, on)
-    plain_off, plain_on = (dataclasses.replace(d, turning_leaders=False) for d in (off, on))
+    plain_off, plain_on = (d.with_options(turning_leaders=False) for d in (off, on))
     for mode in MODES:
         assert_same(reference(state, plain_off, mode), reference(state, plain_on, mode), mode)
 
@@ -470,10 +421,10 @@ def test_linear_mobil_bit_identical_and_only_looser(case: tuple) -> None:
     """shield.linear_mobil judges Linear-model cut-ins by their criterion: the same in both engines either
     way, and it only removes conflicts (never makes an action unsafe); nominal ignores it."""
     state, dyn, _ = case
-    earlier, now = (dataclasses.replace(dyn, linear_mobil=v) for v in (False, True))
-    assert mismatches(state, earlier) == [] and mismatches(state, now) == []
+    without, with_it = (dyn.with_options(linear_mobil=v) for v in (False, True))
+    assert mismatches(state, without) == [] and mismatches(state, with_it) == []
     for mode in MODES:
-        before, after = reference(state, earlier, mode), reference(state, now, mode)
+        before, after = reference(state, without, mode), reference(state, with_it, mode)
         assert not (before.safe & ~after.safe).any()
         if mode == "nominal":
             assert_same(before, after)
@@ -485,7 +436,7 @@ def test_robust_options_on_recorded_states(option: str) -> None:
     for shield, snap in recorded("fast", "fast", True, episodes=4, seed=5, max_steps=40):
         assert shield.dynamics is not None
         for value in (False, True):
-            shield.dynamics = dataclasses.replace(shield.dynamics, **{option: value})
+            shield.dynamics = shield.dynamics.with_options(**{option: value})
             n += check_recorded(shield, snap)
     assert n >= 160
 
@@ -500,7 +451,7 @@ def test_ego_speed_magnitude_on_recorded_states() -> None:
         assert shield.dynamics is not None
         speeds = []
         for value in (False, True):
-            shield.dynamics = dataclasses.replace(shield.dynamics, ego_speed_magnitude=value)
+            shield.dynamics = shield.dynamics.with_options(ego_speed_magnitude=value)
             n += check_recorded(shield, snap)
             speeds.append(shield.state_and_dynamics(snap)[0].ego_speed)
         e = snap.ego
@@ -530,7 +481,7 @@ def test_reversing_cut_ins_bit_identical_and_only_stricter(case: tuple) -> None:
     backwards may change into the ego's lane whatever MOBIL says), so no action safe with it is unsafe
     without it and no worst gap grows; a road without a car moving backwards is unchanged to the bit."""
     state, dyn, _ = case
-    off, on = (dataclasses.replace(dyn, reversing_cut_ins=v) for v in (False, True))
+    off, on = (dyn.with_options(reversing_cut_ins=v) for v in (False, True))
     assert mismatches(state, on) == []
     assert_only_stricter(state, off, on, lambda mode: not (state.vx < 0).any())
 
@@ -543,7 +494,7 @@ def test_crossed_lanes_bit_identical_and_only_stricter(case: tuple) -> None:
     unsafe without it and no worst gap grows; an ego keeping its lane crosses nothing and is unchanged to the
     bit. Both modes take the same lanes, so robust ⊆ nominal still holds for the final masks."""
     state, dyn, _ = case
-    off, on = (dataclasses.replace(dyn, crossed_lanes=v) for v in (False, True))
+    off, on = (dyn.with_options(crossed_lanes=v) for v in (False, True))
     assert mismatches(state, on) == [] and mismatches(state, off) == []
     assert_only_stricter(state, off, on, lambda mode: state.ego_target_lane == state.ego_lane)
     assert_nested(state, on)
@@ -556,38 +507,22 @@ def test_reversing_noses_bit_identical_and_only_stricter(case: tuple) -> None:
     rolling backwards with its nose turned, so nothing becomes safe and no worst gap grows; a road without such
     a car, and nominal mode, are unchanged to the bit."""
     state, dyn, _ = case
-    off, on = (dataclasses.replace(dyn, reversing_noses=v) for v in (False, True))
+    off, on = (dyn.with_options(reversing_noses=v) for v in (False, True))
     assert mismatches(state, on) == []
     turned_back = ((state.vx < 0) & (np.abs(state.heading) > model.LATERAL_MOTION_THRESHOLD)).any()
     assert_only_stricter(state, off, on, lambda mode: mode == "nominal" or not turned_back)
 
 
 @PROPERTY_SETTINGS
-@given(case=road(extreme=True, rates=True, chained=True, lateral=True))
-def test_lateral_schedule_bit_identical(case: tuple) -> None:
-    """shield.lateral_schedule (experimental): the same in both engines at every rate, with the ego off its
-    lane's centre, turned, its target up to two lanes away and its lateral motion simulated at any speed the
-    shield uses; robust ⊆ nominal still holds for the final masks (both modes take the same lanes)."""
-    state, dyn, _ = case
-    on = dataclasses.replace(dyn, lateral_schedule=True)
-    assert mismatches(state, on) == []
-    assert_nested(state, on)
-
-
-@PROPERTY_SETTINGS
 @given(case=road(extreme=True, rates=True, chained=True, follower=True))
 def test_follower_idm_bit_identical(case: tuple) -> None:
     """shield.follower_idm: the same in both engines at every rate (IDM followers of every kind, crashed cars,
-    cars between a follower and the ego), and with follower_set_point (experimental: set-points known or not,
-    linear-model followers); robust ⊆ nominal still holds for the final masks (both modes take the same
+    cars between a follower and the ego); robust ⊆ nominal still holds for the final masks (both modes take the same
     follower bound); a road without an IDM car behind the ego in its lane is unchanged to the bit."""
     state, dyn, _ = case
-    off, on = (dataclasses.replace(dyn, follower_idm=v) for v in (False, True))
-    set_point = dataclasses.replace(on, follower_set_point=True)
+    off, on = (dyn.with_options(follower_idm=v) for v in (False, True))
     assert mismatches(state, on) == []
-    assert mismatches(state, set_point) == []
     assert_nested(state, on)
-    assert_nested(state, set_point)
     near = np.flatnonzero(np.abs(state.x - state.ego_x) < model.RELEVANCE_RANGE)
     if not model.idm_followers(state, on, near).any():
         for mode in ("nominal", "robust"):
@@ -596,15 +531,14 @@ def test_follower_idm_bit_identical(case: tuple) -> None:
 
 @PROPERTY_SETTINGS
 @given(case=road(extreme=True, rates=True))
-def test_the_ninth_session_s_rule_leaves_nominal_untouched(case: tuple) -> None:
-    """The options made default in issue 15's ninth session (linear drivers' MOBIL, turning leaders, the
-    straight fallback, reversing cut-ins) are all robust-mode parts: nominal (Q-masking) gives the same result
-    to the bit with or without them, in both engines — as that session had it, without shield.turning_in_nominal
-    (since the fifteenth session nominal takes turning_leaders' bound where it is the looser:
-    test_turning_in_nominal_bit_identical_and_only_looser_nominal)."""
+def test_linear_and_turning_options_leave_nominal_untouched(case: tuple) -> None:
+    """The linear-driver and turning options (linear drivers' MOBIL, turning leaders, the straight fallback,
+    reversing cut-ins) are all robust-mode parts: nominal (Q-masking) gives the same result to the bit with or
+    without them, in both engines — without shield.turning_in_nominal (with it nominal takes turning_leaders'
+    bound where it is the looser: test_turning_in_nominal_bit_identical_and_only_looser_nominal)."""
     state, dyn, _ = case
-    dyn = dataclasses.replace(dyn, turning_in_nominal=False)
-    on, off = (dataclasses.replace(dyn, **dict.fromkeys(NINTH_SESSION_OPTIONS, v)) for v in (True, False))
+    dyn = dyn.with_options(turning_in_nominal=False)
+    on, off = (dyn.with_options(**dict.fromkeys(LINEAR_AND_TURNING_OPTIONS, v)) for v in (True, False))
     assert_same(reference(state, on, "nominal"), reference(state, off, "nominal"))
     assert_same(compiled.evaluate_compiled(state, on, "nominal"), compiled.evaluate_compiled(state, off, "nominal"))
 
@@ -616,7 +550,7 @@ def test_finishing_changes_bit_identical(case: tuple) -> None:
     holds for the final masks (it only drops a robust conflict); nominal mode, and a road without a car
     moving forward toward its own lane's centre, are unchanged to the bit."""
     state, dyn, _ = case
-    off, on = (dataclasses.replace(dyn, finishing_changes=v) for v in (False, True))
+    off, on = (dyn.with_options(finishing_changes=v) for v in (False, True))
     assert mismatches(state, on) == []
     assert_nested(state, on)
     assert_same(reference(state, off, "nominal"), reference(state, on, "nominal"), "nominal")
@@ -630,15 +564,15 @@ def test_finishing_changes_bit_identical(case: tuple) -> None:
 @PROPERTY_SETTINGS
 @given(case=road(extreme=True, rates=True, follower=True))
 def test_cut_in_when_permitted_bit_identical(case: tuple) -> None:
-    """shield.cut_in_when_permitted (default since issue 15's thirteenth session), with and without
+    """shield.cut_in_when_permitted (on by default), with and without
     shield.permit_any_speed: the same in both engines at every rate (IDM and linear-model
     drivers, crashed and reversing cars); robust ⊆ nominal still holds for the final masks (it only changes robust
     cut-ins); nominal mode is unchanged to the bit."""
     state, dyn, _ = case
-    off, on = (dataclasses.replace(dyn, cut_in_when_permitted=v) for v in (False, True))
+    off, on = (dyn.with_options(cut_in_when_permitted=v) for v in (False, True))
     assert mismatches(state, on) == []
-    assert mismatches(state, dataclasses.replace(on, linear_mobil=False)) == []
-    assert mismatches(state, dataclasses.replace(on, permit_any_speed=False)) == []  # the twelfth session's
+    assert mismatches(state, on.with_options(linear_mobil=False)) == []
+    assert mismatches(state, on.with_options(permit_any_speed=False)) == []
     assert_nested(state, on)
     assert_same(reference(state, off, "nominal"), reference(state, on, "nominal"), "nominal")
 
@@ -650,9 +584,9 @@ def test_passing_cut_ins_bit_identical(case: tuple) -> None:
     (IDM and linear-model drivers, with and without their MOBIL, crashed and reversing cars); robust ⊆ nominal
     still holds; nominal is unchanged to the bit."""
     state, dyn, _ = case
-    on = dataclasses.replace(dyn, cut_in_when_permitted=True, passing_cut_ins=True)
+    on = dyn.with_options(cut_in_when_permitted=True, passing_cut_ins=True)
     assert mismatches(state, on) == []
-    assert mismatches(state, dataclasses.replace(on, linear_mobil=False)) == []
+    assert mismatches(state, on.with_options(linear_mobil=False)) == []
     assert_nested(state, on)
     assert_same(reference(state, dyn, "nominal"), reference(state, on, "nominal"), "nominal")
 
@@ -664,26 +598,10 @@ def test_level_when_incentive_bit_identical(case: tuple) -> None:
     and without their incentive and its braking variant; the bound over every speed in reach and the
     constant-speed time it replaced); robust ⊆ nominal still holds; nominal is unchanged to the bit."""
     state, dyn, _ = case
-    on = dataclasses.replace(dyn, level_when_incentive=True)
+    on = dyn.with_options(level_when_incentive=True)
     assert mismatches(state, on) == []
-    assert mismatches(state, dataclasses.replace(on, incentive_any_speed=False)) == []  # the thirteenth session's
-    assert mismatches(state, dataclasses.replace(on, linear_incentive_braking=False)) == []
-    assert mismatches(state, dataclasses.replace(on, linear_incentive=False, passing_cut_ins=True)) == []
+    assert mismatches(state, on.with_options(incentive_any_speed=False)) == []
+    assert mismatches(state, on.with_options(linear_incentive_braking=False)) == []
+    assert mismatches(state, on.with_options(linear_incentive=False, passing_cut_ins=True)) == []
     assert_nested(state, on)
     assert_same(reference(state, dyn, "nominal"), reference(state, on, "nominal"), "nominal")
-
-
-@PROPERTY_SETTINGS
-@given(case=road(extreme=True, rates=True, chained=True, lateral=True))
-def test_leaving_lanes_seen_bit_identical(case: tuple) -> None:
-    """shield.leaving_lanes_seen (experimental, with lateral_schedule): the same in both engines at every rate,
-    with the ego off its lane's centre and turned; robust ⊆ nominal still holds for the final masks; without
-    lateral_schedule it changes nothing."""
-    state, dyn, _ = case
-    schedule = dataclasses.replace(dyn, lateral_schedule=True)
-    on = dataclasses.replace(schedule, leaving_lanes_seen=True)
-    assert mismatches(state, on) == []
-    assert_nested(state, on)
-    plain = dataclasses.replace(dyn, leaving_lanes_seen=True)
-    for mode in ("nominal", "robust"):
-        assert_same(reference(state, dyn, mode), reference(state, plain, mode), mode)

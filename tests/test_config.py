@@ -197,40 +197,59 @@ def test_overrides_do_not_alias_the_callers_objects() -> None:
 
 
 def test_recorded_configs_keep_the_rule_they_ran_with() -> None:
-    """A configuration read back from a run or a counterexample file written before shield.body_extent
-    existed replays with the earlier rule; a new one gets today's default."""
-    from safelane.config import build_config, config_to_dict, load_config, recorded_config
+    """A configuration read back from a run or a counterexample file that names its rule by options as keys of
+    their own replays with the options it lacks off (the rule it was written under); one with ``shield.rule``, or
+    a new configuration, gets the named rule."""
+    from safelane.config import recorded_config
+    from safelane.safety.rule import OPTION_NAMES, RULES
 
     data = config_to_dict(load_config("fast"))
-    assert data["shield"]["body_extent"] is True
-    old = {**data, "shield": {k: v for k, v in data["shield"].items() if k != "body_extent"}}
-    assert recorded_config(old).shield.body_extent is False
-    assert build_config(old).shield.body_extent is True
-    assert recorded_config(data).shield.body_extent is True
-    # The ninth session's options (docs/safety.md §6i): on for a new configuration, off for one written before.
-    from test_safety import NINTH_SESSION_OPTIONS as ninth
+    assert data["shield"]["rule"] == "forecast-fallback" and data["shield"]["options"] == {}
+    assert recorded_config(data).shield.resolved_rule() == RULES["forecast-fallback"]
+    flat = {k: v for k, v in data["shield"].items() if k not in ("rule", "options")}
+    every = {**data, "shield": {**flat, **dict.fromkeys(OPTION_NAMES, True)}}  # a file listing every option on
+    assert recorded_config(every).shield.rule == "forecast-fallback" and recorded_config(every).shield.options == {}
+    old = {**data, "shield": {**flat, **dict.fromkeys([n for n in OPTION_NAMES if n != "body_extent"], True)}}
+    cfg = recorded_config(old)
+    assert cfg.shield.rule == "forecast-fallback" and cfg.shield.options == {"body_extent": False}
+    assert build_config(old).shield.resolved_rule() == RULES["forecast-fallback"]  # a key of its own: an override
+    assert recorded_config({**data, "shield": flat}).shield.rule == "basic"  # no option named: the basic rule
+    worst = {**data, "shield": {**flat, **dict.fromkeys(OPTION_NAMES, True), "forecast_fallback": False}}
+    assert recorded_config(worst).shield.rule == "worst-case-fallback"
 
-    assert all(data["shield"][name] is True for name in ninth)
-    older = {**data, "shield": {k: v for k, v in data["shield"].items() if k not in ninth}}
-    assert all(getattr(recorded_config(older).shield, name) is False for name in ninth)
+
+def test_recorded_configs_with_a_removed_option() -> None:
+    """A removed option (measured, not adopted) in a recorded file: at the value it always had it is dropped; at
+    the other one the file cannot replay: a one-line error naming the option and the commit that has it."""
+    from safelane.config import recorded_config
+
+    data = config_to_dict(load_config("fast"))
+    flat = {k: v for k, v in data["shield"].items() if k not in ("rule", "options")}
+    cfg = recorded_config({**data, "shield": {**flat, "projected_cut_ins": False, "body_extent": True}})
+    assert cfg.shield.rule == "basic" and cfg.shield.options == {"body_extent": True}
+    with pytest.raises(ConfigError, match=r"^shield\.robust_fallback: .*removed.*f9bfa5a") as err:
+        recorded_config({**data, "shield": {**flat, "robust_fallback": True}})
+    assert "\n" not in str(err.value)
 
 
 def test_a_check_record_of_an_earlier_rule_is_not_resumed(tmp_path) -> None:
-    """A sim-check record written before shield.body_extent existed was made under the earlier rule:
-    resuming it under today's would mix two rules in one sample, so it is refused in one line."""
+    """A sim-check record that names its rule by options and lacks shield.body_extent was made without it:
+    resuming it under the default rule would mix two rules in one sample, so it is refused in one line."""
     import json
 
     import pytest
 
     from safelane.config import ConfigError, config_to_dict, load_config
     from safelane.running.simcheck import CheckRecord
+    from safelane.safety.rule import OPTION_NAMES
 
     header = {"config": config_to_dict(load_config("fast")), "seed": 0, "tolerance": 1e-6}
     record = tmp_path / "check.jsonl"
     CheckRecord(record, header)  # written now: resumes
     assert CheckRecord(record, header).done == {}
-    old = {**header, "config": {**header["config"], "shield": dict(header["config"]["shield"])}}
-    del old["config"]["shield"]["body_extent"]
+    flat = {k: v for k, v in header["config"]["shield"].items() if k not in ("rule", "options")}
+    flat |= {name: True for name in OPTION_NAMES if name != "body_extent"}  # options as keys of their own
+    old = {**header, "config": {**header["config"], "shield": flat}}
     earlier = tmp_path / "earlier.jsonl"
     earlier.write_text(json.dumps({"header": old}) + "\n")
     with pytest.raises(ConfigError, match="another configuration"):
@@ -238,31 +257,24 @@ def test_a_check_record_of_an_earlier_rule_is_not_resumed(tmp_path) -> None:
 
 
 def test_every_rule_option_reaches_the_shield_of_make_env_and_of_the_batch() -> None:
-    """Each ``shield.<option>`` of :data:`RULE_OPTIONS`, flipped in the config, is flipped in the dynamics of
-    the shield ``make_env`` builds and in those of the fast batch (one list feeds both)."""
+    """Each rule option, flipped in the config (``shield.options``), is flipped in the rule of the shield
+    ``make_env`` builds and in the flags the fast batch hands its kernel (one rule feeds both)."""
     import numpy as np
 
-    from safelane.config import RULE_OPTIONS, ShieldConfig
     from safelane.env.factory import make_env
     from safelane.env.fast_batch import FastBatch
-    from safelane.safety.compiled import FORECAST_ON, KernelConstants, forecast_level
+    from safelane.safety.compiled import KernelConstants
+    from safelane.safety.rule import OPTIONS, RULES
     from safelane.safety.shield import SafetyShield
 
-    defaults = ShieldConfig().rule_options()
-    assert tuple(defaults) == RULE_OPTIONS
-    for name in RULE_OPTIONS:
-        sets = {"shield.mode": "robust", f"shield.{name}": not defaults[name], "env.vehicles_count": 5}
+    for option in OPTIONS:
+        value = not option.default
+        sets = {"shield.mode": "robust", f"shield.options.{option.name}": value, "env.vehicles_count": 5}
         env = make_env("fast", seed=0, simulator="fast", **sets)
-        assert isinstance(env, SafetyShield) and getattr(env.dynamics, name) is (not defaults[name])
+        assert isinstance(env, SafetyShield) and getattr(env.dynamics.rule, option.name) is value
+        assert env.dynamics.rule == RULES["forecast-fallback"].with_options(**{option.name: value})
         batch = FastBatch(env.safelane_config, 1)
         batch.reset_envs(np.array([0]), [0])
         assert batch._kernel_args is not None
         constants = KernelConstants(*batch._kernel_args[7:])  # after the leave times, speed limit and lane frame
-        if name == "full_horizon":  # not a kernel flag: it sets the horizon's length
-            assert constants.horizon == env.dynamics.horizon_decisions
-        elif name == "turning_leaders":  # the kernel takes the allowance it implies [m] (0: off)
-            assert (constants.turning_allowance > 0.0) is (not defaults[name])
-        elif name.startswith("forecast_"):  # one kernel argument, bit flags
-            assert constants.forecast_fallback == forecast_level(env.dynamics) != FORECAST_ON  # the default
-        else:
-            assert getattr(constants, name) is (not defaults[name])
+        assert constants.flags == env.dynamics.rule.flags

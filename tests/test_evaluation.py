@@ -294,18 +294,14 @@ class _ObservationHashPolicy:
 
 
 @pytest.mark.parametrize(
-    ("shield", "override", "schedule"),
-    [("robust", True, False), ("robust", False, False), ("nominal", True, False), ("none", False, False),
-     ("robust", True, True)],
+    ("shield", "override"),
+    [("robust", True), ("robust", False), ("nominal", True), ("none", False)],
 )  # fmt: skip
-def test_fast_batch_records_equal_the_wrapper_stack_with_crashes_and_breaks(
-    shield: str, override: bool, schedule: bool
-) -> None:
+def test_fast_batch_records_equal_the_wrapper_stack_with_crashes_and_breaks(shield: str, override: bool) -> None:
     """The fused fast batch (run_config's path on the fast simulator), the loop over make_env stacks
     (run_episodes_batched) and one environment (run_episodes) give the same records, in dense traffic
     where the policy crashes and the robust rule's invariant breaks: collision kinds and contexts,
-    breaks, fallbacks, interventions, overtakes (``schedule``: with shield.lateral_schedule, whose lateral
-    speed the batch's kernel derives itself)."""
+    breaks, fallbacks, interventions, overtakes."""
     from safelane.env.factory import make_env
     from safelane.running.evaluation import run_config, run_episodes, run_episodes_batched
 
@@ -317,7 +313,6 @@ def test_fast_batch_records_equal_the_wrapper_stack_with_crashes_and_breaks(
             "shield.override": override,
             "env.lanes_count": 6,
             "env.vehicles_density": 2.0,
-            **({"shield.lateral_schedule": True} if schedule else {}),
         },
     )
     policy = _ObservationHashPolicy()

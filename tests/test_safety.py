@@ -20,13 +20,11 @@ from safelane.safety.model import (
     Dynamics,
     RoadState,
     SafetyResult,
-    ego_lane_windows,
     ego_trajectories,
     evaluate,
     follower_positions,
     idm_follower_positions,
 )
-from safelane.safety.shield import ego_leave_time_at
 
 EVALUATORS = pytest.mark.parametrize("evaluate", [evaluate, evaluate_compiled], ids=["numpy", "compiled"])
 """Every test that calls the safety model runs on the reference and on its compiled port."""
@@ -39,14 +37,15 @@ def mask_of(*actions: int) -> list[bool]:
     return [a in actions for a in range(5)]
 
 
-NINTH_SESSION_OPTIONS = (
+LINEAR_AND_TURNING_OPTIONS = (
     "linear_mobil", "linear_incentive", "linear_incentive_braking", "turning_leaders", "straight_fallback",
     "reversing_cut_ins",
 )  # fmt: skip
-"""The rule options made default in issue 15's ninth session (docs/safety.md §6i)."""
-EARLIER_RULE = {f"shield.{name}": False for name in NINTH_SESSION_OPTIONS}
-"""The options adopted in issue 15's ninth session, off: the rule under which a test of an earlier part of the
-rule derived its scene's exact gaps (each such test is about its own part; EXPECTED holds today's masks)."""
+"""The options for linear-model drivers' MOBIL, turning leaders, the straight fallback and reversing cut-ins
+(docs/safety.md §6i)."""
+WITHOUT_LINEAR_AND_TURNING = {f"shield.{name}": False for name in LINEAR_AND_TURNING_OPTIONS}
+"""Those options off: the rule under which a test of another part of the rule derived its scene's exact gaps
+(each such test is about its own part; EXPECTED holds the default rule's masks)."""
 
 # Expected masks for every scenario and both modes (LANE_LEFT, IDLE, LANE_RIGHT, FASTER, SLOWER).
 EXPECTED = {
@@ -79,7 +78,7 @@ EXPECTED = {
     "slow_car_turning_out": {"nominal": mask_of(I, F, S), "robust": mask_of(S)},
     # A Linear driver level with the ego in the next lane: by its own MOBIL rule (shield.linear_mobil and
     # shield.linear_incentive) it neither cuts in at the ego's nose nor turns in behind it; SLOWER keeps 18.67 m
-    # (the earlier rule assumed either: nothing safe). Nominal: only the leader 42 m ahead matters, SLOWER keeps
+    # (the rule without it assumed either: nothing safe). Nominal: only the leader 42 m ahead matters, SLOWER keeps
     # the gap (IDLE leaves 0.33 m < 1 m).
     "linear_car_alongside": {"nominal": mask_of(S), "robust": mask_of(S)},
     # A car 7 m ahead rolling backwards at 2 m/s toward the nearly stopped ego (shield.reversing_leaders, both
@@ -110,31 +109,30 @@ EXPECTED = {
     # lane 2 whole (shield.crossed_lanes, both modes), so nothing is safe; the least-bad FASTER is flagged.
     "ego_crossing_a_lane": {"nominal": mask_of(F), "robust": mask_of(F)},
     # The ego 0.2 s into a change to lane 0, a hard-braking queue ahead in lane 1: LANE_LEFT keeps the change
-    # under way and is safe; IDLE, which keeps it under way too, counts lane 1 as the ego's for good (unless
-    # shield.lateral_schedule, experimental: test below).
+    # under way and is safe; IDLE, which keeps it under way too, counts lane 1 as the ego's for good (test below).
     "ego_leaving_its_lane": {"nominal": mask_of(L), "robust": mask_of(L)},
     # A jammed car 22 m ahead in the next lane, turned toward the ego's lane but rolling backwards: its lateral
     # motion points away, but it is also in the lane its nose points to (shield.reversing_noses, robust only):
     # only SLOWER (test below). Nominal: IDLE, FASTER and SLOWER.
     "car_rolling_back_turned_in": {"nominal": mask_of(I, F, S), "robust": mask_of(S)},
     # Behind a leader braking at its limit 9.36 m ahead, an IDM car 36.3 m behind braking by IDM's response to the
-    # ego (shield.follower_idm, both modes): IDLE and SLOWER keep 1.415 m (the earlier follower bound, restarted at
+    # ego (shield.follower_idm, both modes): IDLE and SLOWER keep 1.415 m (the follower bound without it, restarted at
     # every decision, left robust nothing safe: test below).
     "squeezed_by_a_follower": {"nominal": mask_of(I, S), "robust": mask_of(I, S)},
     # A car that has just crossed into the lane next to the ego, 25 m ahead and 12 m/s slower, turned toward its
     # new lane's centre: a cut-in candidate from there, which MOBIL keeps out of the ego's lane
-    # (shield.finishing_changes, robust only; the earlier rule projected it into the ego's lane: test below).
+    # (shield.finishing_changes, robust only; the rule without it projected it into the ego's lane: test below).
     "car_settling_next_to_the_ego": {"nominal": mask_of(I, S), "robust": mask_of(I, S)},
     # The ego stopped, a car 3.09 m ahead in the next lane passing it at 20.64 m/s: MOBIL lets it cut in only
     # once it is well ahead, so it is a cut-in from then (shield.cut_in_when_permitted, robust only): IDLE keeps
-    # 4.21 m (the earlier rule had it cutting in from now: nothing safe, test below). Nominal: IDLE and FASTER.
+    # 4.21 m (the rule without it had it cutting in from now: nothing safe, test below). Nominal: IDLE and FASTER.
     "car_passing_a_stopped_ego": {"nominal": mask_of(I, F), "robust": mask_of(I)},
     # The ego stopped, a car 1.05 m behind it in the next lane at 25.66 m/s (2 decisions per second): MOBIL lets it
-    # in only ahead of the ego, a leader once in (shield.passing_cut_ins): IDLE and FASTER (the earlier rule bounded
+    # in only ahead of the ego, a leader once in (shield.passing_cut_ins): IDLE and FASTER (the rule without it bounded
     # it as a follower driving through the ego: nothing safe; test below). Nominal: IDLE, FASTER.
     "car_passing_in_the_next_lane": {"nominal": mask_of(I, F), "robust": mask_of(I, F)},
     # No safe action (a spawn): the leader 13.4 m ahead brakes at its limit for its own leader, lane 1 free for 28 m.
-    # shield.forecast_fallback (the default since issue 15's seventeenth session) changes lane; ranked by the worst
+    # shield.forecast_fallback (the default) changes lane; ranked by the worst
     # case alone SLOWER was least bad (tests/test_forecast.py).
     "squeeze_beside_a_free_lane": {"nominal": mask_of(R), "robust": mask_of(R)},
     # A hole not closed (hole 552): the right lane a queue braking at its limit, a car 6.78 m behind in it; robust
@@ -166,30 +164,19 @@ def test_scenario_masks(name: str, mode: str, engine: str) -> None:
 
 
 @pytest.mark.parametrize("engine", ["numpy", "compiled"])
-def test_projected_cut_ins_see_the_second_lane_car(engine: str) -> None:
-    """With shield.projected_cut_ins the car moving over from two lanes away is also a cut-in candidate
-    into the ego's lane: IDLE becomes unsafe (it could cut in 45 m ahead and brake), only SLOWER is left."""
-    scene = scenarios.SCENARIOS["second_lane_car_moving_over"](
-        mode="robust", **{"shield.engine": engine, "shield.projected_cut_ins": True}
-    )
-    assert scene.mask.tolist() == mask_of(S) and not scene.result.fallback
-    assert scene.result.min_gap[I] < 0 < scene.result.min_gap[S]
-
-
-@pytest.mark.parametrize("engine", ["numpy", "compiled"])
 def test_body_extent_sees_the_corner_of_a_car_turning_out(engine: str) -> None:
     """shield.body_extent: the rotated body (reach 2.5·sin 0.78 + 1·cos 0.78 = 2.47 m from a centre 4.85 m
     across) overlaps lane 2's band (from 6 m): the car is a leader in the ego's lane, 10 m ahead at 2 m/s.
     Holding 5 m/s for a decision runs into it (worst gap −2.8 m); only SLOWER keeps the gap (2.2 m). The
-    earlier rule (body_extent false) allowed IDLE and FASTER here — the crash of cell00537. Nominal is
-    unchanged: the option belongs to the robust rule. (The straight leader bound; with the ninth session's
+    rule without body_extent allowed IDLE and FASTER here — the crash of cell00537. Nominal is
+    unchanged: the option belongs to the robust rule. (The straight leader bound; with the
     turning allowance SLOWER keeps 0.68 m and the state is a fallback: EXPECTED.)"""
-    kw = {"shield.engine": engine, **EARLIER_RULE}
+    kw = {"shield.engine": engine, **WITHOUT_LINEAR_AND_TURNING}
     robust = scenarios.SCENARIOS["slow_car_turning_out"](mode="robust", **kw)
     assert robust.mask.tolist() == mask_of(S) and not robust.result.fallback
     assert robust.result.min_gap[I] < 0 < robust.result.min_gap[S]
-    earlier = scenarios.SCENARIOS["slow_car_turning_out"](mode="robust", **{**kw, "shield.body_extent": False})
-    assert earlier.mask.tolist() == mask_of(I, F, S)
+    without = scenarios.SCENARIOS["slow_car_turning_out"](mode="robust", **{**kw, "shield.body_extent": False})
+    assert without.mask.tolist() == mask_of(I, F, S)
     nominal = scenarios.SCENARIOS["slow_car_turning_out"](mode="nominal", **{"shield.engine": engine})
     assert nominal.mask.tolist() == EXPECTED["slow_car_turning_out"]["nominal"]
     # Turned straight, the same car no longer reaches the ego's lane: the option adds nothing.
@@ -205,15 +192,15 @@ def test_body_extent_sees_the_corner_of_a_car_turning_out(engine: str) -> None:
 def test_a_reversing_leader_keeps_its_reverse_speed(engine: str, mode: str) -> None:
     """shield.reversing_leaders (default): the car 7 m ahead (2 m bumper to bumper) rolling back at 2 m/s
     keeps doing so over the 13 s horizon, 26 m: every action's worst gap is −24.06 m, no action is safe and
-    the state is a fallback (cells 38 and 86 of the campaign crashed from here, called safe). The earlier
+    the state is a fallback (cells 38 and 86 of the campaign crashed from here, called safe). Without it the
     rule (false) took the car as stopped and kept IDLE's 1.94 m gap as safe. (The straight leader bound.)"""
-    kw = {"shield.engine": engine, **EARLIER_RULE}
+    kw = {"shield.engine": engine, **WITHOUT_LINEAR_AND_TURNING}
     now = scenarios.SCENARIOS["reversing_leader"](mode=mode, **kw)
     assert now.result.fallback and not now.result.safe.any()
     assert now.result.min_gap[I] == pytest.approx(-24.06, abs=0.01)
-    earlier = scenarios.SCENARIOS["reversing_leader"](mode=mode, **{**kw, "shield.reversing_leaders": False})
-    assert earlier.result.safe.tolist() == mask_of(I) and not earlier.result.fallback
-    assert earlier.result.min_gap[I] == pytest.approx(1.94, abs=0.01)
+    without = scenarios.SCENARIOS["reversing_leader"](mode=mode, **{**kw, "shield.reversing_leaders": False})
+    assert without.result.safe.tolist() == mask_of(I) and not without.result.fallback
+    assert without.result.min_gap[I] == pytest.approx(1.94, abs=0.01)
     # Rolling forward at 2 m/s instead, the same car is an ordinary leader: both rules give the same gaps.
     forward = [scenarios.VehicleSpec(1, 7.0, 2.0)]
     gaps = []
@@ -230,7 +217,7 @@ def test_a_reversing_leader_keeps_its_reverse_speed(engine: str, mode: str) -> N
 def test_level_cut_ins_see_the_car_being_overtaken_turn_in(engine: str) -> None:
     """shield.level_cut_ins (default): the car 3 m ahead in the next lane at 13 m/s is passed within the
     decision (0.5 s), and may then turn in behind the ego after the cut-in time and follow it. Turning in from
-    the cut-in time from now (level_when_incentive false, the rule before issue 15's fourteenth session), at
+    the cut-in time from now (level_when_incentive false), at
     0.2 s into the turn the ego leads it by only 1.76 m centre to centre: every action that keeps the ego in
     lane 1 for that long leaves a −3.24 m gap (SLOWER −3.47 m), nothing is safe. With level_when_incentive and
     incentive_any_speed (the default) it turns in from the first frame its incentive could hold, 0.2 s, plus
@@ -251,10 +238,10 @@ def test_level_cut_ins_see_the_car_being_overtaken_turn_in(engine: str) -> None:
     )
     assert constant.result.safe.tolist() == mask_of(I, R)
     assert constant.result.min_gap[[I, R]] == pytest.approx([1.39, 1.39], abs=0.01)
-    earlier = scenarios.SCENARIOS["car_being_overtaken"](
+    without = scenarios.SCENARIOS["car_being_overtaken"](
         mode="robust", **{"shield.engine": engine, "shield.level_cut_ins": False}
     )
-    assert earlier.result.safe.tolist() == mask_of(I, R, S)
+    assert without.result.safe.tolist() == mask_of(I, R, S)
     nominal = scenarios.SCENARIOS["car_being_overtaken"](
         mode="nominal", **{"shield.engine": engine, "shield.level_cut_ins": True}
     )
@@ -283,18 +270,18 @@ def test_level_entering_sees_a_car_two_lanes_over_change_into_the_ego_s_new_lane
     """shield.level_entering (default): the car two lanes over, 2 m behind the ego's centre, may turn into
     lane 1 while the ego changes into it: LANE_RIGHT's worst gap is −4.07 m (it ends up a follower 2 m behind
     the ego's centre). MOBIL's incentive judged with the ego already in lane 1 keeps it out (a follower 2 m
-    behind a car would brake at hundreds of m/s²): the earlier rule (false), like the rule without level
+    behind a car would brake at hundreds of m/s²): the rule without it (false), like the rule without level
     cut-ins, allowed LANE_RIGHT with 24.97 m — the trained agents' side impact of cell 169. Into the ego's
     own lane the filter still holds: IDLE's and SLOWER's gaps are the same under every rule. (The straight
     leader bound.)"""
-    kw = {"shield.engine": engine, **EARLIER_RULE}
+    kw = {"shield.engine": engine, **WITHOUT_LINEAR_AND_TURNING}
     scene = scenarios.SCENARIOS["car_two_lanes_over"](mode="robust", **kw)
     assert scene.mask.tolist() == mask_of(I, S) and not scene.result.fallback
     assert scene.result.min_gap[[I, R, S]] == pytest.approx([24.97, -4.07, 44.97], abs=0.01)
     for options in ({"shield.level_entering": False}, {"shield.level_cut_ins": False}):
-        earlier = scenarios.SCENARIOS["car_two_lanes_over"](mode="robust", **kw, **options)
-        assert earlier.mask.tolist() == mask_of(I, R, S)
-        assert earlier.result.min_gap[[I, R, S]] == pytest.approx([24.97, 24.97, 44.97], abs=0.01)
+        without = scenarios.SCENARIOS["car_two_lanes_over"](mode="robust", **kw, **options)
+        assert without.mask.tolist() == mask_of(I, R, S)
+        assert without.result.min_gap[[I, R, S]] == pytest.approx([24.97, 24.97, 44.97], abs=0.01)
     anyone = scenarios.SCENARIOS["car_two_lanes_over"](mode="robust", **kw, **{"shield.level_incentive": False})
     assert anyone.result.min_gap.tolist() == scene.result.min_gap.tolist()
     # The same car 30 m behind the ego is not level with it at the end of the lane change's first part.
@@ -307,12 +294,12 @@ def test_level_entering_sees_a_car_two_lanes_over_change_into_the_ego_s_new_lane
 @pytest.mark.parametrize("mode", ["nominal", "robust"])
 def test_full_horizon_sees_the_ego_stop_at_five_decisions_per_second(engine: str, mode: str) -> None:
     """shield.full_horizon (default): 65 decisions (13 s) at 5 per second. The ego needs ≈ 6 s to stop
-    from 27.66 m/s; within the earlier 13-decision horizon (2.6 s) it is still at 8.6 m/s, and the tail
+    from 27.66 m/s; within a 13-decision horizon (2.6 s) it is still at 8.6 m/s, and the tail
     credited beyond assumed a set-point of 0 at once (v/KP_A = 5.2 m) where SLOWER really steps it down
     from the speed's own index (6.2 m): IDLE and SLOWER kept 1.476 m and were allowed — cell 812's break
     one decision later, then its crash. With the horizon in seconds both keep −0.52 m: a fallback. (The
     straight leader bound.)"""
-    kw = {"shield.engine": engine, **EARLIER_RULE}
+    kw = {"shield.engine": engine, **WITHOUT_LINEAR_AND_TURNING}
     full = scenarios.SCENARIOS["closing_in_at_five_per_second"](mode=mode, **kw)
     assert full.result.fallback and full.mask.tolist() == mask_of(S)
     assert full.result.min_gap[[I, F, S]] == pytest.approx([-0.52, -8.52, -0.52], abs=0.01)
@@ -328,15 +315,15 @@ def test_full_horizon_sees_the_ego_stop_at_five_decisions_per_second(engine: str
 def test_ego_speed_magnitude_takes_slower_where_highway_env_does(engine: str, mode: str) -> None:
     """shield.ego_speed_magnitude (default): mid lane change (heading 0.206 rad) the ego's controller runs
     at 22.77 m/s, which MDPVehicle rounds to the 25 m/s set-point: SLOWER goes to 20 m/s and keeps 0.496 m
-    to the car 20 m ahead. The earlier rule used the speed along the road (22.77·cos 0.206 = 22.29 m/s,
+    to the car 20 m ahead. Without it the rule used the speed along the road (22.77·cos 0.206 = 22.29 m/s,
     rounding to 20): SLOWER to 15 m/s, 7.45 m — allowed, and cell 573's break followed. (The straight leader
     bound.)"""
-    kw = {"shield.engine": engine, **EARLIER_RULE}
+    kw = {"shield.engine": engine, **WITHOUT_LINEAR_AND_TURNING}
     now = scenarios.SCENARIOS["ego_turning_into_its_lane"](mode=mode, **kw)
     assert now.result.min_gap[S] == pytest.approx(0.496, abs=0.001) and not now.result.safe[S]
-    earlier = scenarios.SCENARIOS["ego_turning_into_its_lane"](mode=mode, **{**kw, "shield.ego_speed_magnitude": False})
-    assert earlier.result.min_gap[S] == pytest.approx(7.452, abs=0.001) and earlier.result.safe[S]
-    assert not earlier.result.fallback
+    without = scenarios.SCENARIOS["ego_turning_into_its_lane"](mode=mode, **{**kw, "shield.ego_speed_magnitude": False})
+    assert without.result.min_gap[S] == pytest.approx(7.452, abs=0.001) and without.result.safe[S]
+    assert not without.result.fallback
     # Straight in its lane the two speeds are the same, and so are the verdicts.
     straight = [
         scenarios.build_scene(
@@ -350,7 +337,7 @@ def test_ego_speed_magnitude_takes_slower_where_highway_env_does(engine: str, mo
 
 @EVALUATORS
 def test_turning_in_nominal_keeps_robust_inside_nominal(evaluate: Evaluator) -> None:
-    """hypothesis's counterexample to robust ⊆ nominal (issue 15, fifteenth session): a car 31 m ahead in the
+    """hypothesis's counterexample to robust ⊆ nominal : a car 31 m ahead in the
     ego's only lane turning at 0.25 rad and 34 m/s (8.4 m/s sideways), the ego at 23 m/s. Robust's turning bound
     (braking from 34 m/s along its path, less 1.66 m) leaves FASTER 1.876 m; nominal's along the road (from
     32.94 m/s) −2.363 m — robust allowed FASTER, nominal did not. With shield.turning_in_nominal nominal takes the
@@ -362,20 +349,20 @@ def test_turning_in_nominal_keeps_robust_inside_nominal(evaluate: Evaluator) -> 
     ]
     state = make_state(200.0, 0, 0, 23.0, 0, cars)
     dyn = dynamics(1, 5)
-    before = dataclasses.replace(dyn, turning_in_nominal=False)
+    before = dyn.with_options(turning_in_nominal=False)
     assert evaluate(state, before, "robust").mask.tolist() == mask_of(I, F)
     assert evaluate(state, before, "nominal").mask.tolist() == mask_of(I)
     assert evaluate(state, before, "nominal").min_gap[F] == pytest.approx(-2.363, abs=0.001)
     robust, nominal = evaluate(state, dyn, "robust"), evaluate(state, dyn, "nominal")
     assert robust.mask.tolist() == nominal.mask.tolist() == mask_of(I, F)
     assert robust.min_gap[F] == nominal.min_gap[F] == pytest.approx(1.876, abs=0.001)
-    assert evaluate(state, dataclasses.replace(dyn, turning_leaders=False), "nominal").mask.tolist() == mask_of(I)
+    assert evaluate(state, dyn.with_options(turning_leaders=False), "nominal").mask.tolist() == mask_of(I)
 
 
 @pytest.mark.parametrize("engine", ["numpy", "compiled"])
 @pytest.mark.parametrize("mode", ["nominal", "robust"])
 def test_turning_leaders_leaves_room_for_a_leader_turning_out(engine: str, mode: str) -> None:
-    """shield.turning_leaders (robust, default since issue 15's ninth session): IDLE's 2.167 m behind the
+    """shield.turning_leaders (robust, on by default): IDLE's 2.167 m behind the
     braking leader becomes 0.51 m (less 1.66 m = 4 m·tan(π/8), one lane change at highway-env's steepest
     heading), so only SLOWER is allowed — cell 332's break came a decision after IDLE. The next state of that
     episode (the leader 22.97 m ahead at 20.25 m/s, heading 0.249 rad): the straight bound, braking from
@@ -383,11 +370,11 @@ def test_turning_leaders_leaves_room_for_a_leader_turning_out(engine: str, mode:
     the bound grows across the decision instead of shrinking. Nominal keeps the straight bound either way."""
     kw = {"shield.engine": engine}
     now = scenarios.SCENARIOS["leader_may_turn_out"](mode=mode, **kw)
-    earlier = scenarios.SCENARIOS["leader_may_turn_out"](mode=mode, **kw, **{"shield.turning_leaders": False})
-    assert earlier.mask.tolist() == mask_of(I, S) and not earlier.result.fallback
-    assert earlier.result.min_gap[[I, S]] == pytest.approx([2.167, 14.667], abs=0.001)
+    without = scenarios.SCENARIOS["leader_may_turn_out"](mode=mode, **kw, **{"shield.turning_leaders": False})
+    assert without.mask.tolist() == mask_of(I, S) and not without.result.fallback
+    assert without.result.min_gap[[I, S]] == pytest.approx([2.167, 14.667], abs=0.001)
     if mode == "nominal":
-        assert now.result.min_gap.tolist() == earlier.result.min_gap.tolist()
+        assert now.result.min_gap.tolist() == without.result.min_gap.tolist()
         return
     assert now.mask.tolist() == mask_of(S) and not now.result.fallback
     assert now.result.min_gap[[I, S]] == pytest.approx([0.51, 13.01], abs=0.01)
@@ -417,7 +404,7 @@ def test_turning_allowance_covers_highway_env_s_lane_change() -> None:
     from safelane.safety.model import braking_positions, turning_allowance
 
     dyn = scenarios.ego_leftmost_lane(mode="robust").shield.dynamics
-    allowance = turning_allowance(dataclasses.replace(dyn, turning_leaders=True))
+    allowance = turning_allowance(dyn.with_options(turning_leaders=True))
     network = RoadNetwork.straight_road_network(2, length=10_000.0)
     road = Road(network, np_random=np.random.RandomState(0))
     worst = 0.0
@@ -481,7 +468,7 @@ def test_idm_follower_bound_against_highway_env_s_idm() -> None:
 
     margin, kept, shorter, worst_shortfall = 1.0, 0, 0, 0.0
     for policy_hz, sim_hz in ((1, 5), (5, 15)):
-        dyn = dataclasses.replace(dynamics(1, sim_hz, policy_hz), follower_idm=True)
+        dyn = dynamics(1, sim_hz, policy_hz).with_options(follower_idm=True)
         for ego_v, gap, closing, set_point in itertools.product(
             (5.0, 25.0), (7.0, 15.0, 40.0), (-6.0, 6.0, 15.0), (10.0, 40.0)
         ):
@@ -509,55 +496,14 @@ def test_idm_follower_bound_against_highway_env_s_idm() -> None:
     assert kept > 250 and worst_shortfall < 0.01, (kept, shorter, worst_shortfall)
 
 
-def test_follower_set_point_predicts_highway_env_s_drivers() -> None:
-    """shield.follower_set_point (experimental): with the car's own set-point, the follower of
-    ``model.idm_follower_positions`` is highway-env's — an IDMVehicle (its set-point clipped to the speed limit)
-    and a LinearVehicle (``LinearVehicle.acceleration``, its own gains and time gap) braking for an ego that
-    drives each fallback of IDLE and SLOWER at 1 and 5 decisions per second: the predicted path is the real one
-    to 1e-6 m at every frame before the two would touch (measured: to the bit, the same operations)."""
-    from highway_env.vehicle.behavior import IDMVehicle, LinearVehicle
-
-    worst, runs = 0.0, 0
-    for policy_hz, sim_hz in ((1, 5), (5, 15)):
-        dyn = dataclasses.replace(dynamics(1, sim_hz, policy_hz), follower_set_point=True)
-        for driver, ego_v, gap, closing, set_point in itertools.product(
-            (IDMVehicle, LinearVehicle), (5.0, 25.0), (10.0, 40.0), (-6.0, 10.0), (15.0, 35.0)
-        ):
-            follower_v = max(ego_v + closing, 0.0)
-            idx = int(np.argmin(np.abs(np.array(SPEEDS) - ego_v)))
-            linear = driver is LinearVehicle
-            car = {"x": 200.0 - gap, "y": 0.0, "speed": follower_v, "heading": 0.0, "crashed": False,
-                   "delta": IDMVehicle.DELTA, "idm": True, "linear": linear, "target": set_point}  # fmt: skip
-            state = make_state(200.0, 0, 0, ego_v, idx, [car])
-            state = dataclasses.replace(
-                state,
-                accel_max=np.array([driver.ACC_MAX if linear else driver.COMFORT_ACC_MAX]),
-                idm_time_wanted=np.array([driver.TIME_WANTED]),
-                idm_distance_wanted=np.array([driver.DISTANCE_WANTED]),
-            )
-            ego_x, ego_v_all = ego_trajectories(state, dyn)
-            for action in (I, S):
-                predicted = idm_follower_positions(state, dyn, 0, ego_x[action], ego_v_all[action])
-                for k in range(ego_x.shape[1]):
-                    xs = highway_env_follower_path(
-                        driver, ego_v, gap, follower_v, set_point, ego_x[action, k], ego_v_all[action, k], dyn.frame_dt
-                    )
-                    touch = np.flatnonzero(ego_x[action, k, :-1] - xs[:-1] < 5.0)
-                    upto = int(touch[0]) if touch.size else len(xs) - 1
-                    worst = max(worst, float(np.max(np.abs(xs[:upto] - predicted[k, :upto]), initial=0.0)))
-                    runs += 1
-    assert runs == 512 and worst < 1e-6, worst
-
-
 def test_linear_model_drivers_creep_into_a_stopped_car() -> None:
-    """What follower_set_point found (docs/safety.md §6k): highway-env's linear acceleration model has no
+    """highway-env's linear acceleration model has no
     standstill gap of a car length. Behind a stopped car its acceleration ``k₀·(v₀ − v) + k₁·min(−v, 0) +
     k₂·min(d − d₀ − T·v, 0)`` is zero at ``v = 0`` and centre distance ``d₀ − k₀·v₀/k₂`` — for an
     AggressiveVehicle (k₀ = 0.107, k₂ = 0.5, d₀ = 10 m) with a 25 m/s set-point 4.67 m, less than the 5 m the two
     bodies need: it creeps into the stopped car (highway-env, 15 Hz, from 100 m behind at 20 m/s), an IDMVehicle
     stops 10 m (centre to centre) short. The rule's reaction-time bound has the follower brake at ACC_MAX after
-    0.5 s and stop with room to spare; the exact model (``model.idm_follower_positions`` with the set-point)
-    predicts the contact."""
+    0.5 s and stop with room to spare."""
     from highway_env.road.road import Road, RoadNetwork
     from highway_env.vehicle.behavior import AggressiveVehicle, IDMVehicle
     from highway_env.vehicle.kinematics import Vehicle
@@ -577,8 +523,8 @@ def test_linear_model_drivers_creep_into_a_stopped_car() -> None:
     assert outcome == {"IDMVehicle": (False, 10.0), "AggressiveVehicle": (True, 5.0)}
     k0, _, k2 = AggressiveVehicle.ACCELERATION_PARAMETERS
     assert AggressiveVehicle.DISTANCE_WANTED - k0 * 25.0 / k2 == pytest.approx(4.67, abs=0.01)
-    # The model with the set-point: the same creep, in front of an ego that stands still (speed and set-point 0).
-    dyn = dataclasses.replace(dynamics(1, 15, 1), follower_set_point=True)
+    # The rule's bound, in front of an ego that stands still (speed and set-point 0).
+    dyn = dynamics(1, 15, 1)
     car = {"x": 100.0, "y": 0.0, "speed": 20.0, "heading": 0.0, "crashed": False, "delta": 4.0, "idm": True,
            "linear": True, "target": 25.0}  # fmt: skip
     state = make_state(200.0, 0, 0, 0.0, 0, [car])
@@ -590,9 +536,7 @@ def test_linear_model_drivers_creep_into_a_stopped_car() -> None:
         linear_distance_gain=np.array([gains[2]]),
         idm_time_wanted=np.array([AggressiveVehicle.TIME_WANTED]),
     )
-    ego_x, ego_v = ego_trajectories(state, dyn)
-    creep = idm_follower_positions(state, dyn, 0, ego_x[S], ego_v[S])
-    assert float((ego_x[S, 0, :-1] - creep[0, :-1]).min()) < 5.0  # closer than two half-lengths: contact
+    ego_x, _ = ego_trajectories(state, dyn)
     bound = follower_positions(state.x, state.vx, state.accel_max, state.brake_max, dyn.follower_reaction, dyn.times)[
         0
     ]  # the rule's reaction-time bound
@@ -600,52 +544,45 @@ def test_linear_model_drivers_creep_into_a_stopped_car() -> None:
 
 
 @pytest.mark.parametrize("engine", ["numpy", "compiled"])
-def test_least_bad_joint_ranks_the_fallback_by_the_gap_to_anybody(engine: str) -> None:
+def test_the_fallback_ranks_by_the_gap_to_the_vehicles_ahead_first(engine: str) -> None:
     """2 lanes, the ego in lane 0 at 20 m/s between a leader 9 m ahead at 15 m/s and a follower 8 m behind at
-    28 m/s, a car level with it in lane 1: nothing is safe in either mode. The default ranking (the gap to the
-    vehicles ahead first) brakes (SLOWER, the follower's problem); shield.least_bad_joint takes the largest
-    gap to anybody under the nominal conflicts, which is the lane change beside the level car (the follower's
-    surge is worse than that overlap) — the measure the campaign compares (docs/safety.md §6f)."""
+    28 m/s, a car level with it in lane 1: nothing is safe. The ranking (the gap to the vehicles ahead first,
+    the ego's own responsibility) brakes (SLOWER, the follower's problem), not the lane change beside the level
+    car that the largest gap to anybody would pick (docs/safety.md §6f)."""
     spec = scenarios.VehicleSpec
     specs = [spec(0, 9.0, 15.0), spec(0, -8.0, 28.0), spec(1, 0.0, 20.0)]
-    chosen = {}
-    for joint in (False, True):
-        scene = scenarios.build_scene(
-            0, 20.0, specs, mode="robust", lanes_count=2, ego_target_speed=20.0,
-            **{"shield.engine": engine, "shield.least_bad_joint": joint},
-        )  # fmt: skip
-        assert scene.result.fallback and not scene.result.safe.any()
-        chosen[joint] = scene.mask.tolist()
-    assert chosen[False] == mask_of(S) and chosen[True] == mask_of(R)
+    scene = scenarios.build_scene(
+        0, 20.0, specs, mode="robust", lanes_count=2, ego_target_speed=20.0, **{"shield.engine": engine}
+    )
+    assert scene.result.fallback and not scene.result.safe.any()
+    assert scene.mask.tolist() == mask_of(S)
 
 
 @pytest.mark.parametrize("engine", ["numpy", "compiled"])
-def test_robust_fallback_takes_the_best_robust_gap_not_a_nominally_safe_lane_change(engine: str) -> None:
+def test_the_robust_fallback_picks_among_the_nominally_safe_actions(engine: str) -> None:
     """2 lanes, the ego in lane 0 at 25 m/s, a leader 12 m ahead at 22 m/s, lane 1 empty (a dense spawn, as in
     the grid's cell 520): nothing is robustly safe. The nominal rule calls LANE_RIGHT safe (its old lane counts
-    only until the ego has left it), so by default the robust fallback is LANE_RIGHT, whose robust worst gap
-    is IDLE's (-42.67 m: the leader may cut into lane 1 too); shield.robust_fallback ranks every available
-    action by its robust gaps and brakes (SLOWER, -17.67 m). (The straight leader bound.)"""
+    only until the ego has left it), so the robust fallback is LANE_RIGHT, whose robust worst gap is IDLE's
+    (-42.67 m: the leader may cut into lane 1 too), not SLOWER's better -17.67 m: the final robust mask stays
+    inside the nominal one. (The straight leader bound.)"""
     specs = [scenarios.VehicleSpec(0, 12.0, 22.0)]
-    chosen = {}
-    for on in (False, True):
-        scene = scenarios.build_scene(
-            0, 25.0, specs, mode="robust", lanes_count=2, ego_target_speed=25.0,
-            **{"shield.engine": engine, **EARLIER_RULE, "shield.robust_fallback": on},
-        )  # fmt: skip
-        assert scene.result.fallback and not scene.result.safe.any()
-        assert scene.result.min_gap[[I, R, S]] == pytest.approx([-42.67, -42.67, -17.67], abs=0.01)
-        chosen[on] = scene.mask.tolist()
+    scene = scenarios.build_scene(
+        0, 25.0, specs, mode="robust", lanes_count=2, ego_target_speed=25.0,
+        **{"shield.engine": engine, **WITHOUT_LINEAR_AND_TURNING},
+    )  # fmt: skip
+    assert scene.result.fallback and not scene.result.safe.any()
+    assert scene.result.min_gap[[I, R, S]] == pytest.approx([-42.67, -42.67, -17.67], abs=0.01)
     nominal = scenarios.build_scene(0, 25.0, specs, mode="nominal", lanes_count=2, ego_target_speed=25.0,
                                     **{"shield.engine": engine})  # fmt: skip
     assert nominal.result.safe.tolist() == mask_of(R)
-    assert chosen[False] == mask_of(R) and chosen[True] == mask_of(S)
+    assert scene.mask.tolist() == mask_of(R)
 
 
 @pytest.mark.parametrize("engine", ["numpy", "compiled"])
 def test_straight_fallback_brakes_where_turning_leaders_alone_changes_lane(engine: str) -> None:
     """The grid's cell 520 spawn (3 decisions/s, 2 lanes): the ego in lane 0 at 25 m/s, 14.4 m behind a car
-    at 22 m/s, lane 1 empty. The rule before the ninth session allows SLOWER (1.40 m). shield.turning_leaders
+    at 22 m/s, lane 1 empty. Without the linear-driver and turning options the rule allows SLOWER (1.40 m).
+    shield.turning_leaders
     takes the leader's lane-change allowance off its bound: SLOWER keeps -0.26 m, nothing is safe, and its
     fallback is the nominally safe LANE_RIGHT (-8.59 m) — the episode that was rear-ended at its eighth decision.
     shield.straight_fallback keeps turning_leaders' verdict (nothing safe, the same gaps: a fallback state
@@ -656,14 +593,14 @@ def test_straight_fallback_brakes_where_turning_leaders_alone_changes_lane(engin
         name: scenarios.build_scene(0, 25.0, specs, mode="robust", lanes_count=2, ego_target_speed=25.0,
                                     **rate, **options).result
         for name, options in {
-            "today": EARLIER_RULE,
-            "turning": {**EARLIER_RULE, "shield.turning_leaders": True},
-            "straight": {},  # the default since issue 15's ninth session
+            "plain": WITHOUT_LINEAR_AND_TURNING,
+            "turning": {**WITHOUT_LINEAR_AND_TURNING, "shield.turning_leaders": True},
+            "straight": {},  # the default
         }.items()
     }  # fmt: skip
-    today, turning, straight = scenes["today"], scenes["turning"], scenes["straight"]
-    assert today.mask.tolist() == mask_of(S) and not today.fallback
-    assert today.min_gap[[R, S]] == pytest.approx([-6.93, 1.4], abs=0.01)
+    plain, turning, straight = scenes["plain"], scenes["turning"], scenes["straight"]
+    assert plain.mask.tolist() == mask_of(S) and not plain.fallback
+    assert plain.min_gap[[R, S]] == pytest.approx([-6.93, 1.4], abs=0.01)
     assert turning.mask.tolist() == mask_of(R) and turning.fallback and not turning.safe.any()
     assert turning.min_gap[[R, S]] == pytest.approx([-8.59, -0.26], abs=0.01)
     assert straight.mask.tolist() == mask_of(S) and straight.fallback and not straight.safe.any()
@@ -677,7 +614,7 @@ def test_reversing_cut_ins_sees_a_reversing_car_beside(engine: str) -> None:
     it would not cut in, so IDLE (15.94 m), FASTER (1.51 m) and SLOWER are safe — and within the decision it
     began a lane change away from the ego, whose steering, reversing, swung its nose into the ego. With
     shield.reversing_cut_ins a car moving backwards may enter the ego's lane whatever MOBIL says: nothing is
-    safe (IDLE -56.29 m), SLOWER is the least bad (the default since issue 15's ninth session)."""
+    safe (IDLE -56.29 m), SLOWER is the least bad (the default)."""
     options = {
         "shield.engine": engine, "shield.linear_mobil": True, "shield.linear_incentive": True,
         "shield.linear_incentive_braking": True, "shield.turning_leaders": True, "shield.straight_fallback": True,
@@ -694,59 +631,30 @@ def test_reversing_cut_ins_sees_a_reversing_car_beside(engine: str) -> None:
 @pytest.mark.parametrize("mode", ["nominal", "robust"])
 def test_crossed_lanes_sees_the_lane_the_ego_crosses(engine: str, mode: str) -> None:
     """The 100 800-episode campaign's cell 2833 at its break (docs/safety.md §6j): the ego in lane 1 heading for
-    lane 3, a car 7.16 m behind in lane 2 closing at 9.5 m/s. The earlier rule put the ego in lanes 1 and 3
+    lane 3, a car 7.16 m behind in lane 2 closing at 9.5 m/s. Without it the rule put the ego in lanes 1 and 3
     only: IDLE, LANE_RIGHT, FASTER and SLOWER were safe (7.11 m robust, 8.77 m nominal: the car 13.77 m ahead
     in lane 1) and the ego was rear-ended in lane 2 two decisions later. With shield.crossed_lanes (the
-    default since issue 15's tenth session) lane 2 is the ego's until it is through: the car there is a
+    on by default) lane 2 is the ego's until it is through: the car there is a
     follower it cannot outrun, nothing is safe (IDLE -35.22 m) and the least bad is FASTER (-27.25 m)."""
     kw = {"shield.engine": engine}
-    earlier = scenarios.SCENARIOS["ego_crossing_a_lane"](mode=mode, **kw, **{"shield.crossed_lanes": False}).result
-    assert earlier.mask.tolist() == mask_of(I, R, F, S) and not earlier.fallback
+    without = scenarios.SCENARIOS["ego_crossing_a_lane"](mode=mode, **kw, **{"shield.crossed_lanes": False}).result
+    assert without.mask.tolist() == mask_of(I, R, F, S) and not without.fallback
     kept = 7.11 if mode == "robust" else 8.77
-    assert earlier.min_gap[[I, R, F, S]] == pytest.approx([kept] * 4, abs=0.01)
+    assert without.min_gap[[I, R, F, S]] == pytest.approx([kept] * 4, abs=0.01)
     crossed = scenarios.SCENARIOS["ego_crossing_a_lane"](mode=mode, **kw).result  # the default
     assert crossed.mask.tolist() == mask_of(F) and crossed.fallback and not crossed.safe.any()
     assert crossed.min_gap[[I, R, F, S]] == pytest.approx([-35.22, -35.22, -27.25, -42.21], abs=0.01)
 
 
-@pytest.mark.parametrize(("policy_hz", "sim_hz"), [(1, 5), (2, 10), (3, 15), (5, 15)])
-def test_lateral_schedule_from_a_lane_centre_is_the_leave_time(policy_hz: int, sim_hz: int) -> None:
-    """shield.lateral_schedule simulates highway-env's lateral controller itself; from a lane centre, heading
-    along the road, its time in the old lane is exactly the leave time the shield takes from highway-env's own
-    ControlledVehicle (``lane_change_timing``, plus one frame), at every speed the shield uses (0 to 40 m/s by
-    0.5; at a standstill the ego never leaves: inf; below about 1 m/s lane_change_timing gives up after 6 s, the
-    schedule runs the horizon), and IDLE with no lane change under way keeps the lane."""
-    dyn = dataclasses.replace(dynamics(4, sim_hz, policy_hz), lateral_schedule=True)
-    for row in range(81):
-        speed = row / 2
-        at = dataclasses.replace(dyn, ego_lateral_speed=speed)
-        state = RoadState(ego_x=0.0, ego_y=4.0, ego_speed=speed, ego_lane=1, ego_target_lane=1,
-                          ego_target_speed=0.0, ego_speed_index=0)  # fmt: skip
-        leave = ego_leave_time_at(dyn, speed)
-        for final in (0, 2):
-            windows = ego_lane_windows(state, at, final)
-            assert windows[1:] == [(final, math.inf)] and windows[0][0] == 1
-            if math.isfinite(leave):
-                assert windows[0][1] == leave, (speed, final)
-            else:  # lane_change_timing gives up after 6 s; the schedule runs the whole horizon
-                assert windows[0][1] > 6.0, (speed, final)
-        assert ego_lane_windows(state, at, 1) == [(1, math.inf)]
-
-
 @pytest.mark.parametrize("engine", ["numpy", "compiled"])
-def test_lateral_schedule_does_not_restart_the_ego_s_leave_time(engine: str) -> None:
+def test_ego_leaving_its_lane_counts_the_old_lane_for_good_under_idle(engine: str) -> None:
     """The 100 800-episode campaign's cell 2569 at its break (docs/safety.md §6j), rebuilt: 5 decisions per
     second, the ego in lane 1 already 0.2 s into a change to lane 0 (heading -0.163 rad) at 27.53 m/s behind a
-    hard-braking queue. The earlier rule timed its exit from lane 1 from a lane centre at every decision, so the
-    exit it promised slid 0.2 s later each decision and the state after LANE_LEFT had no safe action; IDLE,
-    which keeps the change under way, counted lane 1 as the ego's for good. With shield.lateral_schedule the
-    exit is simulated from where the ego is: IDLE and SLOWER are as safe as LANE_LEFT."""
+    hard-braking queue. The rule times its exit from lane 1 from a lane centre: LANE_LEFT is safe; IDLE, which
+    keeps the change under way, counts lane 1 as the ego's for good, as does SLOWER."""
     kw = {"shield.engine": engine}
-    earlier = scenarios.SCENARIOS["ego_leaving_its_lane"](**kw).result
-    assert earlier.mask.tolist() == mask_of(L) and not earlier.fallback
-    schedule = scenarios.SCENARIOS["ego_leaving_its_lane"](**kw, **{"shield.lateral_schedule": True}).result
-    assert schedule.mask.tolist() == mask_of(L, I, S) and not schedule.fallback
-    assert schedule.min_gap[[L, I, S]] == pytest.approx([earlier.min_gap[L]] * 3, abs=1e-9)
+    result = scenarios.SCENARIOS["ego_leaving_its_lane"](**kw).result
+    assert result.mask.tolist() == mask_of(L) and not result.fallback
 
 
 @pytest.mark.parametrize("engine", ["numpy", "compiled"])
@@ -755,12 +663,12 @@ def test_reversing_noses_sees_a_car_rolling_back_toward_its_turn(engine: str) ->
     turned 0.166 rad toward the ego's lane, rolling backwards at 0.086 m/s. Its lateral speed points away, so the
     heading projection put it in lane -1 (off the road) and IDLE kept 18.15 m; a decision later it moved
     forward, into the ego's lane. With shield.reversing_noses it is in the lane its nose points to as well:
-    IDLE -4.72 m, only SLOWER (5.28 m; the default since issue 15's tenth session). Nominal is unchanged
+    IDLE -4.72 m, only SLOWER (5.28 m; the default). Nominal is unchanged
     (robust-only option)."""
     kw = {"shield.engine": engine}
-    earlier = scenarios.SCENARIOS["car_rolling_back_turned_in"](**kw, **{"shield.reversing_noses": False}).result
-    assert earlier.mask.tolist() == mask_of(I, F, S) and not earlier.fallback
-    assert earlier.min_gap[[I, F, S]] == pytest.approx([18.15, 3.15, 28.15], abs=0.01)
+    without = scenarios.SCENARIOS["car_rolling_back_turned_in"](**kw, **{"shield.reversing_noses": False}).result
+    assert without.mask.tolist() == mask_of(I, F, S) and not without.fallback
+    assert without.min_gap[[I, F, S]] == pytest.approx([18.15, 3.15, 28.15], abs=0.01)
     noses = scenarios.SCENARIOS["car_rolling_back_turned_in"](**kw).result  # the default
     assert noses.mask.tolist() == mask_of(S) and not noses.fallback
     assert noses.min_gap[[I, F, S]] == pytest.approx([-4.72, -19.72, 5.28], abs=0.01)
@@ -775,17 +683,17 @@ def test_follower_idm_lets_the_car_behind_brake_for_the_ego(engine: str) -> None
     second, the ego at 18.32 m/s between a leader 9.36 m ahead (braking at its limit) and an IDM car 36.3 m
     behind at 21.57 m/s. The follower bound accelerates that car for 0.5 s whatever the ego does and starts
     again at every decision: IDLE and SLOWER keep 0.745 m, nothing is safe. With shield.follower_idm (the
-    default since issue 15's eleventh session) the car brakes by IDM's response to each fallback of the ego (its
+    on by default) the car brakes by IDM's response to each fallback of the ego (its
     free-road term at its largest): they keep 1.415 m — the leader's gap, the follower no longer the tighter
     one. Nominal keeps its masks, with more room (1.08 → 3.07 m)."""
     kw = {"shield.engine": engine}
-    earlier = scenarios.SCENARIOS["squeezed_by_a_follower"](**kw, **{"shield.follower_idm": False}).result
-    assert earlier.fallback and not earlier.safe.any()
-    assert earlier.min_gap[[I, S]] == pytest.approx([0.745, 0.745], abs=0.001)
-    idm = scenarios.SCENARIOS["squeezed_by_a_follower"](**kw).result  # the default since the eleventh session
+    without = scenarios.SCENARIOS["squeezed_by_a_follower"](**kw, **{"shield.follower_idm": False}).result
+    assert without.fallback and not without.safe.any()
+    assert without.min_gap[[I, S]] == pytest.approx([0.745, 0.745], abs=0.001)
+    idm = scenarios.SCENARIOS["squeezed_by_a_follower"](**kw).result  # the default
     assert idm.mask.tolist() == mask_of(I, S) and not idm.fallback
     assert idm.min_gap[[I, S]] == pytest.approx([1.415, 1.415], abs=0.001)
-    assert idm.min_gap[[L, R, F]].tolist() == earlier.min_gap[[L, R, F]].tolist()
+    assert idm.min_gap[[L, R, F]].tolist() == without.min_gap[[L, R, F]].tolist()
     nominal = [
         scenarios.SCENARIOS["squeezed_by_a_follower"](mode="nominal", **kw, **{"shield.follower_idm": v}).result
         for v in (False, True)
@@ -798,19 +706,19 @@ def test_follower_idm_lets_the_car_behind_brake_for_the_ego(engine: str) -> None
 def test_finishing_changes_lets_a_car_settle_in_the_next_lane(engine: str) -> None:
     """The 100 800-episode campaign's cell 614 at its break (docs/safety.md §6l), rebuilt: a car that has just
     crossed from two lanes over into the lane next to the ego, 25.18 m ahead at 17.16 m/s, still turned toward
-    its new lane's centre. The earlier rule's heading projection put it in the ego's lane from now, braking at
-    its limit: IDLE −79.54 m, SLOWER −49.54 m, nothing safe. With shield.finishing_changes (the default since
-    issue 15's twelfth session) it is finishing its change into
+    its new lane's centre. Without it the rule's heading projection put it in the ego's lane from now, braking at
+    its limit: IDLE −79.54 m, SLOWER −49.54 m, nothing safe. With shield.finishing_changes (the default) it is
+    finishing its change into
     lane 4 — a cut-in candidate from there, and MOBIL's safety criterion (the ego at 29.34 m/s, 25 m behind,
     would have to brake far harder than 2 m/s²) keeps it out of the ego's lane: IDLE and SLOWER have no
     conflict; in front of an ego at 10 m/s, which MOBIL would let it cut in ahead of, it is a conflict again.
     highway-env agrees: driven on with IDLE for 6 s, the car settles in lane 4 and nobody crashes. Nominal,
     which never projects, is unchanged."""
     kw = {"shield.engine": engine}
-    earlier = scenarios.SCENARIOS["car_settling_next_to_the_ego"](**kw, **{"shield.finishing_changes": False}).result
-    assert earlier.fallback and not earlier.safe.any()
-    assert earlier.min_gap[[I, S]] == pytest.approx([-79.54, -49.54], abs=0.01)
-    scene = scenarios.SCENARIOS["car_settling_next_to_the_ego"](**kw)  # the default since the twelfth session
+    without = scenarios.SCENARIOS["car_settling_next_to_the_ego"](**kw, **{"shield.finishing_changes": False}).result
+    assert without.fallback and not without.safe.any()
+    assert without.min_gap[[I, S]] == pytest.approx([-79.54, -49.54], abs=0.01)
+    scene = scenarios.SCENARIOS["car_settling_next_to_the_ego"](**kw)  # the default
     assert scene.mask.tolist() == mask_of(I, S) and not scene.result.fallback
     assert scene.result.min_gap[[I, S]].tolist() == [math.inf, math.inf]
     nominal = [
@@ -875,7 +783,7 @@ def test_squeezed_by_a_linear_follower_is_a_hole_not_closed(engine: str) -> None
     assert after.mask.tolist() == mask_of(I) and float(after.min_gap.max()) == pytest.approx(-0.64, abs=0.01)
     assert leader.action["acceleration"] == pytest.approx(-6.0) and follower.action["acceleration"] < 0
     state, dyn = scene.shield.state_and_dynamics(scene.shield.snapshot)
-    reacting = evaluate(state, dataclasses.replace(dyn, follower_reaction=0.0), "robust")
+    reacting = evaluate(state, dyn.with_options(follower_reaction=0.0), "robust")
     assert reacting.mask.tolist() == mask_of(I, S) and reacting.min_gap[[I, S]] == pytest.approx([1.36, 2.36], abs=0.01)
     for action in [I, I, R, S, S, S]:
         assert scene.env.get_wrapper_attr("result").mask.tolist() == mask_of(action)
@@ -908,18 +816,18 @@ def _drive_idle_while_it_passes(scene: scenarios.Scene, decisions: int, ahead: f
 def test_cut_in_when_permitted_lets_a_car_pass_a_stopped_ego(engine: str) -> None:
     """The 100 800-episode campaign's cell 615 at its break (docs/safety.md §6l), rebuilt: the ego stopped, a car
     3.09 m ahead in the next lane at 20.64 m/s. MOBIL's safety criterion forbids its cut-in now (the ego would
-    brake at 28 m/s²) and allows it at the end of the decision; the earlier rule then took it as cutting in from
+    brake at 28 m/s²) and allows it at the end of the decision; the rule without it then took it as cutting in from
     the cut-in time — 0 s at 5 Hz physics, 3 m ahead: IDLE, LANE_RIGHT and FASTER all −3.57 m, nothing safe. With
-    shield.cut_in_when_permitted (the default since issue 15's thirteenth session) the cut-in starts from the
+    shield.cut_in_when_permitted (the default) the cut-in starts from the
     first frame MOBIL allows it, the car by then well ahead: IDLE keeps 4.21 m, FASTER 0.44 m (under the 1 m
     margin). highway-env agrees: driven on with IDLE for 5 s, the car passes and nobody crashes. Nominal, which
     has no cut-ins, is unchanged."""
     kw = {"shield.engine": engine}
-    earlier = scenarios.SCENARIOS["car_passing_a_stopped_ego"](**kw, **{"shield.cut_in_when_permitted": False})
-    assert earlier.result.fallback and not earlier.result.safe.any()
-    assert earlier.result.min_gap[[I, R, F]] == pytest.approx([-3.567] * 3, abs=0.001)
-    earlier.env.close()
-    scene = scenarios.SCENARIOS["car_passing_a_stopped_ego"](**kw)  # the default since the thirteenth session
+    without = scenarios.SCENARIOS["car_passing_a_stopped_ego"](**kw, **{"shield.cut_in_when_permitted": False})
+    assert without.result.fallback and not without.result.safe.any()
+    assert without.result.min_gap[[I, R, F]] == pytest.approx([-3.567] * 3, abs=0.001)
+    without.env.close()
+    scene = scenarios.SCENARIOS["car_passing_a_stopped_ego"](**kw)  # the default
     assert scene.mask.tolist() == mask_of(I) and not scene.result.fallback
     assert scene.result.min_gap[[I, R, F]] == pytest.approx([4.209, -3.567, 0.441], abs=0.001)
     nominal = [
@@ -938,15 +846,15 @@ def test_passing_cut_ins_make_a_car_passing_the_ego_a_leader(engine: str) -> Non
     1.05 m behind it in the next lane at 25.66 m/s. MOBIL lets it cut in only ahead of the ego (the ego its new
     follower, braking no harder than 2 m/s²: 7.75 m ahead of a stopped ego by its IDM), but the rule bounded it
     as a follower entering the ego's lane and driving on through it: IDLE −78.63 m, nothing safe. With
-    shield.passing_cut_ins (the default since issue 15's thirteenth session) it is a leader from its cut-in — at
+    shield.passing_cut_ins (the default) it is a leader from its cut-in — at
     least that distance ahead when it decides, then braking at its limit: IDLE keeps 5.50 m and FASTER 1.36 m.
     highway-env agrees: driven on with IDLE for 3 s, the car passes and nobody crashes."""
     kw = {"shield.engine": engine}
-    earlier = scenarios.SCENARIOS["car_passing_in_the_next_lane"](**kw, **{"shield.passing_cut_ins": False})
-    assert earlier.result.fallback and not earlier.result.safe.any()
-    assert earlier.result.min_gap[[I, F]] == pytest.approx([-78.627, -68.637], abs=0.001)
-    earlier.env.close()
-    scene = scenarios.SCENARIOS["car_passing_in_the_next_lane"](**kw)  # the default since the thirteenth session
+    without = scenarios.SCENARIOS["car_passing_in_the_next_lane"](**kw, **{"shield.passing_cut_ins": False})
+    assert without.result.fallback and not without.result.safe.any()
+    assert without.result.min_gap[[I, F]] == pytest.approx([-78.627, -68.637], abs=0.001)
+    without.env.close()
+    scene = scenarios.SCENARIOS["car_passing_in_the_next_lane"](**kw)  # the default
     assert scene.mask.tolist() == mask_of(I, F) and not scene.result.fallback
     assert scene.result.min_gap[[I, F]] == pytest.approx([5.501, 1.362], abs=0.001)
     _drive_idle_while_it_passes(scene, decisions=6, ahead=50.0)
@@ -980,11 +888,11 @@ def test_level_incentive_lets_a_car_in_free_flow_stay_in_its_lane(engine: str) -
 def test_linear_mobil_lets_a_car_alongside_stay_where_it_is(engine: str) -> None:
     """shield.linear_mobil: the Linear driver level with the ego would impose on the ego, as its new
     follower 0.1 m behind, 0.3·0.65 + 2·min(−0.1 − (10 + 2.5·19.35), 0) ≈ −117 m/s² by its own formula, far
-    below −2: no cut-in. Under the rule without level_cut_ins, SLOWER is then safe (worst gap 20.3 m); the
-    default rule assumes any Linear-model cut-in: the car appears in the ego's lane at its nose, nothing is
-    safe (a fallback) — 1 051 of the first campaign's ``adjacent_behind`` breaks. (The rule before the ninth
-    session, which made linear_mobil the default.)"""
-    options = {"shield.engine": engine, **EARLIER_RULE, "shield.level_cut_ins": False}
+    below −2: no cut-in. Under the rule without level_cut_ins, SLOWER is then safe (worst gap 20.3 m); without
+    linear_mobil the rule assumes any Linear-model cut-in: the car appears in the ego's lane at its nose, nothing is
+    safe (a fallback) — 1 051 of the first campaign's ``adjacent_behind`` breaks. (The rule without the
+    linear-driver and turning options.)"""
+    options = {"shield.engine": engine, **WITHOUT_LINEAR_AND_TURNING, "shield.level_cut_ins": False}
     with_criterion = scenarios.SCENARIOS["linear_car_alongside"](
         mode="robust", **{**options, "shield.linear_mobil": True}
     )
@@ -1001,10 +909,11 @@ def test_linear_incentive_keeps_a_car_alongside_in_its_lane(engine: str) -> None
     (k₁·min(v_front − v, 0) + k₂·min(d − d_safe, 0), d_safe = 10 + 2.5·20.25 = 60.6 m) −121.3 m/s² behind the
     ego against −37.9 behind its leader, a gain of −83 m/s² < 0.2 — so it does not turn in behind the ego.
     With linear_mobil also on (it cannot cut in ahead either) SLOWER is safe (20.33 m), no fallback; with
-    either option alone, or neither (the rule before the ninth session), it is a fallback at −11.39 m (the
+    either option alone, or neither (the rule without the linear-driver and turning options), it is a
+    fallback at −11.39 m (the
     turn-in, or the cut-in, remains). (The straight leader bound and no per-frame incentive, as then.)"""
     mobil, incentive = "shield.linear_mobil", "shield.linear_incentive"
-    base = {"shield.engine": engine, **EARLIER_RULE}
+    base = {"shield.engine": engine, **WITHOUT_LINEAR_AND_TURNING}
     both = scenarios.SCENARIOS["linear_car_alongside"](mode="robust", **{**base, mobil: True, incentive: True})
     assert both.mask.tolist() == mask_of(S) and not both.result.fallback
     assert both.result.min_gap[[I, S]] == pytest.approx([0.33, 20.33], abs=0.01)
@@ -1020,8 +929,8 @@ def test_linear_incentive_drops_the_free_car_and_keeps_the_one_stuck_behind_it(e
     free lane ahead, B 20 m behind at 20 m/s closing on A. By their own model A loses 75 m/s² by moving
     behind the ego (nothing ahead of it: its term is 0; behind the ego 2·min(10 − 47.5, 0)) and B gains
     21.5 m/s² (−80 behind the ego, 2·(20 − 60) against −101.5 behind A, 0.3·(15 − 20) + 2·(10 − 60)).
-    shield.linear_incentive (default since issue 15's ninth session) keeps only B (IDLE 13.5 m); the earlier
-    rule lets any Linear-model car turn in, and A bounds IDLE at 5.0 m; without level_cut_ins neither counts
+    shield.linear_incentive (on by default) keeps only B (IDLE 13.5 m); the rule without
+    it lets any Linear-model car turn in, and A bounds IDLE at 5.0 m; without level_cut_ins neither counts
     (IDLE unbounded)."""
     from highway_env.vehicle.behavior import LinearVehicle
 
@@ -1035,10 +944,10 @@ def test_linear_incentive_drops_the_free_car_and_keeps_the_one_stuck_behind_it(e
         assert scene.result.safe.tolist() == mask_of(I, R, F, S)
         return float(scene.result.min_gap[I])
 
-    base = {"shield.engine": engine, **EARLIER_RULE}  # the rule before the ninth session: any turn-in
+    base = {"shield.engine": engine, **WITHOUT_LINEAR_AND_TURNING}  # any turn-in
     assert idle_gap(**base) == pytest.approx(5.0, abs=0.01)
     assert idle_gap(**{**base, "shield.linear_incentive": True}) == pytest.approx(13.5, abs=0.01)
-    assert idle_gap(**{"shield.engine": engine}) == pytest.approx(13.5, abs=0.01)  # today's default
+    assert idle_gap(**{"shield.engine": engine}) == pytest.approx(13.5, abs=0.01)  # the default
     assert idle_gap(**base, **{"shield.level_cut_ins": False}) == math.inf
 
 
@@ -1050,16 +959,16 @@ def test_linear_incentive_braking_sees_the_car_closing_on_a_slow_one(engine: str
     the decision at constant speeds it gains nothing by moving behind the ego, so SLOWER has no conflict at
     all (gap unbounded) and is the one safe action; with shield.linear_incentive_braking its leader may brake
     within the decision, which makes the turn-in pay: SLOWER −9.99 m, nothing safe (a fallback), as the
-    rule before the ninth session (any Linear-model turn-in: SLOWER −20.02 m) also says; the three options
-    are today's default."""
+    rule without the linear-driver options (any Linear-model turn-in: SLOWER −20.02 m) also says; the three options
+    are the default."""
     from highway_env.vehicle.behavior import LinearVehicle
 
     specs = [
         scenarios.VehicleSpec(1, -5.5, 17.6, vehicle_class=LinearVehicle),
         scenarios.VehicleSpec(1, 3.9, 10.1, vehicle_class=LinearVehicle),
     ]
-    earlier = {"shield.engine": engine, **EARLIER_RULE}
-    linear = {**earlier, "shield.linear_mobil": True, "shield.linear_incentive": True}
+    without = {"shield.engine": engine, **WITHOUT_LINEAR_AND_TURNING}
+    linear = {**without, "shield.linear_mobil": True, "shield.linear_incentive": True}
 
     def scene(**options: object) -> scenarios.Scene:
         return scenarios.build_scene(0, 15.75, specs, mode="robust", ego_target_speed=15.0, **options)
@@ -1069,10 +978,10 @@ def test_linear_incentive_braking_sees_the_car_closing_on_a_slow_one(engine: str
     braking = scene(**{**linear, "shield.linear_incentive_braking": True})
     assert braking.result.fallback and not braking.result.safe.any()
     assert braking.result.min_gap[S] == pytest.approx(-9.99, abs=0.01)
-    before = scene(**earlier)
+    before = scene(**without)
     assert before.result.fallback and before.result.min_gap[S] == pytest.approx(-20.02, abs=0.01)
-    today = scene(**{"shield.engine": engine})
-    assert today.result.fallback and not today.result.safe.any()
+    default = scene(**{"shield.engine": engine})
+    assert default.result.fallback and not default.result.safe.any()
 
 
 @pytest.mark.parametrize("engine", ["numpy", "compiled"])
@@ -1208,13 +1117,10 @@ def road(
     extreme: bool = False,
     rates: bool = False,
     chained: bool = False,
-    lateral: bool = False,
     follower: bool = False,
 ) -> tuple[RoadState, Dynamics, list[dict[str, float]]]:
     """A random road at 1 decision per second, or (``rates``) at the falsification grid's 1, 2, 3 or 5;
     ``chained``: the ego's target lane may also be two lanes away (a lane change chained onto one under way);
-    ``lateral``: the ego off its lane's centre and turned, with the speed its lateral motion is simulated at
-    (``Dynamics.ego_lateral_speed``, a multiple of 0.5 m/s as the shield takes it) and its leave time;
     ``follower``: also an IDM or linear-model car driving straight behind the ego in its lane, 5.5–150 m back."""
     lanes = draw(st.integers(1, 5))
     sim_hz = draw(st.sampled_from([5, 15]))
@@ -1243,11 +1149,6 @@ def road(
         cars = [*cars[:at], behind, *cars[at:]]
     state = make_state(ego_x, ego_lane, target_lane, draw(st.floats(0.0, 40.0 if extreme else 32.0)), idx, cars)
     dyn = dynamics(lanes, sim_hz, policy_hz)
-    if lateral:
-        offset, heading = draw(st.floats(-2.0, 2.0)), draw(st.floats(-0.8, 0.8))
-        state = dataclasses.replace(state, ego_y=state.ego_y + offset, ego_heading=heading)
-        speed = draw(st.integers(0, 80)) / 2
-        dyn = dataclasses.replace(dyn, ego_lateral_speed=speed, ego_leave_time=ego_leave_time_at(dyn, speed))
     return state, dyn, cars
 
 

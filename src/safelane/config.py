@@ -29,6 +29,14 @@ import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from safelane.core.errors import ConfigError
+from safelane.safety.rule import (
+    DEFAULT_RULE_NAME,
+    OPTION_NAMES,
+    RULES,
+    Rule,
+    rule_named,
+    unknown_option_error,
+)
 
 
 class _Section(BaseModel):
@@ -114,268 +122,48 @@ class ShieldConfig(_Section):
         description="[m] The bumper-to-bumper gap the rule keeps under its worst case (the safety threshold "
         "a sweep may tune; 1 m as derived in docs/safety.md).",
     )
-    projected_cut_ins: bool = Field(
-        False,
-        strict=True,
-        description="Robust mode, experimental: a vehicle already moving sideways may also cut in from the lane "
-        "it moves to. Measured (docs/safety.md §6b): fewer 'second_lane_cut_in' invariant breaks but more in "
-        "total; kept for the next, one-decision-ahead rule.",
+    rule: str = Field(
+        DEFAULT_RULE_NAME,
+        description="The named rule (safelane.safety.rule.RULES): 'forecast-fallback' (every option on, the "
+        "least-bad choice ranked by the nominal forecast first), 'worst-case-fallback' (the same, ranked by the "
+        "worst-case gaps only) or 'basic' (the robust rule without its refinements).",
     )
-    body_extent: bool = Field(
-        True,
-        strict=True,
-        description="Robust mode: a vehicle also occupies every lane its body, rotated by its heading, overlaps "
-        "(a slow car turning hard sticks a corner into the lane it leaves; docs/safety.md §6b). On by default "
-        "since issue 15's campaign; false gives the earlier rule.",
-    )
-    linear_mobil: bool = Field(
-        True,
-        strict=True,
-        description="Robust mode: a Linear, Aggressive or Defensive driver cuts in only if its MOBIL criterion, "
-        "with its own linear acceleration model and gains, allows it (as for IDM drivers), as highway-env does. "
-        "On by default since issue 15's ninth session (docs/safety.md §6b, §6h, §6i); false: any such cut-in is "
-        "assumed (the earlier rule).",
-    )
-    reversing_leaders: bool = Field(
-        True,
-        strict=True,
-        description="A leader moving backwards (highway-env's jammed IDM cars roll back) keeps its reverse speed "
-        "over the horizon; false: it counts as stopped (the rule before issue 15's reversing crashes, "
-        "docs/safety.md §6d). On by default.",
-    )
-    level_cut_ins: bool = Field(
-        True,
-        strict=True,
-        description="Robust mode: a car level with or behind the ego in a next lane (its centre behind the ego's now "
-        "or at the end of the decision) may turn in behind it after the cut-in time and then follow it; MOBIL's "
-        "safety criterion does not protect the ego there (docs/safety.md §6e). On by default since issue 15's "
-        "fourth session; false gives the earlier rule.",
-    )
-    level_incentive: bool = Field(
-        True,
-        strict=True,
-        description="With level_cut_ins: only a car that MOBIL's incentive lets move behind the ego (politeness 0: it "
-        "gains acceleration there over its own lane, e.g. stuck in a slow queue) counts; false: any such car "
-        "(measured, docs/safety.md §6e).",
-    )
-    level_entering: bool = Field(
-        True,
-        strict=True,
-        description="With level_incentive: into a lane the ego is only entering (a lane change's new lane) every "
-        "level car counts, unfiltered: MOBIL's incentive there is judged without the ego in the lane (docs/safety.md "
-        "§6f). On by default since issue 15's fifth session; false gives the earlier rule.",
-    )
-    least_bad_joint: bool = Field(
-        False,
-        strict=True,
-        description="When no action is safe, allow the one with the largest worst-case gap to any vehicle first "
-        "(a follower or a car alongside counts as much as a leader); false (default): to the vehicles ahead "
-        "first, the ego's own responsibility (docs/safety.md §6f).",
-    )
-    full_horizon: bool = Field(
-        True,
-        strict=True,
-        description="The rule's horizon spans the same seconds at every decision rate (13 s with set-points 0-30 "
-        "m/s); false: the same number of decisions, 2.6 s at 5 per second, too short for the ego to stop "
-        "(docs/safety.md §6f). On by default since issue 15's fifth session; false gives the earlier rule.",
-    )
-    ego_speed_magnitude: bool = Field(
-        True,
-        strict=True,
-        description="The ego's speed in the rule is its speed controller's (highway-env's vehicle.speed, what "
-        "SLOWER's set-point and the P-controller use); false: its component along the road, which a lane "
-        "change's heading lowers (docs/safety.md §6f). On by default since issue 15's fifth session; false "
-        "gives the earlier rule.",
-    )
-    turning_leaders: bool = Field(
-        True,
-        strict=True,
-        description="Robust mode: a moving leader brakes from its speed along its path, less what one lane change "
-        "can cost it along the road (lane_width·tan(π/8) = 1.66 m), instead of from its speed along the road, "
-        "which a lane change's heading lowers (docs/safety.md §6f). On by default since issue 15's ninth session "
-        "(§6i); false gives the earlier rule.",
-    )
-    robust_fallback: bool = Field(
-        False,
-        strict=True,
-        description="Experimental: when no action is safe, robust mode allows the least-bad of every available "
-        "action by its robust worst-case gaps; false (default): of the nominally safe actions when there are "
-        "some, so the final robust mask stays inside the nominal one (docs/safety.md §6g).",
-    )
-    straight_fallback: bool = Field(
-        True,
-        strict=True,
-        description="With turning_leaders, robust mode: when no action is safe under it, allow what the rule "
-        "without turning_leaders allows (its safe actions, else its least-bad one), so that the stricter leader "
-        "bound narrows the promise but not the fallback (docs/safety.md §6i). On by default since issue 15's "
-        "ninth session; false: the fallback of the turning bound itself.",
-    )
-    linear_incentive: bool = Field(
-        True,
-        strict=True,
-        description="With level_incentive: a Linear, Aggressive or Defensive driver level with or behind the ego "
-        "turns in behind it only if MOBIL's incentive, with its own linear acceleration model and gains, lets it "
-        "(as IDM drivers). On by default since issue 15's ninth session (docs/safety.md §6h, §6i); false: any "
-        "such car may (the earlier rule).",
-    )
-    linear_incentive_braking: bool = Field(
-        True,
-        strict=True,
-        description="With linear_incentive: that incentive is also checked at every physics frame of the decision "
-        "with the driver's own leaders braking at their maximum (else: now and at the end, everybody at constant "
-        "speed — a Linear car closing fast on a slow one turned in within the decision; docs/safety.md §6h). On "
-        "by default since issue 15's ninth session.",
-    )
-    reversing_cut_ins: bool = Field(
-        True,
-        strict=True,
-        description="A vehicle in a next lane moving backwards may change into the ego's lane whatever MOBIL says: "
-        "highway-env's steering assumes forward motion, so reversing, a lane change away from the ego swings the "
-        "car's nose into the ego's lane (the agents' cell 615; docs/safety.md §6i). On by default since issue "
-        "15's ninth session; false: MOBIL's verdict, as for any car.",
-    )
-    crossed_lanes: bool = Field(
-        True,
-        strict=True,
-        description="The ego occupies every lane between its lane and its target lane until it is through, not "
-        "only those two: a lane change chained onto one under way (lane 0 → 1, then right again → 2) crosses "
-        "lane 1 whole, and a car there is a conflict for as long as the ego may be in it (cells 2009 and 2833; "
-        "docs/safety.md §6j). On by default since issue 15's tenth session; false: the earlier rule.",
-    )
-    lateral_schedule: bool = Field(
-        False,
-        strict=True,
-        description="Experimental: the time the ego spends in each lane it overlaps, simulated with highway-env's "
-        "lateral controller from its lateral position and heading, instead of a lane change's leave time from a "
-        "lane centre restarted at every decision (cell 2569; docs/safety.md §6j). Replaces crossed_lanes' "
-        "bookkeeping when on.",
-    )
-    reversing_noses: bool = Field(
-        True,
-        strict=True,
-        description="A car rolling backwards with its nose turned toward a lane is also in that lane (robust "
-        "mode): backwards it moves away from it, and it drives there as soon as it moves forward again (a jammed "
-        "IDM car, the trained agents' cell 126; docs/safety.md §6j). On by default since issue 15's tenth "
-        "session; false: the earlier rule.",
-    )
-    follower_idm: bool = Field(
-        True,
-        strict=True,
-        description="The IDM car right behind the ego in its lane (nothing between them) brakes by IDM's own "
-        "response to each fallback of the ego, frame by frame, its free-road term bounded by its comfort "
-        "acceleration, instead of accelerating for the reaction time whatever the ego does — a bound that does "
-        "not restart at every decision (cell 2415; docs/safety.md §6k). Both modes. On by default since issue "
-        "15's eleventh session; false: the earlier rule.",
-    )
-    follower_set_point: bool = Field(
-        False,
-        strict=True,
-        description="Experimental, with follower_idm: the car behind's own speed set-point, read from the "
-        "simulator like its other driver parameters, in its IDM free-road term (else that term at its largest), "
-        "and linear-model drivers behind the ego by their own formula, which is linear in that set-point (cell "
-        "2879; docs/safety.md §6k).",
-    )
-    finishing_changes: bool = Field(
-        True,
-        strict=True,
-        description="Robust mode: a car moving sideways toward its own lane's centre, short of it — finishing a "
-        "lane change into that lane — is not projected into the lane beyond from now (whatever MOBIL says) but is "
-        "a cut-in candidate from its lane like any car there, MOBIL-filtered, from the cut-in time (the "
-        "'second_lane_cut_in' breaks, cell 2087; docs/safety.md §6l). On by default since issue 15's twelfth "
-        "session; false: the earlier rule.",
-    )
-    cut_in_when_permitted: bool = Field(
-        True,
-        strict=True,
-        description="Robust mode: a car ahead in a next lane cuts into a lane the ego is in only "
-        "from the first physics frame of the decision at which MOBIL's safety criterion allows it (the car at "
-        "its fastest, the ego on the action's path), plus the cut-in time — instead of from the cut-in time "
-        "whenever the criterion allows it now or at the end of the decision (docs/safety.md §6l). On by default since "
-        "issue 15's thirteenth session; false: the earlier rule.",
-    )
-    leaving_lanes_seen: bool = Field(
-        False,
-        strict=True,
-        description="Experimental, with lateral_schedule: a lane the ego is leaving, its centre still within "
-        "IDM's band of it (half a lane + 1 m) and never overlapping it from outside that band, keeps MOBIL's "
-        "cut-in filter after the ego's lane index has flipped to the lane it enters: highway-env's MOBIL finds "
-        "a lane's vehicles by that band (docs/safety.md §6l).",
-    )
-    permit_any_speed: bool = Field(
-        True,
-        strict=True,
-        description="Robust mode, with cut_in_when_permitted: MOBIL's IDM safety criterion judged at the car's "
-        "speed within its reach that makes it loosest (IDM's desired gap falls with the car's speed and goes "
-        "negative for a car much faster than the ego; highway-env squares it), and only while the car is ahead "
-        "of the ego; false: at the car's fastest, which let highway-env's cars cut in earlier than the rule "
-        "allowed (docs/safety.md §6m). On by default since issue 15's thirteenth session.",
-    )
-    passing_cut_ins: bool = Field(
-        True,
-        strict=True,
-        description="Robust mode, with cut_in_when_permitted: a car behind the ego in a next lane "
-        "that MOBIL lets cut into the ego's lane only ahead of it is a leader once in — at least the distance "
-        "MOBIL needs ahead of the ego at its decision, then braking at its limit — instead of a follower that "
-        "drives on through the ego (docs/safety.md §6m). On by default since issue 15's thirteenth session; "
-        "false: the earlier rule.",
-    )
-    level_when_incentive: bool = Field(
-        True,
-        strict=True,
-        description="Robust mode, with level_cut_ins and level_incentive: a car level with or behind the ego in a "
-        "next lane turns in behind it from the first physics frame of the decision at which MOBIL's incentive "
-        "allows it (with incentive_any_speed: could allow it, over every speed in reach), plus the cut-in time — "
-        "instead of from the cut-in time whenever it allows it now or at the end: a car the ego is overtaking "
-        "gains by moving behind it only once the ego is ahead (docs/safety.md §6m, §6n). On by default since "
-        "issue 15's fourteenth session; false: the earlier rule.",
-    )
-    incentive_any_speed: bool = Field(
-        True,
-        strict=True,
-        description="Robust mode, with level_when_incentive: the first frame MOBIL's incentive could allow the "
-        "turn-in over every speed the car and the vehicles ahead of it can reach within their braking and "
-        "acceleration limits (a bound); false: with the others at constant speed, which highway-env's drivers "
-        "beat by a physics frame (docs/safety.md §6n).",
-    )
-    turning_in_nominal: bool = Field(
-        True,
-        strict=True,
-        description="Nominal mode and robust's straight fallback, with turning_leaders: a moving leader's bound is "
-        "the looser of braking from its speed along the road and robust's (braking along its path less a lane "
-        "change's cost), so robust ⊆ nominal holds with a fast car changing lanes (docs/safety.md §6o). On by "
-        "default since issue 15's fifteenth session; false: the earlier rule (nominal braking along the road only).",
+    options: dict[str, bool] = Field(
+        default_factory=dict,
+        description="Single options of the rule switched on or off (option -> true/false), over the named rule; "
+        "every option and what it does: safelane.safety.rule.OPTIONS.",
     )
 
-    forecast_fallback: bool = Field(
-        True,
-        strict=True,
-        description="When no action is safe, rank the least-bad choice first by the smallest gap a nominal forecast "
-        "predicts (every other car keeps its lane and drives by its own IDM or linear law, the ego among them), "
-        "capped at the margin, every forecast collision alike; then by the worst-case gaps (docs/safety.md §6q). "
-        "Never makes an action safe. On by default since issue 15's seventeenth session; false: the earlier "
-        "ranking (worst-case gaps only).",
-    )
+    @model_validator(mode="before")
+    @classmethod
+    def _flat_options(cls, data: Any) -> Any:
+        """A rule option given as a key of its own (``shield.body_extent: false``) is read as
+        ``shield.options.body_extent``; a removed option is accepted at its old default, else an error."""
+        if isinstance(data, dict):
+            return fold_flat_options(data)
+        return data
 
-    forecast_contact_time: bool = Field(
-        False,
-        strict=True,
-        description="Experimental, off. With forecast_fallback: an action the forecast sees collide ranks by the whole "
-        "decisions before its first contact, the more the higher, instead of every forecast collision alike. Never "
-        "makes an action safe. Measured on the claim's campaign: more crashes (415 against 337; docs/safety.md §6r).",
-    )
+    @field_validator("rule")
+    @classmethod
+    def _known_rule(cls, name: str) -> str:
+        rule_named(name)
+        return name
 
-    forecast_lane_changes: bool = Field(
-        False,
-        strict=True,
-        description="Experimental, off. With forecast_fallback: the forecast's cars change lane by MOBIL (their own "
-        "law and max_braking_imposed, highway-env's IDM gain threshold, checked every frame), counting in both lanes "
-        "for 2 s. Never makes an action safe. Measured on the claim's campaign: more crashes (docs/safety.md §6r).",
-    )
+    @field_validator("options", mode="before")
+    @classmethod
+    def _known_options(cls, options: Any) -> Any:
+        if not isinstance(options, dict):
+            raise ConfigError(f"shield.options: expected a mapping option -> true/false, got {options!r}")
+        for name, value in options.items():
+            if name not in OPTION_NAMES:
+                raise unknown_option_error(name, f"shield.options.{name}")
+            if not isinstance(value, bool):
+                raise ConfigError(f"shield.options.{name}: expected true or false, got {value!r}")
+        return options
 
-    def rule_options(self) -> dict[str, bool]:
-        """The rule's on/off options by name, as :class:`safelane.safety.shield.SafetyShield` and
-        :func:`safelane.safety.shield.dynamics_of` take them (one list for every place that builds a shield)."""
-        return {name: getattr(self, name) for name in RULE_OPTIONS}
+    def resolved_rule(self) -> Rule:
+        """The rule this section selects: the named rule with ``options`` applied."""
+        return rule_named(self.rule).with_options(**self.options)
 
 
 class SafelaneConfig(_Section):
@@ -778,52 +566,65 @@ RENAMED_KEYS: dict[str, tuple[str, dict[Any, Any]]] = {
 """Keys of older run configs: old name → (new name, old value → new value). Read, never written."""
 
 
-RULE_OPTIONS = (
-    "projected_cut_ins", "body_extent", "linear_mobil", "reversing_leaders", "level_cut_ins", "level_incentive",
-    "level_entering", "least_bad_joint", "full_horizon", "ego_speed_magnitude", "turning_leaders",
-    "robust_fallback", "straight_fallback", "linear_incentive", "linear_incentive_braking", "reversing_cut_ins",
-    "crossed_lanes", "lateral_schedule", "reversing_noses", "follower_idm", "follower_set_point",
-    "finishing_changes", "cut_in_when_permitted", "leaving_lanes_seen", "permit_any_speed", "passing_cut_ins",
-    "level_when_incentive", "incentive_any_speed", "turning_in_nominal", "forecast_fallback",
-    "forecast_contact_time", "forecast_lane_changes",
-)  # fmt: skip
-"""The :class:`ShieldConfig` fields that switch parts of the safety rule on or off (``ShieldConfig.rule_options``)."""
-
-
-RULE_CHANGES: dict[str, Any] = {
-    "body_extent": False, "reversing_leaders": False, "level_cut_ins": False, "level_entering": False,
-    "full_horizon": False, "ego_speed_magnitude": False,
-    # issue 15's ninth session (docs/safety.md §6i)
-    "linear_mobil": False, "linear_incentive": False, "linear_incentive_braking": False, "turning_leaders": False,
-    "straight_fallback": False, "reversing_cut_ins": False,
-    # issue 15's tenth session (docs/safety.md §6j)
-    "crossed_lanes": False, "reversing_noses": False,
-    # issue 15's eleventh session (docs/safety.md §6k)
-    "follower_idm": False,
-    # issue 15's twelfth session (docs/safety.md §6l)
-    "finishing_changes": False,
-    # issue 15's thirteenth session (docs/safety.md §6m)
-    "cut_in_when_permitted": False, "permit_any_speed": False, "passing_cut_ins": False,
-    # issue 15's fourteenth session (docs/safety.md §6n)
-    "level_when_incentive": False, "incentive_any_speed": False,
-    # issue 15's fifteenth session (docs/safety.md §6o)
-    "turning_in_nominal": False,
-    # issue 15's seventeenth session (docs/safety.md §6q)
-    "forecast_fallback": False,
+REMOVED_OPTIONS: dict[str, bool] = {
+    "projected_cut_ins": False, "least_bad_joint": False, "robust_fallback": False, "lateral_schedule": False,
+    "leaving_lanes_seen": False, "follower_set_point": False, "forecast_contact_time": False,
+    "forecast_lane_changes": False,
 }  # fmt: skip
-"""Shield keys added with a new default that changes the rule: a *recorded* configuration (a run's
-config.yaml, a counterexample file) written before the key existed had the old behaviour, given here,
-so that it replays as it ran (:func:`recorded_config`)."""
+"""Options measured and not adopted, removed from the rule, with the value they always had: a file that sets one
+to it still loads; any other value is an error (the code that ran it is at commit f9bfa5a)."""
+
+RECORDED_DEFAULTS: dict[str, bool] = RULES["basic"].options
+"""The value a rule option has in a *recorded* configuration (a run's config.yaml, a counterexample file) that
+names neither ``shield.rule`` nor the option: such a file lists the options as keys of their own and was written
+before the keys it lacks existed, with the rule's behaviour then — each such option off: the ``basic`` rule's
+values (:func:`recorded_config`)."""
+
+
+def fold_flat_options(shield: dict[str, Any]) -> dict[str, Any]:
+    """``shield`` with every rule option given as a key of its own moved into ``options`` (the key of its own wins
+    where both name it: a dumped configuration has ``options`` only, so such a key is an override) and every
+    removed option dropped: at its old value (:data:`REMOVED_OPTIONS`), else a
+    one-line :class:`ConfigError`."""
+    flat = {k: v for k, v in shield.items() if k in OPTION_NAMES or k in REMOVED_OPTIONS}
+    if not flat:
+        return shield
+    out = {k: v for k, v in shield.items() if k not in flat}
+    options = {}
+    for name, value in flat.items():
+        if name in REMOVED_OPTIONS:
+            if value is not REMOVED_OPTIONS[name]:
+                raise ConfigError(
+                    f"shield.{name}: this option was removed from the rule (measured, not adopted; the code that "
+                    f"ran it: commit f9bfa5a); only {str(REMOVED_OPTIONS[name]).lower()} is accepted, got {value!r}"
+                )
+            continue
+        options[name] = value
+    given = out.get("options")
+    out["options"] = {**given, **options} if isinstance(given, dict) else (given if given is not None else options)
+    return out
 
 
 def recorded_config(data: dict[str, Any]) -> SafelaneConfig:
-    """:func:`build_config` for a configuration read back from a file: shield keys it predates take the
-    value they had when it was written (:data:`RULE_CHANGES`), not today's default."""
+    """:func:`build_config` for a configuration read back from a file. A file without ``shield.rule`` names its
+    rule by options as keys of their own: each option it lacks takes its value then
+    (:data:`RECORDED_DEFAULTS`), and the options become the named rule closest to them (the fewest options
+    differ; the first in :data:`RULES` of equals) with the options that differ from it."""
     shield = data.get("shield")
-    if isinstance(shield, dict):
-        missing = {k: v for k, v in RULE_CHANGES.items() if k not in shield}
-        if missing:
-            data = {**data, "shield": {**shield, **missing}}
+    if isinstance(shield, dict) and "rule" not in shield:
+        folded = fold_flat_options(shield)
+        given = folded.get("options") if isinstance(folded.get("options"), dict) else {}
+        unknown = sorted(set(given) - set(OPTION_NAMES))
+        if unknown:
+            raise unknown_option_error(unknown[0], f"shield.options.{unknown[0]}")
+        values = {**RECORDED_DEFAULTS, **given}
+        rule = Rule.of(values) if all(isinstance(v, bool) for v in values.values()) else None
+        if rule is not None:
+            name = min(RULES, key=lambda n: len(rule.differences(RULES[n])))  # the closest named rule
+            folded = {**folded, "rule": name, "options": rule.differences(RULES[name])}
+        else:  # a non-bool value: build_config names it
+            folded = {**folded, "options": values}
+        data = {**data, "shield": folded}
     return build_config(data)
 
 

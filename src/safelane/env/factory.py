@@ -153,11 +153,11 @@ def make_env(
         env = SafetyShield(
             env,
             mode=shield.mode,
-            formula=shield.formula,
             override=shield.override,
-            engine=shield.engine,
             margin=shield.margin,
-            **shield.rule_options(),
+            rule=shield.resolved_rule(),
+            engine=shield.engine,
+            formula=shield.formula,
         )
     env.safelane_config = cfg  # type: ignore[attr-defined]
     if seed is not None:

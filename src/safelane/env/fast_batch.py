@@ -34,7 +34,7 @@ from safelane.core.kernel_cache import drop_stale_kernel_cache
 from safelane.core.snapshot import DRIVER_FIELDS, RoadSnapshot
 from safelane.core.spaces import N_ACTIONS
 from safelane.env.observations import OBS_SIZE, _lane_state_kernel, _paper_state_kernel
-from safelane.safety.compiled import kernel_constants, snapshot_kernel
+from safelane.safety.compiled import N_CONSTS, kernel_constants, snapshot_kernel
 from safelane.safety.model import OVERRIDE_ORDER
 from safelane.safety.shield import FALLBACK_SLOWDOWN, dynamics_of, ego_leave_times
 from safelane.sim.fast import kernels as K
@@ -43,11 +43,13 @@ from safelane.sim.fast.env import FastHighwayEnv, stacked_storage
 
 def _drop_stale_kernel_cache() -> None:
     """Drop numba's disk cache of this module's kernels when a kernel they compile in changed: the simulator's,
-    the safety rule's (and its forecast's) and the observations' (:mod:`safelane.core.kernel_cache`)."""
+    the safety rule's (its parts, its forecast, its options' bits) and the observations'
+    (:mod:`safelane.core.kernel_cache`)."""
     from safelane.env import observations
-    from safelane.safety import compiled, forecast
+    from safelane.safety import compiled, compiled_parts, compiled_rule, forecast, rule
 
-    drop_stale_kernel_cache(__file__, (K.__file__, compiled.__file__, forecast.__file__, observations.__file__))
+    safety = (compiled.__file__, compiled_rule.__file__, compiled_parts.__file__, forecast.__file__, rule.__file__)
+    drop_stale_kernel_cache(__file__, (K.__file__, *safety, observations.__file__))
 
 
 _drop_stale_kernel_cache()
@@ -98,18 +100,7 @@ def _simulate_rows_threads(F, G, E, ts, P, actions, frames, dt, n_lanes, before,
 def _observe_one(
     i, F, G, E, length, is_vehicle, can_change_lane, drivers, state_kind, lane_width, lanes_count,
     shielded, robust, leave_table, slowdown, speed_limit, origin, direction, lateral, lane_heading,
-    ts, t, powers, tie_break, decision_period, frame_dt, frames, horizon, ego_kp, kernel_lane_width,
-    kernel_lanes_count, follower_reaction, cut_in_time, margin, relevance, lateral_threshold,
-    projected_cut_ins, body_extent, body_width, linear_mobil, reversing_leaders, level_cut_ins, level_incentive,
-    level_entering, least_bad_joint, robust_fallback, straight_fallback, linear_incentive, linear_incentive_braking,
-    reversing_cut_ins, crossed_lanes, lateral_schedule,
-    reversing_noses, follower_idm, follower_set_point, finishing_changes,
-    cut_in_when_permitted, leaving_lanes_seen, permit_any_speed, passing_cut_ins, level_when_incentive,
-    incentive_any_speed, turning_in_nominal, forecast_fallback,
-    ego_width, kp_lateral, kp_heading,
-    max_steering,
-    ego_speed_magnitude,
-    turning_allowance, min_acc_gain,
+    ts, t, powers, tie_break, consts, flags,
     obs, masks, fallback, forward, crashed_ego, speed_ego, bad,
 ):  # fmt: skip
     """Scene ``i``: the agent's state into ``obs[i]``, the ego's forward and total speed [m/s] and crash
@@ -160,24 +151,12 @@ def _observe_one(
     else:
         row = math.floor(slowest * 2)
     leave = leave_table[row]
-    lateral_speed = row / 2  # the speed the leave time is taken at (Dynamics.ego_lateral_speed)
     d = drivers[i]
     out = snapshot_kernel(
         position, speed, heading, length[i], crashed, d[0], d[1], can_change_lane[i], d[2], d[3], d[4],
         d[5], d[6], d[7], d[8], d[9], d[10], target_speed,
         0, lane[0], G[i, 0, K.TLANE], target, E[i, 0], origin, direction, lateral, lane_heading,
-        speed_limit, ts, t, powers, tie_break, decision_period, frame_dt, frames, horizon, ego_kp,
-        kernel_lane_width, kernel_lanes_count, follower_reaction, leave, lateral_speed, cut_in_time, margin, relevance,
-        lateral_threshold, robust, projected_cut_ins, body_extent, body_width, linear_mobil, reversing_leaders,
-        level_cut_ins, level_incentive, level_entering, least_bad_joint, robust_fallback, straight_fallback,
-        linear_incentive,
-        linear_incentive_braking, reversing_cut_ins, crossed_lanes, lateral_schedule,
-        reversing_noses, follower_idm, follower_set_point, finishing_changes,
-        cut_in_when_permitted, leaving_lanes_seen, permit_any_speed, passing_cut_ins, level_when_incentive,
-        incentive_any_speed, turning_in_nominal, forecast_fallback,
-        ego_width, kp_lateral,
-        kp_heading, max_steering, ego_speed_magnitude,
-        turning_allowance, min_acc_gain,
+        speed_limit, ts, t, powers, tie_break, consts, flags, robust, leave,
     )  # fmt: skip
     masks[i] = out[0]
     fallback[i] = out[4]
@@ -310,7 +289,7 @@ class FastBatch:
     def _shield_constants(self, snap: RoadSnapshot) -> tuple:
         """The safety kernel's arguments that stay the same for the batch (SafetyShield's dynamics)."""
         shield = self.cfg.shield
-        dyn = dynamics_of(snap, shield.margin, **shield.rule_options())
+        dyn = dynamics_of(snap, shield.margin, shield.resolved_rule())
         direction = snap.lane_direction
         lane_heading = math.atan2(direction[1], direction[0])
         return (
@@ -427,11 +406,8 @@ def _readonly(a: np.ndarray) -> np.ndarray:
 
 _NO_FRAME = tuple(_readonly(np.zeros(2)) for _ in range(3))
 _NO_SHIELD = (
-    _readonly(np.zeros(1)), _readonly(np.zeros(1)), _readonly(np.zeros(1)), np.zeros(1, dtype=np.int64), 1.0, 1.0,
-    1, 1, 1.0, 4.0, 1, 0.0, 0.0, 0.0, 0.0, 0.0, False, False, 0.0, False, False, False, False, False,
-    False, False, False, False, False, False, False, False, False, False, False, False, False, False, False, False,
-    False, False, False, 0, 2.0, 1.0, 1.0,
-    1.0, False, 0.0, 0.0,
+    _readonly(np.zeros(1)), _readonly(np.zeros(1)), _readonly(np.zeros(1)), np.zeros(1, dtype=np.int64),
+    _readonly(np.zeros(N_CONSTS)), 0,
 )  # fmt: skip
 """Placeholders of :class:`safelane.safety.compiled.KernelConstants`'s fields when no shield runs (typed
 as the real ones, so both cases share one compiled kernel)."""

@@ -215,7 +215,7 @@ def second_lane_car_moving_over(mode: Mode = "robust", **kw: Any) -> Scene:
     """The ego in the leftmost lane at 25 m/s (set-point 30); a car 45 m ahead two lanes to the right, at
     25 m/s, already steering into the lane next to the ego. Once there it may cut in (MOBIL allows it) and
     brake: the falsification campaign's most common invariant break (``second_lane_cut_in``), which the
-    robust rule sees only with ``shield.projected_cut_ins``."""
+    robust rule does not see from here (it projects the car into the lane next to the ego, not beyond)."""
     specs = [VehicleSpec(2, 45.0, 25.0, heading=-0.15, target_lane=1)]
     return build_scene(0, 25.0, specs, mode=mode, ego_target_speed=30.0, **kw)
 
@@ -363,10 +363,9 @@ def ego_leaving_its_lane(mode: Mode = "robust", **kw: Any) -> Scene:
     31.55 m ahead in lane 1, 41.03 and 51.44 m ahead in lane 0, followers in every lane — the 100 800-episode
     campaign's cell 2569 (``cell02569-seed4025690016``) at the decision before its break. LANE_LEFT keeps the
     change under way and is safe (2.74 m): the ego is out of lane 1 before the braking leader there matters.
-    The earlier rule timed that exit from a lane centre at every decision, so one decision later it promised it
-    0.2 s later than now, and nothing was safe (the break); and IDLE, which in highway-env keeps the change
-    under way just as LANE_LEFT does, counted lane 1 as the ego's for good. ``shield.lateral_schedule``
-    simulates the exit from where the ego is."""
+    The rule times that exit from a lane centre at every decision, so one decision later it promises it 0.2 s
+    later than now, and nothing is safe (the break); and IDLE, which in highway-env keeps the change under way
+    just as LANE_LEFT does, counts lane 1 as the ego's for good."""
     rate = {"env.policy_frequency": 5, "env.simulation_frequency": 15}
     cars = [(2, 9.65, 20.12), (1, 20.9, 21.08), (1, 31.55, 23.31), (0, 41.03, 19.56), (0, 51.44, 22.66),
             (2, -11.96, 23.54), (1, -23.65, 24.47), (0, -34.97, 26.94), (3, -48.0, 28.01)]  # fmt: skip

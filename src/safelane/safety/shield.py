@@ -27,31 +27,23 @@ from __future__ import annotations
 import dataclasses
 import math
 import warnings
-from typing import Any, Literal
+from typing import Any
 
 import gymnasium as gym
 import numpy as np
-from highway_env.vehicle.controller import ControlledVehicle
 
-from safelane.config import RULE_OPTIONS
-from safelane.core.snapshot import DRIVER_FIELDS, RoadSnapshot
-from safelane.safety.compiled import axis_aligned, evaluate_compiled, evaluate_snapshot
-from safelane.safety.model import (
-    OVERRIDE_ORDER,
-    RELEVANCE_RANGE,
-    Dynamics,
-    Formula,
-    Mode,
-    RoadState,
-    SafetyResult,
-    evaluate,
-)
+from safelane.core.snapshot import RoadSnapshot
+from safelane.safety.family import ENGINES, Engine, RuleFamily, family_for, road_state, road_state_bodies
+from safelane.safety.model import OVERRIDE_ORDER, Dynamics, Formula, Mode, RoadState, SafetyResult
+from safelane.safety.rule import DEFAULT_RULE_NAME, Rule, as_rule
 from safelane.sim.highway import HighwayEnvAdapter, lane_change_timing
 
 DEFAULT_MARGIN = Dynamics.__dataclass_fields__["margin"].default
 """[m] The safety model's default bumper-to-bumper margin (``shield.margin``)."""
-Engine = Literal["compiled", "numpy"]
-ENGINES: tuple[Engine, ...] = ("compiled", "numpy")
+__all__ = [
+    "ENGINES", "CannotStopWarning", "Engine", "SafetyShield", "dynamics_of", "ego_leave_time_at", "ego_leave_times",
+    "road_state", "road_state_bodies", "stoppable_action_config",
+]  # fmt: skip
 
 
 class CannotStopWarning(UserWarning):
@@ -72,44 +64,10 @@ def stoppable_action_config(top_speed: float = 30.0, step: float = 5.0) -> dict[
     return {"type": "DiscreteMetaAction", "target_speeds": [round(k * step, 9) for k in range(count)]}
 
 
-def dynamics_of(
-    snap: RoadSnapshot,
-    margin: float = DEFAULT_MARGIN,
-    projected_cut_ins: bool = False,
-    body_extent: bool = True,
-    linear_mobil: bool = True,
-    reversing_leaders: bool = True,
-    level_cut_ins: bool = True,
-    level_incentive: bool = True,
-    level_entering: bool = True,
-    least_bad_joint: bool = False,
-    full_horizon: bool = True,
-    ego_speed_magnitude: bool = True,
-    turning_leaders: bool = True,
-    robust_fallback: bool = False,
-    straight_fallback: bool = True,
-    linear_incentive: bool = True,
-    linear_incentive_braking: bool = True,
-    reversing_cut_ins: bool = True,
-    crossed_lanes: bool = True,
-    lateral_schedule: bool = False,
-    reversing_noses: bool = True,
-    follower_idm: bool = True,
-    follower_set_point: bool = False,
-    finishing_changes: bool = True,
-    cut_in_when_permitted: bool = True,
-    leaving_lanes_seen: bool = False,
-    permit_any_speed: bool = True,
-    passing_cut_ins: bool = True,
-    level_when_incentive: bool = True,
-    incentive_any_speed: bool = True,
-    turning_in_nominal: bool = True,
-    forecast_fallback: bool = True,
-    forecast_contact_time: bool = False,
-    forecast_lane_changes: bool = False,
-) -> Dynamics:
+def dynamics_of(snap: RoadSnapshot, margin: float = DEFAULT_MARGIN, rule: Rule | str = DEFAULT_RULE_NAME) -> Dynamics:
     """The :class:`Dynamics` constants of the simulated world a snapshot was taken in; ``margin`` [m]: the
-    bumper-to-bumper gap the rule keeps under its worst case; the rule's options as in :class:`Dynamics`."""
+    bumper-to-bumper gap the rule keeps under its worst case; ``rule``: a :class:`Rule` or the name of one
+    (:data:`safelane.safety.rule.RULES`)."""
     sim_f, pol_f = snap.simulation_frequency, snap.policy_frequency
     # Fastest cut-in over plausible speeds; slowest ego exit (at low speed the lateral motion is slower).
     enter = min(lane_change_timing(sim_f, s)[1] for s in (15.0, 25.0, 35.0))
@@ -123,43 +81,7 @@ def dynamics_of(
         lanes_count=snap.lanes_count,
         cut_in_time=max(enter - 1.0 / sim_f, 0.0),
         margin=margin,
-        projected_cut_ins=projected_cut_ins,
-        body_extent=body_extent,
-        linear_mobil=linear_mobil,
-        reversing_leaders=reversing_leaders,
-        level_cut_ins=level_cut_ins,
-        level_incentive=level_incentive,
-        level_entering=level_entering,
-        least_bad_joint=least_bad_joint,
-        full_horizon=full_horizon,
-        ego_speed_magnitude=ego_speed_magnitude,
-        turning_leaders=turning_leaders,
-        robust_fallback=robust_fallback,
-        straight_fallback=straight_fallback,
-        linear_incentive=linear_incentive,
-        linear_incentive_braking=linear_incentive_braking,
-        reversing_cut_ins=reversing_cut_ins,
-        crossed_lanes=crossed_lanes,
-        lateral_schedule=lateral_schedule,
-        reversing_noses=reversing_noses,
-        follower_idm=follower_idm,
-        follower_set_point=follower_set_point,
-        finishing_changes=finishing_changes,
-        cut_in_when_permitted=cut_in_when_permitted,
-        leaving_lanes_seen=leaving_lanes_seen,
-        permit_any_speed=permit_any_speed,
-        passing_cut_ins=passing_cut_ins,
-        level_when_incentive=level_when_incentive,
-        incentive_any_speed=incentive_any_speed,
-        turning_in_nominal=turning_in_nominal,
-        forecast_fallback=forecast_fallback,
-        forecast_contact_time=forecast_contact_time,
-        forecast_lane_changes=forecast_lane_changes,
-        # highway-env's lateral controller: ControlledVehicle's gains, which MDPVehicle (the ego) inherits.
-        ego_width=float(snap.width[snap.ego]) if len(snap.width) else 2.0,
-        kp_lateral=float(ControlledVehicle.KP_LATERAL),
-        kp_heading=float(ControlledVehicle.KP_HEADING),
-        max_steering=float(ControlledVehicle.MAX_STEERING_ANGLE),
+        rule=as_rule(rule),
         # The widest other body (every highway-env vehicle has Vehicle.WIDTH): the occupancy bound.
         body_width=float(np.max(snap.width)) if len(snap.width) else 2.0,
     )
@@ -185,181 +107,31 @@ def ego_leave_times(dyn: Dynamics) -> np.ndarray:
     return np.array([ego_leave_time_at(dyn, k / 2) for k in range(count)])
 
 
-def _relevant(x: np.ndarray, ego_x: float) -> np.ndarray:
-    """Which bodies at ``x`` [m] along the road the rule considers: within RELEVANCE_RANGE of the ego."""
-    return (np.abs(x - ego_x) < RELEVANCE_RANGE) & np.isfinite(x)
-
-
-def road_state_bodies(snap: RoadSnapshot) -> np.ndarray:
-    """The snapshot indices of the bodies :func:`road_state` keeps, in its order (its arrays' rows)."""
-    others = snap.others(vehicles_only=False)
-    if not others.size:
-        return others
-    x = (snap.position[others] - snap.lane_origin) @ snap.lane_direction
-    ego_x = float((snap.position[snap.ego] - snap.lane_origin) @ snap.lane_direction)
-    return others[_relevant(x, ego_x)]
-
-
-def road_state(snap: RoadSnapshot, ego_speed_magnitude: bool = True) -> RoadState:
-    """The scene around the ego in lane coordinates (metres, m/s) for the safety model.
-
-    ``ego_speed_magnitude`` (``shield.ego_speed_magnitude``): the ego's speed is its speed controller's
-    (highway-env's ``vehicle.speed``: what MDPVehicle's set-points and its P-controller act on, exact
-    for the model's ego trajectories, and along its path an upper bound on its progress along the road);
-    false: the component along the road, which the heading of a lane change lowers (issue 15, the grid's
-    cells 573, 708 and 861: the rule then predicted a shorter stop, by up to 6.7 m, and picked a lower
-    SLOWER set-point than highway-env's).
-
-    Only bodies within :data:`safelane.safety.model.RELEVANCE_RANGE` [m] of the ego along the road are
-    included — the ones :func:`safelane.safety.model.evaluate` considers.
-    """
-    e = snap.ego
-    start, direction, lateral = snap.lane_origin, snap.lane_direction, snap.lane_lateral
-    lane_heading = math.atan2(direction[1], direction[0])
-    others = snap.others(vehicles_only=False)
-    n = others.size
-    pos = snap.position[others] - start
-    ego_rel = snap.position[e] - start
-    ego_x = float(ego_rel @ direction)
-    x_all = pos @ direction if n else np.zeros(0)
-    near = np.flatnonzero(_relevant(x_all, ego_x))
-    nearby = others[near]
-    heading = snap.heading[nearby] - lane_heading
-    speed = snap.speed[nearby]
-    ego_heading = float(snap.heading[e]) - lane_heading
-    return RoadState(
-        ego_x=ego_x,
-        ego_y=float(ego_rel @ lateral),
-        ego_speed=float(snap.speed[e]) if ego_speed_magnitude else float(snap.speed[e] * math.cos(ego_heading)),
-        ego_lane=int(snap.lane[e]),
-        ego_target_lane=int(snap.target_lane[e]),
-        ego_target_speed=snap.ego_target_speed,
-        ego_speed_index=snap.ego_speed_index,
-        ego_length=float(snap.length[e]),
-        ego_heading=ego_heading,
-        x=x_all[near],
-        y=(pos @ lateral)[near] if n else np.zeros(0),
-        vx=speed * np.cos(heading),
-        vy=speed * np.sin(heading),
-        heading=np.arctan2(np.sin(heading), np.cos(heading)),
-        length=snap.length[nearby],
-        crashed=snap.crashed[nearby],
-        target_speed=snap.target_speed[nearby],
-        speed_limit=snap.speed_limit,
-        **{name: getattr(snap, name)[nearby] for name in DRIVER_FIELDS},
-    )
-
-
 class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
     """Gymnasium wrapper exposing the safety model's action mask (and optionally enforcing it).
 
     ``mode``: ``"nominal"`` (the paper's Q-masking) or ``"robust"`` (robust Q-masking).
-    ``formula``: ``"kinematic"`` (derived for highway-env, docs/safety.md) or ``"paper"`` (eq. 12).
     ``override``: replace an unsafe chosen action by the closest safe one.
+    ``margin`` [m]: the bumper-to-bumper gap kept under the worst case (the rule's safety threshold).
+    ``rule``: the rule's options, a :class:`~safelane.safety.rule.Rule` or the name of one in
+    :data:`safelane.safety.rule.RULES` (default ``"forecast-fallback"``; ``Rule.with_options`` switches single
+    options, each declared with its meaning in :data:`safelane.safety.rule.OPTIONS`).
     ``engine``: ``"compiled"`` (:mod:`safelane.safety.compiled`, microseconds) or ``"numpy"`` (the
     reference :func:`safelane.safety.model.evaluate`, about a millisecond); the same masks either way.
-    ``margin`` [m]: the bumper-to-bumper gap kept under the worst case (the rule's safety threshold).
-    ``projected_cut_ins``: robust mode also counts cut-ins from the lane a sideways-moving vehicle moves to.
-    ``body_extent``: robust mode also puts a vehicle in every lane its rotated body overlaps.
-    ``linear_mobil``: robust mode applies a linear-model driver's MOBIL criterion with its own formula.
-    ``reversing_leaders``: a leader moving backwards keeps its reverse speed (else it counts as stopped).
-    ``level_cut_ins``: robust mode lets a car level with or behind the ego in a next lane turn in behind it;
-    ``level_incentive``: only when MOBIL's incentive lets it (else any such car may);
-    ``level_entering``: any such car into a lane the ego is only entering (the incentive assumes it there).
-    ``least_bad_joint``: with no safe action, rank by the worst gap to anybody first (else: to vehicles ahead).
-    ``full_horizon``: the rule's horizon spans the same seconds at every decision rate (else: decisions).
-    ``ego_speed_magnitude``: the ego's speed is its controller's (else: its component along the road).
-    ``turning_leaders``: robust mode, a moving leader brakes along its path, less a lane change's cost.
-    ``robust_fallback`` (experimental): with no safe action, robust mode takes the least-bad of every available
-    action by its robust gaps (else: of the nominally safe ones when there are some).
-    ``straight_fallback``: with ``turning_leaders`` and no safe action, the mask of the rule
-    without ``turning_leaders`` (its safe actions, else its least-bad one).
-    ``linear_incentive``: with ``level_incentive``, a Linear, Aggressive or Defensive driver turns in behind the
-    ego only when MOBIL's incentive with its own linear model lets it (else any such car may);
-    ``linear_incentive_braking``: that incentive also at every frame of the decision, its leaders braking fully.
-    ``reversing_cut_ins``: a car in a next lane moving backwards may change into the ego's lane whatever MOBIL
-    says (highway-env's steering assumes forward motion: reversing, a lane change away swings its nose in).
-    ``crossed_lanes``: the ego occupies every lane between its lane and its target (a lane change chained onto
-    one under way crosses the lane in between whole), not only the two.
-    ``lateral_schedule`` (experimental): the ego's time in each lane simulated with highway-env's lateral
-    controller from its lateral position and heading (else: a lane change from a lane centre, restarted at
-    every decision).
-    ``reversing_noses``: robust mode also puts a car rolling backwards with its nose turned in the
-    lane its nose points to (it moves there as soon as it moves forward again).
-    ``follower_idm``: the IDM car right behind the ego in its lane brakes by IDM's response to each fallback
-    of the ego (else: it accelerates for the reaction time, whatever the ego does).
-    ``follower_set_point`` (experimental): ``follower_idm`` with the car's own set-point read from the
-    simulator, and linear-model drivers behind the ego by their own formula.
-    ``finishing_changes``: robust mode does not project a car finishing a lane change into its own lane (moving
-    toward that lane's centre, short of it) into the lane beyond; it may cut in from its lane, MOBIL-filtered,
-    like any car there.
-    ``cut_in_when_permitted``: robust mode starts a permitted cut-in at the first frame of the
-    decision at which MOBIL's safety criterion allows it, plus the cut-in time (else: from the cut-in time).
-    ``leaving_lanes_seen`` (experimental, with ``lateral_schedule``): cut-ins into a lane the ego is leaving, while
-    MOBIL still sees it there, are MOBIL-filtered as in its own lane.
-    ``permit_any_speed``: with ``cut_in_when_permitted``, MOBIL's IDM criterion at the car's loosest speed within
-    its reach (else at its fastest, which is not the loosest when IDM's desired gap goes negative).
-    ``passing_cut_ins`` (with ``cut_in_when_permitted``): a car behind the ego in a next lane that
-    MOBIL lets cut in ahead of it is a leader once in (else bounded as a follower).
-    ``level_when_incentive``: a car level with or behind the ego turns in behind it from the
-    first frame MOBIL's incentive allows it (else from the cut-in time whenever it allows it now or at the end).
-    ``incentive_any_speed`` (with ``level_when_incentive``): that first frame over every speed the car and the
-    vehicles ahead of it can reach, a bound (else with the others at constant speed, which highway-env beat).
-    ``turning_in_nominal`` (with ``turning_leaders``): nominal's bound for a moving leader, and robust's straight
-    fallback's, is the looser of braking along the road and robust's along its path, so robust ⊆ nominal holds
-    with a fast car changing lanes.
-    ``forecast_fallback``: with no safe action, rank the least-bad choice first by the gap a nominal forecast of
-    the others predicts (:mod:`safelane.safety.forecast`: every car keeps its lane and drives by its own law),
-    capped at ``margin``, a forecast collision ranking as one; then as before (on by default since issue 15's
-    seventeenth session).
-    ``forecast_contact_time`` (with ``forecast_fallback``, experimental, off): a forecast collision ranks by the
-    whole decisions before its first contact, the more the higher (measured worse: docs/safety.md §6r).
-    ``forecast_lane_changes`` (with ``forecast_fallback``, experimental, off): the forecast's cars change lane by
-    MOBIL (measured worse: docs/safety.md §6r).
+    ``formula``: ``"kinematic"`` (derived for highway-env, docs/safety.md) or ``"paper"`` (eq. 12, nominal).
     """
 
     def __init__(
         self,
         env: gym.Env,
         mode: Mode = "robust",
-        formula: Formula = "kinematic",
         override: bool = False,
-        engine: Engine = "compiled",
         margin: float = DEFAULT_MARGIN,
-        projected_cut_ins: bool = False,
-        body_extent: bool = True,
-        linear_mobil: bool = True,
-        reversing_leaders: bool = True,
-        level_cut_ins: bool = True,
-        level_incentive: bool = True,
-        level_entering: bool = True,
-        least_bad_joint: bool = False,
-        full_horizon: bool = True,
-        ego_speed_magnitude: bool = True,
-        turning_leaders: bool = True,
-        robust_fallback: bool = False,
-        straight_fallback: bool = True,
-        linear_incentive: bool = True,
-        linear_incentive_braking: bool = True,
-        reversing_cut_ins: bool = True,
-        crossed_lanes: bool = True,
-        lateral_schedule: bool = False,
-        reversing_noses: bool = True,
-        follower_idm: bool = True,
-        follower_set_point: bool = False,
-        finishing_changes: bool = True,
-        cut_in_when_permitted: bool = True,
-        leaving_lanes_seen: bool = False,
-        permit_any_speed: bool = True,
-        passing_cut_ins: bool = True,
-        level_when_incentive: bool = True,
-        incentive_any_speed: bool = True,
-        turning_in_nominal: bool = True,
-        forecast_fallback: bool = True,
-        forecast_contact_time: bool = False,
-        forecast_lane_changes: bool = False,
+        rule: Rule | str = DEFAULT_RULE_NAME,
+        engine: Engine = "compiled",
+        formula: Formula = "kinematic",
     ) -> None:
-        if not (math.isfinite(margin) and margin >= 0):
+        if not (isinstance(margin, int | float) and math.isfinite(margin) and margin >= 0):
             raise ValueError(f"shield.margin: must be a finite number >= 0 [m] (got {margin!r})")
         if mode not in ("nominal", "robust"):
             raise ValueError(f"shield.mode: got {mode!r}; allowed: 'nominal', 'robust'")
@@ -367,45 +139,9 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
             raise ValueError(f"shield.formula: got {formula!r}; allowed: 'kinematic', 'paper'")
         if engine not in ENGINES:
             raise ValueError(f"shield.engine: got {engine!r}; allowed: 'compiled', 'numpy'")
+        resolved = as_rule(rule)
         gym.utils.RecordConstructorArgs.__init__(
-            self,
-            mode=mode,
-            formula=formula,
-            override=override,
-            engine=engine,
-            margin=margin,
-            projected_cut_ins=projected_cut_ins,
-            body_extent=body_extent,
-            linear_mobil=linear_mobil,
-            reversing_leaders=reversing_leaders,
-            level_cut_ins=level_cut_ins,
-            level_incentive=level_incentive,
-            level_entering=level_entering,
-            least_bad_joint=least_bad_joint,
-            full_horizon=full_horizon,
-            ego_speed_magnitude=ego_speed_magnitude,
-            turning_leaders=turning_leaders,
-            robust_fallback=robust_fallback,
-            straight_fallback=straight_fallback,
-            linear_incentive=linear_incentive,
-            linear_incentive_braking=linear_incentive_braking,
-            reversing_cut_ins=reversing_cut_ins,
-            crossed_lanes=crossed_lanes,
-            lateral_schedule=lateral_schedule,
-            reversing_noses=reversing_noses,
-            follower_idm=follower_idm,
-            follower_set_point=follower_set_point,
-            finishing_changes=finishing_changes,
-            cut_in_when_permitted=cut_in_when_permitted,
-            leaving_lanes_seen=leaving_lanes_seen,
-            permit_any_speed=permit_any_speed,
-            passing_cut_ins=passing_cut_ins,
-            level_when_incentive=level_when_incentive,
-            incentive_any_speed=incentive_any_speed,
-            turning_in_nominal=turning_in_nominal,
-            forecast_fallback=forecast_fallback,
-            forecast_contact_time=forecast_contact_time,
-            forecast_lane_changes=forecast_lane_changes,
+            self, mode=mode, override=override, margin=margin, rule=rule, engine=engine, formula=formula
         )
         try:
             env.get_wrapper_attr("road_snapshot")
@@ -417,76 +153,44 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
         self.override = override
         self.engine: Engine = engine
         self.margin = float(margin)
-        self.projected_cut_ins = bool(projected_cut_ins)
-        self.body_extent = bool(body_extent)
-        self.linear_mobil = bool(linear_mobil)
-        self.reversing_leaders = bool(reversing_leaders)
-        self.level_cut_ins = bool(level_cut_ins)
-        self.level_incentive = bool(level_incentive)
-        self.level_entering = bool(level_entering)
-        self.least_bad_joint = bool(least_bad_joint)
-        self.full_horizon = bool(full_horizon)
-        self.ego_speed_magnitude = bool(ego_speed_magnitude)
-        self.turning_leaders = bool(turning_leaders)
-        self.robust_fallback = bool(robust_fallback)
-        self.straight_fallback = bool(straight_fallback)
-        self.linear_incentive = bool(linear_incentive)
-        self.linear_incentive_braking = bool(linear_incentive_braking)
-        self.reversing_cut_ins = bool(reversing_cut_ins)
-        self.crossed_lanes = bool(crossed_lanes)
-        self.lateral_schedule = bool(lateral_schedule)
-        self.reversing_noses = bool(reversing_noses)
-        self.follower_idm = bool(follower_idm)
-        self.follower_set_point = bool(follower_set_point)
-        self.finishing_changes = bool(finishing_changes)
-        self.cut_in_when_permitted = bool(cut_in_when_permitted)
-        self.leaving_lanes_seen = bool(leaving_lanes_seen)
-        self.permit_any_speed = bool(permit_any_speed)
-        self.passing_cut_ins = bool(passing_cut_ins)
-        self.level_when_incentive = bool(level_when_incentive)
-        self.incentive_any_speed = bool(incentive_any_speed)
-        self.turning_in_nominal = bool(turning_in_nominal)
-        self.forecast_fallback = bool(forecast_fallback)
-        self.forecast_contact_time = bool(forecast_contact_time)
-        self.forecast_lane_changes = bool(forecast_lane_changes)
-        self._rule_options = {name: getattr(self, name) for name in RULE_OPTIONS}  # dynamics_of's keywords
+        self.rule: Rule = resolved
+        self._family: tuple[tuple[str, str, str], RuleFamily] | None = None
         self.dynamics: Dynamics | None = None
         self.result: SafetyResult | None = None
         self.snapshot: RoadSnapshot | None = None
         self._warned_cannot_stop = False
+
+    @property
+    def family(self) -> RuleFamily:
+        """The rule family that judges the states (:mod:`safelane.safety.family`), for the shield's ``mode``,
+        ``engine`` and ``formula`` as they are now."""
+        key = (self.mode, self.engine, self.formula)
+        if self._family is None or self._family[0] != key:
+            self._family = (key, family_for(*key))
+        return self._family[1]
 
     def compute_result(self, snap: RoadSnapshot | None = None) -> SafetyResult:
         """Evaluate the safety model on ``snap`` (default: the last snapshot seen; no caching)."""
         snap = self.snapshot if snap is None else snap
         if snap is None:
             raise RuntimeError("SafetyShield: reset the environment first")
-        lane_heading, leave, lateral_speed = self._ego_leave_time(snap)
-        dyn = self.dynamics
-        assert dyn is not None
-        if self.engine == "compiled" and (self.mode, self.formula) != ("nominal", "paper") and axis_aligned(snap):
-            # The fast path: the RoadState is built inside the kernel (identical to road_state's).
-            return evaluate_snapshot(
-                snap, dyn, self.mode, lane_heading=lane_heading, ego_leave_time=leave, ego_lateral_speed=lateral_speed
-            )
-        evaluator = evaluate_compiled if self.engine == "compiled" else evaluate
-        state = road_state(snap, dyn.ego_speed_magnitude)
-        dyn = dataclasses.replace(dyn, ego_leave_time=leave, ego_lateral_speed=lateral_speed)
-        return evaluator(state, dyn, self.mode, self.formula)
+        leave = self._ego_leave_time(snap)
+        assert self.dynamics is not None
+        return self.family.evaluate(snap, self.dynamics, leave)
 
     def state_and_dynamics(self, snap: RoadSnapshot) -> tuple[RoadState, Dynamics]:
         """The (RoadState, Dynamics) that :meth:`compute_result` evaluates for ``snap`` (the numpy engine's
         inputs; the compiled engine builds the same state inside its kernel)."""
-        _, leave, lateral_speed = self._ego_leave_time(snap)
+        leave = self._ego_leave_time(snap)
         assert self.dynamics is not None
         dyn = self.dynamics
-        state = road_state(snap, dyn.ego_speed_magnitude)
-        return state, dataclasses.replace(dyn, ego_leave_time=leave, ego_lateral_speed=lateral_speed)
+        state = road_state(snap, dyn.rule.ego_speed_magnitude)
+        return state, dataclasses.replace(dyn, ego_leave_time=leave)
 
-    def _ego_leave_time(self, snap: RoadSnapshot) -> tuple[float, float, float]:
-        """(lane heading [rad], the time [s] the ego takes to leave its lane, the speed [m/s] that time is
-        taken at — ``Dynamics.ego_lateral_speed``) for ``snap``."""
+    def _ego_leave_time(self, snap: RoadSnapshot) -> float:
+        """The time [s] the ego takes to leave its lane in the state of ``snap``."""
         if self.dynamics is None:
-            self.dynamics = dynamics_of(snap, self.margin, **self._rule_options)
+            self.dynamics = dynamics_of(snap, self.margin, self.rule)
         dyn = self.dynamics
         # The ego's speed along the road, as road_state computes it (the compiled path builds no RoadState).
         direction = snap.lane_direction
@@ -503,7 +207,7 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
             speed = min(max(math.floor(slowest * 2) / 2, 0.0), LEAVE_TIME_MAX_SPEED)
         else:
             speed = float(np.clip(np.floor(slowest * 2) / 2, 0.0, LEAVE_TIME_MAX_SPEED))
-        return lane_heading, ego_leave_time_at(dyn, speed), speed
+        return ego_leave_time_at(dyn, speed)
 
     def refresh(self) -> SafetyResult:
         """Re-read the scene from the simulator and recompute the verdict (after editing the road by hand)."""

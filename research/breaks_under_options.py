@@ -9,7 +9,8 @@ sound (a change can only be judged by a campaign and by highway-env).
         --sample 200 --set follower_reaction=0 --out runs/falsify/grid_100k_behind/breaks_under_options.json
 
 ``--carried-followers`` instead judges each break with the follower bounds of the decision before it carried over
-(:func:`research.counterexample_tools.break_with_carried_followers`, docs/safety.md §6s, §6t): those of the
+(:func:`research.counterexample_tools.break_with_carried_followers`, docs/research/nested-follower-bound.md): those of
+the
 cars the ego was already in front of in their lane, or with ``--all-followers`` those of every car behind.
 """
 

@@ -12,7 +12,8 @@ break and the crash (``partner_rolled_back``), or when the break's state, with e
 in the break's decision put back inside the model, has a safe action (``break_repaired``). The rule's
 leader bound lets a braking car stop, or keep a reverse speed it already has — ``shield.reversing_leaders``
 — but not accelerate backwards: highway-env lets a jammed IDM car's speed go below zero, which the driver
-model does not intend (docs/safety.md §6f, §6g). Crashes that started unsafe are counted, not analysed.
+model does not intend (docs/research/horizon-and-ego-speed.md, docs/research/turning-leaders.md). Crashes that started
+unsafe are counted, not analysed.
 
     .venv/bin/python research/classify_crashes.py runs/falsify/grid_e20/counterexamples \
         --out runs/falsify/grid_e20/crash_classes.json

@@ -73,7 +73,8 @@ def carried_followers(before: Any, after: Any, reaction: float, reacting_only: b
     ``reacting_only``: only the cars whose reaction had begun by ``before``, by the model's own reading of the
     reaction time (docs/safety.md §3: IDM reacts once the ego is in its lane): the ego was then on the car's lane
     or its target lane, as highway-env's ``Road.neighbour_vehicles`` sees it (within half a lane width + 1 m of
-    the lane's centre). False: every car behind (§6s's first probe; a car in the next lane had no reason to
+    the lane's centre). False: every car behind (docs/research/nested-follower-bound.md's first probe; a car in the
+    next lane had no reason to
     react, so its carried bound is not the model's)."""
     from safelane.safety.model import IDM_LANE_MARGIN, CarriedFollowers, follower_positions
     from safelane.safety.shield import road_state_bodies
@@ -104,7 +105,8 @@ def break_with_carried_followers(
     cx: Counterexample, simulator: str | None = None, reacting_only: bool = True
 ) -> dict[str, Any]:  # fmt: skip
     """An invariant break judged with the follower bounds of the decision before it carried over
-    (:func:`carried_followers`; docs/safety.md §6s): whether the rule's follower bound, nested in time instead of
+    (:func:`carried_followers`; docs/research/nested-follower-bound.md): whether the rule's follower bound, nested in
+    time instead of
     started again at every decision, would leave the break state a safe action. ``carried``: how many cars
     behind had a bound carried; ``best_gap`` / ``best_gap_carried`` [m]; ``safe_carried`` and ``unlocks`` as in
     :func:`break_under_options`. A diagnostic: the numpy reference model, the follower bound only (the
@@ -163,7 +165,8 @@ def crash_partner(cx: Counterexample, simulator: str | None = None) -> dict[str,
     its speed [m/s] at the last decision before the crash and at the crash, with ``reversing`` set when it
     moved backwards at either. The rule's leader bound lets a braking car stop, not roll back: a car
     *starting* to reverse (highway-env lets IDM's speed go below zero in a jam) breaks its own driver
-    model (docs/safety.md §6f); one already reversing keeps its speed under ``shield.reversing_leaders``."""
+    model (docs/research/horizon-and-ego-speed.md); one already reversing keeps its speed under
+    ``shield.reversing_leaders``."""
     from safelane.env.factory import make_env
     from safelane.running.collisions import collision_partner
 

@@ -1,6 +1,7 @@
 """Which worst-case bound is not nested in time? The same sampled falsification cells with one bound changed.
 
-docs/safety.md §6c: a follower's bound "accelerate for ρ = 0.5 s, then brake" restarts at every decision.
+docs/research/falsification-campaign.md: a follower's bound "accelerate for ρ = 0.5 s, then brake" restarts at every
+decision.
 Making it longer (ρ = 0.5 s + one decision) should close that gap if it were the cause of the invariant
 breaks; measured, it adds breaks instead (143 → 168 on 48 cells × 10 episodes, with the rule before
 ``shield.body_extent``).

@@ -12,7 +12,8 @@ else the shield's. ``--pool`` restricts the candidates, as the rule does, to nom
 some (robust ⊆ nominal); ``--no-lane-changes`` switches the other cars' lane changes off in the copies (MOBIL off;
 a change already under way goes on), which is what a forecast that keeps every car in its lane could know at best.
 A bound of this search (its depth, its continuations), not of every policy; a ceiling for a ranking of the
-fallback's choice, measured on the crashes only — docs/safety.md §6r shows why such replays overstate a change.
+fallback's choice, measured on the crashes only — docs/research/fallback-choice.md shows why such replays overstate a
+change.
 
     .venv/bin/python research/fallback_oracle.py docs/results/falsify/grid_100k_behind_forecast_fallback \
         --pool --out runs/fallback_oracle_pool.json

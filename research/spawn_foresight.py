@@ -6,7 +6,8 @@ hopeless: for each such crash file (or a random sample), the same configuration 
 unmasked :class:`~safelane.running.foresight.ForesightPlanner` — it knows exactly what every other driver will do
 (the fast simulator's drivers are deterministic after reset) and searches meta-action sequences for the fastest
 collision-free one. A spawn it cannot drive through without a crash is one this search finds no way through — a
-bound of the search only, not of what any policy could do: the forecast-ranked shield of docs/safety.md §6q drives
+bound of the search only, not of what any policy could do: the forecast-ranked shield of
+docs/research/fallback-choice.md drives
 96 of the claim campaign's 165 such spawns through; one it survives is a crash a better fallback choice might avoid.
 
     .venv/bin/python research/spawn_foresight.py runs/falsify/grid_100k_behind_turning_in_nominal \

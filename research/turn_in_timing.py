@@ -1,6 +1,7 @@
 """When highway-env's drivers decide a turn-in behind the ego, against the rule's incentive times.
 
-``shield.level_when_incentive`` (docs/safety.md §6m, §6n) starts a level car's turn-in behind the ego at the
+``shield.level_when_incentive`` (docs/research/cut-ins.md, docs/research/turn-in-timing.md) starts a level car's
+turn-in behind the ego at the
 first frame of the decision at which MOBIL's incentive lets it, instead of from now: with
 ``shield.incentive_any_speed`` (the default) the first frame at which it *could*, over every speed the car and
 the vehicles ahead of it can reach (``model.incentive_times_any_speed``, a bound); without, with the others at

@@ -1,4 +1,4 @@
-"""The scripted adversaries on the real highway-env: the MOBIL-respecting cut-in (issue 15's in-model cut-in), and
+"""The scripted adversaries on the real highway-env: the MOBIL-respecting cut-in, and
 the rule's cut-in bounds checked against it."""
 
 from __future__ import annotations
@@ -31,8 +31,8 @@ def _watch_cut(adversary: MobilCutInVehicle, ego: Any, seen: list[float]) -> Non
 def test_mobil_cut_in_changes_into_the_ego_lane_only_when_mobil_safety_allows() -> None:
     """Placed ahead in an adjacent lane, it cuts in front of the ego at the first frame where the ego,
     its new follower, would brake no harder than 2 m/s² (by the car's own IDM), and only once; the
-    robust shield drives always-FASTER through it without a collision. Seeds 7 and 8 cut in under today's rule
-    (checked; seeds 0–6 and 9 never find a gap MOBIL allows)."""
+    robust shield drives always-FASTER through it without a collision. Seeds 7 and 8 cut in under the rule
+    forecast-fallback (checked; seeds 0–6 and 9 never find a gap MOBIL allows)."""
     cuts = 0
     for seed in (6, 7, 8):
         sets = {"traffic.adversary": "cut_in_mobil", "shield.mode": "robust", "shield.override": True}
@@ -128,11 +128,11 @@ def _cut_ins_from_behind(permit_any_speed: bool, cases: int = 160) -> tuple[int,
 
 
 def test_cut_ins_from_behind_stay_inside_the_rule_s_bounds() -> None:
-    """Issue 15, thirteenth session: a MOBIL-respecting car behind the ego in the next lane, 5–25 m/s faster (at
+    """A MOBIL-respecting car behind the ego in the next lane, 5–25 m/s faster (at
     most 38 m/s), at 1–5 decisions per second, the ego on IDLE, FASTER or SLOWER. With shield.permit_any_speed
     (default) every cut-in it decides within the decision comes no earlier than model.permit_times, and once in
     the ego's lane the car is never behind model.passing_positions (the leader bound of shield.passing_cuts_ins).
-    The twelfth session's criterion, at the car's fastest, lets such cars cut in before its permit time: IDM's
+    The criterion judged at the car's fastest (the option off), lets such cars cut in before its permit time: IDM's
     desired gap goes negative for a car much faster than the ego, and highway-env squares it."""
     checked, bad = _cut_ins_from_behind(True)
     assert checked >= 15 and bad == []

@@ -1,4 +1,4 @@
-"""A config surface that cannot crash (issue 12.5): every bad value is one ``error:`` line and exit code 2.
+"""A config surface that cannot crash: every bad value is one ``error:`` line and exit code 2.
 
 Each case goes through the real command line (typer's CliRunner, stderr kept apart from stdout), and
 the property test drives every key the shipped presets set, plus every field of the safelane sections,

@@ -38,7 +38,7 @@ def test_invariant_breaks_are_saved_and_replay_to_the_same_break(tmp_path: Path)
     """Random actions under the robust shield (override on) on the fast preset, 3 lanes at density 2: episode
     seed 3 reaches a fallback state right after its second, allowed, decision. The file replays to that break,
     on highway-env too, with the state before it logged (a safe action existed: not a fallback). (On the stock
-    fast preset today's rule has no break in 30 random episodes.)"""
+    fast preset the rule forecast-fallback has no break in 30 random episodes.)"""
     overrides = {**FAST, "env": {"lanes_count": 3, "vehicles_density": 2.0}}
     cfg = load_config("fast", overrides={**overrides, "shield": {"mode": "robust", "override": True}})
     summary = evaluate_fixed(cfg, "random", 4, 0, counterexamples=tmp_path)

@@ -42,7 +42,7 @@ LINEAR_AND_TURNING_OPTIONS = (
     "reversing_cut_ins",
 )  # fmt: skip
 """The options for linear-model drivers' MOBIL, turning leaders, the straight fallback and reversing cut-ins
-(docs/safety.md §6i)."""
+(docs/research/turning-leaders.md)."""
 WITHOUT_LINEAR_AND_TURNING = {f"shield.{name}": False for name in LINEAR_AND_TURNING_OPTIONS}
 """Those options off: the rule under which a test of another part of the rule derived its scene's exact gaps
 (each such test is about its own part; EXPECTED holds the default rule's masks)."""
@@ -548,7 +548,7 @@ def test_the_fallback_ranks_by_the_gap_to_the_vehicles_ahead_first(engine: str) 
     """2 lanes, the ego in lane 0 at 20 m/s between a leader 9 m ahead at 15 m/s and a follower 8 m behind at
     28 m/s, a car level with it in lane 1: nothing is safe. The ranking (the gap to the vehicles ahead first,
     the ego's own responsibility) brakes (SLOWER, the follower's problem), not the lane change beside the level
-    car that the largest gap to anybody would pick (docs/safety.md §6f)."""
+    car that the largest gap to anybody would pick (docs/research/horizon-and-ego-speed.md)."""
     spec = scenarios.VehicleSpec
     specs = [spec(0, 9.0, 15.0), spec(0, -8.0, 28.0), spec(1, 0.0, 20.0)]
     scene = scenarios.build_scene(
@@ -609,7 +609,8 @@ def test_straight_fallback_brakes_where_turning_leaders_alone_changes_lane(engin
 
 @pytest.mark.parametrize("engine", ["numpy", "compiled"])
 def test_reversing_cut_ins_sees_a_reversing_car_beside(engine: str) -> None:
-    """The trained agents' cell 615 (robust shield with linear drivers' MOBIL, the hole of docs/safety.md §6i):
+    """The trained agents' cell 615 (robust shield with linear drivers' MOBIL, the hole of
+    docs/research/turning-leaders.md):
     an Aggressive driver 8.9 m ahead in the next lane rolls backwards at 3.01 m/s. By its own MOBIL rule
     it would not cut in, so IDLE (15.94 m), FASTER (1.51 m) and SLOWER are safe — and within the decision it
     began a lane change away from the ego, whose steering, reversing, swung its nose into the ego. With
@@ -630,7 +631,8 @@ def test_reversing_cut_ins_sees_a_reversing_car_beside(engine: str) -> None:
 @pytest.mark.parametrize("engine", ["numpy", "compiled"])
 @pytest.mark.parametrize("mode", ["nominal", "robust"])
 def test_crossed_lanes_sees_the_lane_the_ego_crosses(engine: str, mode: str) -> None:
-    """The 100 800-episode campaign's cell 2833 at its break (docs/safety.md §6j): the ego in lane 1 heading for
+    """The 100 800-episode campaign's cell 2833 at its break (docs/research/lanes-the-ego-occupies.md): the ego in
+    lane 1 heading for
     lane 3, a car 7.16 m behind in lane 2 closing at 9.5 m/s. Without it the rule put the ego in lanes 1 and 3
     only: IDLE, LANE_RIGHT, FASTER and SLOWER were safe (7.11 m robust, 8.77 m nominal: the car 13.77 m ahead
     in lane 1) and the ego was rear-ended in lane 2 two decisions later. With shield.crossed_lanes (the
@@ -648,7 +650,8 @@ def test_crossed_lanes_sees_the_lane_the_ego_crosses(engine: str, mode: str) -> 
 
 @pytest.mark.parametrize("engine", ["numpy", "compiled"])
 def test_ego_leaving_its_lane_counts_the_old_lane_for_good_under_idle(engine: str) -> None:
-    """The 100 800-episode campaign's cell 2569 at its break (docs/safety.md §6j), rebuilt: 5 decisions per
+    """The 100 800-episode campaign's cell 2569 at its break (docs/research/lanes-the-ego-occupies.md), rebuilt: 5
+    decisions per
     second, the ego in lane 1 already 0.2 s into a change to lane 0 (heading -0.163 rad) at 27.53 m/s behind a
     hard-braking queue. The rule times its exit from lane 1 from a lane centre: LANE_LEFT is safe; IDLE, which
     keeps the change under way, counts lane 1 as the ego's for good, as does SLOWER."""
@@ -659,7 +662,8 @@ def test_ego_leaving_its_lane_counts_the_old_lane_for_good_under_idle(engine: st
 
 @pytest.mark.parametrize("engine", ["numpy", "compiled"])
 def test_reversing_noses_sees_a_car_rolling_back_toward_its_turn(engine: str) -> None:
-    """The trained agents' cell 126 at its break (docs/safety.md §6j): a car 22.38 m ahead in the next lane, nose
+    """The trained agents' cell 126 at its break (docs/research/lanes-the-ego-occupies.md): a car 22.38 m ahead in the
+    next lane, nose
     turned 0.166 rad toward the ego's lane, rolling backwards at 0.086 m/s. Its lateral speed points away, so the
     heading projection put it in lane -1 (off the road) and IDLE kept 18.15 m; a decision later it moved
     forward, into the ego's lane. With shield.reversing_noses it is in the lane its nose points to as well:
@@ -679,7 +683,7 @@ def test_reversing_noses_sees_a_car_rolling_back_toward_its_turn(engine: str) ->
 
 @pytest.mark.parametrize("engine", ["numpy", "compiled"])
 def test_follower_idm_lets_the_car_behind_brake_for_the_ego(engine: str) -> None:
-    """The 100 800-episode campaign's cell 2415 at its break (docs/safety.md §6k), rebuilt: 5 decisions per
+    """The 100 800-episode campaign's cell 2415 at its break (docs/research/car-behind.md), rebuilt: 5 decisions per
     second, the ego at 18.32 m/s between a leader 9.36 m ahead (braking at its limit) and an IDM car 36.3 m
     behind at 21.57 m/s. The follower bound accelerates that car for 0.5 s whatever the ego does and starts
     again at every decision: IDLE and SLOWER keep 0.745 m, nothing is safe. With shield.follower_idm (the
@@ -704,7 +708,7 @@ def test_follower_idm_lets_the_car_behind_brake_for_the_ego(engine: str) -> None
 
 @pytest.mark.parametrize("engine", ["numpy", "compiled"])
 def test_finishing_changes_lets_a_car_settle_in_the_next_lane(engine: str) -> None:
-    """The 100 800-episode campaign's cell 614 at its break (docs/safety.md §6l), rebuilt: a car that has just
+    """The 100 800-episode campaign's cell 614 at its break (docs/research/cut-ins.md), rebuilt: a car that has just
     crossed from two lanes over into the lane next to the ego, 25.18 m ahead at 17.16 m/s, still turned toward
     its new lane's centre. Without it the rule's heading projection put it in the ego's lane from now, braking at
     its limit: IDLE −79.54 m, SLOWER −49.54 m, nothing safe. With shield.finishing_changes (the default) it is
@@ -740,11 +744,13 @@ def test_finishing_changes_lets_a_car_settle_in_the_next_lane(engine: str) -> No
 
 @pytest.mark.parametrize("engine", ["numpy", "compiled"])
 def test_queue_braking_beside_the_ego_is_a_hole_not_closed(engine: str) -> None:
-    """The claim campaign's hole 552 (docs/safety.md §6q), rebuilt one decision before its break and driven on
+    """The claim campaign's hole 552 (docs/research/fallback-choice.md), rebuilt one decision before its break and
+    driven on
     highway-env as the campaign drove it: SLOWER, the only safe action, keeps 18.70 m; one decision later the car
     behind in the braking next lane is level with the ego and may turn in: nothing is safe (an invariant break,
     the best worst-case gap −3.58 m, IDLE least bad), and during the next decision it turns in and rear-ends the
-    ego. The rule's turn-in bound is taken from one state (§6p): when a change of the rule closes this hole this
+    ego. The rule's turn-in bound is taken from one state (docs/research/remaining-breaks.md): when a change of the
+    rule closes this hole this
     test fails, and the new masks belong in EXPECTED."""
     scene = scenarios.SCENARIOS["queue_braking_beside_the_ego"](**{"shield.engine": engine})
     assert scene.mask.tolist() == mask_of(S) and not scene.result.fallback
@@ -765,7 +771,8 @@ def test_queue_braking_beside_the_ego_is_a_hole_not_closed(engine: str) -> None:
 
 @pytest.mark.parametrize("engine", ["numpy", "compiled"])
 def test_squeezed_by_a_linear_follower_is_a_hole_not_closed(engine: str) -> None:
-    """The claim campaign's hole 2879 (docs/safety.md §6k, §6s), rebuilt one decision before its break and driven
+    """The claim campaign's hole 2879 (docs/research/car-behind.md, docs/research/nested-follower-bound.md), rebuilt
+    one decision before its break and driven
     on highway-env as the campaign drove it: IDLE keeps 1.32 m; 0.2 s later, the leader braking at its limit,
     nothing is safe (an invariant break, IDLE least bad at −0.64 m). The follower bound, started again at this
     decision, is what broke it: with the car behind braking from now (follower_reaction 0, a diagnostic) IDLE and
@@ -814,7 +821,7 @@ def _drive_idle_while_it_passes(scene: scenarios.Scene, decisions: int, ahead: f
 
 @pytest.mark.parametrize("engine", ["numpy", "compiled"])
 def test_cut_in_when_permitted_lets_a_car_pass_a_stopped_ego(engine: str) -> None:
-    """The 100 800-episode campaign's cell 615 at its break (docs/safety.md §6l), rebuilt: the ego stopped, a car
+    """The 100 800-episode campaign's cell 615 at its break (docs/research/cut-ins.md), rebuilt: the ego stopped, a car
     3.09 m ahead in the next lane at 20.64 m/s. MOBIL's safety criterion forbids its cut-in now (the ego would
     brake at 28 m/s²) and allows it at the end of the decision; the rule without it then took it as cutting in from
     the cut-in time — 0 s at 5 Hz physics, 3 m ahead: IDLE, LANE_RIGHT and FASTER all −3.57 m, nothing safe. With
@@ -842,7 +849,7 @@ def test_cut_in_when_permitted_lets_a_car_pass_a_stopped_ego(engine: str) -> Non
 
 @pytest.mark.parametrize("engine", ["numpy", "compiled"])
 def test_passing_cut_ins_make_a_car_passing_the_ego_a_leader(engine: str) -> None:
-    """The 100 800-episode campaign's cell 723 at its break (docs/safety.md §6m), rebuilt: the ego stopped, a car
+    """The 100 800-episode campaign's cell 723 at its break (docs/research/cut-ins.md), rebuilt: the ego stopped, a car
     1.05 m behind it in the next lane at 25.66 m/s. MOBIL lets it cut in only ahead of the ego (the ego its new
     follower, braking no harder than 2 m/s²: 7.75 m ahead of a stopped ego by its IDM), but the rule bounded it
     as a follower entering the ego's lane and driving on through it: IDLE −78.63 m, nothing safe. With
@@ -1201,7 +1208,8 @@ PROPERTY_SETTINGS = settings(max_examples=150, deadline=None, suppress_health_ch
 @settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(road(rates=True, follower=True), st.data())
 def test_carried_follower_bounds_only_loosen_the_rule(case: tuple, data: st.DataObject) -> None:
-    """model.CarriedFollowers (the probe of docs/safety.md §6s): a follower bound carried from an earlier decision
+    """model.CarriedFollowers (the probe of docs/research/nested-follower-bound.md): a follower bound carried from an
+    earlier decision
     can only move cars behind back, so it never makes a safe action unsafe nor a worst gap smaller; none carried
     (all NaN) changes nothing, bit for bit."""
     state, dyn, _ = case

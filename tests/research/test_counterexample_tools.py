@@ -67,7 +67,7 @@ def test_retrained_agents_crashes_after_breaks_replay_with_a_partner_rolling_bac
     """The claim campaign's agents (make demo's agents, trained under the rule forecast-fallback: 1 065 crashes,
     1 059 unsafe spawns, 6 after breaks, 0 from safe states): each of the 6
     crash files after a break replays to the same crash at the same decision on both simulators, and its partner is
-    a car rolling backwards at the last decision (outside the driver model, docs/safety.md §6f)."""
+    a car rolling backwards at the last decision (outside the driver model, docs/research/horizon-and-ego-speed.md)."""
     files = sorted((FIXTURES / "claim-agents" / "crashes").glob("*-collision-*.json"))
     assert len(files) == 6
     for path in files:
@@ -139,7 +139,8 @@ def test_repair_breaks_counts_a_campaign_s_breaks_outside_the_model(tmp_path: Pa
 
 @pytest.mark.parametrize("simulator", ["fast", "highway-env"])
 def test_carried_follower_bounds_close_hole_2879(simulator: str) -> None:
-    """docs/safety.md §6s, §6t: the claim campaign's hole 2879 judged with the follower bounds of the decision before
+    """docs/research/nested-follower-bound.md: the claim campaign's hole 2879 judged with the follower bounds of the
+    decision before
     it carried over (a car behind bounded also by accelerating for the reaction time from where it was 0.2 s
     earlier, then braking) has IDLE safe at 1.362 m, where the rule as it ran has nothing (−0.638 m): the
     follower bound's restart is the whole of this break. Carrying only the 3 cars the ego was already in front of
@@ -182,7 +183,7 @@ def test_breaks_under_options_script_carries_the_reacting_followers(tmp_path: Pa
 
 def test_break_under_options_finds_the_follower_bound_in_hole_2879() -> None:
     """break_under_options (research/breaks_under_options.py's engine) on the claim's-grid hole 2879 (a Linear
-    follower squeeze, docs/safety.md §6k): as it ran nothing is safe (best −0.64 m); with the followers braking
+    follower squeeze, docs/research/car-behind.md): as it ran nothing is safe (best −0.64 m); with the followers braking
     from now (follower_reaction 0 — a diagnostic, not a bound) IDLE and SLOWER are (2.36 m): the follower's
     bound, restarted at every decision, is what broke it. A rule option that does not touch it leaves the state
     as it was; a name that is not a Dynamics field is a one-line error."""

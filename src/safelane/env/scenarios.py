@@ -225,7 +225,7 @@ def slow_car_turning_out(mode: Mode = "robust", dx: float = 10.0, **kw: Any) -> 
     hard out of the ego's lane toward lane 0: its centre is already in lane 1 (0.85 m right of lane 1's
     centre), its heading −0.78 rad. At that angle its rear corner still reaches 1.5 m into lane 2 — the
     falsification campaign's one crash from states the rule called safe (``cell00537``, 5 decisions/s),
-    which the robust rule sees since ``shield.body_extent`` (on by default; false: the earlier rule)."""
+    which the robust rule sees since ``shield.body_extent`` (off in the rule ``basic``)."""
     specs = [VehicleSpec(1, dx, 2.0, heading=-0.78, target_lane=0, lateral_offset=0.85)]
     return build_scene(2, 5.0, specs, mode=mode, ego_target_speed=5.0, **kw)
 
@@ -249,7 +249,8 @@ def reversing_leader(mode: Mode = "robust", dx: float = 7.0, **kw: Any) -> Scene
     """The ego nearly stopped (0.1 m/s, set-point 0) in lane 1; the car ``dx`` m ahead rolls *backwards* at
     2 m/s, as highway-env's jammed IDM cars do (speeds are clipped to ±40 m/s only): the campaign's crashes
     of cells 38 and 86 (``cell00038-seed4000380020``). With ``shield.reversing_leaders`` (the default) the
-    rule keeps its reverse speed and nothing is safe; the earlier rule took it as stopped, 2 m away."""
+    rule keeps its reverse speed and nothing is safe; with the option off (rule ``basic``) it counts as stopped, 2 m
+    away."""
     return build_scene(1, 0.1, [VehicleSpec(1, dx, -2.0)], mode=mode, ego_target_speed=0.0, **kw)
 
 
@@ -271,7 +272,7 @@ def car_two_lanes_over(mode: Mode = "robust", **kw: Any) -> Scene:
     agents' crash from a state called safe, ``cell00169-seed4001690001`` (step 34). The ego changes right
     into lane 1 while that car changes left into it: a side impact. When the car decides, the ego is not in
     lane 1, so MOBIL's incentive (which ``shield.level_incentive`` judges *with* the ego there, and which
-    then keeps the car out) does not hold; ``shield.level_entering`` (on by default; false: the earlier rule)
+    then keeps the car out) does not hold; ``shield.level_entering`` (off in the rule ``basic``)
     counts every level car into a lane the ego is only entering."""
     specs = [VehicleSpec(2, -2.0, 21.0), VehicleSpec(0, 52.0, 22.0), VehicleSpec(2, 79.0, 20.0)]
     return build_scene(0, 20.6, specs, mode=mode, lanes_count=3, ego_target_speed=20.0, **kw)
@@ -282,8 +283,8 @@ def closing_in_at_five_per_second(mode: Mode = "robust", **kw: Any) -> Scene:
     car 39.22 m ahead at 15.82 m/s — the falsification grid's cell 812 (``cell00812-seed4008120005``, step 6)
     one decision before its invariant break. Braking from here takes the ego ≈ 6 s; the rule's horizon of
     13 *decisions* is 2.6 s at this rate, and the tail it credits beyond (the ego decaying to a set-point
-    of 0) ends 1 m short of where the ego really stops. ``shield.full_horizon`` (on by default; false: the
-    earlier rule) makes the horizon 13 *seconds* at every rate: nothing is safe here."""
+    of 0) ends 1 m short of where the ego really stops. ``shield.full_horizon`` (off in the rule
+    ``basic``) makes the horizon 13 *seconds* at every rate: nothing is safe here."""
     rate = {"env.policy_frequency": 5, "env.simulation_frequency": 15}
     specs = [VehicleSpec(0, 39.22, 15.82)]
     return build_scene(0, 27.66, specs, mode=mode, lanes_count=1, ego_target_speed=25.0, **rate, **kw)
@@ -293,8 +294,9 @@ def ego_turning_into_its_lane(mode: Mode = "robust", **kw: Any) -> Scene:
     """3 decisions per second, 3 lanes: the ego finishing a lane change into lane 2 (1.91 m short of its
     centre, heading 0.206 rad) at 22.77 m/s, set-point 20, a car 20.07 m ahead in lane 2 at 17.58 m/s —
     the falsification grid's cell 573 (``cell00573-seed4005730010``) one decision before its break. Along
-    the road the ego moves at 22.29 m/s, which rounds to the 20 m/s set-point, so the earlier rule
-    (``shield.ego_speed_magnitude: false``) took SLOWER to 15 m/s; highway-env rounds the controller's
+    the road the ego moves at 22.29 m/s, which rounds to the 20 m/s set-point, so with
+    ``shield.ego_speed_magnitude`` off (rule ``basic``) the rule took SLOWER to 15 m/s; highway-env rounds the
+    controller's
     22.77 m/s to 25 and SLOWER goes to 20 m/s, 7 m less room. With the controller's speed (the default)
     SLOWER keeps 0.5 m, less than the margin."""
     rate = {"env.policy_frequency": 3, "env.simulation_frequency": 15}
@@ -325,8 +327,8 @@ def reversing_car_beside(mode: Mode = "robust", **kw: Any) -> Scene:
     forward motion, so reversing, its nose swung 0.49 rad into the ego's lane and hit it. By its MOBIL rule
     (``shield.linear_mobil``) it would not cut in, and IDLE, FASTER and SLOWER are safe; with
     ``shield.reversing_cut_ins`` a car moving backwards may enter the ego's lane whatever MOBIL says, and
-    nothing is safe (today's default, both options on). The rule before issue 15's ninth session assumed any
-    cut-in of a linear-model driver: nothing safe either."""
+    nothing is safe (both options on, as in ``forecast-fallback``). With ``shield.linear_mobil`` off (rule
+    ``basic``) any cut-in of a linear-model driver is assumed: nothing safe either."""
     specs = [
         VehicleSpec(1, 8.9, -3.01, vehicle_class=AggressiveVehicle),
         VehicleSpec(1, 15.0, 1.77, vehicle_class=AggressiveVehicle),
@@ -340,9 +342,10 @@ def ego_crossing_a_lane(mode: Mode = "robust", **kw: Any) -> Scene:
     centre and turning at 0.764 rad, already heading for lane **3** (a lane change chained onto one under
     way); a Defensive driver 7.16 m behind in lane 2 — the lane the ego must cross — at 19.95 m/s, another
     13.77 m ahead in lane 1 at 18.01 m/s: the 100 800-episode campaign's cell 2833 (``cell02833-seed4028330025``)
-    at its break, one decision before the ego was rear-ended in lane 2. The earlier rule put the ego in its
+    at its break, one decision before the ego was rear-ended in lane 2. With ``shield.crossed_lanes`` off (rule
+    ``basic``) the ego is in its
     lane and its target only, so the car in lane 2 was nobody's follower and IDLE, FASTER and SLOWER kept
-    7.11 m; with ``shield.crossed_lanes`` (today's default) lane 2 is the ego's until it is through, and
+    7.11 m; with ``shield.crossed_lanes`` (on in ``forecast-fallback``) lane 2 is the ego's until it is through, and
     nothing is safe."""
     from highway_env.vehicle.behavior import DefensiveVehicle
 
@@ -380,10 +383,11 @@ def car_rolling_back_turned_in(mode: Mode = "robust", **kw: Any) -> Scene:
     """2 lanes, a jam in lane 0: the ego in lane 1 at 10 m/s (set-point 10); 22.38 m ahead in lane 0 a car
     changing into the ego's lane (0.44 m off its centre, nose turned 0.166 rad toward lane 1) but rolling
     *backwards* at 0.086 m/s, as highway-env's IDM lets a jammed car do; more cars ahead — the trained agents'
-    cell 126 (``cell00126-seed4001260042``, the tenth session's agents) at its break. Backwards, its lateral
+    cell 126 (``cell00126-seed4001260042``) at its break. Backwards, its lateral
     motion points away from the ego, so the rule's heading projection put it in no lane of the ego's and IDLE
     kept 18.16 m; one decision later it moved forward, into the ego's lane, and nothing was safe (it hit the
-    car two decisions later). ``shield.reversing_noses`` (today's default) puts a car rolling backwards in the
+    car two decisions later). ``shield.reversing_noses`` (on in ``forecast-fallback``) puts a car rolling backwards in
+    the
     lane its nose points to: only SLOWER is safe (5.28 m)."""
     specs = [
         VehicleSpec(0, 22.38, -0.086, heading=0.1659, target_lane=1, lateral_offset=0.441),
@@ -399,8 +403,8 @@ def squeezed_by_a_follower(mode: Mode = "robust", **kw: Any) -> Scene:
     both next lanes taken — the 100 800-episode campaign's cell 2415 (``cell02415-seed4024150004``) at its
     break. One decision earlier IDLE and SLOWER kept 1.37 m; the follower bound (accelerate for the reaction
     time, then brake) starts again at every decision, so 0.2 s later, with the follower already braking and the
-    leader no worse than its bound, they kept 0.745 m, and nothing was safe. ``shield.follower_idm`` (today's
-    default) lets the car behind brake by IDM's own response to the ego: IDLE and SLOWER keep 1.415 m."""
+    leader no worse than its bound, they kept 0.745 m, and nothing was safe. ``shield.follower_idm`` (on in
+    ``forecast-fallback``) lets the car behind brake by IDM's own response to the ego: IDLE and SLOWER keep 1.415 m."""
     rate = {"env.policy_frequency": 5, "env.simulation_frequency": 15}
     cars = [(1, 9.36, 16.87), (1, 20.66, 17.0), (1, 32.68, 18.34), (0, 48.39, 21.82), (2, 59.65, 21.62),
             (2, -9.98, 23.02), (0, -20.28, 25.02), (1, -36.3, 21.57), (2, -47.6, 23.71)]  # fmt: skip
@@ -414,7 +418,7 @@ def squeeze_beside_a_free_lane(mode: Mode = "robust", **kw: Any) -> Scene:
     brake at its limit; lane 1 free for 28 m (a car there at 22.7 m/s) — the claim campaign's
     ``cell00117-seed4001170018`` at its first decision, rebuilt. Every action collides in the worst case and
     SLOWER least; the forecast of the leader's own law has it brake now and SLOWER run into it, changing lane
-    get away: ``shield.forecast_fallback`` (the default since issue 15's seventeenth session) picks LANE_RIGHT."""
+    get away: ``shield.forecast_fallback`` (on in ``forecast-fallback``) picks LANE_RIGHT."""
     from highway_env.vehicle.behavior import DefensiveVehicle
 
     cars = [(0, 13.4, 22.0), (1, 28.0, 22.7), (0, 42.2, 22.1), (0, 56.9, 23.3)]
@@ -423,7 +427,8 @@ def squeeze_beside_a_free_lane(mode: Mode = "robust", **kw: Any) -> Scene:
 
 
 def queue_braking_beside_the_ego(mode: Mode = "robust", **kw: Any) -> Scene:
-    """A hole of the rule, not closed (docs/safety.md §6q, the next-lane class of §6p): 5 lanes of Aggressive
+    """A hole of the rule, not closed (docs/research/fallback-choice.md, the next-lane class of
+    docs/research/remaining-breaks.md): 5 lanes of Aggressive
     drivers (the linear model, each with the gains highway-env drew for it), the ego in lane 3 at 20.66 m/s
     (set-point 20); its right lane is a queue braking at its limit, the first of it 6.88 m ahead at 16.87 m/s,
     and 6.78 m behind in that lane a car at 23.05 m/s (set-point 29.05) — the claim campaign's
@@ -433,7 +438,7 @@ def queue_braking_beside_the_ego(mode: Mode = "robust", **kw: Any) -> Scene:
     centre to centre: turning in behind the ego now pays under MOBIL, and nothing is safe. It turns in and
     rear-ends the ego during the next decision. The car behind was not a turn-in candidate one decision before
     (MOBIL's incentive could not pay during that decision), so the rule's one-state turn-in bound restarted;
-    extending it over the whole horizon made breaks 25 times more frequent (§6p)."""
+    extending it over the whole horizon made breaks 25 times more frequent (docs/research/remaining-breaks.md)."""
     cars = [
         (4, 6.88, 16.87, 22.87, 0.2, (0.278, 0.275, 1.408), (4.979, 7.970)),
         (4, 15.45, 15.65, 21.65, 1.01, (0.323, 0.203, 2.828), (4.975, 7.876)),
@@ -454,7 +459,8 @@ def queue_braking_beside_the_ego(mode: Mode = "robust", **kw: Any) -> Scene:
 
 
 def squeezed_by_a_linear_follower(mode: Mode = "robust", **kw: Any) -> Scene:
-    """A hole of the rule, not closed (docs/safety.md §6k, §6s): 5 decisions per second, Linear drivers
+    """A hole of the rule, not closed (docs/research/car-behind.md, docs/research/nested-follower-bound.md): 5
+    decisions per second, Linear drivers
     (``LinearVehicle``, each with the set-point, MOBIL timer and gains highway-env drew for it), the ego in the
     leftmost lane at 13.34 m/s (set-point 10) 15.08 m behind a car at 9.74 m/s, a car 77.1 m behind it at
     26.33 m/s (set-point 29.97), and in the next lane a car 19.69 m behind at 22.28 m/s — the claim campaign's
@@ -496,8 +502,9 @@ def car_settling_next_to_the_ego(mode: Mode = "robust", **kw: Any) -> Scene:
     crossed from lane 3 into lane 4, the lane next to the ego, 1.27 m short of its centre and still turned
     0.188 rad toward it (its target lane is lane 4) — the 100 800-episode campaign's cell 614
     (``cell00614-seed4006140008``, the overtaking probe, 1 decision per second) at its break, the
-    ``second_lane_cut_in`` class. The earlier rule's heading projection put the car in the ego's lane from now,
-    braking: nothing was safe. With ``shield.finishing_changes`` (the default since issue 15's twelfth session)
+    ``second_lane_cut_in`` class. With ``shield.finishing_changes`` off (rule ``basic``) the heading projection put
+    the car in the ego's lane from now,
+    braking: nothing was safe. With ``shield.finishing_changes`` (on in ``forecast-fallback``)
     it is a car finishing its change into lane 4, a cut-in candidate from there, and MOBIL would not let it cut
     in 25 m ahead of a car closing at 12 m/s: IDLE and SLOWER are safe."""
     specs = [
@@ -512,9 +519,9 @@ def car_passing_a_stopped_ego(mode: Mode = "robust", **kw: Any) -> Scene:
     """3 lanes; the ego stopped in lane 0 (set-point 0); in lane 1 a car 3.09 m ahead passing it at 20.64 m/s —
     the 100 800-episode campaign's cell 615 (``cell00615-seed4006150027``, the random policy, 1 decision per
     second) at its break. MOBIL's safety criterion forbids the car to cut in now (the ego, 3 m behind it, would
-    have to brake at 28 m/s²) but allows it at the end of the decision, 24 m ahead; the earlier rule took that
-    as a cut-in from the cut-in time (0 s at 5 Hz physics), 3 m ahead: nothing was safe. With
-    ``shield.cut_in_when_permitted`` (the default since issue 15's thirteenth session) the cut-in starts from
+    have to brake at 28 m/s²) but allows it at the end of the decision, 24 m ahead; with the option off (rule ``basic``)
+    that is a cut-in from the cut-in time (0 s at 5 Hz physics), 3 m ahead: nothing was safe. With
+    ``shield.cut_in_when_permitted`` (on in ``forecast-fallback``) the cut-in starts from
     the first frame MOBIL allows it: IDLE is safe."""
     return build_scene(0, 0.0, [VehicleSpec(1, 3.09, 20.64)], mode=mode, lanes_count=3, ego_target_speed=0.0, **kw)
 
@@ -524,8 +531,8 @@ def car_passing_in_the_next_lane(mode: Mode = "robust", **kw: Any) -> Scene:
     it at 25.66 m/s, passing — the 100 800-episode campaign's cell 723 (``cell00723-seed4007230023``, the
     overtaking probe) at its break, the largest class of the breaks left (the culprit in the next lane, behind).
     MOBIL lets it cut in only ahead of the ego, at least 7.75 m ahead; the rule bounded it as a follower in the
-    ego's lane, driving on through the ego: nothing safe. With ``shield.passing_cut_ins`` (the default since
-    issue 15's thirteenth session) it is a leader from its cut-in: IDLE keeps 5.50 m, FASTER 1.36 m."""
+    ego's lane, driving on through the ego: nothing safe. With ``shield.passing_cut_ins`` (on in
+    ``forecast-fallback``) it is a leader from its cut-in: IDLE keeps 5.50 m, FASTER 1.36 m."""
     sets = {"env.policy_frequency": 2, "env.simulation_frequency": 10}
     specs = [VehicleSpec(1, -1.05, 25.66)]
     return build_scene(0, 0.0, specs, mode=mode, lanes_count=2, ego_target_speed=0.0, **sets, **kw)

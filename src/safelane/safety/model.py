@@ -124,7 +124,8 @@ __all__ = [
 @dataclass(frozen=True)
 class CarriedFollowers:
     """The follower bounds an earlier decision drew, carried to this state (a probe of bounds nested in time,
-    docs/safety.md §6s; the numpy reference only): per vehicle of the state, its position ``x`` [m] along the
+    docs/research/nested-follower-bound.md; the numpy reference only): per vehicle of the state, its position ``x``
+    [m] along the
     road and speed ``vx`` [m/s] ``age`` seconds ago (NaN: none carried)."""
 
     x: np.ndarray
@@ -184,8 +185,10 @@ def _evaluate(
     turning = lead_v > 0.0
     lead_x = braking_positions(state.x[near], lead_v, brake[near], t, dyn.rule.reversing_leaders)
     if path_allowance > 0.0 and (not nominal_leaders or dyn.rule.turning_in_nominal):
-        # turning_leaders: along its path, from its speed (docs/safety.md §6f); nominal takes it only
-        # where it is the looser (a fast car turning: v·sin h large), so robust ⊆ nominal by construction (§6o).
+        # turning_leaders: along its path, from its speed (docs/research/horizon-and-ego-speed.md); nominal takes it
+        # only
+        # where it is the looser (a fast car turning: v·sin h large), so robust ⊆ nominal by construction
+        # (docs/research/robust-inside-nominal.md).
         vx_n, vy_n = state.vx[near], state.vy[near]
         path_v = np.where(turning, np.sqrt(vx_n * vx_n + vy_n * vy_n), lead_v)
         path_x = braking_positions(state.x[near], path_v, brake[near], t, dyn.rule.reversing_leaders)
@@ -366,7 +369,8 @@ def forecast_ranking(state: RoadState, dyn: Dynamics, ego_x: np.ndarray, availab
     ``margin`` — actions the forecast keeps ``margin`` clear of everybody rank among themselves by their
     worst-case gaps, since past the margin the forecast says nothing about the risk the worst case measures —
     and −1 for every action the forecast sees collide (they too then rank by their worst-case gaps: the depth
-    of a forecast overlap is no measure of harm; ranking by it drove FASTER into leaders, docs/safety.md §6q).
+    of a forecast overlap is no measure of harm; ranking by it drove FASTER into leaders,
+    docs/research/fallback-choice.md).
     ``ego_x``: (5, fallbacks, frames + 1) the ego's positions [m] (:func:`ego_trajectories`)."""
     gaps = forecast_gaps(
         ego_x, ego_last_frames(state, dyn, available), available, dyn.frame_dt, state.ego_x, state.ego_length,

@@ -36,7 +36,7 @@ def braking_positions(
 
     A vehicle moving backwards (``v0 < 0``) counts as stopped, or with ``reversing`` keeps moving back at
     ``v0`` for the whole of ``t``: IDM has no bound on how long a jammed car rolls back (highway-env clips
-    speeds to ±40 m/s only), and the ego behind it cannot reverse (docs/safety.md §6d)."""
+    speeds to ±40 m/s only), and the ego behind it cannot reverse (docs/research/reversing-cars.md)."""
     v_signed = v0[:, None]
     v0 = np.maximum(v0, 0.0)[:, None]
     b = np.maximum(brake, 1e-6)[:, None]
@@ -189,7 +189,7 @@ def idm_follower_positions(state: RoadState, dyn: Dynamics, i: int, ego_x: np.nd
     acc·(d*/d)²`` with ``d* = d₀ + v·T + v·(v − v_ego)/(2√(acc·b))`` and ``d`` the centre distance, clipped to
     ``[−brake_max, accel_max]``; then ``x += v·dt``, ``v += a·dt``. The driver's own set-point v₀ is not
     observed, so the free-road term is bounded by ``acc`` (v₀ = ∞): an upper bound on its acceleration in
-    every state, not a proven envelope of its path (docs/safety.md §6k). Beyond the last frame the car is
+    every state, not a proven envelope of its path (docs/research/car-behind.md). Beyond the last frame the car is
     credited what the follower bound lets it still cover (accelerate for the reaction time, then brake).
     Returns (F, T)."""
     acc = float(state.idm_comfort_acc[i])

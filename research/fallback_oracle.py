@@ -37,7 +37,7 @@ from safelane.running.counterexamples import load_counterexample
 from safelane.running.foresight import fast_simulator_of
 from safelane.safety.model import evaluate
 from safelane.safety.shield import SafetyShield
-from safelane.sim.fast import kernels
+from safelane.sim.fast import layout
 
 PREFERENCE = (SLOWER, IDLE, LANE_LEFT, LANE_RIGHT, FASTER)
 TAIL_DECISIONS = 400  # IDLE after the recorded actions, until the episode ends
@@ -49,10 +49,10 @@ def clear(sim: Any, state: Any, action: int, depth: int, lane_changes: bool) -> 
     for continuation in continuations:
         sim.set_state(state)
         if not lane_changes:
-            sim.G[1:, kernels.ELC] = 0  # the others' MOBIL off (the ego is row 0)
+            sim.G[1:, layout.ELC] = 0  # the others' MOBIL off (the ego is row 0)
         for a in [action, *continuation[: depth - 1]]:
             sim.step(int(a))
-            if sim.G[0, kernels.CRASHED]:
+            if sim.G[0, layout.CRASHED]:
                 break
         else:
             return True

@@ -219,7 +219,8 @@ def test_other_settings_match_highway_env() -> None:
 
 def test_lane_index_neighbours_equal_the_scan_with_ties() -> None:
     """The binary-searched neighbour query equals highway-env's linear scan, ties and lane edges included."""
-    from safelane.sim.fast import kernels as K
+    from safelane.sim.fast import lanes
+    from safelane.sim.fast import layout as L
     from safelane.sim.fast.scene import params
 
     P = params()
@@ -230,14 +231,14 @@ def test_lane_index_neighbours_equal_the_scan_with_ties() -> None:
     cnt = np.zeros(n_lanes, dtype=np.int64)
     for _ in range(300):
         n = int(rng.integers(1, 40))
-        F = np.zeros((n, K.NF))
-        F[:, K.X] = rng.choice([-6.0, -5.0, 0.0, 10.0, 10.0, 12.5, 30.0, 10004.0, 10005.0], size=n)
-        F[:, K.X] += rng.choice([0.0, 0.0, 1e-9], size=n)
-        F[:, K.Y] = rng.choice([-3.0, -3.5, 0.0, 1.0, 3.0, 4.0, 7.0, 9.0, 12.0, 15.0, 15.5], size=n)
-        K.build_lane_index(F, n_lanes, P, members, mx, cnt)
+        F = np.zeros((n, L.NF))
+        F[:, L.X] = rng.choice([-6.0, -5.0, 0.0, 10.0, 10.0, 12.5, 30.0, 10004.0, 10005.0], size=n)
+        F[:, L.X] += rng.choice([0.0, 0.0, 1e-9], size=n)
+        F[:, L.Y] = rng.choice([-3.0, -3.5, 0.0, 1.0, 3.0, 4.0, 7.0, 9.0, 12.0, 15.0, 15.5], size=n)
+        lanes.build_lane_index(F, n_lanes, P, members, mx, cnt)
         for j in range(n):
             for lane in range(n_lanes):
-                assert K._neighbours(F, j, lane, members, mx, cnt) == K._neighbours_scan(F, n, j, lane, P)
+                assert lanes.neighbours(F, j, lane, members, mx, cnt) == lanes.neighbours_scan(F, n, j, lane, P)
 
 
 LINEAR_TYPES = ("LinearVehicle", "AggressiveVehicle", "DefensiveVehicle")
@@ -301,6 +302,7 @@ def test_linear_steering_squares_the_speed_with_pow_as_highway_env() -> None:
     from highway_env.vehicle.behavior import LinearVehicle
 
     from safelane.sim.fast import kernels as K
+    from safelane.sim.fast import layout as L
     from safelane.sim.fast.scene import params
 
     oracle = _oracle("fast")
@@ -310,15 +312,15 @@ def test_linear_steering_squares_the_speed_with_pow_as_highway_env() -> None:
     rng = np.random.default_rng(0)
     speeds = [s for s in rng.uniform(5.0, 30.0, 40_000).tolist() if s**2 != s * s][:25]
     assert len(speeds) == 25
-    F = np.zeros((1, K.NF))
+    F = np.zeros((1, L.NF))
     product_differs = 0
     for k, s in enumerate(speeds):
         v = LinearVehicle(road, [100.0, 4.0 + 0.05 * (k + 1)], heading=0.002 * k, speed=s)
         v.randomize_behavior()
         lane = v.target_lane_index
         ref = v.steering_control(lane)
-        F[0, K.X], F[0, K.Y], F[0, K.H], F[0, K.V] = v.position[0], v.position[1], v.heading, v.speed
-        F[0, K.SP0 : K.SP1 + 1] = v.STEERING_PARAMETERS
+        F[0, L.X], F[0, L.Y], F[0, L.H], F[0, L.V] = v.position[0], v.position[1], v.heading, v.speed
+        F[0, L.SP0 : L.SP1 + 1] = v.STEERING_PARAMETERS
         assert K._linear_steering(F, 0, lane[2], P) == ref, f"speed {s!r}"
         f0 = v.steering_features(lane)[0]
         f1_product = -v.lane.local_coordinates(v.position)[1] * v.LENGTH / (s * s)

@@ -23,7 +23,7 @@ from safelane.env.factory import resolve_env_config
 from safelane.env.fast_batch import supports
 from safelane.env.vector import FastVectorEnv
 from safelane.sim.fast import FastHighwayEnv
-from safelane.sim.fast import kernels as K
+from safelane.sim.fast import layout as L
 from safelane.sim.fast.check import compare_episode, compare_states, make_oracle, oracle_state, policy_actions
 from safelane.sim.fast.scene import build_scene, make_rng, params, resolve_config, spawn_behind, spawn_behind_python
 
@@ -74,9 +74,9 @@ def test_reset_scene_matches_highway_env(name: str, behind: int, env: dict) -> N
         if "other_vehicles_type" in env:
             gains = np.array([v.ACCELERATION_PARAMETERS for v in vehicles[1:]])
             steering = np.array([v.STEERING_PARAMETERS for v in vehicles[1:]])
-            assert np.array_equal(fast.F[1:, K.AP0 : K.AP2 + 1], gains)
-            assert np.array_equal(fast.F[1:, K.SP0 : K.SP1 + 1], steering)
-        assert np.array_equal(fast.G[1:, K.CHECK].astype(bool), [v.check_collisions for v in vehicles[1:]])
+            assert np.array_equal(fast.F[1:, L.AP0 : L.AP2 + 1], gains)
+            assert np.array_equal(fast.F[1:, L.SP0 : L.SP1 + 1], steering)
+        assert np.array_equal(fast.G[1:, L.CHECK].astype(bool), [v.check_collisions for v in vehicles[1:]])
         assert fast.np_random.bit_generator.state == oracle.unwrapped.np_random.bit_generator.state
 
 
@@ -165,10 +165,10 @@ def test_make_env_episode_equals_highway_envs(behind: int, density: float, seed:
 
 def _rollout(env: FastHighwayEnv, seed: int, actions: list[int]) -> list[np.ndarray]:
     env.reset(seed=seed)
-    out = [env.F[:, : K.TIMER + 1].copy()]
+    out = [env.F[:, : L.TIMER + 1].copy()]
     for a in actions:
         env.step(a)
-        out.append(env.F[:, : K.TIMER + 1].copy())
+        out.append(env.F[:, : L.TIMER + 1].copy())
     return out
 
 
@@ -205,15 +205,15 @@ def test_the_count_behind_the_ego_at_reset_is_n(behind: int, count: int) -> None
     env = FastHighwayEnv(cfg, env_id, vehicles_behind=behind)
     for seed in range(5):
         env.reset(seed=seed)
-        x, y = env.F[:, K.X], env.F[:, K.Y]
+        x, y = env.F[:, L.X], env.F[:, L.Y]
         n = min(behind, count)
         assert x.size == 1 + count
         assert int(np.sum(x[1:] < x[0])) == n and int(np.sum(x[1:] > x[0])) == count - n
         followers = slice(1 + count - n, None)  # highway-env appends them: the last rows
         assert np.all(x[followers] < x[0]) and np.all(np.diff(x[followers]) < 0)
         assert set(y[followers] / 4.0) <= set(range(cfg["lanes_count"]))
-        assert np.all(env.F[followers, K.H] == 0.0)
-        assert np.all((env.F[followers, K.V] >= 21.0) & (env.F[followers, K.V] <= 30.0))
+        assert np.all(env.F[followers, L.H] == 0.0)
+        assert np.all((env.F[followers, L.V] >= 21.0) & (env.F[followers, L.V] <= 30.0))
 
 
 def test_batch_equals_the_single_environments() -> None:

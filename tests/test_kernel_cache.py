@@ -33,3 +33,17 @@ def test_cached_kernels_are_dropped_when_a_source_they_compile_in_changes(
     callee.write_text("# the forecast, version 2\n")
     drop_stale_kernel_cache(module, (callee,))
     assert not kernel.exists()  # the callee changed: the module's cached kernels would run version 1
+
+
+def test_the_batched_simulator_watches_every_file_of_the_fast_simulator(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The batch's kernels compile in the fast simulator's kernels, lanes and numerics and read its layout: an
+    edit of any of them must drop the batch's cache."""
+    from safelane.env import fast_batch
+    from safelane.sim.fast import kernels, lanes, layout, numerics
+
+    watched: list[tuple[str | Path, ...]] = []
+    monkeypatch.setattr(fast_batch, "drop_stale_kernel_cache", lambda module, sources: watched.append(sources))
+    fast_batch._drop_stale_kernel_cache()
+    sources = {Path(s).resolve() for s in watched[0]}
+    simulator = {Path(m.__file__).resolve() for m in (kernels, lanes, layout, numerics)}
+    assert simulator <= sources

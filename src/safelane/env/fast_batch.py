@@ -38,18 +38,21 @@ from safelane.safety.compiled import N_CONSTS, kernel_constants, snapshot_kernel
 from safelane.safety.model import OVERRIDE_ORDER
 from safelane.safety.shield import FALLBACK_SLOWDOWN, dynamics_of, ego_leave_times
 from safelane.sim.fast import kernels as K
+from safelane.sim.fast import layout as L
 from safelane.sim.fast.env import FastHighwayEnv, stacked_storage
 
 
 def _drop_stale_kernel_cache() -> None:
-    """Drop numba's disk cache of this module's kernels when a kernel they compile in changed: the simulator's,
-    the safety rule's (its parts, its forecast, its options' bits) and the observations'
-    (:mod:`safelane.core.kernel_cache`)."""
+    """Drop numba's disk cache of this module's kernels when a kernel they compile in changed: the simulator's
+    (its kernels, lanes, numerics and layout), the safety rule's (its parts, its forecast, its options' bits) and
+    the observations' (:mod:`safelane.core.kernel_cache`)."""
     from safelane.env import observations
     from safelane.safety import compiled, compiled_parts, compiled_rule, forecast, rule
+    from safelane.sim.fast import lanes, numerics
 
     safety = (compiled.__file__, compiled_rule.__file__, compiled_parts.__file__, forecast.__file__, rule.__file__)
-    drop_stale_kernel_cache(__file__, (K.__file__, *safety, observations.__file__))
+    simulator = (K.__file__, lanes.__file__, L.__file__, numerics.__file__)
+    drop_stale_kernel_cache(__file__, (*simulator, *safety, observations.__file__))
 
 
 _drop_stale_kernel_cache()
@@ -115,30 +118,30 @@ def _observe_one(
     lane = np.empty(n, dtype=np.int64)
     target_speed = np.empty(n)  # FastHighwayEnv.snapshot: the set-points of vehicles (NaN: other bodies)
     for k in range(n):
-        target_speed[k] = F[i, k, K.TSPD] if is_vehicle[i, k] else np.nan
-        position[k, 0] = F[i, k, K.X]
-        position[k, 1] = F[i, k, K.Y]
-        speed[k] = F[i, k, K.V]
-        heading[k] = F[i, k, K.H]
-        crashed[k] = G[i, k, K.CRASHED] != 0
-        lane[k] = G[i, k, K.LANE]
+        target_speed[k] = F[i, k, L.TSPD] if is_vehicle[i, k] else np.nan
+        position[k, 0] = F[i, k, L.X]
+        position[k, 1] = F[i, k, L.Y]
+        speed[k] = F[i, k, L.V]
+        heading[k] = F[i, k, L.H]
+        crashed[k] = G[i, k, L.CRASHED] != 0
+        lane[k] = G[i, k, L.LANE]
     speed_ego[i] = speed[0]
     forward[i] = speed[0] * math.cos(heading[0])  # PaperReward: speed · cos(heading)
     crashed_ego[i] = crashed[0]
     if state_kind == 0:
         _paper_state_kernel(position, speed, heading, is_vehicle[i], 0, obs[i])
     else:
-        offset = F[i, 0, K.Y] - lane[0] * lane_width
+        offset = F[i, 0, L.Y] - lane[0] * lane_width
         _lane_state_kernel(
             position, speed, heading, lane, is_vehicle[i], 0, lanes_count, offset / lane_width,
-            F[i, 0, K.TSPD], obs[i],
+            F[i, 0, L.TSPD], obs[i],
         )  # fmt: skip
     if not shielded:
         return
     # SafetyShield._ego_leave_time: the speed or set-point minus a fallback's slowdown, rounded
     # down to 0.5 m/s in [0, 40], looked up in the table of ego_leave_times.
     ego_speed = speed[0] * math.cos(heading[0] - lane_heading)
-    target = F[i, 0, K.TSPD]
+    target = F[i, 0, L.TSPD]
     if ego_speed != ego_speed or target != target:
         bad[i] = True
         return
@@ -155,7 +158,7 @@ def _observe_one(
     out = snapshot_kernel(
         position, speed, heading, length[i], crashed, d[0], d[1], can_change_lane[i], d[2], d[3], d[4],
         d[5], d[6], d[7], d[8], d[9], d[10], target_speed,
-        0, lane[0], G[i, 0, K.TLANE], target, E[i, 0], origin, direction, lateral, lane_heading,
+        0, lane[0], G[i, 0, L.TLANE], target, E[i, 0], origin, direction, lateral, lane_heading,
         speed_limit, ts, t, powers, tie_break, consts, flags, robust, leave,
     )  # fmt: skip
     masks[i] = out[0]
@@ -385,7 +388,7 @@ class FastBatch:
             numba.set_num_threads(self.threads)
         args = (
             st.F, st.G, st.E, self.length, self.is_vehicle, self.can_change_lane, self.drivers,
-            self.state_kind, float(self.P[K.P_LANE_WIDTH]), self.sim.lanes_count, self.shielded, self.robust,
+            self.state_kind, float(self.P[L.P_LANE_WIDTH]), self.sim.lanes_count, self.shielded, self.robust,
             *shield_args, self.obs, self.masks, self.fallback, self._forward, self._crashed, self._speed, self._bad,
         )  # fmt: skip
         self._observe_rows(rows, args)

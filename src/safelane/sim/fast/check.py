@@ -19,7 +19,7 @@ from typing import Any
 
 import numpy as np
 
-from safelane.sim.fast import kernels as K
+from safelane.sim.fast import layout as L
 from safelane.sim.fast.env import FastHighwayEnv
 
 
@@ -235,7 +235,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                 bitwise += r.matched and r.bitwise
                 row = {"preset": name, "seed": seed, "policy": policy, "steps": r.steps}
                 row.update(divergent_step=r.divergent_step, cause=r.cause, max_abs_error=r.max_abs_error)
-                row.update(bitwise=r.bitwise, ego_crashed=bool(fast.G[0, K.CRASHED]))
+                row.update(bitwise=r.bitwise, ego_crashed=bool(fast.G[0, L.CRASHED]))
                 print(json.dumps(row), flush=True)
     print(f"{matched}/{total} episodes matched within {args.tol}, {bitwise}/{total} bit for bit")
     return 0 if matched == total else 1

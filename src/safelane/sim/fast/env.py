@@ -33,6 +33,8 @@ from highway_env.vehicle.controller import ControlledVehicle
 
 from safelane.core.snapshot import RoadSnapshot
 from safelane.sim.fast import kernels as K
+from safelane.sim.fast import layout as L
+from safelane.sim.fast.lanes import on_lane
 from safelane.sim.fast.scene import SPEED_LIMIT, build_scene, params, resolve_config, spawn_behind
 
 ACTIONS = {0: "LANE_LEFT", 1: "IDLE", 2: "LANE_RIGHT", 3: "FASTER", 4: "SLOWER"}
@@ -88,8 +90,8 @@ class SceneStorage(NamedTuple):
 def stacked_storage(num_envs: int, n: int) -> SceneStorage:
     """:class:`SceneStorage` for ``num_envs`` scenes of ``n`` bodies, each array with a leading batch axis."""
     return SceneStorage(
-        np.zeros((num_envs, n, K.NF)),
-        np.zeros((num_envs, n, K.NI), dtype=np.int64),
+        np.zeros((num_envs, n, L.NF)),
+        np.zeros((num_envs, n, L.NI), dtype=np.int64),
         np.zeros((num_envs, 1), dtype=np.int64),
         np.zeros((num_envs, n, 2)),
         np.zeros((num_envs, n, 2)),
@@ -130,7 +132,7 @@ class FastHighwayEnv(gym.Env):
         n = 1 + self.sim.vehicles_count
         if storage is None:
             storage = SceneStorage.allocate(n)
-        elif storage.F.shape != (n, K.NF):
+        elif storage.F.shape != (n, L.NF):
             raise ValueError(f"storage: arrays for {storage.F.shape[0]} bodies, this configuration has {n}")
         self.storage = storage
         self._before = storage.before
@@ -189,7 +191,7 @@ class FastHighwayEnv(gym.Env):
         self._lateral = np.array([0.0, 1.0])
         self._ts_tuple = tuple(float(s) for s in self.sim.target_speeds)
         self._delta: np.ndarray | None = None
-        self._lane_w = float(self.P[K.P_LANE_WIDTH])
+        self._lane_w = float(self.P[L.P_LANE_WIDTH])
         self._pol_f = float(self.sim.policy_frequency)
         self._sim_f = float(self.sim.simulation_frequency)
         self._kp = float(ControlledVehicle.KP_A)
@@ -210,12 +212,12 @@ class FastHighwayEnv(gym.Env):
         self.time = 0.0
         self.steps = 0
         self._rec[0] = 0
-        self._delta = self.F[:, K.DELTA].copy()
+        self._delta = self.F[:, L.DELTA].copy()
         self._delta.flags.writeable = False
         self._linear_gains = [self._no_gains] * 3
         if self._linear_model:
             self._linear_gains = []
-            for column in (K.AP0, K.AP1, K.AP2):
+            for column in (L.AP0, L.AP1, L.AP2):
                 gains = self.F[:, column].copy()
                 gains[0] = np.nan  # the ego is not a linear-model driver
                 gains.flags.writeable = False
@@ -234,7 +236,7 @@ class FastHighwayEnv(gym.Env):
             self._before, self._after, self._rec,
         )  # fmt: skip
         self.steps += sc.frames
-        terminated = bool(self.G[0, K.CRASHED]) or (sc.offroad_terminal and not self.on_road)
+        terminated = bool(self.G[0, L.CRASHED]) or (sc.offroad_terminal and not self.on_road)
         truncated = bool(self.time >= sc.duration)
         return self._obs.copy(), 0.0, terminated, truncated, self._info()
 
@@ -242,23 +244,23 @@ class FastHighwayEnv(gym.Env):
     @property
     def on_road(self) -> bool:
         """``ego.on_road``: on its (closest) lane, no margin."""
-        lane = int(self.G[0, K.LANE])
-        return bool(K._on_lane(self.F[0, K.X], self.F[0, K.Y], lane, 0.0, self.P))
+        lane = int(self.G[0, L.LANE])
+        return bool(on_lane(self.F[0, L.X], self.F[0, L.Y], lane, 0.0, self.P))
 
     def state(self) -> dict[str, np.ndarray]:
         """Copies of every vehicle's state (row 0: the ego)."""
         F, G = self.F, self.G
         return {
-            "x": F[:, K.X].copy(),
-            "y": F[:, K.Y].copy(),
-            "heading": F[:, K.H].copy(),
-            "speed": F[:, K.V].copy(),
-            "target_speed": F[:, K.TSPD].copy(),
-            "delta": F[:, K.DELTA].copy(),
-            "timer": F[:, K.TIMER].copy(),
-            "lane": G[:, K.LANE].copy(),
-            "target_lane": G[:, K.TLANE].copy(),
-            "crashed": G[:, K.CRASHED].astype(bool),
+            "x": F[:, L.X].copy(),
+            "y": F[:, L.Y].copy(),
+            "heading": F[:, L.H].copy(),
+            "speed": F[:, L.V].copy(),
+            "target_speed": F[:, L.TSPD].copy(),
+            "delta": F[:, L.DELTA].copy(),
+            "timer": F[:, L.TIMER].copy(),
+            "lane": G[:, L.LANE].copy(),
+            "target_lane": G[:, L.TLANE].copy(),
+            "crashed": G[:, L.CRASHED].astype(bool),
             "speed_index": self.E.copy(),
         }
 
@@ -284,8 +286,8 @@ class FastHighwayEnv(gym.Env):
 
     def _info(self) -> dict[str, Any]:
         return {
-            "speed": float(self.F[0, K.V]),
-            "crashed": bool(self.G[0, K.CRASHED]),
+            "speed": float(self.F[0, L.V]),
+            "crashed": bool(self.G[0, L.CRASHED]),
             "snapshot": self.snapshot(),
         }
 
@@ -328,8 +330,8 @@ class FastHighwayEnv(gym.Env):
     def snapshot(self) -> RoadSnapshot:
         """The scene as a :class:`RoadSnapshot` (fresh per-step arrays; the static ones are shared, read-only)."""
         F, G = self.F, self.G
-        kin = F[:, : K.TSPD + 1].T.copy()  # rows x, y, heading, speed, set-point
-        ints = G[:, : K.CRASHED + 1].T.copy()  # rows lane, target lane, crashed
+        kin = F[:, : L.TSPD + 1].T.copy()  # rows x, y, heading, speed, set-point
+        ints = G[:, : L.CRASHED + 1].T.copy()  # rows lane, target lane, crashed
         crashed_once = bool(self._rec[0])
         # RoadSnapshot is a frozen dataclass without __post_init__: filling its __dict__ is what its
         # __init__ does, minus one object.__setattr__ per field (a decision takes ~100 µs: it counts).
@@ -337,16 +339,16 @@ class FastHighwayEnv(gym.Env):
         fields = snap.__dict__
         fields.update(self._episode_fields)
         fields["time"] = float(self.time)
-        fields["ego_target_speed"] = float(F[0, K.TSPD])
+        fields["ego_target_speed"] = float(F[0, L.TSPD])
         fields["ego_speed_index"] = int(self.E[0])
         fields["ego_lane_offset"] = float(kin[1, 0] - int(ints[0, 0]) * self._lane_w)
-        fields["position"] = kin[: K.Y + 1].T
-        fields["speed"] = kin[K.V]
-        fields["heading"] = kin[K.H]
-        fields["target_speed"] = kin[K.TSPD]  # every body of this simulator is a vehicle with a set-point
-        fields["lane"] = ints[K.LANE]
-        fields["target_lane"] = ints[K.TLANE]
-        fields["crashed"] = ints[K.CRASHED].astype(bool)
+        fields["position"] = kin[: L.Y + 1].T
+        fields["speed"] = kin[L.V]
+        fields["heading"] = kin[L.H]
+        fields["target_speed"] = kin[L.TSPD]  # every body of this simulator is a vehicle with a set-point
+        fields["lane"] = ints[L.LANE]
+        fields["target_lane"] = ints[L.TLANE]
+        fields["crashed"] = ints[L.CRASHED].astype(bool)
         fields["impact_before"] = self._before.copy() if crashed_once else None
         fields["impact_after"] = self._after.copy() if crashed_once else None
         return snap

@@ -12,25 +12,15 @@ The road is ``RoadNetwork.straight_road_network``: lane ``i`` runs from ``(0, i�
 with direction exactly ``(1, 0)``, so highway-env's ``local_coordinates`` are exactly
 ``(x, y - i·w)`` and every lane's heading is ``0.0``.
 
-State layout (``ego`` is row 0, the others follow in highway-env's order):
-
-``F[n, NF]`` float64 columns X, Y, H (heading), V (speed), TSPD (target speed), DELTA (IDM exponent),
-TIMER (MOBIL timer), IMPX, IMPY (pending impact), STEER, ACC (last action), COSH, SINH (cos / sin of
-the heading, refreshed at the start of every ``Road.act`` phase, during which no heading changes).
-
 Every helper is inlined into :func:`simulate` at numba's IR level (``inline="always"``): numba compiles
 each ``@njit`` function on its own and LLVM does not inline across them, so without it every vehicle
 paid a dozen calls per frame (measured: the whole decision 0.65x the time, identical outputs; the
 price is a one-off compilation of about a minute, cached on disk). ``error_model="numpy"``: a division
 by zero gives IEEE's inf / nan, as highway-env's numpy scalars do, instead of raising.
 
-Trigonometric calls go through ``_sin`` & co., which return IEEE's exact values at ``±0`` without
-calling libm (``sin(±0) = ±0``, ``cos(±0) = 1``...): most vehicles drive with heading and steering
-exactly ``0.0``, and those calls would otherwise dominate.
-``G[n, NI]`` int64 columns LANE, TLANE (target lane), CRASHED, HASIMP (impact pending), CHECK
-(check_collisions), ELC (enable_lane_change), IDM (1: IDM-family driver, 0: the ego MDPVehicle), LIN
-(1: LinearVehicle's models).
-``E`` int64 (1,): the ego's speed index.
+The state arrays' layout is :mod:`safelane.sim.fast.layout`, the scalar numerics (trigonometry exact at
+``±0``, the random draws) :mod:`safelane.sim.fast.numerics`, the lanes and the neighbour search
+:mod:`safelane.sim.fast.lanes`.
 """
 
 from __future__ import annotations
@@ -40,230 +30,67 @@ import math
 import numpy as np
 from numba import njit
 
-# float columns (COSH, SINH: cos / sin of the heading, cached for each Road.act phase)
-X, Y, H, V, TSPD, DELTA, TIMER, IMPX, IMPY, STEER, ACC, COSH, SINH = range(13)
-# per-vehicle driver constants: TW (TIME_WANTED), GAIN (LANE_CHANGE_MIN_ACC_GAIN), LinearVehicle's
-# ACCELERATION_PARAMETERS (AP0..2) and STEERING_PARAMETERS (SP0, SP1)
-TW, GAIN, AP0, AP1, AP2, SP0, SP1 = range(13, 20)
-NF = 20
-# int columns
-LANE, TLANE, CRASHED, HASIMP, CHECK, ELC, IDM, LIN = range(8)
-NI = 8
-
-# Parameter vector P (float64), filled by the env from highway-env's class constants.
-(
-    P_LANE_WIDTH,
-    P_LANE_LENGTH,
-    P_VEHICLE_LENGTH_LANE,  # AbstractLane.VEHICLE_LENGTH (on_lane / is_reachable_from margins)
-    P_SPEED_LIMIT,
-    P_LENGTH,  # Vehicle.LENGTH
-    P_WIDTH,  # Vehicle.WIDTH
-    P_DIAGONAL,
-    P_MAX_SPEED,
-    P_MIN_SPEED,
-    P_TAU_PURSUIT,
-    P_KP_A,
-    P_KP_HEADING,
-    P_KP_LATERAL,
-    P_MAX_STEERING,
+from safelane.core.kernel_cache import drop_stale_kernel_cache
+from safelane.sim.fast import lanes, layout, numerics
+from safelane.sim.fast.lanes import build_lane_index, closest_lane, is_reachable, neighbours
+from safelane.sim.fast.layout import (
+    ACC,
+    AP0,
+    AP1,
+    AP2,
+    CHECK,
+    COSH,
+    CRASHED,
+    DELTA,
+    ELC,
+    FASTER,
+    GAIN,
+    HASIMP,
+    IDM,
+    IMPX,
+    IMPY,
+    LANE,
+    LANE_LEFT,
+    LANE_RIGHT,
+    LIN,
     P_ACC_MAX,
     P_COMFORT_ACC_MAX,
     P_COMFORT_ACC_MIN,
+    P_DIAGONAL,
     P_DISTANCE_WANTED,
-    P_TIME_WANTED,
-    P_POLITENESS,
-    P_MIN_ACC_GAIN,
-    P_MAX_BRAKING_IMPOSED,
+    P_KP_A,
+    P_KP_HEADING,
+    P_KP_LATERAL,
     P_LANE_CHANGE_DELAY,
-    P_SQUARE,  # 2.0, read at run time: highway-env's ``x ** 2`` on a float is libm's pow (see _linear_steering)
-) = range(24)
-NP = 24
+    P_LANE_WIDTH,
+    P_LENGTH,
+    P_MAX_BRAKING_IMPOSED,
+    P_MAX_SPEED,
+    P_MAX_STEERING,
+    P_MIN_SPEED,
+    P_POLITENESS,
+    P_SPEED_LIMIT,
+    P_SQUARE,
+    P_WIDTH,
+    SINH,
+    SLOWER,
+    SP0,
+    SP1,
+    STEER,
+    TIMER,
+    TLANE,
+    TSPD,
+    TW,
+    H,
+    V,
+    X,
+    Y,
+)
+from safelane.sim.fast.numerics import asin, atan, clip, cos, integers, not_zero, sin, tan, uniform, wrap_to_pi
 
-# Ego meta-actions (DiscreteMetaAction.ACTIONS_ALL)
-LANE_LEFT, IDLE, LANE_RIGHT, FASTER, SLOWER = 0, 1, 2, 3, 4
-
-
-@njit(cache=True, error_model="numpy", inline="always")
-def _sin(x):
-    return x if x == 0.0 else math.sin(x)
-
-
-@njit(cache=True, error_model="numpy", inline="always")
-def _cos(x):
-    return 1.0 if x == 0.0 else math.cos(x)
-
-
-@njit(cache=True, error_model="numpy", inline="always")
-def _tan(x):
-    return x if x == 0.0 else math.tan(x)
-
-
-@njit(cache=True, error_model="numpy", inline="always")
-def _atan(x):
-    return x if x == 0.0 else math.atan(x)
-
-
-@njit(cache=True, error_model="numpy", inline="always")
-def _asin(x):
-    return x if x == 0.0 else math.asin(x)
-
-
-@njit(cache=True, error_model="numpy", inline="always")
-def _not_zero(x, eps=1e-2):
-    if abs(x) > eps:
-        return x
-    elif x >= 0:
-        return eps
-    else:
-        return -eps
-
-
-@njit(cache=True, error_model="numpy", inline="always")
-def _wrap_to_pi(x):
-    # ((x + pi) % (2 pi)) - pi with Python/numpy floor-mod semantics; for 0 <= x + pi < 2 pi the
-    # remainder is x + pi itself (exactly), so the fmod call is skipped.
-    t = x + np.pi
-    if t >= 0.0 and t < 2 * np.pi:
-        return t - np.pi
-    return (t % (2 * np.pi)) - np.pi
-
-
-@njit(cache=True, error_model="numpy", inline="always")
-def _clip(x, lo, hi):
-    if x < lo:
-        return lo
-    if x > hi:
-        return hi
-    return x
-
-
-@njit(cache=True, error_model="numpy", inline="always")
-def closest_lane(x, y, heading, n_lanes, P):
-    """RoadNetwork.get_closest_lane_index: argmin of StraightLane.distance_with_heading (first minimum)."""
-    length = P[P_LANE_LENGTH]
-    w = P[P_LANE_WIDTH]
-    best = 0
-    best_d = 0.0
-    angle = abs(_wrap_to_pi(heading - 0.0))
-    for i in range(n_lanes):
-        s = x
-        r = y - i * w
-        a = s - length
-        if not (a > 0.0):
-            a = 0.0
-        b = 0.0 - s
-        if not (b > 0.0):
-            b = 0.0
-        d = abs(r) + a + b + 1.0 * angle
-        if i == 0 or d < best_d:
-            best_d = d
-            best = i
-    return best
-
-
-@njit(cache=True, error_model="numpy", inline="always")
-def _on_lane(x, y, lane, margin, P):
-    lat = y - lane * P[P_LANE_WIDTH]
-    return (abs(lat) <= P[P_LANE_WIDTH] / 2 + margin) and (
-        -P[P_VEHICLE_LENGTH_LANE] <= x < P[P_LANE_LENGTH] + P[P_VEHICLE_LENGTH_LANE]
-    )
-
-
-@njit(cache=True, error_model="numpy", inline="always")
-def _is_reachable(x, y, lane, P):
-    lat = y - lane * P[P_LANE_WIDTH]
-    return (abs(lat) <= 2 * P[P_LANE_WIDTH]) and (0 <= x < P[P_LANE_LENGTH] + P[P_VEHICLE_LENGTH_LANE])
-
-
-@njit(cache=True, error_model="numpy")
-def _neighbours_scan(F, n, j, lane, P):
-    """Road.neighbour_vehicles(vehicle j, lane), literally: (front, rear) indices, -1 for none.
-
-    Ties: the last of equal leaders (``s_v <= s_front``), the first of equal followers (``s_v > s_rear``).
-    (Reference implementation; the kernels use the equivalent :func:`_neighbours` on the lane index.)
-    """
-    s = F[j, X]
-    front = -1
-    rear = -1
-    s_front = 0.0
-    s_rear = 0.0
-    for k in range(n):
-        if k == j:
-            continue
-        s_v = F[k, X]
-        if not _on_lane(s_v, F[k, Y], lane, 1.0, P):
-            continue
-        if s <= s_v and (front < 0 or s_v <= s_front):
-            s_front = s_v
-            front = k
-        if s_v < s and (rear < 0 or s_v > s_rear):
-            s_rear = s_v
-            rear = k
-    return front, rear
-
-
-@njit(cache=True, error_model="numpy")
-def build_lane_index(F, n_lanes, P, members, mx, cnt, order=None):
-    """Per lane, the vehicles ``on_lane(margin=1)`` sorted by (x, index): ``members[L, :cnt[L]]``, x in ``mx``.
-
-    Also refreshes the COSH / SINH columns. Built once per ``Road.act`` phase (no vehicle moves during it), it answers
-    ``Road.neighbour_vehicles`` by binary search with the same result and tie rules as the scan.
-    """
-    n = F.shape[0]
-    if order is None:  # else: the stable x order of the current positions, from the last _collisions
-        order = np.argsort(F[:, X], kind="mergesort")  # stable: equal x stay in index order
-    for L in range(n_lanes):
-        cnt[L] = 0
-    for r in range(n):
-        k = order[r]
-        x = F[k, X]
-        y = F[k, Y]
-        F[k, COSH] = _cos(F[k, H])
-        F[k, SINH] = _sin(F[k, H])
-        for L in range(n_lanes):
-            if _on_lane(x, y, L, 1.0, P):
-                c = cnt[L]
-                members[L, c] = k
-                mx[L, c] = x
-                cnt[L] = c + 1
-
-
-@njit(cache=True, error_model="numpy", inline="always")
-def _neighbours(F, j, lane, members, mx, cnt):
-    """Road.neighbour_vehicles(vehicle j, lane) from the lane index: (front, rear), -1 for none.
-
-    front: the smallest x >= x_j among the lane's vehicles other than j, the last (highest index) of
-    equal ones; rear: the largest x < x_j, the first (lowest index) of equal ones.
-    """
-    s = F[j, X]
-    c = cnt[lane]
-    lo = 0
-    hi = c
-    while lo < hi:  # first position with mx >= s
-        mid = (lo + hi) // 2
-        if mx[lane, mid] < s:
-            lo = mid + 1
-        else:
-            hi = mid
-    p = lo
-    front = -1
-    q = p
-    while q < c and members[lane, q] == j:
-        q += 1
-    if q < c:
-        xm = mx[lane, q]
-        while q < c and mx[lane, q] == xm:
-            if members[lane, q] != j:
-                front = members[lane, q]
-            q += 1
-    rear = -1
-    if p > 0:
-        q = p - 1
-        xr = mx[lane, q]
-        while q >= 0 and mx[lane, q] == xr:
-            rear = members[lane, q]
-            q -= 1
-    return front, rear
+# These kernels compile in the lanes' and the numerics' and read the layout as frozen globals: numba's cache
+# watches this file only.
+drop_stale_kernel_cache(__file__, (layout.__file__, numerics.__file__, lanes.__file__))
 
 
 @njit(cache=True, error_model="numpy", inline="always")
@@ -287,11 +114,11 @@ def _desired_gap(F, c, j, k, P):
 @njit(cache=True, error_model="numpy", inline="always")
 def _free_road(F, j, delta, P):
     """IDM's free-road term ``COMFORT_ACC_MAX * (1 - (v / v0)**delta)`` of vehicle j with exponent delta."""
-    tgt = _clip(F[j, TSPD], 0.0, P[P_SPEED_LIMIT])
+    tgt = clip(F[j, TSPD], 0.0, P[P_SPEED_LIMIT])
     sp = F[j, V]
     if not (sp > 0.0):
         sp = 0.0
-    return P[P_COMFORT_ACC_MAX] * (1 - math.pow(sp / abs(_not_zero(tgt)), delta))
+    return P[P_COMFORT_ACC_MAX] * (1 - math.pow(sp / abs(not_zero(tgt)), delta))
 
 
 @njit(cache=True, error_model="numpy", inline="always")
@@ -328,7 +155,7 @@ def _acceleration_free(F, c, j, k, free, P):
     acc = free
     if k >= 0:
         d = F[k, X] - F[j, X]
-        acc -= P[P_COMFORT_ACC_MAX] * math.pow(_desired_gap(F, c, j, k, P) / _not_zero(d), 2.0)
+        acc -= P[P_COMFORT_ACC_MAX] * math.pow(_desired_gap(F, c, j, k, P) / not_zero(d), 2.0)
     return acc
 
 
@@ -347,12 +174,12 @@ def _steering_control(F, j, target_lane, P):
     sp = F[j, V]
     lane_future_heading = 0.0
     lateral_speed_command = -P[P_KP_LATERAL] * lat
-    heading_command = _asin(_clip(lateral_speed_command / _not_zero(sp), -1.0, 1.0))
-    heading_ref = lane_future_heading + _clip(heading_command, -np.pi / 4, np.pi / 4)
-    heading_rate_command = P[P_KP_HEADING] * _wrap_to_pi(heading_ref - F[j, H])
-    slip_angle = _asin(_clip(P[P_LENGTH] / 2 / _not_zero(sp) * heading_rate_command, -1.0, 1.0))
-    steering_angle = _atan(2 * _tan(slip_angle))
-    return _clip(steering_angle, -P[P_MAX_STEERING], P[P_MAX_STEERING])
+    heading_command = asin(clip(lateral_speed_command / not_zero(sp), -1.0, 1.0))
+    heading_ref = lane_future_heading + clip(heading_command, -np.pi / 4, np.pi / 4)
+    heading_rate_command = P[P_KP_HEADING] * wrap_to_pi(heading_ref - F[j, H])
+    slip_angle = asin(clip(P[P_LENGTH] / 2 / not_zero(sp) * heading_rate_command, -1.0, 1.0))
+    steering_angle = atan(2 * tan(slip_angle))
+    return clip(steering_angle, -P[P_MAX_STEERING], P[P_MAX_STEERING])
 
 
 @njit(cache=True, error_model="numpy", inline="always")
@@ -364,25 +191,26 @@ def _linear_steering(F, j, target_lane, P):
     2.0, LLVM rewrites ``pow(x, 2.0)`` as ``x * x``; the exponent ``P[P_SQUARE]`` is only known at run time.
     """
     lat = F[j, Y] - target_lane * P[P_LANE_WIDTH]
-    nz = _not_zero(F[j, V])
-    f0 = _wrap_to_pi(0.0 - F[j, H]) * P[P_LENGTH] / nz
+    nz = not_zero(F[j, V])
+    f0 = wrap_to_pi(0.0 - F[j, H]) * P[P_LENGTH] / nz
     f1 = -lat * P[P_LENGTH] / math.pow(nz, P[P_SQUARE])
     return F[j, SP0] * f0 + F[j, SP1] * f1
 
 
 @njit(cache=True, error_model="numpy", inline="always")
-def _speed_to_index(speed, ts):
+def speed_to_index(speed, ts):
+    """``MDPVehicle.speed_to_index``: the index of the target speed in ``ts`` [m/s] nearest ``speed`` [m/s]."""
     m = ts.size
     x = (speed - ts[0]) / (ts[m - 1] - ts[0])
     r = np.rint(x * (m - 1))
-    return int(_clip(r, 0.0, float(m - 1)))
+    return int(clip(r, 0.0, float(m - 1)))
 
 
 @njit(cache=True, error_model="numpy", inline="always")
 def _act_ego(F, G, E, ts, action, n_lanes, P):
     """MDPVehicle.act(action) (action < 0: act(None)), then ControlledVehicle's controllers."""
     if action in (FASTER, SLOWER):
-        si = _speed_to_index(F[0, V], ts) + (1 if action == FASTER else -1)
+        si = speed_to_index(F[0, V], ts) + (1 if action == FASTER else -1)
         if si < 0:
             si = 0
         if si > ts.size - 1:
@@ -395,10 +223,10 @@ def _act_ego(F, G, E, ts, action, n_lanes, P):
             cand = 0
         if cand > n_lanes - 1:
             cand = n_lanes - 1
-        if _is_reachable(F[0, X], F[0, Y], cand, P):
+        if is_reachable(F[0, X], F[0, Y], cand, P):
             G[0, TLANE] = cand
     steer = _steering_control(F, 0, G[0, TLANE], P)
-    F[0, STEER] = _clip(steer, -P[P_MAX_STEERING], P[P_MAX_STEERING])
+    F[0, STEER] = clip(steer, -P[P_MAX_STEERING], P[P_MAX_STEERING])
     F[0, ACC] = P[P_KP_A] * (F[0, TSPD] - F[0, V])
 
 
@@ -451,19 +279,19 @@ def _change_lane_policy(F, G, n, j, n_lanes, P, members, mx, cnt, free_j):
         cand = lane - 1 if side == 0 else lane + 1
         if cand < 0 or cand > n_lanes - 1:
             continue
-        if not _is_reachable(F[j, X], F[j, Y], cand, P):
+        if not is_reachable(F[j, X], F[j, Y], cand, P):
             continue
         if abs(F[j, V]) < 1:
             continue
         # --- mobil(cand)
-        new_preceding, new_following = _neighbours(F, j, cand, members, mx, cnt)
+        new_preceding, new_following = neighbours(F, j, cand, members, mx, cnt)
         free_nf = _free_c(F, G, j, new_following, P)
         new_following_a = _acc_c(F, G, j, new_following, new_preceding, free_nf, P)
         new_following_pred_a = _acc_c(F, G, j, new_following, j, free_nf, P)
         if new_following_pred_a < -P[P_MAX_BRAKING_IMPOSED]:
             continue
         if not old_done:
-            old_preceding, old_following = _neighbours(F, j, lane, members, mx, cnt)
+            old_preceding, old_following = neighbours(F, j, lane, members, mx, cnt)
             self_a = _own_acceleration(F, G, j, old_preceding, free_j, P)
             free_of = _free_c(F, G, j, old_following, P)
             old_following_a = _acc_c(F, G, j, old_following, j, free_of, P)
@@ -490,15 +318,15 @@ def _act_idm(F, G, n, j, n_lanes, P, members, mx, cnt):
         _change_lane_policy(F, G, n, j, n_lanes, P, members, mx, cnt, free_j)
     lin = G[j, LIN]
     steer = _linear_steering(F, j, G[j, TLANE], P) if lin else _steering_control(F, j, G[j, TLANE], P)
-    F[j, STEER] = _clip(steer, -P[P_MAX_STEERING], P[P_MAX_STEERING])
-    front, _rear = _neighbours(F, j, G[j, LANE], members, mx, cnt)
+    F[j, STEER] = clip(steer, -P[P_MAX_STEERING], P[P_MAX_STEERING])
+    front, _rear = neighbours(F, j, G[j, LANE], members, mx, cnt)
     acc = _own_acceleration(F, G, j, front, free_j, P)
     if G[j, LANE] != G[j, TLANE]:
-        front2, _rear2 = _neighbours(F, j, G[j, TLANE], members, mx, cnt)
+        front2, _rear2 = neighbours(F, j, G[j, TLANE], members, mx, cnt)
         acc2 = _own_acceleration(F, G, j, front2, free_j, P)
         if acc2 < acc:
             acc = acc2
-    F[j, ACC] = _clip(acc, -P[P_ACC_MAX], P[P_ACC_MAX])
+    F[j, ACC] = clip(acc, -P[P_ACC_MAX], P[P_ACC_MAX])
 
 
 @njit(cache=True, error_model="numpy", inline="always")
@@ -520,10 +348,10 @@ def _step_vehicle(F, G, j, dt, n_lanes, P):
         if lim > F[j, ACC]:
             F[j, ACC] = lim
     delta_f = F[j, STEER]
-    beta = _atan(1 / 2 * _tan(delta_f))
+    beta = atan(1 / 2 * tan(delta_f))
     hb = F[j, H] + beta
-    vx = sp * _cos(hb)
-    vy = sp * _sin(hb)
+    vx = sp * cos(hb)
+    vy = sp * sin(hb)
     F[j, X] += vx * dt
     F[j, Y] += vy * dt
     if G[j, HASIMP]:
@@ -531,7 +359,7 @@ def _step_vehicle(F, G, j, dt, n_lanes, P):
         F[j, Y] += F[j, IMPY]
         G[j, CRASHED] = 1
         G[j, HASIMP] = 0
-    F[j, H] += sp * _sin(beta) / (P[P_LENGTH] / 2) * dt
+    F[j, H] += sp * sin(beta) / (P[P_LENGTH] / 2) * dt
     F[j, V] += F[j, ACC] * dt
     G[j, LANE] = closest_lane(F[j, X], F[j, Y], F[j, H], n_lanes, P)
 
@@ -541,8 +369,8 @@ def _polygon(F, j, P, out):
     """RoadObject.polygon(): 4 corners + the first again, rotated then translated."""
     hl = P[P_LENGTH] / 2
     hw = P[P_WIDTH] / 2
-    c = _cos(F[j, H])
-    s = _sin(F[j, H])
+    c = cos(F[j, H])
+    s = sin(F[j, H])
     px0 = -hl
     py0 = -hw
     px1 = -hl
@@ -647,10 +475,10 @@ def _handle_collisions(F, G, i, j, dt, P, pa, pb, res):
         return
     _polygon(F, i, P, pa)
     _polygon(F, j, P, pb)
-    dax = F[i, V] * _cos(F[i, H]) * dt
-    day = F[i, V] * _sin(F[i, H]) * dt
-    dbx = F[j, V] * _cos(F[j, H]) * dt
-    dby = F[j, V] * _sin(F[j, H]) * dt
+    dax = F[i, V] * cos(F[i, H]) * dt
+    day = F[i, V] * sin(F[i, H]) * dt
+    dbx = F[j, V] * cos(F[j, H]) * dt
+    dby = F[j, V] * sin(F[j, H]) * dt
     intersecting, will = _polygons_intersecting(pa, pb, dax, day, dbx, dby, res)
     if will:
         F[i, IMPX] = res[0] / 2
@@ -759,56 +587,6 @@ def simulate(F, G, E, ts, P, action, frames, dt, n_lanes, before, after, rec):
                 after[k, 1] = F[k, Y]
 
 
-# --- reset: HighwayEnv._create_vehicles from the generator's raw 64-bit outputs -------------------
-# numpy's Generator on PCG64: ``uniform(lo, hi) = lo + (hi - lo) * next_double`` with
-# ``next_double = (raw >> 11) / 2**53``; ``choice(n)`` = ``integers(0, n)`` = Lemire's bounded draw on
-# ``next_uint32``, which takes the low half of a raw output and keeps the high half in the bit
-# generator's ``has_uint32`` / ``uinteger`` buffer for the next call. ``st`` = [raws used, has_uint32,
-# uinteger]; ``st[0] < 0`` flags that ``raws`` ran out (draw more and replay).
-
-
-@njit(cache=True, error_model="numpy")
-def _next_uint32(raws, st):
-    if st[1]:
-        st[1] = 0
-        return np.uint64(st[2])
-    if st[0] < 0 or st[0] >= raws.size:
-        st[0] = -1
-        return np.uint64(0)
-    r = raws[st[0]]
-    st[0] += 1
-    st[1] = 1
-    st[2] = np.int64(r >> np.uint64(32))
-    return r & np.uint64(0xFFFFFFFF)
-
-
-@njit(cache=True, error_model="numpy")
-def _integers(raws, st, n):
-    """Generator.integers(0, n) (== choice(n)) for int64, n <= 2**32."""
-    rng = n - 1
-    if rng == 0:
-        return 0
-    excl = np.uint64(rng + 1)
-    m = _next_uint32(raws, st) * excl
-    left = m & np.uint64(0xFFFFFFFF)
-    if left < excl:
-        thr = (np.uint64(0xFFFFFFFF) - np.uint64(rng)) % excl
-        while left < thr:
-            m = _next_uint32(raws, st) * excl
-            left = m & np.uint64(0xFFFFFFFF)
-    return np.int64(m >> np.uint64(32))
-
-
-@njit(cache=True, error_model="numpy")
-def _uniform(raws, st, lo, hi):
-    if st[0] < 0 or st[0] >= raws.size:
-        st[0] = -1
-        return lo
-    r = raws[st[0]]
-    st[0] += 1
-    return lo + (hi - lo) * ((r >> np.uint64(11)) * (1.0 / 9007199254740992.0))
-
-
 @njit(cache=True, error_model="numpy", inline="always")
 def _place_vehicle(raws, st, k, x, y, speed, delay, drv, lin, d_lo, d_hi, check_others, n_lanes, P, F, G):
     """Row ``k``: an ``IDMVehicle`` (or a linear-model driver, ``lin``) created at (x, y) [m] going ``speed``
@@ -825,18 +603,18 @@ def _place_vehicle(raws, st, k, x, y, speed, delay, drv, lin, d_lo, d_hi, check_
     F[k, TW] = drv[1]
     F[k, GAIN] = drv[2]
     if lin:
-        u0 = _uniform(raws, st, 0.0, 1.0)
-        u1 = _uniform(raws, st, 0.0, 1.0)
-        u2 = _uniform(raws, st, 0.0, 1.0)
+        u0 = uniform(raws, st, 0.0, 1.0)
+        u1 = uniform(raws, st, 0.0, 1.0)
+        u2 = uniform(raws, st, 0.0, 1.0)
         F[k, AP0] = drv[3] + u0 * (drv[6] - drv[3])
         F[k, AP1] = drv[4] + u1 * (drv[7] - drv[4])
         F[k, AP2] = drv[5] + u2 * (drv[8] - drv[5])
-        v0 = _uniform(raws, st, 0.0, 1.0)
-        v1 = _uniform(raws, st, 0.0, 1.0)
+        v0 = uniform(raws, st, 0.0, 1.0)
+        v1 = uniform(raws, st, 0.0, 1.0)
         F[k, SP0] = drv[9] + v0 * (drv[11] - drv[9])
         F[k, SP1] = drv[10] + v1 * (drv[12] - drv[10])
         G[k, LIN] = 1
-    F[k, DELTA] = _uniform(raws, st, d_lo, d_hi)
+    F[k, DELTA] = uniform(raws, st, d_lo, d_hi)
     lane = closest_lane(x, y, 0.0, n_lanes, P)
     G[k, LANE] = lane
     G[k, TLANE] = lane
@@ -857,12 +635,12 @@ def spawn(raws, st, ego_lane, ego_spacing, spacing, lanes_factor, lo, hi, d_lo, 
     Returns False when ``raws`` ran out (``st[0] == -1``)."""
     n = F.shape[0]
     width = P[P_LANE_WIDTH]
-    lane_id = ego_lane if ego_lane >= 0 else _integers(raws, st, n_lanes)
+    lane_id = ego_lane if ego_lane >= 0 else integers(raws, st, n_lanes)
     speed = 25.0
     default_spacing = 12 + 1.0 * speed
     offset = ego_spacing * default_spacing * lanes_factor
     x0 = 3 * offset
-    x0 += offset * _uniform(raws, st, 0.9, 1.1)
+    x0 += offset * uniform(raws, st, 0.9, 1.1)
     x = x0
     y = lane_id * width
     F[0, :] = 0.0
@@ -874,7 +652,7 @@ def spawn(raws, st, ego_lane, ego_spacing, spacing, lanes_factor, lo, hi, d_lo, 
     G[0, LANE] = lane
     G[0, TLANE] = lane
     G[0, CHECK] = 1
-    si = _speed_to_index(speed, ts)
+    si = speed_to_index(speed, ts)
     E[0] = si
     F[0, TSPD] = ts[si]
     F[0, DELTA] = ego_delta
@@ -882,12 +660,12 @@ def spawn(raws, st, ego_lane, ego_spacing, spacing, lanes_factor, lo, hi, d_lo, 
     lin = drv[0] != 0.0
     x_max = x
     for k in range(1, n):
-        lane_id = _integers(raws, st, n_lanes)
-        speed = _uniform(raws, st, lo, hi)
+        lane_id = integers(raws, st, n_lanes)
+        speed = uniform(raws, st, lo, hi)
         default_spacing = 12 + 1.0 * speed
         offset = spacing * default_spacing * lanes_factor
         x0 = x_max
-        x0 += offset * _uniform(raws, st, 0.9, 1.1)
+        x0 += offset * uniform(raws, st, 0.9, 1.1)
         x = x0
         y = lane_id * width
         _place_vehicle(raws, st, k, x, y, speed, delay, drv, lin, d_lo, d_hi, check_others, n_lanes, P, F, G)
@@ -908,10 +686,10 @@ def spawn_behind(raws, st, first, count, x, lo, hi, lanes_factor, density, d_lo,
     width = P[P_LANE_WIDTH]
     lin = drv[0] != 0.0
     for k in range(first, first + count):
-        lane_id = _integers(raws, st, n_lanes)
-        speed = _uniform(raws, st, lo, hi)
+        lane_id = integers(raws, st, n_lanes)
+        speed = uniform(raws, st, lo, hi)
         offset = (12 + speed) * lanes_factor / density
-        x -= offset * _uniform(raws, st, 0.9, 1.1)
+        x -= offset * uniform(raws, st, 0.9, 1.1)
         y = lane_id * width
         _place_vehicle(raws, st, k, x, y, speed, delay, drv, lin, d_lo, d_hi, check_others, n_lanes, P, F, G)
     return st[0] >= 0

@@ -38,6 +38,8 @@ from highway_env.vehicle.controller import ControlledVehicle, MDPVehicle
 from highway_env.vehicle.kinematics import Vehicle
 
 from safelane.sim.fast import kernels as K
+from safelane.sim.fast import layout as L
+from safelane.sim.fast.lanes import closest_lane
 
 ENV_IDS = ("highway-v0", "highway-fast-v0")
 IDM_PATH = "highway_env.vehicle.behavior.IDMVehicle"
@@ -204,31 +206,31 @@ def driver_constants(cls: type) -> np.ndarray:
 
 def params() -> np.ndarray:
     """The kernels' parameter vector, read from highway-env's class constants."""
-    P = np.zeros(K.NP)
-    P[K.P_LANE_WIDTH] = StraightLane.DEFAULT_WIDTH
-    P[K.P_LANE_LENGTH] = LANE_LENGTH
-    P[K.P_VEHICLE_LENGTH_LANE] = AbstractLane.VEHICLE_LENGTH
-    P[K.P_SPEED_LIMIT] = SPEED_LIMIT
-    P[K.P_LENGTH] = Vehicle.LENGTH
-    P[K.P_WIDTH] = Vehicle.WIDTH
-    P[K.P_DIAGONAL] = np.sqrt(Vehicle.LENGTH**2 + Vehicle.WIDTH**2)
-    P[K.P_MAX_SPEED] = Vehicle.MAX_SPEED
-    P[K.P_MIN_SPEED] = Vehicle.MIN_SPEED
-    P[K.P_TAU_PURSUIT] = ControlledVehicle.TAU_PURSUIT
-    P[K.P_KP_A] = ControlledVehicle.KP_A
-    P[K.P_KP_HEADING] = ControlledVehicle.KP_HEADING
-    P[K.P_KP_LATERAL] = ControlledVehicle.KP_LATERAL
-    P[K.P_MAX_STEERING] = ControlledVehicle.MAX_STEERING_ANGLE
-    P[K.P_ACC_MAX] = IDMVehicle.ACC_MAX
-    P[K.P_COMFORT_ACC_MAX] = IDMVehicle.COMFORT_ACC_MAX
-    P[K.P_COMFORT_ACC_MIN] = IDMVehicle.COMFORT_ACC_MIN
-    P[K.P_DISTANCE_WANTED] = IDMVehicle.DISTANCE_WANTED
-    P[K.P_TIME_WANTED] = IDMVehicle.TIME_WANTED
-    P[K.P_POLITENESS] = IDMVehicle.POLITENESS
-    P[K.P_MIN_ACC_GAIN] = IDMVehicle.LANE_CHANGE_MIN_ACC_GAIN
-    P[K.P_MAX_BRAKING_IMPOSED] = IDMVehicle.LANE_CHANGE_MAX_BRAKING_IMPOSED
-    P[K.P_LANE_CHANGE_DELAY] = IDMVehicle.LANE_CHANGE_DELAY
-    P[K.P_SQUARE] = 2.0
+    P = np.zeros(L.NP)
+    P[L.P_LANE_WIDTH] = StraightLane.DEFAULT_WIDTH
+    P[L.P_LANE_LENGTH] = LANE_LENGTH
+    P[L.P_VEHICLE_LENGTH_LANE] = AbstractLane.VEHICLE_LENGTH
+    P[L.P_SPEED_LIMIT] = SPEED_LIMIT
+    P[L.P_LENGTH] = Vehicle.LENGTH
+    P[L.P_WIDTH] = Vehicle.WIDTH
+    P[L.P_DIAGONAL] = np.sqrt(Vehicle.LENGTH**2 + Vehicle.WIDTH**2)
+    P[L.P_MAX_SPEED] = Vehicle.MAX_SPEED
+    P[L.P_MIN_SPEED] = Vehicle.MIN_SPEED
+    P[L.P_TAU_PURSUIT] = ControlledVehicle.TAU_PURSUIT
+    P[L.P_KP_A] = ControlledVehicle.KP_A
+    P[L.P_KP_HEADING] = ControlledVehicle.KP_HEADING
+    P[L.P_KP_LATERAL] = ControlledVehicle.KP_LATERAL
+    P[L.P_MAX_STEERING] = ControlledVehicle.MAX_STEERING_ANGLE
+    P[L.P_ACC_MAX] = IDMVehicle.ACC_MAX
+    P[L.P_COMFORT_ACC_MAX] = IDMVehicle.COMFORT_ACC_MAX
+    P[L.P_COMFORT_ACC_MIN] = IDMVehicle.COMFORT_ACC_MIN
+    P[L.P_DISTANCE_WANTED] = IDMVehicle.DISTANCE_WANTED
+    P[L.P_TIME_WANTED] = IDMVehicle.TIME_WANTED
+    P[L.P_POLITENESS] = IDMVehicle.POLITENESS
+    P[L.P_MIN_ACC_GAIN] = IDMVehicle.LANE_CHANGE_MIN_ACC_GAIN
+    P[L.P_MAX_BRAKING_IMPOSED] = IDMVehicle.LANE_CHANGE_MAX_BRAKING_IMPOSED
+    P[L.P_LANE_CHANGE_DELAY] = IDMVehicle.LANE_CHANGE_DELAY
+    P[L.P_SQUARE] = 2.0
     return P
 
 
@@ -262,7 +264,7 @@ def build_scene(
         return build_scene_python(rng, sc, P)
     n = 1 + sc.vehicles_count
     if out is None:
-        out = (np.zeros((n, K.NF)), np.zeros((n, K.NI), dtype=np.int64), np.zeros(1, dtype=np.int64))
+        out = (np.zeros((n, L.NF)), np.zeros((n, L.NI), dtype=np.int64), np.zeros(1, dtype=np.int64))
     F, G, E = out
     n_int = sc.vehicles_count + (1 if sc.initial_lane_id is None else 0) if sc.lanes_count > 1 else 0
     n_dbl = 1 + (8 if sc.driver[0] else 3) * sc.vehicles_count
@@ -319,29 +321,29 @@ def _place_python(
     The reference twin of ``kernels._place_vehicle``, shared by :func:`build_scene_python` and
     :func:`spawn_behind_python`."""
     uniform = rng.uniform
-    F[k, K.X] = x
-    F[k, K.Y] = y
-    F[k, K.H] = 0.0
-    F[k, K.V] = speed
-    F[k, K.TSPD] = speed
-    F[k, K.TIMER] = ((x + y) * np.pi) % cls.LANE_CHANGE_DELAY
-    F[k, K.TW] = cls.TIME_WANTED
-    F[k, K.GAIN] = cls.LANE_CHANGE_MIN_ACC_GAIN
+    F[k, L.X] = x
+    F[k, L.Y] = y
+    F[k, L.H] = 0.0
+    F[k, L.V] = speed
+    F[k, L.TSPD] = speed
+    F[k, L.TIMER] = ((x + y) * np.pi) % cls.LANE_CHANGE_DELAY
+    F[k, L.TW] = cls.TIME_WANTED
+    F[k, L.GAIN] = cls.LANE_CHANGE_MIN_ACC_GAIN
     if issubclass(cls, LinearVehicle):  # LinearVehicle.randomize_behavior, then IDMVehicle's
         ar, sr = cls.ACCELERATION_RANGE, cls.STEERING_RANGE
         ua = uniform(size=np.shape(cls.ACCELERATION_PARAMETERS))
-        F[k, K.AP0 : K.AP2 + 1] = ar[0] + ua * (ar[1] - ar[0])
+        F[k, L.AP0 : L.AP2 + 1] = ar[0] + ua * (ar[1] - ar[0])
         ub = uniform(size=np.shape(cls.STEERING_PARAMETERS))
-        F[k, K.SP0 : K.SP1 + 1] = sr[0] + ub * (sr[1] - sr[0])
-        G[k, K.LIN] = 1
+        F[k, L.SP0 : L.SP1 + 1] = sr[0] + ub * (sr[1] - sr[0])
+        G[k, L.LIN] = 1
     d_lo, d_hi = cls.DELTA_RANGE
-    F[k, K.DELTA] = uniform(low=d_lo, high=d_hi)
-    lane = K.closest_lane(x, y, 0.0, n_lanes, P)
-    G[k, K.LANE] = lane
-    G[k, K.TLANE] = lane
-    G[k, K.CHECK] = check
-    G[k, K.ELC] = 1
-    G[k, K.IDM] = 1
+    F[k, L.DELTA] = uniform(low=d_lo, high=d_hi)
+    lane = closest_lane(x, y, 0.0, n_lanes, P)
+    G[k, L.LANE] = lane
+    G[k, L.TLANE] = lane
+    G[k, L.CHECK] = check
+    G[k, L.ELC] = 1
+    G[k, L.IDM] = 1
 
 
 def build_scene_python(
@@ -350,10 +352,10 @@ def build_scene_python(
     """``HighwayEnv._create_vehicles`` with the generator's own calls (the reference for :func:`build_scene`)."""
     n_lanes = sc.lanes_count
     n = 1 + sc.vehicles_count
-    F = np.zeros((n, K.NF))
-    G = np.zeros((n, K.NI), dtype=np.int64)
+    F = np.zeros((n, L.NF))
+    G = np.zeros((n, L.NI), dtype=np.int64)
     E = np.zeros(1, dtype=np.int64)
-    width = float(P[K.P_LANE_WIDTH])
+    width = float(P[L.P_LANE_WIDTH])
     lanes_factor = np.exp(-5 / 40 * n_lanes)
     uniform = rng.uniform
     choice = rng.choice
@@ -370,21 +372,21 @@ def build_scene_python(
     x0 += offset * uniform(0.9, 1.1)
     x, y = float(x0), float(lane_id * width)
     # MDPVehicle(road, position, heading, speed)
-    F[0, K.X] = x
-    F[0, K.Y] = y
-    F[0, K.H] = 0.0
-    F[0, K.V] = speed
-    lane = K.closest_lane(x, y, 0.0, n_lanes, P)
-    G[0, K.LANE] = lane
-    G[0, K.TLANE] = lane
-    G[0, K.CHECK] = 1
-    G[0, K.IDM] = 0
+    F[0, L.X] = x
+    F[0, L.Y] = y
+    F[0, L.H] = 0.0
+    F[0, L.V] = speed
+    lane = closest_lane(x, y, 0.0, n_lanes, P)
+    G[0, L.LANE] = lane
+    G[0, L.TLANE] = lane
+    G[0, L.CHECK] = 1
+    G[0, L.IDM] = 0
     ts = sc.target_speeds
-    si = K._speed_to_index(speed, ts)
+    si = K.speed_to_index(speed, ts)
     E[0] = si
-    F[0, K.TSPD] = ts[si]
-    F[0, K.DELTA] = IDMVehicle.DELTA
-    F[0, K.TW] = IDMVehicle.TIME_WANTED
+    F[0, L.TSPD] = ts[si]
+    F[0, L.DELTA] = IDMVehicle.DELTA
+    F[0, L.TW] = IDMVehicle.TIME_WANTED
     x_max = x
 
     # --- the others: IDMVehicle.create_random(road, spacing=1 / vehicles_density); randomize_behavior()
@@ -417,7 +419,7 @@ def _make_room(F: np.ndarray, G: np.ndarray, count: int) -> tuple[int, int]:
     count = max(min(int(count), n_others), 0)
     if count == 0:
         return F.shape[0], 0
-    order = np.argsort(F[1:, K.X], kind="stable") + 1
+    order = np.argsort(F[1:, L.X], kind="stable") + 1
     keep = np.sort(order[: n_others - count])
     F[1 : 1 + keep.size] = F[keep]
     G[1 : 1 + keep.size] = G[keep]
@@ -448,7 +450,7 @@ def spawn_behind(
     cls = sc.other_class
     d_lo, d_hi = cls.DELTA_RANGE
     limit = SPEED_LIMIT or 30.0  # lane.speed_limit or 30.0
-    x = float(F[0, K.X])  # ego.lane.local_coordinates(ego.position)[0]
+    x = float(F[0, L.X])  # ego.lane.local_coordinates(ego.position)[0]
 
     def draw(raws: np.ndarray, st: np.ndarray) -> bool:
         return K.spawn_behind(
@@ -481,14 +483,14 @@ def spawn_behind_python(
         return 0
     cls = sc.other_class
     n_lanes = sc.lanes_count
-    width = float(P[K.P_LANE_WIDTH])
+    width = float(P[L.P_LANE_WIDTH])
     limit = SPEED_LIMIT or 30.0  # lane.speed_limit or 30.0
     lanes_factor = math.exp(-5 / 40 * n_lanes)
     density = sc.vehicles_density
     check = 1 if sc.others_check_collisions else 0
     uniform = rng.uniform
     # ego.lane.local_coordinates(ego.position)[0]: lane i starts at (0, i·w) with direction (1, 0)
-    x = float(F[0, K.X])
+    x = float(F[0, L.X])
     for k in range(first, first + count):
         lane_id = int(rng.integers(n_lanes))
         speed = float(uniform(0.7 * limit, 1.0 * limit))

@@ -362,9 +362,8 @@ class BatchedLearner:
     # -- groups ------------------------------------------------------------------------------------
     def _layout(self, k: int) -> tuple:
         agent = self.agents[k]
-        return (type(agent) is ConstrainedAgent or agent.method == "constrained",) + tuple(
-            (name, net.net[-1].out_features) for name, net in agent.networks.items()
-        )
+        shapes = tuple((name, net.net[-1].out_features) for name, net in agent.networks.items())
+        return (isinstance(agent, ConstrainedAgent), *shapes)
 
     def _build_groups(self) -> None:
         # The groups are rebuilt from the agents: first bring every agent up to date.
@@ -390,7 +389,7 @@ class BatchedLearner:
         self._build_groups()
 
     def load_run(self, k: int, agent_state: dict[str, Any], buffer_state: dict[str, Any]) -> None:
-        """Restore run ``k`` from a per-run checkpoint (:meth:`DQNAgent.state_dict`, :meth:`ReplayBuffer.state_dict`)."""
+        """Restore run ``k`` from a per-run checkpoint (``DQNAgent.state_dict``, ``ReplayBuffer.state_dict``)."""
         self.where.pop(k, None)  # the checkpoint, not the group's current state, is run k's state
         self.agents[k].load_state_dict(agent_state)
         buffer = ReplayBuffer(int(self.capacity[k]), self.obs.shape[2])

@@ -111,28 +111,42 @@ def _uniform_or_tensor(values: list[bool], shape: tuple[int, ...]) -> torch.Tens
 class _Group:
     """The runs whose networks share one layout, stacked: parameters, targets, Adam state, acting copies."""
 
-    def __init__(self, learner: BatchedLearner, runs: list[int]) -> None:
+    def __init__(
+        self, learner: BatchedLearner, runs: list[int], source: tuple[_Group, list[int]] | None = None
+    ) -> None:
+        """The group of ``runs``: their tensors from their agents, or (``source``) the rows ``keep`` of a
+        group they already form part of (runs leaving a batch: no copy through the agents)."""
         self.learner = learner
         agents = [learner.agents[k] for k in runs]
         self.names = tuple(agents[0].networks)
         self.constrained = isinstance(agents[0], ConstrainedAgent)
         self.runs = runs
-        with torch.no_grad():
-            self.params = [
-                torch.stack([list(a.networks[n].parameters())[i].detach() for a in agents]).clone().requires_grad_()
-                for n in self.names
-                for i in range(6)
-            ]
-            self.targets = [
-                torch.stack([list(a.targets[n].parameters())[i].detach() for a in agents]).clone()
-                for n in self.names
-                for i in range(6)
-            ]
-        self.exp_avg = [torch.zeros_like(p) for p in self.params]
-        self.exp_avg_sq = [torch.zeros_like(p) for p in self.params]
-        self.steps = [torch.zeros((), dtype=torch.float32) for _ in runs]
-        for j, a in enumerate(agents):  # a resumed agent's Adam state
-            self._load_adam(j, a)
+        if source is not None:
+            old, keep = source
+            idx = torch.tensor(keep, dtype=torch.int64)
+            with torch.no_grad():
+                self.params = [p.detach()[idx].clone().requires_grad_() for p in old.params]
+                self.targets = [t[idx].clone() for t in old.targets]
+                self.exp_avg = [t[idx].clone() for t in old.exp_avg]
+                self.exp_avg_sq = [t[idx].clone() for t in old.exp_avg_sq]
+            self.steps = [old.steps[j] for j in keep]
+        else:
+            with torch.no_grad():
+                self.params = [
+                    torch.stack([list(a.networks[n].parameters())[i].detach() for a in agents]).clone().requires_grad_()
+                    for n in self.names
+                    for i in range(6)
+                ]
+                self.targets = [
+                    torch.stack([list(a.targets[n].parameters())[i].detach() for a in agents]).clone()
+                    for n in self.names
+                    for i in range(6)
+                ]
+            self.exp_avg = [torch.zeros_like(p) for p in self.params]
+            self.exp_avg_sq = [torch.zeros_like(p) for p in self.params]
+            self.steps = [torch.zeros((), dtype=torch.float32) for _ in runs]
+            for j, a in enumerate(agents):  # a resumed agent's Adam state
+                self._load_adam(j, a)
         self._refresh_views()
         cfgs = [a.cfg for a in agents]
         n = len(runs)
@@ -366,13 +380,14 @@ class BatchedLearner:
         return (isinstance(agent, ConstrainedAgent), *shapes)
 
     def _build_groups(self) -> None:
-        # The groups are rebuilt from the agents: first bring every agent up to date.
-        for k in list(getattr(self, "where", {})):
-            self.export(k)
+        """Group the active runs by network layout, their tensors read from their agents."""
         layouts: dict[tuple, list[int]] = {}
         for k in np.flatnonzero(self.active).tolist():
             layouts.setdefault(self._layout(k), []).append(k)
-        self.groups = [_Group(self, runs) for runs in layouts.values()]
+        self._set_groups([_Group(self, runs) for runs in layouts.values()])
+
+    def _set_groups(self, groups: list[_Group]) -> None:
+        self.groups = groups
         self.where = {k: (g, j) for g in self.groups for j, k in enumerate(g.runs)}
 
     def export(self, k: int) -> DQNAgent:
@@ -385,19 +400,29 @@ class BatchedLearner:
     def retire(self, runs: Sequence[int]) -> None:
         """Stop runs ``runs`` (finished): their agents keep their final state, the others continue."""
         for k in runs:
+            self.export(k)
             self.active[k] = False
-        self._build_groups()
+        groups = []
+        for group in self.groups:
+            keep = [j for j, k in enumerate(group.runs) if self.active[k]]
+            if len(keep) == len(group.runs):
+                groups.append(group)
+            elif keep:
+                groups.append(_Group(self, [group.runs[j] for j in keep], source=(group, keep)))
+        self._set_groups(groups)
 
-    def load_run(self, k: int, agent_state: dict[str, Any], buffer_state: dict[str, Any]) -> None:
-        """Restore run ``k`` from a per-run checkpoint (``DQNAgent.state_dict``, ``ReplayBuffer.state_dict``)."""
-        self.where.pop(k, None)  # the checkpoint, not the group's current state, is run k's state
-        self.agents[k].load_state_dict(agent_state)
-        buffer = ReplayBuffer(int(self.capacity[k]), self.obs.shape[2])
-        buffer.load_state_dict(buffer_state)
-        size = buffer.size
-        for name in ReplayBuffer.FIELDS:
-            getattr(self, name)[k, :size] = getattr(buffer, name)[:size]
-        self.pos[k], self.size[k] = buffer.pos, size
+    def load_runs(self, states: dict[int, tuple[dict[str, Any], dict[str, Any]]]) -> None:
+        """Restore runs from per-run checkpoints: ``{k: (agent state, buffer state)}`` in the forms of
+        ``DQNAgent.state_dict`` and ``ReplayBuffer.state_dict``; before any act or update (the groups are
+        rebuilt from the agents)."""
+        for k, (agent_state, buffer_state) in states.items():
+            self.agents[k].load_state_dict(agent_state)
+            buffer = ReplayBuffer(int(self.capacity[k]), self.obs.shape[2])
+            buffer.load_state_dict(buffer_state)
+            size = buffer.size
+            for name in ReplayBuffer.FIELDS:
+                getattr(self, name)[k, :size] = getattr(buffer, name)[:size]
+            self.pos[k], self.size[k] = buffer.pos, size
         self._build_groups()
 
     def buffer_state(self, k: int) -> dict[str, Any]:

@@ -105,10 +105,10 @@ def train_batched(
     rows: list[list[dict[str, Any]]] = [[] for _ in range(n)]
     wall_before = np.zeros(n)
     env_before = np.zeros(n)
+    learner.load_runs({k: (state["agent"], state["buffer"]) for k, state in enumerate(states) if state is not None})
     for k, state in enumerate(states):
         if state is None:
             continue
-        learner.load_run(k, state["agent"], state["buffer"])
         episode[k], global_step[k] = int(state["episode"]), int(state["global_step"])
         rows[k] = [dict(r) for r in state["rows"]]
         wall_before[k] = float(state["wall_time_s"])

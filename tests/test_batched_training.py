@@ -50,12 +50,15 @@ def _rows(run_dir: Path) -> list[dict[str, str]]:
 
 def _same_networks(a: Path, b: Path) -> bool:
     sa, sb = load_checkpoint(a)["agent"], load_checkpoint(b)["agent"]
-    return all(
-        torch.equal(sa[part][name][key], sb[part][name][key])
-        for part in ("networks", "targets")
-        for name in sa[part]
-        for key in sa[part][name]
-    ) and sa["rng"] == sb["rng"]
+    return (
+        all(
+            torch.equal(sa[part][name][key], sb[part][name][key])
+            for part in ("networks", "targets")
+            for name in sa[part]
+            for key in sa[part][name]
+        )
+        and sa["rng"] == sb["rng"]
+    )
 
 
 def _cfg(method: str, seed: int, sets: list[str], episodes: int = 6, **fields: Any) -> Any:
@@ -126,3 +129,30 @@ def test_bad_batches_are_one_line_errors(tmp_path: Path) -> None:
 def test_the_bench_figure_counts_every_runs_decisions() -> None:
     rates = train_batched_steps_per_s(sizes=(2,), episodes=1)
     assert set(rates) == {"2"} and rates["2"] > 0
+
+
+@pytest.mark.slow
+def test_small_protocol_gives_the_per_run_learners_table(tmp_path: Path) -> None:
+    """4 methods × 3 seeds × 60 episodes, 100 test episodes: the per-method means and bootstrap CIs of
+    speed and collision rate overlap the per-run learner's (here: equal, every test episode the same)."""
+    from safelane.running.experiments import make_spec, run_dir_of, run_experiment
+
+    spec = make_spec(seeds=[0, 1, 2], episodes=60, test_episodes=100, sets=["simulator=fast"])
+    per_run = run_experiment(spec, tmp_path / "per-run", workers=1)
+    pairs = [(m, s) for s in spec.seeds for m in spec.methods]
+    cfgs = [
+        make_train_config(method=m, episodes=spec.episodes, seed=s, sets=spec.sets, checkpoint_every=15)
+        for m, s in pairs
+    ]
+    train_batched(cfgs, [run_dir_of(tmp_path / "batched", m, s) for m, s in pairs])
+    batched = run_experiment(spec, tmp_path / "batched", workers=1)  # finds every run trained: evaluates
+    for method in spec.methods:
+        a, b = per_run["methods"][method]["aggregate"], batched["methods"][method]["aggregate"]
+        for key in ("mean_speed", "collision_rate"):
+            (lo_a, hi_a), (lo_b, hi_b) = a[key]["ci95"], b[key]["ci95"]
+            assert lo_a <= hi_b and lo_b <= hi_a, f"{method} {key}: {a[key]} vs {b[key]}"
+            assert a[key]["mean"] == b[key]["mean"]
+    strip = ("method", "seed", "test_episode")
+    assert [{k: v for k, v in e.items() if k not in strip} for e in per_run["episodes"]] == [
+        {k: v for k, v in e.items() if k not in strip} for e in batched["episodes"]
+    ]

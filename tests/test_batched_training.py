@@ -29,10 +29,11 @@ from safelane.running.training import (
 
 FAST = ["simulator=fast", "agent.learning_starts=64", "agent.target_update_interval=50"]
 
-# Every branch of the batched losses in one batch: the four methods, constrained's two network layouts,
-# mse and huber, robust's three shaping targets and its hinge, with and without gradient clipping.
+# Every branch of the batched losses in one batch: the four methods, constrained's two network layouts, runs'
+# own learning rates and ε schedules, mse and huber, robust's three shaping targets and its hinge, with and
+# without gradient clipping, hard and Polyak target updates.
 MIXED: list[tuple[str, int, list[str]]] = [
-    ("dqn", 0, []),
+    ("dqn", 0, ["agent.lr=0.001", "agent.eps_decay_episodes=null", "agent.eps_decay_steps=150"]),
     ("constrained", 0, []),
     ("constrained", 1, ["agent.cost_network=separate", "agent.loss=huber"]),
     ("qmask", 0, ["agent.grad_clip=null"]),

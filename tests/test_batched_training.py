@@ -132,28 +132,48 @@ def test_the_bench_figure_counts_every_runs_decisions() -> None:
     assert set(rates) == {"2"} and rates["2"] > 0
 
 
-@pytest.mark.slow
-def test_small_protocol_gives_the_per_run_learners_table(tmp_path: Path) -> None:
-    """4 methods × 3 seeds × 60 episodes, 100 test episodes: the per-method means and bootstrap CIs of
-    speed and collision rate overlap the per-run learner's (here: equal, every test episode the same)."""
-    from safelane.running.experiments import make_spec, run_dir_of, run_experiment
-
-    spec = make_spec(seeds=[0, 1, 2], episodes=60, test_episodes=100, sets=["simulator=fast"])
-    per_run = run_experiment(spec, tmp_path / "per-run", workers=1)
-    pairs = [(m, s) for s in spec.seeds for m in spec.methods]
-    cfgs = [
-        make_train_config(method=m, episodes=spec.episodes, seed=s, sets=spec.sets, checkpoint_every=15)
-        for m, s in pairs
-    ]
-    train_batched(cfgs, [run_dir_of(tmp_path / "batched", m, s) for m, s in pairs])
-    batched = run_experiment(spec, tmp_path / "batched", workers=1)  # finds every run trained: evaluates
-    for method in spec.methods:
-        a, b = per_run["methods"][method]["aggregate"], batched["methods"][method]["aggregate"]
+def _same_tables(per_run: dict[str, Any], batched: dict[str, Any]) -> None:
+    """The per-method means and bootstrap CIs of speed and collision rate overlap (here: are equal, every
+    test episode the same)."""
+    for method, entry in per_run["methods"].items():
+        a, b = entry["aggregate"], batched["methods"][method]["aggregate"]
         for key in ("mean_speed", "collision_rate"):
             (lo_a, hi_a), (lo_b, hi_b) = a[key]["ci95"], b[key]["ci95"]
             assert lo_a <= hi_b and lo_b <= hi_a, f"{method} {key}: {a[key]} vs {b[key]}"
             assert a[key]["mean"] == b[key]["mean"]
-    strip = ("method", "seed", "test_episode")
-    assert [{k: v for k, v in e.items() if k not in strip} for e in per_run["episodes"]] == [
-        {k: v for k, v in e.items() if k not in strip} for e in batched["episodes"]
-    ]
+    assert per_run["episodes"] == batched["episodes"]
+
+
+def test_reproduce_trains_fast_runs_batched_by_default_with_the_same_results(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    import safelane.running.batched_training as batched_training
+    from safelane.running.experiments import make_spec, run_experiment
+
+    batches: list[int] = []
+    real = batched_training.train_batched
+
+    def counting(cfgs: Any, out_dirs: Any, **kw: Any) -> Any:
+        batches.append(len(cfgs))
+        return real(cfgs, out_dirs, **kw)
+
+    monkeypatch.setattr(batched_training, "train_batched", counting)  # workers=1: tasks run in this process
+    spec = make_spec(methods=["dqn", "robust"], seeds=[0, 1], episodes=3, test_episodes=2, sets=FAST)
+    batched = run_experiment(spec, tmp_path / "batched", workers=1)
+    assert batches == [4]
+    per_run = run_experiment(spec, tmp_path / "per-run", workers=1, learner="per-run")
+    assert batches == [4]
+    _same_tables(per_run, batched)
+    with pytest.raises(ConfigError, match="--learner"):
+        run_experiment(spec, tmp_path / "bad", workers=1, learner="stacked")
+
+
+@pytest.mark.slow
+def test_small_protocol_gives_the_per_run_learners_table(tmp_path: Path) -> None:
+    """4 methods × 3 seeds × 60 episodes, 100 test episodes: the per-run learner's table."""
+    from safelane.running.experiments import make_spec, run_experiment
+
+    spec = make_spec(seeds=[0, 1, 2], episodes=60, test_episodes=100, sets=["simulator=fast"])
+    per_run = run_experiment(spec, tmp_path / "per-run", workers=1, learner="per-run")
+    batched = run_experiment(spec, tmp_path / "batched", workers=1)
+    _same_tables(per_run, batched)

@@ -316,3 +316,43 @@ def train_batched_steps_per_s(
         np.zeros(1, dtype=np.int64), np.zeros((1, OBS_SIZE)), np.ones((1, N_ACTIONS), dtype=bool)
     )
     return {str(s): measure_batched_training(s, episodes, seed, shield) for s in sizes}
+
+
+# --- the engine's task -----------------------------------------------------------------------------
+def train_runs_task(cfgs_json: list[str], out_dirs: list[str]) -> dict[str, Any]:
+    """The engine's task that trains (or resumes) runs as one batch: ``cfgs_json[k]`` (a
+    :class:`~safelane.running.training.TrainConfig` as JSON) into ``out_dirs[k]``. A directory left without a
+    checkpoint (killed before its first) is started afresh, as ``reproduce`` does for one run. Returns
+    ``{"runs": out_dirs}``; the runs' evaluation tasks then find them trained."""
+    import shutil
+
+    import torch
+
+    torch.set_num_threads(1)
+    dirs = [Path(d) for d in out_dirs]
+    for run_dir in dirs:
+        if run_dir.exists() and not (run_dir / CHECKPOINT_FILE).exists():
+            shutil.rmtree(run_dir)
+    train_batched([TrainConfig.model_validate_json(c) for c in cfgs_json], dirs, resume=True)
+    return {"runs": out_dirs}
+
+
+def batches_of(jobs: Sequence[tuple[TrainConfig, Path]], workers: int) -> list[tuple[list[str], list[str]]]:
+    """``jobs`` (config, run directory) that :func:`train_batched` can train, in at most ``workers`` batches
+    per mini-batch size, as :func:`train_runs_task`'s arguments; the others (highway-env, or a config that
+    does not resolve: its own task reports it) are left out."""
+    groups: dict[int, list[tuple[TrainConfig, Path]]] = {}
+    for cfg, run_dir in jobs:
+        try:
+            run = resolve(cfg)
+        except ConfigError:
+            continue
+        if supports(run.env) is None:
+            groups.setdefault(run.agent.batch_size, []).append((cfg, run_dir))
+    out = []
+    for members in groups.values():
+        n = max(1, min(workers, len(members)))
+        for i in range(n):
+            chunk = members[i::n]
+            out.append(([c.model_dump_json() for c, _ in chunk], [str(d) for _, d in chunk]))
+    return out

@@ -8,6 +8,7 @@ every 50 decisions) so that every piece acts: exploration, updates of every meth
 from __future__ import annotations
 
 import csv
+import time
 from pathlib import Path
 from typing import Any
 
@@ -80,7 +81,16 @@ def test_every_run_of_a_mixed_batch_is_its_run_alone_bit_for_bit(tmp_path: Path)
 
 def test_a_run_in_a_batch_of_four_equals_it_in_a_batch_of_one(tmp_path: Path) -> None:
     cfgs = [_cfg("robust", s, []) for s in range(4)]
+    start = time.perf_counter()
     together = train_batched(cfgs, [tmp_path / f"four{s}" for s in range(4)])
+    elapsed = time.perf_counter() - start
+    # each run's clocks are its share of the batch's: they add up to at most the batch's wall time
+    clocks = []
+    for run in together:
+        with open(run / METRICS_FILE) as f:
+            last = list(csv.DictReader(f))[-1]
+        clocks.append((float(last["wall_time_s"]), float(last["env_time_s"])))
+    assert all(0 < env < wall for wall, env in clocks) and sum(wall for wall, _ in clocks) <= elapsed
     alone = train_batched([cfgs[2]], [tmp_path / "one"])
     assert _rows(together[2]) == _rows(alone[0])
     assert _same_networks(together[2], alone[0])

@@ -255,7 +255,7 @@ def run_experiment(
     ``backend`` / ``address``: where the tasks run (:mod:`safelane.running.engine`; same results).
     ``learner``: ``batched`` trains the runs on the fast simulator as one batch per worker
     (:mod:`safelane.running.batched_training`), ``per-run`` one run per task; the same runs, bit for bit
-    (highway-env runs always train one by one). A batched run's ``train_wall_time_s`` is its batch's clock.
+    (highway-env runs always train one by one). A batched run's ``train_wall_time_s`` is its share of its batch's clock.
     """
     if learner not in LEARNERS:
         raise ConfigError(f"--learner: got {learner!r}; allowed: {', '.join(LEARNERS)}")

@@ -169,7 +169,7 @@ class _Group:
         self.shaping_weight = torch.tensor([c.shaping_weight for c in cfgs], dtype=torch.float32)
         self.shaping_margin = torch.tensor([c.shaping_margin for c in cfgs], dtype=torch.float32).reshape(n, 1, 1)
         kinds = [c.shaping_target for c in cfgs]
-        self.shaping_kinds = {k: torch.tensor([x == k for x in kinds]).reshape(n, 1, 1) for k in set(kinds)}
+        self.shaping_kinds = {k: torch.tensor([x == k for x in kinds]).reshape(n, 1, 1) for k in sorted(set(kinds))}
         self.hinge = _uniform_or_tensor([c.shaping_loss == "hinge" for c in cfgs], (n, 1, 1))
         self.acting_dirty = True
         self._acting: list[np.ndarray] = []

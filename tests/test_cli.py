@@ -210,6 +210,8 @@ def test_bench_json() -> None:
     assert 0 < out["shield_mask_share_fast"] < 1 and out["batched_shield_share"] < 1
     for key in ("train_steps_per_s_fast", "agent_ms_per_decision_fast", "train_steps_per_s_constrained_fast"):
         assert out[key] > 0
+    assert set(out["train_batched_steps_per_s"]) == set(out["train_batched_speedup"]) == {"10", "40"}
+    assert all(rate > 0 for rate in out["train_batched_steps_per_s"].values())
 
 
 # --- sim check ---------------------------------------------------------------------------------------------

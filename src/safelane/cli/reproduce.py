@@ -65,6 +65,14 @@ def reproduce(
     ] = None,
     backend: BackendOpt = "local",
     address: AddressOpt = None,
+    learner: Annotated[
+        str,
+        typer.Option(
+            "--learner",
+            help="batched: the fast simulator's runs trained as one batch per worker (the same runs, bit for "
+            "bit, several times faster); per-run: one run per task (highway-env runs always are).",
+        ),
+    ] = "batched",
 ) -> None:
     """Train every method × seed, evaluate on held-out episodes, write Table 4 / Fig. 6 / Fig. 7 and claims."""
     from safelane.agents.dqn import parse_methods
@@ -118,7 +126,7 @@ def reproduce(
             advance(done[0], None)
             done[0] += 1
 
-        run_experiment(spec, out, workers=workers, progress=tick, backend=backend, address=address)
+        run_experiment(spec, out, workers=workers, progress=tick, backend=backend, address=address, learner=learner)
     gif_paths = render_gifs(out, max_steps=20 if quick else 40) if gifs else None
     report = write_report(out, gif_paths)
     typer.echo(f"report: {report}")

@@ -182,7 +182,8 @@ def run_bench(
       outside the environment, from the run's own clocks (``metrics.csv``: ``wall_time_s``,
       ``env_time_s``); each further method of ``methods`` adds the same three figures with the suffix
       ``_METHOD`` (e.g. ``agent_overhead_fraction_constrained``); the same training on the fast simulator
-      adds them with the suffix ``_fast`` (``_METHOD_fast`` for the further methods).
+      adds them with the suffix ``_fast`` (``_METHOD_fast`` for the further methods);
+    * ``train_batched_steps_per_s``, ``train_batched_speedup``: :func:`batched_training_figures`.
     """
     if episodes < 1:
         raise ConfigError(f"--episodes: must be >= 1 (got {episodes})")
@@ -274,6 +275,7 @@ def run_bench(
         figures = measure_training(episodes, seed, shield, method, simulator="fast")
         suffix = "_fast" if method == methods[0] else f"_{method}_fast"
         training.update({f"{key}{suffix}": value for key, value in figures.items()})
+    training.update(batched_training_figures(episodes, seed, shield))
     raw_rate = raw_n / raw_s
     shield_rate = shield_n / shield_s
     return {
@@ -310,3 +312,15 @@ def run_bench(
         "python": platform.python_version(),
         "wall_time_s": time.perf_counter() - start,
     }
+
+
+def batched_training_figures(episodes: int = 10, seed: int = 0, shield: str = "robust") -> dict[str, Any]:
+    """Many runs, one learner, on one thread: ``train_batched_steps_per_s`` = ``{"10": …, "40": …}``, all
+    runs' decisions per second together of :func:`safelane.running.batched_training.train_batched` (robust
+    runs of ``episodes`` episodes, the settings of :func:`measure_training`), and ``train_batched_speedup``:
+    each ÷ one run's ``train_steps_per_s`` on the fast simulator measured just before (the same process)."""
+    from safelane.running.batched_training import train_batched_steps_per_s
+
+    one = measure_training(episodes, seed, shield, "robust", simulator="fast")["train_steps_per_s"]
+    rates = train_batched_steps_per_s((10, 40), episodes, seed, shield)
+    return {"train_batched_steps_per_s": rates, "train_batched_speedup": {s: r / one for s, r in rates.items()}}

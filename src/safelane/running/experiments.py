@@ -24,6 +24,8 @@ from safelane.core.files import atomic_write_text
 from safelane.running.engine import TaskFailure, check_backend, format_failure, run_tasks
 
 METHODS: tuple[str, ...] = ("dqn", "constrained", "qmask", "robust")
+LEARNERS: tuple[str, ...] = ("batched", "per-run")
+"""How an experiment trains its fast-simulator runs (:func:`run_experiment`'s ``learner``)."""
 TEST_SEED_BASE = 2_000_000_000
 """Test episodes are reset with ``TEST_SEED_BASE + k``: far from every training seed
 (``seed·EPISODE_SEED_STRIDE + episode``), so the agents never saw them."""
@@ -86,6 +88,49 @@ def run_dir_of(out_dir: Path, method: str, seed: int) -> Path:
     return out_dir / "runs" / f"{method}-s{seed}"
 
 
+def train_config_of(spec: ExperimentSpec, method: str, seed: int) -> Any:
+    """The :class:`~safelane.running.training.TrainConfig` of the (``method``, ``seed``) run of ``spec``."""
+    from safelane.running.training import make_train_config
+
+    return make_train_config(
+        method=method,
+        agent_preset=spec.agent_preset,
+        env_preset=spec.env_preset,
+        episodes=spec.episodes,
+        seed=seed,
+        sets=spec.sets,
+        checkpoint_every=max(1, min(25, spec.episodes // 4)),
+    )
+
+
+def _batched_training(
+    spec: ExperimentSpec,
+    out: Path,
+    tasks: list[tuple[str, int]],
+    workers: int | None,
+    backend: str,
+    address: str | None,
+) -> None:
+    """Train the runs of ``tasks`` not yet evaluated as batches, one per worker, where the fast batch plays
+    them (:func:`safelane.running.batched_training.batches_of`); :func:`run_task` then evaluates them (and
+    trains, one by one, whatever a batch left undone)."""
+    import os
+
+    from safelane.running.batched_training import batches_of, train_runs_task
+
+    jobs = [
+        (train_config_of(spec, m, s), run_dir_of(out, m, s))
+        for m, s in sorted(tasks)  # by method, then seed: each batch gets a share of every method's seeds
+        if not (run_dir_of(out, m, s) / "eval.json").exists()
+    ]
+    batches = batches_of(jobs, workers or os.cpu_count() or 1)
+    if batches:
+        run_tasks(
+            train_runs_task, batches, backend=backend, workers=len(batches), address=address,
+            name="reproduce-train", storage=out.resolve() / "ray",
+        )  # fmt: skip
+
+
 def run_task(out_dir: str, spec_json: str, method: str, seed: int) -> dict[str, Any]:
     """The engine's task of an experiment: train (or resume) the (``method``, ``seed``) run of the experiment
     ``spec_json`` under ``out_dir`` and evaluate it; returns its evaluation record (also on disk)."""
@@ -94,7 +139,7 @@ def run_task(out_dir: str, spec_json: str, method: str, seed: int) -> dict[str, 
     from safelane.reporting.plots import read_metrics
     from safelane.running.evaluation import run_config, summarize
     from safelane.running.runs import run_env_config
-    from safelane.running.training import METRICS_FILE, load_policy, load_run_config, make_train_config, train
+    from safelane.running.training import METRICS_FILE, load_policy, load_run_config, train
 
     torch.set_num_threads(1)
     spec = ExperimentSpec.model_validate_json(spec_json)
@@ -106,15 +151,7 @@ def run_task(out_dir: str, spec_json: str, method: str, seed: int) -> dict[str, 
             record["confirm"] = confirm_test_episodes(run_dir, spec, record["episodes"])
             atomic_write_text(eval_path, json.dumps(record))
         return record
-    cfg = make_train_config(
-        method=method,
-        agent_preset=spec.agent_preset,
-        env_preset=spec.env_preset,
-        episodes=spec.episodes,
-        seed=seed,
-        sets=spec.sets,
-        checkpoint_every=max(1, min(25, spec.episodes // 4)),
-    )
+    cfg = train_config_of(spec, method, seed)
     resume = (run_dir / "checkpoint.pt").exists()
     if not resume and run_dir.exists():
         # Killed before its first checkpoint: nothing to resume, the partial files are redone.
@@ -211,11 +248,17 @@ def run_experiment(
     progress: Callable[[dict[str, Any]], None] | None = None,
     backend: str = "local",
     address: str | None = None,
+    learner: str = "batched",
 ) -> dict[str, Any]:
     """Run every (method, seed) task not yet done, then collect all into ``out_dir/results.json``.
 
     ``backend`` / ``address``: where the tasks run (:mod:`safelane.running.engine`; same results).
+    ``learner``: ``batched`` trains the runs on the fast simulator as one batch per worker
+    (:mod:`safelane.running.batched_training`), ``per-run`` one run per task; the same runs, bit for bit
+    (highway-env runs always train one by one). A batched run's ``train_wall_time_s`` is its share of its batch's clock.
     """
+    if learner not in LEARNERS:
+        raise ConfigError(f"--learner: got {learner!r}; allowed: {', '.join(LEARNERS)}")
     check_backend(backend)
     out = Path(out_dir)
     try:
@@ -238,6 +281,8 @@ def run_experiment(
         elif progress:
             progress(result)
 
+    if learner == "batched":
+        _batched_training(spec, out, tasks, workers, backend, address)
     # Absolute: a Ray worker does not run in this directory.
     run_tasks(
         run_task,

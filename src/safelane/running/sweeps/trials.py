@@ -15,6 +15,7 @@ from typing import Any
 import numpy as np
 import yaml
 
+from safelane.core.errors import ConfigError
 from safelane.core.files import atomic_write_text
 from safelane.running.sweeps.spec import METRICS, SweepSpec
 
@@ -119,6 +120,7 @@ def run_trial_tasks(
     the summary files (a kill loses only the tasks in flight) and report ``progress(done, total)``."""
     from safelane.running.engine import TaskFailure, run_tasks
 
+    _train_batched_first(out, spec, tasks, backend=backend, workers=workers, address=address, name=name)
     spec_json = spec.model_dump_json()
 
     def finished(i: int, result: dict[str, Any] | TaskFailure) -> None:
@@ -140,6 +142,42 @@ def run_trial_tasks(
         name=name,
         storage=out / "ray",
     )
+
+
+def _train_batched_first(
+    out: Path,
+    spec: SweepSpec,
+    tasks: list[tuple[int, int, str | None]],
+    *,
+    backend: str,
+    workers: int | None,
+    address: str | None,
+    name: str,
+) -> None:
+    """Train the tasks' runs that the fast batch plays as batches, one per worker
+    (:func:`safelane.running.batched_training.batches_of`: the same runs, bit for bit); each task then finds
+    its run trained, evaluates it, and trains (one by one) or reports whatever a batch left undone."""
+    import os
+
+    from safelane.running.batched_training import batches_of, train_runs_task
+    from safelane.running.engine import run_tasks
+    from safelane.running.experiments import run_dir_of, train_config_of
+
+    points = spec.points() if any(params is None for _, _, params in tasks) else []
+    jobs = []
+    for index, seed, params_json in tasks:
+        params = json.loads(params_json) if params_json is not None else points[index]
+        try:
+            cfg = train_config_of(_trial_experiment(spec, params), spec.method, seed)
+        except ConfigError:  # the task itself reports it
+            continue
+        jobs.append((cfg, run_dir_of(trial_dir(out, index), spec.method, seed)))
+    batches = batches_of(jobs, workers or os.cpu_count() or 1)
+    if batches:
+        run_tasks(
+            train_runs_task, batches, backend=backend, workers=len(batches), address=address,
+            name=f"{name}-train", storage=out / "ray",
+        )  # fmt: skip
 
 
 def stored_spec(out: Path) -> dict[str, Any] | None:

@@ -71,3 +71,25 @@ def test_no_module_over_800_lines_in_the_library() -> None:
     assert len(paths) > 60 and SRC / "sim" / "fast" / "kernels.py" in paths
     long = {str(p.relative_to(SRC)): n for p in paths if (n := len(p.read_text().splitlines())) > MAX_LINES}
     assert long == {}
+
+
+def private_imports(root: Path) -> list[str]:
+    """``from safelane.x import _name`` anywhere under ``root``: a private helper used across modules."""
+    import ast
+
+    found = []
+    for path in sorted(root.rglob("*.py")):
+        for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+            if isinstance(node, ast.ImportFrom) and (node.module or "").startswith("safelane"):
+                names = [a.name for a in node.names if a.name.startswith("_") and not a.name.startswith("__")]
+                found += [f"{path.relative_to(root)}: {node.module}.{name}" for name in names]
+    return found
+
+
+def test_the_private_import_scan_finds_one(tmp_path: Path) -> None:
+    (tmp_path / "m.py").write_text("from safelane.running.training import _helper\nfrom safelane.core import errors\n")
+    assert private_imports(tmp_path) == ["m.py: safelane.running.training._helper"]
+
+
+def test_no_module_imports_another_module_s_private_names() -> None:
+    assert private_imports(SRC) == []

@@ -35,7 +35,7 @@ import torch
 import torch.nn.functional as F
 
 from safelane.agents.dqn import AgentConfig, ConstrainedAgent, DQNAgent, ReplayBuffer, make_agent
-from safelane.agents.inference import _dense
+from safelane.agents.inference import dense_layer
 from safelane.core.errors import ConfigError
 from safelane.core.spaces import N_ACTIONS, OBS_SIZE
 
@@ -83,9 +83,9 @@ def _forward_runs(obs, w1, b1, w2, b2, w3, b3, nets):  # pragma: no cover - comp
         s = nets[r]
         for i in range(x.shape[0]):
             x[i] = np.float64(obs[r, i])
-        _dense(x, w1[s], b1[s], h1, True)
-        _dense(h1, w2[s], b2[s], h2, True)
-        _dense(h2, w3[s], b3[s], q, False)
+        dense_layer(x, w1[s], b1[s], h1, True)
+        dense_layer(h1, w2[s], b2[s], h2, True)
+        dense_layer(h2, w3[s], b3[s], q, False)
         out[r, :] = q
     return out
 

@@ -83,7 +83,7 @@ def _elu(x: float) -> float:
 
 
 @numba.njit(cache=True, inline="always")
-def _dense(x: np.ndarray, weight_t: np.ndarray, bias: np.ndarray, out: np.ndarray, elu: bool) -> None:
+def dense_layer(x: np.ndarray, weight_t: np.ndarray, bias: np.ndarray, out: np.ndarray, elu: bool) -> None:
     # out[j] = bias[j] + Σ_i x[i]·W[i, j], summed in the order i = 0, 1, …; the j loop is independent
     # (SIMD) without reordering any output's sum.
     for j in range(weight_t.shape[1]):
@@ -116,9 +116,9 @@ def _forward3(
     for r in range(obs.shape[0]):
         for i in range(x.shape[0]):
             x[i] = np.float64(obs[r, i])
-        _dense(x, w1, b1, h1, True)
-        _dense(h1, w2, b2, h2, True)
-        _dense(h2, w3, b3, q, False)
+        dense_layer(x, w1, b1, h1, True)
+        dense_layer(h1, w2, b2, h2, True)
+        dense_layer(h2, w3, b3, q, False)
         out[r, :] = q
     return out
 

@@ -33,7 +33,7 @@ from safelane.core.errors import NotSupported
 from safelane.core.kernel_cache import drop_stale_kernel_cache
 from safelane.core.snapshot import DRIVER_FIELDS, RoadSnapshot
 from safelane.core.spaces import N_ACTIONS
-from safelane.env.observations import OBS_SIZE, _lane_state_kernel, _paper_state_kernel
+from safelane.env.observations import OBS_SIZE, lane_state_kernel, paper_state_kernel
 from safelane.safety.compiled import N_CONSTS, kernel_constants, snapshot_kernel
 from safelane.safety.model import OVERRIDE_ORDER
 from safelane.safety.shield import FALLBACK_SLOWDOWN, dynamics_of, ego_leave_times
@@ -129,10 +129,10 @@ def _observe_one(
     forward[i] = speed[0] * math.cos(heading[0])  # PaperReward: speed · cos(heading)
     crashed_ego[i] = crashed[0]
     if state_kind == 0:
-        _paper_state_kernel(position, speed, heading, is_vehicle[i], 0, obs[i])
+        paper_state_kernel(position, speed, heading, is_vehicle[i], 0, obs[i])
     else:
         offset = F[i, 0, L.Y] - lane[0] * lane_width
-        _lane_state_kernel(
+        lane_state_kernel(
             position, speed, heading, lane, is_vehicle[i], 0, lanes_count, offset / lane_width,
             F[i, 0, L.TSPD], obs[i],
         )  # fmt: skip

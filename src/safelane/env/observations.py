@@ -135,7 +135,7 @@ def _wrap(angle: float) -> float:
 
 
 @numba.njit(cache=True)
-def _paper_state_kernel(
+def paper_state_kernel(
     position: np.ndarray, speed: np.ndarray, heading: np.ndarray, is_vehicle: np.ndarray, ego: int, obs: np.ndarray
 ) -> None:
     ex, ey = position[ego, 0], position[ego, 1]
@@ -176,12 +176,12 @@ def _paper_state_kernel(
 def paper_state_compiled(snap: RoadSnapshot) -> np.ndarray:
     """:func:`paper_state` in one numba call: the same numbers, bit for bit (``tests/test_env.py``)."""
     obs = np.empty(OBS_SIZE, dtype=np.float32)
-    _paper_state_kernel(snap.position, snap.speed, snap.heading, snap.is_vehicle, snap.ego, obs)
+    paper_state_kernel(snap.position, snap.speed, snap.heading, snap.is_vehicle, snap.ego, obs)
     return obs
 
 
 @numba.njit(cache=True)
-def _lane_state_kernel(
+def lane_state_kernel(
     position: np.ndarray,
     speed: np.ndarray,
     heading: np.ndarray,
@@ -241,7 +241,7 @@ def _lane_state_kernel(
 def lane_state_compiled(snap: RoadSnapshot) -> np.ndarray:
     """:func:`lane_state` in one numba call: the same numbers, bit for bit (``tests/test_env.py``)."""
     obs = np.empty(OBS_SIZE, dtype=np.float32)
-    _lane_state_kernel(
+    lane_state_kernel(
         snap.position,
         snap.speed,
         snap.heading,

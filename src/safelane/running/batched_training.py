@@ -44,20 +44,20 @@ from safelane.running.training import (
     EpisodeReport,
     RunConfig,
     TrainConfig,
-    _deterministic_torch,
-    _format_row,
-    _prepare_run_dir,
-    _save_checkpoint,
-    _snapshot,
-    _write_metrics,
+    deterministic_torch,
     episode_seed,
+    format_metrics_row,
     make_train_config,
+    prepare_run_dir,
     resolve,
+    save_checkpoint,
+    training_snapshot,
+    write_metrics,
 )
 
 
 class _BufferOf:
-    """Run ``k``'s replay buffer as ``_snapshot`` reads it (``state_dict``)."""
+    """Run ``k``'s replay buffer as ``training_snapshot`` reads it (``state_dict``)."""
 
     def __init__(self, learner: BatchedLearner, k: int) -> None:
         self.learner, self.k = learner, k
@@ -100,7 +100,7 @@ def train_batched(
             raise ConfigError(f"{why}: batched training runs the fast batch; train this run alone")
     n = len(runs)
     learner = BatchedLearner([r.agent for r in runs], [c.seed for c in cfgs])
-    states = [_prepare_run_dir(o, r, resume) for o, r in zip(outs, runs, strict=True)]
+    states = [prepare_run_dir(o, r, resume) for o, r in zip(outs, runs, strict=True)]
     episode = np.zeros(n, dtype=np.int64)
     global_step = np.zeros(n, dtype=np.int64)
     rows: list[list[dict[str, Any]]] = [[] for _ in range(n)]
@@ -115,7 +115,7 @@ def train_batched(
         wall_before[k] = float(state["wall_time_s"])
         env_before[k] = float(rows[k][-1].get("env_time_s") or 0.0) if rows[k] else 0.0
     for k in range(n):
-        _write_metrics(outs[k] / METRICS_FILE, rows[k])  # truncates rows past the checkpoint
+        write_metrics(outs[k] / METRICS_FILE, rows[k])  # truncates rows past the checkpoint
     collisions = np.array([sum(int(r["collision"]) for r in rows[k]) for k in range(n)])
     episodes = np.array([c.episodes for c in cfgs], dtype=np.int64)
     acfg = [r.agent for r in runs]
@@ -163,7 +163,7 @@ def train_batched(
     t0 = last_charge = time.perf_counter()
     steps0 = global_step.copy()
     try:
-        with _deterministic_torch():
+        with deterministic_torch():
             t_env = time.perf_counter()
             reset(np.flatnonzero(~finished).tolist())
             env_pending += time.perf_counter() - t_env
@@ -244,16 +244,16 @@ def train_batched(
                         "env_steps": int(global_step[k]),
                     }
                     rows[k].append(row)
-                    writers[k].writerow(_format_row(row))
+                    writers[k].writerow(format_metrics_row(row))
                     files[k].flush()
                     last = episode[k] == episodes[k]
                     if episode[k] % cfgs[k].checkpoint_every == 0 or last:
                         learner.export(k)
-                        snapshot = _snapshot(
+                        snapshot = training_snapshot(
                             runs[k], agent, _BufferOf(learner, k), int(episode[k]), int(global_step[k]), rows[k],
                             row["wall_time_s"],
                         )  # fmt: skip
-                        _save_checkpoint(outs[k] / CHECKPOINT_FILE, snapshot)
+                        save_checkpoint(outs[k] / CHECKPOINT_FILE, snapshot)
                     if progress is not None:
                         progress(
                             k,

@@ -265,7 +265,7 @@ def load_run_config(run_dir: str | Path) -> RunConfig:
 
 
 # --- files ----------------------------------------------------------------------------------------
-def _format_row(row: dict[str, Any]) -> dict[str, str]:
+def format_metrics_row(row: dict[str, Any]) -> dict[str, str]:
     out: dict[str, str] = {}
     for key in METRIC_COLUMNS:
         value = row.get(key)
@@ -278,12 +278,12 @@ def _format_row(row: dict[str, Any]) -> dict[str, str]:
     return out
 
 
-def _write_metrics(path: Path, rows: list[dict[str, Any]]) -> None:
+def write_metrics(path: Path, rows: list[dict[str, Any]]) -> None:
     def write(f: io.BufferedWriter) -> None:
         text = io.StringIO()
         writer = csv.DictWriter(text, fieldnames=METRIC_COLUMNS, lineterminator="\n")
         writer.writeheader()
-        writer.writerows(_format_row(r) for r in rows)
+        writer.writerows(format_metrics_row(r) for r in rows)
         f.write(text.getvalue().encode())
 
     atomic_write(path, write)
@@ -305,7 +305,7 @@ def _restore_rng_states(state: dict[str, Any]) -> None:
     torch.set_rng_state(state["torch"])
 
 
-def _snapshot(
+def training_snapshot(
     run: RunConfig,
     agent: DQNAgent,
     buffer: ReplayBuffer,
@@ -328,7 +328,7 @@ def _snapshot(
     }
 
 
-def _save_checkpoint(path: Path, state: dict[str, Any]) -> None:
+def save_checkpoint(path: Path, state: dict[str, Any]) -> None:
     atomic_write(path, lambda f: torch.save(state, f))
 
 
@@ -347,7 +347,7 @@ def load_checkpoint(run_dir: str | Path) -> dict[str, Any]:
 
 
 @contextlib.contextmanager
-def _deterministic_torch() -> Iterator[None]:
+def deterministic_torch() -> Iterator[None]:
     """Single-threaded, deterministic torch for the duration of training (restored afterwards)."""
     threads = torch.get_num_threads()
     deterministic = torch.are_deterministic_algorithms_enabled()
@@ -360,7 +360,7 @@ def _deterministic_torch() -> Iterator[None]:
         torch.set_num_threads(threads)
 
 
-def _prepare_run_dir(out: Path, run: RunConfig, resume: bool) -> dict[str, Any] | None:
+def prepare_run_dir(out: Path, run: RunConfig, resume: bool) -> dict[str, Any] | None:
     """Check the run directory, write ``config.yaml``; return the checkpoint to resume from, if any."""
     out.mkdir(parents=True, exist_ok=True)
     config_path = out / CONFIG_FILE
@@ -422,7 +422,7 @@ def train(
     summary_writer_class = _summary_writer_class() if tensorboard else None
     acfg = run.agent
     out = Path(out_dir)
-    state = _prepare_run_dir(out, run, resume)
+    state = prepare_run_dir(out, run, resume)
     checkpoint_path, metrics_path = out / CHECKPOINT_FILE, out / METRICS_FILE
 
     agent = make_agent(acfg, seed=cfg.seed)
@@ -436,7 +436,7 @@ def train(
         episode, global_step = int(state["episode"]), int(state["global_step"])
         rows, wall_before = [dict(r) for r in state["rows"]], float(state["wall_time_s"])
         env_time = float(rows[-1].get("env_time_s") or 0.0) if rows else 0.0
-    _write_metrics(metrics_path, rows)  # truncates rows past the checkpoint
+    write_metrics(metrics_path, rows)  # truncates rows past the checkpoint
     collisions = sum(int(r["collision"]) for r in rows)
 
     env = make_env(run.env)
@@ -446,9 +446,9 @@ def train(
         board = summary_writer_class(str(out / TENSORBOARD_DIR), purge_step=episode + 1)
     t0 = time.perf_counter()
     steps0 = global_step
-    snapshot = state if state is not None else _snapshot(run, agent, buffer, 0, 0, rows, 0.0)
+    snapshot = state if state is not None else training_snapshot(run, agent, buffer, 0, 0, rows, 0.0)
     try:
-        with _deterministic_torch(), open(metrics_path, "a", newline="") as metrics_file:
+        with deterministic_torch(), open(metrics_path, "a", newline="") as metrics_file:
             writer = csv.DictWriter(metrics_file, fieldnames=METRIC_COLUMNS, lineterminator="\n")
             while episode < cfg.episodes:
                 # --- one episode -------------------------------------------------------------
@@ -514,15 +514,15 @@ def train(
                     "env_steps": global_step,
                 }
                 rows.append(row)
-                writer.writerow(_format_row(row))
+                writer.writerow(format_metrics_row(row))
                 metrics_file.flush()
                 if board is not None:
                     for key in TENSORBOARD_SCALARS:
                         if row[key] is not None:
                             board.add_scalar(f"train/{key}", float(row[key]), episode)
-                snapshot = _snapshot(run, agent, buffer, episode, global_step, rows, wall_before + elapsed)
+                snapshot = training_snapshot(run, agent, buffer, episode, global_step, rows, wall_before + elapsed)
                 if episode % cfg.checkpoint_every == 0 or episode == cfg.episodes:
-                    _save_checkpoint(checkpoint_path, snapshot)
+                    save_checkpoint(checkpoint_path, snapshot)
                 if progress is not None:
                     progress(
                         EpisodeReport(
@@ -540,8 +540,8 @@ def train(
                         )
                     )
     except KeyboardInterrupt:
-        _save_checkpoint(checkpoint_path, snapshot)
-        _write_metrics(metrics_path, snapshot["rows"])
+        save_checkpoint(checkpoint_path, snapshot)
+        write_metrics(metrics_path, snapshot["rows"])
         raise TrainingInterrupted(int(snapshot["episode"]), checkpoint_path) from None
     finally:
         env.close()

@@ -18,6 +18,7 @@ from typing import Any
 
 import numpy as np
 
+from safelane.running.collisions import classify_collision, collision_partner
 from safelane.running.conditions import traffic_seed_base
 from safelane.running.falsify.grid import CELL_SEED_STRIDE, FALSIFY_SEED_BASE, load_campaign_spec
 
@@ -33,6 +34,8 @@ def play_episode(env: Any, policy: Any, seed: int) -> dict[str, Any]:
     }  # fmt: skip
     done = False
     lapsed = False
+    escaped_seen: set[int] = set()
+    entered_seen: set[int] = set()
     while not done:
         before = env.get_wrapper_attr("result")
         action = int(policy(obs, info))
@@ -43,16 +46,26 @@ def play_episode(env: Any, policy: Any, seed: int) -> dict[str, Any]:
         record["plan_forced"] += bool(info["plan_forced"])
         record["fallback"] += bool(info["fallback"])
         record["escapes"] += len(info["escaped_cars"])
+        escaped_seen.update(info["escaped_cars"])
+        entered_seen.update(info["entered_cars"])
         if info["lapse"]:
             lapsed = True
             record["lapses"].append({"decision": record["decisions"], "escaped": list(info["escaped_cars"]),
+                                     "entered": list(info["entered_cars"]),
                                      "in_model": bool(info["lapse_in_model"])})  # fmt: skip
         if info.get("collision", False) and record["collision"] is None:
             executed = int(info["executed_action"])
             verified = bool(before is not None and before.safe[executed])
             context = "from_certified" if verified else ("after_lapse" if lapsed else "uncertified")
-            record["collision"] = {"decision": record["decisions"], "context": context, "lapsed_before": lapsed,
-                                   "escapes_before": record["escapes"]}  # fmt: skip
+            snap = info["snapshot"]
+            partner = collision_partner(snap)
+            kind = classify_collision(snap)
+            record["collision"] = {
+                "decision": record["decisions"], "context": context, "kind": kind, "partner": partner,
+                "lapsed_before": lapsed, "partner_left_its_set": partner in escaped_seen,
+                "partner_entered_held_lane": partner in entered_seen,
+                "others_at_fault": kind == "rear_ended" or partner in entered_seen,
+            }  # fmt: skip
     speeds = record.pop("speeds")
     record["mean_speed"] = float(np.mean(speeds)) if speeds else 0.0
     return record
@@ -114,6 +127,14 @@ def summarize(played: list[dict[str, Any]]) -> dict[str, Any]:
         "cells": len(played), "episodes": len(episodes), "decisions": decisions,
         "collisions": len(crashes),
         "collision_contexts": {k: sum(c["context"] == k for c in crashes) for k in CONTEXTS},
+        "from_certified_others_at_fault": sum(
+            c["context"] == "from_certified" and c["others_at_fault"] for c in crashes
+        ),
+        "from_certified_partner_left_its_set": sum(
+            c["context"] == "from_certified" and c["partner_left_its_set"] for c in crashes
+        ),
+        "lapses_traced_to_escapes": sum(bool(lapse["escaped"]) for lapse in lapses),
+        "lapses_traced_to_cut_ins": sum(bool(lapse["entered"]) and not lapse["escaped"] for lapse in lapses),
         "uncertified_starts": sum(e["uncertified_start"] for e in episodes),
         "lapses": len(lapses), "lapses_in_model": sum(lapse["in_model"] for lapse in lapses),
         "plan_forced_rate": sum(e["plan_forced"] for e in episodes) / max(decisions, 1),

@@ -114,17 +114,24 @@ def lane_crossing_time(dyn: Dynamics) -> float:
     return dyn.cut_in_time + dyn.frame_dt
 
 
-def lane_entry_times(state: RoadState, dyn: Dynamics) -> np.ndarray:
-    """(cars, lanes) the earliest time [s] each car may occupy each lane: 0 for the lanes its body overlaps and the
-    lane it moves to (heading or lateral speed), ``d · cut_in_time`` for a lane ``d`` lanes from those (the fastest
-    lateral motion of highway-env's controller), and :func:`lane_crossing_time` more for every further lane; inf for
-    a car that never changes lane."""
+def lanes_now(state: RoadState, dyn: Dynamics) -> np.ndarray:
+    """(cars, lanes) bool: the lanes each car's rotated body overlaps now, and the lane it moves to (heading or
+    lateral speed)."""
     occupied = _occupied_lanes(state, dyn)
     moving = (np.abs(state.heading) > LATERAL_MOTION_THRESHOLD) | (np.abs(state.vy) > 0.3)
     own = state.lane_of(state.y, dyn.lanes_count, dyn.lane_width)
     toward = np.clip(own + np.where(state.vy > 0, 1, -1), 0, dyn.lanes_count - 1)
     rows = np.flatnonzero(moving)
     occupied[rows, toward[rows]] = True
+    return occupied
+
+
+def lane_entry_times(state: RoadState, dyn: Dynamics) -> np.ndarray:
+    """(cars, lanes) the earliest time [s] each car may occupy each lane: 0 for the lanes its body overlaps and the
+    lane it moves to (heading or lateral speed), ``d · cut_in_time`` for a lane ``d`` lanes from those (the fastest
+    lateral motion of highway-env's controller), and :func:`lane_crossing_time` more for every further lane; inf for
+    a car that never changes lane."""
+    occupied = lanes_now(state, dyn)
     lanes = np.arange(dyn.lanes_count)
     dist = np.where(occupied[:, None, :], np.abs(lanes[:, None] - lanes[None, :])[None], 10**6).min(axis=2)
     entry = np.where(dist > 0, dyn.cut_in_time + (dist - 1) * lane_crossing_time(dyn), 0.0)
@@ -135,7 +142,8 @@ def lane_entry_times(state: RoadState, dyn: Dynamics) -> np.ndarray:
 class CarSets:
     """The reachable sets of every other car (rows of a :class:`RoadState`), per frame of :attr:`Dynamics.times`:
     positions ``x_lo``/``x_hi`` [m] and speeds ``v_lo``/``v_hi`` [m/s] along the road, ``entry`` (cars, lanes)
-    the earliest time [s] a car may occupy a lane. ``vehicle``: the snapshot index of each row."""
+    the earliest time [s] a car may occupy a lane, ``now`` (cars, lanes) the lanes it was in (or moving into) when
+    the sets were drawn. ``vehicle``: the snapshot index of each row."""
 
     vehicle: np.ndarray
     x_lo: np.ndarray
@@ -143,6 +151,7 @@ class CarSets:
     v_lo: np.ndarray
     v_hi: np.ndarray
     entry: np.ndarray
+    now: np.ndarray
 
     def shifted(self, frames: int, seconds: float) -> CarSets:
         """These sets ``frames`` frames (``seconds`` [s]) later, padded with no bound at the horizon's end."""
@@ -153,7 +162,7 @@ class CarSets:
             return out
 
         return CarSets(self.vehicle, shift(self.x_lo, -np.inf), shift(self.x_hi, np.inf), shift(self.v_lo, -np.inf),
-                       shift(self.v_hi, np.inf), np.maximum(self.entry - seconds, 0.0))  # fmt: skip
+                       shift(self.v_hi, np.inf), np.maximum(self.entry - seconds, 0.0), self.now)  # fmt: skip
 
     def intersect(self, older: CarSets, keep: np.ndarray) -> CarSets:
         """These sets intersected, row by row, with ``older`` (already shifted to now) for the rows ``keep``
@@ -167,7 +176,7 @@ class CarSets:
             for name, pick in (("x_lo", np.maximum), ("x_hi", np.minimum), ("v_lo", np.maximum),
                                ("v_hi", np.minimum), ("entry", np.maximum)):  # fmt: skip
                 out[name][i] = pick(out[name][i], getattr(older, name)[r])
-        return CarSets(self.vehicle, **out)
+        return CarSets(self.vehicle, **out, now=self.now)
 
 
 def car_sets(state: RoadState, dyn: Dynamics, vehicle: np.ndarray) -> CarSets:
@@ -180,7 +189,7 @@ def car_sets(state: RoadState, dyn: Dynamics, vehicle: np.ndarray) -> CarSets:
     wall = np.asarray(state.crashed, dtype=bool)
     x_lo[wall], x_hi[wall] = state.x[wall, None], state.x[wall, None]
     v_lo[wall], v_hi[wall] = 0.0, 0.0
-    return CarSets(np.asarray(vehicle), x_lo, x_hi, v_lo, v_hi, lane_entry_times(state, dyn))
+    return CarSets(np.asarray(vehicle), x_lo, x_hi, v_lo, v_hi, lane_entry_times(state, dyn), lanes_now(state, dyn))
 
 
 def escaped_cars(state: RoadState, dyn: Dynamics, carried: CarSets, vehicle: np.ndarray) -> np.ndarray:
@@ -327,8 +336,10 @@ def plan_gaps(
     driver ahead, entering a lane the ego holds from the start, enters only after MOBIL's criterion against the
     plan could allow it (:func:`_permit_entry`); a car in such a lane behind the ego now follows it: accelerates
     at most until ``follower_reaction`` after the plan's braking onset, then brakes (:func:`follower_bound`). With
-    ``reading="responsibility"`` a car behind the ego in a lane it holds is not counted. ``carried_followers``:
-    {row: (lane, highest position [m] per frame)}, the follower bounds a kept plan drew, kept in that lane."""
+    ``reading="responsibility"``, in a lane the ego holds, only the cars ahead of it and in that lane now (or
+    moving into it) count: a car behind, or one that cuts in later, is responsible for the gap it makes.
+    ``carried_followers``: {row: (lane, highest position [m] per frame)}, the follower bounds a kept plan drew, kept
+    in that lane."""
     t = dyn.times
     half = 0.5 * (state.length + state.ego_length)
     ahead = state.x >= state.ego_x
@@ -340,12 +351,12 @@ def plan_gaps(
     for lane, until in lanes:
         held_lane = lane in held
         entry = np.repeat(sets.entry[:, lane][:, None], n_fb, axis=1)  # (cars, holds)
-        law = np.flatnonzero(held_lane & ahead & idm & (sets.entry[:, lane] > 0.0))
+        law = np.flatnonzero(held_lane & ahead & idm & ~sets.now[:, lane])
         if law.size:
             entry[law] = np.maximum(entry[law], _permit_entry(state, dyn, sets, law, ego_x, ego_v))
         count = np.isfinite(entry).any(axis=1)
-        if held_lane and reading == "responsibility":
-            count &= ahead
+        if held_lane and reading == "responsibility":  # cut-ins and cars behind: theirs to avoid the ego
+            count &= ahead & sets.now[:, lane]
         # A follower: its own lane is this one (highway-env's IDM sees the ego as its leader only then).
         following = held_lane & ~ahead & (state.lane_of(state.y, dyn.lanes_count, dyn.lane_width) == lane)
         in_time = frames & (t <= until)
@@ -389,19 +400,23 @@ class CommittedResult(SafetyResult):
     """:class:`SafetyResult` of the committed family: ``safe`` lists the verified actions, ``fallback`` is set when
     none is; ``plan_forced``: the kept plan's next step drives (nothing verified); ``lapse``: the plan kept,
     verified, at the last decision no longer verifies (a plan driven on after a lapse is not verified again);
-    ``escaped``: snapshot indices of the cars outside the sets drawn for them; ``certified``: some plan is verified
+    ``escaped``: snapshot indices of the cars outside the sets drawn for them; ``entered`` (``responsibility``):
+    those that entered a lane the ego holds since the last decision; ``certified``: some plan is verified
     or kept; ``plans``: the verified plan of each action (None: none)."""
 
     plan_forced: bool = False
     lapse: bool = False
     escaped: tuple[int, ...] = ()
+    entered: tuple[int, ...] = ()
     certified: bool = False
     plans: tuple[Plan | None, ...] = ()
 
     @property
     def lapse_in_model(self) -> bool:
-        """A lapse with every car inside its set: a gap in the construction."""
-        return self.lapse and not self.escaped
+        """A lapse with every car inside its set (and, under ``responsibility``, none that entered a lane the ego
+        holds since the last decision: such a car made the gap it is responsible for): a gap in the
+        construction."""
+        return self.lapse and not self.escaped and not self.entered
 
 
 @dataclass
@@ -433,7 +448,9 @@ class CommittedFamily:
         state, vehicle = _whole_state(snap, dyn)
         sets = car_sets(state, dyn, vehicle)
         escaped = np.zeros(state.n, dtype=bool)
+        entered = np.zeros(state.n, dtype=bool)
         if self.carried is not None:
+            entered = _entered_held_lanes(state, self.carried, sets, vehicle)
             older = self.carried.shifted(dyn.frames_per_decision, dyn.decision_period)
             escaped = escaped_cars(state, dyn, older, vehicle) | self._followers_escaped(state, dyn, vehicle)
             sets = sets.intersect(older, ~escaped)
@@ -478,6 +495,7 @@ class CommittedFamily:
         result = CommittedResult(
             mask, safe, available, not bool(safe.any()), best_gap, None,
             plan_forced=forced, lapse=lapse, escaped=tuple(int(v) for v in vehicle[escaped]),
+            entered=tuple(int(v) for v in vehicle[entered]) if self.reading == "responsibility" else (),
             certified=bool(safe.any()) or self.kept is not None, plans=tuple(plans),
         )  # fmt: skip
         self._pending = (result, state, dyn, sets, vehicle)
@@ -491,11 +509,23 @@ class CommittedFamily:
         result, state, dyn, sets, vehicle = self._pending
         plan = result.plans[action]
         self.kept_verified = plan is not None
+        # The same plan goes on: the kept plan's tail, verified (its step) or forced.
+        same_plan = plan is not None and self.kept is not None and plan.onset == self.kept.onset - dyn.decision_period
         if plan is None and self.kept is not None and result.plan_forced and result.mask[action]:
             plan = self.kept.shifted(dyn)
+            same_plan = True
         self.kept = plan
         self.carried = sets
-        self.followers = {} if plan is None else _followers_of(state, dyn, sets, vehicle, plan)
+        if plan is None:
+            self.followers = {}
+        else:  # the follower bounds of this plan, inside those carried for the same plan (a nested law)
+            fresh = _followers_of(state, dyn, sets, vehicle, plan)
+            f = dyn.frames_per_decision
+            for v, (lane, high) in self.followers.items() if same_plan else ():
+                shifted = np.concatenate([high[f:], np.full(f, np.inf)])
+                now = fresh.get(v)  # a car no longer following keeps the bound: it may come back
+                fresh[v] = (lane, shifted if now is None or now[0] != lane else np.minimum(now[1], shifted))
+            self.followers = fresh
         self._pending = None
 
     def _followers_escaped(self, state: RoadState, dyn: Dynamics, vehicle: np.ndarray) -> np.ndarray:
@@ -509,6 +539,17 @@ class CommittedFamily:
             if follower is not None and occupied[i, follower[0]] and f < follower[1].size:
                 out[i] = state.x[i] > follower[1][f] + ESCAPE_TOLERANCE
         return out
+
+
+def _entered_held_lanes(state: RoadState, older: CarSets, sets: CarSets, vehicle: np.ndarray) -> np.ndarray:
+    """(cars,) the cars in (or moving into) a lane the ego holds now that were not at the last decision."""
+    rows = {int(v): r for r, v in enumerate(older.vehicle)}
+    out = np.zeros(state.n, dtype=bool)
+    for lane in {state.ego_lane, state.ego_target_lane}:
+        for i in np.flatnonzero(sets.now[:, lane]):
+            r = rows.get(int(vehicle[i]))
+            out[i] |= r is not None and not older.now[r, lane]
+    return out
 
 
 def _followers_of(state: RoadState, dyn: Dynamics, sets: CarSets, vehicle: np.ndarray, plan: Plan) -> dict:

@@ -253,6 +253,7 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
             info["lapse"] = self.result.lapse
             info["lapse_in_model"] = self.result.lapse_in_model
             info["escaped_cars"] = self.result.escaped
+            info["entered_cars"] = self.result.entered
             info["certified"] = self.result.certified
 
     def reset(self, **kwargs: Any) -> tuple[Any, dict[str, Any]]:

@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Literal
 
@@ -36,6 +37,7 @@ from safelane.core.snapshot import DRIVER_FIELDS, RoadSnapshot
 from safelane.core.spaces import IDLE, LANE_LEFT, LANE_RIGHT, N_ACTIONS, SLOWER
 from safelane.safety.ego import action_lanes, action_targets, available_actions, ego_trajectories, speed_to_index
 from safelane.safety.family import Engine, OneDecisionFamily, road_state
+from safelane.safety.model import evaluate as evaluate_one_decision
 from safelane.safety.world import (
     LATERAL_MOTION_THRESHOLD,
     MAX_HOLD_DECISIONS,
@@ -446,6 +448,20 @@ class CommittedFamily:
         """The verdict in the state of ``snap`` (see the class docstring)."""
         dyn = dataclasses.replace(dyn, ego_leave_time=ego_leave_time)
         state, vehicle = _whole_state(snap, dyn)
+        return self.evaluate_state(
+            state, vehicle, dyn, lambda: OneDecisionFamily("robust", self.engine).evaluate(snap, dyn, ego_leave_time)
+        )
+
+    def evaluate_state(
+        self,
+        state: RoadState,
+        vehicle: np.ndarray,
+        dyn: Dynamics,
+        uncertified: Callable[[], SafetyResult] | None = None,
+    ) -> CommittedResult:
+        """:meth:`evaluate` on a :class:`RoadState` (every car, ``vehicle``: their identities, kept from one decision
+        to the next) with ``dyn.ego_leave_time`` set; ``uncertified``: the one-decision robust rule's verdict in this
+        state (default: the numpy reference's)."""
         sets = car_sets(state, dyn, vehicle)
         escaped = np.zeros(state.n, dtype=bool)
         entered = np.zeros(state.n, dtype=bool)
@@ -491,7 +507,8 @@ class CommittedFamily:
             mask[step] = True
         best_gap = np.where(available, worst.max(axis=1), -np.inf)
         if not mask.any():  # no plan verified, none kept: uncertified, the one-decision robust rule drives
-            mask = OneDecisionFamily("robust", self.engine).evaluate(snap, dyn, ego_leave_time).mask.copy()
+            robust = uncertified() if uncertified is not None else evaluate_one_decision(state, dyn, "robust")
+            mask = robust.mask.copy()
         result = CommittedResult(
             mask, safe, available, not bool(safe.any()), best_gap, None,
             plan_forced=forced, lapse=lapse, escaped=tuple(int(v) for v in vehicle[escaped]),

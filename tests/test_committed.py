@@ -206,6 +206,17 @@ def test_a_state_with_no_verified_plan_is_an_uncertified_start() -> None:
     assert result.mask.tolist() == evaluate_one_decision(state, DYN, "robust").mask.tolist()
 
 
+def test_a_follower_reacts_to_the_plan() -> None:
+    """Under ``sound`` a car 40 m behind in the ego's lane at the ego's speed leaves IDLE verified only because it
+    follows the ego: it accelerates at most until the reaction time after the plan's braking onset, then brakes.
+    Its envelope alone (accelerating for the whole horizon) would reach the ego."""
+    state = scene([*LEADER, {"x": -40.0, "lane": 1, "vx": 20.0}])
+    result = CommittedFamily("sound").evaluate_state(state, np.arange(2), DYN)
+    assert result.safe[IDLE] and result.plans[IDLE] is not None
+    beside = scene([*LEADER, {"x": -40.0, "lane": 1, "vx": 20.0, "y": 6.1}])  # its own lane the next one: no law
+    assert not CommittedFamily("sound").evaluate_state(beside, np.arange(2), DYN).safe[IDLE]
+
+
 def test_the_responsibility_reading_leaves_a_car_behind_to_its_driver() -> None:
     """A fast car 15 m behind in the ego's lane: under ``sound`` it is the ego's to avoid (IDLE unverified), under
     ``responsibility`` it is not."""

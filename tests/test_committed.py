@@ -242,6 +242,13 @@ def test_the_shield_reports_the_committed_mode() -> None:
         _, _, _, _, info = env.step(FASTER)
         assert {"plan_forced", "lapse", "lapse_in_model", "escaped_cars", "certified"} <= set(info)
     env.close()
+    # The batch and the vector env have no committed kernel: they fall back to one shielded copy per environment.
+    from safelane.config import load_config
+    from safelane.env.fast_batch import supports
+
+    assert "committed" in (
+        supports(load_config("fast", overrides={"shield.mode": "committed", "simulator": "fast"})) or ""
+    )
     with pytest.raises(ValueError, match=r"^shield\.reading: got 'x'; allowed: 'sound', 'responsibility'$"):
         CommittedFamily("x")  # type: ignore[arg-type]
     with pytest.raises(ConfigError, match=r"shield\.reading"):

@@ -55,8 +55,9 @@ ESCAPE_TOLERANCE = 1e-6
 """[m, m/s, s] A car counts as outside its set only beyond this (rounding of the closed forms)."""
 
 __all__ = [
-    "MAX_SPEED", "READINGS", "CarSets", "CommittedFamily", "CommittedResult", "Plan", "Reading", "car_sets",
-    "envelope", "escaped_cars", "lane_entry_times", "verify_plans",
+    "ESCAPE_TOLERANCE", "MAX_SPEED", "READINGS", "CarSets", "CommittedFamily", "CommittedResult", "Lanes", "Plan",
+    "Reading", "car_sets", "envelope", "escaped_cars", "follower_bound", "lane_crossing_time", "lane_entry_times",
+    "lanes_now", "onsets", "plan_gaps", "plan_of", "speed_bounds", "verify_plans",
 ]  # fmt: skip
 
 
@@ -348,7 +349,7 @@ def plan_gaps(
     idm = ~np.isfinite(state.linear_speed_gain) & state.can_change_lane & ~state.crashed
     held = {state.ego_lane, state.ego_target_lane}
     n_fb = ego_x.shape[0]
-    frames = t <= (t[-1] if until_frame is None else t[min(until_frame, t.size - 1)])
+    frames = t <= (t[-1] if until_frame is None else t[min(max(until_frame, 0), t.size - 1)])
     worst = np.full(n_fb, np.inf)
     for lane, until in lanes:
         held_lane = lane in held

@@ -122,9 +122,8 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
     ``formula``: ``"kinematic"`` (derived for highway-env, docs/safety.md) or ``"paper"`` (eq. 12, nominal).
     ``mode="committed"`` (experimental, :mod:`safelane.safety.committed`, numpy only): a plan verified against the
     others' reachable sets is kept between decisions; ``mode=CommittedFamily(reading="responsibility")`` chooses
-    the reading (default ``"sound"``); ``info``
-    gains ``plan_forced``, ``lapse``, ``lapse_in_model``, ``escaped_cars``, ``certified`` (and
-    ``uncertified_start`` after a reset).
+    the reading (default ``"sound"``); ``info`` gains ``plan_forced``, ``lapse``, ``lapse_in_model``,
+    ``escaped_cars``, ``entered_cars``, ``certified`` (and ``uncertified_start`` after a reset).
     """
 
     def __init__(

@@ -97,7 +97,13 @@ class TrafficConfig(_Section):
 class ShieldConfig(_Section):
     """Which safety model masks the actions (``none`` = no shield)."""
 
-    mode: Literal["none", "nominal", "robust"] = "none"
+    mode: Literal["none", "nominal", "robust", "committed"] = "none"
+    reading: Literal["sound", "responsibility"] = Field(
+        "sound",
+        description="The committed mode's reading of cars that can end up behind the ego (experimental): 'sound' "
+        "(every behaviour the driver model permits) or 'responsibility' (a car behind the ego in a lane it holds "
+        "is not the ego's to avoid).",
+    )
     formula: Literal["kinematic", "paper"] = Field(
         "kinematic",
         description="Safe-distance formula of the nominal mode: 'kinematic' (derived for highway-env's "

@@ -32,6 +32,7 @@ from safelane.core.errors import NotSupported
 from safelane.core.snapshot import RoadSnapshot
 from safelane.env.observations import PaperObservation
 from safelane.env.reward import PaperReward
+from safelane.safety.committed import CommittedFamily
 from safelane.safety.shield import SafetyShield
 from safelane.sim.highway import HighwayEnvAdapter
 from safelane.sim.traffic import TrafficLayout
@@ -152,7 +153,7 @@ def make_env(
         shield = cfg.shield
         env = SafetyShield(
             env,
-            mode=shield.mode,
+            mode=CommittedFamily(shield.reading, shield.engine) if shield.mode == "committed" else shield.mode,
             override=shield.override,
             margin=shield.margin,
             rule=shield.resolved_rule(),

@@ -27,12 +27,13 @@ from __future__ import annotations
 import dataclasses
 import math
 import warnings
-from typing import Any
+from typing import Any, Literal
 
 import gymnasium as gym
 import numpy as np
 
 from safelane.core.snapshot import RoadSnapshot
+from safelane.safety.committed import CommittedFamily, CommittedResult, Reading
 from safelane.safety.family import ENGINES, Engine, RuleFamily, family_for, road_state, road_state_bodies
 from safelane.safety.model import OVERRIDE_ORDER, Dynamics, Formula, Mode, RoadState, SafetyResult
 from safelane.safety.rule import DEFAULT_RULE_NAME, Rule, as_rule
@@ -119,12 +120,16 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
     ``engine``: ``"compiled"`` (:mod:`safelane.safety.compiled`, microseconds) or ``"numpy"`` (the
     reference :func:`safelane.safety.model.evaluate`, about a millisecond); the same masks either way.
     ``formula``: ``"kinematic"`` (derived for highway-env, docs/safety.md) or ``"paper"`` (eq. 12, nominal).
+    ``mode="committed"`` (experimental, :mod:`safelane.safety.committed`, numpy only): a plan verified against the
+    others' reachable sets is kept between decisions; ``mode=CommittedFamily(reading="responsibility")`` chooses
+    the reading (default ``"sound"``); ``info`` gains ``plan_forced``, ``lapse``, ``lapse_in_model``,
+    ``escaped_cars``, ``entered_cars``, ``certified`` (and ``uncertified_start`` after a reset).
     """
 
     def __init__(
         self,
         env: gym.Env,
-        mode: Mode = "robust",
+        mode: Mode | Literal["committed"] | CommittedFamily = "robust",
         override: bool = False,
         margin: float = DEFAULT_MARGIN,
         rule: Rule | str = DEFAULT_RULE_NAME,
@@ -133,28 +138,34 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
     ) -> None:
         if not (isinstance(margin, int | float) and math.isfinite(margin) and margin >= 0):
             raise ValueError(f"shield.margin: must be a finite number >= 0 [m] (got {margin!r})")
-        if mode not in ("nominal", "robust"):
-            raise ValueError(f"shield.mode: got {mode!r}; allowed: 'nominal', 'robust'")
+        family: CommittedFamily | None = None
+        if isinstance(mode, CommittedFamily):  # a committed family with its reading (experimental)
+            family, mode = mode, "committed"  # type: ignore[assignment]
+        if mode not in ("nominal", "robust", "committed"):
+            raise ValueError(f"shield.mode: got {mode!r}; allowed: 'nominal', 'robust', 'committed'")
         if formula not in ("kinematic", "paper"):
             raise ValueError(f"shield.formula: got {formula!r}; allowed: 'kinematic', 'paper'")
         if engine not in ENGINES:
             raise ValueError(f"shield.engine: got {engine!r}; allowed: 'compiled', 'numpy'")
         resolved = as_rule(rule)
         gym.utils.RecordConstructorArgs.__init__(
-            self, mode=mode, override=override, margin=margin, rule=rule, engine=engine, formula=formula
+            self, mode=family or mode, override=override, margin=margin, rule=rule, engine=engine, formula=formula
         )
         try:
             env.get_wrapper_attr("road_snapshot")
         except AttributeError:  # a plain highway-env environment: read its scene through the adapter
             env = HighwayEnvAdapter(env)
         super().__init__(env)
-        self.mode: Mode = mode
+        self.mode: Mode = mode  # type: ignore[assignment]
+        self.reading: Reading = family.reading if family is not None else "sound"
         self.formula: Formula = formula
         self.override = override
         self.engine: Engine = engine
         self.margin = float(margin)
         self.rule: Rule = resolved
         self._family: tuple[tuple[str, str, str], RuleFamily] | None = None
+        if family is not None:
+            self._family = ((mode, family.reading, family.engine), family)
         self.dynamics: Dynamics | None = None
         self.result: SafetyResult | None = None
         self.snapshot: RoadSnapshot | None = None
@@ -165,7 +176,11 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
         """The rule family that judges the states (:mod:`safelane.safety.family`), for the shield's ``mode``,
         ``engine`` and ``formula`` as they are now."""
         key = (self.mode, self.engine, self.formula)
-        if self._family is None or self._family[0] != key:
+        if self.mode == "committed":  # one family per shield: it keeps the episode's plan
+            key = (self.mode, self.reading, self.engine)
+            if self._family is None or self._family[0] != key:
+                self._family = (key, CommittedFamily(self.reading, self.engine))
+        elif self._family is None or self._family[0] != key:
             self._family = (key, family_for(*key))
         return self._family[1]
 
@@ -232,11 +247,24 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
         self.result = self.compute_result()
         info["action_mask"] = self.result.mask.copy()
         info["fallback"] = bool(self.result.fallback)
+        if isinstance(self.result, CommittedResult):
+            info["plan_forced"] = self.result.plan_forced
+            info["lapse"] = self.result.lapse
+            info["lapse_in_model"] = self.result.lapse_in_model
+            info["escaped_cars"] = self.result.escaped
+            info["entered_cars"] = self.result.entered
+            info["certified"] = self.result.certified
 
     def reset(self, **kwargs: Any) -> tuple[Any, dict[str, Any]]:
         self.dynamics = None
+        self.result = None
+        reset_memory = getattr(self.family, "reset", None)
+        if reset_memory is not None:  # a family with memory (committed plans) starts each episode afresh
+            reset_memory()
         obs, info = self.env.reset(**kwargs)
         self._annotate(info)
+        if isinstance(self.result, CommittedResult):
+            info["uncertified_start"] = not self.result.certified
         info["shield_intervened"] = False
         self._warn_if_the_ego_cannot_stop()
         return obs, info
@@ -267,6 +295,9 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
         executed = chosen
         if self.override and not mask[chosen]:
             executed = next(a for a in OVERRIDE_ORDER[chosen] if mask[a])
+        commit = getattr(self.family, "commit", None)
+        if commit is not None:  # a family with memory keeps the plan of the action executed
+            commit(executed)
         obs, reward, terminated, truncated, info = self.env.step(executed)
         info["shield_intervened"] = executed != chosen
         info["unsafe_action"] = not bool(mask[chosen])

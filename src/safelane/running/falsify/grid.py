@@ -64,7 +64,7 @@ class CampaignBase(BaseModel):
     description: str = ""
     preset: Literal["fast", "paper"] = "fast"
     simulator: Literal["fast", "highway-env"] = "fast"
-    shield: Literal["nominal", "robust"] = "robust"
+    shield: Literal["nominal", "robust", "committed"] = "robust"
     sets: list[str] = Field(default_factory=list, description="--set overrides of every cell.")
     policies: list[str] = Field(
         default_factory=lambda: ["random", "faster"],

@@ -1,0 +1,606 @@
+"""Committed fail-safe plans (experimental): a shield that keeps a verified plan from one decision to the next.
+
+*Experimental numpy prototype* of the ``committed`` shield mode (design and measurement:
+``docs/research/committed-plans.md``). Pure maths: no simulator, no highway-env, no torch.
+
+* A **plan** (:class:`Plan`) is a sequence of ego set-points [m/s] and target lanes, one per decision, ending
+  with the ego at a standstill. The family: the action, hold the set-point ``k ∈ {0..3}`` decisions, then SLOWER
+  at every decision (the ego's exact trajectory: :func:`safelane.safety.ego.ego_trajectories`).
+* Every other car gets a **reachable set** (:class:`CarSets`) drawn from the observable state only: a
+  longitudinal envelope from its driver model's acceleration bounds (:func:`envelope`) and, per lane, the
+  earliest time it may occupy it (:func:`lane_entry_times`). Both nest in time (``R(s', [0, H−Δ]) ⊆ R(s, [Δ, H])``,
+  tested in ``tests/test_committed.py``); what does not nest (heading projection) is closed by memory: the sets
+  carried from the last decision are intersected with the new ones.
+* Two laws apply under a plan, where they nest with the plan kept: MOBIL's safety criterion against the ego's
+  known plan (IDM drivers entering a lane the ego holds), and followers reacting ``ρ`` after the plan's braking
+  onset (:func:`verify_plans`).
+* An action is **verified** when a plan starting with it keeps ``margin`` to every car's reachable occupancy at
+  every frame of the horizon. :class:`CommittedFamily` allows the verified actions; with none it allows only the
+  kept plan's next step (``plan_forced``); with no plan at all (uncertified) the one-decision robust rule's mask
+  (:class:`~safelane.safety.family.OneDecisionFamily`, ``engine``). A decision at which the plan kept (verified)
+  at the last decision no longer verifies is a **lapse**; the cars that left the sets drawn for them are named.
+  Readings: ``sound`` (every car) or ``responsibility`` (a car behind the ego in a lane it holds is not the ego's
+  to avoid).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Literal
+
+import numpy as np
+
+from safelane.core.snapshot import DRIVER_FIELDS, RoadSnapshot
+from safelane.core.spaces import IDLE, LANE_LEFT, LANE_RIGHT, N_ACTIONS, SLOWER
+from safelane.safety.ego import action_lanes, action_targets, available_actions, ego_trajectories, speed_to_index
+from safelane.safety.family import Engine, OneDecisionFamily, road_state
+from safelane.safety.model import evaluate as evaluate_one_decision
+from safelane.safety.world import (
+    LATERAL_MOTION_THRESHOLD,
+    MAX_HOLD_DECISIONS,
+    Dynamics,
+    RoadState,
+    SafetyResult,
+)
+
+Reading = Literal["sound", "responsibility"]
+READINGS: tuple[str, ...] = ("sound", "responsibility")
+MAX_SPEED = 40.0
+"""[m/s] highway-env's ``Vehicle.MAX_SPEED``: the linear driver models' speed bound (their leader term can push
+them past their set-point)."""
+ESCAPE_TOLERANCE = 1e-6
+"""[m, m/s, s] A car counts as outside its set only beyond this (rounding of the closed forms)."""
+
+__all__ = [
+    "ESCAPE_TOLERANCE", "MAX_SPEED", "READINGS", "CarSets", "CommittedFamily", "CommittedResult", "Lanes", "Plan",
+    "Reading", "car_sets", "envelope", "escaped_cars", "follower_bound", "lane_crossing_time", "lane_entry_times",
+    "lanes_now", "onsets", "plan_gaps", "plan_of", "speed_bounds", "verify_plans",
+]  # fmt: skip
+
+
+# --------------------------------------------------------------------------------------------
+# Reachable sets of the other cars.
+# --------------------------------------------------------------------------------------------
+
+
+def _rise(v: np.ndarray, a: np.ndarray, v_max: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(distance [m], speed [m/s]) after ``t`` [s] accelerating at ``a`` [m/s²] from ``v`` up to ``v_max``."""
+    t_top = np.maximum(v_max - v, 0.0) / np.maximum(a, 1e-9)
+    tt = np.minimum(t, t_top)
+    return v * tt + 0.5 * a * tt * tt + v_max * np.maximum(t - t_top, 0.0), np.minimum(v + a * t, v_max)
+
+
+def _fall(v: np.ndarray, b: np.ndarray, v_min: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(distance [m], speed [m/s]) after ``t`` [s] braking at ``b`` [m/s²] from ``v`` down to ``v_min``."""
+    t_low = np.maximum(v - v_min, 0.0) / np.maximum(b, 1e-9)
+    tt = np.minimum(t, t_low)
+    return v * tt - 0.5 * b * tt * tt + v_min * np.maximum(t - t_low, 0.0), np.maximum(v - b * t, v_min)
+
+
+def speed_bounds(v: np.ndarray, target: np.ndarray, linear: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(v_min, v_max) [m/s] a car's speed along the road stays in under its driver model: ``min(v, 0)`` (a car
+    rolling back keeps at most its reverse speed) and ``max(v, set-point)`` for IDM (its free-road term is ≤ 0 above
+    the set-point, its interaction term always ≤ 0), :data:`MAX_SPEED` for the linear models (``linear``)."""
+    known = np.isfinite(target)
+    v_max = np.where(linear | ~known, MAX_SPEED, np.maximum(v, np.where(known, target, 0.0)))
+    return np.minimum(v, 0.0), np.maximum(v_max, v)
+
+
+def envelope(
+    x: np.ndarray, v: np.ndarray, a: np.ndarray, b: np.ndarray, v_min: np.ndarray, v_max: np.ndarray, t: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The longitudinal reachable set of cars at ``x`` [m] with speed ``v`` [m/s], acceleration in ``[−b, a]``
+    [m/s²] and speed in ``[v_min, v_max]``: (x_lo, x_hi, v_lo, v_hi), each (cars, frames) at the times ``t`` [s]
+    (bang-bang: every admissible speed history stays between the two, so the positions do too)."""
+    col = lambda z: np.asarray(z, dtype=float)[:, None]  # noqa: E731
+    d_hi, v_hi = _rise(col(v), col(a), col(v_max), t[None, :])
+    d_lo, v_lo = _fall(col(v), col(b), col(v_min), t[None, :])
+    return col(x) + d_lo, col(x) + d_hi, v_lo, v_hi
+
+
+def _occupied_lanes(state: RoadState, dyn: Dynamics) -> np.ndarray:
+    """(cars, lanes) bool: the lane bands each car's body, rotated by its heading, overlaps now."""
+    reach = np.abs(0.5 * state.length * np.sin(state.heading)) + np.abs(0.5 * dyn.body_width * np.cos(state.heading))
+    centres = np.arange(dyn.lanes_count) * dyn.lane_width
+    half = 0.5 * dyn.lane_width
+    lo, hi = (state.y - reach)[:, None], (state.y + reach)[:, None]
+    return (hi > centres[None, :] - half) & (lo < centres[None, :] + half)
+
+
+def lane_crossing_time(dyn: Dynamics) -> float:
+    """[s] The least time a car needs to carry its centre across a lane boundary, a lower bound: its body's first
+    entry into the next lane (the cut-in time plus the frame it subtracts) comes before. highway-env lets a driver
+    start its next lane change only once its centre is in the new lane."""
+    return dyn.cut_in_time + dyn.frame_dt
+
+
+def lanes_now(state: RoadState, dyn: Dynamics) -> np.ndarray:
+    """(cars, lanes) bool: the lanes each car's rotated body overlaps now, and the lane it moves to (heading or
+    lateral speed)."""
+    occupied = _occupied_lanes(state, dyn)
+    moving = (np.abs(state.heading) > LATERAL_MOTION_THRESHOLD) | (np.abs(state.vy) > 0.3)
+    own = state.lane_of(state.y, dyn.lanes_count, dyn.lane_width)
+    toward = np.clip(own + np.where(state.vy > 0, 1, -1), 0, dyn.lanes_count - 1)
+    rows = np.flatnonzero(moving)
+    occupied[rows, toward[rows]] = True
+    return occupied
+
+
+def lane_entry_times(state: RoadState, dyn: Dynamics) -> np.ndarray:
+    """(cars, lanes) the earliest time [s] each car may occupy each lane: 0 for the lanes its body overlaps and the
+    lane it moves to (heading or lateral speed), ``d · cut_in_time`` for a lane ``d`` lanes from those (the fastest
+    lateral motion of highway-env's controller), and :func:`lane_crossing_time` more for every further lane; inf for
+    a car that never changes lane."""
+    occupied = lanes_now(state, dyn)
+    lanes = np.arange(dyn.lanes_count)
+    dist = np.where(occupied[:, None, :], np.abs(lanes[:, None] - lanes[None, :])[None], 10**6).min(axis=2)
+    entry = np.where(dist > 0, dyn.cut_in_time + (dist - 1) * lane_crossing_time(dyn), 0.0)
+    return np.where(state.can_change_lane[:, None] | (dist == 0), entry, np.inf).astype(float)
+
+
+@dataclass(frozen=True)
+class CarSets:
+    """The reachable sets of every other car (rows of a :class:`RoadState`), per frame of :attr:`Dynamics.times`:
+    positions ``x_lo``/``x_hi`` [m] and speeds ``v_lo``/``v_hi`` [m/s] along the road, ``entry`` (cars, lanes)
+    the earliest time [s] a car may occupy a lane, ``now`` (cars, lanes) the lanes it was in (or moving into) when
+    the sets were drawn. ``vehicle``: the snapshot index of each row."""
+
+    vehicle: np.ndarray
+    x_lo: np.ndarray
+    x_hi: np.ndarray
+    v_lo: np.ndarray
+    v_hi: np.ndarray
+    entry: np.ndarray
+    now: np.ndarray
+
+    def shifted(self, frames: int, seconds: float) -> CarSets:
+        """These sets ``frames`` frames (``seconds`` [s]) later, padded with no bound at the horizon's end."""
+
+        def shift(a: np.ndarray, pad: float) -> np.ndarray:
+            out = np.full_like(a, pad)
+            out[:, : a.shape[1] - frames] = a[:, frames:]
+            return out
+
+        return CarSets(self.vehicle, shift(self.x_lo, -np.inf), shift(self.x_hi, np.inf), shift(self.v_lo, -np.inf),
+                       shift(self.v_hi, np.inf), np.maximum(self.entry - seconds, 0.0), self.now)  # fmt: skip
+
+    def intersect(self, older: CarSets, keep: np.ndarray) -> CarSets:
+        """These sets intersected, row by row, with ``older`` (already shifted to now) for the rows ``keep``
+        (cars still inside their older sets, matched by snapshot index)."""
+        rows = {int(v): r for r, v in enumerate(older.vehicle)}
+        out = {name: getattr(self, name).copy() for name in ("x_lo", "x_hi", "v_lo", "v_hi", "entry")}
+        for i, vehicle in enumerate(self.vehicle):
+            r = rows.get(int(vehicle))
+            if r is None or not keep[i]:
+                continue
+            for name, pick in (("x_lo", np.maximum), ("x_hi", np.minimum), ("v_lo", np.maximum),
+                               ("v_hi", np.minimum), ("entry", np.maximum)):  # fmt: skip
+                out[name][i] = pick(out[name][i], getattr(older, name)[r])
+        return CarSets(self.vehicle, **out, now=self.now)
+
+
+def car_sets(state: RoadState, dyn: Dynamics, vehicle: np.ndarray) -> CarSets:
+    """The reachable sets drawn from ``state`` alone (``vehicle``: the snapshot index of each row); a crashed car
+    is a wall where it stands."""
+    t = dyn.times
+    linear = np.isfinite(state.linear_speed_gain)
+    v_min, v_max = speed_bounds(state.vx, state.target_speed, linear)
+    x_lo, x_hi, v_lo, v_hi = envelope(state.x, state.vx, state.accel_max, state.brake_max, v_min, v_max, t)
+    wall = np.asarray(state.crashed, dtype=bool)
+    x_lo[wall], x_hi[wall] = state.x[wall, None], state.x[wall, None]
+    v_lo[wall], v_hi[wall] = 0.0, 0.0
+    return CarSets(np.asarray(vehicle), x_lo, x_hi, v_lo, v_hi, lane_entry_times(state, dyn), lanes_now(state, dyn))
+
+
+def escaped_cars(state: RoadState, dyn: Dynamics, carried: CarSets, vehicle: np.ndarray) -> np.ndarray:
+    """(cars,) bool: the cars of ``state`` outside the sets ``carried`` drew for them (already shifted to now):
+    position or speed outside the intervals at frame 0, or a lane its body overlaps entered earlier than allowed.
+    A car without a carried set is inside."""
+    rows = {int(v): r for r, v in enumerate(carried.vehicle)}
+    occupied = _occupied_lanes(state, dyn)
+    out = np.zeros(state.n, dtype=bool)
+    tol = ESCAPE_TOLERANCE
+    for i, v in enumerate(vehicle):
+        r = rows.get(int(v))
+        if r is None:
+            continue
+        outside = not (carried.x_lo[r, 0] - tol <= state.x[i] <= carried.x_hi[r, 0] + tol)
+        outside |= not (carried.v_lo[r, 0] - tol <= state.vx[i] <= carried.v_hi[r, 0] + tol)
+        outside |= bool((carried.entry[r][occupied[i]] > tol).any())
+        out[i] = outside
+    return out
+
+
+# --------------------------------------------------------------------------------------------
+# Plans and their verification.
+# --------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Plan:
+    """A committed plan: the ego's set-point [m/s] and target lane per decision from now until it stands
+    (``set_points``, ``lanes``: the representation open to other families), the lanes it occupies and until when
+    (``occupied``: (lane, time [s] from now)), its braking onset [s] from now, and how many frames of the horizon it
+    was verified over (``frames``). ``action``/``hold``: the family's parameters that generated it (the action,
+    hold ``hold`` decisions, then SLOWER)."""
+
+    action: int
+    hold: int
+    set_points: tuple[float, ...]
+    lanes: tuple[int, ...]
+    occupied: tuple[tuple[int, float], ...]
+    onset: float
+    frames: int
+
+    def next_step(self) -> int:
+        """The meta-action that realises the plan's next decision: IDLE while the set-point holds, SLOWER once it
+        falls."""
+        return IDLE if self.hold >= 1 else SLOWER
+
+    def tail(self) -> tuple[int, int]:
+        """(action, hold) whose trajectory from the next state is this plan's tail (a member of that state's
+        family; its lanes and onset are this plan's, shifted: :meth:`shifted`)."""
+        return (IDLE, self.hold - 1) if self.hold >= 1 else (SLOWER, 0)
+
+    def shifted(self, dyn: Dynamics) -> Plan:
+        """This plan one decision later."""
+        a, k = self.tail()
+        period = dyn.decision_period
+        return Plan(a, k, self.set_points[1:] or self.set_points[-1:], self.lanes[1:] or self.lanes[-1:],
+                    tuple((lane, until - period) for lane, until in self.occupied), self.onset - period,
+                    self.frames - dyn.frames_per_decision)  # fmt: skip
+
+
+def plan_of(state: RoadState, dyn: Dynamics, ego_v: np.ndarray, action: int, hold: int) -> Plan:
+    """The :class:`Plan` of (``action``, ``hold``) in ``state``: its set-points decision by decision (``ego_v``: the
+    plan's speeds per frame, from which the SLOWER set-points follow as in :func:`ego_trajectories`)."""
+    ts = dyn.target_speeds
+    points = [float(action_targets(state, dyn)[action])]
+    f = dyn.frames_per_decision
+    for d in range(1, dyn.horizon_decisions):
+        points.append(points[-1] if d <= hold else float(ts[max(int(speed_to_index(ego_v[d * f], ts)) - 1, 0)]))
+        if points[-1] == 0.0 and d > hold:
+            break
+    occupied = tuple(action_lanes(state, dyn, action))
+    lane = occupied[-1][0]
+    onset = float(onsets(dyn, action)[hold])
+    return Plan(action, hold, tuple(points), (lane,) * len(points), occupied, onset, int(dyn.times.size - 1))
+
+
+def onsets(dyn: Dynamics, action: int) -> np.ndarray:
+    """(holds,) [s] when each plan of ``action`` first lowers the set-point (its braking onset)."""
+    if action == SLOWER:
+        return np.zeros(MAX_HOLD_DECISIONS + 1)
+    return (1 + np.arange(MAX_HOLD_DECISIONS + 1)) * dyn.decision_period
+
+
+def _permit_entry(
+    state: RoadState, dyn: Dynamics, sets: CarSets, rows: np.ndarray, ego_x: np.ndarray, ego_v: np.ndarray
+) -> np.ndarray:
+    """(rows, holds) [s] the first time MOBIL's safety criterion could let each car (IDM drivers, ahead) move in
+    front of the ego on each plan (its loosest state in reach: the largest gap, the speed that makes IDM's desired
+    gap smallest, the ego's set-point at the lane's limit) or could be behind the ego, plus the cut-in time; inf:
+    never in the horizon."""
+    t = dyn.times
+    acc = state.idm_comfort_acc[rows][:, None, None]
+    ab = (-state.idm_comfort_acc * state.idm_comfort_dec)[rows][:, None, None]
+    gap = sets.x_hi[rows][:, None, :] - ego_x[None]  # (rows, holds, frames) centre distance
+    ev = np.maximum(ego_v[None], 0.0)
+    target = max(state.speed_limit, 1e-2)
+    free = acc * (1 - np.power(ev / target, state.idm_delta[rows][:, None, None]))
+    base = state.idm_distance_wanted[rows][:, None, None] + ev * state.idm_time_wanted[rows][:, None, None]
+    d_fast = base + ev * (ev - sets.v_hi[rows][:, None, :]) / (2 * np.sqrt(ab))
+    d_slow = base + ev * (ev - sets.v_lo[rows][:, None, :]) / (2 * np.sqrt(ab))
+    lo, hi = np.minimum(d_fast, d_slow), np.maximum(d_fast, d_slow)
+    least = np.where(lo > 0.0, lo, np.where(hi < 0.0, -hi, 0.0))
+    d = np.maximum(gap, 1e-2)
+    ok = (gap > 0.0) & (free - acc * (least / d) ** 2 >= -state.max_braking_imposed[rows][:, None, None])
+    # Once it may be behind the ego, MOBIL protects its new follower, not the ego: it may turn in behind it.
+    ok |= sets.x_lo[rows][:, None, :] < ego_x[None]
+    first = np.where(ok.any(axis=2), t[np.argmax(ok, axis=2)], np.inf)
+    return first + dyn.cut_in_time
+
+
+Lanes = list[tuple[int, float]]
+"""The lanes a plan occupies, each with the time [s] until which it does (:func:`safelane.safety.ego.action_lanes`)."""
+
+
+def verify_plans(
+    state: RoadState, dyn: Dynamics, sets: CarSets, reading: Reading = "sound"
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(5, holds) each plan's worst bumper-to-bumper gap [m] to every car's reachable occupancy over the horizon
+    (−inf: action unavailable, inf: no car in reach), and the ego's positions [m] and speeds [m/s], each
+    (5, holds, frames + 1) (:func:`plan_gaps` for one action)."""
+    ego_x, ego_v = ego_trajectories(state, dyn)
+    available = available_actions(state, dyn)
+    if not math.isfinite(dyn.ego_leave_time):  # too slow to leave the lane: no lane change (docs/safety.md §4)
+        available = available & ~np.isin(np.arange(N_ACTIONS), (LANE_LEFT, LANE_RIGHT))
+    worst = np.full((N_ACTIONS, MAX_HOLD_DECISIONS + 1), -np.inf)
+    for a in np.flatnonzero(available):
+        lanes = action_lanes(state, dyn, int(a))
+        worst[a] = plan_gaps(state, dyn, sets, ego_x[a], ego_v[a], onsets(dyn, int(a)), lanes, reading)
+    return worst, ego_x, ego_v
+
+
+def plan_gaps(
+    state: RoadState, dyn: Dynamics, sets: CarSets, ego_x: np.ndarray, ego_v: np.ndarray, onset: np.ndarray,
+    lanes: Lanes, reading: Reading = "sound", until_frame: int | None = None,
+    carried_followers: dict[int, tuple[int, np.ndarray]] | None = None,
+) -> np.ndarray:  # fmt: skip
+    """(holds,) the worst bumper-to-bumper gap [m] of plans whose ego moves as ``ego_x``/``ego_v`` (holds, frames)
+    and brakes first at ``onset`` [s] (holds,), occupying ``lanes``, at every frame up to ``until_frame`` (default:
+    the horizon's end).
+
+    In each lane, from each car's entry time on, the car's interval ``[x_lo, x_hi]`` must stay clear of the ego by
+    ``margin`` on one side or the other at every frame (a car that may be on either side conflicts). Laws: an IDM
+    driver ahead, entering a lane the ego holds from the start, enters only after MOBIL's criterion against the
+    plan could allow it (:func:`_permit_entry`); a car in such a lane behind the ego now follows it: accelerates
+    at most until ``follower_reaction`` after the plan's braking onset, then brakes (:func:`follower_bound`). With
+    ``reading="responsibility"``, in a lane the ego holds, only the cars ahead of it and in that lane now (or
+    moving into it) count: a car behind, or one that cuts in later, is responsible for the gap it makes.
+    ``carried_followers``: {row: (lane, highest position [m] per frame)}, the follower bounds a kept plan drew, kept
+    in that lane."""
+    t = dyn.times
+    half = 0.5 * (state.length + state.ego_length)
+    ahead = state.x >= state.ego_x
+    idm = ~np.isfinite(state.linear_speed_gain) & state.can_change_lane & ~state.crashed
+    held = {state.ego_lane, state.ego_target_lane}
+    n_fb = ego_x.shape[0]
+    frames = t <= (t[-1] if until_frame is None else t[min(max(until_frame, 0), t.size - 1)])
+    worst = np.full(n_fb, np.inf)
+    for lane, until in lanes:
+        held_lane = lane in held
+        entry = np.repeat(sets.entry[:, lane][:, None], n_fb, axis=1)  # (cars, holds)
+        law = np.flatnonzero(held_lane & ahead & idm & ~sets.now[:, lane])
+        if law.size:
+            entry[law] = np.maximum(entry[law], _permit_entry(state, dyn, sets, law, ego_x, ego_v))
+        count = np.isfinite(entry).any(axis=1)
+        if held_lane and reading == "responsibility":  # cut-ins and cars behind: theirs to avoid the ego
+            count &= ahead & sets.now[:, lane]
+        # A follower: its own lane is this one (highway-env's IDM sees the ego as its leader only then).
+        following = held_lane & ~ahead & (state.lane_of(state.y, dyn.lanes_count, dyn.lane_width) == lane)
+        in_time = frames & (t <= until)
+        for i in np.flatnonzero(count):
+            window = (t[None, :] >= entry[i][:, None]) & in_time[None, :]  # (holds, frames)
+            if not window.any():
+                continue
+            high = sets.x_hi[i][None, :]
+            if following[i]:
+                react = np.maximum(onset + dyn.follower_reaction, 0.0)  # a past reaction: braking from now
+                high = np.minimum(high, follower_bound(state, i, react, t))
+            carried = (carried_followers or {}).get(int(i))
+            if carried is not None and carried[0] == lane:
+                high = np.minimum(high, carried[1][None, :])
+            gap = np.maximum(sets.x_lo[i][None, :] - ego_x - half[i], ego_x - high - half[i])
+            worst = np.minimum(worst, np.where(window, gap, np.inf).min(axis=1))
+    return worst
+
+
+def follower_bound(state: RoadState, i: int, react: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """(holds, frames) [m] the highest position of car ``i`` reacting at ``react`` [s] (per plan): its envelope's
+    top until then, then braking at its limit from the speed it may have reached."""
+    v0 = np.array([max(float(state.vx[i]), 0.0)])
+    a, b = np.array([state.accel_max[i]]), np.array([state.brake_max[i]])
+    v_min, v_max = speed_bounds(state.vx[i : i + 1], state.target_speed[i : i + 1],
+                                np.isfinite(state.linear_speed_gain[i : i + 1]))  # fmt: skip
+    r = react[:, None]
+    d1, _ = _rise(v0, a, v_max, np.minimum(t[None, :], r))
+    d_r, v_r = _rise(v0, a, v_max, r)
+    d2, _ = _fall(v_r, b, np.minimum(v_min, 0.0), np.maximum(t[None, :] - r, 0.0))
+    return state.x[i] + np.where(t[None, :] <= r, d1, d_r + d2)
+
+
+# --------------------------------------------------------------------------------------------
+# The family: memory between decisions.
+# --------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class CommittedResult(SafetyResult):
+    """:class:`SafetyResult` of the committed family: ``safe`` lists the verified actions, ``fallback`` is set when
+    none is; ``plan_forced``: the kept plan's next step drives (nothing verified); ``lapse``: the plan kept,
+    verified, at the last decision no longer verifies (a plan driven on after a lapse is not verified again);
+    ``escaped``: snapshot indices of the cars outside the sets drawn for them; ``entered`` (``responsibility``):
+    those that entered a lane the ego holds since the last decision; ``certified``: some plan is verified
+    or kept; ``plans``: the verified plan of each action (None: none)."""
+
+    plan_forced: bool = False
+    lapse: bool = False
+    escaped: tuple[int, ...] = ()
+    entered: tuple[int, ...] = ()
+    certified: bool = False
+    plans: tuple[Plan | None, ...] = ()
+
+    @property
+    def lapse_in_model(self) -> bool:
+        """A lapse with every car inside its set (and, under ``responsibility``, none that entered a lane the ego
+        holds since the last decision: such a car made the gap it is responsible for): a gap in the
+        construction."""
+        return self.lapse and not self.escaped and not self.entered
+
+
+@dataclass
+class CommittedFamily:
+    """The ``committed`` shield mode (experimental, module docstring): a :class:`~safelane.safety.family.RuleFamily`
+    with memory. :meth:`evaluate` judges a state without changing the memory (it may be called again on the same
+    state); :meth:`commit` records the executed action; :meth:`reset` forgets the episode."""
+
+    reading: Reading = "sound"
+    engine: Engine = "compiled"
+    mode: str = "committed"
+    kept: Plan | None = None
+    kept_verified: bool = False
+    carried: CarSets | None = None
+    followers: dict[int, tuple[int, np.ndarray]] = field(default_factory=dict)
+    _pending: tuple[CommittedResult, RoadState, Dynamics, CarSets, np.ndarray] | None = field(default=None, repr=False)
+
+    def __post_init__(self) -> None:
+        if self.reading not in READINGS:
+            raise ValueError(f"shield.reading: got {self.reading!r}; allowed: 'sound', 'responsibility'")
+
+    def reset(self) -> None:
+        """Forget the kept plan and the carried sets (a new episode)."""
+        self.kept, self.kept_verified, self.carried, self.followers, self._pending = None, False, None, {}, None
+
+    def evaluate(self, snap: RoadSnapshot, dyn: Dynamics, ego_leave_time: float) -> CommittedResult:
+        """The verdict in the state of ``snap`` (see the class docstring)."""
+        dyn = dataclasses.replace(dyn, ego_leave_time=ego_leave_time)
+        state, vehicle = _whole_state(snap, dyn)
+        return self.evaluate_state(
+            state, vehicle, dyn, lambda: OneDecisionFamily("robust", self.engine).evaluate(snap, dyn, ego_leave_time)
+        )
+
+    def evaluate_state(
+        self,
+        state: RoadState,
+        vehicle: np.ndarray,
+        dyn: Dynamics,
+        uncertified: Callable[[], SafetyResult] | None = None,
+    ) -> CommittedResult:
+        """:meth:`evaluate` on a :class:`RoadState` (every car, ``vehicle``: their identities, kept from one decision
+        to the next) with ``dyn.ego_leave_time`` set; ``uncertified``: the one-decision robust rule's verdict in this
+        state (default: the numpy reference's)."""
+        sets = car_sets(state, dyn, vehicle)
+        escaped = np.zeros(state.n, dtype=bool)
+        entered = np.zeros(state.n, dtype=bool)
+        if self.carried is not None:
+            entered = _entered_held_lanes(state, self.carried, sets, vehicle)
+            older = self.carried.shifted(dyn.frames_per_decision, dyn.decision_period)
+            escaped = escaped_cars(state, dyn, older, vehicle) | self._followers_escaped(state, dyn, vehicle)
+            sets = sets.intersect(older, ~escaped)
+        worst, ego_x, ego_v = verify_plans(state, dyn, sets, self.reading)
+        verified = worst >= dyn.margin  # (5, holds)
+        available = available_actions(state, dyn)
+        best = np.argmax(np.where(verified, worst, -np.inf), axis=1)
+        plans: list[Plan | None] = [
+            plan_of(state, dyn, ego_v[a, best[a]], a, int(best[a])) if verified[a].any() else None
+            for a in range(N_ACTIONS)
+        ]
+        lapse = forced = False
+        if self.kept is not None:
+            tail = self.kept.shifted(dyn)
+            a, k = tail.action, tail.hold
+            if not available[a]:  # SLOWER at the lowest set-point holds 0 m/s, as IDLE does
+                a, k = IDLE, 0
+            rows = {int(v): r for r, v in enumerate(vehicle)}
+            f = dyn.frames_per_decision
+            followers = {
+                rows[v]: (lane, np.concatenate([high[f:], np.full(f, np.inf)]))
+                for v, (lane, high) in self.followers.items()
+                if v in rows and not escaped[rows[v]]
+            }
+            gap = plan_gaps(state, dyn, sets, ego_x[a, k : k + 1], ego_v[a, k : k + 1], np.array([tail.onset]),
+                            list(tail.occupied), self.reading, tail.frames, followers)[0]  # fmt: skip
+            # A lapse: the plan verified at the last decision no longer is (a plan kept on after one stays unverified).
+            lapse = self.kept_verified and not gap >= dyn.margin
+            step = self.kept.next_step() if available[self.kept.next_step()] else IDLE
+            if gap >= dyn.margin and plans[step] is None:  # the kept plan itself still verifies: its step is allowed
+                plans[step] = dataclasses.replace(tail, action=a, hold=k)
+            forced = not any(p is not None for p in plans)
+            if forced:
+                step = self.kept.next_step() if available[self.kept.next_step()] else IDLE
+        safe = np.array([p is not None for p in plans])
+        mask = safe.copy()
+        if forced:
+            mask[step] = True
+        best_gap = np.where(available, worst.max(axis=1), -np.inf)
+        if not mask.any():  # no plan verified, none kept: uncertified, the one-decision robust rule drives
+            robust = uncertified() if uncertified is not None else evaluate_one_decision(state, dyn, "robust")
+            mask = robust.mask.copy()
+        result = CommittedResult(
+            mask, safe, available, not bool(safe.any()), best_gap, None,
+            plan_forced=forced, lapse=lapse, escaped=tuple(int(v) for v in vehicle[escaped]),
+            entered=tuple(int(v) for v in vehicle[entered]) if self.reading == "responsibility" else (),
+            certified=bool(safe.any()) or self.kept is not None, plans=tuple(plans),
+        )  # fmt: skip
+        self._pending = (result, state, dyn, sets, vehicle)
+        return result
+
+    def commit(self, action: int) -> None:
+        """Record that ``action`` was executed in the state last evaluated: its verified plan is kept; the kept
+        plan's next step, forced, keeps the kept plan (shifted); any other action leaves no plan."""
+        if self._pending is None:
+            return
+        result, state, dyn, sets, vehicle = self._pending
+        plan = result.plans[action]
+        self.kept_verified = plan is not None
+        # The same plan goes on: the kept plan's tail, verified (its step) or forced.
+        same_plan = plan is not None and self.kept is not None and plan.onset == self.kept.onset - dyn.decision_period
+        if plan is None and self.kept is not None and result.plan_forced and result.mask[action]:
+            plan = self.kept.shifted(dyn)
+            same_plan = True
+        self.kept = plan
+        self.carried = sets
+        if plan is None:
+            self.followers = {}
+        else:  # the follower bounds of this plan, inside those carried for the same plan (a nested law)
+            fresh = _followers_of(state, dyn, sets, vehicle, plan)
+            f = dyn.frames_per_decision
+            for v, (lane, high) in self.followers.items() if same_plan else ():
+                shifted = np.concatenate([high[f:], np.full(f, np.inf)])
+                now = fresh.get(v)  # a car no longer following keeps the bound: it may come back
+                fresh[v] = (lane, shifted if now is None or now[0] != lane else np.minimum(now[1], shifted))
+            self.followers = fresh
+        self._pending = None
+
+    def _followers_escaped(self, state: RoadState, dyn: Dynamics, vehicle: np.ndarray) -> np.ndarray:
+        """(cars,) the followers of the kept plan (a car behind the ego in a lane it held) still in that lane and
+        ahead of the bound their reaction to the plan allowed."""
+        out = np.zeros(state.n, dtype=bool)
+        occupied = _occupied_lanes(state, dyn)
+        f = dyn.frames_per_decision
+        for i, v in enumerate(vehicle):
+            follower = self.followers.get(int(v))
+            if follower is not None and occupied[i, follower[0]] and f < follower[1].size:
+                out[i] = state.x[i] > follower[1][f] + ESCAPE_TOLERANCE
+        return out
+
+
+def _entered_held_lanes(state: RoadState, older: CarSets, sets: CarSets, vehicle: np.ndarray) -> np.ndarray:
+    """(cars,) the cars in (or moving into) a lane the ego holds now that were not at the last decision."""
+    rows = {int(v): r for r, v in enumerate(older.vehicle)}
+    out = np.zeros(state.n, dtype=bool)
+    for lane in {state.ego_lane, state.ego_target_lane}:
+        for i in np.flatnonzero(sets.now[:, lane]):
+            r = rows.get(int(vehicle[i]))
+            out[i] |= r is not None and not older.now[r, lane]
+    return out
+
+
+def _followers_of(state: RoadState, dyn: Dynamics, sets: CarSets, vehicle: np.ndarray, plan: Plan) -> dict:
+    """{snapshot index: (lane, highest position [m] per frame)} of the cars that follow the ego under ``plan``
+    (:func:`plan_gaps`' follower law): the bound a lapse is traced against."""
+    held = {state.ego_lane, state.ego_target_lane}
+    t = dyn.times
+    out: dict[int, tuple[int, np.ndarray]] = {}
+    for lane, _ in plan.occupied:
+        if lane not in held:
+            continue
+        own = state.lane_of(state.y, dyn.lanes_count, dyn.lane_width)
+        for i in np.flatnonzero((state.x < state.ego_x) & (own == lane)):
+            bound = follower_bound(state, int(i), np.array([max(plan.onset + dyn.follower_reaction, 0.0)]), t)[0]
+            out[int(vehicle[i])] = (lane, np.minimum(bound, sets.x_hi[i]))
+    return out
+
+
+def _whole_state(snap: RoadSnapshot, dyn: Dynamics) -> tuple[RoadState, np.ndarray]:
+    """The road state with every other body at a finite position (no relevance range: that is the one-decision
+    rule's, not a bound on a reachable set) and the snapshot index of each row."""
+    others = snap.others(vehicles_only=False)
+    bodies = others[np.isfinite(snap.longitudinal(snap.position[others]))]
+    direction, lateral = snap.lane_direction, snap.lane_lateral
+    lane_heading = math.atan2(direction[1], direction[0])
+    base = road_state(snap, dyn.rule.ego_speed_magnitude)
+    pos = snap.position[bodies] - snap.lane_origin
+    heading = snap.heading[bodies] - lane_heading
+    speed = snap.speed[bodies]
+    state = dataclasses.replace(
+        base, x=pos @ direction, y=pos @ lateral, vx=speed * np.cos(heading), vy=speed * np.sin(heading),
+        heading=np.arctan2(np.sin(heading), np.cos(heading)), length=snap.length[bodies],
+        crashed=snap.crashed[bodies], target_speed=snap.target_speed[bodies],
+        **{name: getattr(snap, name)[bodies] for name in DRIVER_FIELDS},
+    )  # fmt: skip
+    return state, bodies

@@ -1,0 +1,255 @@
+"""The committed shield (experimental, safelane.safety.committed): its reachable sets nest in time, a kept plan
+stays verified while every car stays inside its set, a car that leaves its set is named at the lapse, and a state
+with no verified plan is uncertified."""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Any
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from safelane.core.spaces import FASTER, IDLE, SLOWER
+from safelane.safety.committed import (
+    CommittedFamily,
+    envelope,
+    lane_crossing_time,
+    lane_entry_times,
+    speed_bounds,
+)
+from safelane.safety.ego import ego_trajectories
+from safelane.safety.model import evaluate as evaluate_one_decision
+from safelane.safety.world import Dynamics, RoadState
+
+DYN = Dynamics(
+    decision_period=1.0, frame_dt=0.2, frames_per_decision=5, ego_kp=1 / 0.6,
+    target_speeds=tuple(5.0 * k for k in range(7)), lane_width=4.0, lanes_count=3, cut_in_time=0.2,
+    ego_leave_time=1.0,
+)  # fmt: skip
+IDM_CAR: dict[str, Any] = dict(
+    brake_max=6.0, accel_max=3.0, can_change_lane=True, idm_delta=4.0, idm_comfort_acc=3.0, idm_comfort_dec=-5.0,
+    idm_distance_wanted=10.0, idm_time_wanted=1.5, max_braking_imposed=2.0, linear_speed_gain=np.nan,
+    linear_speed_difference_gain=np.nan, linear_distance_gain=np.nan, target_speed=25.0, length=5.0, crashed=False,
+    vx=0.0, vy=0.0, heading=0.0,
+)  # fmt: skip
+FLOATS = ("x", "y", "vx", "vy", "heading", "length", "brake_max", "accel_max", "idm_delta", "idm_comfort_acc",
+          "idm_comfort_dec", "idm_distance_wanted", "idm_time_wanted", "max_braking_imposed", "linear_speed_gain",
+          "linear_speed_difference_gain", "linear_distance_gain", "target_speed")  # fmt: skip
+
+
+def scene(cars: list[dict[str, Any]], ego_x: float = 0.0, ego_speed: float = 20.0, set_point: float | None = None,
+          ego_lane: int = 1, dyn: Dynamics = DYN) -> RoadState:  # fmt: skip
+    """A straight road: the ego in ``ego_lane`` at ``ego_x`` [m], ``ego_speed`` [m/s]; IDM cars given by ``x``,
+    ``lane`` and ``vx`` (and any other field)."""
+    rows = [{**IDM_CAR, "y": c.get("lane", 1) * dyn.lane_width, **{k: v for k, v in c.items() if k != "lane"}}
+            for c in cars]  # fmt: skip
+    target = ego_speed if set_point is None else set_point
+    return RoadState(
+        ego_x=ego_x, ego_y=ego_lane * dyn.lane_width, ego_speed=ego_speed, ego_lane=ego_lane,
+        ego_target_lane=ego_lane, ego_target_speed=target, ego_speed_index=round(target / 5.0),
+        crashed=np.array([r["crashed"] for r in rows], dtype=bool),
+        can_change_lane=np.array([r["can_change_lane"] for r in rows], dtype=bool),
+        **{k: np.array([r[k] for r in rows], dtype=float) for k in FLOATS},
+    )  # fmt: skip
+
+
+def advance(x: float, v: float, accelerations: list[float], h: float, a: float, b: float, target: float):
+    """A car's exact state after piecewise-constant accelerations (each ``h`` s, in [−b, a]) with its speed kept
+    in the driver model's bounds (:func:`speed_bounds`): one history the model allows."""
+    v_min, v_max = (float(z[0]) for z in speed_bounds(np.array([v]), np.array([target]), np.array([False])))
+    for u in accelerations:
+        if u >= 0:
+            t_top = max(v_max - v, 0.0) / max(u, 1e-12)
+            tt = min(h, t_top)
+            x, v = x + v * tt + 0.5 * u * tt * tt + v_max * max(h - t_top, 0.0), min(v + u * h, v_max)
+        else:
+            t_low = max(v - v_min, 0.0) / -u
+            tt = min(h, t_low)
+            x, v = x + v * tt + 0.5 * u * tt * tt + v_min * max(h - t_low, 0.0), max(v + u * h, v_min)
+    return x, v
+
+
+@settings(max_examples=300, deadline=None)
+@given(
+    x=st.floats(-200, 200), v=st.floats(-3, 35), a=st.floats(0.5, 6), b=st.floats(1, 8), target=st.floats(0, 40),
+    steps=st.integers(1, 10), fractions=st.lists(st.floats(0, 1), min_size=10, max_size=10),
+)  # fmt: skip
+def test_the_longitudinal_set_nests_in_time(x, v, a, b, target, steps, fractions) -> None:
+    """R(s', [0, H−Δ]) ⊆ R(s, [Δ, H]) for every successor s' the driver model allows after Δ: positions and speeds,
+    frame by frame."""
+    h = 0.2
+    t = np.arange(66) * h
+    v_min, v_max = speed_bounds(np.array([v]), np.array([target]), np.array([False]))
+    lo, hi, vlo, vhi = envelope(np.array([x]), np.array([v]), np.array([a]), np.array([b]), v_min, v_max, t)
+    x2, v2 = advance(x, v, [-b + f * (a + b) for f in fractions[:steps]], h, a, b, target)
+    v_min2, v_max2 = speed_bounds(np.array([v2]), np.array([target]), np.array([False]))
+    assert v_min2[0] >= v_min[0] and v_max2[0] <= v_max[0]
+    lo2, hi2, vlo2, vhi2 = envelope(np.array([x2]), np.array([v2]), np.array([a]), np.array([b]), v_min2, v_max2,
+                                    t[: t.size - steps])  # fmt: skip
+    tol = 1e-7 * (1 + abs(x))
+    assert (lo2[0] >= lo[0, steps:] - tol).all() and (hi2[0] <= hi[0, steps:] + tol).all()
+    assert (vlo2[0] >= vlo[0, steps:] - 1e-9).all() and (vhi2[0] <= vhi[0, steps:] + 1e-9).all()
+    # ...and the successor itself is inside the set at Δ
+    assert lo[0, steps] - tol <= x2 <= hi[0, steps] + tol
+
+
+def test_an_inadmissible_successor_breaks_the_nesting() -> None:
+    """The property test above can fail: a car that brakes harder than its model allows is outside the set."""
+    t = np.arange(66) * 0.2
+    v_min, v_max = speed_bounds(np.array([20.0]), np.array([25.0]), np.array([False]))
+    lo, *_ = envelope(np.array([0.0]), np.array([20.0]), np.array([3.0]), np.array([6.0]), v_min, v_max, t)
+    x2, _ = advance(0.0, 20.0, [-9.0] * 5, 0.2, 3.0, 9.0, 25.0)
+    assert x2 < lo[0, 5]
+
+
+@settings(max_examples=200, deadline=None)
+@given(
+    start=st.integers(0, 4), moved=st.integers(-4, 4), extra=st.floats(0, 3), cut_in=st.sampled_from([0.0, 0.2, 0.4]),
+)  # fmt: skip
+def test_the_lanes_a_car_can_reach_nest_in_time(start, moved, extra, cut_in) -> None:
+    """A car centred in lane ``start``, centred ``moved`` lanes over after Δ (each lane boundary crossed takes at
+    least the crossing time), may enter no lane earlier, counted from the first state, than the first set allows."""
+    dyn = dataclasses.replace(DYN, lanes_count=5, cut_in_time=cut_in)
+    end = start + moved
+    if not 0 <= end < dyn.lanes_count:
+        return
+    delta = abs(moved) * lane_crossing_time(dyn) + extra
+    before = lane_entry_times(scene([{"x": 50.0, "lane": start}], dyn=dyn), dyn)[0]
+    after = lane_entry_times(scene([{"x": 50.0, "lane": end}], dyn=dyn), dyn)[0]
+    assert (delta + after >= before - 1e-9).all()
+    assert before[end] <= delta + 1e-9  # the successor itself is inside the set at Δ
+
+
+# --------------------------------------------------------------------------------------------
+# Scenes.
+# --------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(("distance", "verified"), [(60.0, [SLOWER]), (80.0, [IDLE, SLOWER]), (40.0, [])])
+def test_a_stopped_car_ahead(distance: float, verified: list[int]) -> None:
+    """One lane, the ego at 20 m/s, a stopped car ahead: FASTER is never verified; SLOWER from 60 m, IDLE from 80;
+    at 40 m nothing is (an uncertified state)."""
+    dyn = dataclasses.replace(DYN, lanes_count=1)
+    state = scene([{"x": distance, "lane": 0}], ego_lane=0, dyn=dyn)
+    result = CommittedFamily().evaluate_state(state, np.array([7]), dyn)
+    assert np.flatnonzero(result.safe).tolist() == verified
+    if verified:
+        assert result.mask.tolist() == result.safe.tolist() and not result.fallback
+    assert not result.safe[FASTER]
+
+
+def _followed(state: RoadState, dyn: Dynamics, action: int, hold: int) -> tuple[float, float, float]:
+    """The ego's position [m], speed [m/s] and set-point [m/s] one decision into plan (``action``, ``hold``)."""
+    xs, vs = ego_trajectories(state, dyn)
+    f = dyn.frames_per_decision
+    set_point = {FASTER: state.ego_target_speed + 5.0, SLOWER: state.ego_target_speed - 5.0}.get(
+        action, state.ego_target_speed
+    )
+    return float(xs[action, hold, f]), float(vs[action, hold, f]), set_point
+
+
+LEADER = [{"x": 70.0, "lane": 1, "vx": 20.0}]
+
+
+@settings(max_examples=40, deadline=None)
+@given(
+    fractions=st.lists(st.floats(0, 1), min_size=5, max_size=5), reading=st.sampled_from(["sound", "responsibility"])
+)
+def test_a_kept_plan_stays_verified_while_the_cars_stay_in_their_sets(fractions, reading) -> None:
+    """FASTER is verified behind a leader 70 m ahead; after it, whatever the leader does within its model (here
+    any acceleration history in [−6, 3] m/s²), the kept plan's tail still verifies: no lapse, and its next step
+    is allowed, with a worst gap no smaller than when it was kept."""
+    state = scene(LEADER)
+    family = CommittedFamily(reading)
+    first = family.evaluate_state(state, np.array([0]), DYN)
+    assert first.safe[FASTER]
+    plan = first.plans[FASTER]
+    family.commit(FASTER)
+    ego_x, ego_v, set_point = _followed(state, DYN, FASTER, plan.hold)
+    x, v = advance(70.0, 20.0, [-6.0 + 9.0 * f for f in fractions], 0.2, 3.0, 6.0, 25.0)
+    after = scene([{"x": x, "lane": 1, "vx": v}], ego_x=ego_x, ego_speed=ego_v, set_point=set_point)
+    result = family.evaluate_state(after, np.array([0]), DYN)
+    assert not result.lapse and not result.escaped and not result.plan_forced
+    assert result.mask[plan.next_step()]
+    assert result.min_gap[plan.next_step()] >= first.min_gap[FASTER] - 1e-6
+
+
+def test_a_car_leaving_its_set_makes_a_lapse_that_names_it() -> None:
+    """The same plan, but the leader stops dead 12 m ahead of the ego one decision later (no driver model brakes
+    so hard): a lapse, the leader named, nothing verified, and the kept plan's next step (SLOWER) drives."""
+    state = scene([*LEADER, {"x": -30.0, "lane": 0, "vx": 20.0}])
+    family = CommittedFamily("responsibility")
+    first = family.evaluate_state(state, np.array([4, 9]), DYN)
+    plan = first.plans[FASTER]
+    assert plan is not None and plan.next_step() == SLOWER
+    family.commit(FASTER)
+    ego_x, ego_v, set_point = _followed(state, DYN, FASTER, plan.hold)
+    after = scene([{"x": ego_x + 12.0, "lane": 1, "vx": 0.0}, {"x": -10.0, "lane": 0, "vx": 20.0}],
+                  ego_x=ego_x, ego_speed=ego_v, set_point=set_point)  # fmt: skip
+    result = family.evaluate_state(after, np.array([4, 9]), DYN)
+    assert result.lapse and result.escaped == (4,) and not result.lapse_in_model
+    assert result.plan_forced and result.mask.tolist() == [False, False, False, False, True]
+    assert result.fallback and not result.safe.any() and result.certified
+
+
+def test_a_state_with_no_verified_plan_is_an_uncertified_start() -> None:
+    """A stopped car 8 m ahead, cars beside in both next lanes: no plan verifies; with none kept the state is
+    uncertified and the one-decision robust rule's mask drives."""
+    cars = [{"x": 8.0, "lane": 1}, {"x": 0.0, "lane": 0, "vx": 20.0}, {"x": 0.0, "lane": 2, "vx": 20.0}]
+    state = scene(cars)
+    result = CommittedFamily().evaluate_state(state, np.arange(3), DYN)
+    assert not result.safe.any() and not result.certified and result.fallback
+    assert not result.plan_forced and not result.lapse
+    assert result.mask.tolist() == evaluate_one_decision(state, DYN, "robust").mask.tolist()
+
+
+def test_a_follower_reacts_to_the_plan() -> None:
+    """Under ``sound`` a car 40 m behind in the ego's lane at the ego's speed leaves IDLE verified only because it
+    follows the ego: it accelerates at most until the reaction time after the plan's braking onset, then brakes.
+    Its envelope alone (accelerating for the whole horizon) would reach the ego."""
+    state = scene([*LEADER, {"x": -40.0, "lane": 1, "vx": 20.0}])
+    result = CommittedFamily("sound").evaluate_state(state, np.arange(2), DYN)
+    assert result.safe[IDLE] and result.plans[IDLE] is not None
+    beside = scene([*LEADER, {"x": -40.0, "lane": 1, "vx": 20.0, "y": 6.1}])  # its own lane the next one: no law
+    assert not CommittedFamily("sound").evaluate_state(beside, np.arange(2), DYN).safe[IDLE]
+
+
+def test_the_responsibility_reading_leaves_a_car_behind_to_its_driver() -> None:
+    """A fast car 15 m behind in the ego's lane: under ``sound`` it is the ego's to avoid (IDLE unverified), under
+    ``responsibility`` it is not."""
+    state = scene([*LEADER, {"x": -15.0, "lane": 1, "vx": 30.0}])
+    sound = CommittedFamily("sound").evaluate_state(state, np.arange(2), DYN)
+    responsibility = CommittedFamily("responsibility").evaluate_state(state, np.arange(2), DYN)
+    assert not sound.safe[IDLE] and responsibility.safe[IDLE]
+
+
+def test_the_shield_reports_the_committed_mode() -> None:
+    """``shield.mode: committed`` with ``shield.reading``: the info keys, the reading, one line per bad value."""
+    from safelane.config import ConfigError
+    from safelane.env.factory import make_env
+    from safelane.env.scenarios import find_shield
+
+    env = make_env("fast", simulator="fast", **{"shield.mode": "committed", "shield.reading": "responsibility",
+                                                "shield.override": True, "env.vehicles_count": 5})  # fmt: skip
+    _, info = env.reset(seed=3)
+    assert isinstance(info["uncertified_start"], bool)
+    family = find_shield(env).family
+    assert isinstance(family, CommittedFamily) and family.reading == "responsibility"
+    for _ in range(3):
+        _, _, _, _, info = env.step(FASTER)
+        assert {"plan_forced", "lapse", "lapse_in_model", "escaped_cars", "certified"} <= set(info)
+    env.close()
+    # The batch and the vector env have no committed kernel: they fall back to one shielded copy per environment.
+    from safelane.config import load_config
+    from safelane.env.fast_batch import supports
+
+    assert "committed" in (
+        supports(load_config("fast", overrides={"shield.mode": "committed", "simulator": "fast"})) or ""
+    )
+    with pytest.raises(ValueError, match=r"^shield\.reading: got 'x'; allowed: 'sound', 'responsibility'$"):
+        CommittedFamily("x")  # type: ignore[arg-type]
+    with pytest.raises(ConfigError, match=r"shield\.reading"):
+        make_env("fast", **{"shield.mode": "committed", "shield.reading": "lenient"})

@@ -69,12 +69,33 @@ def forecast_gaps(
     NaN: an IDM driver; ``target_speed`` NaN or absent: a body with no known law — highway-env's static objects
     have none — which keeps its speed).
     """
+    return forecast_gaps_of(
+        xs, ego_last_frame, available, available, frame_dt, ego_x, ego_length, lanes_count, lane_width, speed_limit,
+        x, y, vx, vy, length, crashed, brake_max, accel_max, idm_delta, idm_comfort_acc, idm_comfort_dec,
+        idm_distance_wanted, idm_time_wanted, lin_k0, lin_k1, lin_k2, target_speed,
+    )  # fmt: skip
+
+
+@njit(cache=True, error_model="numpy")
+def forecast_gaps_of(
+    xs: np.ndarray, ego_last_frame: np.ndarray, available: np.ndarray, wanted: np.ndarray, frame_dt: float,
+    ego_x: float, ego_length: float, lanes_count: int, lane_width: float, speed_limit: float, x: np.ndarray,
+    y: np.ndarray, vx: np.ndarray, vy: np.ndarray, length: np.ndarray, crashed: np.ndarray, brake_max: np.ndarray,
+    accel_max: np.ndarray, idm_delta: np.ndarray, idm_comfort_acc: np.ndarray, idm_comfort_dec: np.ndarray,
+    idm_distance_wanted: np.ndarray, idm_time_wanted: np.ndarray, lin_k0: np.ndarray, lin_k1: np.ndarray,
+    lin_k2: np.ndarray, target_speed: np.ndarray,
+) -> np.ndarray:  # fmt: skip
+    """:func:`forecast_gaps`, rolled out only for the ``wanted`` actions ((5,) bool, within ``available``;
+    every other action's entry is ``-inf``): the least-bad choice reads the keys of its pool only, and one
+    action's four rollouts cost more than the rest of the rule. The vehicles forecast are still those that can
+    share a lane with the ego under any ``available`` action, so a wanted action's gap is :func:`forecast_gaps`'
+    to the bit."""
     n_actions, n_fallbacks = xs.shape[0], xs.shape[1]
     out = np.full(n_actions, -math.inf)
     if not _complete(x, y, vx, vy, length, crashed, brake_max, accel_max, idm_delta, idm_comfort_acc,
                      idm_comfort_dec, idm_distance_wanted, idm_time_wanted):  # fmt: skip
         for a in range(n_actions):
-            if available[a]:
+            if available[a] and wanted[a]:
                 out[a] = math.inf
         return out
     # The vehicles that can share a lane with the ego: those in (or heading to) a lane it may occupy.
@@ -88,15 +109,27 @@ def forecast_gaps(
         used, ego_x, lanes_count, lane_width, speed_limit, x, y, vx, vy, target_speed
     )
     no_history = np.empty((0, 0))
+    # Once per scene, every forecast vehicle driven with the ego in no lane (``free``, their positions per frame):
+    # a vehicle that follows a lane the ego never enters under an action drives so under that action — its
+    # leaders follow the same lane — so each rollout drives only the vehicles of the ego's lanes and reads the
+    # others' positions here (the same operations on the same values: the same bits).
+    m = pick.shape[0]
+    free = np.empty((m, xs.shape[2] - 1))
+    never = np.full(lanes_count, -1, dtype=np.int64)
+    _rollout(
+        xs[0, 0], never, frame_dt, ego_length, pick, lane_now, lane_to, leader, set_point, v0, x, vx, length,
+        crashed, brake_max, accel_max, idm_delta, idm_comfort_acc, idm_comfort_dec, idm_distance_wanted,
+        idm_time_wanted, lin_k0, lin_k1, lin_k2, free, no_history,
+    )  # fmt: skip
     for a in range(n_actions):
-        if not available[a]:
+        if not (available[a] and wanted[a]):
             continue
         best_gap = -math.inf
         for k in range(n_fallbacks):
             smallest = _rollout(
                 xs[a, k], ego_last_frame[a], frame_dt, ego_length, pick, lane_now, lane_to, leader, set_point, v0,
                 x, vx, length, crashed, brake_max, accel_max, idm_delta, idm_comfort_acc, idm_comfort_dec,
-                idm_distance_wanted, idm_time_wanted, lin_k0, lin_k1, lin_k2, no_history,
+                idm_distance_wanted, idm_time_wanted, lin_k0, lin_k1, lin_k2, no_history, free,
             )  # fmt: skip
             if k == 0 or smallest > best_gap:
                 best_gap = smallest
@@ -146,7 +179,7 @@ def forecast_paths(
     smallest = _rollout(
         ego_path, ego_last_frame, frame_dt, ego_length, pick, lane_now, lane_to, leader, set_point, v0, x, vx,
         length, crashed, brake_max, accel_max, idm_delta, idm_comfort_acc, idm_comfort_dec, idm_distance_wanted,
-        idm_time_wanted, lin_k0, lin_k1, lin_k2, history,
+        idm_time_wanted, lin_k0, lin_k1, lin_k2, history, np.empty((0, 0)),
     )  # fmt: skip
     return pick, history, smallest
 
@@ -216,14 +249,17 @@ def _rollout(
     v0: np.ndarray, x: np.ndarray, vx: np.ndarray, length: np.ndarray, crashed: np.ndarray, brake_max: np.ndarray,
     accel_max: np.ndarray, idm_delta: np.ndarray, idm_comfort_acc: np.ndarray, idm_comfort_dec: np.ndarray,
     idm_distance_wanted: np.ndarray, idm_time_wanted: np.ndarray, lin_k0: np.ndarray, lin_k1: np.ndarray,
-    lin_k2: np.ndarray, history: np.ndarray,
+    lin_k2: np.ndarray, history: np.ndarray, free: np.ndarray,
 ) -> float:  # fmt: skip
     """Drive the ``pick``ed vehicles frame by frame beside one ego path (``ego_last``: the last frame it is in
     each lane) and return the smallest bumper gap [m] to the ego in a lane it occupies; ``history`` (vehicles ×
-    frames, or empty) receives their positions [m]. Each car follows ``leader`` (the order of the start)."""
+    frames, or empty) receives their positions [m]. Each car follows ``leader`` (the order of the start).
+    ``free`` (vehicles × frames, or empty): the positions [m] of the vehicles driven with the ego in no lane; a
+    vehicle that follows a lane the ego never occupies takes its positions from there instead of being driven."""
     m = pick.shape[0]
     n_t = ego_path.shape[0]
     record = history.shape[0] == m and m > 0
+    use_free = free.shape[0] == m and m > 0
     linear = lin_k0.shape[0] == x.shape[0] and lin_k1.shape[0] == x.shape[0] and lin_k2.shape[0] == x.shape[0]
     pos = np.empty(m)
     spd = np.empty(m)
@@ -234,6 +270,8 @@ def _rollout(
     for f in range(n_t - 1):
         ex = ego_path[f]
         for r in range(m):
+            if use_free and ego_last[lane_to[r]] < 0:
+                pos[r] = free[r, f]
             if record:
                 history[r, f] = pos[r]
             if ego_last[lane_now[r]] >= f or ego_last[lane_to[r]] >= f:
@@ -244,6 +282,8 @@ def _rollout(
         ev = (ego_path[f + 1] - ex) / frame_dt  # the ego's speed over the frame
         for r in range(m):
             i = pick[r]
+            if use_free and ego_last[lane_to[r]] < 0:
+                continue  # read from free
             if crashed[i] or not math.isfinite(set_point[r]):  # a wreck, or a body with no known law
                 acc[r] = 0.0
                 continue
@@ -259,6 +299,8 @@ def _rollout(
             )  # fmt: skip
             acc[r] = min(max(a_r, -brake_max[i]), accel_max[i])  # IDMVehicle.act clips to ±ACC_MAX
         for r in range(m):  # Vehicle.step: the position with the frame's speed, then the speed
+            if use_free and ego_last[lane_to[r]] < 0:
+                continue
             pos[r] += spd[r] * frame_dt
             spd[r] += acc[r] * frame_dt
     return smallest

@@ -40,7 +40,11 @@ def reference_kernel(commit: str, package: str = "kernel_at_commit") -> Any:
     (folder / "__init__.py").write_text("")
     for name in KERNEL_MODULES:
         text = subprocess.run(
-            ["git", "show", f"{commit}:src/safelane/safety/{name}.py"], check=True, capture_output=True, text=True
+            ["git", "show", f"{commit}:src/safelane/safety/{name}.py"],
+            check=True,
+            capture_output=True,
+            text=True,
+            cwd=Path(__file__).resolve().parents[1],
         ).stdout
         for other in KERNEL_MODULES:  # its own modules from the package, the rest (model, rule, core) from here
             text = re.sub(rf"\bsafelane\.safety\.{other}\b", f"{package}.{other}", text)

@@ -121,16 +121,40 @@ def forecast_gaps_of(
         crashed, brake_max, accel_max, idm_delta, idm_comfort_acc, idm_comfort_dec, idm_distance_wanted,
         idm_time_wanted, lin_k0, lin_k1, lin_k2, free, no_history,
     )  # fmt: skip
+    # An action's fallbacks hold its set-point for 0..3 decisions: fallback k + 1 drives as fallback k up to the
+    # frame their paths part, so its rollout starts from k's state there (saved on the way; the same bits).
+    n_t = xs.shape[2]
+    pos, spd = np.empty(m), np.empty(m)
+    saved_pos, saved_spd = np.empty(m), np.empty(m)
     for a in range(n_actions):
         if not (available[a] and wanted[a]):
             continue
         best_gap = -math.inf
+        start, saved_smallest = 0, math.inf
         for k in range(n_fallbacks):
-            smallest = _rollout(
+            if start == 0:
+                smallest = math.inf
+                for r in range(m):
+                    pos[r], spd[r] = x[pick[r]], vx[pick[r]]
+            else:
+                smallest = saved_smallest
+                for r in range(m):
+                    pos[r], spd[r] = saved_pos[r], saved_spd[r]
+            save_at = -1
+            if k + 1 < n_fallbacks:  # the frame at whose start fallback k + 1's state is still k's
+                same = 0
+                while same < n_t and xs[a, k, same] == xs[a, k + 1, same]:
+                    same += 1
+                part = min(same - 1, n_t - 2)
+                if part >= start and part >= 1:
+                    save_at = part
+            smallest, saved = _drive(
                 xs[a, k], ego_last_frame[a], frame_dt, ego_length, pick, lane_now, lane_to, leader, set_point, v0,
-                x, vx, length, crashed, brake_max, accel_max, idm_delta, idm_comfort_acc, idm_comfort_dec,
-                idm_distance_wanted, idm_time_wanted, lin_k0, lin_k1, lin_k2, no_history, free,
+                length, crashed, brake_max, accel_max, idm_delta, idm_comfort_acc, idm_comfort_dec,
+                idm_distance_wanted, idm_time_wanted, lin_k0, lin_k1, lin_k2, no_history, free, pos, spd, smallest,
+                start, save_at, saved_pos, saved_spd,
             )  # fmt: skip
+            start, saved_smallest = (save_at, saved) if save_at >= 0 else (0, math.inf)
             if k == 0 or smallest > best_gap:
                 best_gap = smallest
         out[a] = best_gap
@@ -257,17 +281,45 @@ def _rollout(
     ``free`` (vehicles × frames, or empty): the positions [m] of the vehicles driven with the ego in no lane; a
     vehicle that follows a lane the ego never occupies takes its positions from there instead of being driven."""
     m = pick.shape[0]
+    pos = np.empty(m)
+    spd = np.empty(m)
+    for r in range(m):
+        pos[r], spd[r] = x[pick[r]], vx[pick[r]]
+    none = np.empty(0)
+    smallest, _ = _drive(
+        ego_path, ego_last, frame_dt, ego_length, pick, lane_now, lane_to, leader, set_point, v0, length, crashed,
+        brake_max, accel_max, idm_delta, idm_comfort_acc, idm_comfort_dec, idm_distance_wanted, idm_time_wanted,
+        lin_k0, lin_k1, lin_k2, history, free, pos, spd, math.inf, 0, -1, none, none,
+    )  # fmt: skip
+    return smallest
+
+
+@njit(cache=True, error_model="numpy")
+def _drive(
+    ego_path: np.ndarray, ego_last: np.ndarray, frame_dt: float, ego_length: float, pick: np.ndarray,
+    lane_now: np.ndarray, lane_to: np.ndarray, leader: np.ndarray, set_point: np.ndarray, v0: np.ndarray,
+    length: np.ndarray, crashed: np.ndarray, brake_max: np.ndarray, accel_max: np.ndarray, idm_delta: np.ndarray,
+    idm_comfort_acc: np.ndarray, idm_comfort_dec: np.ndarray, idm_distance_wanted: np.ndarray,
+    idm_time_wanted: np.ndarray, lin_k0: np.ndarray, lin_k1: np.ndarray, lin_k2: np.ndarray, history: np.ndarray,
+    free: np.ndarray, pos: np.ndarray, spd: np.ndarray, smallest: float, start: int, save_at: int,
+    save_pos: np.ndarray, save_spd: np.ndarray,
+) -> tuple[float, float]:  # fmt: skip
+    """:func:`_rollout` from the start of frame ``start``, the vehicles at ``pos`` [m] and ``spd`` [m/s] (changed
+    in place) and the smallest gap so far ``smallest`` [m]: (the smallest gap [m], the smallest gap at the start of
+    frame ``save_at``, whose positions and speeds go to ``save_pos``, ``save_spd``; inf when ``save_at`` is −1)."""
+    m = pick.shape[0]
     n_t = ego_path.shape[0]
     record = history.shape[0] == m and m > 0
     use_free = free.shape[0] == m and m > 0
-    linear = lin_k0.shape[0] == x.shape[0] and lin_k1.shape[0] == x.shape[0] and lin_k2.shape[0] == x.shape[0]
-    pos = np.empty(m)
-    spd = np.empty(m)
+    n_all = crashed.shape[0]  # every vehicle's (the callers checked _complete)
+    linear = lin_k0.shape[0] == n_all and lin_k1.shape[0] == n_all and lin_k2.shape[0] == n_all
     acc = np.empty(m)
-    for r in range(m):
-        pos[r], spd[r] = x[pick[r]], vx[pick[r]]
-    smallest = math.inf
-    for f in range(n_t - 1):
+    saved = math.inf
+    for f in range(start, n_t - 1):
+        if f == save_at:
+            for r in range(m):
+                save_pos[r], save_spd[r] = pos[r], spd[r]
+            saved = smallest
         ex = ego_path[f]
         for r in range(m):
             if use_free and ego_last[lane_to[r]] < 0:
@@ -303,7 +355,7 @@ def _rollout(
                 continue
             pos[r] += spd[r] * frame_dt
             spd[r] += acc[r] * frame_dt
-    return smallest
+    return smallest, saved
 
 
 @njit(cache=True, error_model="numpy")

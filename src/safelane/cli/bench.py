@@ -34,6 +34,8 @@ BENCH_UNITS = {
     "fast_shielded_decisions_per_s": "decisions/s",
     "fast_speedup": "fast shielded ÷ stock highway-env",
     "shield_mask_us_median_fast": "µs",
+    "shield_mask_us_mean_fast": "µs",
+    "shield_mask_us_p99_fast": "µs",
     "fast_batched_decisions_per_s": "N envs: summed decisions/s",
     "envpool_decisions_per_s": "decisions/s",
     "train_steps_per_s": "decisions/s",

@@ -69,12 +69,33 @@ def forecast_gaps(
     NaN: an IDM driver; ``target_speed`` NaN or absent: a body with no known law — highway-env's static objects
     have none — which keeps its speed).
     """
+    return forecast_gaps_of(
+        xs, ego_last_frame, available, available, frame_dt, ego_x, ego_length, lanes_count, lane_width, speed_limit,
+        x, y, vx, vy, length, crashed, brake_max, accel_max, idm_delta, idm_comfort_acc, idm_comfort_dec,
+        idm_distance_wanted, idm_time_wanted, lin_k0, lin_k1, lin_k2, target_speed,
+    )  # fmt: skip
+
+
+@njit(cache=True, error_model="numpy")
+def forecast_gaps_of(
+    xs: np.ndarray, ego_last_frame: np.ndarray, available: np.ndarray, wanted: np.ndarray, frame_dt: float,
+    ego_x: float, ego_length: float, lanes_count: int, lane_width: float, speed_limit: float, x: np.ndarray,
+    y: np.ndarray, vx: np.ndarray, vy: np.ndarray, length: np.ndarray, crashed: np.ndarray, brake_max: np.ndarray,
+    accel_max: np.ndarray, idm_delta: np.ndarray, idm_comfort_acc: np.ndarray, idm_comfort_dec: np.ndarray,
+    idm_distance_wanted: np.ndarray, idm_time_wanted: np.ndarray, lin_k0: np.ndarray, lin_k1: np.ndarray,
+    lin_k2: np.ndarray, target_speed: np.ndarray,
+) -> np.ndarray:  # fmt: skip
+    """:func:`forecast_gaps`, rolled out only for the ``wanted`` actions ((5,) bool, within ``available``;
+    every other action's entry is ``-inf``): the least-bad choice reads the keys of its pool only, and one
+    action's four rollouts cost more than the rest of the rule. The vehicles forecast are still those that can
+    share a lane with the ego under any ``available`` action, so a wanted action's gap is :func:`forecast_gaps`'
+    to the bit."""
     n_actions, n_fallbacks = xs.shape[0], xs.shape[1]
     out = np.full(n_actions, -math.inf)
     if not _complete(x, y, vx, vy, length, crashed, brake_max, accel_max, idm_delta, idm_comfort_acc,
                      idm_comfort_dec, idm_distance_wanted, idm_time_wanted):  # fmt: skip
         for a in range(n_actions):
-            if available[a]:
+            if available[a] and wanted[a]:
                 out[a] = math.inf
         return out
     # The vehicles that can share a lane with the ego: those in (or heading to) a lane it may occupy.
@@ -88,16 +109,52 @@ def forecast_gaps(
         used, ego_x, lanes_count, lane_width, speed_limit, x, y, vx, vy, target_speed
     )
     no_history = np.empty((0, 0))
+    # Once per scene, every forecast vehicle driven with the ego in no lane (``free``, their positions per frame):
+    # a vehicle that follows a lane the ego never enters under an action drives so under that action — its
+    # leaders follow the same lane — so each rollout drives only the vehicles of the ego's lanes and reads the
+    # others' positions here (the same operations on the same values: the same bits).
+    m = pick.shape[0]
+    free = np.empty((m, xs.shape[2] - 1))
+    never = np.full(lanes_count, -1, dtype=np.int64)
+    _rollout(
+        xs[0, 0], never, frame_dt, ego_length, pick, lane_now, lane_to, leader, set_point, v0, x, vx, length,
+        crashed, brake_max, accel_max, idm_delta, idm_comfort_acc, idm_comfort_dec, idm_distance_wanted,
+        idm_time_wanted, lin_k0, lin_k1, lin_k2, free, no_history,
+    )  # fmt: skip
+    # An action's fallbacks hold its set-point for 0..3 decisions: fallback k + 1 drives as fallback k up to the
+    # frame their paths part, so its rollout starts from k's state there (saved on the way; the same bits).
+    n_t = xs.shape[2]
+    pos, spd = np.empty(m), np.empty(m)
+    saved_pos, saved_spd = np.empty(m), np.empty(m)
     for a in range(n_actions):
-        if not available[a]:
+        if not (available[a] and wanted[a]):
             continue
         best_gap = -math.inf
+        start, saved_smallest = 0, math.inf
         for k in range(n_fallbacks):
-            smallest = _rollout(
+            if start == 0:
+                smallest = math.inf
+                for r in range(m):
+                    pos[r], spd[r] = x[pick[r]], vx[pick[r]]
+            else:
+                smallest = saved_smallest
+                for r in range(m):
+                    pos[r], spd[r] = saved_pos[r], saved_spd[r]
+            save_at = -1
+            if k + 1 < n_fallbacks:  # the frame at whose start fallback k + 1's state is still k's
+                same = 0
+                while same < n_t and xs[a, k, same] == xs[a, k + 1, same]:
+                    same += 1
+                part = min(same - 1, n_t - 2)
+                if part >= start and part >= 1:
+                    save_at = part
+            smallest, saved = _drive(
                 xs[a, k], ego_last_frame[a], frame_dt, ego_length, pick, lane_now, lane_to, leader, set_point, v0,
-                x, vx, length, crashed, brake_max, accel_max, idm_delta, idm_comfort_acc, idm_comfort_dec,
-                idm_distance_wanted, idm_time_wanted, lin_k0, lin_k1, lin_k2, no_history,
+                length, crashed, brake_max, accel_max, idm_delta, idm_comfort_acc, idm_comfort_dec,
+                idm_distance_wanted, idm_time_wanted, lin_k0, lin_k1, lin_k2, no_history, free, pos, spd, smallest,
+                start, save_at, saved_pos, saved_spd,
             )  # fmt: skip
+            start, saved_smallest = (save_at, saved) if save_at >= 0 else (0, math.inf)
             if k == 0 or smallest > best_gap:
                 best_gap = smallest
         out[a] = best_gap
@@ -146,7 +203,7 @@ def forecast_paths(
     smallest = _rollout(
         ego_path, ego_last_frame, frame_dt, ego_length, pick, lane_now, lane_to, leader, set_point, v0, x, vx,
         length, crashed, brake_max, accel_max, idm_delta, idm_comfort_acc, idm_comfort_dec, idm_distance_wanted,
-        idm_time_wanted, lin_k0, lin_k1, lin_k2, history,
+        idm_time_wanted, lin_k0, lin_k1, lin_k2, history, np.empty((0, 0)),
     )  # fmt: skip
     return pick, history, smallest
 
@@ -216,24 +273,57 @@ def _rollout(
     v0: np.ndarray, x: np.ndarray, vx: np.ndarray, length: np.ndarray, crashed: np.ndarray, brake_max: np.ndarray,
     accel_max: np.ndarray, idm_delta: np.ndarray, idm_comfort_acc: np.ndarray, idm_comfort_dec: np.ndarray,
     idm_distance_wanted: np.ndarray, idm_time_wanted: np.ndarray, lin_k0: np.ndarray, lin_k1: np.ndarray,
-    lin_k2: np.ndarray, history: np.ndarray,
+    lin_k2: np.ndarray, history: np.ndarray, free: np.ndarray,
 ) -> float:  # fmt: skip
     """Drive the ``pick``ed vehicles frame by frame beside one ego path (``ego_last``: the last frame it is in
     each lane) and return the smallest bumper gap [m] to the ego in a lane it occupies; ``history`` (vehicles ×
-    frames, or empty) receives their positions [m]. Each car follows ``leader`` (the order of the start)."""
+    frames, or empty) receives their positions [m]. Each car follows ``leader`` (the order of the start).
+    ``free`` (vehicles × frames, or empty): the positions [m] of the vehicles driven with the ego in no lane; a
+    vehicle that follows a lane the ego never occupies takes its positions from there instead of being driven."""
+    m = pick.shape[0]
+    pos = np.empty(m)
+    spd = np.empty(m)
+    for r in range(m):
+        pos[r], spd[r] = x[pick[r]], vx[pick[r]]
+    none = np.empty(0)
+    smallest, _ = _drive(
+        ego_path, ego_last, frame_dt, ego_length, pick, lane_now, lane_to, leader, set_point, v0, length, crashed,
+        brake_max, accel_max, idm_delta, idm_comfort_acc, idm_comfort_dec, idm_distance_wanted, idm_time_wanted,
+        lin_k0, lin_k1, lin_k2, history, free, pos, spd, math.inf, 0, -1, none, none,
+    )  # fmt: skip
+    return smallest
+
+
+@njit(cache=True, error_model="numpy")
+def _drive(
+    ego_path: np.ndarray, ego_last: np.ndarray, frame_dt: float, ego_length: float, pick: np.ndarray,
+    lane_now: np.ndarray, lane_to: np.ndarray, leader: np.ndarray, set_point: np.ndarray, v0: np.ndarray,
+    length: np.ndarray, crashed: np.ndarray, brake_max: np.ndarray, accel_max: np.ndarray, idm_delta: np.ndarray,
+    idm_comfort_acc: np.ndarray, idm_comfort_dec: np.ndarray, idm_distance_wanted: np.ndarray,
+    idm_time_wanted: np.ndarray, lin_k0: np.ndarray, lin_k1: np.ndarray, lin_k2: np.ndarray, history: np.ndarray,
+    free: np.ndarray, pos: np.ndarray, spd: np.ndarray, smallest: float, start: int, save_at: int,
+    save_pos: np.ndarray, save_spd: np.ndarray,
+) -> tuple[float, float]:  # fmt: skip
+    """:func:`_rollout` from the start of frame ``start``, the vehicles at ``pos`` [m] and ``spd`` [m/s] (changed
+    in place) and the smallest gap so far ``smallest`` [m]: (the smallest gap [m], the smallest gap at the start of
+    frame ``save_at``, whose positions and speeds go to ``save_pos``, ``save_spd``; inf when ``save_at`` is −1)."""
     m = pick.shape[0]
     n_t = ego_path.shape[0]
     record = history.shape[0] == m and m > 0
-    linear = lin_k0.shape[0] == x.shape[0] and lin_k1.shape[0] == x.shape[0] and lin_k2.shape[0] == x.shape[0]
-    pos = np.empty(m)
-    spd = np.empty(m)
+    use_free = free.shape[0] == m and m > 0
+    n_all = crashed.shape[0]  # every vehicle's (the callers checked _complete)
+    linear = lin_k0.shape[0] == n_all and lin_k1.shape[0] == n_all and lin_k2.shape[0] == n_all
     acc = np.empty(m)
-    for r in range(m):
-        pos[r], spd[r] = x[pick[r]], vx[pick[r]]
-    smallest = math.inf
-    for f in range(n_t - 1):
+    saved = math.inf
+    for f in range(start, n_t - 1):
+        if f == save_at:
+            for r in range(m):
+                save_pos[r], save_spd[r] = pos[r], spd[r]
+            saved = smallest
         ex = ego_path[f]
         for r in range(m):
+            if use_free and ego_last[lane_to[r]] < 0:
+                pos[r] = free[r, f]
             if record:
                 history[r, f] = pos[r]
             if ego_last[lane_now[r]] >= f or ego_last[lane_to[r]] >= f:
@@ -244,6 +334,8 @@ def _rollout(
         ev = (ego_path[f + 1] - ex) / frame_dt  # the ego's speed over the frame
         for r in range(m):
             i = pick[r]
+            if use_free and ego_last[lane_to[r]] < 0:
+                continue  # read from free
             if crashed[i] or not math.isfinite(set_point[r]):  # a wreck, or a body with no known law
                 acc[r] = 0.0
                 continue
@@ -259,9 +351,11 @@ def _rollout(
             )  # fmt: skip
             acc[r] = min(max(a_r, -brake_max[i]), accel_max[i])  # IDMVehicle.act clips to ±ACC_MAX
         for r in range(m):  # Vehicle.step: the position with the frame's speed, then the speed
+            if use_free and ego_last[lane_to[r]] < 0:
+                continue
             pos[r] += spd[r] * frame_dt
             spd[r] += acc[r] * frame_dt
-    return smallest
+    return smallest, saved
 
 
 @njit(cache=True, error_model="numpy")

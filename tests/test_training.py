@@ -266,9 +266,10 @@ def test_tensorboard_logs_every_episode_of_metrics_csv(tmp_path: Path) -> None:
 
 
 def test_env_time_is_the_simulators_share_of_wall_time(tmp_path: Path) -> None:
-    """env_time_s grows every episode and stays below wall_time_s: the difference is the agent's cost."""
+    """env_time_s grows every episode and stays within wall_time_s: the difference is the agent's cost. Both are
+    written to the millisecond, so a short episode whose agent cost is under a millisecond may show them equal."""
     rows = read_metrics(train(small("robust", episodes=3), tmp_path / "timed"))
     env_times = [float(r["env_time_s"]) for r in rows]
     walls = [float(r["wall_time_s"]) for r in rows]
-    assert all(0 < e < w for e, w in zip(env_times, walls, strict=True))
+    assert all(0 < e <= w for e, w in zip(env_times, walls, strict=True))
     assert env_times == sorted(env_times) and len(set(env_times)) == 3

@@ -236,7 +236,7 @@ def _start_ray(address: str | None, workers: int) -> bool:
 
 
 @contextmanager
-def backend_session(backend: str, workers: int | None = None, address: str | None = None) -> Iterator[None]:
+def backend_context(backend: str, workers: int | None = None, address: str | None = None) -> Iterator[None]:
     """Keep ``backend`` up across several :func:`run_tasks` calls (a TPE sweep's batches): on ``ray``,
     one connection (or local instance) for all of them instead of a Ray start per call; ``local``
     needs nothing."""

@@ -176,13 +176,13 @@ def run_tpe(
 ) -> None:
     """Run (or resume) the TPE sweep ``spec`` (its ``batch`` fixed, see :meth:`SweepSpec.with_batch`)
     into ``out``, batch by batch; the summary files are rebuilt after every task."""
-    from safelane.running.engine import backend_session
+    from safelane.running.engine import backend_context
 
     assert spec.batch is not None, "fix the batch first (SweepSpec.with_batch)"
     search = TpeSearch(spec)
     total = spec.samples * spec.seeds
     done = [0]
-    with backend_session(backend, workers, address):
+    with backend_context(backend, workers, address):
         for start in range(0, spec.samples, spec.batch):
             proposals = [search.ask() for _ in range(min(spec.batch, spec.samples - start))]
             tasks: list[tuple[int, int, str]] = []

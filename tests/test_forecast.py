@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from safelane.core.snapshot import RoadSnapshot
 from safelane.core.spaces import IDLE, LANE_RIGHT, SLOWER
@@ -14,6 +16,7 @@ from safelane.safety import model
 from safelane.safety.forecast import forecast_keys
 from safelane.safety.model import MAX_HOLD_DECISIONS, RELEVANCE_RANGE
 from safelane.safety.shield import SafetyShield
+from safelane.safety.world import Dynamics, RoadState
 
 
 def road_indices(snap: RoadSnapshot, ego_x: float) -> np.ndarray:
@@ -121,3 +124,111 @@ def test_forecast_keys_rank_every_collision_alike() -> None:
     as is a NaN gap or an unavailable action (−inf)."""
     gaps = np.array([2.5, 0.4, -3.0, -0.2, -1.0, np.nan, -np.inf])
     assert forecast_keys(gaps, 1.0).tolist() == [1.0, 0.4, -1.0, -1.0, -1.0, -1.0, -1.0]
+
+
+def _forecast_arguments(state: RoadState, dyn: Dynamics, available: np.ndarray) -> tuple:
+    """The arguments of forecast_gaps_of / forecast_keys_of for one state, as the rule builds them."""
+    from safelane.safety.ego import ego_last_frames, ego_trajectories
+    from safelane.safety.others import set_points
+
+    ego_x, _ = ego_trajectories(state, dyn)
+    head = (ego_x, ego_last_frames(state, dyn, available), available)
+    tail = (
+        dyn.frame_dt, state.ego_x, state.ego_length, dyn.lanes_count, dyn.lane_width, state.speed_limit, state.x,
+        state.y, state.vx, state.vy, state.length, state.crashed, state.brake_max, state.accel_max, state.idm_delta,
+        state.idm_comfort_acc, state.idm_comfort_dec, state.idm_distance_wanted, state.idm_time_wanted,
+        state.linear_speed_gain, state.linear_speed_difference_gain, state.linear_distance_gain, set_points(state),
+    )  # fmt: skip
+    return head, tail
+
+
+@pytest.mark.parametrize("drivers", ["IDMVehicle", "AggressiveVehicle"])
+def test_forecast_keys_of_stops_early_with_the_same_keys(drivers: str) -> None:
+    """forecast_keys_of stops rollouts whose key can no longer win; its keys are forecast_keys(forecast_gaps_of)'s
+    to the bit — on dense traffic's states (where the forecast collides and squeezes), for every pool of the
+    available actions, at margins from 0.1 m (every key capped early) to 50 m (nothing capped), and with the
+    vehicles' speeds jittered so that gaps cross zero at other frames."""
+    from safelane.safety.ego import available_actions
+    from safelane.safety.forecast import forecast_gaps_of, forecast_keys_of
+
+    env = make_env(
+        "fast",
+        simulator="fast",
+        **{"env.vehicles_density": 2.0, "env.other_vehicles_type": f"highway_env.vehicle.behavior.{drivers}",
+           "shield.mode": "robust"},
+    )  # fmt: skip
+    assert isinstance(env, SafetyShield)
+    rng = np.random.default_rng(7)
+    compared = stopped_differently = 0
+    for seed in range(3):
+        _, info = env.reset(seed=seed)
+        for _ in range(12):
+            state, dyn = env.state_and_dynamics(info["snapshot"])
+            available = available_actions(state, dyn)
+            for jitter in (0.0, 3.0):
+                vx = state.vx + jitter * rng.standard_normal(state.n)
+                (xs, last, avail), tail = _forecast_arguments(state, dyn, available)
+                tail = (*tail[:8], vx, *tail[9:])  # the others' speeds
+                for pool_bits in range(1, 32):
+                    pool = avail & ((pool_bits >> np.arange(5)) & 1).astype(bool)
+                    if not pool.any():
+                        continue
+                    gaps = forecast_gaps_of(xs, last, avail, pool, *tail)
+                    for margin in (0.1, 1.0, 5.0, 50.0):
+                        keys = forecast_keys_of(xs, last, avail, pool, *tail, margin)
+                        expected = forecast_keys(gaps, margin)
+                        assert np.array_equal(keys, expected), (seed, pool, margin, keys, expected)
+                        compared += 1
+                        stopped_differently += int(np.any((gaps < 0) & (gaps > -np.inf)))
+            _, _, terminated, truncated, info = env.step(int(rng.integers(5)))
+            if terminated or truncated:
+                break
+    assert compared > 1000 and stopped_differently > 0  # collisions forecast: the early stops were exercised
+
+
+@st.composite
+def _one_lane_scenes(draw: st.DrawFn) -> tuple:
+    """A one-lane scene for the forecast kernels: the ego's 5 × 4 paths (each action's own speed; fallback k holds
+    it k + 1 decisions, then brakes 5 m/s per second to a stop: the paths share their prefixes bit for bit, as the
+    rule's do) and up to six others around it — IDM drivers and bodies with no law that keep their speed (they
+    run into the ego from behind, so holding longer can avoid a crash that braking early meets)."""
+    frames_per_decision, decisions = 5, 11
+    dt = 1.0 / frames_per_decision
+    n_t = frames_per_decision * decisions + 1
+    xs = np.empty((5, 4, n_t))
+    for a in range(5):
+        v0 = draw(st.floats(5.0, 30.0))
+        for k in range(4):
+            x, v = 0.0, v0
+            for f in range(n_t):
+                xs[a, k, f] = x
+                if f >= (k + 1) * frames_per_decision:
+                    v = max(v - 5.0 * dt, 0.0)
+                x += v * dt
+    n = draw(st.integers(1, 6))
+    x = np.array(draw(st.lists(st.floats(-120.0, 120.0), min_size=n, max_size=n)))
+    vx = np.array(draw(st.lists(st.floats(0.0, 35.0), min_size=n, max_size=n)))
+    lawless = np.array(draw(st.lists(st.booleans(), min_size=n, max_size=n)))
+    target = np.where(lawless, np.nan, np.array(draw(st.lists(st.floats(15.0, 30.0), min_size=n, max_size=n))))
+    ones = np.ones(n)
+    tail = (
+        dt, 0.0, 5.0, 1, 4.0, 40.0, x, np.zeros(n), vx, np.zeros(n), 5.0 * ones, np.zeros(n, dtype=bool), 6.0 * ones,
+        6.0 * ones, 4.0 * ones, 3.0 * ones, -5.0 * ones, 10.0 * ones, 1.5 * ones, np.full(n, np.nan),
+        np.full(n, np.nan), np.full(n, np.nan), target,
+    )  # fmt: skip
+    last = np.full((5, 1), n_t - 1, dtype=np.int64)
+    return xs, last, tail
+
+
+@settings(max_examples=300, deadline=None)
+@given(scene=_one_lane_scenes(), margin=st.sampled_from([0.5, 1.0, 5.0, 50.0]), pool_bits=st.integers(1, 31))
+def test_forecast_keys_of_is_forecast_keys_of_the_gaps(scene: tuple, margin: float, pool_bits: int) -> None:
+    """Property: on any one-lane scene, forecast_keys_of's early stops give forecast_keys(forecast_gaps_of)'s keys
+    to the bit, for any pool of actions."""
+    from safelane.safety.forecast import forecast_gaps_of, forecast_keys_of
+
+    xs, last, tail = scene
+    available = np.ones(5, dtype=bool)
+    pool = ((pool_bits >> np.arange(5)) & 1).astype(bool)
+    expected = forecast_keys(forecast_gaps_of(xs, last, available, pool, *tail), margin)
+    assert np.array_equal(forecast_keys_of(xs, last, available, pool, *tail, margin), expected)

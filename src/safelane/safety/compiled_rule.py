@@ -38,7 +38,7 @@ from safelane.safety.compiled_parts import (
     passing_path,
     speed_index,
 )
-from safelane.safety.forecast import forecast_gaps_of, forecast_keys
+from safelane.safety.forecast import forecast_keys_of
 from safelane.safety.rule import (
     FLAG_BODY_EXTENT,
     FLAG_CROSSED_LANES,
@@ -651,15 +651,14 @@ def evaluate_rule(
     for a in range(N_ACTIONS):
         n_pool += 1 if pool[a] else 0
     # The keys rank the pool's actions only: one action is the choice whatever its key (no forecast), and the
-    # others' rollouts are not run (forecast_gaps_of: the pool's keys are forecast_gaps' to the bit).
+    # others' rollouts are not run (forecast_keys_of: the pool's keys are forecast_gaps' keys to the bit).
     if forecast_on and n_pool > 1:
-        gaps = forecast_gaps_of(
+        forecast = forecast_keys_of(
             xs.transpose((0, 2, 1)), ego_last, available, pool, frame_dt, ego_x, ego_length, lanes_count,
             lane_width, speed_limit, x, y, vx, vy, length, crashed, brake_max, accel_max, idm_delta,
             idm_comfort_acc, idm_comfort_dec, idm_distance_wanted, idm_time_wanted, lin_k0, lin_k1, lin_k2,
-            target_speed,
+            target_speed, margin,
         )  # fmt: skip
-        forecast = forecast_keys(gaps, margin)
     # least_bad_action: the largest (forecast, ahead gap, gap, −rank), compared as Python compares tuples.
     choice = IDLE
     found = False

@@ -90,6 +90,44 @@ def forecast_gaps_of(
     action's four rollouts cost more than the rest of the rule. The vehicles forecast are still those that can
     share a lane with the ego under any ``available`` action, so a wanted action's gap is :func:`forecast_gaps`'
     to the bit."""
+    return _forecast(
+        xs, ego_last_frame, available, wanted, frame_dt, ego_x, ego_length, lanes_count, lane_width, speed_limit, x,
+        y, vx, vy, length, crashed, brake_max, accel_max, idm_delta, idm_comfort_acc, idm_comfort_dec,
+        idm_distance_wanted, idm_time_wanted, lin_k0, lin_k1, lin_k2, target_speed, math.nan,
+    )  # fmt: skip
+
+
+@njit(cache=True, error_model="numpy")
+def forecast_keys_of(
+    xs: np.ndarray, ego_last_frame: np.ndarray, available: np.ndarray, wanted: np.ndarray, frame_dt: float,
+    ego_x: float, ego_length: float, lanes_count: int, lane_width: float, speed_limit: float, x: np.ndarray,
+    y: np.ndarray, vx: np.ndarray, vy: np.ndarray, length: np.ndarray, crashed: np.ndarray, brake_max: np.ndarray,
+    accel_max: np.ndarray, idm_delta: np.ndarray, idm_comfort_acc: np.ndarray, idm_comfort_dec: np.ndarray,
+    idm_distance_wanted: np.ndarray, idm_time_wanted: np.ndarray, lin_k0: np.ndarray, lin_k1: np.ndarray,
+    lin_k2: np.ndarray, target_speed: np.ndarray, margin: float,
+) -> np.ndarray:  # fmt: skip
+    """``forecast_keys(forecast_gaps_of(…), margin)`` to the bit, cheaper: the keys [m] read only the gap capped at
+    ``margin`` and its sign, so an action's fallbacks stop once one keeps ``margin``, and a rollout stops once its
+    gap's key can no longer beat the best key found (its gap only shrinks); a later fallback whose path is the
+    stopped one's up to that frame would stop there too and is not rolled out."""
+    return _forecast(
+        xs, ego_last_frame, available, wanted, frame_dt, ego_x, ego_length, lanes_count, lane_width, speed_limit, x,
+        y, vx, vy, length, crashed, brake_max, accel_max, idm_delta, idm_comfort_acc, idm_comfort_dec,
+        idm_distance_wanted, idm_time_wanted, lin_k0, lin_k1, lin_k2, target_speed, margin,
+    )  # fmt: skip
+
+
+@njit(cache=True, error_model="numpy")
+def _forecast(
+    xs: np.ndarray, ego_last_frame: np.ndarray, available: np.ndarray, wanted: np.ndarray, frame_dt: float,
+    ego_x: float, ego_length: float, lanes_count: int, lane_width: float, speed_limit: float, x: np.ndarray,
+    y: np.ndarray, vx: np.ndarray, vy: np.ndarray, length: np.ndarray, crashed: np.ndarray, brake_max: np.ndarray,
+    accel_max: np.ndarray, idm_delta: np.ndarray, idm_comfort_acc: np.ndarray, idm_comfort_dec: np.ndarray,
+    idm_distance_wanted: np.ndarray, idm_time_wanted: np.ndarray, lin_k0: np.ndarray, lin_k1: np.ndarray,
+    lin_k2: np.ndarray, target_speed: np.ndarray, margin: float,
+) -> np.ndarray:  # fmt: skip
+    """:func:`forecast_gaps_of` (``margin`` NaN: every gap [m]) or :func:`forecast_keys_of` (the keys)."""
+    keys_only = not math.isnan(margin)
     n_actions, n_fallbacks = xs.shape[0], xs.shape[1]
     out = np.full(n_actions, -math.inf)
     if not _complete(x, y, vx, vy, length, crashed, brake_max, accel_max, idm_delta, idm_comfort_acc,
@@ -97,7 +135,7 @@ def forecast_gaps_of(
         for a in range(n_actions):
             if available[a] and wanted[a]:
                 out[a] = math.inf
-        return out
+        return forecast_keys(out, margin) if keys_only else out
     # The vehicles that can share a lane with the ego: those in (or heading to) a lane it may occupy.
     used = np.zeros(lanes_count, dtype=np.bool_)
     for a in range(n_actions):
@@ -126,12 +164,18 @@ def forecast_gaps_of(
     n_t = xs.shape[2]
     pos, spd = np.empty(m), np.empty(m)
     saved_pos, saved_spd = np.empty(m), np.empty(m)
+    # The keys read a gap only up to the margin and its sign, so rollouts may stop early (finite inputs only: a
+    # NaN would make the gaps' order, and so their keys, depend on which rollouts ran).
+    early = keys_only and _finite(xs) and _finite(x) and _finite(vx)
     for a in range(n_actions):
         if not (available[a] and wanted[a]):
             continue
-        best_gap = -math.inf
+        best_gap, best_key = -math.inf, -1.0
         start, saved_smallest = 0, math.inf
-        for k in range(n_fallbacks):
+        k = 0
+        while k < n_fallbacks:
+            if early and best_key >= margin:
+                break  # a fallback keeps the margin: the action's key is the margin whatever the others'
             if start == 0:
                 smallest = math.inf
                 for r in range(m):
@@ -148,17 +192,51 @@ def forecast_gaps_of(
                 part = min(same - 1, n_t - 2)
                 if part >= start and part >= 1:
                     save_at = part
-            smallest, saved = _drive(
+            stop_key = best_key if early else math.nan
+            smallest, saved, stopped = _drive(
                 xs[a, k], ego_last_frame[a], frame_dt, ego_length, pick, lane_now, lane_to, leader, set_point, v0,
                 length, crashed, brake_max, accel_max, idm_delta, idm_comfort_acc, idm_comfort_dec,
                 idm_distance_wanted, idm_time_wanted, lin_k0, lin_k1, lin_k2, no_history, free, pos, spd, smallest,
-                start, save_at, saved_pos, saved_spd,
+                start, save_at, saved_pos, saved_spd, stop_key,
             )  # fmt: skip
-            start, saved_smallest = (save_at, saved) if save_at >= 0 else (0, math.inf)
-            if k == 0 or smallest > best_gap:
-                best_gap = smallest
-        out[a] = best_gap
-    return out
+            if stopped < 0:
+                if k == 0 or smallest > best_gap:
+                    best_gap = smallest
+                if smallest >= 0.0:
+                    best_key = max(best_key, min(smallest, margin))
+                start, saved_smallest = (save_at, saved) if save_at >= 0 else (0, math.inf)
+                k += 1
+                continue
+            # Fallback k's key cannot beat the best. A later fallback on k's path up to frame ``stopped`` has the
+            # same vehicles and gaps up to there (they depend on the ego's positions so far only): it would stop
+            # there too.
+            driven, k = k, k + 1
+            while k < n_fallbacks and _same_path(xs[a, k], xs[a, driven], stopped):
+                k += 1
+            if k == driven + 1 and save_at >= 0 and stopped >= save_at:
+                start, saved_smallest = save_at, saved  # the state k starts from was saved on the way
+            else:
+                start, saved_smallest = 0, math.inf
+        out[a] = best_key if early else best_gap
+    return forecast_keys(out, margin) if keys_only else out
+
+
+@njit(cache=True, inline="always")
+def _finite(values: np.ndarray) -> bool:
+    """Whether every entry of ``values`` is finite."""
+    for v in values.flat:  # noqa: SIM110 (a loop numba compiles; all() over a generator it does not)
+        if not math.isfinite(v):
+            return False
+    return True
+
+
+@njit(cache=True, inline="always")
+def _same_path(path: np.ndarray, other: np.ndarray, last: int) -> bool:
+    """Whether two ego paths [m] are the same bits at frames ``0..last``."""
+    for f in range(last + 1):  # noqa: SIM110 (a loop numba compiles)
+        if path[f] != other[f]:
+            return False
+    return True
 
 
 @njit(cache=True, error_model="numpy")
@@ -286,7 +364,7 @@ def _rollout(
     for r in range(m):
         pos[r], spd[r] = x[pick[r]], vx[pick[r]]
     none = np.empty(0)
-    smallest, _ = _drive(
+    smallest, _, _ = _drive(
         ego_path, ego_last, frame_dt, ego_length, pick, lane_now, lane_to, leader, set_point, v0, length, crashed,
         brake_max, accel_max, idm_delta, idm_comfort_acc, idm_comfort_dec, idm_distance_wanted, idm_time_wanted,
         lin_k0, lin_k1, lin_k2, history, free, pos, spd, math.inf, 0, -1, none, none,
@@ -302,11 +380,15 @@ def _drive(
     idm_comfort_acc: np.ndarray, idm_comfort_dec: np.ndarray, idm_distance_wanted: np.ndarray,
     idm_time_wanted: np.ndarray, lin_k0: np.ndarray, lin_k1: np.ndarray, lin_k2: np.ndarray, history: np.ndarray,
     free: np.ndarray, pos: np.ndarray, spd: np.ndarray, smallest: float, start: int, save_at: int,
-    save_pos: np.ndarray, save_spd: np.ndarray,
-) -> tuple[float, float]:  # fmt: skip
+    save_pos: np.ndarray, save_spd: np.ndarray, stop_key: float = math.nan,
+) -> tuple[float, float, int]:  # fmt: skip
     """:func:`_rollout` from the start of frame ``start``, the vehicles at ``pos`` [m] and ``spd`` [m/s] (changed
     in place) and the smallest gap so far ``smallest`` [m]: (the smallest gap [m], the smallest gap at the start of
-    frame ``save_at``, whose positions and speeds go to ``save_pos``, ``save_spd``; inf when ``save_at`` is −1)."""
+    frame ``save_at``, whose positions and speeds go to ``save_pos``, ``save_spd``; inf when ``save_at`` is −1;
+    the frame at which the rollout stopped early, −1 when it ran to the end).
+
+    ``stop_key`` (a :func:`forecast_keys` key in [−1, margin), NaN: never stop): stop once the smallest gap's key
+    is at most ``stop_key`` — the gap only shrinks, so its key can no longer exceed ``stop_key``."""
     m = pick.shape[0]
     n_t = ego_path.shape[0]
     record = history.shape[0] == m and m > 0
@@ -329,6 +411,8 @@ def _drive(
             if ego_last[lane_now[r]] >= f or ego_last[lane_to[r]] >= f:
                 gap = abs(pos[r] - ex) - 0.5 * (length[pick[r]] + ego_length)
                 smallest = min(smallest, gap)
+        if not math.isnan(stop_key) and (smallest < 0.0 or smallest <= stop_key):  # key −1, or a key ≤ stop_key
+            return smallest, saved, f
         if f == n_t - 2:
             break
         ev = (ego_path[f + 1] - ex) / frame_dt  # the ego's speed over the frame
@@ -355,7 +439,7 @@ def _drive(
                 continue
             pos[r] += spd[r] * frame_dt
             spd[r] += acc[r] * frame_dt
-    return smallest, saved
+    return smallest, saved, -1
 
 
 @njit(cache=True, error_model="numpy")

@@ -18,9 +18,13 @@ $(BIN)/python:
 	$(BIN)/pip install --quiet --upgrade pip
 
 # torch first, pinned: an unpinned torch pulls a multi-GB CUDA build.
+# RL Zoo last, for tests/test_registration.py, without its requirements: they pin pillow<12 (moviepy, through
+# sb3-team-hf-integration's video upload) and python-dateutil<3 (typepy, through pytablewriter's benchmark
+# tables), and would downgrade both. Its train script imports neither; what it does import is in the test extra.
 $(STAMP): pyproject.toml | $(BIN)/python
 	$(BIN)/pip install --quiet torch==2.13.0
 	$(BIN)/pip install --quiet -e '.[test]'
+	$(BIN)/pip install --quiet --no-deps rl_zoo3==2.9.2 sb3-team-hf-integration==3.2
 	touch $(STAMP)
 
 # The paper's protocol at scale on the fast simulator: 4 methods x 10 seeds x 200 training episodes,

@@ -1,5 +1,5 @@
 """Gymnasium ids (safelane.env.registration): gym.make / gym.make_vec, their keywords, and the clients that use them:
-SB3's make_vec_env with MaskablePPO, a CleanRL-style loop on gym.make_vec, RL Zoo (skipped when not installed)."""
+SB3's make_vec_env with MaskablePPO, a CleanRL-style loop on gym.make_vec, RL Zoo's train script."""
 
 from __future__ import annotations
 
@@ -239,7 +239,8 @@ def test_sb3_vec_env_over_make_vec() -> None:
         vec.close()
 
 
-RL_ZOO_CONF = """\
+RL_ZOO_DECISIONS = 8  # [decisions] an episode: env.duration 8 s at one decision a second
+RL_ZOO_CONF = f"""\
 safelane/HighwayFast-v0:
   policy: MlpPolicy
   n_timesteps: 200
@@ -248,23 +249,38 @@ safelane/HighwayFast-v0:
   batch_size: 16
   train_freq: 4
   env_kwargs:
-    config: {env.duration: 8}
+    override: true
+    config: {{env.duration: {RL_ZOO_DECISIONS}}}
+  monitor_kwargs: "dict(info_keywords=('crashed', 'shield_intervened'))"  # RL Zoo evaluates it: SB3 needs a tuple
 """
 
 
-@pytest.mark.skipif(
-    importlib.util.find_spec("rl_zoo3") is None,
-    reason="rl_zoo3 is not installed (pip install rl_zoo3): RL Zoo's train script is not run",
-)
 def test_rl_zoo_trains_a_dqn_on_the_id(tmp_path) -> None:
+    """RL Zoo's train script, as its users run it: the id, ``--gym-packages safelane`` and a hyperparameter file.
+    Its DQN reads no mask, so the file asks for ``override``: every monitored episode runs its full length
+    without a crash, the model is saved for the environment's spaces."""
+    if importlib.util.find_spec("rl_zoo3") is None:  # make test installs it (Makefile: the rl_zoo3 line)
+        pytest.fail("rl_zoo3 is not installed: pip install --no-deps rl_zoo3==2.9.2 sb3-team-hf-integration==3.2")
+    from stable_baselines3 import DQN
+
     conf = tmp_path / "dqn.yml"
     conf.write_text(RL_ZOO_CONF)
+    logs = tmp_path / "logs"
     cmd = [
         sys.executable, "-m", "rl_zoo3.train", "--algo", "dqn", "--env", FAST_ID, "--gym-packages", "safelane",
-        "-n", "200", "--conf-file", str(conf), "--log-folder", str(tmp_path / "logs"), "--seed", "0",
+        "-n", "200", "--conf-file", str(conf), "--log-folder", str(logs), "--seed", "0",
         "--eval-freq", "-1", "--save-freq", "-1", "--vec-env", "dummy",
     ]  # fmt: skip
     env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(REPO_ROOT / "src"), os.environ.get("PYTHONPATH", "")])}
     out = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=600, cwd=tmp_path)
     assert out.returncode == 0, out.stderr[-2000:]
-    assert list((tmp_path / "logs").rglob("*.zip")), "RL Zoo saved no model"
+    run = logs / "dqn" / "safelane-HighwayFast-v0_1"
+    header, columns, *rows = (run / "0.monitor.csv").read_text().splitlines()
+    assert f'"env_id": "{FAST_ID}"' in header
+    assert columns == "r,l,t,crashed,shield_intervened"
+    episodes = [row.split(",") for row in rows]
+    assert len(episodes) == 200 // RL_ZOO_DECISIONS  # every episode ran its eight decisions: none crashed
+    assert {(length, crashed) for _, length, _, crashed, _ in episodes} == {(str(RL_ZOO_DECISIONS), "False")}
+    model = DQN.load(run / "safelane-HighwayFast-v0.zip", device="cpu")
+    assert model.observation_space.shape == (26,) and model.action_space.n == 5
+    assert model.num_timesteps == 200

@@ -171,10 +171,17 @@ def test_evaluate_prints_a_table_without_json() -> None:
 # --- bench ----------------------------------------------------------------------------------------------------
 
 
-def test_bench_json() -> None:
-    result = runner.invoke(app, ["bench", "--episodes", "1", "--methods", "robust,constrained", "--json"])
+def test_bench_json(tmp_path: Path) -> None:
+    # A published run far faster than any machine (and one figure it lacks): bench lists the regression.
+    published = tmp_path / "published.json"
+    published.write_text(json.dumps({"fast_decisions_per_s": 1e12, "shield_mask_us_mean_fast": 1e-6}))
+    args = ["bench", "--episodes", "1", "--methods", "robust,constrained", "--baseline", str(published), "--json"]
+    result = runner.invoke(app, args)
     assert result.exit_code == 0, result.output
     out = json.loads(result.stdout)
+    assert out["baseline"] == str(published)
+    assert {r["figure"] for r in out["regressions"]} == {"fast_decisions_per_s", "shield_mask_us_mean_fast"}
+    assert all(0 <= noise < 1 for noise in out["noise"].values())
     assert out["train_method"] == "robust" and "agent_overhead_fraction_robust" not in out
     assert 0 < out["agent_overhead_fraction_constrained"] < 1 and out["agent_ms_per_decision_constrained"] > 0
     for key in (
@@ -213,6 +220,13 @@ def test_bench_json() -> None:
         assert out[key] > 0
     assert set(out["train_batched_steps_per_s"]) == set(out["train_batched_speedup"]) == {"10", "40"}
     assert all(rate > 0 for rate in out["train_batched_steps_per_s"].values())
+
+
+def test_bench_baseline_that_cannot_be_read_is_a_one_line_error_before_measuring(tmp_path: Path) -> None:
+    for bad in (tmp_path / "missing.json", tmp_path):
+        result = runner.invoke(app, ["bench", "--episodes", "1", "--baseline", str(bad)])
+        assert result.exit_code == 2
+        assert "--baseline" in result.output and "none" in result.output and "Traceback" not in result.output
 
 
 # --- sim check ---------------------------------------------------------------------------------------------

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import json
+from pathlib import Path
 from typing import Annotated
 
 import typer
@@ -16,8 +18,12 @@ from safelane.cli.common import (
     episode_progress,
     print_json,
     print_table,
+    stderr,
 )
 from safelane.config import ConfigError
+
+PUBLISHED_BENCH = Path("docs/results/bench/forecast-fallback.json")
+"""The last published bench run (in a checkout of the repository): the default ``--baseline``."""
 
 BENCH_UNITS = {
     "env_steps_per_s": "decisions/s",
@@ -62,19 +68,41 @@ def bench(
             metavar="LIST",
         ),
     ] = "robust",
+    baseline: Annotated[
+        str,
+        typer.Option(
+            "--baseline",
+            help="Published bench JSON to compare with: figures worse by more than their measured noise are "
+            "listed under regressions (default: the repository's last published run, when run in a checkout; "
+            "none: no comparison).",
+            metavar="FILE|none",
+        ),
+    ] = str(PUBLISHED_BENCH),
     as_json: JsonOpt = False,
 ) -> None:
     """Measure decisions/s raw and shielded (interleaved episodes), mask, observation and training cost."""
     from safelane.agents.dqn import parse_methods
-    from safelane.running.bench import BENCH_SHIELDS, run_bench
+    from safelane.running.bench import BENCH_SHIELDS, run_bench, with_regressions
 
     check_positive("--episodes", episodes)
     check_seed(seed)
     if shield not in BENCH_SHIELDS:
         raise ConfigError(f"--shield: bench measures a shield; allowed: {', '.join(BENCH_SHIELDS)}")
     train_methods = parse_methods(methods)
+    published = None
+    if baseline != "none" and (baseline != str(PUBLISHED_BENCH) or PUBLISHED_BENCH.is_file()):
+        try:  # read before the run: a bad file is an error now, not after minutes of measuring
+            published = json.loads(Path(baseline).read_text())
+        except (OSError, ValueError) as exc:
+            raise ConfigError(f"--baseline: {baseline} is not a readable bench JSON ({exc}); or none") from None
     with episode_progress("bench", episodes) as advance:
         result = run_bench(episodes, seed, shield=shield, progress=lambda i: advance(i, None), methods=train_methods)
+    result = with_regressions(result, published, baseline if published is not None else None)
+    for found in result["regressions"]:
+        stderr.print(
+            f"[yellow]regression[/yellow]: {found['figure']} {found['measured']:.4g}, published "
+            f"{found['published']:.4g} ({found['change']:+.0%}; noise {found['noise']:.0%})"
+        )
     if as_json:
         print_json(result)
         return

@@ -41,6 +41,16 @@ SHARE_DECISIONS = 20_000
 """Decisions per sample of ``batched_shield_share`` (four samples: shielded, unshielded, twice)."""
 FAST_REPEATS = 5
 """The fast simulator plays each benchmark episode this many times (it takes milliseconds)."""
+HIGHER_IS_BETTER = (
+    "fast_decisions_per_s",
+    "fast_shielded_decisions_per_s",
+    "fast_batched_decisions_per_s.64",
+    "train_steps_per_s_fast",
+    "train_batched_steps_per_s.40",
+)
+"""The figures :func:`regressions` compares with the baseline (dotted: a key inside a dict), rates [1/s]…"""
+LOWER_IS_BETTER = ("shield_mask_us_mean_fast",)
+"""… and costs [µs]. Ratios to stock highway-env are left out: they move with highway-env's own speed."""
 
 
 def _play(env: Any, seed: int, on_decision: Callable[[], None] | None = None) -> tuple[int, float]:
@@ -229,6 +239,9 @@ def run_bench(
 
     raw_n = shield_n = orig_n = stock_n = fast_n = fast_shield_n = 0
     raw_s = shield_s = orig_s = stock_s = fast_s = fast_shield_s = 0.0
+    # Per pass over the episodes (FAST_REPEATS passes): decisions and seconds, for the figures' noise.
+    pass_n = np.zeros((2, FAST_REPEATS))
+    pass_s = np.zeros((2, FAST_REPEATS))
     # Stock highway-env (its own neighbour search and observation, no safelane layer) and the fast
     # simulator through safelane's whole gymnasium stack (paper observation, reward; no shield).
     preset_cfg = load_config(BENCH_PRESET)
@@ -258,11 +271,13 @@ def run_bench(
             orig_n, orig_s = orig_n + n, orig_s + s
             n, s = _play(stock, seed + i)
             stock_n, stock_s = stock_n + n, stock_s + s
-            for _ in range(FAST_REPEATS):  # the same episode again: milliseconds each, so time several
+            for rep in range(FAST_REPEATS):  # the same episode again: milliseconds each, so time several
                 n, s = _play(fast, seed + i)
                 fast_n, fast_s = fast_n + n, fast_s + s
+                pass_n[0, rep], pass_s[0, rep] = pass_n[0, rep] + n, pass_s[0, rep] + s
                 n, s = _play(fast_shielded, seed + i)
                 fast_shield_n, fast_shield_s = fast_shield_n + n, fast_shield_s + s
+                pass_n[1, rep], pass_s[1, rep] = pass_n[1, rep] + n, pass_s[1, rep] + s
             _play(fast_shielded, seed + i, on_decision=time_fast_mask)  # untimed: the mask's own cost
             if progress is not None:
                 progress(i)
@@ -278,8 +293,10 @@ def run_bench(
     batched = {str(n): measure_batched(n, batch_decisions, seed, shield) for n in BATCH_SIZES}
     # The shield's share of a batched decision: N = 64 with and without it, alternating, one thread.
     with_shield = without_shield = 0.0
+    batch_samples = [batched[str(SHARE_BATCH)]]
     for _ in range(2):  # a few seconds each: shorter samples swing by ±15 % on a shared machine
-        with_shield += measure_batched(SHARE_BATCH, SHARE_DECISIONS, seed, shield)
+        batch_samples.append(measure_batched(SHARE_BATCH, SHARE_DECISIONS, seed, shield))
+        with_shield += batch_samples[-1]
         without_shield += measure_batched(SHARE_BATCH, SHARE_DECISIONS, seed, "none")
     threads = numba.config.NUMBA_NUM_THREADS
     threaded = {str(n): measure_batched(n, batch_decisions, seed, shield, threads) for n in BATCH_SIZES}
@@ -294,6 +311,11 @@ def run_bench(
     training.update(batched_training_figures(episodes, seed, shield))
     raw_rate = raw_n / raw_s
     shield_rate = shield_n / shield_s
+    noise = {
+        "fast_decisions_per_s": relative_spread(pass_n[0] / pass_s[0]),
+        "fast_shielded_decisions_per_s": relative_spread(pass_n[1] / pass_s[1]),
+        "fast_batched_decisions_per_s.64": relative_spread(np.asarray(batch_samples)),
+    }
     return {
         "preset": BENCH_PRESET,
         "shield": shield,
@@ -325,6 +347,11 @@ def run_bench(
         "fast_batched_threaded_speedup": {n: rate / (stock_n / stock_s) for n, rate in threaded.items()},
         **({"envpool_decisions_per_s": envpool_rate} if envpool_rate is not None else {}),
         **training,
+        # One sample each (training, the mask's mean over every decision): the widest spread measured above.
+        "noise": {
+            **noise,
+            **{key: max(noise.values()) for key in (*HIGHER_IS_BETTER, *LOWER_IS_BETTER) if key not in noise},
+        },
         "python": platform.python_version(),
         "wall_time_s": time.perf_counter() - start,
     }
@@ -340,3 +367,44 @@ def batched_training_figures(episodes: int = 10, seed: int = 0, shield: str = "r
     one = measure_training(episodes, seed, shield, "robust", simulator="fast")["train_steps_per_s"]
     rates = train_batched_steps_per_s((10, 40), episodes, seed, shield)
     return {"train_batched_steps_per_s": rates, "train_batched_speedup": {s: r / one for s, r in rates.items()}}
+
+
+def relative_spread(samples: np.ndarray) -> float:
+    """The noise of a figure from its repeated samples: (largest − smallest) ÷ median (0 for one sample)."""
+    return float((np.max(samples) - np.min(samples)) / np.median(samples)) if len(samples) > 1 else 0.0
+
+
+def _figure(result: dict[str, Any], key: str) -> float | None:
+    """A figure of a bench result by its dotted ``key`` (``fast_batched_decisions_per_s.64``), None if absent."""
+    value: Any = result
+    for part in key.split("."):
+        if not isinstance(value, dict) or part not in value:
+            return None
+        value = value[part]
+    return float(value)
+
+
+def regressions(measured: dict[str, Any], published: dict[str, Any]) -> list[dict[str, Any]]:
+    """The figures of ``measured`` (a :func:`run_bench` result with its ``noise``) that are worse than the
+    ``published`` run's by more than the noise measured for them: a rate [1/s] below ``published × (1 − noise)``,
+    a cost [µs] above ``published × (1 + noise)``. Each entry: ``figure``, ``published``, ``measured``,
+    ``change`` (measured ÷ published − 1) and ``noise``. Figures either run lacks are skipped."""
+    found = []
+    for key in (*HIGHER_IS_BETTER, *LOWER_IS_BETTER):
+        now, before = _figure(measured, key), _figure(published, key)
+        if now is None or before is None or before <= 0:
+            continue
+        noise = float(measured.get("noise", {}).get(key, 0.0))
+        worse = now < before * (1 - noise) if key in HIGHER_IS_BETTER else now > before * (1 + noise)
+        if worse:
+            found.append(
+                {"figure": key, "published": before, "measured": now, "change": now / before - 1, "noise": noise}
+            )
+    return found
+
+
+def with_regressions(measured: dict[str, Any], published: dict[str, Any] | None, source: str | None) -> dict[str, Any]:
+    """``measured`` with ``baseline`` (``source``, the published run's file, or None) and ``regressions``
+    (:func:`regressions` against ``published``; empty without one)."""
+    found = regressions(measured, published) if published is not None else []
+    return {**measured, "baseline": source, "regressions": found}

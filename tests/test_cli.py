@@ -181,7 +181,9 @@ def test_bench_json(tmp_path: Path) -> None:
     out = json.loads(result.stdout)
     assert out["baseline"] == str(published)
     assert {r["figure"] for r in out["regressions"]} == {"fast_decisions_per_s", "shield_mask_us_mean_fast"}
-    assert all(0 <= noise < 1 for noise in out["noise"].values())
+    # every compared figure has its noise (a busy machine may measure a spread beyond 100 %)
+    assert set(out["noise"]) >= {"fast_decisions_per_s", "shield_mask_us_mean_fast", "train_batched_steps_per_s.40"}
+    assert all(noise >= 0 for noise in out["noise"].values())
     assert out["train_method"] == "robust" and "agent_overhead_fraction_robust" not in out
     assert 0 < out["agent_overhead_fraction_constrained"] < 1 and out["agent_ms_per_decision_constrained"] > 0
     for key in (

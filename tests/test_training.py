@@ -267,7 +267,7 @@ def test_tensorboard_logs_every_episode_of_metrics_csv(tmp_path: Path) -> None:
 
 def test_env_time_is_the_simulators_share_of_wall_time(tmp_path: Path) -> None:
     """env_time_s grows every episode and stays within wall_time_s: the difference is the agent's cost. Both are
-    written to the millisecond, so a short episode whose agent cost is under a millisecond may show them equal."""
+    written to the microsecond (a decision of the fast simulator costs tens of them)."""
     rows = read_metrics(train(small("robust", episodes=3), tmp_path / "timed"))
     env_times = [float(r["env_time_s"]) for r in rows]
     walls = [float(r["wall_time_s"]) for r in rows]

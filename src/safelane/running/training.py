@@ -272,7 +272,7 @@ def format_metrics_row(row: dict[str, Any]) -> dict[str, str]:
         if value is None:
             out[key] = ""
         elif isinstance(value, float):
-            out[key] = f"{value:.3f}" if key in TIMING_COLUMNS else repr(value)
+            out[key] = f"{value:.6f}" if key in TIMING_COLUMNS else repr(value)  # to the µs: a decision costs tens
         else:
             out[key] = str(value)
     return out

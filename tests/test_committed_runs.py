@@ -169,7 +169,6 @@ def test_lapses_are_saved_and_replay_to_the_same_lapse(responsibility_records: l
     assert json.loads(lapse_files[0].read_text())["cars"] == cx.cars
 
 
-@pytest.mark.slow
 def test_a_lapse_replays_on_highway_env(responsibility_records: list[Any], tmp_path: Path) -> None:
     cfg = load_config("fast", overrides=RESPONSIBILITY)
     files = [p for p in save_counterexamples(responsibility_records, cfg, tmp_path) if "-lapse" in p.name]

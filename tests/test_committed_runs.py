@@ -164,8 +164,9 @@ def test_lapses_are_saved_and_replay_to_the_same_lapse(responsibility_records: l
         sorted(cx.cars)
     )
     assert "committed" in result.to_dict()["decisions"][-1]
-    # Filed as a lapse in the model it is not one (a car is outside its set): not reproduced.
+    # Filed as a lapse in the model it is not one (a car is outside its set): not reproduced; nor traced to other cars.
     assert not replay(cx.model_copy(update={"kind": "lapse_in_model"})).reproduced
+    assert not replay(cx.model_copy(update={"cars": [*cx.cars, 999]})).reproduced
     assert json.loads(lapse_files[0].read_text())["cars"] == cx.cars
 
 

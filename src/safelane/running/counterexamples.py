@@ -283,7 +283,10 @@ def replay(cx: Counterexample, simulator: str | None = None) -> ReplayResult:
     elif cx.kind in LAPSE_KINDS:
         verdict = last.committed if last is not None else None
         reproduced = (
-            verdict is not None and verdict["lapse"] and verdict["lapse_in_model"] == (cx.kind == "lapse_in_model")
+            verdict is not None
+            and verdict["lapse"]
+            and verdict["lapse_in_model"] == (cx.kind == "lapse_in_model")
+            and (cx.cars is None or sorted(verdict["escaped_cars"] + verdict["entered_cars"]) == sorted(cx.cars))
         )
     else:
         reproduced = last is not None and last.invariant_break

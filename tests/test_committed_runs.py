@@ -246,6 +246,7 @@ def test_the_vector_env_runs_committed_and_the_batch_refuses_it_in_one_line() ->
         _, _, _, _, infos = vector.step(actions)
         masks = infos["action_mask"]
         assert not infos["unsafe_action"].any()
+        assert {"plan_forced", "lapse", "lapse_in_model"} <= set(infos) and infos["lapse"].shape == (2,)
     vector.close()
     with pytest.raises(NotSupported) as err:
         FastBatch(cfg, 2)

@@ -160,13 +160,14 @@ def test_lapses_are_saved_and_replay_to_the_same_lapse(responsibility_records: l
     assert cx.kind == "lapse" and cx.cars and len(cx.actions) == cx.step
     result = replay(cx)
     assert result.reproduced and result.decisions[-1].committed["lapse"]
-    assert sorted(result.decisions[-1].committed["escaped_cars"] + result.decisions[-1].committed["entered_cars"]) == (
-        sorted(cx.cars)
-    )
+    verdict = result.decisions[-1].committed
+    assert sorted({*verdict["escaped_cars"], *verdict["entered_cars"]}) == cx.cars
     assert "committed" in result.to_dict()["decisions"][-1]
     # Filed as a lapse in the model it is not one (a car is outside its set): not reproduced; nor traced to other cars.
     assert not replay(cx.model_copy(update={"kind": "lapse_in_model"})).reproduced
     assert not replay(cx.model_copy(update={"cars": [*cx.cars, 999]})).reproduced
+    # The cars are a set: one both outside its set and entering the ego's lane is named once.
+    assert replay(cx.model_copy(update={"cars": [*cx.cars, cx.cars[0]]})).reproduced
     assert json.loads(lapse_files[0].read_text())["cars"] == cx.cars
 
 

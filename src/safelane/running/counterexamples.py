@@ -286,7 +286,7 @@ def replay(cx: Counterexample, simulator: str | None = None) -> ReplayResult:
             verdict is not None
             and verdict["lapse"]
             and verdict["lapse_in_model"] == (cx.kind == "lapse_in_model")
-            and (cx.cars is None or sorted(verdict["escaped_cars"] + verdict["entered_cars"]) == sorted(cx.cars))
+            and (cx.cars is None or {*verdict["escaped_cars"], *verdict["entered_cars"]} == set(cx.cars))
         )
     else:
         reproduced = last is not None and last.invariant_break

@@ -104,6 +104,20 @@ class ShieldConfig(_Section):
         "(every behaviour the driver model permits) or 'responsibility' (a car behind the ego in a lane it holds "
         "is not the ego's to avoid).",
     )
+    redraw_uncertified: bool = Field(
+        False,
+        strict=True,
+        description="The committed mode only: redraw an episode's spawn (the environment's next draw) while its "
+        "first state has no verified plan, at most shield.redraw_tries times; the redraws are reported. Off: "
+        "highway-env's traffic as it is (uncertified starts counted apart).",
+    )
+    redraw_tries: int = Field(
+        20,
+        ge=1,
+        strict=True,
+        description="With shield.redraw_uncertified: the most spawns drawn again for one episode (after that the "
+        "episode starts uncertified).",
+    )
     formula: Literal["kinematic", "paper"] = Field(
         "kinematic",
         description="Safe-distance formula of the nominal mode: 'kinematic' (derived for highway-env's "
@@ -166,6 +180,15 @@ class ShieldConfig(_Section):
             if not isinstance(value, bool):
                 raise ConfigError(f"shield.options.{name}: expected true or false, got {value!r}")
         return options
+
+    @model_validator(mode="after")
+    def _redraw_committed_only(self) -> ShieldConfig:
+        if self.redraw_uncertified and self.mode != "committed":
+            raise ConfigError(
+                f"shield.redraw_uncertified: only for shield.mode committed (got mode {self.mode!r}); "
+                "allowed otherwise: false"
+            )
+        return self
 
     def resolved_rule(self) -> Rule:
         """The rule this section selects: the named rule with ``options`` applied."""

@@ -85,7 +85,8 @@ CounterexamplesOpt = Annotated[
     Path | None,
     typer.Option(
         "--save-counterexamples",
-        help="Save every crash and invariant break as a replayable file in this directory (safelane replay FILE).",
+        help="Save every crash, invariant break and lapse (committed shield) as a replayable file in this directory "
+        "(safelane replay FILE).",
         metavar="DIR",
     ),
 ]

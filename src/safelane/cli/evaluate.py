@@ -38,6 +38,11 @@ EVALUATE_UNITS = {
     "invariant_break_rate": "per decision",
     "unsafe_action_rate": "per decision",
     "mean_vehicles_passed": "vehicles / episode",
+    "lapses": "decisions",
+    "lapses_in_model": "decisions",
+    "plan_forced_rate": "per decision",
+    "uncertified_starts": "episodes",
+    "redraws": "spawns",
     "wall_time_s": "s",
 }
 
@@ -111,7 +116,7 @@ def evaluate_run(
     counterexamples: Path | None = None,
 ) -> dict[str, Any]:
     """Evaluate a trained run's greedy policy on its own environment config (plus --set / --shield);
-    ``counterexamples``: save its crashes and invariant breaks there."""
+    ``counterexamples``: save its crashes, invariant breaks and lapses there."""
     from safelane.running.evaluation import run_config, summarize
     from safelane.running.runs import run_env_config
     from safelane.running.training import load_policy, load_run_config

@@ -23,7 +23,8 @@ def replay(
     last: Annotated[int, typer.Option("--last", help="Decisions of the log to print (the last N).")] = 8,
     as_json: JsonOpt = False,
 ) -> None:
-    """Replay a saved crash or invariant break: the decision log, and whether the event happens again."""
+    """Replay a saved crash, invariant break or lapse (committed shield): the decision log, and whether the event
+    happens again."""
     from safelane.core.spaces import ACTION_NAMES
     from safelane.running.counterexamples import dump_json, load_counterexample, render_counterexample
     from safelane.running.counterexamples import replay as replay_counterexample
@@ -54,6 +55,8 @@ def replay(
         for d in result.decisions[-last:]:
             gaps = " ".join("–" if g is None else f"{g:.1f}" for g in d.min_gap)
             mark = " BREAK" if d.invariant_break else (" CRASH" if d.collision else "")
+            if d.committed is not None and d.committed["lapse"]:
+                mark += f" LAPSE (cars {d.committed['escaped_cars'] + d.committed['entered_cars']})"
             near = "; ".join(f"{v['lane']},{v['dx']:+.0f},{v['speed']:.0f}" for v in d.nearby[:6])
             table.add_row(
                 f"{d.time:.1f}",

@@ -102,12 +102,16 @@ def stress(
     table = Table(
         title=f"stress: {run_dir or policy}, shield {result['shield']}, {episodes} episodes per condition{seeded}"
     )
-    for col in ("condition", "collisions", "rate [95% CI]", "speed m/s", "interventions", "invariant breaks", "kinds"):
+    committed = any("lapses" in r for r in result["conditions"])
+    columns = ["condition", "collisions", "rate [95% CI]", "speed m/s", "interventions", "invariant breaks", "kinds"]
+    if committed:  # the committed mode's lapses (those in the model) and plan-forced share
+        columns[6:6] = ["lapses (in model)", "plan-forced"]
+    for col in columns:
         table.add_column(col)
     for r in result["conditions"]:
         name = r["name"] + (" (adversarial)" if r["adversarial"] else "")
         if "skipped" in r:
-            table.add_row(name, "skipped", r["skipped"], "", "", "", "")
+            table.add_row(name, "skipped", r["skipped"], *[""] * (len(columns) - 3))
             continue
         lo, hi = r["collision_rate_ci95"]
         kinds = ", ".join(f"{k} {v}" for k, v in r["collision_kinds"].items() if v)
@@ -118,6 +122,7 @@ def stress(
             f"{r['mean_speed']:.2f}",
             f"{r['shield_intervention_rate']:.3f}",
             str(r["invariant_breaks"]),
+            *([f"{r['lapses']} ({r['lapses_in_model']})", f"{100 * r['plan_forced_rate']:.2f} %"] if committed else []),
             kinds or "-",
         )
     stdout.print(table)

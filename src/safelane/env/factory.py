@@ -9,7 +9,9 @@
 3. :class:`safelane.env.reward.PaperReward` — eq. 6 and the ``collision`` / ``speed`` info fields;
 4. :class:`safelane.env.observations.PaperObservation` — the paper's 26-number state (eq. 3), or the
    ``lanes`` state;
-5. :class:`safelane.safety.shield.SafetyShield` — only when ``shield.mode`` is not ``none``.
+5. :class:`safelane.safety.shield.SafetyShield` — only when ``shield.mode`` is not ``none``;
+6. :class:`safelane.env.redraw.RedrawUncertified` — the ``committed`` mode only: each reset reports the
+   reading and the spawns drawn again (``shield.redraw_uncertified``).
 """
 
 from __future__ import annotations
@@ -31,6 +33,7 @@ from safelane.config import (
 from safelane.core.errors import NotSupported
 from safelane.core.snapshot import RoadSnapshot
 from safelane.env.observations import PaperObservation
+from safelane.env.redraw import RedrawUncertified
 from safelane.env.reward import PaperReward
 from safelane.safety.committed import CommittedFamily
 from safelane.safety.shield import SafetyShield
@@ -160,6 +163,8 @@ def make_env(
             engine=shield.engine,
             formula=shield.formula,
         )
+        if shield.mode == "committed":  # its starts reported (the reading, redraws), redrawn if asked
+            env = RedrawUncertified(env, shield.redraw_tries if shield.redraw_uncertified else 0)
     env.safelane_config = cfg  # type: ignore[attr-defined]
     if seed is not None:
         env.reset(seed=seed)

@@ -73,7 +73,7 @@ def supports(cfg: SafelaneConfig) -> str | None:
         return f"traffic.adversary: {cfg.traffic.adversary} (the fast simulator places no adversary)"
     shield = cfg.shield
     if shield.mode == "committed":  # the experimental prototype keeps a plan per environment, in numpy
-        return "shield.mode: committed (a numpy prototype; the batch has no committed kernel)"
+        return "shield.mode: committed (a numpy prototype, no batch kernel; allowed: none, nominal, robust)"
     if shield.mode != "none" and shield.engine != "compiled":
         return f"shield.engine: {shield.engine} (the batch runs the compiled kernel)"
     if shield.mode == "nominal" and shield.formula == "paper":

@@ -9,7 +9,7 @@ package for a caller that has not, so ``gym.make("safelane:safelane/HighwayFast-
   on, docs/results/speed.md; no rendering).
 
 Both take the same keywords, all optional (:func:`make_highway`): ``preset`` (``"fast"``: highway-fast-v0's
-5 Hz physics; ``"paper"``: highway-v0's 15 Hz), ``shield`` (``"robust"``, ``"nominal"`` or ``"none"``),
+5 Hz physics; ``"paper"``: highway-v0's 15 Hz), ``shield`` (``"robust"``, ``"nominal"``, ``"committed"`` or ``"none"``),
 ``override`` (replace an unsafe chosen action by the closest safe one) and ``config`` (any other setting of
 :class:`safelane.config.SafelaneConfig` as dotted keys or section dicts, e.g. ``{"env.lanes_count": 3}``).
 The default shield is ``"robust"`` without override: every step reports ``info["action_mask"]`` and the
@@ -60,7 +60,7 @@ def env_config(
     if not isinstance(override, bool):
         raise ConfigError(f"override: must be True or False (got {override!r})")
     if override and shield == "none":
-        raise ConfigError("override: needs a shield to override with; give shield='robust' or 'nominal'")
+        raise ConfigError("override: needs a shield to override with; give shield='robust', 'nominal' or 'committed'")
     if config is not None and not isinstance(config, dict):
         raise ConfigError(f"config: a dict of settings, e.g. {{'env.lanes_count': 3}} (got {type(config).__name__})")
     owned = sorted(_flat_keys(config or {}) & set(OWN_KEYS))

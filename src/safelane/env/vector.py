@@ -4,7 +4,8 @@
 environment (by default on the fast simulator). One ``step(actions)`` call steps them all and returns
 the batch as arrays: observations ``(N, 26)``, rewards, terminations, truncations, and in ``infos``
 one array per field — ``action_mask`` ``(N, 5)`` and the shield's ``fallback``, ``shield_intervened``,
-``unsafe_action``, ``invariant_break``, ``executed_action``, plus ``speed`` [m/s] and ``collision``.
+``unsafe_action``, ``invariant_break``, ``executed_action``, plus ``speed`` [m/s] and ``collision`` (and, under the
+``committed`` shield mode, ``plan_forced``, ``lapse``, ``lapse_in_model``).
 
 Autoreset is gymnasium's ``SAME_STEP`` mode: an environment that finishes is reset inside the same
 call, so the returned row is the *new* episode's first observation and mask; the finished episode's
@@ -39,6 +40,9 @@ from safelane.env.observations import OBS_SIZE
 
 BOOL_INFO = ("collision", "fallback", "shield_intervened", "unsafe_action", "invariant_break")
 """Per-environment flags of a step, batched as bool arrays (False where the env does not report one)."""
+COMMITTED_INFO = ("plan_forced", "lapse", "lapse_in_model")
+"""The committed shield mode's flags of a step, batched like :data:`BOOL_INFO` by :class:`SafelaneVectorEnv` when
+its environments report them (the fast batch has no committed mode)."""
 
 
 class SafelaneVectorEnv(VectorEnv):
@@ -88,6 +92,8 @@ class SafelaneVectorEnv(VectorEnv):
         terminated = np.zeros(n, dtype=bool)
         truncated = np.zeros(n, dtype=bool)
         flags = {key: np.zeros(n, dtype=bool) for key in BOOL_INFO}
+        committed = {key: np.zeros(n, dtype=bool) for key in COMMITTED_INFO}
+        reported = False
         speeds = np.zeros(n)
         executed = np.asarray(actions, dtype=np.int64).copy()
         final_obs = np.zeros_like(self._obs)
@@ -99,6 +105,9 @@ class SafelaneVectorEnv(VectorEnv):
             rewards[i], terminated[i], truncated[i] = reward, term, trunc
             for key in BOOL_INFO:
                 flags[key][i] = bool(info.get(key, False))
+            reported = reported or "lapse" in info
+            for key in COMMITTED_INFO:
+                committed[key][i] = bool(info.get(key, False))
             speeds[i] = float(info.get("speed", 0.0))
             executed[i] = int(info.get("executed_action", actions[i]))
             self._returns[i] += float(reward)
@@ -114,6 +123,7 @@ class SafelaneVectorEnv(VectorEnv):
         done = terminated | truncated
         infos: dict[str, Any] = {
             **flags,
+            **(committed if reported else {}),
             "speed": speeds,
             "executed_action": executed,
             "action_mask": self._masks.copy(),

@@ -20,7 +20,10 @@ from safelane.core.snapshot import RoadSnapshot
 COLLISION_KINDS: tuple[str, ...] = ("ego_hit_front", "rear_ended", "side")
 """Every value :func:`classify_collision` returns for a crashed ego."""
 
-COLLISION_CONTEXTS: tuple[str, ...] = ("started_unsafe", "after_break", "from_safe_state", "after_fallback")
+COLLISION_CONTEXTS: tuple[str, ...] = (
+    "started_unsafe", "after_break", "from_safe_state", "after_fallback",
+    "uncertified_start", "others_at_fault", "outside_model",
+)  # fmt: skip
 """A shielded episode's collision, against the rule's promise (after an allowed action in a state with a
 safe action, the next state has one again, while the others stay inside the model): ``started_unsafe``
 — no state of the episode before the crash had a safe action (outside the promise: the scene was
@@ -28,7 +31,27 @@ spawned inside a crash); ``after_break`` — an invariant break came first (the 
 ``from_safe_state`` — the action executed was allowed in a state with a safe action (a hole of the
 rule itself; an unsafe choice the override replaced counts here, since the action executed was the allowed
 one); ``after_fallback`` — anything else (an unsafe action executed without
-override, or a crash right after a fallback state that no break led to)."""
+override, or a crash right after a fallback state that no break led to).
+
+The ``committed`` shield mode (a plan kept between decisions) names three more, checked first, in this order:
+``uncertified_start`` — no state before the crash had a verified plan (the episode started uncertified and
+stayed so: the committed mode's ``started_unsafe``, which it does not use); ``others_at_fault`` — under the
+``responsibility`` reading, the ego was rear-ended or hit by a car that entered a lane the ego holds (the gap
+that car made was its own to keep); ``outside_model`` — a car had left the set drawn for it before the crash
+(the crash partner, or a car a lapse named; the record names them: ``outside_model_cars``). ``after_break``
+then also counts a crash after a lapse (the kept plan no longer verified), and ``from_safe_state`` one after an
+action with a verified plan. The other modes never report these three (0)."""
+
+COMMITTED_CONTEXTS: tuple[str, ...] = ("uncertified_start", "others_at_fault", "outside_model")
+"""The contexts only the ``committed`` shield mode reports (:data:`COLLISION_CONTEXTS`)."""
+
+
+def collision_contexts(committed: bool) -> tuple[str, ...]:
+    """The collision contexts a summary lists: the committed mode's (its three first, then ``after_break``,
+    ``from_safe_state``, ``after_fallback``; never ``started_unsafe``) or the other modes' four."""
+    if committed:
+        return (*COMMITTED_CONTEXTS, "after_break", "from_safe_state", "after_fallback")
+    return tuple(c for c in COLLISION_CONTEXTS if c not in COMMITTED_CONTEXTS)
 
 
 def collision_kind(

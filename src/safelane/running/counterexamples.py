@@ -1,14 +1,15 @@
-"""Counterexamples as files: a crash or an invariant break, saved small and replayed exactly.
+"""Counterexamples as files: a crash, an invariant break or a lapse, saved small and replayed exactly.
 
 A :class:`Counterexample` holds what it takes to play the episode again — the environment configuration
 (with its simulator), the reset seed and the actions the policy *chose* (a shield's overrides are
 re-derived by the same shield) — and the event: a ``collision`` at the last decision, or an
 ``invariant_break`` (a fallback state reached right after an allowed action in a state that had a safe
-one, :class:`safelane.safety.shield.SafetyShield`) after decision ``step``. Both simulators are
-deterministic after reset, so :func:`replay` plays the same decisions and checks the same event happens
-at the same decision; ``simulator=`` replays a fast-simulator finding on highway-env (the reference).
+one, :class:`safelane.safety.shield.SafetyShield`) after decision ``step``, or (the ``committed`` shield mode) a
+``lapse`` or ``lapse_in_model`` after decision ``step`` (:data:`LAPSE_KINDS`; ``cars`` names the cars traced).
+Both simulators are deterministic after reset, so :func:`replay` plays the same decisions and checks the same
+event happens at the same decision; ``simulator=`` replays a fast-simulator finding on highway-env (the reference).
 
-:func:`save_counterexamples` writes one file per crash and per break of a list of
+:func:`save_counterexamples` writes one file per crash, per break and per lapse of a list of
 :class:`~safelane.running.evaluation.EpisodeRecord` (``evaluate`` / ``stress`` ``--save-counterexamples``).
 """
 
@@ -28,7 +29,11 @@ from safelane.core.files import atomic_write_text
 NEAR = 80.0
 """[m] Vehicles within this distance of the ego, along the road, are logged."""
 
-EventKind = Literal["collision", "invariant_break"]
+EventKind = Literal["collision", "invariant_break", "lapse", "lapse_in_model"]
+LAPSE_KINDS: tuple[str, ...] = ("lapse", "lapse_in_model")
+"""The committed shield mode's events: a ``lapse`` (the plan kept, verified, no longer verifies) traced to cars
+outside the sets drawn for them (or, under ``responsibility``, to a car that entered a lane the ego holds), and a
+``lapse_in_model`` (every car inside its set: a gap in the construction)."""
 
 
 class Counterexample(BaseModel):
@@ -45,6 +50,11 @@ class Counterexample(BaseModel):
     step: int = Field(ge=1, description="Decision (1-based) after which the event was observed.")
     collision_kind: str | None = None
     source: str = Field("", description="What found it (command, policy, condition).")
+    cars: list[int] | None = Field(
+        None,
+        description="A lapse: the cars (snapshot indices) that left the sets drawn for them or entered a lane the "
+        "ego holds (empty for a lapse in the model); absent for the other kinds.",
+    )
 
     def env_config(self, simulator: str | None = None) -> SafelaneConfig:
         """The configuration to replay in (``simulator`` overrides the recorded one)."""
@@ -83,7 +93,8 @@ def counterexample_files(
 
 
 def counterexamples_of(records: list[Any], config: SafelaneConfig, source: str = "") -> list[Counterexample]:
-    """One :class:`Counterexample` per collision and per invariant break in ``records``."""
+    """One :class:`Counterexample` per collision, per invariant break and (the committed mode) per lapse in
+    ``records``."""
     found: list[Counterexample] = []
     data = config_to_dict(config)
     for r in records:
@@ -96,6 +107,18 @@ def counterexamples_of(records: list[Any], config: SafelaneConfig, source: str =
                     actions=r.chosen_actions[:step],
                     step=step,
                     source=source,
+                )
+            )
+        for step, cars in zip(getattr(r, "lapses", ()), getattr(r, "lapse_cars", ()), strict=True):
+            found.append(
+                Counterexample(
+                    kind="lapse_in_model" if step in r.lapses_in_model else "lapse",
+                    config=data,
+                    seed=r.seed,
+                    actions=r.chosen_actions[:step],
+                    step=step,
+                    source=source,
+                    cars=list(cars),
                 )
             )
         if r.collision:
@@ -121,7 +144,7 @@ def save_counterexamples(
     paths = []
     for cx in counterexamples_of(records, config, source):
         path = out / f"{prefix}seed{cx.seed}-{cx.kind}-step{cx.step}.json"
-        atomic_write_text(path, cx.model_dump_json(indent=1))
+        atomic_write_text(path, cx.model_dump_json(indent=1, exclude={"cars"} if cx.cars is None else None))
         paths.append(path)
     return paths
 
@@ -142,6 +165,16 @@ class Decision:
     collision: bool
     ego: dict[str, float]
     nearby: list[dict[str, float]] = field(default_factory=list)
+    committed: dict[str, Any] | None = None
+    """The committed mode's verdict after the decision (``lapse``, ``lapse_in_model``, ``plan_forced``,
+    ``certified``, ``escaped_cars``, ``entered_cars``); None for the other modes."""
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-ready (``committed`` only for that mode)."""
+        data = dict(self.__dict__)
+        if self.committed is None:
+            del data["committed"]
+        return data
 
 
 @dataclass
@@ -165,7 +198,7 @@ class ReplayResult:
             "simulator": self.simulator,
             "reproduced": self.reproduced,
             "collision_kind": self.collision_kind,
-            "decisions": [d.__dict__ for d in self.decisions],
+            "decisions": [d.to_dict() for d in self.decisions],
             "final": self.final,
         }
 
@@ -226,6 +259,7 @@ def replay(cx: Counterexample, simulator: str | None = None) -> ReplayResult:
                     collision=bool(info.get("collision", False)),
                     ego=ego,
                     nearby=nearby,
+                    committed=_committed_verdict(info),
                 )
             )
             done = bool(terminated or truncated)
@@ -246,9 +280,31 @@ def replay(cx: Counterexample, simulator: str | None = None) -> ReplayResult:
     last = decisions[-1] if len(decisions) == cx.step else None
     if cx.kind == "collision":
         reproduced = last is not None and last.collision and not any(d.collision for d in decisions[:-1])
+    elif cx.kind in LAPSE_KINDS:
+        verdict = last.committed if last is not None else None
+        reproduced = (
+            verdict is not None
+            and verdict["lapse"]
+            and verdict["lapse_in_model"] == (cx.kind == "lapse_in_model")
+            and (cx.cars is None or {*verdict["escaped_cars"], *verdict["entered_cars"]} == set(cx.cars))
+        )
     else:
         reproduced = last is not None and last.invariant_break
     return ReplayResult(cx, cfg.simulator, decisions, bool(reproduced), kind, final)
+
+
+def _committed_verdict(info: dict[str, Any]) -> dict[str, Any] | None:
+    """The committed mode's verdict of a step's ``info`` (None for the other modes)."""
+    if "lapse" not in info:
+        return None
+    return {
+        "lapse": bool(info["lapse"]),
+        "lapse_in_model": bool(info["lapse_in_model"]),
+        "plan_forced": bool(info["plan_forced"]),
+        "certified": bool(info["certified"]),
+        "escaped_cars": [int(v) for v in info["escaped_cars"]],
+        "entered_cars": [int(v) for v in info["entered_cars"]],
+    }
 
 
 def render_counterexample(cx: Counterexample, out_path: str | Path) -> Path:

@@ -25,7 +25,12 @@ import numpy as np
 from safelane.config import ConfigError, SafelaneConfig
 from safelane.core.snapshot import RoadSnapshot
 from safelane.core.spaces import ACTION_NAMES, N_ACTIONS
-from safelane.running.collisions import COLLISION_CONTEXTS, COLLISION_KINDS, classify_collision
+from safelane.running.collisions import (
+    COLLISION_KINDS,
+    classify_collision,
+    collision_contexts,
+    collision_partner,
+)
 from safelane.running.policies import Policy, fixed_policy
 
 if TYPE_CHECKING:
@@ -64,12 +69,39 @@ class EpisodeRecord:
     """The action the policy chose at each decision (before any override): with the seed and the
     configuration, enough to replay the episode (:mod:`safelane.running.counterexamples`). Not in
     :meth:`to_dict` (a run's 1 000 test episodes would carry 40 000 of them)."""
+    # The committed shield mode's figures (the others leave them at their defaults; :meth:`to_dict` omits them).
+    uncertified_start: bool | None = None
+    """``committed`` mode: the episode's first state had no verified plan (None: another mode)."""
+    lapses: list[int] = field(default_factory=list)
+    """``committed`` mode: decisions (1-based) after which the plan kept, verified, no longer verified."""
+    lapses_in_model: list[int] = field(default_factory=list)
+    """``committed`` mode: the lapses with every car inside the set drawn for it (gaps in the construction)."""
+    lapse_cars: list[list[int]] = field(default_factory=list)
+    """``committed`` mode: per lapse, the cars (snapshot indices) that left their sets or entered a held lane."""
+    plan_forced: int = 0
+    """``committed`` mode: decisions at which nothing verified and the kept plan's next step drove (counted like
+    ``fallbacks``, from the state each step ends in)."""
+    redraws: int = 0
+    """``committed`` mode with ``shield.redraw_uncertified``: spawns drawn again before this one
+    (:class:`safelane.env.redraw.RedrawUncertified`)."""
+    outside_model_cars: list[int] = field(default_factory=list)
+    """A collision in context ``outside_model``: the cars (snapshot indices) that had left their sets."""
 
     def to_dict(self) -> dict[str, Any]:
-        """A JSON-ready dict of the record (without ``chosen_actions``)."""
+        """A JSON-ready dict of the record (without ``chosen_actions``; the committed mode's fields only for
+        that mode)."""
         data = asdict(self)
         del data["chosen_actions"]
+        if self.uncertified_start is None:
+            for name in COMMITTED_FIELDS:
+                del data[name]
         return data
+
+
+COMMITTED_FIELDS: tuple[str, ...] = (
+    "uncertified_start", "lapses", "lapses_in_model", "lapse_cars", "plan_forced", "redraws", "outside_model_cars",
+)  # fmt: skip
+"""The :class:`EpisodeRecord` fields only the ``committed`` shield mode fills."""
 
 
 ProgressCallback = Callable[[int, EpisodeRecord], None]
@@ -103,6 +135,20 @@ class EpisodeTally:
         self.shielded = "fallback" in reset_info
         self.safe_seen = self.state_safe = reset_info.get("fallback") is False
         self.context: str | None = None
+        # The committed mode (its reset info says whether the start is certified): lapses, plan-forced decisions,
+        # and the cars that left their sets or entered a lane the ego holds, for the collision's context.
+        self.committed = "uncertified_start" in reset_info
+        self.responsibility = reset_info.get("shield_reading") == "responsibility"
+        self.uncertified_start = bool(reset_info["uncertified_start"]) if self.committed else None
+        self.redraws = int(reset_info.get("redraws", 0))
+        self.lapses: list[int] = []
+        self.lapses_in_model: list[int] = []
+        self.lapse_cars: list[list[int]] = []
+        self.plan_forced = 0
+        self.escaped_seen: set[int] = set()
+        self.entered_seen: set[int] = set()
+        self.lapse_named: set[int] = set()
+        self.outside_model_cars: list[int] = []
 
     def add(self, action: int, reward: float, info: dict[str, Any]) -> None:
         """Count one decision: the ``action`` chosen, the ``reward`` and ``info`` its step returned."""
@@ -119,7 +165,9 @@ class EpisodeTally:
         if info.get("collision", False) and not self.collision:
             self.collision = True
             self.time_to_collision = info["snapshot"].time
-            if self.shielded:
+            if self.committed:
+                self.context = self._committed_context(info)
+            elif self.shielded:
                 earlier_break = bool(self.breaks) and self.breaks[0] < self.steps
                 # The action *executed* was outside the mask: chosen unsafe and not overridden (an overridden
                 # choice executes an allowed action, so its crash is the rule's, from a safe state).
@@ -132,8 +180,48 @@ class EpisodeTally:
                     self.context = "from_safe_state"
                 else:
                     self.context = "after_fallback"
+        if self.committed:
+            self._count_committed(info)
         self.state_safe = info.get("fallback") is False
         self.safe_seen = self.safe_seen or self.state_safe
+
+    def _count_committed(self, info: dict[str, Any]) -> None:
+        """The committed mode's figures of one step (after its collision's context: the crash step's own escapes
+        are the impact's, not a cause)."""
+        self.plan_forced += bool(info.get("plan_forced", False))
+        escaped = [int(v) for v in info.get("escaped_cars", ())]
+        entered = [int(v) for v in info.get("entered_cars", ())]
+        if not self.collision:
+            self.escaped_seen.update(escaped)
+            self.entered_seen.update(entered)
+        if info.get("lapse", False):
+            self.lapses.append(self.steps)
+            self.lapse_cars.append(sorted({*escaped, *entered}))
+            self.lapse_named.update(escaped)
+            if info.get("lapse_in_model", False):
+                self.lapses_in_model.append(self.steps)
+
+    def _committed_context(self, info: dict[str, Any]) -> str:
+        """The context of the committed mode's collision at this step (:data:`COLLISION_CONTEXTS`). The escapes
+        reported in the crash step's own state are left out: highway-env's impact (bodies pushed apart, a crashed
+        car braking at its speed per second) puts every crashed body outside any driver model's set."""
+        snap = info["snapshot"]
+        partner = collision_partner(snap)
+        executed_unsafe = info.get("unsafe_action", False) and not info.get("shield_intervened", False)
+        named = sorted(self.lapse_named | ({partner} & self.escaped_seen if partner is not None else set()))
+        if not self.safe_seen:
+            return "uncertified_start"
+        entered = self.entered_seen | {int(v) for v in info.get("entered_cars", ())}  # a cut-in into the crash counts
+        if self.responsibility and (classify_collision(snap) == "rear_ended" or partner in entered):
+            return "others_at_fault"
+        if named:
+            self.outside_model_cars = named
+            return "outside_model"
+        if (self.breaks and self.breaks[0] < self.steps) or (self.lapses and self.lapses[0] < self.steps):
+            return "after_break"
+        if self.state_safe and not executed_unsafe:
+            return "from_safe_state"
+        return "after_fallback"
 
     def record(self, last_info: dict[str, Any]) -> EpisodeRecord:
         """The finished episode's record (``last_info``: the info of its last step)."""
@@ -154,6 +242,13 @@ class EpisodeTally:
             invariant_breaks=self.breaks,
             collision_context=self.context,
             chosen_actions=self.chosen,
+            uncertified_start=self.uncertified_start,
+            lapses=self.lapses,
+            lapses_in_model=self.lapses_in_model,
+            lapse_cars=self.lapse_cars,
+            plan_forced=self.plan_forced,
+            redraws=self.redraws,
+            outside_model_cars=self.outside_model_cars,
         )
 
 
@@ -330,6 +425,7 @@ def summarize(records: list[EpisodeRecord], **meta: Any) -> dict[str, Any]:
             kinds[r.collision_kind] += 1
     actions = [sum(r.actions[a] for r in records) for a in range(N_ACTIONS)]
     collisions = sum(r.collision for r in records)
+    contexts = collision_contexts(any(r.uncertified_start is not None for r in records))
     summary: dict[str, Any] = {
         "episodes": n,
         "decisions": decisions,
@@ -346,11 +442,34 @@ def summarize(records: list[EpisodeRecord], **meta: Any) -> dict[str, Any]:
         "invariant_break_rate": sum(len(r.invariant_breaks) for r in records) / max(decisions, 1),
         "mean_vehicles_passed": float(np.mean([r.vehicles_passed for r in records])),
         "collision_kinds": kinds,
-        "collision_contexts": {c: sum(r.collision_context == c for r in records) for c in COLLISION_CONTEXTS},
+        "collision_contexts": {c: sum(r.collision_context == c for r in records) for c in contexts},
         "actions": dict(zip(ACTION_NAMES, actions, strict=True)),
     }
+    summary.update(committed_figures(records))
     summary.update(meta)
     return summary
+
+
+COMMITTED_FIGURES: tuple[str, ...] = ("lapses", "lapses_in_model", "plan_forced_rate", "uncertified_starts", "redraws")
+"""The committed mode's figures a summary adds (:func:`committed_figures`), as stress and falsify records carry
+them."""
+
+
+def committed_figures(records: list[EpisodeRecord]) -> dict[str, Any]:
+    """The committed shield mode's figures of ``records`` (empty for the other modes, whose summaries keep their
+    keys): ``lapses`` and ``lapses_in_model`` (counts), ``plan_forced_rate`` (plan-forced decisions ÷ decisions),
+    ``uncertified_starts`` (episodes) and ``redraws`` (spawns drawn again, ``shield.redraw_uncertified``)."""
+    committed = [r for r in records if r.uncertified_start is not None]
+    if not committed:
+        return {}
+    decisions = sum(r.length for r in committed)
+    return {
+        "lapses": sum(len(r.lapses) for r in committed),
+        "lapses_in_model": sum(len(r.lapses_in_model) for r in committed),
+        "plan_forced_rate": sum(r.plan_forced for r in committed) / max(decisions, 1),
+        "uncertified_starts": sum(bool(r.uncertified_start) for r in committed),
+        "redraws": sum(r.redraws for r in committed),
+    }
 
 
 DEFAULT_BATCH_ENVS = 16

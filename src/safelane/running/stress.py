@@ -50,7 +50,7 @@ def run_condition(
     that changes what the policy reads or how often it decides is refused with a one-line error.
     """
     from safelane.reporting import stats
-    from safelane.running.evaluation import run_config, summarize
+    from safelane.running.evaluation import COMMITTED_FIGURES, run_config, summarize
 
     if isinstance(condition, str):
         matches = [c for c in load_conditions() if c.name == condition]
@@ -90,6 +90,9 @@ def run_condition(
         "invariant_breaks": s["invariant_breaks"],
         "invariant_break_rate": s["invariant_break_rate"],
         "collision_kinds": s["collision_kinds"],
+        "collision_contexts": s["collision_contexts"],
+        # The committed mode's lapses (in the model), plan-forced share, uncertified starts, redraws.
+        **{k: s[k] for k in COMMITTED_FIGURES if k in s},
         "counterexample_files": [str(f) for f in files],
         "wall_time_s": time.perf_counter() - start,
     }

@@ -208,11 +208,13 @@ def resolve(cfg: TrainConfig) -> RunConfig:
     env_cfg = load_config(cfg.env_preset, sets=env_sets)
     agent_class = AGENT_CLASSES[cfg.method]
     if agent_class.uses_mask and env_cfg.shield.mode == "none":
-        raise ConfigError(f"shield.mode: {cfg.method} acts on the shield's mask; use nominal or robust, not none")
+        raise ConfigError(
+            f"shield.mode: {cfg.method} acts on the shield's mask; use nominal, robust or committed, not none"
+        )
     if agent_class.needs_cost and env_cfg.shield.mode == "none":
         raise ConfigError(
             f"shield.mode: {cfg.method}'s cost counts actions outside the shield's mask; "
-            "use nominal or robust, not none"
+            "use nominal, robust or committed, not none"
         )
     if env_cfg.shield.override:
         raise ConfigError("shield.override: must be false for training (the agent learns from its own action)")

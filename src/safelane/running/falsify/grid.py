@@ -234,7 +234,7 @@ def play_cell(
     The one episode loop of every campaign: the grid's cells and the search's samples."""
     from safelane.core.errors import NotSupported
     from safelane.running.counterexamples import load_counterexample, replay, save_counterexamples
-    from safelane.running.evaluation import run_config, summarize
+    from safelane.running.evaluation import COMMITTED_FIGURES, run_config, summarize
 
     try:
         cfg = cell_config(spec, cell)
@@ -262,6 +262,7 @@ def play_cell(
         "mean_speed": s["mean_speed"],
         "counterexample_files": [p.name for p in files],
         "break_file_classes": file_classes,
+        **{k: s[k] for k in COMMITTED_FIGURES if k in s},  # the committed mode's lapses, plan-forced decisions…
         "wall_time_s": time.perf_counter() - start,
     }
 
@@ -335,8 +336,10 @@ def run_campaign(
 def write_summary(out: Path, spec: CampaignSpec) -> dict[str, Any]:
     """Rebuild cells.csv, summary.json and summary.md from the cell files."""
     from safelane.reporting import stats
-    from safelane.running.collisions import COLLISION_CONTEXTS
+    from safelane.running.collisions import collision_contexts
+    from safelane.running.evaluation import COMMITTED_FIGURES
 
+    committed = spec.shield == "committed"
     records = [json.loads(p.read_text()) for p in sorted((out / "cells").glob("cell*.json"))]
     # The labels from the spec, not the files: a cell file may carry an ambiguous label (some recorded
     # "vehicles_density=5" for both 0.5 and 1.5).
@@ -346,7 +349,8 @@ def write_summary(out: Path, spec: CampaignSpec) -> dict[str, Any]:
     played = [r for r in records if "skipped" not in r]
     axes = [f"axis_{a}" for a in spec.axes]
     columns = ["index", "policy", *axes, "episodes", "decisions", "collisions", "invariant_breaks",
-               *BREAK_CLASSES, "fallback_rate", "mean_speed", "skipped"]  # fmt: skip
+               *BREAK_CLASSES, "fallback_rate", "mean_speed", *(COMMITTED_FIGURES if committed else ()),
+               "skipped"]  # fmt: skip
     buffer = io.StringIO()
     writer = csv.DictWriter(buffer, fieldnames=columns, extrasaction="ignore", lineterminator="\n")
     writer.writeheader()
@@ -358,13 +362,13 @@ def write_summary(out: Path, spec: CampaignSpec) -> dict[str, Any]:
     collisions = sum(r["collisions"] for r in played)
     breaks = sum(r["invariant_breaks"] for r in played)
     kinds: dict[str, int] = {}
-    contexts = dict.fromkeys(COLLISION_CONTEXTS, 0)
+    contexts = dict.fromkeys(collision_contexts(committed), 0)
     classes = dict.fromkeys(BREAK_CLASSES, 0)
     for r in played:
         for k, v in r["collision_kinds"].items():
             kinds[k] = kinds.get(k, 0) + v
         for k, v in r.get("collision_contexts", {}).items():  # cells of campaigns before contexts lack it
-            contexts[k] += v
+            contexts[k] = contexts.get(k, 0) + v
         for k, v in r["break_classes"].items():
             classes[k] += v
     summary = {
@@ -389,6 +393,15 @@ def write_summary(out: Path, spec: CampaignSpec) -> dict[str, Any]:
         "fallback_rate": _per_decision(played, "fallback_rate"),
         "mean_speed": _per_decision(played, "mean_speed"),
     }
+    if committed:  # cells played before the committed figures were counted lack them: left out of the totals
+        counted = [r for r in played if "lapses" in r]
+        summary.update(
+            lapses=sum(r["lapses"] for r in counted),
+            lapses_in_model=sum(r["lapses_in_model"] for r in counted),
+            plan_forced_rate=_per_decision(counted, "plan_forced_rate"),
+            uncertified_starts=sum(r["uncertified_starts"] for r in counted),
+            redraws=sum(r["redraws"] for r in counted),
+        )
     atomic_write_text(out / "summary.json", json.dumps(summary, indent=1))
     atomic_write_text(out / "summary.md", _markdown(spec, summary, played))
     return summary
@@ -401,18 +414,28 @@ def _per_decision(cells: list[dict[str, Any]], field: str) -> float | None:
     return sum(c[field] * c["decisions"] for c in cells) / decisions if decisions else None
 
 
-def _group_table(title: str, key: str, played: list[dict[str, Any]]) -> list[str]:
+COMMITTED_COLUMNS = (
+    "uncertified start", "others at fault", "outside the model", "after a break or lapse", "from certified states",
+)  # fmt: skip
+"""The committed mode's context columns of a summary table (:func:`_group_table`), in its contexts' order."""
+
+
+def _group_table(title: str, key: str, played: list[dict[str, Any]], committed: bool = False) -> list[str]:
     """One table of the summary: every value of ``key`` (a cell's policy, or one axis's setting), with what
     a campaign reports per condition — episodes, collisions with their kinds and against the promise, invariant
-    breaks, fallback rate, speed."""
-    from safelane.running.collisions import COLLISION_KINDS
+    breaks, fallback rate, speed; ``committed``: the committed mode's contexts, lapses and plan-forced share."""
+    from safelane.running.collisions import COLLISION_KINDS, collision_contexts
 
+    context_names = collision_contexts(committed)[:5] if committed else ("started_unsafe", "after_break",
+                                                                         "from_safe_state")  # fmt: skip
+    headers = COMMITTED_COLUMNS if committed else ("started unsafe", "after a break", "from safe states")
+    extra = " lapses (in the model) | plan-forced |" if committed else ""
     lines = [
         f"## By {title}",
         "",
-        "| setting | episodes | collisions (front / rear / side) | started unsafe | after a break | from safe states "
-        "| invariant breaks | breaks / 1 000 decisions | fallback | speed [m/s] |",
-        "|---|---|---|---|---|---|---|---|---|---|",
+        f"| setting | episodes | collisions (front / rear / side) | {' | '.join(headers)} "
+        f"| invariant breaks | breaks / 1 000 decisions | fallback | speed [m/s] |{extra}",
+        "|---" * (7 + len(headers) + 2 * committed) + "|",
     ]
     groups: dict[str, list[dict[str, Any]]] = {}
     for r in played:
@@ -422,16 +445,21 @@ def _group_table(title: str, key: str, played: list[dict[str, Any]]) -> list[str
         b = sum(r["invariant_breaks"] for r in rs)
         kinds = [sum(r["collision_kinds"].get(k, 0) for r in rs) for k in COLLISION_KINDS]  # front, rear, side
         # Cells of campaigns written before the contexts were counted lack them: 0.
-        contexts = [
-            sum(r.get("collision_contexts", {}).get(c, 0) for r in rs)
-            for c in ("started_unsafe", "after_break", "from_safe_state")
-        ]
+        contexts = [sum(r.get("collision_contexts", {}).get(c, 0) for r in rs) for c in context_names]
         fallback, speed = _per_decision(rs, "fallback_rate"), _per_decision(rs, "mean_speed")
-        lines.append(
+        line = (
             f"| {value} | {sum(r['episodes'] for r in rs)} | {sum(r['collisions'] for r in rs)} "
             f"({' / '.join(map(str, kinds))}) | {' | '.join(map(str, contexts))} | {b} | {1000 * b / max(d, 1):.2f} | "
             f"{'–' if fallback is None else f'{100 * fallback:.2f} %'} | {'–' if speed is None else f'{speed:.2f}'} |"
         )
+        if committed:
+            counted = [r for r in rs if "lapses" in r]
+            forced = _per_decision(counted, "plan_forced_rate")
+            line += (
+                f" {sum(r['lapses'] for r in counted)} ({sum(r['lapses_in_model'] for r in counted)}) | "
+                f"{'–' if forced is None else f'{100 * forced:.2f} %'} |"
+            )
+        lines.append(line)
     return [*lines, ""]
 
 
@@ -451,7 +479,16 @@ def _markdown(spec: CampaignSpec, summary: dict[str, Any], played: list[dict[str
         + (f", the ego's mean speed {speed:.2f} m/s." if speed is not None else "."),
         "",
     ]
-    lines += _group_table("policy", "policy", played)
+    committed = spec.shield == "committed"
+    if committed and "lapses" in summary:
+        forced = summary["plan_forced_rate"]
+        lines += [
+            f"Committed plans: **{summary['lapses']} lapses, {summary['lapses_in_model']} in the model** (every car "
+            f"inside its set); plan-forced decisions {'–' if forced is None else f'{100 * forced:.3f} %'}; "
+            f"{summary['uncertified_starts']} uncertified starts, {summary['redraws']} spawns redrawn.",
+            "",
+        ]
+    lines += _group_table("policy", "policy", played, committed)
     for axis in spec.axes:
-        lines += _group_table(axis, f"axis_{axis}", played)
+        lines += _group_table(axis, f"axis_{axis}", played, committed)
     return "\n".join(lines)

@@ -509,11 +509,11 @@ def write_search_results(
 ) -> dict[str, Any]:
     """Write search.json, samples.csv and summary.md (atomically) from the iterations so far; returns
     search.json's dict (totals, the iterations, the final distribution, the best samples)."""
-    from safelane.running.collisions import COLLISION_CONTEXTS
+    from safelane.running.collisions import collision_contexts
 
     live = [r for r in records if "skipped" not in r]
     kinds: dict[str, int] = {}
-    contexts = dict.fromkeys(COLLISION_CONTEXTS, 0)
+    contexts = dict.fromkeys(collision_contexts(spec.shield == "committed"), 0)
     classes = dict.fromkeys(BREAK_CLASSES, 0)
     for r in live:
         for table, counts in ((kinds, r["collision_kinds"]), (contexts, r["collision_contexts"])):
@@ -549,6 +549,16 @@ def write_search_results(
         "collision_kinds": kinds,
         "collision_contexts": contexts,
     }
+    if spec.shield == "committed":
+        counted = [r for r in live if "lapses" in r]
+        forced = sum(r["plan_forced_rate"] * r["decisions"] for r in counted)
+        summary.update(
+            lapses=sum(r["lapses"] for r in counted),
+            lapses_in_model=sum(r["lapses_in_model"] for r in counted),
+            plan_forced_rate=forced / max(sum(r["decisions"] for r in counted), 1),
+            uncertified_starts=sum(r["uncertified_starts"] for r in counted),
+            redraws=sum(r["redraws"] for r in counted),
+        )
     names = list(spec.search.parameters)
     columns = ["index", "iteration", "sample", *names, "episodes", "decisions", "invariant_breaks", "objective",
                *BREAK_CLASSES, "collisions", "fallback_rate", "mean_speed", "skipped"]  # fmt: skip

@@ -30,7 +30,8 @@ def play_episode(env: Any, policy: Any, seed: int) -> dict[str, Any]:
     obs, info = env.reset(seed=seed)
     record: dict[str, Any] = {
         "seed": seed, "uncertified_start": bool(info["uncertified_start"]), "decisions": 0, "speeds": [],
-        "plan_forced": 0, "fallback": 0, "lapses": [], "collision": None, "escapes": 0,
+        "plan_forced": 0, "fallback": 0, "lapses": [], "collision": None, "escapes": 0, "rolled_back": 0,
+        "checked": 0,
     }  # fmt: skip
     done = False
     lapsed = False
@@ -46,6 +47,9 @@ def play_episode(env: Any, policy: Any, seed: int) -> dict[str, Any]:
         record["plan_forced"] += bool(info["plan_forced"])
         record["fallback"] += bool(info["fallback"])
         record["escapes"] += len(info["escaped_cars"])
+        after = env.get_wrapper_attr("result")  # the committed verdict: cars checked, escapes rolling back
+        record["checked"] += int(getattr(after, "checked", 0))
+        record["rolled_back"] += len(getattr(after, "rolled_back", ()))
         escaped_seen.update(info["escaped_cars"])
         entered_seen.update(info["entered_cars"])
         if info["lapse"]:
@@ -137,6 +141,9 @@ def summarize(played: list[dict[str, Any]]) -> dict[str, Any]:
         "lapses_traced_to_cut_ins": sum(bool(lapse["entered"]) and not lapse["escaped"] for lapse in lapses),
         "uncertified_starts": sum(e["uncertified_start"] for e in episodes),
         "lapses": len(lapses), "lapses_in_model": sum(lapse["in_model"] for lapse in lapses),
+        "car_decisions": sum(e.get("checked", 0) for e in episodes),
+        "escaped_car_decisions": sum(e.get("escapes", 0) for e in episodes),
+        "escaped_rolling_back": sum(e.get("rolled_back", 0) for e in episodes),
         "plan_forced_rate": sum(e["plan_forced"] for e in episodes) / max(decisions, 1),
         "no_verified_action_rate": sum(e["fallback"] for e in episodes) / max(decisions, 1),
         "faster_mean_speed": float(np.mean(faster)) if faster else None, "by_policy": by_policy,

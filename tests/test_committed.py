@@ -5,6 +5,8 @@ with no verified plan is uncertified."""
 from __future__ import annotations
 
 import dataclasses
+import itertools
+import math
 from typing import Any
 
 import numpy as np
@@ -15,6 +17,7 @@ from hypothesis import strategies as st
 from safelane.core.spaces import FASTER, IDLE, SLOWER
 from safelane.safety.committed import (
     CommittedFamily,
+    car_sets,
     envelope,
     lane_crossing_time,
     lane_entry_times,
@@ -121,6 +124,77 @@ def test_the_lanes_a_car_can_reach_nest_in_time(start, moved, extra, cut_in) -> 
     after = lane_entry_times(scene([{"x": 50.0, "lane": end}], dyn=dyn), dyn)[0]
     assert (delta + after >= before - 1e-9).all()
     assert before[end] <= delta + 1e-9  # the successor itself is inside the set at Δ
+
+
+def _car_state(car: Any, dyn: Dynamics) -> RoadState:
+    """The :class:`RoadState` of one highway-env car on a straight road (the ego far behind, never in reach)."""
+    h = float(car.heading)
+    return scene([{"x": float(car.position[0]), "y": float(car.position[1]), "vx": car.speed * math.cos(h),
+                   "vy": car.speed * math.sin(h), "heading": h, "brake_max": 6.0, "accel_max": 6.0,
+                   "target_speed": np.nan}], ego_x=-10_000.0, dyn=dyn)  # fmt: skip
+
+
+def _lane_changing_car(hz: int, v0: float, accel: float, changes: int) -> list[Any]:
+    """Frames of a highway-env ControlledVehicle on a straight 3-lane road from the middle lane at ``v0`` [m/s],
+    accelerating at ``accel`` [m/s²] (braking to a stop, or up to 30 m/s), changing lane ``changes`` times, each
+    as soon as the last is over and its timer (``LANE_CHANGE_DELAY``, 1 s) lets it: its states, one per frame."""
+    from highway_env.road.road import Road, RoadNetwork
+    from highway_env.vehicle.controller import ControlledVehicle
+
+    dyn = dataclasses.replace(DYN, frame_dt=1.0 / hz, frames_per_decision=hz, lanes_count=3)
+    network = RoadNetwork.straight_road_network(3, length=10_000.0)
+    road = Road(network, np_random=np.random.RandomState(0))
+    car = ControlledVehicle(road, network.get_lane(("0", "1", 1)).position(0.0, 0.0), speed=v0)
+    road.vehicles = [car]
+    states, lane, since, done = [], 1, 1.0, 0
+    for _ in range(8 * hz):
+        states.append(_car_state(car, dyn))
+        since += 1.0 / hz
+        if done < changes and since > 1.0 and car.lane_index == car.target_lane_index:
+            lane = 2 if lane != 2 else 0  # across the road and back
+            car.target_lane_index = ("0", "1", lane)
+            since, done = 0.0, done + 1
+        car.act()
+        car.action["acceleration"] = accel if (accel < 0 < car.speed) or (accel >= 0 and car.speed < 30.0) else 0.0
+        car.step(1.0 / hz)
+        car.speed = max(car.speed, 0.0)
+    return states
+
+
+def _outside(states: list[RoadState], dyn: Dynamics, hz: int) -> int:
+    """How many (decision, frame) pairs find the car outside the set drawn for it at the decision (position along
+    the road, speed along the path)."""
+    from safelane.safety.committed_sets import path_speed
+
+    out = 0
+    for k0 in range(0, len(states), hz):
+        sets = car_sets(states[k0], dyn, np.array([0]))
+        for k in range(k0, min(len(states), k0 + dyn.times.size)):
+            s, f = states[k], k - k0
+            out += not (sets.x_lo[0, f] - 1e-6 <= s.x[0] <= sets.x_hi[0, f] + 1e-6)
+            out += not (sets.v_lo[0, f] - 1e-6 <= path_speed(s)[0] <= sets.v_hi[0, f] + 1e-6)
+    return out
+
+
+@pytest.mark.parametrize("hz", [5, 15])
+@pytest.mark.parametrize(("v0", "accel"), [(25.0, -6.0), (15.0, 6.0), (8.0, -3.0), (30.0, 0.0)])
+def test_a_car_changing_lane_stays_inside_the_sets_drawn_for_it(hz: int, v0: float, accel: float) -> None:
+    """highway-env's own controller moves a car along ``heading + β`` at its speed along the path: a car changing
+    lane (and, from a frame inside the change, the change under way) while braking or accelerating at its limits
+    stays inside every set drawn for it at any earlier decision — position along the road and speed along the
+    path — although its speed along the road falls faster than any driver brakes."""
+    dyn = dataclasses.replace(DYN, frame_dt=1.0 / hz, frames_per_decision=hz, lanes_count=3)
+    states = _lane_changing_car(hz, v0, accel, changes=1)
+    assert _outside(states, dyn, hz) == 0
+    drops = [(a.vx[0] - b.vx[0]) * hz for a, b in itertools.pairwise(states)]
+    assert max(drops) > 1.0 - accel  # its speed along the road falls faster than its speed along the path
+
+
+def test_a_second_lane_change_within_the_horizon_leaves_the_set() -> None:
+    """The sets count the lane change under way and one more (``LANE_CHANGES_BEGUN``): a car that goes across the
+    road and back within the horizon at its timer's pace is outside them — the set can fail, and names it."""
+    dyn = dataclasses.replace(DYN, lanes_count=3)
+    assert _outside(_lane_changing_car(5, 25.0, -6.0, changes=3), dyn, 5) > 0
 
 
 # --------------------------------------------------------------------------------------------

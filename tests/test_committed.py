@@ -134,6 +134,72 @@ def _car_state(car: Any, dyn: Dynamics) -> RoadState:
                    "target_speed": np.nan}], ego_x=-10_000.0, dyn=dyn)  # fmt: skip
 
 
+@settings(max_examples=200, deadline=None)
+@given(
+    v=st.floats(-2, 35), target=st.floats(5, 35), gain=st.floats(0.02, 0.5), idm=st.booleans(),
+    hz=st.sampled_from([5, 10, 15]), steps=st.integers(1, 10), fractions=st.lists(st.floats(0, 1), min_size=10,
+                                                                                   max_size=10),
+)  # fmt: skip
+def test_the_acceleration_law_bound_nests_in_time(v, target, gain, idm, hz, steps, fractions) -> None:
+    """A driver accelerating at most ``min(a, law)`` toward its set-point (linear ``k·(v* − v)`` or IDM's free
+    term): from any successor the bound allows after Δ frames, the bound of speed and position is inside the
+    first one's from Δ on, and the successor itself inside it at Δ."""
+    from safelane.safety.committed_sets import law_rise
+
+    dt = 1.0 / hz
+    car = {"x": 0.0, "vx": v, "target_speed": target, "accel_max": 3.0 if idm else 6.0}
+    if not idm:
+        car |= {"linear_speed_gain": gain, "linear_speed_difference_gain": 0.1, "linear_distance_gain": 0.5}
+    first = scene([car])
+    speed, dist = law_rise(first, np.array([v]), 40, dt)
+    x, u = 0.0, v
+    for f in fractions[:steps]:  # a history inside the law: a fraction of the largest acceleration it allows
+        law = gain * (target - u) if not idm else 3.0 * (1 - (max(u, 0.0) / target) ** 4.0)
+        x, u = x + dt * max(u, 0.0), u + dt * f * min(car["accel_max"], max(law, 0.0))
+    assert u <= speed[0, steps] + 1e-9 and x <= dist[0, steps] + 1e-9
+    speed2, dist2 = law_rise(scene([{**car, "x": x, "vx": u}]), np.array([u]), 40 - steps, dt)
+    assert (speed2[0] <= speed[0, steps:] + 1e-9).all()
+    assert (x + dist2[0] <= dist[0, steps:] + 1e-9).all()
+
+
+@pytest.mark.parametrize("driver", ["IDMVehicle", "LinearVehicle", "AggressiveVehicle", "DefensiveVehicle"])
+@pytest.mark.parametrize("hz", [5, 15])
+def test_a_driver_stays_below_its_acceleration_law(driver: str, hz: int) -> None:
+    """highway-env's drivers on one lane — free, then behind a slower car — stay below the speed and position
+    their own acceleration law allows (:func:`~safelane.safety.committed_sets.law_rise`, inside :func:`car_sets`),
+    which the linear models reach far below their ACC_MAX bound."""
+    from highway_env.road.road import Road, RoadNetwork
+    from highway_env.vehicle import behavior
+
+    cls = getattr(behavior, driver)
+    dyn = dataclasses.replace(DYN, frame_dt=1.0 / hz, frames_per_decision=hz, lanes_count=1)
+    network = RoadNetwork.straight_road_network(1, length=10_000.0)
+    road = Road(network, np_random=np.random.RandomState(0))
+    car = cls(road, np.array([0.0, 0.0]), speed=12.0, target_speed=28.0, enable_lane_change=False)
+    slow = behavior.IDMVehicle(road, np.array([150.0, 0.0]), speed=15.0, target_speed=15.0)
+    road.vehicles = [car, slow]
+    gains = getattr(car, "ACCELERATION_PARAMETERS", [np.nan] * 3) if driver != "IDMVehicle" else [np.nan] * 3
+    fields = dict(brake_max=cls.ACC_MAX, accel_max=cls.COMFORT_ACC_MAX if driver == "IDMVehicle" else cls.ACC_MAX,
+                  idm_delta=car.DELTA, idm_comfort_acc=cls.COMFORT_ACC_MAX, linear_speed_gain=gains[0],
+                  linear_speed_difference_gain=gains[1], linear_distance_gain=gains[2], target_speed=28.0)  # fmt: skip
+    states = []
+    for _ in range(20 * hz):
+        states.append(scene([{"x": car.position[0], "y": 0.0, "vx": car.speed, **fields}], ego_x=-1e4,
+                            ego_lane=0, dyn=dyn))  # fmt: skip
+        road.act()
+        road.step(1.0 / hz)
+    v_top = max(s.vx[0] for s in states)
+    plain = []
+    for k0 in range(0, len(states), hz):
+        sets = car_sets(states[k0], dyn, np.array([0]))
+        for k in range(k0, min(len(states), k0 + dyn.times.size)):
+            assert states[k].x[0] <= sets.x_hi[0, k - k0] + 1e-6 and states[k].vx[0] <= sets.v_hi[0, k - k0] + 1e-6
+        plain.append(sets.x_hi[0, -1] - states[k0].x[0])
+    assert 15.0 < v_top < 28.0
+    without = dict(fields, linear_speed_gain=np.nan, target_speed=np.nan, idm_comfort_acc=0.0)  # no law: the bound
+    assert car_sets(scene([{"x": 0.0, "vx": 12.0, **without}], dyn=dyn), dyn, np.array([0])).x_hi[0, -1] > plain[0]
+
+
 def _lane_changing_car(hz: int, v0: float, accel: float, changes: int) -> list[Any]:
     """Frames of a highway-env ControlledVehicle on a straight 3-lane road from the middle lane at ``v0`` [m/s],
     accelerating at ``accel`` [m/s²] (braking to a stop, or up to 30 m/s), changing lane ``changes`` times, each
@@ -289,6 +355,25 @@ def test_a_follower_reacts_to_the_plan() -> None:
     assert result.safe[IDLE] and result.plans[IDLE] is not None
     beside = scene([*LEADER, {"x": -40.0, "lane": 1, "vx": 20.0, "y": 6.1}])  # its own lane the next one: no law
     assert not CommittedFamily("sound").evaluate_state(beside, np.arange(2), DYN).safe[IDLE]
+
+
+def test_mobil_s_safety_criterion_holds_back_a_linear_driver_cutting_in() -> None:
+    """An Aggressive driver 20 m ahead in the next lane at 15 m/s, the ego at 25 m/s: by its own linear law the ego
+    behind it would brake harder than ``max_braking_imposed``, so MOBIL lets it cut in only later (1.8 s instead
+    of the cut-in time); every plan's worst gap is at least what it is without the law (gains of a sign the bound
+    does not cover), and FASTER's far larger."""
+    from safelane.safety.committed import verify_plans
+
+    aggressive = dict(x=20.0, lane=2, vx=15.0, target_speed=15.0, linear_speed_gain=0.107, idm_time_wanted=2.5,
+                      linear_speed_difference_gain=0.036, linear_distance_gain=0.5, accel_max=6.0)  # fmt: skip
+    worst = []
+    for gain in (0.5, -0.5):
+        state = scene([{**aggressive, "linear_distance_gain": gain}], ego_speed=25.0)
+        worst.append(verify_plans(state, DYN, car_sets(state, DYN, np.array([1])), "sound")[0])
+    with_law, without = worst
+    finite = np.isfinite(without)
+    assert (with_law[finite] >= without[finite] - 1e-9).all()
+    assert with_law[FASTER].max() > without[FASTER].max() + 50.0
 
 
 def test_the_responsibility_reading_leaves_a_car_behind_to_its_driver() -> None:

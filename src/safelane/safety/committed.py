@@ -48,6 +48,7 @@ from safelane.safety.committed_sets import (
     lane_crossing_time,
     lane_entry_times,
     lanes_now,
+    linear_set_point_bound,
     occupied_lanes,
     path_speed,
     rolling_back,
@@ -131,13 +132,47 @@ def onsets(dyn: Dynamics, action: int) -> np.ndarray:
     return (1 + np.arange(MAX_HOLD_DECISIONS + 1)) * dyn.decision_period
 
 
+def plan_set_points(state: RoadState, dyn: Dynamics, ego_v: np.ndarray, action: int) -> np.ndarray:
+    """(holds, frames) [m/s] the ego's set-point at each frame of each plan of ``action`` (``ego_v``: its speeds,
+    (holds, frames)): the action's, held ``hold`` decisions, then one step below the speed at each decision (SLOWER,
+    as :func:`plan_of` lists them)."""
+    ts = dyn.target_speeds
+    f = dyn.frames_per_decision
+    out = np.empty_like(ego_v)
+    for hold in range(ego_v.shape[0]):
+        point = float(action_targets(state, dyn)[action])
+        for d in range(0, math.ceil(ego_v.shape[1] / f)):
+            if d > hold:
+                point = float(ts[max(int(speed_to_index(ego_v[hold, d * f], ts)) - 1, 0)])
+            out[hold, d * f : (d + 1) * f] = point
+    return out
+
+
+def _linear_criterion(
+    state: RoadState, sets: CarSets, rows: np.ndarray, gap: np.ndarray, ev: np.ndarray, ego_set: np.ndarray | None,
+    dyn: Dynamics,
+) -> np.ndarray:  # fmt: skip
+    """(rows, holds, frames) whether MOBIL's safety criterion of linear-model drivers could hold: the ego's
+    acceleration behind the car by the car's own linear law (:func:`~safelane.safety.others.
+    linear_acceleration_behind`), at its largest over the car's set (fastest, farthest: the law is monotone in both)
+    and the ego's set-point (the plan's; without it the highest), at least ``−max_braking_imposed``."""
+    k0, k1, k2 = (getattr(state, name)[rows][:, None, None] for name in
+                  ("linear_speed_gain", "linear_speed_difference_gain", "linear_distance_gain"))  # fmt: skip
+    target = (ego_set if ego_set is not None else np.full_like(ev[0], max(dyn.target_speeds)))[None]
+    d_safe = state.idm_distance_wanted[rows][:, None, None] + ev * state.idm_time_wanted[rows][:, None, None]
+    own = sets.v_hi[rows][:, None, :]  # highway-env reads the car's speed along its path
+    pred = k0 * (target - ev) + k1 * np.minimum(own - ev, 0.0) + k2 * np.minimum(gap - d_safe, 0.0)
+    return pred >= -state.max_braking_imposed[rows][:, None, None]
+
+
 def _permit_entry(
-    state: RoadState, dyn: Dynamics, sets: CarSets, rows: np.ndarray, ego_x: np.ndarray, ego_v: np.ndarray
-) -> np.ndarray:
-    """(rows, holds) [s] the first time MOBIL's safety criterion could let each car (IDM drivers, ahead) move in
-    front of the ego on each plan (its loosest state in reach: the largest gap, the speed that makes IDM's desired
-    gap smallest, the ego's set-point at the lane's limit) or could be behind the ego, plus the cut-in time; inf:
-    never in the horizon."""
+    state: RoadState, dyn: Dynamics, sets: CarSets, rows: np.ndarray, ego_x: np.ndarray, ego_v: np.ndarray,
+    ego_set: np.ndarray | None = None,
+) -> np.ndarray:  # fmt: skip
+    """(rows, holds) [s] the first time MOBIL's safety criterion could let each car (IDM and linear-model drivers,
+    ahead) move in front of the ego on each plan (its loosest state in reach: the largest gap, the speed that makes
+    the criterion loosest, the ego's set-point at the lane's limit for IDM, the plan's ``ego_set`` (holds, frames)
+    for the linear models) or could be behind the ego, plus the cut-in time; inf: never in the horizon."""
     t = dyn.times
     acc = state.idm_comfort_acc[rows][:, None, None]
     ab = (-state.idm_comfort_acc * state.idm_comfort_dec)[rows][:, None, None]
@@ -153,7 +188,11 @@ def _permit_entry(
     lo, hi = np.minimum(d_fast, d_slow), np.maximum(d_fast, d_slow)
     least = np.where(lo > 0.0, lo, np.where(hi < 0.0, -hi, 0.0))
     d = np.maximum(gap, 1e-2)
-    ok = (gap > 0.0) & (free - acc * (least / d) ** 2 >= -state.max_braking_imposed[rows][:, None, None])
+    ok = free - acc * (least / d) ** 2 >= -state.max_braking_imposed[rows][:, None, None]
+    linear = np.isfinite(state.linear_speed_gain[rows])
+    if linear.any():
+        ok[linear] = _linear_criterion(state, sets, rows[linear], gap[linear], ev, ego_set, dyn)
+    ok &= gap > 0.0
     # Once it may be behind the ego, MOBIL protects its new follower, not the ego: it may turn in behind it.
     ok |= sets.x_lo[rows][:, None, :] < ego_x[None]
     first = np.where(ok.any(axis=2), t[np.argmax(ok, axis=2)], np.inf)
@@ -177,14 +216,24 @@ def verify_plans(
     worst = np.full((N_ACTIONS, MAX_HOLD_DECISIONS + 1), -np.inf)
     for a in np.flatnonzero(available):
         lanes = action_lanes(state, dyn, int(a))
-        worst[a] = plan_gaps(state, dyn, sets, ego_x[a], ego_v[a], onsets(dyn, int(a)), lanes, reading)
+        worst[a] = plan_gaps(
+            state,
+            dyn,
+            sets,
+            ego_x[a],
+            ego_v[a],
+            onsets(dyn, int(a)),
+            lanes,
+            reading,
+            ego_set=plan_set_points(state, dyn, ego_v[a], int(a)),
+        )
     return worst, ego_x, ego_v
 
 
 def plan_gaps(
     state: RoadState, dyn: Dynamics, sets: CarSets, ego_x: np.ndarray, ego_v: np.ndarray, onset: np.ndarray,
     lanes: Lanes, reading: Reading = "sound", until_frame: int | None = None,
-    carried_followers: dict[int, tuple[int, np.ndarray]] | None = None,
+    carried_followers: dict[int, tuple[int, np.ndarray]] | None = None, ego_set: np.ndarray | None = None,
 ) -> np.ndarray:  # fmt: skip
     """(holds,) the worst bumper-to-bumper gap [m] of plans whose ego moves as ``ego_x``/``ego_v`` (holds, frames)
     and brakes first at ``onset`` [s] (holds,), occupying ``lanes``, at every frame up to ``until_frame`` (default:
@@ -198,11 +247,15 @@ def plan_gaps(
     ``reading="responsibility"``, in a lane the ego holds, only the cars ahead of it and in that lane now (or
     moving into it) count: a car behind, or one that cuts in later, is responsible for the gap it makes.
     ``carried_followers``: {row: (lane, highest position [m] per frame)}, the follower bounds a kept plan drew, kept
-    in that lane."""
+    in that lane; ``ego_set`` (holds, frames): the plans' set-points [m/s] (:func:`plan_set_points`; the linear
+    drivers' MOBIL criterion reads it)."""
     t = dyn.times
     half = 0.5 * (state.length + state.ego_length)
     ahead = state.x >= state.ego_x
-    idm = ~np.isfinite(state.linear_speed_gain) & state.can_change_lane & ~state.crashed
+    # Drivers that change lane by MOBIL with a formula the criterion can be bounded for: IDM, or the linear model
+    # with gains ≥ 0 (linear_set_point_bound).
+    mobil = (~np.isfinite(state.linear_speed_gain) | linear_set_point_bound(state)) & state.can_change_lane
+    mobil &= ~state.crashed & np.isfinite(state.max_braking_imposed)
     held = {state.ego_lane, state.ego_target_lane}
     n_fb = ego_x.shape[0]
     frames = t <= (t[-1] if until_frame is None else t[min(max(until_frame, 0), t.size - 1)])
@@ -210,9 +263,9 @@ def plan_gaps(
     for lane, until in lanes:
         held_lane = lane in held
         entry = np.repeat(sets.entry[:, lane][:, None], n_fb, axis=1)  # (cars, holds)
-        law = np.flatnonzero(held_lane & ahead & idm & ~sets.now[:, lane])
+        law = np.flatnonzero(held_lane & ahead & mobil & ~sets.now[:, lane])
         if law.size:
-            entry[law] = np.maximum(entry[law], _permit_entry(state, dyn, sets, law, ego_x, ego_v))
+            entry[law] = np.maximum(entry[law], _permit_entry(state, dyn, sets, law, ego_x, ego_v, ego_set))
         count = np.isfinite(entry).any(axis=1)
         if held_lane and reading == "responsibility":  # cut-ins and cars behind: theirs to avoid the ego
             count &= ahead & sets.now[:, lane]
@@ -355,7 +408,8 @@ class CommittedFamily:
                 if v in rows and not escaped[rows[v]]
             }
             gap = plan_gaps(state, dyn, sets, ego_x[a, k : k + 1], ego_v[a, k : k + 1], np.array([tail.onset]),
-                            list(tail.occupied), self.reading, tail.frames, followers)[0]  # fmt: skip
+                            list(tail.occupied), self.reading, tail.frames, followers,
+                            plan_set_points(state, dyn, ego_v[a], a)[k : k + 1])[0]  # fmt: skip
             # A lapse: the plan verified at the last decision no longer is (a plan kept on after one stays unverified).
             lapse = self.kept_verified and not gap >= dyn.margin
             step = self.kept.next_step() if available[self.kept.next_step()] else IDLE

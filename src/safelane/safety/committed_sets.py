@@ -31,9 +31,10 @@ TURN_HEADING = math.pi / 8
 of one lane change is ``lane_width · tan(π/8)`` (:func:`lane_change_allowance`)."""
 
 __all__ = [
-    "ESCAPE_TOLERANCE", "LANE_CHANGES_BEGUN", "MAX_SPEED", "TURN_HEADING", "CarSets", "car_sets", "envelope",
-    "escaped_cars", "lane_change_allowance", "lane_changes_allowed", "lane_crossing_time", "lane_entry_times",
-    "lanes_now", "occupied_lanes", "path_speed", "rolling_back", "shortfall", "speed_bounds",
+    "ESCAPE_TOLERANCE", "LANE_CHANGES_BEGUN", "MAX_SPEED", "TURN_HEADING", "CarSets", "acceleration_law", "car_sets",
+    "envelope", "escaped_cars", "lane_change_allowance", "lane_changes_allowed", "lane_crossing_time",
+    "lane_entry_times", "lanes_now", "law_rise", "linear_set_point_bound", "occupied_lanes", "path_speed",
+    "rolling_back", "shortfall", "speed_bounds",
 ]  # fmt: skip
 
 
@@ -80,6 +81,7 @@ def speed_bounds(v: np.ndarray, target: np.ndarray, linear: np.ndarray) -> tuple
     ≤ 0); :data:`MAX_SPEED` for the linear models (``linear``) and an unknown set-point."""
     known = np.isfinite(target)
     v_max = np.where(linear | ~known, MAX_SPEED, np.maximum(v, np.where(known, target, 0.0)))
+    # (car_sets passes ``linear`` only for the linear drivers with no set-point bound: linear_set_point_bound)
     return np.minimum(v, 0.0), np.maximum(v_max, v)
 
 
@@ -102,6 +104,51 @@ def envelope(
     if allowance is not None:
         d_lo = np.maximum(d_lo - allowance, _backward(col(v), col(b), col(v_min), tt))
     return col(x) + d_lo, col(x) + d_hi, v_lo, v_hi
+
+
+def linear_set_point_bound(state: RoadState) -> np.ndarray:
+    """(cars,) bool: linear-model drivers whose speed stays at most ``max(v, set-point)``: their acceleration
+    ``k₀·(v* − v) + k₁·min(Δv, 0) + k₂·min(d − d_safe, 0)`` (``LinearVehicle.acceleration``) with gains ≥ 0 is at
+    most ``k₀·(v* − v)``; set-point known."""
+    gains = np.stack([state.linear_speed_gain, state.linear_speed_difference_gain, state.linear_distance_gain])
+    return np.isfinite(gains).all(axis=0) & (gains >= 0.0).all(axis=0) & np.isfinite(state.target_speed)
+
+
+def acceleration_law(state: RoadState, dt: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Each car's acceleration law toward its set-point, for :func:`law_rise`: (rows it applies to, gain k [1/s]
+    of the linear law ``k·(v* − v)``, IDM's comfort acceleration [m/s²] and exponent δ of ``acc·(1 − (v/v*)^δ)``;
+    the other terms of both models are ≤ 0). A law applies where the set-point is known, the car not crashed,
+    and one frame of it is monotone in the speed (``1 − dt·∂acc/∂v ≥ 0``: a slower car stays slower)."""
+    target = state.target_speed
+    linear = linear_set_point_bound(state)
+    idm = ~np.isfinite(state.linear_speed_gain) & np.isfinite(target) & (target > 0.0)
+    monotone = np.where(linear, dt * np.nan_to_num(state.linear_speed_gain) <= 1.0,
+                        dt * state.idm_comfort_acc * state.idm_delta <= np.where(idm, target, 0.0))  # fmt: skip
+    rows = (linear | idm) & monotone & ~np.asarray(state.crashed, dtype=bool)
+    return rows, np.where(linear, state.linear_speed_gain, np.nan), state.idm_comfort_acc, state.idm_delta
+
+
+def law_rise(state: RoadState, v: np.ndarray, frames: int, dt: float) -> tuple[np.ndarray, np.ndarray]:
+    """(speed [m/s], forward distance [m]) bounds per frame (cars, frames + 1) of cars following their driver
+    model's acceleration law (:func:`acceleration_law`; elsewhere inf): highway-env's explicit Euler frame by frame
+    (the position moves by the speed before the frame's update), the acceleration at most ``min(a, max(law, 0))``.
+    Each frame's map is monotone in the speed, so a slower start stays below: the bound nests in time."""
+    rows, k, acc, delta = acceleration_law(state, dt)
+    target, a = state.target_speed, state.accel_max
+    speed = np.full((state.n, frames + 1), np.inf)
+    dist = np.full((state.n, frames + 1), np.inf)
+    vk = np.where(rows, v, 0.0)
+    xk = np.zeros(state.n)
+    speed[rows, 0], dist[rows, 0] = vk[rows], 0.0
+    safe_target = np.where(rows & np.isfinite(target) & (target > 0.0), target, 1.0)
+    for j in range(1, frames + 1):
+        linear_law = np.nan_to_num(k) * (target - vk)
+        idm_law = acc * (1.0 - np.power(np.maximum(vk, 0.0) / safe_target, delta))
+        law = np.where(np.isfinite(k), linear_law, idm_law)
+        xk = xk + dt * np.maximum(vk, 0.0)
+        vk = vk + dt * np.minimum(a, np.maximum(np.nan_to_num(law), 0.0))
+        speed[rows, j], dist[rows, j] = vk[rows], xk[rows]
+    return speed, dist
 
 
 def lane_change_allowance(dyn: Dynamics) -> float:
@@ -215,11 +262,13 @@ def car_sets(state: RoadState, dyn: Dynamics, vehicle: np.ndarray) -> CarSets:
     """The reachable sets drawn from ``state`` alone (``vehicle``: the snapshot index of each row); a crashed car
     is a wall where it stands."""
     t = dyn.times
-    linear = np.isfinite(state.linear_speed_gain)
+    unbounded = np.isfinite(state.linear_speed_gain) & ~linear_set_point_bound(state)
     v = path_speed(state)
-    v_min, v_max = speed_bounds(v, state.target_speed, linear)
+    v_min, v_max = speed_bounds(v, state.target_speed, unbounded)
     x_lo, x_hi, v_lo, v_hi = envelope(state.x, v, state.accel_max, state.brake_max, v_min, v_max, t,
                                       shortfall(state, dyn, t))  # fmt: skip
+    law_v, law_d = law_rise(state, v, t.size - 1, dyn.frame_dt)  # the driver's own law, where it bounds tighter
+    x_hi, v_hi = np.minimum(x_hi, state.x[:, None] + law_d), np.minimum(v_hi, law_v)
     wall = np.asarray(state.crashed, dtype=bool)
     x_lo[wall], x_hi[wall] = state.x[wall, None], state.x[wall, None]
     v_lo[wall], v_hi[wall] = 0.0, 0.0

@@ -31,6 +31,7 @@ def play_episode(env: Any, policy: Any, seed: int) -> dict[str, Any]:
     record: dict[str, Any] = {
         "seed": seed, "uncertified_start": bool(info["uncertified_start"]), "decisions": 0, "speeds": [],
         "plan_forced": 0, "fallback": 0, "lapses": [], "collision": None, "escapes": 0, "rolled_back": 0,
+        "unbraked_followers": 0,
         "checked": 0,
     }  # fmt: skip
     done = False
@@ -50,6 +51,7 @@ def play_episode(env: Any, policy: Any, seed: int) -> dict[str, Any]:
         after = env.get_wrapper_attr("result")  # the committed verdict: cars checked, escapes rolling back
         record["checked"] += int(getattr(after, "checked", 0))
         record["rolled_back"] += len(getattr(after, "rolled_back", ()))
+        record["unbraked_followers"] += len(getattr(after, "unbraked_followers", ()))
         escaped_seen.update(info["escaped_cars"])
         entered_seen.update(info["entered_cars"])
         if info["lapse"]:
@@ -144,6 +146,7 @@ def summarize(played: list[dict[str, Any]]) -> dict[str, Any]:
         "car_decisions": sum(e.get("checked", 0) for e in episodes),
         "escaped_car_decisions": sum(e.get("escapes", 0) for e in episodes),
         "escaped_rolling_back": sum(e.get("rolled_back", 0) for e in episodes),
+        "escaped_unbraked_followers": sum(e.get("unbraked_followers", 0) for e in episodes),
         "plan_forced_rate": sum(e["plan_forced"] for e in episodes) / max(decisions, 1),
         "no_verified_action_rate": sum(e["fallback"] for e in episodes) / max(decisions, 1),
         "faster_mean_speed": float(np.mean(faster)) if faster else None, "by_policy": by_policy,

@@ -381,6 +381,23 @@ def test_mobil_s_safety_criterion_holds_back_a_linear_driver_cutting_in() -> Non
     assert with_law[FASTER].max() > without[FASTER].max() + 50.0
 
 
+def test_a_follower_that_does_not_brake_for_the_plan_is_named() -> None:
+    """The follower law is an assumption, not IDM's: a follower that keeps accelerating at its limit while the ego
+    carries out a plan that brakes leaves the bound drawn for it — named as an unbraked follower (and escaped),
+    though inside its envelope."""
+    state = scene([*LEADER, {"x": -40.0, "lane": 1, "vx": 20.0}])
+    family = CommittedFamily("sound")
+    first = family.evaluate_state(state, np.arange(2), DYN)
+    action = SLOWER if first.safe[SLOWER] else IDLE
+    plan = first.plans[action]
+    assert plan is not None
+    family.commit(action)
+    ego_x, ego_v, set_point = _followed(state, DYN, action, plan.hold)
+    cars = [{"x": 70.0 + 20.0, "lane": 1, "vx": 20.0}, {"x": -40.0 + 20.0 + 1.5, "lane": 1, "vx": 23.0}]
+    result = family.evaluate_state(scene(cars, ego_x=ego_x, ego_speed=ego_v, set_point=set_point), np.arange(2), DYN)
+    assert result.unbraked_followers == (1,) and result.escaped == (1,)
+
+
 def test_the_responsibility_reading_leaves_a_car_behind_to_its_driver() -> None:
     """A fast car 15 m behind in the ego's lane: under ``sound`` it is the ego's to avoid (IDLE unverified), under
     ``responsibility`` it is not."""

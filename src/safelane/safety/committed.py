@@ -313,7 +313,9 @@ class CommittedResult(SafetyResult):
     none is; ``plan_forced``: the kept plan's next step drives (nothing verified); ``lapse``: the plan kept,
     verified, at the last decision no longer verifies (a plan driven on after a lapse is not verified again);
     ``escaped``: snapshot indices of the cars outside the sets drawn for them, ``rolled_back`` those of them moving
-    backwards (outside IDM, :func:`~safelane.safety.committed_sets.rolling_back`), ``checked`` how many cars were
+    backwards (outside IDM, :func:`~safelane.safety.committed_sets.rolling_back`), ``unbraked_followers`` those
+    ahead of the follower bound the kept plan drew for them (the follower law is an assumption, not IDM's: a
+    follower far behind does not brake at its limit because the ego plans to), ``checked`` how many cars were
     checked against a set drawn at the last decision; ``entered`` (``responsibility``):
     those that entered a lane the ego holds since the last decision; ``certified``: some plan is verified
     or kept; ``plans``: the verified plan of each action (None: none)."""
@@ -322,6 +324,7 @@ class CommittedResult(SafetyResult):
     lapse: bool = False
     escaped: tuple[int, ...] = ()
     rolled_back: tuple[int, ...] = ()
+    unbraked_followers: tuple[int, ...] = ()
     checked: int = 0
     entered: tuple[int, ...] = ()
     certified: bool = False
@@ -378,12 +381,14 @@ class CommittedFamily:
         state (default: the numpy reference's)."""
         sets = car_sets(state, dyn, vehicle)
         escaped = np.zeros(state.n, dtype=bool)
+        unbraked = np.zeros(state.n, dtype=bool)
         checked = 0
         entered = np.zeros(state.n, dtype=bool)
         if self.carried is not None:
             entered = _entered_held_lanes(state, self.carried, sets, vehicle)
             older = self.carried.shifted(dyn.frames_per_decision, dyn.decision_period)
-            escaped = escaped_cars(state, dyn, older, vehicle) | self._followers_escaped(state, dyn, vehicle)
+            unbraked = self._followers_escaped(state, dyn, vehicle)
+            escaped = escaped_cars(state, dyn, older, vehicle) | unbraked
             checked = int(np.isin(vehicle, older.vehicle).sum())
             sets = sets.intersect(older, ~escaped)
         worst, ego_x, ego_v = verify_plans(state, dyn, sets, self.reading)
@@ -430,6 +435,7 @@ class CommittedFamily:
             mask, safe, available, not bool(safe.any()), best_gap, None,
             plan_forced=forced, lapse=lapse, escaped=tuple(int(v) for v in vehicle[escaped]),
             rolled_back=tuple(int(v) for v in vehicle[rolling_back(state, escaped)]), checked=checked,
+            unbraked_followers=tuple(int(v) for v in vehicle[unbraked]),
             entered=tuple(int(v) for v in vehicle[entered]) if self.reading == "responsibility" else (),
             certified=bool(safe.any()) or self.kept is not None, plans=tuple(plans),
         )  # fmt: skip

@@ -12,9 +12,10 @@
   earliest time it may occupy it (:func:`lane_entry_times`). They nest in time (``R(s', [0, H−Δ]) ⊆ R(s, [Δ, H])``,
   tested in ``tests/test_committed.py``); what does not nest (heading projection, a lane change begun) is closed
   by memory: the sets carried from the last decision are intersected with the new ones.
-* Two laws apply under a plan, where they nest with the plan kept: MOBIL's safety criterion against the ego's
-  known plan (IDM drivers entering a lane the ego holds), and followers reacting ``ρ`` after the plan's braking
-  onset (:func:`verify_plans`).
+* Laws apply under a plan where they nest with the plan kept: the drivers' acceleration laws toward their
+  set-points (in the sets), MOBIL's safety criterion against the ego's known plan (IDM and linear-model drivers
+  entering a lane the ego holds), and followers reacting ``ρ`` after the plan's braking onset — an assumption, not
+  IDM's law: a follower that does not brake so is named (``unbraked_followers``) (:func:`verify_plans`).
 * An action is **verified** when a plan starting with it keeps ``margin`` to every car's reachable occupancy at
   every frame of the horizon. :class:`CommittedFamily` allows the verified actions; with none it allows only the
   kept plan's next step (``plan_forced``); with no plan at all (uncertified) the one-decision robust rule's mask

@@ -1,6 +1,7 @@
 """The committed shield's gate: play a campaign spec's cells under ``shield.mode: committed`` and count what
 ``safelane falsify`` does not count yet — lapses (and whether each is traced to a car leaving its set),
-plan-forced decisions, uncertified starts, collisions by context — beside collisions and mean speed.
+plan-forced decisions, uncertified starts, collisions by context, car-decisions outside the sets drawn for them
+(those rolling back and the unbraked followers apart) — beside collisions and mean speed.
 
     python research/committed_gate.py research/committed_subset.yaml --reading sound --out runs/committed/sound.json
 

@@ -305,8 +305,8 @@ LEADER = [{"x": 70.0, "lane": 1, "vx": 20.0}]
 )
 def test_a_kept_plan_stays_verified_while_the_cars_stay_in_their_sets(fractions, reading) -> None:
     """FASTER is verified behind a leader 70 m ahead; after it, whatever the leader does within its model (here
-    any acceleration history in [−6, 3] m/s²), the kept plan's tail still verifies: no lapse, and its next step
-    is allowed, with a worst gap no smaller than when it was kept."""
+    any acceleration history between −6 m/s² and IDM's free term), the kept plan's tail still verifies: no lapse,
+    and its next step is allowed, with a worst gap no smaller than when it was kept."""
     state = scene(LEADER)
     family = CommittedFamily(reading)
     first = family.evaluate_state(state, np.array([0]), DYN)
@@ -314,7 +314,10 @@ def test_a_kept_plan_stays_verified_while_the_cars_stay_in_their_sets(fractions,
     plan = first.plans[FASTER]
     family.commit(FASTER)
     ego_x, ego_v, set_point = _followed(state, DYN, FASTER, plan.hold)
-    x, v = advance(70.0, 20.0, [-6.0 + 9.0 * f for f in fractions], 0.2, 3.0, 6.0, 25.0)
+    x, v = 70.0, 20.0
+    for f in fractions:  # highway-env's Euler frames, the acceleration anywhere IDM lets it be (its free term on top)
+        top = min(3.0, max(3.0 * (1.0 - (max(v, 0.0) / 25.0) ** 4), 0.0))
+        x, v = x + 0.2 * v, max(v + 0.2 * (-6.0 + f * (6.0 + top)), 0.0)
     after = scene([{"x": x, "lane": 1, "vx": v}], ego_x=ego_x, ego_speed=ego_v, set_point=set_point)
     result = family.evaluate_state(after, np.array([0]), DYN)
     assert not result.lapse and not result.escaped and not result.plan_forced

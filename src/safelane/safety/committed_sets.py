@@ -75,13 +75,14 @@ def path_speed(state: RoadState) -> np.ndarray:
 
 
 def speed_bounds(v: np.ndarray, target: np.ndarray, linear: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(v_min, v_max) [m/s] a car's speed along its path stays in under its driver model: ``min(v, 0)`` (IDM is
-    defined for v ≥ 0: a car rolling back faster than it does now is outside the model, :func:`rolling_back`)
-    and ``max(v, set-point)`` for IDM (its free-road term is ≤ 0 above the set-point, its interaction term always
-    ≤ 0); :data:`MAX_SPEED` for the linear models (``linear``) and an unknown set-point."""
+    """(v_min, v_max) [m/s] a car's speed along its path stays in under its driver model: ``min(v, 0)`` (the
+    models are meant for v ≥ 0: a car rolling back faster than it does now is outside them, :func:`rolling_back`)
+    and ``max(v, set-point)`` (IDM's free-road term is ≤ 0 above the set-point, its interaction term always ≤ 0;
+    the linear law with gains ≥ 0 is at most ``k₀·(v* − v)``, :func:`linear_set_point_bound`); :data:`MAX_SPEED`
+    for the cars ``linear`` (:func:`car_sets` passes the linear drivers with no such bound) and an unknown
+    set-point."""
     known = np.isfinite(target)
     v_max = np.where(linear | ~known, MAX_SPEED, np.maximum(v, np.where(known, target, 0.0)))
-    # (car_sets passes ``linear`` only for the linear drivers with no set-point bound: linear_set_point_bound)
     return np.minimum(v, 0.0), np.maximum(v_max, v)
 
 
@@ -296,7 +297,7 @@ def escaped_cars(state: RoadState, dyn: Dynamics, carried: CarSets, vehicle: np.
 
 
 def rolling_back(state: RoadState, escaped: np.ndarray) -> np.ndarray:
-    """(cars,) bool: the escaped cars moving backwards (speed along the path < 0). A jammed highway-env IDM car
-    whose gap is below its desired one keeps braking through 0 m/s and rolls back; IDM is defined for v ≥ 0, so
-    these escapes are named as outside the driver model, not bounded."""
+    """(cars,) bool: the escaped cars moving backwards (speed along the path < 0). A jammed highway-env car (IDM
+    or linear model) whose gap is below its desired one keeps braking through 0 m/s and rolls back; both models are
+    meant for v ≥ 0, so these escapes are named as outside the driver model, not bounded."""
     return np.asarray(escaped, dtype=bool) & (path_speed(state) < 0.0)

@@ -343,6 +343,19 @@ def test_a_car_leaving_its_set_makes_a_lapse_that_names_it() -> None:
     assert result.fallback and not result.safe.any() and result.certified
 
 
+def test_a_car_rolling_back_is_named_outside_the_model() -> None:
+    """A jammed car 150 m ahead rolling back at 0.5 m/s: one decision later it has rolled 3 m back and moves forward
+    again — outside the set drawn for it (its lowest position) and named as rolled back; a car that braked harder
+    than its model allows is outside its set but not rolled back."""
+    state = scene([{"x": 150.0, "lane": 1, "vx": -0.5}, {"x": 60.0, "lane": 0, "vx": 20.0}])
+    family = CommittedFamily("responsibility")
+    first = family.evaluate_state(state, np.array([3, 8]), DYN)
+    family.commit(int(np.flatnonzero(first.safe)[0]))
+    after = scene([{"x": 147.0, "lane": 1, "vx": 0.5}, {"x": 60.0 + 12.0, "lane": 0, "vx": 10.0}], ego_x=20.0)
+    result = family.evaluate_state(after, np.array([3, 8]), DYN)
+    assert result.escaped == (3, 8) and result.rolled_back == (3,)
+
+
 def test_a_state_with_no_verified_plan_is_an_uncertified_start() -> None:
     """A stopped car 8 m ahead, cars beside in both next lanes: no plan verifies; with none kept the state is
     uncertified and the one-decision robust rule's mask drives."""

@@ -383,6 +383,7 @@ class CommittedFamily:
         sets = car_sets(state, dyn, vehicle)
         escaped = np.zeros(state.n, dtype=bool)
         unbraked = np.zeros(state.n, dtype=bool)
+        older: CarSets | None = None
         checked = 0
         entered = np.zeros(state.n, dtype=bool)
         if self.carried is not None:
@@ -435,7 +436,7 @@ class CommittedFamily:
         result = CommittedResult(
             mask, safe, available, not bool(safe.any()), best_gap, None,
             plan_forced=forced, lapse=lapse, escaped=tuple(int(v) for v in vehicle[escaped]),
-            rolled_back=tuple(int(v) for v in vehicle[rolling_back(state, escaped)]), checked=checked,
+            rolled_back=tuple(int(v) for v in vehicle[rolling_back(state, escaped, older, vehicle)]), checked=checked,
             unbraked_followers=tuple(int(v) for v in vehicle[unbraked]),
             entered=tuple(int(v) for v in vehicle[entered]) if self.reading == "responsibility" else (),
             certified=bool(safe.any()) or self.kept is not None, plans=tuple(plans),

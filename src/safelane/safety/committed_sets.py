@@ -296,8 +296,19 @@ def escaped_cars(state: RoadState, dyn: Dynamics, carried: CarSets, vehicle: np.
     return out
 
 
-def rolling_back(state: RoadState, escaped: np.ndarray) -> np.ndarray:
-    """(cars,) bool: the escaped cars moving backwards (speed along the path < 0). A jammed highway-env car (IDM
-    or linear model) whose gap is below its desired one keeps braking through 0 m/s and rolls back; both models are
-    meant for v ≥ 0, so these escapes are named as outside the driver model, not bounded."""
-    return np.asarray(escaped, dtype=bool) & (path_speed(state) < 0.0)
+def rolling_back(
+    state: RoadState, escaped: np.ndarray, carried: CarSets | None = None, vehicle: np.ndarray | None = None
+) -> np.ndarray:
+    """(cars,) bool: the escaped cars that rolled back: moving backwards now (speed along the path < 0), or, with
+    the ``carried`` sets (shifted to now; ``vehicle``: the snapshot index of each row), already moving backwards
+    when they were drawn (their lowest speed now below 0) and below them now, as a car that rolled back and moves
+    forward again is. A jammed highway-env car (IDM or linear model) whose gap is below its desired one keeps
+    braking through 0 m/s and rolls back; both models are meant for v ≥ 0, so these escapes are named as outside
+    the driver model, not bounded."""
+    out = np.asarray(escaped, dtype=bool) & (path_speed(state) < 0.0)
+    if carried is not None and vehicle is not None:
+        rows = {int(v): r for r, v in enumerate(carried.vehicle)}
+        for i in np.flatnonzero(np.asarray(escaped, dtype=bool) & ~out):
+            r = rows.get(int(vehicle[i]))
+            out[i] = r is not None and carried.v_lo[r, 0] < 0.0 and state.x[i] < carried.x_lo[r, 0]
+    return out

@@ -1,6 +1,7 @@
 """The committed shield's gate: play a campaign spec's cells under ``shield.mode: committed`` and count what
 ``safelane falsify`` does not count yet — lapses (and whether each is traced to a car leaving its set),
-plan-forced decisions, uncertified starts, collisions by context — beside collisions and mean speed.
+plan-forced decisions, uncertified starts, collisions by context, car-decisions outside the sets drawn for them
+(those rolling back, the unbraked followers and crashed cars apart) — beside collisions and mean speed.
 
     python research/committed_gate.py research/committed_subset.yaml --reading sound --out runs/committed/sound.json
 
@@ -30,7 +31,9 @@ def play_episode(env: Any, policy: Any, seed: int) -> dict[str, Any]:
     obs, info = env.reset(seed=seed)
     record: dict[str, Any] = {
         "seed": seed, "uncertified_start": bool(info["uncertified_start"]), "decisions": 0, "speeds": [],
-        "plan_forced": 0, "fallback": 0, "lapses": [], "collision": None, "escapes": 0,
+        "plan_forced": 0, "fallback": 0, "lapses": [], "collision": None, "escapes": 0, "rolled_back": 0,
+        "unbraked_followers": 0, "crashed_escapes": 0,
+        "checked": 0,
     }  # fmt: skip
     done = False
     lapsed = False
@@ -46,6 +49,12 @@ def play_episode(env: Any, policy: Any, seed: int) -> dict[str, Any]:
         record["plan_forced"] += bool(info["plan_forced"])
         record["fallback"] += bool(info["fallback"])
         record["escapes"] += len(info["escaped_cars"])
+        after = env.get_wrapper_attr("result")  # the committed verdict: cars checked, escapes rolling back
+        record["checked"] += int(getattr(after, "checked", 0))
+        record["rolled_back"] += len(getattr(after, "rolled_back", ()))
+        record["unbraked_followers"] += len(getattr(after, "unbraked_followers", ()))
+        crashed = info["snapshot"].crashed  # escapes of crashed cars: highway-env stops them beyond ACC_MAX
+        record["crashed_escapes"] += sum(bool(crashed[v]) for v in info["escaped_cars"])
         escaped_seen.update(info["escaped_cars"])
         entered_seen.update(info["entered_cars"])
         if info["lapse"]:
@@ -137,6 +146,11 @@ def summarize(played: list[dict[str, Any]]) -> dict[str, Any]:
         "lapses_traced_to_cut_ins": sum(bool(lapse["entered"]) and not lapse["escaped"] for lapse in lapses),
         "uncertified_starts": sum(e["uncertified_start"] for e in episodes),
         "lapses": len(lapses), "lapses_in_model": sum(lapse["in_model"] for lapse in lapses),
+        "car_decisions": sum(e.get("checked", 0) for e in episodes),
+        "escaped_car_decisions": sum(e.get("escapes", 0) for e in episodes),
+        "escaped_rolling_back": sum(e.get("rolled_back", 0) for e in episodes),
+        "escaped_unbraked_followers": sum(e.get("unbraked_followers", 0) for e in episodes),
+        "escaped_crashed": sum(e.get("crashed_escapes", 0) for e in episodes),
         "plan_forced_rate": sum(e["plan_forced"] for e in episodes) / max(decisions, 1),
         "no_verified_action_rate": sum(e["fallback"] for e in episodes) / max(decisions, 1),
         "faster_mean_speed": float(np.mean(faster)) if faster else None, "by_policy": by_policy,

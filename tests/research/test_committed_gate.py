@@ -11,7 +11,9 @@ from research.committed_gate import main, summarize
 
 def _episode(decisions: int, forced: int, speed: float, lapses: list[dict], collision: dict | None) -> dict:
     return {"decisions": decisions, "plan_forced": forced, "fallback": forced, "mean_speed": speed,
-            "lapses": lapses, "collision": collision, "uncertified_start": collision is None}  # fmt: skip
+            "lapses": lapses, "collision": collision, "uncertified_start": collision is None, "checked": 10 * decisions,
+            "escapes": len(lapses), "rolled_back": 0, "unbraked_followers": len(lapses),
+            "crashed_escapes": 0}  # fmt: skip
 
 
 def test_the_gate_figures_count_what_the_episodes_recorded() -> None:
@@ -30,6 +32,8 @@ def test_the_gate_figures_count_what_the_episodes_recorded() -> None:
     assert s["collisions"] == 1 and s["collision_contexts"]["from_certified"] == 1
     assert s["from_certified_others_at_fault"] == 1 and s["faster_mean_speed"] == 20.0
     assert s["uncertified_starts"] == 1
+    assert s["car_decisions"] == 500 and s["escaped_car_decisions"] == 2 and s["escaped_rolling_back"] == 0
+    assert s["escaped_unbraked_followers"] == 2 and s["escaped_crashed"] == 0
 
 
 def test_a_short_campaign_is_played_under_the_committed_shield(tmp_path: Path) -> None:
@@ -49,3 +53,4 @@ def test_a_short_campaign_is_played_under_the_committed_shield(tmp_path: Path) -
         episode = data["cells"][0]["episodes"][0]
         assert data["summary"]["decisions"] == episode["decisions"] > 0
         assert isinstance(episode["uncertified_start"], bool)
+        assert 0 < episode["checked"] == data["summary"]["car_decisions"]

@@ -6,14 +6,16 @@
 * A **plan** (:class:`Plan`) is a sequence of ego set-points [m/s] and target lanes, one per decision, ending
   with the ego at a standstill. The family: the action, hold the set-point ``k ∈ {0..3}`` decisions, then SLOWER
   at every decision (the ego's exact trajectory: :func:`safelane.safety.ego.ego_trajectories`).
-* Every other car gets a **reachable set** (:class:`CarSets`) drawn from the observable state only: a
-  longitudinal envelope from its driver model's acceleration bounds (:func:`envelope`) and, per lane, the
-  earliest time it may occupy it (:func:`lane_entry_times`). Both nest in time (``R(s', [0, H−Δ]) ⊆ R(s, [Δ, H])``,
-  tested in ``tests/test_committed.py``); what does not nest (heading projection) is closed by memory: the sets
-  carried from the last decision are intersected with the new ones.
-* Two laws apply under a plan, where they nest with the plan kept: MOBIL's safety criterion against the ego's
-  known plan (IDM drivers entering a lane the ego holds), and followers reacting ``ρ`` after the plan's braking
-  onset (:func:`verify_plans`).
+* Every other car gets a **reachable set** (:class:`CarSets`, :mod:`safelane.safety.committed_sets`) drawn from
+  the observable state only: an envelope of its speed along its path from its driver model's acceleration bounds,
+  its position along the road from it less what a lane change may cost (:func:`envelope`), and, per lane, the
+  earliest time it may occupy it (:func:`lane_entry_times`). They nest in time (``R(s', [0, H−Δ]) ⊆ R(s, [Δ, H])``,
+  tested in ``tests/test_committed.py``); what does not nest (heading projection, a lane change begun) is closed
+  by memory: the sets carried from the last decision are intersected with the new ones.
+* Laws apply under a plan where they nest with the plan kept: the drivers' acceleration laws toward their
+  set-points (in the sets), MOBIL's safety criterion against the ego's known plan (IDM and linear-model drivers
+  entering a lane the ego holds), and followers reacting ``ρ`` after the plan's braking onset — an assumption, not
+  IDM's law: a follower that does not brake so is named (``unbraked_followers``) (:func:`verify_plans`).
 * An action is **verified** when a plan starting with it keeps ``margin`` to every car's reachable occupancy at
   every frame of the horizon. :class:`CommittedFamily` allows the verified actions; with none it allows only the
   kept plan's next step (``plan_forced``); with no plan at all (uncertified) the one-decision robust rule's mask
@@ -35,183 +37,37 @@ import numpy as np
 
 from safelane.core.snapshot import DRIVER_FIELDS, RoadSnapshot
 from safelane.core.spaces import IDLE, LANE_LEFT, LANE_RIGHT, N_ACTIONS, SLOWER
+from safelane.safety.committed_sets import (
+    ESCAPE_TOLERANCE,
+    MAX_SPEED,
+    CarSets,
+    _fall,
+    _rise,
+    car_sets,
+    envelope,
+    escaped_cars,
+    lane_crossing_time,
+    lane_entry_times,
+    lanes_now,
+    linear_set_point_bound,
+    occupied_lanes,
+    path_speed,
+    rolling_back,
+    speed_bounds,
+)
 from safelane.safety.ego import action_lanes, action_targets, available_actions, ego_trajectories, speed_to_index
 from safelane.safety.family import Engine, OneDecisionFamily, road_state
 from safelane.safety.model import evaluate as evaluate_one_decision
-from safelane.safety.world import (
-    LATERAL_MOTION_THRESHOLD,
-    MAX_HOLD_DECISIONS,
-    Dynamics,
-    RoadState,
-    SafetyResult,
-)
+from safelane.safety.world import MAX_HOLD_DECISIONS, Dynamics, RoadState, SafetyResult
 
 Reading = Literal["sound", "responsibility"]
 READINGS: tuple[str, ...] = ("sound", "responsibility")
-MAX_SPEED = 40.0
-"""[m/s] highway-env's ``Vehicle.MAX_SPEED``: the linear driver models' speed bound (their leader term can push
-them past their set-point)."""
-ESCAPE_TOLERANCE = 1e-6
-"""[m, m/s, s] A car counts as outside its set only beyond this (rounding of the closed forms)."""
 
 __all__ = [
     "ESCAPE_TOLERANCE", "MAX_SPEED", "READINGS", "CarSets", "CommittedFamily", "CommittedResult", "Lanes", "Plan",
     "Reading", "car_sets", "envelope", "escaped_cars", "follower_bound", "lane_crossing_time", "lane_entry_times",
-    "lanes_now", "onsets", "plan_gaps", "plan_of", "speed_bounds", "verify_plans",
+    "lanes_now", "onsets", "path_speed", "plan_gaps", "plan_of", "rolling_back", "speed_bounds", "verify_plans",
 ]  # fmt: skip
-
-
-# --------------------------------------------------------------------------------------------
-# Reachable sets of the other cars.
-# --------------------------------------------------------------------------------------------
-
-
-def _rise(v: np.ndarray, a: np.ndarray, v_max: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(distance [m], speed [m/s]) after ``t`` [s] accelerating at ``a`` [m/s²] from ``v`` up to ``v_max``."""
-    t_top = np.maximum(v_max - v, 0.0) / np.maximum(a, 1e-9)
-    tt = np.minimum(t, t_top)
-    return v * tt + 0.5 * a * tt * tt + v_max * np.maximum(t - t_top, 0.0), np.minimum(v + a * t, v_max)
-
-
-def _fall(v: np.ndarray, b: np.ndarray, v_min: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(distance [m], speed [m/s]) after ``t`` [s] braking at ``b`` [m/s²] from ``v`` down to ``v_min``."""
-    t_low = np.maximum(v - v_min, 0.0) / np.maximum(b, 1e-9)
-    tt = np.minimum(t, t_low)
-    return v * tt - 0.5 * b * tt * tt + v_min * np.maximum(t - t_low, 0.0), np.maximum(v - b * t, v_min)
-
-
-def speed_bounds(v: np.ndarray, target: np.ndarray, linear: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(v_min, v_max) [m/s] a car's speed along the road stays in under its driver model: ``min(v, 0)`` (a car
-    rolling back keeps at most its reverse speed) and ``max(v, set-point)`` for IDM (its free-road term is ≤ 0 above
-    the set-point, its interaction term always ≤ 0), :data:`MAX_SPEED` for the linear models (``linear``)."""
-    known = np.isfinite(target)
-    v_max = np.where(linear | ~known, MAX_SPEED, np.maximum(v, np.where(known, target, 0.0)))
-    return np.minimum(v, 0.0), np.maximum(v_max, v)
-
-
-def envelope(
-    x: np.ndarray, v: np.ndarray, a: np.ndarray, b: np.ndarray, v_min: np.ndarray, v_max: np.ndarray, t: np.ndarray
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """The longitudinal reachable set of cars at ``x`` [m] with speed ``v`` [m/s], acceleration in ``[−b, a]``
-    [m/s²] and speed in ``[v_min, v_max]``: (x_lo, x_hi, v_lo, v_hi), each (cars, frames) at the times ``t`` [s]
-    (bang-bang: every admissible speed history stays between the two, so the positions do too)."""
-    col = lambda z: np.asarray(z, dtype=float)[:, None]  # noqa: E731
-    d_hi, v_hi = _rise(col(v), col(a), col(v_max), t[None, :])
-    d_lo, v_lo = _fall(col(v), col(b), col(v_min), t[None, :])
-    return col(x) + d_lo, col(x) + d_hi, v_lo, v_hi
-
-
-def _occupied_lanes(state: RoadState, dyn: Dynamics) -> np.ndarray:
-    """(cars, lanes) bool: the lane bands each car's body, rotated by its heading, overlaps now."""
-    reach = np.abs(0.5 * state.length * np.sin(state.heading)) + np.abs(0.5 * dyn.body_width * np.cos(state.heading))
-    centres = np.arange(dyn.lanes_count) * dyn.lane_width
-    half = 0.5 * dyn.lane_width
-    lo, hi = (state.y - reach)[:, None], (state.y + reach)[:, None]
-    return (hi > centres[None, :] - half) & (lo < centres[None, :] + half)
-
-
-def lane_crossing_time(dyn: Dynamics) -> float:
-    """[s] The least time a car needs to carry its centre across a lane boundary, a lower bound: its body's first
-    entry into the next lane (the cut-in time plus the frame it subtracts) comes before. highway-env lets a driver
-    start its next lane change only once its centre is in the new lane."""
-    return dyn.cut_in_time + dyn.frame_dt
-
-
-def lanes_now(state: RoadState, dyn: Dynamics) -> np.ndarray:
-    """(cars, lanes) bool: the lanes each car's rotated body overlaps now, and the lane it moves to (heading or
-    lateral speed)."""
-    occupied = _occupied_lanes(state, dyn)
-    moving = (np.abs(state.heading) > LATERAL_MOTION_THRESHOLD) | (np.abs(state.vy) > 0.3)
-    own = state.lane_of(state.y, dyn.lanes_count, dyn.lane_width)
-    toward = np.clip(own + np.where(state.vy > 0, 1, -1), 0, dyn.lanes_count - 1)
-    rows = np.flatnonzero(moving)
-    occupied[rows, toward[rows]] = True
-    return occupied
-
-
-def lane_entry_times(state: RoadState, dyn: Dynamics) -> np.ndarray:
-    """(cars, lanes) the earliest time [s] each car may occupy each lane: 0 for the lanes its body overlaps and the
-    lane it moves to (heading or lateral speed), ``d · cut_in_time`` for a lane ``d`` lanes from those (the fastest
-    lateral motion of highway-env's controller), and :func:`lane_crossing_time` more for every further lane; inf for
-    a car that never changes lane."""
-    occupied = lanes_now(state, dyn)
-    lanes = np.arange(dyn.lanes_count)
-    dist = np.where(occupied[:, None, :], np.abs(lanes[:, None] - lanes[None, :])[None], 10**6).min(axis=2)
-    entry = np.where(dist > 0, dyn.cut_in_time + (dist - 1) * lane_crossing_time(dyn), 0.0)
-    return np.where(state.can_change_lane[:, None] | (dist == 0), entry, np.inf).astype(float)
-
-
-@dataclass(frozen=True)
-class CarSets:
-    """The reachable sets of every other car (rows of a :class:`RoadState`), per frame of :attr:`Dynamics.times`:
-    positions ``x_lo``/``x_hi`` [m] and speeds ``v_lo``/``v_hi`` [m/s] along the road, ``entry`` (cars, lanes)
-    the earliest time [s] a car may occupy a lane, ``now`` (cars, lanes) the lanes it was in (or moving into) when
-    the sets were drawn. ``vehicle``: the snapshot index of each row."""
-
-    vehicle: np.ndarray
-    x_lo: np.ndarray
-    x_hi: np.ndarray
-    v_lo: np.ndarray
-    v_hi: np.ndarray
-    entry: np.ndarray
-    now: np.ndarray
-
-    def shifted(self, frames: int, seconds: float) -> CarSets:
-        """These sets ``frames`` frames (``seconds`` [s]) later, padded with no bound at the horizon's end."""
-
-        def shift(a: np.ndarray, pad: float) -> np.ndarray:
-            out = np.full_like(a, pad)
-            out[:, : a.shape[1] - frames] = a[:, frames:]
-            return out
-
-        return CarSets(self.vehicle, shift(self.x_lo, -np.inf), shift(self.x_hi, np.inf), shift(self.v_lo, -np.inf),
-                       shift(self.v_hi, np.inf), np.maximum(self.entry - seconds, 0.0), self.now)  # fmt: skip
-
-    def intersect(self, older: CarSets, keep: np.ndarray) -> CarSets:
-        """These sets intersected, row by row, with ``older`` (already shifted to now) for the rows ``keep``
-        (cars still inside their older sets, matched by snapshot index)."""
-        rows = {int(v): r for r, v in enumerate(older.vehicle)}
-        out = {name: getattr(self, name).copy() for name in ("x_lo", "x_hi", "v_lo", "v_hi", "entry")}
-        for i, vehicle in enumerate(self.vehicle):
-            r = rows.get(int(vehicle))
-            if r is None or not keep[i]:
-                continue
-            for name, pick in (("x_lo", np.maximum), ("x_hi", np.minimum), ("v_lo", np.maximum),
-                               ("v_hi", np.minimum), ("entry", np.maximum)):  # fmt: skip
-                out[name][i] = pick(out[name][i], getattr(older, name)[r])
-        return CarSets(self.vehicle, **out, now=self.now)
-
-
-def car_sets(state: RoadState, dyn: Dynamics, vehicle: np.ndarray) -> CarSets:
-    """The reachable sets drawn from ``state`` alone (``vehicle``: the snapshot index of each row); a crashed car
-    is a wall where it stands."""
-    t = dyn.times
-    linear = np.isfinite(state.linear_speed_gain)
-    v_min, v_max = speed_bounds(state.vx, state.target_speed, linear)
-    x_lo, x_hi, v_lo, v_hi = envelope(state.x, state.vx, state.accel_max, state.brake_max, v_min, v_max, t)
-    wall = np.asarray(state.crashed, dtype=bool)
-    x_lo[wall], x_hi[wall] = state.x[wall, None], state.x[wall, None]
-    v_lo[wall], v_hi[wall] = 0.0, 0.0
-    return CarSets(np.asarray(vehicle), x_lo, x_hi, v_lo, v_hi, lane_entry_times(state, dyn), lanes_now(state, dyn))
-
-
-def escaped_cars(state: RoadState, dyn: Dynamics, carried: CarSets, vehicle: np.ndarray) -> np.ndarray:
-    """(cars,) bool: the cars of ``state`` outside the sets ``carried`` drew for them (already shifted to now):
-    position or speed outside the intervals at frame 0, or a lane its body overlaps entered earlier than allowed.
-    A car without a carried set is inside."""
-    rows = {int(v): r for r, v in enumerate(carried.vehicle)}
-    occupied = _occupied_lanes(state, dyn)
-    out = np.zeros(state.n, dtype=bool)
-    tol = ESCAPE_TOLERANCE
-    for i, v in enumerate(vehicle):
-        r = rows.get(int(v))
-        if r is None:
-            continue
-        outside = not (carried.x_lo[r, 0] - tol <= state.x[i] <= carried.x_hi[r, 0] + tol)
-        outside |= not (carried.v_lo[r, 0] - tol <= state.vx[i] <= carried.v_hi[r, 0] + tol)
-        outside |= bool((carried.entry[r][occupied[i]] > tol).any())
-        out[i] = outside
-    return out
 
 
 # --------------------------------------------------------------------------------------------
@@ -277,13 +133,47 @@ def onsets(dyn: Dynamics, action: int) -> np.ndarray:
     return (1 + np.arange(MAX_HOLD_DECISIONS + 1)) * dyn.decision_period
 
 
+def plan_set_points(state: RoadState, dyn: Dynamics, ego_v: np.ndarray, action: int) -> np.ndarray:
+    """(holds, frames) [m/s] the ego's set-point at each frame of each plan of ``action`` (``ego_v``: its speeds,
+    (holds, frames)): the action's, held ``hold`` decisions, then one step below the speed at each decision (SLOWER,
+    as :func:`plan_of` lists them)."""
+    ts = dyn.target_speeds
+    f = dyn.frames_per_decision
+    out = np.empty_like(ego_v)
+    for hold in range(ego_v.shape[0]):
+        point = float(action_targets(state, dyn)[action])
+        for d in range(0, math.ceil(ego_v.shape[1] / f)):
+            if d > hold:
+                point = float(ts[max(int(speed_to_index(ego_v[hold, d * f], ts)) - 1, 0)])
+            out[hold, d * f : (d + 1) * f] = point
+    return out
+
+
+def _linear_criterion(
+    state: RoadState, sets: CarSets, rows: np.ndarray, gap: np.ndarray, ev: np.ndarray, ego_set: np.ndarray | None,
+    dyn: Dynamics,
+) -> np.ndarray:  # fmt: skip
+    """(rows, holds, frames) whether MOBIL's safety criterion of linear-model drivers could hold: the ego's
+    acceleration behind the car by the car's own linear law (:func:`~safelane.safety.others.
+    linear_acceleration_behind`), at its largest over the car's set (fastest, farthest: the law is monotone in both)
+    and the ego's set-point (the plan's; without it the highest), at least ``−max_braking_imposed``."""
+    k0, k1, k2 = (getattr(state, name)[rows][:, None, None] for name in
+                  ("linear_speed_gain", "linear_speed_difference_gain", "linear_distance_gain"))  # fmt: skip
+    target = (ego_set if ego_set is not None else np.full_like(ev[0], max(dyn.target_speeds)))[None]
+    d_safe = state.idm_distance_wanted[rows][:, None, None] + ev * state.idm_time_wanted[rows][:, None, None]
+    own = sets.v_hi[rows][:, None, :]  # highway-env reads the car's speed along its path
+    pred = k0 * (target - ev) + k1 * np.minimum(own - ev, 0.0) + k2 * np.minimum(gap - d_safe, 0.0)
+    return pred >= -state.max_braking_imposed[rows][:, None, None]
+
+
 def _permit_entry(
-    state: RoadState, dyn: Dynamics, sets: CarSets, rows: np.ndarray, ego_x: np.ndarray, ego_v: np.ndarray
-) -> np.ndarray:
-    """(rows, holds) [s] the first time MOBIL's safety criterion could let each car (IDM drivers, ahead) move in
-    front of the ego on each plan (its loosest state in reach: the largest gap, the speed that makes IDM's desired
-    gap smallest, the ego's set-point at the lane's limit) or could be behind the ego, plus the cut-in time; inf:
-    never in the horizon."""
+    state: RoadState, dyn: Dynamics, sets: CarSets, rows: np.ndarray, ego_x: np.ndarray, ego_v: np.ndarray,
+    ego_set: np.ndarray | None = None,
+) -> np.ndarray:  # fmt: skip
+    """(rows, holds) [s] the first time MOBIL's safety criterion could let each car (IDM and linear-model drivers,
+    ahead) move in front of the ego on each plan (its loosest state in reach: the largest gap, the speed that makes
+    the criterion loosest, the ego's set-point at the lane's limit for IDM, the plan's ``ego_set`` (holds, frames)
+    for the linear models) or could be behind the ego, plus the cut-in time; inf: never in the horizon."""
     t = dyn.times
     acc = state.idm_comfort_acc[rows][:, None, None]
     ab = (-state.idm_comfort_acc * state.idm_comfort_dec)[rows][:, None, None]
@@ -292,12 +182,18 @@ def _permit_entry(
     target = max(state.speed_limit, 1e-2)
     free = acc * (1 - np.power(ev / target, state.idm_delta[rows][:, None, None]))
     base = state.idm_distance_wanted[rows][:, None, None] + ev * state.idm_time_wanted[rows][:, None, None]
-    d_fast = base + ev * (ev - sets.v_hi[rows][:, None, :]) / (2 * np.sqrt(ab))
-    d_slow = base + ev * (ev - sets.v_lo[rows][:, None, :]) / (2 * np.sqrt(ab))
+    d_fast = base + ev * (ev - np.maximum(sets.v_hi[rows], 0.0)[:, None, :]) / (2 * np.sqrt(ab))
+    # IDM's desired gap projects the car's velocity on the ego's heading: at most its speed along its path, at
+    # least min(its lowest, 0) (both may be turned).
+    d_slow = base + ev * (ev - np.minimum(sets.v_lo[rows], 0.0)[:, None, :]) / (2 * np.sqrt(ab))
     lo, hi = np.minimum(d_fast, d_slow), np.maximum(d_fast, d_slow)
     least = np.where(lo > 0.0, lo, np.where(hi < 0.0, -hi, 0.0))
     d = np.maximum(gap, 1e-2)
-    ok = (gap > 0.0) & (free - acc * (least / d) ** 2 >= -state.max_braking_imposed[rows][:, None, None])
+    ok = free - acc * (least / d) ** 2 >= -state.max_braking_imposed[rows][:, None, None]
+    linear = np.isfinite(state.linear_speed_gain[rows])
+    if linear.any():
+        ok[linear] = _linear_criterion(state, sets, rows[linear], gap[linear], ev, ego_set, dyn)
+    ok &= gap > 0.0
     # Once it may be behind the ego, MOBIL protects its new follower, not the ego: it may turn in behind it.
     ok |= sets.x_lo[rows][:, None, :] < ego_x[None]
     first = np.where(ok.any(axis=2), t[np.argmax(ok, axis=2)], np.inf)
@@ -321,14 +217,24 @@ def verify_plans(
     worst = np.full((N_ACTIONS, MAX_HOLD_DECISIONS + 1), -np.inf)
     for a in np.flatnonzero(available):
         lanes = action_lanes(state, dyn, int(a))
-        worst[a] = plan_gaps(state, dyn, sets, ego_x[a], ego_v[a], onsets(dyn, int(a)), lanes, reading)
+        worst[a] = plan_gaps(
+            state,
+            dyn,
+            sets,
+            ego_x[a],
+            ego_v[a],
+            onsets(dyn, int(a)),
+            lanes,
+            reading,
+            ego_set=plan_set_points(state, dyn, ego_v[a], int(a)),
+        )
     return worst, ego_x, ego_v
 
 
 def plan_gaps(
     state: RoadState, dyn: Dynamics, sets: CarSets, ego_x: np.ndarray, ego_v: np.ndarray, onset: np.ndarray,
     lanes: Lanes, reading: Reading = "sound", until_frame: int | None = None,
-    carried_followers: dict[int, tuple[int, np.ndarray]] | None = None,
+    carried_followers: dict[int, tuple[int, np.ndarray]] | None = None, ego_set: np.ndarray | None = None,
 ) -> np.ndarray:  # fmt: skip
     """(holds,) the worst bumper-to-bumper gap [m] of plans whose ego moves as ``ego_x``/``ego_v`` (holds, frames)
     and brakes first at ``onset`` [s] (holds,), occupying ``lanes``, at every frame up to ``until_frame`` (default:
@@ -342,11 +248,15 @@ def plan_gaps(
     ``reading="responsibility"``, in a lane the ego holds, only the cars ahead of it and in that lane now (or
     moving into it) count: a car behind, or one that cuts in later, is responsible for the gap it makes.
     ``carried_followers``: {row: (lane, highest position [m] per frame)}, the follower bounds a kept plan drew, kept
-    in that lane."""
+    in that lane; ``ego_set`` (holds, frames): the plans' set-points [m/s] (:func:`plan_set_points`; the linear
+    drivers' MOBIL criterion reads it)."""
     t = dyn.times
     half = 0.5 * (state.length + state.ego_length)
     ahead = state.x >= state.ego_x
-    idm = ~np.isfinite(state.linear_speed_gain) & state.can_change_lane & ~state.crashed
+    # Drivers that change lane by MOBIL with a formula the criterion can be bounded for: IDM, or the linear model
+    # with gains ≥ 0 (linear_set_point_bound).
+    mobil = (~np.isfinite(state.linear_speed_gain) | linear_set_point_bound(state)) & state.can_change_lane
+    mobil &= ~state.crashed & np.isfinite(state.max_braking_imposed)
     held = {state.ego_lane, state.ego_target_lane}
     n_fb = ego_x.shape[0]
     frames = t <= (t[-1] if until_frame is None else t[min(max(until_frame, 0), t.size - 1)])
@@ -354,9 +264,9 @@ def plan_gaps(
     for lane, until in lanes:
         held_lane = lane in held
         entry = np.repeat(sets.entry[:, lane][:, None], n_fb, axis=1)  # (cars, holds)
-        law = np.flatnonzero(held_lane & ahead & idm & ~sets.now[:, lane])
+        law = np.flatnonzero(held_lane & ahead & mobil & ~sets.now[:, lane])
         if law.size:
-            entry[law] = np.maximum(entry[law], _permit_entry(state, dyn, sets, law, ego_x, ego_v))
+            entry[law] = np.maximum(entry[law], _permit_entry(state, dyn, sets, law, ego_x, ego_v, ego_set))
         count = np.isfinite(entry).any(axis=1)
         if held_lane and reading == "responsibility":  # cut-ins and cars behind: theirs to avoid the ego
             count &= ahead & sets.now[:, lane]
@@ -382,10 +292,10 @@ def plan_gaps(
 def follower_bound(state: RoadState, i: int, react: np.ndarray, t: np.ndarray) -> np.ndarray:
     """(holds, frames) [m] the highest position of car ``i`` reacting at ``react`` [s] (per plan): its envelope's
     top until then, then braking at its limit from the speed it may have reached."""
-    v0 = np.array([max(float(state.vx[i]), 0.0)])
+    speed = path_speed(state)[i : i + 1]  # along its path: at least its speed along the road
+    v0 = np.maximum(speed, 0.0)
     a, b = np.array([state.accel_max[i]]), np.array([state.brake_max[i]])
-    v_min, v_max = speed_bounds(state.vx[i : i + 1], state.target_speed[i : i + 1],
-                                np.isfinite(state.linear_speed_gain[i : i + 1]))  # fmt: skip
+    v_min, v_max = speed_bounds(speed, state.target_speed[i : i + 1], np.isfinite(state.linear_speed_gain[i : i + 1]))
     r = react[:, None]
     d1, _ = _rise(v0, a, v_max, np.minimum(t[None, :], r))
     d_r, v_r = _rise(v0, a, v_max, r)
@@ -403,13 +313,20 @@ class CommittedResult(SafetyResult):
     """:class:`SafetyResult` of the committed family: ``safe`` lists the verified actions, ``fallback`` is set when
     none is; ``plan_forced``: the kept plan's next step drives (nothing verified); ``lapse``: the plan kept,
     verified, at the last decision no longer verifies (a plan driven on after a lapse is not verified again);
-    ``escaped``: snapshot indices of the cars outside the sets drawn for them; ``entered`` (``responsibility``):
+    ``escaped``: snapshot indices of the cars outside the sets drawn for them, ``rolled_back`` those of them moving
+    backwards (outside IDM, :func:`~safelane.safety.committed_sets.rolling_back`), ``unbraked_followers`` those
+    ahead of the follower bound the kept plan drew for them (the follower law is an assumption, not IDM's: a
+    follower far behind does not brake at its limit because the ego plans to), ``checked`` how many cars were
+    checked against a set drawn at the last decision; ``entered`` (``responsibility``):
     those that entered a lane the ego holds since the last decision; ``certified``: some plan is verified
     or kept; ``plans``: the verified plan of each action (None: none)."""
 
     plan_forced: bool = False
     lapse: bool = False
     escaped: tuple[int, ...] = ()
+    rolled_back: tuple[int, ...] = ()
+    unbraked_followers: tuple[int, ...] = ()
+    checked: int = 0
     entered: tuple[int, ...] = ()
     certified: bool = False
     plans: tuple[Plan | None, ...] = ()
@@ -465,11 +382,16 @@ class CommittedFamily:
         state (default: the numpy reference's)."""
         sets = car_sets(state, dyn, vehicle)
         escaped = np.zeros(state.n, dtype=bool)
+        unbraked = np.zeros(state.n, dtype=bool)
+        older: CarSets | None = None
+        checked = 0
         entered = np.zeros(state.n, dtype=bool)
         if self.carried is not None:
             entered = _entered_held_lanes(state, self.carried, sets, vehicle)
             older = self.carried.shifted(dyn.frames_per_decision, dyn.decision_period)
-            escaped = escaped_cars(state, dyn, older, vehicle) | self._followers_escaped(state, dyn, vehicle)
+            unbraked = self._followers_escaped(state, dyn, vehicle)
+            escaped = escaped_cars(state, dyn, older, vehicle) | unbraked
+            checked = int(np.isin(vehicle, older.vehicle).sum())
             sets = sets.intersect(older, ~escaped)
         worst, ego_x, ego_v = verify_plans(state, dyn, sets, self.reading)
         verified = worst >= dyn.margin  # (5, holds)
@@ -493,7 +415,8 @@ class CommittedFamily:
                 if v in rows and not escaped[rows[v]]
             }
             gap = plan_gaps(state, dyn, sets, ego_x[a, k : k + 1], ego_v[a, k : k + 1], np.array([tail.onset]),
-                            list(tail.occupied), self.reading, tail.frames, followers)[0]  # fmt: skip
+                            list(tail.occupied), self.reading, tail.frames, followers,
+                            plan_set_points(state, dyn, ego_v[a], a)[k : k + 1])[0]  # fmt: skip
             # A lapse: the plan verified at the last decision no longer is (a plan kept on after one stays unverified).
             lapse = self.kept_verified and not gap >= dyn.margin
             step = self.kept.next_step() if available[self.kept.next_step()] else IDLE
@@ -513,6 +436,8 @@ class CommittedFamily:
         result = CommittedResult(
             mask, safe, available, not bool(safe.any()), best_gap, None,
             plan_forced=forced, lapse=lapse, escaped=tuple(int(v) for v in vehicle[escaped]),
+            rolled_back=tuple(int(v) for v in vehicle[rolling_back(state, escaped, older, vehicle)]), checked=checked,
+            unbraked_followers=tuple(int(v) for v in vehicle[unbraked]),
             entered=tuple(int(v) for v in vehicle[entered]) if self.reading == "responsibility" else (),
             certified=bool(safe.any()) or self.kept is not None, plans=tuple(plans),
         )  # fmt: skip
@@ -550,7 +475,7 @@ class CommittedFamily:
         """(cars,) the followers of the kept plan (a car behind the ego in a lane it held) still in that lane and
         ahead of the bound their reaction to the plan allowed."""
         out = np.zeros(state.n, dtype=bool)
-        occupied = _occupied_lanes(state, dyn)
+        occupied = occupied_lanes(state, dyn)
         f = dyn.frames_per_decision
         for i, v in enumerate(vehicle):
             follower = self.followers.get(int(v))

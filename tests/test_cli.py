@@ -180,7 +180,12 @@ def test_bench_json(tmp_path: Path) -> None:
     assert result.exit_code == 0, result.output
     out = json.loads(result.stdout)
     assert out["baseline"] == str(published)
-    assert {r["figure"] for r in out["regressions"]} == {"fast_decisions_per_s", "shield_mask_us_mean_fast"}
+    # The mask's cost rose beyond any noise; the rate fell below 1e12 × (1 − noise) unless this busy run measured
+    # a spread of 100 % or more (then no drop is beyond its noise).
+    flagged = {r["figure"] for r in out["regressions"]}
+    assert "shield_mask_us_mean_fast" in flagged
+    assert ("fast_decisions_per_s" in flagged) == (out["noise"]["fast_decisions_per_s"] < 1)
+    assert flagged <= {"fast_decisions_per_s", "shield_mask_us_mean_fast"}
     # every compared figure has its noise (a busy machine may measure a spread beyond 100 %)
     assert set(out["noise"]) >= {"fast_decisions_per_s", "shield_mask_us_mean_fast", "train_batched_steps_per_s.40"}
     assert all(noise >= 0 for noise in out["noise"].values())

@@ -41,8 +41,6 @@ from safelane.safety.committed_sets import (
     ESCAPE_TOLERANCE,
     MAX_SPEED,
     CarSets,
-    _fall,
-    _rise,
     car_sets,
     envelope,
     escaped_cars,
@@ -53,7 +51,9 @@ from safelane.safety.committed_sets import (
     occupied_lanes,
     path_speed,
     rolling_back,
+    slow_down,
     speed_bounds,
+    speed_up,
 )
 from safelane.safety.ego import action_lanes, action_targets, available_actions, ego_trajectories, speed_to_index
 from safelane.safety.family import Engine, OneDecisionFamily, road_state
@@ -297,9 +297,9 @@ def follower_bound(state: RoadState, i: int, react: np.ndarray, t: np.ndarray) -
     a, b = np.array([state.accel_max[i]]), np.array([state.brake_max[i]])
     v_min, v_max = speed_bounds(speed, state.target_speed[i : i + 1], np.isfinite(state.linear_speed_gain[i : i + 1]))
     r = react[:, None]
-    d1, _ = _rise(v0, a, v_max, np.minimum(t[None, :], r))
-    d_r, v_r = _rise(v0, a, v_max, r)
-    d2, _ = _fall(v_r, b, np.minimum(v_min, 0.0), np.maximum(t[None, :] - r, 0.0))
+    d1, _ = speed_up(v0, a, v_max, np.minimum(t[None, :], r))
+    d_r, v_r = speed_up(v0, a, v_max, r)
+    d2, _ = slow_down(v_r, b, np.minimum(v_min, 0.0), np.maximum(t[None, :] - r, 0.0))
     return state.x[i] + np.where(t[None, :] <= r, d1, d_r + d2)
 
 

@@ -312,7 +312,8 @@ def table(results: list[dict[str, Any]]) -> str:
                      f"{r['car_decisions_out']} / {r['car_decisions']} ({pct(r['car_decisions_out_share'])}) | "
                      f"{r['at_decisions_out']} / {r['at_decisions']} "
                      f"({pct(r['at_decisions_out_share'])}) |")  # fmt: skip
-    lines += ["", "| class | " + " | ".join(r["driver"] for r in results) + " |",
+    head = "| class: car-frames / car-decisions (by the first frame out) | "
+    lines += ["", head + " | ".join(r["driver"] for r in results) + " |",
               "|---|" + "---|" * len(results)]  # fmt: skip
     for name in CLASSES:
         cells = [r["classes"].get(name, {}) for r in results]
@@ -323,6 +324,18 @@ def table(results: list[dict[str, Any]]) -> str:
                 + " |"
             )
     return "\n".join(lines) + "\n"
+
+
+def report(data: dict[str, Any]) -> str:
+    """The markdown page of a summary: what was played, the command, :func:`table`."""
+    where = {"fast": "highway-fast-v0, 5 Hz physics", "paper": "highway-v0, 15 Hz physics"}[data["preset"]]
+    checked = "every physics frame" if data["simulator"] == "highway-env" else "the decisions only"
+    return (
+        f"# Set-escape audit: {data['simulator']} ({where}), checked at {checked}\n\n"
+        f"The paper's traffic; the ego: the {data['policy']} policy, shield {data['ego_shield']}; a trace is "
+        f"{data['trace']}. Classes and reading: [the research page](../../research/set-escape-audit.md).\n\n"
+        f"    {data['command']}\n\n" + table(data["drivers"])
+    )
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -340,7 +353,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--simulator", default="highway-env", choices=("highway-env", "fast"))
     parser.add_argument("--set", dest="sets", action="append", default=[], help="config overrides KEY=VALUE")
     parser.add_argument("--out", required=True, help="summary JSON (a markdown table beside it, .md)")
+    parser.add_argument("--report-only", action="store_true", help="rewrite the .md beside --out from its JSON")
     args = parser.parse_args(argv)
+    if args.report_only:
+        Path(args.out).with_suffix(".md").write_text(report(json.loads(Path(args.out).read_text())))
+        return 0
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
     results = []
@@ -353,7 +370,7 @@ def main(argv: list[str] | None = None) -> int:
                 "ego_shield": "robust, override", "seed": args.seed, "trace": "one car over one episode",
                 "classes": CLASSES, "drivers": results}  # fmt: skip
         out.write_text(json.dumps(data, indent=1))
-        out.with_suffix(".md").write_text(table(results))
+        out.with_suffix(".md").write_text(report(data))
     print(table(results))
     return 0
 

@@ -33,10 +33,19 @@ from typing import Any
 import numpy as np
 
 from safelane.core.snapshot import RoadSnapshot
-from safelane.safety.committed import ESCAPE_TOLERANCE, CarSets, car_sets, escaped_cars
+from safelane.safety.committed import CarSets, car_sets, escaped_cars
 from safelane.safety.committed import _whole_state as whole_state  # the family's own state: the sets it draws
 from safelane.safety.shield import dynamics_of
 from safelane.safety.world import LATERAL_MOTION_THRESHOLD, Dynamics, RoadState
+
+try:  # the speed the sets bound, for the figures reported: along the car's path where the sets define it so
+    from safelane.safety.committed import path_speed as set_speed
+except ImportError:  # sets drawn on the speed along the road
+
+    def set_speed(state: RoadState) -> np.ndarray:
+        """[m/s] (cars,) the speed along the road."""
+        return state.vx
+
 
 DRIVERS: dict[str, str] = {
     "IDM": "highway_env.vehicle.behavior.IDMVehicle",
@@ -51,7 +60,7 @@ CLASSES: dict[str, str] = {
     "crashed_wall_moves": "a car crashed at the decision (a wall in its set) still moves: highway-env brakes a "
     "crashed car at -speed and pushes it on a further impact",
     "teleport": "more than 20 m outside its position interval: the car was re-spawned or swapped",
-    "rolling_back": "rolling back (speed along the road < 0) faster than the set's lowest speed",
+    "rolling_back": "rolling back below the set (moving backwards now, or when the set was drawn)",
     "lane_entered_early": "its body overlaps a lane earlier than the set allows",
     "turning_slower": "changing lane (heading off the road in the interval): its speed along the road fell below "
     "the envelope (the heading turns speed away from the road)",
@@ -117,28 +126,32 @@ class Tally:
 
 def components(state: RoadState, i: int, sets: CarSets, r: int, dyn: Dynamics, vehicle: np.ndarray) -> list[str]:
     """The components of the set (shifted to now) car ``i`` of ``state`` is outside: ``x_low``/``x_high``,
-    ``v_low``/``v_high``, ``lane`` (by :func:`escaped_cars` on the set's lanes alone), else ``other``."""
-    tol = ESCAPE_TOLERANCE
-    out = []
-    if state.x[i] < sets.x_lo[r, 0] - tol:
-        out.append("x_low")
-    if state.x[i] > sets.x_hi[r, 0] + tol:
-        out.append("x_high")
-    if state.vx[i] < sets.v_lo[r, 0] - tol:
-        out.append("v_low")
-    if state.vx[i] > sets.v_hi[r, 0] + tol:
-        out.append("v_high")
+    ``v_low``/``v_high``, ``lane``, else ``other``. Each is asked of :func:`escaped_cars` on the set with every other
+    bound removed, so the audit reads the speed the sets bound (along the road or along the path) as they do."""
     inf = np.full_like(sets.x_lo, np.inf)
-    lanes_only = dataclasses.replace(sets, x_lo=-inf, x_hi=inf, v_lo=-inf, v_hi=inf)
-    if escaped_cars(state, dyn, lanes_only, vehicle)[i]:
-        out.append("lane")
+    free = {"x_lo": -inf, "x_hi": inf, "v_lo": -inf, "v_hi": inf, "entry": np.zeros_like(sets.entry)}
+    probes = {"x_low": ("x_lo",), "x_high": ("x_hi",), "v_low": ("v_lo",), "v_high": ("v_hi",), "lane": ("entry",)}
+    out = []
+    for name, kept in probes.items():
+        only = dataclasses.replace(sets, **{k: v for k, v in free.items() if k not in kept})
+        if escaped_cars(state, dyn, only, vehicle)[i]:
+            out.append(name)
     return out or ["other"]
 
 
-def cause(parts: list[str], crashed_at_draw: bool, crashed_now: bool, turning: bool, vx: float, beyond: float) -> str:
+def cause(
+    parts: list[str],
+    crashed_at_draw: bool,
+    crashed_now: bool,
+    turning: bool,
+    vx: float,
+    beyond: float,
+    backwards_at_draw: bool = False,
+) -> str:
     """The class (:data:`CLASSES`) of an escape: its components ``parts``, whether the car was crashed at the
     decision / is now, has turned off the road's heading since the decision, its speed along the road ``vx``
-    [m/s] and how far [m] it is outside its position interval ``beyond``."""
+    [m/s] (the speed the sets bound), how far [m] it is outside its position interval ``beyond``, and whether it
+    was moving backwards when the set was drawn (``backwards_at_draw``)."""
     if crashed_now and not crashed_at_draw:
         return "collision"
     if crashed_at_draw:
@@ -147,7 +160,7 @@ def cause(parts: list[str], crashed_at_draw: bool, crashed_now: bool, turning: b
         return "teleport"
     low = "x_low" in parts or "v_low" in parts
     high = "x_high" in parts or "v_high" in parts
-    if low and vx < 0:
+    if low and (vx < 0 or backwards_at_draw):
         return "rolling_back"
     if "lane" in parts:
         return "lane_entered_early"
@@ -217,6 +230,7 @@ def audit_episode(
         else:
             frames = [(dyn.frames_per_decision, info["snapshot"], np.arange(info["snapshot"].n))]
         crashed_at_draw = {int(v): bool(c) for v, c in zip(vehicle, state.crashed, strict=True)}
+        backwards = {int(v) for v, u in zip(vehicle, set_speed(state), strict=True) if u < 0}
         turned: set[int] = {
             int(v) for v, h in zip(vehicle, state.heading, strict=True) if abs(h) > LATERAL_MOTION_THRESHOLD
         }
@@ -239,14 +253,15 @@ def audit_episode(
                 tally.at_decisions += int(known.sum())
                 tally.at_decisions_out += int(out.sum())
             rows_of = {int(v): r for r, v in enumerate(older.vehicle)}
+            speed = set_speed(st)
             for i in np.flatnonzero(out):
                 v, r = int(fv[i]), rows_of[int(fv[i])]
                 parts = components(st, int(i), older, r, dyn, fv)
                 beyond = max(older.x_lo[r, 0] - st.x[i], st.x[i] - older.x_hi[r, 0], 0.0)
                 name = cause(parts, crashed_at_draw.get(v, False), bool(st.crashed[i]), v in turned,
-                             float(st.vx[i]), float(beyond))  # fmt: skip
+                             float(speed[i]), float(beyond), v in backwards)  # fmt: skip
                 tally.classes_frames[name] += 1
-                over_v = max(older.v_lo[r, 0] - st.vx[i], st.vx[i] - older.v_hi[r, 0], 0.0)
+                over_v = max(older.v_lo[r, 0] - speed[i], speed[i] - older.v_hi[r, 0], 0.0)
                 tally.worst_x[name] = max(tally.worst_x.get(name, 0.0), float(beyond))
                 tally.worst_v[name] = max(tally.worst_v.get(name, 0.0), float(over_v))
                 tally.components.update(parts)
@@ -259,7 +274,7 @@ def audit_episode(
                         "seed": seed, "decision": decision, "frame": k, "car": v, "components": parts,
                         "x": round(float(st.x[i]), 3), "x_interval": [round(float(older.x_lo[r, 0]), 3),
                                                                      round(float(older.x_hi[r, 0]), 3)],
-                        "vx": round(float(st.vx[i]), 3), "v_interval": [round(float(older.v_lo[r, 0]), 3),
+                        "speed": round(float(speed[i]), 3), "v_interval": [round(float(older.v_lo[r, 0]), 3),
                                                                        round(float(older.v_hi[r, 0]), 3)],
                         "heading": round(float(st.heading[i]), 4), "turning_at_draw": v in turning_at_draw,
                     })  # fmt: skip

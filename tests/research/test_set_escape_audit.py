@@ -55,6 +55,7 @@ def test_the_causes_follow_the_classes_order() -> None:
     assert audit.cause(["x_high"], True, True, False, 1.0, 1.0) == "crashed_wall_moves"
     assert audit.cause(["x_high"], False, False, False, 20.0, 25.0) == "teleport"
     assert audit.cause(["v_low"], False, False, False, -0.5, 0.0) == "rolling_back"
+    assert audit.cause(["x_low"], False, False, False, 0.5, 0.1, backwards_at_draw=True) == "rolling_back"
     assert audit.cause(["x_low", "lane"], False, False, True, 15.0, 0.1) == "lane_entered_early"
     assert audit.cause(["v_low"], False, False, True, 15.0, 0.0) == "turning_slower"
     assert audit.cause(["x_high"], False, False, True, 15.0, 0.1) == "turning_faster"

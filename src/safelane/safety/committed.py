@@ -20,7 +20,8 @@
   every frame of the horizon. :class:`CommittedFamily` allows the verified actions; with none it allows only the
   kept plan's next step (``plan_forced``); with no plan at all (uncertified) the one-decision robust rule's mask
   (:class:`~safelane.safety.family.OneDecisionFamily`, ``engine``). A decision at which the plan kept (verified)
-  at the last decision no longer verifies is a **lapse**; the cars that left the sets drawn for them are named.
+  at the last decision no longer verifies is a **lapse**; it names the cars the kept plan fails on and which of
+  them left the sets drawn for them (cars by their index in the road snapshot, one car's for a whole episode).
   Readings: ``sound`` (every car) or ``responsibility`` (a car behind the ego in a lane it holds is not the ego's
   to avoid).
 """

@@ -1,5 +1,5 @@
 """The committed shield's gate: play a campaign spec's cells under ``shield.mode: committed`` and count what
-``safelane falsify`` does not count yet — lapses (and whether each is traced to a car leaving its set),
+``safelane falsify`` does not count yet — lapses (the cars each kept plan fails on, and whether they left their sets),
 plan-forced decisions, uncertified starts, collisions by context, car-decisions outside the sets drawn for them
 (those rolling back, the unbraked followers and crashed cars apart) — beside collisions and mean speed.
 
@@ -51,16 +51,22 @@ def play_episode(env: Any, policy: Any, seed: int) -> dict[str, Any]:
         record["escapes"] += len(info["escaped_cars"])
         after = env.get_wrapper_attr("result")  # the committed verdict: cars checked, escapes rolling back
         record["checked"] += int(getattr(after, "checked", 0))
-        record["rolled_back"] += len(getattr(after, "rolled_back", ()))
-        record["unbraked_followers"] += len(getattr(after, "unbraked_followers", ()))
+        record["rolled_back"] += len(info["rolled_back"])
+        record["unbraked_followers"] += len(info["unbraked_followers"])
         crashed = info["snapshot"].crashed  # escapes of crashed cars: highway-env stops them beyond ACC_MAX
         record["crashed_escapes"] += sum(bool(crashed[v]) for v in info["escaped_cars"])
         escaped_seen.update(info["escaped_cars"])
         entered_seen.update(info["entered_cars"])
         if info["lapse"]:
             lapsed = True
-            record["lapses"].append({"decision": record["decisions"], "escaped": list(info["escaped_cars"]),
-                                     "entered": list(info["entered_cars"]),
+            # The cars the kept plan fails on, and of them those outside their sets or entering a held lane;
+            # the cars outside their sets anywhere on the road apart.
+            cars = list(info["lapse_cars"])
+            record["lapses"].append({"decision": record["decisions"], "cars": cars,
+                                     "escaped": list(info["lapse_escaped_cars"]),
+                                     "entered": [v for v in cars if v in info["entered_cars"]],
+                                     "escaped_anywhere": list(info["escaped_cars"]),
+                                     "entered_anywhere": list(info["entered_cars"]),
                                      "in_model": bool(info["lapse_in_model"])})  # fmt: skip
         if info.get("collision", False) and record["collision"] is None:
             executed = int(info["executed_action"])
@@ -144,6 +150,9 @@ def summarize(played: list[dict[str, Any]]) -> dict[str, Any]:
         ),
         "lapses_traced_to_escapes": sum(bool(lapse["escaped"]) for lapse in lapses),
         "lapses_traced_to_cut_ins": sum(bool(lapse["entered"]) and not lapse["escaped"] for lapse in lapses),
+        "lapse_cars": sum(len(lapse["cars"]) for lapse in lapses),
+        "lapse_cars_escaped_or_entered_anywhere": sum(len({*lapse["escaped_anywhere"], *lapse["entered_anywhere"]})
+                                          for lapse in lapses),
         "uncertified_starts": sum(e["uncertified_start"] for e in episodes),
         "lapses": len(lapses), "lapses_in_model": sum(lapse["in_model"] for lapse in lapses),
         "car_decisions": sum(e.get("checked", 0) for e in episodes),

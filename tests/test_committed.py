@@ -343,6 +343,70 @@ def test_a_car_leaving_its_set_makes_a_lapse_that_names_it() -> None:
     assert result.fallback and not result.safe.any() and result.certified
 
 
+def test_a_lapse_names_the_cars_that_failed_the_plan_not_every_car_outside_its_set() -> None:
+    """The leader stops dead 12 m ahead (outside its set; the kept plan fails on it) while a car 500 m ahead brakes
+    10 m/s in one second (outside its set too, far from the plan): the lapse names the leader alone, and of it
+    that it left its set; the far car is among the escapes, not a cause."""
+    state = scene([*LEADER, {"x": 500.0, "lane": 1, "vx": 25.0}])
+    family = CommittedFamily("sound")
+    first = family.evaluate_state(state, np.array([4, 9]), DYN)
+    plan = first.plans[FASTER]
+    assert plan is not None
+    family.commit(FASTER)
+    ego_x, ego_v, set_point = _followed(state, DYN, FASTER, plan.hold)
+    after = scene([{"x": ego_x + 12.0, "lane": 1, "vx": 0.0}, {"x": 500.0 + 20.0, "lane": 1, "vx": 15.0}],
+                  ego_x=ego_x, ego_speed=ego_v, set_point=set_point)  # fmt: skip
+    result = family.evaluate_state(after, np.array([4, 9]), DYN)
+    assert result.lapse and result.escaped == (4, 9)
+    assert result.lapse_cars == (4,) and result.lapse_escaped == (4,) and not result.lapse_in_model
+    # The same far car, the leader braking within its model: no lapse, nobody named, the far car still escaped.
+    family = CommittedFamily("sound")
+    family.evaluate_state(state, np.array([4, 9]), DYN)
+    family.commit(FASTER)
+    inside = scene([{"x": 70.0 + 20.0, "lane": 1, "vx": 20.0}, {"x": 500.0 + 20.0, "lane": 1, "vx": 15.0}],
+                   ego_x=ego_x, ego_speed=ego_v, set_point=set_point)  # fmt: skip
+    result = family.evaluate_state(inside, np.array([4, 9]), DYN)
+    assert not result.lapse and result.lapse_cars == () and result.escaped == (9,)
+
+
+def test_a_lapse_in_the_model_is_one_a_car_inside_its_set_failed() -> None:
+    """``lapse_in_model``: a lapse with a car the kept plan fails on that is inside its set and (``responsibility``)
+    entered no lane the ego holds, or with no car named; a car outside its set elsewhere traces nothing."""
+    base = CommittedFamily().evaluate_state(scene(LEADER), np.array([4]), DYN)
+
+    def lapse(**fields: Any) -> bool:
+        return dataclasses.replace(base, lapse=True, **fields).lapse_in_model
+
+    assert not lapse(lapse_cars=(4,), escaped=(4,))
+    assert not lapse(lapse_cars=(4,), entered=(4,))  # a cut-in: its gap to keep
+    assert lapse(lapse_cars=(4,), escaped=(9,))  # the car that broke the plan was inside its set
+    assert lapse(lapse_cars=(4, 5), escaped=(4,))  # one of two traced: the other is a gap in the construction
+    assert lapse(lapse_cars=())  # a lapse no car explains
+    assert not dataclasses.replace(base, lapse=False, lapse_cars=(4,)).lapse_in_model
+
+
+def test_cars_braking_at_their_limit_stay_in_their_sets_and_a_lapse_names_the_cut_in() -> None:
+    """The fast preset, seeds 3 and 9, one decision of IDLE (``responsibility``): cars 480–1 000 m ahead turn and
+    brake at exactly ``ACC_MAX`` (6 m/s in 1 s along their path), inside the sets drawn for them (the speed along
+    the path and a lane change's shortfall; the speed along the road left them); the lapse names the one car that
+    entered the ego's lane and broke the plan, not the others that entered a lane the ego holds far ahead."""
+    from safelane.env.factory import make_env
+
+    env = make_env("fast", simulator="fast", **{"shield.mode": "committed", "shield.reading": "responsibility",
+                                                "shield.override": True})  # fmt: skip
+    for seed, car in ((3, 2), (9, 1)):
+        _, info = env.reset(seed=seed)
+        before = info["snapshot"]
+        _, _, _, _, info = env.step(IDLE)
+        after = info["snapshot"]
+        braked = np.flatnonzero(after.speed - before.speed <= -6.0 + 1e-9)
+        assert braked.size and (after.position[braked, 0] - after.position[after.ego, 0] > 400.0).all()
+        assert info["escaped_cars"] == ()
+        assert info["lapse"] and info["lapse_cars"] == (car,) and info["lapse_escaped_cars"] == ()
+        assert car in info["entered_cars"] and len(info["entered_cars"]) > 1 and not info["lapse_in_model"]
+    env.close()
+
+
 def test_a_car_rolling_back_is_named_outside_the_model() -> None:
     """A jammed car 150 m ahead rolling back at 0.5 m/s: one decision later it has rolled 3 m back and moves forward
     again — outside the set drawn for it (its lowest position) and named as rolled back; a car that braked harder

@@ -90,7 +90,7 @@ def test_the_other_modes_report_what_they_reported() -> None:
 
 def _step(**info: Any) -> dict[str, Any]:
     base = {"speed": 20.0, "fallback": False, "plan_forced": False, "lapse": False, "lapse_in_model": False,
-            "escaped_cars": (), "entered_cars": (), "certified": True, "snapshot": None}  # fmt: skip
+            "lapse_cars": (), "escaped_cars": (), "entered_cars": (), "certified": True, "snapshot": None}  # fmt: skip
     return {**base, **info}
 
 
@@ -121,13 +121,59 @@ def test_a_crash_after_a_car_left_its_set_is_outside_the_model_and_names_the_car
     context, cars = _context(monkeypatch, [_step(), _step(escaped_cars=(7,)), _step()])
     assert (context, cars) == ("outside_model", [7])
     # A car a lapse named, not the partner: still outside the model (the lapse traced to it came first).
-    context, cars = _context(monkeypatch, [_step(lapse=True, escaped_cars=(4,), fallback=True, plan_forced=True),
-                                           _step()])  # fmt: skip
+    context, cars = _context(monkeypatch, [_step(lapse=True, lapse_cars=(4,), escaped_cars=(4,), fallback=True,
+                                                 plan_forced=True), _step()])  # fmt: skip
     assert (context, cars) == ("outside_model", [4])
     # Another car that left its set and caused no lapse: the plan still verified, the crash is the rule's own.
     assert _context(monkeypatch, [_step(escaped_cars=(4,)), _step()]) == ("from_safe_state", [])
     # The escapes the crash step itself reports are the impact's: not a cause.
     assert _context(monkeypatch, [_step(), _step(escaped_cars=(7,))]) == ("from_safe_state", [])
+
+
+def test_a_bare_shield_reports_its_reading_and_a_rear_end_is_others_at_fault(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A ``SafetyShield`` with a committed family of its own, no ``make_env`` wrapper above it: every reset and step
+    reports the reading, so the tally sees a rear-end as ``others_at_fault`` under ``responsibility`` (the rule's own
+    hole under ``sound``)."""
+    from safelane.env.factory import make_env
+    from safelane.safety.committed import CommittedFamily
+    from safelane.safety.shield import SafetyShield
+
+    for reading, expected in (("responsibility", "others_at_fault"), ("sound", "from_safe_state")):
+        env = SafetyShield(make_env("fast", simulator="fast", **SHORT), mode=CommittedFamily(reading), override=True)
+        _, reset = env.reset(seed=0)
+        assert reset["shield_reading"] == reading and "redraws" not in reset
+        _, _, _, _, info = env.step(IDLE)
+        assert info["shield_reading"] == reading
+        assert {"lapse_cars", "lapse_escaped_cars", "rolled_back", "unbraked_followers"} <= set(info)
+        env.close()
+        monkeypatch.setattr(evaluation, "collision_partner", lambda snap: 7)
+        monkeypatch.setattr(evaluation, "classify_collision", lambda snap: "rear_ended")
+        monkeypatch.setattr(evaluation, "vehicles_ahead", lambda snap: 0)
+        tally = EpisodeTally(0, {**reset, "fallback": False, "uncertified_start": False})
+        tally.add(IDLE, 0.0, {**_step(), "snapshot": info["snapshot"], "collision": True})
+        assert tally.context == expected
+
+
+def test_a_crash_with_a_car_rolling_back_or_unbraked_is_outside_the_model(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The partner rolling back, or a follower ahead of the bound the plan drew for it, at the crash's own decision
+    (exits the impact does not make): ``outside_model``, the car named. Its other escapes there are the impact's."""
+    for key in ("rolled_back", "unbraked_followers"):
+        context, cars = _context(monkeypatch, [_step(), _step(escaped_cars=(7,), **{key: (7,)})], kind="rear_ended")
+        assert (context, cars) == ("outside_model", [7])
+    # Another car rolling back, not the partner: not a cause.
+    assert _context(monkeypatch, [_step(), _step(rolled_back=(4,), escaped_cars=(4,))])[0] == "from_safe_state"
+
+
+def test_a_lapse_names_only_the_cars_that_failed_the_plan(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The record's lapse cars are the shield's ``lapse_cars``; a crash after the lapse names those of them that
+    left their sets, not the other escapes on the road."""
+    lapse = _step(lapse=True, lapse_cars=(4,), lapse_escaped_cars=(4,), escaped_cars=(4, 30, 31), fallback=True,
+                  plan_forced=True)  # fmt: skip
+    context, cars = _context(monkeypatch, [lapse, _step()], partner=2)
+    assert (context, cars) == ("outside_model", [4])
+    # The car the plan failed on was inside its set (a cut-in under sound, say): nothing outside the model is named.
+    lapse = _step(lapse=True, lapse_cars=(5,), escaped_cars=(30,), fallback=True, plan_forced=True)
+    assert _context(monkeypatch, [lapse, _step()], partner=2) == ("after_break", [])
 
 
 def test_the_committed_contexts_in_their_order(monkeypatch: pytest.MonkeyPatch) -> None:
@@ -161,12 +207,12 @@ def test_lapses_are_saved_and_replay_to_the_same_lapse(responsibility_records: l
     result = replay(cx)
     assert result.reproduced and result.decisions[-1].committed["lapse"]
     verdict = result.decisions[-1].committed
-    assert sorted({*verdict["escaped_cars"], *verdict["entered_cars"]}) == cx.cars
+    assert verdict["lapse_cars"] == cx.cars and set(cx.cars) <= {*verdict["escaped_cars"], *verdict["entered_cars"]}
     assert "committed" in result.to_dict()["decisions"][-1]
     # Filed as a lapse in the model it is not one (a car is outside its set): not reproduced; nor traced to other cars.
     assert not replay(cx.model_copy(update={"kind": "lapse_in_model"})).reproduced
     assert not replay(cx.model_copy(update={"cars": [*cx.cars, 999]})).reproduced
-    # The cars are a set: one both outside its set and entering the ego's lane is named once.
+    # The cars are a set: one named twice in a file is the same car.
     assert replay(cx.model_copy(update={"cars": [*cx.cars, cx.cars[0]]})).reproduced
     assert json.loads(lapse_files[0].read_text())["cars"] == cx.cars
 

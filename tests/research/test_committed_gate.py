@@ -20,8 +20,10 @@ def test_the_gate_figures_count_what_the_episodes_recorded() -> None:
     """Rates per decision, lapses in the model apart from those traced, collisions by context, always-FASTER's
     speed from its cells only."""
     crash = {"context": "from_certified", "others_at_fault": True, "partner_left_its_set": False}
-    traced = {"escaped": [3], "entered": [], "in_model": False}
-    untraced = {"escaped": [], "entered": [], "in_model": True}
+    traced = {"cars": [3], "escaped": [3], "entered": [], "escaped_anywhere": [3, 8], "entered_anywhere": [5],
+              "in_model": False}  # fmt: skip
+    untraced = {"cars": [4], "escaped": [], "entered": [], "escaped_anywhere": [], "entered_anywhere": [],
+                "in_model": True}  # fmt: skip
     played = [
         {"policy": "faster", "episodes": [_episode(40, 2, 20.0, [traced], None)]},
         {"policy": "random", "episodes": [_episode(10, 0, 5.0, [untraced], crash)]},
@@ -29,6 +31,7 @@ def test_the_gate_figures_count_what_the_episodes_recorded() -> None:
     s = summarize(played)
     assert s["decisions"] == 50 and s["plan_forced_rate"] == 2 / 50
     assert s["lapses"] == 2 and s["lapses_in_model"] == 1 and s["lapses_traced_to_escapes"] == 1
+    assert s["lapse_cars"] == 2 and s["lapse_cars_escaped_or_entered_anywhere"] == 3
     assert s["collisions"] == 1 and s["collision_contexts"]["from_certified"] == 1
     assert s["from_certified_others_at_fault"] == 1 and s["faster_mean_speed"] == 20.0
     assert s["uncertified_starts"] == 1

@@ -56,7 +56,7 @@ def replay(
             gaps = " ".join("–" if g is None else f"{g:.1f}" for g in d.min_gap)
             mark = " BREAK" if d.invariant_break else (" CRASH" if d.collision else "")
             if d.committed is not None and d.committed["lapse"]:
-                mark += f" LAPSE (cars {d.committed['escaped_cars'] + d.committed['entered_cars']})"
+                mark += f" LAPSE (cars {d.committed['lapse_cars']})"
             near = "; ".join(f"{v['lane']},{v['dx']:+.0f},{v['speed']:.0f}" for v in d.nearby[:6])
             table.add_row(
                 f"{d.time:.1f}",

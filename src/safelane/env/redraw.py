@@ -2,8 +2,8 @@
 
 The ``committed`` shield mode (:mod:`safelane.safety.committed`) promises nothing in an episode whose first state
 has no verified plan (``info["uncertified_start"]``). :class:`RedrawUncertified` sits above the shield and adds
-to every reset's ``info`` the number of spawns drawn again (``redraws``) and the shield's reading
-(``shield_reading``, which the collision contexts read); with ``tries`` > 0 (``shield.redraw_uncertified``) it
+to every reset's ``info`` the number of spawns drawn again (``redraws``; the shield itself reports its reading,
+``shield_reading``, which the collision contexts read); with ``tries`` > 0 (``shield.redraw_uncertified``) it
 resets again, without a seed — the environment's generator draws the next spawn, so the same seed still gives
 the same episode — until the first state has a verified plan, at most ``tries`` times.
 """
@@ -35,7 +35,6 @@ class RedrawUncertified(gym.Wrapper, gym.utils.RecordConstructorArgs):
             obs, info = self.env.reset(options=options)  # no seed: the generator's next spawn
             redraws += 1
         info["redraws"] = redraws
-        info["shield_reading"] = self.env.get_wrapper_attr("reading")
         return obs, info
 
     def action_masks(self) -> Any:

@@ -5,7 +5,8 @@ A :class:`Counterexample` holds what it takes to play the episode again — the 
 re-derived by the same shield) — and the event: a ``collision`` at the last decision, or an
 ``invariant_break`` (a fallback state reached right after an allowed action in a state that had a safe
 one, :class:`safelane.safety.shield.SafetyShield`) after decision ``step``, or (the ``committed`` shield mode) a
-``lapse`` or ``lapse_in_model`` after decision ``step`` (:data:`LAPSE_KINDS`; ``cars`` names the cars traced).
+``lapse`` or ``lapse_in_model`` after decision ``step`` (:data:`LAPSE_KINDS`; ``cars`` names the cars the kept
+plan fails on).
 Both simulators are deterministic after reset, so :func:`replay` plays the same decisions and checks the same
 event happens at the same decision; ``simulator=`` replays a fast-simulator finding on highway-env (the reference).
 
@@ -52,8 +53,8 @@ class Counterexample(BaseModel):
     source: str = Field("", description="What found it (command, policy, condition).")
     cars: list[int] | None = Field(
         None,
-        description="A lapse: the cars (snapshot indices) that left the sets drawn for them or entered a lane the "
-        "ego holds (empty for a lapse in the model); absent for the other kinds.",
+        description="A lapse: the cars (snapshot indices) the kept plan fails on (info lapse_cars); absent for "
+        "the other kinds.",
     )
 
     def env_config(self, simulator: str | None = None) -> SafelaneConfig:
@@ -167,7 +168,7 @@ class Decision:
     nearby: list[dict[str, float]] = field(default_factory=list)
     committed: dict[str, Any] | None = None
     """The committed mode's verdict after the decision (``lapse``, ``lapse_in_model``, ``plan_forced``,
-    ``certified``, ``escaped_cars``, ``entered_cars``); None for the other modes."""
+    ``certified``, ``lapse_cars``, ``escaped_cars``, ``entered_cars``); None for the other modes."""
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready (``committed`` only for that mode)."""
@@ -286,7 +287,7 @@ def replay(cx: Counterexample, simulator: str | None = None) -> ReplayResult:
             verdict is not None
             and verdict["lapse"]
             and verdict["lapse_in_model"] == (cx.kind == "lapse_in_model")
-            and (cx.cars is None or {*verdict["escaped_cars"], *verdict["entered_cars"]} == set(cx.cars))
+            and (cx.cars is None or set(verdict["lapse_cars"]) == set(cx.cars))
         )
     else:
         reproduced = last is not None and last.invariant_break
@@ -302,6 +303,7 @@ def _committed_verdict(info: dict[str, Any]) -> dict[str, Any] | None:
         "lapse_in_model": bool(info["lapse_in_model"]),
         "plan_forced": bool(info["plan_forced"]),
         "certified": bool(info["certified"]),
+        "lapse_cars": [int(v) for v in info.get("lapse_cars", ())],
         "escaped_cars": [int(v) for v in info["escaped_cars"]],
         "entered_cars": [int(v) for v in info["entered_cars"]],
     }

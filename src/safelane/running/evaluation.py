@@ -75,9 +75,10 @@ class EpisodeRecord:
     lapses: list[int] = field(default_factory=list)
     """``committed`` mode: decisions (1-based) after which the plan kept, verified, no longer verified."""
     lapses_in_model: list[int] = field(default_factory=list)
-    """``committed`` mode: the lapses with every car inside the set drawn for it (gaps in the construction)."""
+    """``committed`` mode: the lapses not traced to the model's exits (a car the kept plan fails on inside its
+    set, :attr:`safelane.safety.committed.CommittedResult.lapse_in_model`): gaps in the construction."""
     lapse_cars: list[list[int]] = field(default_factory=list)
-    """``committed`` mode: per lapse, the cars (snapshot indices) that left their sets or entered a held lane."""
+    """``committed`` mode: per lapse, the cars (snapshot indices) the kept plan fails on (``info["lapse_cars"]``)."""
     plan_forced: int = 0
     """``committed`` mode: decisions at which nothing verified and the kept plan's next step drove (counted like
     ``fallbacks``, from the state each step ends in)."""
@@ -85,7 +86,9 @@ class EpisodeRecord:
     """``committed`` mode with ``shield.redraw_uncertified``: spawns drawn again before this one
     (:class:`safelane.env.redraw.RedrawUncertified`)."""
     outside_model_cars: list[int] = field(default_factory=list)
-    """A collision in context ``outside_model``: the cars (snapshot indices) that had left their sets."""
+    """A collision in context ``outside_model``: the cars (snapshot indices) that had left their sets: those a
+    lapse's kept plan failed on, and the crash partner if it had (or rolled back, or did not brake as a follower
+    of the plan, by the crash's own decision)."""
 
     def to_dict(self) -> dict[str, Any]:
         """A JSON-ready dict of the record (without ``chosen_actions``; the committed mode's fields only for
@@ -196,19 +199,26 @@ class EpisodeTally:
             self.entered_seen.update(entered)
         if info.get("lapse", False):
             self.lapses.append(self.steps)
-            self.lapse_cars.append(sorted({*escaped, *entered}))
-            self.lapse_named.update(escaped)
+            failed = [int(v) for v in info.get("lapse_cars", ())]
+            self.lapse_cars.append(sorted(set(failed)))
+            self.lapse_named.update(v for v in failed if v in escaped)  # the cars that broke the plan, out of model
             if info.get("lapse_in_model", False):
                 self.lapses_in_model.append(self.steps)
 
     def _committed_context(self, info: dict[str, Any]) -> str:
         """The context of the committed mode's collision at this step (:data:`COLLISION_CONTEXTS`). The escapes
-        reported in the crash step's own state are left out: highway-env's impact (bodies pushed apart, a crashed
-        car braking at its speed per second) puts every crashed body outside any driver model's set."""
+        reported in the crash step's own state are left out, but for the partner's ``rolled_back`` and
+        ``unbraked_followers``: highway-env's impact (bodies pushed apart, a crashed car braking at its speed per
+        second) puts every crashed body outside any driver model's set, but neither rolls it back nor pushes a
+        follower forward."""
         snap = info["snapshot"]
         partner = collision_partner(snap)
         executed_unsafe = info.get("unsafe_action", False) and not info.get("shield_intervened", False)
-        named = sorted(self.lapse_named | ({partner} & self.escaped_seen if partner is not None else set()))
+        # The crash's own decision counts its partner's exits the impact does not make: rolling back (a crashed car
+        # brakes to 0 m/s, never below), a follower ahead of the bound the plan drew for it (the impact pushes the
+        # bodies apart: a rear-ender back).
+        exits = self.escaped_seen | {int(v) for key in ("rolled_back", "unbraked_followers") for v in info.get(key, ())}
+        named = sorted(self.lapse_named | ({partner} & exits if partner is not None else set()))
         if not self.safe_seen:
             return "uncertified_start"
         entered = self.entered_seen | {int(v) for v in info.get("entered_cars", ())}  # a cut-in into the crash counts

@@ -20,7 +20,8 @@
   every frame of the horizon. :class:`CommittedFamily` allows the verified actions; with none it allows only the
   kept plan's next step (``plan_forced``); with no plan at all (uncertified) the one-decision robust rule's mask
   (:class:`~safelane.safety.family.OneDecisionFamily`, ``engine``). A decision at which the plan kept (verified)
-  at the last decision no longer verifies is a **lapse**; the cars that left the sets drawn for them are named.
+  at the last decision no longer verifies is a **lapse**; it names the cars the kept plan fails on and which of
+  them left the sets drawn for them (cars by their index in the road snapshot, one car's for a whole episode).
   Readings: ``sound`` (every car) or ``responsibility`` (a car behind the ego in a lane it holds is not the ego's
   to avoid).
 """
@@ -44,16 +45,16 @@ from safelane.safety.committed_sets import (
     car_sets,
     envelope,
     escaped_cars,
+    fall,
     lane_crossing_time,
     lane_entry_times,
     lanes_now,
     linear_set_point_bound,
     occupied_lanes,
     path_speed,
+    rise,
     rolling_back,
-    slow_down,
     speed_bounds,
-    speed_up,
 )
 from safelane.safety.ego import action_lanes, action_targets, available_actions, ego_trajectories, speed_to_index
 from safelane.safety.family import Engine, OneDecisionFamily, road_state
@@ -65,8 +66,9 @@ READINGS: tuple[str, ...] = ("sound", "responsibility")
 
 __all__ = [
     "ESCAPE_TOLERANCE", "MAX_SPEED", "READINGS", "CarSets", "CommittedFamily", "CommittedResult", "Lanes", "Plan",
-    "Reading", "car_sets", "envelope", "escaped_cars", "follower_bound", "lane_crossing_time", "lane_entry_times",
-    "lanes_now", "onsets", "path_speed", "plan_gaps", "plan_of", "rolling_back", "speed_bounds", "verify_plans",
+    "Reading", "car_gaps", "car_sets", "envelope", "escaped_cars", "follower_bound", "lane_crossing_time",
+    "lane_entry_times", "lanes_now", "onsets", "path_speed", "plan_gaps", "plan_of", "rolling_back", "speed_bounds",
+    "verify_plans",
 ]  # fmt: skip
 
 
@@ -237,8 +239,20 @@ def plan_gaps(
     carried_followers: dict[int, tuple[int, np.ndarray]] | None = None, ego_set: np.ndarray | None = None,
 ) -> np.ndarray:  # fmt: skip
     """(holds,) the worst bumper-to-bumper gap [m] of plans whose ego moves as ``ego_x``/``ego_v`` (holds, frames)
-    and brakes first at ``onset`` [s] (holds,), occupying ``lanes``, at every frame up to ``until_frame`` (default:
-    the horizon's end).
+    over every car (inf: no car in reach): the least of :func:`car_gaps`, which documents the arguments."""
+    gaps = car_gaps(state, dyn, sets, ego_x, ego_v, onset, lanes, reading, until_frame, carried_followers, ego_set)
+    return gaps.min(axis=0) if gaps.shape[0] else np.full(ego_x.shape[0], np.inf)
+
+
+def car_gaps(
+    state: RoadState, dyn: Dynamics, sets: CarSets, ego_x: np.ndarray, ego_v: np.ndarray, onset: np.ndarray,
+    lanes: Lanes, reading: Reading = "sound", until_frame: int | None = None,
+    carried_followers: dict[int, tuple[int, np.ndarray]] | None = None, ego_set: np.ndarray | None = None,
+) -> np.ndarray:  # fmt: skip
+    """(cars, holds) each car's worst bumper-to-bumper gap [m] to plans whose ego moves as ``ego_x``/``ego_v``
+    (holds, frames) and brakes first at ``onset`` [s] (holds,), occupying ``lanes``, at every frame up to
+    ``until_frame`` (default: the horizon's end); inf where the car never reaches the plan. The cars below the
+    margin are the ones a plan fails on (a lapse names them).
 
     In each lane, from each car's entry time on, the car's interval ``[x_lo, x_hi]`` must stay clear of the ego by
     ``margin`` on one side or the other at every frame (a car that may be on either side conflicts). Laws: an IDM
@@ -260,7 +274,7 @@ def plan_gaps(
     held = {state.ego_lane, state.ego_target_lane}
     n_fb = ego_x.shape[0]
     frames = t <= (t[-1] if until_frame is None else t[min(max(until_frame, 0), t.size - 1)])
-    worst = np.full(n_fb, np.inf)
+    worst = np.full((state.n, n_fb), np.inf)
     for lane, until in lanes:
         held_lane = lane in held
         entry = np.repeat(sets.entry[:, lane][:, None], n_fb, axis=1)  # (cars, holds)
@@ -285,7 +299,7 @@ def plan_gaps(
             if carried is not None and carried[0] == lane:
                 high = np.minimum(high, carried[1][None, :])
             gap = np.maximum(sets.x_lo[i][None, :] - ego_x - half[i], ego_x - high - half[i])
-            worst = np.minimum(worst, np.where(window, gap, np.inf).min(axis=1))
+            worst[i] = np.minimum(worst[i], np.where(window, gap, np.inf).min(axis=1))
     return worst
 
 
@@ -297,9 +311,9 @@ def follower_bound(state: RoadState, i: int, react: np.ndarray, t: np.ndarray) -
     a, b = np.array([state.accel_max[i]]), np.array([state.brake_max[i]])
     v_min, v_max = speed_bounds(speed, state.target_speed[i : i + 1], np.isfinite(state.linear_speed_gain[i : i + 1]))
     r = react[:, None]
-    d1, _ = speed_up(v0, a, v_max, np.minimum(t[None, :], r))
-    d_r, v_r = speed_up(v0, a, v_max, r)
-    d2, _ = slow_down(v_r, b, np.minimum(v_min, 0.0), np.maximum(t[None, :] - r, 0.0))
+    d1, _ = rise(v0, a, v_max, np.minimum(t[None, :], r))
+    d_r, v_r = rise(v0, a, v_max, r)
+    d2, _ = fall(v_r, b, np.minimum(v_min, 0.0), np.maximum(t[None, :] - r, 0.0))
     return state.x[i] + np.where(t[None, :] <= r, d1, d_r + d2)
 
 
@@ -313,7 +327,11 @@ class CommittedResult(SafetyResult):
     """:class:`SafetyResult` of the committed family: ``safe`` lists the verified actions, ``fallback`` is set when
     none is; ``plan_forced``: the kept plan's next step drives (nothing verified); ``lapse``: the plan kept,
     verified, at the last decision no longer verifies (a plan driven on after a lapse is not verified again);
-    ``escaped``: snapshot indices of the cars outside the sets drawn for them, ``rolled_back`` those of them moving
+    ``lapse_cars``: at a lapse, the cars the kept plan fails on (their own worst gap to its tail below the margin;
+    :attr:`lapse_escaped` those of them outside their sets). Cars are named by their index in the road snapshot
+    (the simulator's order of its vehicles, which highway-env's road and the fast simulator keep for the whole
+    episode: a car keeps its index). ``escaped``: the cars outside the sets drawn for them, anywhere on the road,
+    ``rolled_back`` those of them moving
     backwards (outside IDM, :func:`~safelane.safety.committed_sets.rolling_back`), ``unbraked_followers`` those
     ahead of the follower bound the kept plan drew for them (the follower law is an assumption, not IDM's: a
     follower far behind does not brake at its limit because the ego plans to), ``checked`` how many cars were
@@ -323,6 +341,7 @@ class CommittedResult(SafetyResult):
 
     plan_forced: bool = False
     lapse: bool = False
+    lapse_cars: tuple[int, ...] = ()
     escaped: tuple[int, ...] = ()
     rolled_back: tuple[int, ...] = ()
     unbraked_followers: tuple[int, ...] = ()
@@ -332,11 +351,19 @@ class CommittedResult(SafetyResult):
     plans: tuple[Plan | None, ...] = ()
 
     @property
+    def lapse_escaped(self) -> tuple[int, ...]:
+        """The cars the lapse's kept plan fails on that are outside the sets drawn for them."""
+        return tuple(v for v in self.lapse_cars if v in self.escaped)
+
+    @property
     def lapse_in_model(self) -> bool:
-        """A lapse with every car inside its set (and, under ``responsibility``, none that entered a lane the ego
-        holds since the last decision: such a car made the gap it is responsible for): a gap in the
-        construction."""
-        return self.lapse and not self.escaped and not self.entered
+        """A lapse not traced to the model's exits: some car the kept plan fails on is inside its set and (under
+        ``responsibility``) did not enter a lane the ego holds since the last decision (such a car made the gap it
+        is responsible for), or no car is named. With every car inside its set the sets nest and the plan verifies
+        again, so this is a gap in the construction. A car outside its set that the plan does not fail on (far
+        ahead, in another lane) traces nothing."""
+        traced = {*self.escaped, *self.entered}
+        return self.lapse and (not self.lapse_cars or any(v not in traced for v in self.lapse_cars))
 
 
 @dataclass
@@ -402,6 +429,7 @@ class CommittedFamily:
             for a in range(N_ACTIONS)
         ]
         lapse = forced = False
+        failed = np.zeros(state.n, dtype=bool)
         if self.kept is not None:
             tail = self.kept.shifted(dyn)
             a, k = tail.action, tail.hold
@@ -414,11 +442,15 @@ class CommittedFamily:
                 for v, (lane, high) in self.followers.items()
                 if v in rows and not escaped[rows[v]]
             }
-            gap = plan_gaps(state, dyn, sets, ego_x[a, k : k + 1], ego_v[a, k : k + 1], np.array([tail.onset]),
+            gaps = car_gaps(state, dyn, sets, ego_x[a, k : k + 1], ego_v[a, k : k + 1], np.array([tail.onset]),
                             list(tail.occupied), self.reading, tail.frames, followers,
-                            plan_set_points(state, dyn, ego_v[a], a)[k : k + 1])[0]  # fmt: skip
-            # A lapse: the plan verified at the last decision no longer is (a plan kept on after one stays unverified).
+                            plan_set_points(state, dyn, ego_v[a], a)[k : k + 1])[:, 0]  # fmt: skip
+            gap = gaps.min() if gaps.size else np.inf
+            # A lapse: the plan verified at the last decision no longer is (a plan kept on after one stays unverified);
+            # the cars it fails on are those whose own gap to the tail is below the margin.
             lapse = self.kept_verified and not gap >= dyn.margin
+            if lapse:
+                failed = ~(gaps >= dyn.margin)
             step = self.kept.next_step() if available[self.kept.next_step()] else IDLE
             if gap >= dyn.margin and plans[step] is None:  # the kept plan itself still verifies: its step is allowed
                 plans[step] = dataclasses.replace(tail, action=a, hold=k)
@@ -435,7 +467,8 @@ class CommittedFamily:
             mask = robust.mask.copy()
         result = CommittedResult(
             mask, safe, available, not bool(safe.any()), best_gap, None,
-            plan_forced=forced, lapse=lapse, escaped=tuple(int(v) for v in vehicle[escaped]),
+            plan_forced=forced, lapse=lapse, lapse_cars=tuple(int(v) for v in vehicle[failed]),
+            escaped=tuple(int(v) for v in vehicle[escaped]),
             rolled_back=tuple(int(v) for v in vehicle[rolling_back(state, escaped, older, vehicle)]), checked=checked,
             unbraked_followers=tuple(int(v) for v in vehicle[unbraked]),
             entered=tuple(int(v) for v in vehicle[entered]) if self.reading == "responsibility" else (),

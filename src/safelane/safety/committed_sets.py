@@ -32,20 +32,20 @@ of one lane change is ``lane_width · tan(π/8)`` (:func:`lane_change_allowance`
 
 __all__ = [
     "ESCAPE_TOLERANCE", "LANE_CHANGES_BEGUN", "MAX_SPEED", "TURN_HEADING", "CarSets", "acceleration_law", "car_sets",
-    "envelope", "escaped_cars", "lane_change_allowance", "lane_changes_allowed", "lane_crossing_time",
-    "lane_entry_times", "lanes_now", "law_rise", "linear_set_point_bound", "occupied_lanes", "path_speed",
-    "rolling_back", "shortfall", "slow_down", "speed_bounds", "speed_up",
+    "envelope", "escaped_cars", "fall", "lane_change_allowance", "lane_changes_allowed", "lane_crossing_time",
+    "lane_entry_times", "lanes_now", "law_rise", "linear_set_point_bound", "occupied_lanes", "path_speed", "rise",
+    "rolling_back", "shortfall", "speed_bounds",
 ]  # fmt: skip
 
 
-def speed_up(v: np.ndarray, a: np.ndarray, v_max: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def rise(v: np.ndarray, a: np.ndarray, v_max: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(distance [m], speed [m/s]) after ``t`` [s] accelerating at ``a`` [m/s²] from ``v`` up to ``v_max``."""
     t_top = np.maximum(v_max - v, 0.0) / np.maximum(a, 1e-9)
     tt = np.minimum(t, t_top)
     return v * tt + 0.5 * a * tt * tt + v_max * np.maximum(t - t_top, 0.0), np.minimum(v + a * t, v_max)
 
 
-def slow_down(v: np.ndarray, b: np.ndarray, v_min: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def fall(v: np.ndarray, b: np.ndarray, v_min: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(distance [m], speed [m/s]) after ``t`` [s] braking at ``b`` [m/s²] from ``v`` down to ``v_min``."""
     t_low = np.maximum(v - v_min, 0.0) / np.maximum(b, 1e-9)
     tt = np.minimum(t, t_low)
@@ -57,14 +57,14 @@ def _forward(v: np.ndarray, a: np.ndarray, v_max: np.ndarray, t: np.ndarray) -> 
     distance of a car whose speed along its path is at most ``u`` (its heading turns it, never backwards)."""
     t0 = np.clip(-v / np.maximum(a, 1e-9), 0.0, None)  # when the rising speed crosses 0 (0 if it starts ≥ 0)
     start = np.maximum(v, 0.0)
-    d, _ = speed_up(start, a, np.maximum(v_max, 0.0), np.maximum(t - t0, 0.0))
+    d, _ = rise(start, a, np.maximum(v_max, 0.0), np.maximum(t - t0, 0.0))
     return d
 
 
 def _backward(v: np.ndarray, b: np.ndarray, v_min: np.ndarray, t: np.ndarray) -> np.ndarray:
     """[m] ``∫₀ᵗ min(u(s), 0) ds`` (≤ 0) for the speed ``u`` falling at ``b`` from ``v`` down to ``v_min``."""
     t0 = np.clip(v / np.maximum(b, 1e-9), 0.0, None)  # when the falling speed crosses 0
-    d, _ = slow_down(np.minimum(v, 0.0), b, np.minimum(v_min, 0.0), np.maximum(t - t0, 0.0))
+    d, _ = fall(np.minimum(v, 0.0), b, np.minimum(v_min, 0.0), np.maximum(t - t0, 0.0))
     return d
 
 
@@ -99,8 +99,8 @@ def envelope(
     moving forward never loses ground (``x_lo`` ≥ its backward part)."""
     col = lambda z: np.asarray(z, dtype=float)[:, None]  # noqa: E731
     tt = t[None, :]
-    _, v_hi = speed_up(col(v), col(a), col(v_max), tt)
-    d_lo, v_lo = slow_down(col(v), col(b), col(v_min), tt)
+    _, v_hi = rise(col(v), col(a), col(v_max), tt)
+    d_lo, v_lo = fall(col(v), col(b), col(v_min), tt)
     d_hi = _forward(col(v), col(a), col(v_max), tt)
     if allowance is not None:
         d_lo = np.maximum(d_lo - allowance, _backward(col(v), col(b), col(v_min), tt))

@@ -123,7 +123,9 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
     ``mode="committed"`` (experimental, :mod:`safelane.safety.committed`, numpy only): a plan verified against the
     others' reachable sets is kept between decisions; ``mode=CommittedFamily(reading="responsibility")`` chooses
     the reading (default ``"sound"``); ``info`` gains ``plan_forced``, ``lapse``, ``lapse_in_model``,
-    ``escaped_cars``, ``entered_cars``, ``certified`` (and ``uncertified_start`` after a reset).
+    ``lapse_cars`` (the cars the lapse's kept plan fails on), ``lapse_escaped_cars`` (those of them outside their
+    sets), ``escaped_cars`` (every car outside its set), ``rolled_back``, ``unbraked_followers``, ``entered_cars``,
+    ``certified``, ``shield_reading`` (and ``uncertified_start`` after a reset); cars by their snapshot index.
     """
 
     def __init__(
@@ -251,9 +253,14 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
             info["plan_forced"] = self.result.plan_forced
             info["lapse"] = self.result.lapse
             info["lapse_in_model"] = self.result.lapse_in_model
+            info["lapse_cars"] = self.result.lapse_cars
+            info["lapse_escaped_cars"] = self.result.lapse_escaped
             info["escaped_cars"] = self.result.escaped
+            info["rolled_back"] = self.result.rolled_back
+            info["unbraked_followers"] = self.result.unbraked_followers
             info["entered_cars"] = self.result.entered
             info["certified"] = self.result.certified
+            info["shield_reading"] = self.reading  # the collision contexts read it (others_at_fault)
 
     def reset(self, **kwargs: Any) -> tuple[Any, dict[str, Any]]:
         self.dynamics = None

@@ -28,7 +28,7 @@ $(STAMP): pyproject.toml | $(BIN)/python
 	touch $(STAMP)
 
 # The paper's protocol at scale on the fast simulator: 4 methods x 10 seeds x 200 training episodes,
-# 1 000 held-out test episodes per run (≈ 4 min on 2 cores once installed, the runs trained as batched learners; `safelane reproduce --quick` is the
+# 1 000 held-out test episodes per run (≈ 2.5 min on 2 cores once installed, the runs trained as batched learners; `safelane reproduce --quick` is the
 # minutes-long version the tests use).
 demo: $(STAMP)
 	SDL_VIDEODRIVER=dummy $(BIN)/safelane reproduce --simulator fast --seeds 10 --episodes 200 \

@@ -38,6 +38,14 @@ import numpy as np
 
 from safelane.core.snapshot import DRIVER_FIELDS, RoadSnapshot
 from safelane.core.spaces import IDLE, LANE_LEFT, LANE_RIGHT, N_ACTIONS, SLOWER
+from safelane.safety.committed_compiled import (
+    car_arrays,
+    car_gaps_compiled,
+    car_sets_compiled,
+    ego_trajectories_compiled,
+    follower_bound_compiled,
+    plan_set_points_compiled,
+)
 from safelane.safety.committed_sets import (
     ESCAPE_TOLERANCE,
     MAX_SPEED,
@@ -112,14 +120,14 @@ class Plan:
                     self.frames - dyn.frames_per_decision)  # fmt: skip
 
 
-def plan_of(state: RoadState, dyn: Dynamics, ego_v: np.ndarray, action: int, hold: int) -> Plan:
-    """The :class:`Plan` of (``action``, ``hold``) in ``state``: its set-points decision by decision (``ego_v``: the
-    plan's speeds per frame, from which the SLOWER set-points follow as in :func:`ego_trajectories`)."""
-    ts = dyn.target_speeds
-    points = [float(action_targets(state, dyn)[action])]
+def plan_of(state: RoadState, dyn: Dynamics, set_points: np.ndarray, action: int, hold: int) -> Plan:
+    """The :class:`Plan` of (``action``, ``hold``) in ``state``: its set-points decision by decision, read from
+    ``set_points`` [m/s], the plan's set-point per frame (a row of :func:`plan_set_points`), up to the first 0 m/s
+    after the hold."""
     f = dyn.frames_per_decision
+    points = [float(set_points[0])]
     for d in range(1, dyn.horizon_decisions):
-        points.append(points[-1] if d <= hold else float(ts[max(int(speed_to_index(ego_v[d * f], ts)) - 1, 0)]))
+        points.append(float(set_points[d * f]))
         if points[-1] == 0.0 and d > hold:
             break
     occupied = tuple(action_lanes(state, dyn, action))
@@ -207,30 +215,30 @@ Lanes = list[tuple[int, float]]
 
 
 def verify_plans(
-    state: RoadState, dyn: Dynamics, sets: CarSets, reading: Reading = "sound"
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    state: RoadState, dyn: Dynamics, sets: CarSets, reading: Reading = "sound", engine: Engine = "numpy"
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """(5, holds) each plan's worst bumper-to-bumper gap [m] to every car's reachable occupancy over the horizon
-    (−inf: action unavailable, inf: no car in reach), and the ego's positions [m] and speeds [m/s], each
-    (5, holds, frames + 1) (:func:`plan_gaps` for one action)."""
-    ego_x, ego_v = ego_trajectories(state, dyn)
+    (−inf: action unavailable, inf: no car in reach), and the ego's positions [m], speeds [m/s] and set-points
+    [m/s] (:func:`plan_set_points`; NaN for an unavailable action), each (5, holds, frames + 1) (:func:`plan_gaps`
+    for one action). ``engine``: the numpy reference or its compiled kernels (the same bits)."""
+    compiled = engine == "compiled"
+    ego_x, ego_v = (ego_trajectories_compiled if compiled else ego_trajectories)(state, dyn)
     available = available_actions(state, dyn)
+    set_points = np.full_like(ego_v, np.nan)
+    for a in np.flatnonzero(available):
+        set_points[a] = (plan_set_points_compiled if compiled else plan_set_points)(state, dyn, ego_v[a], int(a))
     if not math.isfinite(dyn.ego_leave_time):  # too slow to leave the lane: no lane change (docs/safety.md §4)
         available = available & ~np.isin(np.arange(N_ACTIONS), (LANE_LEFT, LANE_RIGHT))
     worst = np.full((N_ACTIONS, MAX_HOLD_DECISIONS + 1), -np.inf)
+    cars = car_arrays(state, dyn) if compiled else None
     for a in np.flatnonzero(available):
-        lanes = action_lanes(state, dyn, int(a))
-        worst[a] = plan_gaps(
-            state,
-            dyn,
-            sets,
-            ego_x[a],
-            ego_v[a],
-            onsets(dyn, int(a)),
-            lanes,
-            reading,
-            ego_set=plan_set_points(state, dyn, ego_v[a], int(a)),
-        )
-    return worst, ego_x, ego_v
+        args = (state, dyn, sets, ego_x[a], ego_v[a], onsets(dyn, int(a)), action_lanes(state, dyn, int(a)), reading)
+        if compiled:
+            gaps = car_gaps_compiled(*args, ego_set=set_points[a], cars=cars)
+        else:
+            gaps = car_gaps(*args, ego_set=set_points[a])
+        worst[a] = gaps.min(axis=0) if gaps.shape[0] else np.inf
+    return worst, ego_x, ego_v, set_points
 
 
 def plan_gaps(
@@ -407,7 +415,8 @@ class CommittedFamily:
         """:meth:`evaluate` on a :class:`RoadState` (every car, ``vehicle``: their identities, kept from one decision
         to the next) with ``dyn.ego_leave_time`` set; ``uncertified``: the one-decision robust rule's verdict in this
         state (default: the numpy reference's)."""
-        sets = car_sets(state, dyn, vehicle)
+        compiled = self.engine == "compiled"
+        sets = (car_sets_compiled if compiled else car_sets)(state, dyn, vehicle)
         escaped = np.zeros(state.n, dtype=bool)
         unbraked = np.zeros(state.n, dtype=bool)
         older: CarSets | None = None
@@ -420,12 +429,12 @@ class CommittedFamily:
             escaped = escaped_cars(state, dyn, older, vehicle) | unbraked
             checked = int(np.isin(vehicle, older.vehicle).sum())
             sets = sets.intersect(older, ~escaped)
-        worst, ego_x, ego_v = verify_plans(state, dyn, sets, self.reading)
+        worst, ego_x, ego_v, set_points = verify_plans(state, dyn, sets, self.reading, self.engine)
         verified = worst >= dyn.margin  # (5, holds)
         available = available_actions(state, dyn)
         best = np.argmax(np.where(verified, worst, -np.inf), axis=1)
         plans: list[Plan | None] = [
-            plan_of(state, dyn, ego_v[a, best[a]], a, int(best[a])) if verified[a].any() else None
+            plan_of(state, dyn, set_points[a, best[a]], a, int(best[a])) if verified[a].any() else None
             for a in range(N_ACTIONS)
         ]
         lapse = forced = False
@@ -442,9 +451,9 @@ class CommittedFamily:
                 for v, (lane, high) in self.followers.items()
                 if v in rows and not escaped[rows[v]]
             }
-            gaps = car_gaps(state, dyn, sets, ego_x[a, k : k + 1], ego_v[a, k : k + 1], np.array([tail.onset]),
-                            list(tail.occupied), self.reading, tail.frames, followers,
-                            plan_set_points(state, dyn, ego_v[a], a)[k : k + 1])[:, 0]  # fmt: skip
+            gaps = (car_gaps_compiled if compiled else car_gaps)(
+                state, dyn, sets, ego_x[a, k : k + 1], ego_v[a, k : k + 1], np.array([tail.onset]),
+                list(tail.occupied), self.reading, tail.frames, followers, set_points[a, k : k + 1])[:, 0]  # fmt: skip
             gap = gaps.min() if gaps.size else np.inf
             # A lapse: the plan verified at the last decision no longer is (a plan kept on after one stays unverified);
             # the cars it fails on are those whose own gap to the tail is below the margin.
@@ -495,7 +504,7 @@ class CommittedFamily:
         if plan is None:
             self.followers = {}
         else:  # the follower bounds of this plan, inside those carried for the same plan (a nested law)
-            fresh = _followers_of(state, dyn, sets, vehicle, plan)
+            fresh = _followers_of(state, dyn, sets, vehicle, plan, self.engine)
             f = dyn.frames_per_decision
             for v, (lane, high) in self.followers.items() if same_plan else ():
                 shifted = np.concatenate([high[f:], np.full(f, np.inf)])
@@ -528,7 +537,9 @@ def _entered_held_lanes(state: RoadState, older: CarSets, sets: CarSets, vehicle
     return out
 
 
-def _followers_of(state: RoadState, dyn: Dynamics, sets: CarSets, vehicle: np.ndarray, plan: Plan) -> dict:
+def _followers_of(
+    state: RoadState, dyn: Dynamics, sets: CarSets, vehicle: np.ndarray, plan: Plan, engine: Engine = "numpy"
+) -> dict:
     """{snapshot index: (lane, highest position [m] per frame)} of the cars that follow the ego under ``plan``
     (:func:`plan_gaps`' follower law): the bound a lapse is traced against."""
     held = {state.ego_lane, state.ego_target_lane}
@@ -539,7 +550,8 @@ def _followers_of(state: RoadState, dyn: Dynamics, sets: CarSets, vehicle: np.nd
             continue
         own = state.lane_of(state.y, dyn.lanes_count, dyn.lane_width)
         for i in np.flatnonzero((state.x < state.ego_x) & (own == lane)):
-            bound = follower_bound(state, int(i), np.array([max(plan.onset + dyn.follower_reaction, 0.0)]), t)[0]
+            bound = (follower_bound_compiled if engine == "compiled" else follower_bound)(
+                state, int(i), np.array([max(plan.onset + dyn.follower_reaction, 0.0)]), t)[0]  # fmt: skip
             out[int(vehicle[i])] = (lane, np.minimum(bound, sets.x_hi[i]))
     return out
 

@@ -34,7 +34,7 @@ __all__ = [
     "ESCAPE_TOLERANCE", "LANE_CHANGES_BEGUN", "MAX_SPEED", "TURN_HEADING", "CarSets", "acceleration_law", "car_sets",
     "envelope", "escaped_cars", "fall", "lane_change_allowance", "lane_changes_allowed", "lane_crossing_time",
     "lane_entry_times", "lanes_now", "law_rise", "linear_set_point_bound", "occupied_lanes", "path_speed", "rise",
-    "rolling_back", "shortfall", "speed_bounds",
+    "rolling_back", "rows_in", "shortfall", "speed_bounds",
 ]  # fmt: skip
 
 
@@ -247,16 +247,24 @@ class CarSets:
     def intersect(self, older: CarSets, keep: np.ndarray) -> CarSets:
         """These sets intersected, row by row, with ``older`` (already shifted to now) for the rows ``keep``
         (cars still inside their older sets, matched by snapshot index)."""
-        rows = {int(v): r for r, v in enumerate(older.vehicle)}
+        rows = rows_in(older.vehicle, self.vehicle)
+        mine = np.flatnonzero((rows >= 0) & np.asarray(keep, dtype=bool))
+        theirs = rows[mine]
         out = {name: getattr(self, name).copy() for name in ("x_lo", "x_hi", "v_lo", "v_hi", "entry")}
-        for i, vehicle in enumerate(self.vehicle):
-            r = rows.get(int(vehicle))
-            if r is None or not keep[i]:
-                continue
-            for name, pick in (("x_lo", np.maximum), ("x_hi", np.minimum), ("v_lo", np.maximum),
-                               ("v_hi", np.minimum), ("entry", np.maximum)):  # fmt: skip
-                out[name][i] = pick(out[name][i], getattr(older, name)[r])
+        for name, pick in (("x_lo", np.maximum), ("x_hi", np.minimum), ("v_lo", np.maximum),
+                           ("v_hi", np.minimum), ("entry", np.maximum)):  # fmt: skip
+            out[name][mine] = pick(out[name][mine], getattr(older, name)[theirs])
         return CarSets(self.vehicle, **out, now=self.now)
+
+
+def rows_in(vehicles: np.ndarray, wanted: np.ndarray) -> np.ndarray:
+    """(len(wanted),) the row of each snapshot index of ``wanted`` among ``vehicles`` (−1: absent)."""
+    vehicles, wanted = np.asarray(vehicles, dtype=np.int64), np.asarray(wanted, dtype=np.int64)
+    if not vehicles.size or not wanted.size:
+        return np.full(wanted.size, -1, dtype=np.int64)
+    lookup = np.full(max(int(vehicles.max()), int(wanted.max())) + 1, -1, dtype=np.int64)
+    lookup[vehicles] = np.arange(vehicles.size)
+    return lookup[wanted]
 
 
 def car_sets(state: RoadState, dyn: Dynamics, vehicle: np.ndarray) -> CarSets:
@@ -280,19 +288,18 @@ def escaped_cars(state: RoadState, dyn: Dynamics, carried: CarSets, vehicle: np.
     """(cars,) bool: the cars of ``state`` outside the sets ``carried`` drew for them (already shifted to now):
     position along the road or speed along the path (:func:`path_speed`) outside the intervals at frame 0, or a
     lane its body overlaps entered earlier than allowed. A car without a carried set is inside."""
-    rows = {int(v): r for r, v in enumerate(carried.vehicle)}
-    occupied = occupied_lanes(state, dyn)
-    speed = path_speed(state)
-    out = np.zeros(state.n, dtype=bool)
+    rows = rows_in(carried.vehicle, vehicle)
+    mine = np.flatnonzero(rows >= 0)
+    r = rows[mine]
+    occupied = occupied_lanes(state, dyn)[mine]
+    speed = path_speed(state)[mine]
+    x = state.x[mine]
     tol = ESCAPE_TOLERANCE
-    for i, v in enumerate(vehicle):
-        r = rows.get(int(v))
-        if r is None:
-            continue
-        outside = not (carried.x_lo[r, 0] - tol <= state.x[i] <= carried.x_hi[r, 0] + tol)
-        outside |= not (carried.v_lo[r, 0] - tol <= speed[i] <= carried.v_hi[r, 0] + tol)
-        outside |= bool((carried.entry[r][occupied[i]] > tol).any())
-        out[i] = outside
+    inside = (carried.x_lo[r, 0] - tol <= x) & (x <= carried.x_hi[r, 0] + tol)
+    inside &= (carried.v_lo[r, 0] - tol <= speed) & (speed <= carried.v_hi[r, 0] + tol)
+    inside &= ~((carried.entry[r] > tol) & occupied).any(axis=1)
+    out = np.zeros(state.n, dtype=bool)
+    out[mine] = ~inside
     return out
 
 
@@ -307,8 +314,8 @@ def rolling_back(
     the driver model, not bounded."""
     out = np.asarray(escaped, dtype=bool) & (path_speed(state) < 0.0)
     if carried is not None and vehicle is not None:
-        rows = {int(v): r for r, v in enumerate(carried.vehicle)}
-        for i in np.flatnonzero(np.asarray(escaped, dtype=bool) & ~out):
-            r = rows.get(int(vehicle[i]))
-            out[i] = r is not None and carried.v_lo[r, 0] < 0.0 and state.x[i] < carried.x_lo[r, 0]
+        rows = rows_in(carried.vehicle, vehicle)
+        rest = np.flatnonzero(np.asarray(escaped, dtype=bool) & ~out & (rows >= 0))
+        r = rows[rest]
+        out[rest] = (carried.v_lo[r, 0] < 0.0) & (state.x[rest] < carried.x_lo[r, 0])
     return out

@@ -1,0 +1,414 @@
+"""The committed shield's arithmetic compiled: the reachable sets, the ego's plans and every car's worst gap to
+them, as numba kernels bit-identical to the numpy reference (:mod:`safelane.safety.committed`,
+:mod:`safelane.safety.committed_sets`).
+
+Each kernel follows its reference function operation by operation and in the same order, so the IEEE-754
+arithmetic (no fastmath) rounds the same way (the conventions of :mod:`safelane.safety.compiled`: ``np.minimum`` /
+``np.maximum`` propagate NaN, ``x**2`` on arrays is ``x*x``, ``np.power`` and ``np.sqrt`` are libm's). What is
+per car and cheap (the lanes a car is in, its entry times, its speed bounds, the turning shortfall) stays numpy
+and is shared by both engines; the loops over frames, plans and cars are here. ``tests/test_committed_engines.py``
+checks every kernel against its reference on hypothesis states and both simulators' episodes.
+
+Units: metres, m/s, seconds.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import numpy as np
+from numba import njit
+
+from safelane.core.kernel_cache import drop_stale_kernel_cache
+from safelane.safety import compiled_parts
+from safelane.safety.committed_sets import (
+    CarSets,
+    acceleration_law,
+    lane_entry_times,
+    lanes_now,
+    linear_set_point_bound,
+    path_speed,
+    shortfall,
+    speed_bounds,
+)
+from safelane.safety.compiled_parts import N_ACTIONS, N_FALLBACKS, nmax, nmin, speed_index
+from safelane.safety.ego import action_targets
+from safelane.safety.world import Dynamics, RoadState
+
+drop_stale_kernel_cache(__file__, (compiled_parts.__file__,))
+
+_BIG = np.finfo(np.float64).max  # np.nan_to_num's image of +inf
+
+
+@njit(cache=True, inline="always")
+def _nan_to_num(z: float) -> float:
+    """``np.nan_to_num`` of one number."""
+    if z != z:
+        return 0.0
+    if z == np.inf:
+        return _BIG
+    if z == -np.inf:
+        return -_BIG
+    return z
+
+
+@njit(cache=True, inline="always")
+def _rise_distance(v: float, a: float, v_max: float, t: float) -> float:
+    """``committed_sets.rise``'s distance [m] for one time."""
+    t_top = nmax(v_max - v, 0.0) / nmax(a, 1e-9)
+    tt = nmin(t, t_top)
+    return v * tt + 0.5 * a * tt * tt + v_max * nmax(t - t_top, 0.0)
+
+
+@njit(cache=True, inline="always")
+def _fall_distance(v: float, b: float, v_min: float, t: float) -> float:
+    """``committed_sets.fall``'s distance [m] for one time."""
+    t_low = nmax(v - v_min, 0.0) / nmax(b, 1e-9)
+    tt = nmin(t, t_low)
+    return v * tt - 0.5 * b * tt * tt + v_min * nmax(t - t_low, 0.0)
+
+
+@njit(cache=True, error_model="numpy")
+def sets_kernel(
+    x: np.ndarray, v: np.ndarray, a: np.ndarray, b: np.ndarray, v_min: np.ndarray, v_max: np.ndarray,
+    allowance: np.ndarray, t: np.ndarray, law_rows: np.ndarray, law_k: np.ndarray, law_acc: np.ndarray,
+    law_delta: np.ndarray, target: np.ndarray, crashed: np.ndarray, dt: float,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:  # fmt: skip
+    """``committed_sets.car_sets``' longitudinal sets: :func:`envelope` with the turning ``allowance``, capped by
+    :func:`law_rise` where a law applies (``law_rows``; gains as :func:`acceleration_law` returns them), a crashed
+    car a wall. Returns (x_lo, x_hi, v_lo, v_hi), each (cars, frames)."""
+    n, m = x.shape[0], t.shape[0]
+    x_lo, x_hi = np.empty((n, m)), np.empty((n, m))
+    v_lo, v_hi = np.empty((n, m)), np.empty((n, m))
+    for i in range(n):
+        vi, ai, bi, lo, hi = v[i], a[i], b[i], v_min[i], v_max[i]
+        # The law's bound (law_rise): highway-env's explicit Euler, the acceleration at most min(a, max(law, 0)).
+        safe_target = target[i] if (law_rows[i] and np.isfinite(target[i]) and target[i] > 0.0) else 1.0
+        vk = vi if law_rows[i] else 0.0
+        xk = 0.0
+        linear = np.isfinite(law_k[i])
+        k = _nan_to_num(law_k[i])
+        for j in range(m):
+            tj = t[j]
+            if j > 0 and law_rows[i]:
+                linear_law = k * (target[i] - vk)
+                idm_law = law_acc[i] * (1.0 - np.power(nmax(vk, 0.0) / safe_target, law_delta[i]))
+                law = linear_law if linear else idm_law
+                xk = xk + dt * nmax(vk, 0.0)
+                vk = vk + dt * nmin(ai, nmax(_nan_to_num(law), 0.0))
+            # envelope: the speeds' bang-bang bounds, the forward and backward parts of the positions.
+            v_up = nmin(vi + ai * tj, hi)
+            v_down = nmax(vi - bi * tj, lo)
+            d_lo = _fall_distance(vi, bi, lo, tj)
+            t0 = nmax(-vi / nmax(ai, 1e-9), 0.0)
+            d_hi = _rise_distance(nmax(vi, 0.0), ai, nmax(hi, 0.0), nmax(tj - t0, 0.0))
+            t0b = nmax(vi / nmax(bi, 1e-9), 0.0)
+            back = _fall_distance(nmin(vi, 0.0), bi, nmin(lo, 0.0), nmax(tj - t0b, 0.0))
+            d_lo = nmax(d_lo - allowance[i, j], back)
+            xl, xh = x[i] + d_lo, x[i] + d_hi
+            if law_rows[i]:
+                xh = nmin(xh, x[i] + xk)
+                v_up = nmin(v_up, vk)
+            if crashed[i]:
+                xl, xh, v_down, v_up = x[i], x[i], 0.0, 0.0
+            x_lo[i, j], x_hi[i, j], v_lo[i, j], v_hi[i, j] = xl, xh, v_down, v_up
+    return x_lo, x_hi, v_lo, v_hi
+
+
+@njit(cache=True, error_model="numpy")
+def ego_paths(
+    ego_x: float, ego_speed: float, targets: np.ndarray, ts: np.ndarray, powers: np.ndarray, frames: int,
+    horizon: int, frame_dt: float, ego_kp: float,
+) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
+    """``ego.ego_trajectories``: the ego's positions [m] and speeds [m/s], each (5, holds, frames + 1), for the
+    action set-points ``targets`` (``ego.action_targets``); ``powers``: the P-controller's decay powers."""
+    n_t = horizon * frames + 1
+    xs = np.empty((N_ACTIONS, N_FALLBACKS, n_t))
+    vs = np.empty((N_ACTIONS, N_FALLBACKS, n_t))
+    for a in range(N_ACTIONS):
+        for k in range(N_FALLBACKS):
+            v, x, tg = ego_speed, ego_x, targets[a]
+            for d in range(horizon):
+                base = d * frames
+                if d > k:  # the hold is over: SLOWER from the speed reached
+                    tg = ts[max(speed_index(v, ts) - 1, 0)]
+                dv = v - tg
+                # The decision's frame 0 overwrites the last one's, as the reference's slices do.
+                xs[a, k, base] = 0.0 * frame_dt + x
+                vp = dv * powers[0] + tg
+                vs[a, k, base] = vp
+                cov = 0.0
+                for j in range(1, frames + 1):
+                    cov = vp if j == 1 else cov + vp  # np.cumsum: sequential
+                    vp = dv * powers[j] + tg
+                    xs[a, k, base + j] = cov * frame_dt + x
+                    vs[a, k, base + j] = vp
+                x, v = xs[a, k, base + frames], vp
+            xs[a, k, n_t - 1] += nmax(v - 0.0, 0.0) / ego_kp  # the exponential tail beyond the horizon
+    return xs, vs
+
+
+@njit(cache=True, error_model="numpy")
+def set_points_kernel(ego_v: np.ndarray, first: float, ts: np.ndarray, frames: int) -> np.ndarray:
+    """``committed.plan_set_points`` of one action (``first``: its set-point [m/s]; ``ego_v``: (holds, frames + 1)
+    its speeds)."""
+    holds, n_t = ego_v.shape
+    out = np.empty((holds, n_t))
+    for hold in range(holds):
+        point = first
+        for d in range(-(-n_t // frames)):
+            if d > hold:
+                point = ts[max(speed_index(ego_v[hold, d * frames], ts) - 1, 0)]
+            for j in range(d * frames, min((d + 1) * frames, n_t)):
+                out[hold, j] = point
+    return out
+
+
+@njit(cache=True, inline="always")
+def _follower_high(
+    x: float, speed: float, a: float, b: float, v_min: float, v_max: float, react: float, tj: float
+) -> float:  # fmt: skip
+    """``committed.follower_bound`` at one time ``tj`` [s] for one plan's reaction time ``react`` [s]."""
+    v0 = nmax(speed, 0.0)
+    if tj <= react:
+        return x + _rise_distance(v0, a, v_max, nmin(tj, react))
+    d_r = _rise_distance(v0, a, v_max, react)
+    v_r = nmin(v0 + a * react, v_max)
+    return x + (d_r + _fall_distance(v_r, b, nmin(v_min, 0.0), nmax(tj - react, 0.0)))
+
+
+@njit(cache=True, error_model="numpy")
+def follower_kernel(
+    x: float, speed: float, a: float, b: float, v_min: float, v_max: float, react: np.ndarray, t: np.ndarray
+) -> np.ndarray:  # fmt: skip
+    """``committed.follower_bound``: (holds, frames) [m] the highest position of a follower reacting at ``react``."""
+    out = np.empty((react.shape[0], t.shape[0]))
+    for h in range(react.shape[0]):
+        for j in range(t.shape[0]):
+            out[h, j] = _follower_high(x, speed, a, b, v_min, v_max, react[h], t[j])
+    return out
+
+
+@njit(cache=True, error_model="numpy")
+def _permit_entry(
+    i: int, x_hi: np.ndarray, x_lo: np.ndarray, v_lo: np.ndarray, v_hi: np.ndarray, ego_x: np.ndarray,
+    ego_v: np.ndarray, ego_set: np.ndarray, has_set: bool, top_speed: float, speed_limit: float,
+    comfort_acc: np.ndarray, comfort_dec: np.ndarray, delta: np.ndarray, wanted: np.ndarray, time_wanted: np.ndarray,
+    max_braking: np.ndarray, k0: np.ndarray, k1: np.ndarray, k2: np.ndarray, t: np.ndarray, cut_in_time: float,
+    out: np.ndarray,
+) -> None:  # fmt: skip
+    """``committed._permit_entry`` of car ``i``: ``out`` (holds,) [s] the first time MOBIL's criterion could let it
+    in front of the ego on each plan (with ``_linear_criterion`` for linear drivers), plus the cut-in time."""
+    acc = comfort_acc[i]
+    ab = -comfort_acc[i] * comfort_dec[i]
+    target = max(speed_limit, 1e-2)
+    linear = np.isfinite(k0[i])
+    two_root = 2 * np.sqrt(ab)
+    for h in range(ego_x.shape[0]):
+        first = np.inf
+        for j in range(t.shape[0]):
+            gap = x_hi[i, j] - ego_x[h, j]
+            ev = nmax(ego_v[h, j], 0.0)
+            if linear:
+                aim = ego_set[h, j] if has_set else top_speed
+                d_safe = wanted[i] + ev * time_wanted[i]
+                pred = k0[i] * (aim - ev) + k1[i] * nmin(v_hi[i, j] - ev, 0.0) + k2[i] * nmin(gap - d_safe, 0.0)
+                ok = pred >= -max_braking[i]
+            else:
+                free = acc * (1 - np.power(ev / target, delta[i]))
+                base = wanted[i] + ev * time_wanted[i]
+                d_fast = base + ev * (ev - nmax(v_hi[i, j], 0.0)) / two_root
+                d_slow = base + ev * (ev - nmin(v_lo[i, j], 0.0)) / two_root
+                lo, hi = nmin(d_fast, d_slow), nmax(d_fast, d_slow)
+                least = lo if lo > 0.0 else (-hi if hi < 0.0 else 0.0)
+                d = nmax(gap, 1e-2)
+                r = least / d
+                ok = free - acc * (r * r) >= -max_braking[i]
+            ok = ok and gap > 0.0
+            ok = ok or x_lo[i, j] < ego_x[h, j]
+            if ok:
+                first = t[j]
+                break
+        out[h] = first + cut_in_time
+
+
+@njit(cache=True, error_model="numpy")
+def car_gaps_kernel(
+    x_lo: np.ndarray, x_hi: np.ndarray, v_lo: np.ndarray, v_hi: np.ndarray, entry: np.ndarray, now: np.ndarray,
+    ego_x: np.ndarray, ego_v: np.ndarray, onset: np.ndarray, lane_ids: np.ndarray, lane_until: np.ndarray,
+    held_a: int, held_b: int, responsibility: bool, last_frame: int, carried_lane: np.ndarray,
+    carried_high: np.ndarray, ego_set: np.ndarray, has_set: bool,
+    x: np.ndarray, half: np.ndarray, ahead: np.ndarray, mobil: np.ndarray, own_lane: np.ndarray,
+    speed: np.ndarray, accel_max: np.ndarray, brake_max: np.ndarray, fv_min: np.ndarray, fv_max: np.ndarray,
+    comfort_acc: np.ndarray, comfort_dec: np.ndarray, delta: np.ndarray, wanted: np.ndarray, time_wanted: np.ndarray,
+    max_braking: np.ndarray, k0: np.ndarray, k1: np.ndarray, k2: np.ndarray, top_speed: float, speed_limit: float,
+    t: np.ndarray, cut_in_time: float, follower_reaction: float,
+) -> np.ndarray:  # fmt: skip
+    """``committed.car_gaps``: (cars, holds) each car's worst bumper-to-bumper gap [m] to the plans (the
+    reference documents the arguments; lanes as ``lane_ids``/``lane_until``, the carried follower bounds as
+    ``carried_lane`` (−1: none) and ``carried_high``, ``ego_set`` read when ``has_set``; per car: ``half`` the
+    half-lengths' sum, ``own_lane`` its lane, ``speed`` along its path, ``fv_min``/``fv_max`` its follower speed
+    bounds)."""
+    n, holds, m = x.shape[0], ego_x.shape[0], t.shape[0]
+    worst = np.full((n, holds), np.inf)
+    t_last = t[min(max(last_frame, 0), m - 1)]
+    entry_h = np.empty(holds)
+    permit = np.empty(holds)
+    react = np.empty(holds)
+    for h in range(holds):
+        react[h] = nmax(onset[h] + follower_reaction, 0.0)  # a past reaction: braking from now
+    for li in range(lane_ids.shape[0]):
+        lane, until = lane_ids[li], lane_until[li]
+        held_lane = lane in (held_a, held_b)
+        for i in range(n):
+            for h in range(holds):
+                entry_h[h] = entry[i, lane]
+            if held_lane and ahead[i] and mobil[i] and not now[i, lane]:
+                _permit_entry(i, x_hi, x_lo, v_lo, v_hi, ego_x, ego_v, ego_set, has_set, top_speed, speed_limit,
+                              comfort_acc, comfort_dec, delta, wanted, time_wanted, max_braking, k0, k1, k2, t,
+                              cut_in_time, permit)  # fmt: skip
+                for h in range(holds):
+                    entry_h[h] = nmax(entry_h[h], permit[h])
+            count = False
+            for h in range(holds):
+                count = count or np.isfinite(entry_h[h])
+            if held_lane and responsibility:  # cut-ins and cars behind: theirs to avoid the ego
+                count = count and ahead[i] and now[i, lane]
+            if not count:
+                continue
+            following = held_lane and not ahead[i] and own_lane[i] == lane
+            carried = carried_lane[i] == lane
+            for h in range(holds):
+                low = np.inf
+                for j in range(m):
+                    if not (t[j] >= entry_h[h] and t[j] <= t_last and t[j] <= until):
+                        continue
+                    high = x_hi[i, j]
+                    if following:
+                        high = nmin(high, _follower_high(x[i], speed[i], accel_max[i], brake_max[i], fv_min[i],
+                                                         fv_max[i], react[h], t[j]))  # fmt: skip
+                    if carried:
+                        high = nmin(high, carried_high[i, j])
+                    gap = nmax(x_lo[i, j] - ego_x[h, j] - half[i], ego_x[h, j] - high - half[i])
+                    low = nmin(low, gap)
+                worst[i, h] = nmin(worst[i, h], low)
+    return worst
+
+
+# --------------------------------------------------------------------------------------------
+# The Python entries: the reference functions' signatures.
+# --------------------------------------------------------------------------------------------
+
+
+def car_sets_compiled(state: RoadState, dyn: Dynamics, vehicle: np.ndarray) -> CarSets:
+    """:func:`safelane.safety.committed_sets.car_sets`, the frame loops compiled (the same bits)."""
+    t = dyn.times
+    unbounded = np.isfinite(state.linear_speed_gain) & ~linear_set_point_bound(state)
+    v = path_speed(state)
+    v_min, v_max = speed_bounds(v, state.target_speed, unbounded)
+    rows, k, acc, delta = acceleration_law(state, dyn.frame_dt)
+    x_lo, x_hi, v_lo, v_hi = sets_kernel(
+        _f(state.x), _f(v), _f(state.accel_max), _f(state.brake_max), _f(v_min), _f(v_max),
+        np.ascontiguousarray(shortfall(state, dyn, t), dtype=float), t, np.asarray(rows, dtype=np.bool_), _f(k),
+        _f(acc), _f(delta), _f(state.target_speed), np.asarray(state.crashed, dtype=np.bool_), float(dyn.frame_dt),
+    )  # fmt: skip
+    return CarSets(np.asarray(vehicle), x_lo, x_hi, v_lo, v_hi, lane_entry_times(state, dyn), lanes_now(state, dyn))
+
+
+def ego_trajectories_compiled(state: RoadState, dyn: Dynamics) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`safelane.safety.ego.ego_trajectories`, compiled (the same bits)."""
+    decay = 1.0 - dyn.ego_kp * dyn.frame_dt
+    powers = decay ** np.arange(dyn.frames_per_decision + 1)
+    return ego_paths(float(state.ego_x), float(state.ego_speed), action_targets(state, dyn),
+                     np.asarray(dyn.target_speeds, dtype=float), powers, dyn.frames_per_decision,
+                     dyn.horizon_decisions, float(dyn.frame_dt), float(dyn.ego_kp))  # fmt: skip
+
+
+def plan_set_points_compiled(state: RoadState, dyn: Dynamics, ego_v: np.ndarray, action: int) -> np.ndarray:
+    """:func:`safelane.safety.committed.plan_set_points`, compiled (the same bits)."""
+    return set_points_kernel(np.ascontiguousarray(ego_v), float(action_targets(state, dyn)[action]),
+                             np.asarray(dyn.target_speeds, dtype=float), dyn.frames_per_decision)  # fmt: skip
+
+
+class CarArrays(NamedTuple):
+    """What :func:`car_gaps_compiled` reads of a state's cars, computed once per state."""
+
+    x: np.ndarray
+    half: np.ndarray
+    ahead: np.ndarray
+    mobil: np.ndarray
+    own_lane: np.ndarray
+    speed: np.ndarray
+    accel_max: np.ndarray
+    brake_max: np.ndarray
+    fv_min: np.ndarray
+    fv_max: np.ndarray
+    comfort_acc: np.ndarray
+    comfort_dec: np.ndarray
+    delta: np.ndarray
+    wanted: np.ndarray
+    time_wanted: np.ndarray
+    max_braking: np.ndarray
+    k0: np.ndarray
+    k1: np.ndarray
+    k2: np.ndarray
+
+
+def car_arrays(state: RoadState, dyn: Dynamics) -> CarArrays:
+    """The per-car inputs of :func:`car_gaps_compiled` (as :func:`safelane.safety.committed.car_gaps` derives
+    them)."""
+    crashed = np.asarray(state.crashed, dtype=bool)
+    mobil = (~np.isfinite(state.linear_speed_gain) | linear_set_point_bound(state)) & state.can_change_lane
+    mobil &= ~crashed & np.isfinite(state.max_braking_imposed)
+    speed = path_speed(state)
+    fv_min, fv_max = speed_bounds(speed, state.target_speed, np.isfinite(state.linear_speed_gain))
+    return CarArrays(
+        _f(state.x), _f(0.5 * (state.length + state.ego_length)), np.asarray(state.x >= state.ego_x),
+        np.asarray(mobil, dtype=np.bool_), state.lane_of(state.y, dyn.lanes_count, dyn.lane_width).astype(np.int64),
+        _f(speed), _f(state.accel_max), _f(state.brake_max), _f(fv_min), _f(fv_max), _f(state.idm_comfort_acc),
+        _f(state.idm_comfort_dec), _f(state.idm_delta), _f(state.idm_distance_wanted), _f(state.idm_time_wanted),
+        _f(state.max_braking_imposed), _f(state.linear_speed_gain), _f(state.linear_speed_difference_gain),
+        _f(state.linear_distance_gain),
+    )  # fmt: skip
+
+
+def car_gaps_compiled(
+    state: RoadState, dyn: Dynamics, sets: CarSets, ego_x: np.ndarray, ego_v: np.ndarray, onset: np.ndarray,
+    lanes: list[tuple[int, float]], reading: str = "sound", until_frame: int | None = None,
+    carried_followers: dict[int, tuple[int, np.ndarray]] | None = None, ego_set: np.ndarray | None = None,
+    cars: CarArrays | None = None,
+) -> np.ndarray:  # fmt: skip
+    """:func:`safelane.safety.committed.car_gaps`, compiled (the same bits); ``cars``: :func:`car_arrays` of
+    ``state`` when already computed."""
+    cars = car_arrays(state, dyn) if cars is None else cars
+    t = dyn.times
+    n = state.n
+    carried_lane = np.full(n, -1, dtype=np.int64)
+    carried_high = np.empty((n if carried_followers else 0, t.size))
+    for row, (lane, high) in (carried_followers or {}).items():
+        carried_lane[row], carried_high[row] = lane, high
+    lane_ids = np.array([lane for lane, _ in lanes], dtype=np.int64)
+    lane_until = np.array([until for _, until in lanes], dtype=float)
+    has_set = ego_set is not None
+    return car_gaps_kernel(
+        sets.x_lo, sets.x_hi, sets.v_lo, sets.v_hi, sets.entry, np.asarray(sets.now, dtype=np.bool_),
+        np.ascontiguousarray(ego_x), np.ascontiguousarray(ego_v), _f(onset), lane_ids, lane_until,
+        int(state.ego_lane), int(state.ego_target_lane), reading == "responsibility",
+        t.size - 1 if until_frame is None else int(until_frame), carried_lane, carried_high,
+        np.ascontiguousarray(ego_set) if has_set else np.empty((0, 0)), has_set, *cars,
+        float(max(dyn.target_speeds)), float(state.speed_limit), t, float(dyn.cut_in_time),
+        float(dyn.follower_reaction),
+    )  # fmt: skip
+
+
+def follower_bound_compiled(state: RoadState, i: int, react: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """:func:`safelane.safety.committed.follower_bound`, compiled (the same bits)."""
+    speed = path_speed(state)[i : i + 1]
+    v_min, v_max = speed_bounds(speed, state.target_speed[i : i + 1], np.isfinite(state.linear_speed_gain[i : i + 1]))
+    return follower_kernel(float(state.x[i]), float(speed[0]), float(state.accel_max[i]), float(state.brake_max[i]),
+                           float(v_min[0]), float(v_max[0]), _f(react), t)  # fmt: skip
+
+
+def _f(a: np.ndarray | float) -> np.ndarray:
+    """``a`` as a contiguous float64 array (the kernels' one signature)."""
+    return np.ascontiguousarray(a, dtype=np.float64)

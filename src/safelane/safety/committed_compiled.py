@@ -31,13 +31,26 @@ from safelane.safety.committed_sets import (
     shortfall,
     speed_bounds,
 )
-from safelane.safety.compiled_parts import N_ACTIONS, N_FALLBACKS, nmax, nmin, speed_index
+from safelane.safety.compiled_parts import N_ACTIONS, N_FALLBACKS, speed_index
 from safelane.safety.ego import action_targets
 from safelane.safety.world import Dynamics, RoadState
 
 drop_stale_kernel_cache(__file__, (compiled_parts.__file__,))
 
 _BIG = np.finfo(np.float64).max  # np.nan_to_num's image of +inf
+
+
+@njit(cache=True, inline="always")
+def nmin(a: float, b: float) -> float:
+    """``np.minimum(a, b)`` to the bit: NaN if either is, and ``b`` when they compare equal (numpy's loops return
+    the second of −0.0 and 0.0)."""
+    return a if (a < b or a != a) else b
+
+
+@njit(cache=True, inline="always")
+def nmax(a: float, b: float) -> float:
+    """``np.maximum(a, b)`` to the bit (:func:`nmin`'s conventions)."""
+    return a if (a > b or a != a) else b
 
 
 @njit(cache=True, inline="always")
@@ -412,3 +425,20 @@ def follower_bound_compiled(state: RoadState, i: int, react: np.ndarray, t: np.n
 def _f(a: np.ndarray | float) -> np.ndarray:
     """``a`` as a contiguous float64 array (the kernels' one signature)."""
     return np.ascontiguousarray(a, dtype=np.float64)
+
+
+def permit_entry_compiled(
+    state: RoadState, dyn: Dynamics, sets: CarSets, rows: np.ndarray, ego_x: np.ndarray, ego_v: np.ndarray,
+    ego_set: np.ndarray | None = None,
+) -> np.ndarray:  # fmt: skip
+    """:func:`safelane.safety.committed._permit_entry` (rows, holds) [s], compiled (the same bits)."""
+    cars = car_arrays(state, dyn)
+    out = np.empty((len(rows), ego_x.shape[0]))
+    has_set = ego_set is not None
+    for r, i in enumerate(rows):
+        _permit_entry(int(i), sets.x_hi, sets.x_lo, sets.v_lo, sets.v_hi, np.ascontiguousarray(ego_x),
+                      np.ascontiguousarray(ego_v), np.ascontiguousarray(ego_set) if has_set else np.empty((0, 0)),
+                      has_set, float(max(dyn.target_speeds)), float(state.speed_limit), cars.comfort_acc,
+                      cars.comfort_dec, cars.delta, cars.wanted, cars.time_wanted, cars.max_braking, cars.k0, cars.k1,
+                      cars.k2, dyn.times, float(dyn.cut_in_time), out[r])  # fmt: skip
+    return out

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from safelane.running.bench import mask_cost_figures
+from safelane.running.bench import committed_mask_figures, mask_cost_figures
 
 
 def test_mask_cost_figures_report_the_tail_the_median_hides() -> None:
@@ -23,3 +23,20 @@ def test_mask_cost_figures_report_the_tail_the_median_hides() -> None:
 def test_mask_cost_figures_without_timings_is_an_error() -> None:
     with pytest.raises(ValueError, match="mask_us"):
         mask_cost_figures([])
+
+
+def test_committed_mask_is_timed_beside_the_robust_one_on_the_same_states() -> None:
+    figures = committed_mask_figures(episodes=1, seed=3)
+    for who in ("committed", "committed_robust"):
+        median, mean, p99 = (figures[f"{who}_mask_us_{stat}_fast"] for stat in ("median", "mean", "p99"))
+        assert 0 < median <= p99 and mean > 0
+    assert figures["committed_mask_ratio_fast"] == pytest.approx(
+        figures["committed_mask_us_mean_fast"] / figures["committed_robust_mask_us_mean_fast"]
+    )
+    assert 1 <= figures["committed_mask_decisions"] <= 40  # one episode of the fast preset: 40 s at 1 decision/s
+    assert figures["committed_reading"] == "responsibility" and figures["committed_engine"] in ("compiled", "numpy")
+
+
+def test_committed_mask_figures_need_an_episode() -> None:
+    with pytest.raises(ValueError, match="episodes"):
+        committed_mask_figures(episodes=0)

@@ -62,3 +62,12 @@ def test_with_regressions_names_its_baseline() -> None:
 def test_relative_spread() -> None:
     assert relative_spread(np.array([90.0, 100.0, 110.0])) == pytest.approx(0.2)
     assert relative_spread(np.array([5.0])) == 0.0
+
+
+def test_the_committed_mask_cost_counts_only_against_a_baseline_that_has_it() -> None:
+    run = {**measured(), "committed_mask_us_mean_fast": 5_000.0}
+    run["noise"] = {**run["noise"], "committed_mask_us_mean_fast": 0.05}
+    assert regressions(run, PUBLISHED) == []  # the published run predates the figure: no regression
+    (found,) = regressions(run, {**PUBLISHED, "committed_mask_us_mean_fast": 50.0})
+    assert found["figure"] == "committed_mask_us_mean_fast" and found["change"] == pytest.approx(99.0)
+    assert regressions(run, {**PUBLISHED, "committed_mask_us_mean_fast": 6_000.0}) == []  # cheaper now

@@ -216,6 +216,13 @@ def test_bench_json(tmp_path: Path) -> None:
     )
     assert 0 < out["shield_mask_us_median_fast"] <= out["shield_mask_us_p99_fast"]
     assert out["shield_mask_us_mean_fast"] > 0
+    # the committed mode's decision beside the robust mask's, on the same states
+    for who in ("committed", "committed_robust"):
+        assert 0 < out[f"{who}_mask_us_median_fast"] <= out[f"{who}_mask_us_p99_fast"]
+    assert out["committed_mask_ratio_fast"] == pytest.approx(
+        out["committed_mask_us_mean_fast"] / out["committed_robust_mask_us_mean_fast"]
+    )
+    assert out["committed_mask_decisions"] >= 1 and out["committed_reading"] == "responsibility"
     assert set(out["fast_batched_decisions_per_s"]) == {"1", "16", "64", "256"}
     assert all(rate > 0 for rate in out["fast_batched_decisions_per_s"].values())
     for n, rate in out["fast_batched_decisions_per_s"].items():

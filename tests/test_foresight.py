@@ -105,11 +105,11 @@ def test_ceiling_table_writes_cells_and_resumes(tmp_path: Path) -> None:
     out = tmp_path / "ceiling"
     table = ceiling_table(cfg, [1], 2, 7, out, horizon=2.0, beam=2, chunk=1, workers=1)
     rows = table["rates"]["1"]
-    assert set(rows) == {"foresight", "foresight_nominal", "foresight_robust", "probe_robust"}
+    assert set(rows) == {"foresight", "foresight_nominal", "foresight_robust", "probe_robust", "foresight_committed"}
     assert all(r["episodes"] == 2 for r in rows.values())
     assert rows["foresight_robust"]["shield_intervention_rate"] == 0.0  # the planner respects its mask
     cells = sorted((out / "cells").glob("*.json"))
-    assert len(cells) == 8
+    assert len(cells) == 10
     stamps = {p.name: p.stat().st_mtime_ns for p in cells}
     cells[0].unlink()  # as if killed before that chunk finished
     again = ceiling_table(cfg, [1], 2, 7, out, horizon=2.0, beam=2, chunk=1, workers=1)
@@ -136,6 +136,7 @@ def _same_but_wall(a: dict, b: dict) -> bool:
         (["--agent", "one=runs/x"], "--agent"),
         (["--rates", "1", "--agent", "2=runs/x"], "--agent"),
         (["--episodes", "0"], "--episodes"),
+        (["--rows", "foresight,committed"], "--rows"),
     ],
 )
 def test_ceiling_bad_input_is_one_line(args: list[str], needle: str, tmp_path: Path) -> None:

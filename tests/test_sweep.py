@@ -365,3 +365,34 @@ def test_a_killed_tpe_sweep_resumes_without_repeating_or_losing_rows(
     out = tmp_path / "out"
     kill_after_first_trial_and_rerun(spec_path, out)
     assert rows_of(out) == rows_of(full)
+
+
+def test_a_committed_shield_sweep_reports_plan_forced_decisions_and_lapses_beside_the_fallback_rate(
+    tmp_path: Path,
+) -> None:
+    committed = ["shield.mode=committed", "shield.reading=responsibility", "shield.engine=numpy"]
+    spec = load_sweep_spec(
+        write_spec(tmp_path / "s.yaml", sets=[*TINY, *committed], space={"agent.lr": {"grid": [0.001]}})
+    )
+    out = tmp_path / "out"
+    summary = run_sweep(spec, out, workers=1)
+    (row,) = rows_of(out)
+    assert row["status"] == "ok"
+    for key in ("plan_forced_rate", "lapses", "lapses_in_model", "fallback_rate"):
+        assert row[key] != "", key
+    assert 0 <= float(row["plan_forced_rate"]) <= 1 and 0 <= float(row["lapses_in_model"]) <= float(row["lapses"])
+    pooled = summary["trials"][0]["metrics"]
+    assert {"plan_forced_rate", "lapses", "lapses_in_model", "fallback_rate"} <= set(pooled)
+    assert pooled["plan_forced_rate"] == float(row["plan_forced_rate"])
+    assert "plan-forced rate" in (out / "summary.md").read_text()
+
+
+def test_a_sweep_under_another_shield_has_no_committed_columns(tmp_path: Path) -> None:
+    from safelane.running.sweeps.trials import pooled_metrics, summarize_trials, summary_markdown
+
+    spec = load_sweep_spec(write_spec(tmp_path / "s.yaml", space={"agent.lr": {"grid": [0.001]}}))
+    ok = {"trial": 0, "seed": 0, "agent.lr": 0.001, "status": "ok", "mean_speed": 20.0, "collision_rate": 0.0,
+          "fallback_rate": 0.01, "collisions": 0.0, "test_episodes": 1.0}  # fmt: skip
+    assert "plan_forced_rate" not in pooled_metrics([ok])
+    text = summary_markdown(spec, summarize_trials(spec, [ok]))
+    assert "plan-forced" not in text and "| t000 **best** | 0.001 | 20.000" in text

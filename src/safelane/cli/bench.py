@@ -42,6 +42,13 @@ BENCH_UNITS = {
     "shield_mask_us_median_fast": "µs",
     "shield_mask_us_mean_fast": "µs",
     "shield_mask_us_p99_fast": "µs",
+    **{
+        f"{who}_mask_us_{stat}_fast": "µs"
+        for who in ("committed", "committed_robust")
+        for stat in ("median", "mean", "p99")
+    },
+    "committed_mask_ratio_fast": "committed ÷ robust, mean µs on the same states",
+    "committed_mask_decisions": "decisions",
     "fast_batched_decisions_per_s": "N envs: summed decisions/s",
     "envpool_decisions_per_s": "decisions/s",
     "train_steps_per_s": "decisions/s",

@@ -41,10 +41,18 @@ def ceiling(
         Path, typer.Option("--out", "-o", help="Output directory (ceiling.json, ceiling.md, cells/).")
     ] = Path("runs/ceiling"),
     workers: Annotated[int | None, typer.Option("--workers", help="Parallel chunks (default: cores).")] = None,
+    rows: Annotated[
+        str | None,
+        typer.Option(
+            "--rows",
+            help="Rows to play, comma-separated (default: all; the table lists every row played into --out).",
+            metavar="LIST",
+        ),
+    ] = None,
     as_json: JsonOpt = False,
 ) -> None:
     """The price of robustness: a perfect-foresight planner unmasked / under each mask, the probe, an agent."""
-    from safelane.running.foresight import ceiling_table
+    from safelane.running.foresight import ROWS, ceiling_table
 
     check_positive("--episodes", episodes)
     check_positive("--beam", beam)
@@ -59,11 +67,12 @@ def ceiling(
         if not sep or not rate_text.strip().isdigit() or not path:
             raise ConfigError(f"--agent: expected RATE=RUN_DIR, e.g. 1=runs/demo/runs/robust-s0 (got {item!r})")
         agents[int(rate_text)] = path
+    row_list = tuple(r.strip() for r in rows.split(",") if r.strip()) if rows is not None else ROWS
     cfg = resolve_config(preset, sets, overrides={"simulator": "fast"})
     with units_progress("ceiling (chunks)") as tick:
         table = ceiling_table(
             cfg, rate_list, episodes, seed, out, agents=agents, horizon=horizon, beam=beam, workers=workers,
-            progress=tick,
+            progress=tick, rows=row_list,
         )  # fmt: skip
     if as_json:
         typer.echo(json.dumps(table))

@@ -26,10 +26,12 @@ from safelane.agents.dqn import parse_methods
 from safelane.config import ConfigError, load_config
 from safelane.env.factory import make_env
 from safelane.env.observations import paper_state_compiled as paper_state
+from safelane.env.scenarios import find_shield
 from safelane.env.vector import make_vector_env
 from safelane.reporting.plots import read_metrics
 from safelane.running.policies import fixed_policy
 from safelane.running.training import METRICS_FILE, make_train_config, train
+from safelane.safety.model import OVERRIDE_ORDER
 
 BENCH_PRESET = "fast"
 BENCH_SHIELDS = ("nominal", "robust")
@@ -41,6 +43,11 @@ SHARE_DECISIONS = 20_000
 """Decisions per sample of ``batched_shield_share`` (four samples: shielded, unshielded, twice)."""
 FAST_REPEATS = 5
 """The fast simulator plays each benchmark episode this many times (it takes milliseconds)."""
+COMMITTED_EPISODES = 2
+"""Episodes (of the bench's first seeds) on which the committed mask is timed beside the robust one: the committed
+mode's numpy reference costs milliseconds per decision, so a few dozen decisions keep bench's runtime."""
+COMMITTED_READING = "responsibility"
+"""The committed mode's reading that bench times (the one the claim campaign measures)."""
 HIGHER_IS_BETTER = (
     "fast_decisions_per_s",
     "fast_shielded_decisions_per_s",
@@ -49,7 +56,7 @@ HIGHER_IS_BETTER = (
     "train_batched_steps_per_s.40",
 )
 """The figures :func:`regressions` compares with the baseline (dotted: a key inside a dict), rates [1/s]…"""
-LOWER_IS_BETTER = ("shield_mask_us_mean_fast",)
+LOWER_IS_BETTER = ("shield_mask_us_mean_fast", "committed_mask_us_mean_fast")
 """… and costs [µs]. Ratios to stock highway-env are left out: they move with highway-env's own speed."""
 
 
@@ -73,17 +80,79 @@ def _play(env: Any, seed: int, on_decision: Callable[[], None] | None = None) ->
     return decisions, stepping
 
 
-def mask_cost_figures(mask_us: Sequence[float], suffix: str = "") -> dict[str, float]:
+def mask_cost_figures(mask_us: Sequence[float], suffix: str = "", prefix: str = "shield") -> dict[str, float]:
     """The mask's cost per decision [µs] from its timings ``mask_us`` [µs]: ``shield_mask_us_median``,
-    ``shield_mask_us_mean`` and ``shield_mask_us_p99`` (99th percentile), each name ending in ``suffix``."""
+    ``shield_mask_us_mean`` and ``shield_mask_us_p99`` (99th percentile), each name ending in ``suffix`` and
+    starting with ``prefix`` instead of ``shield``."""
     if len(mask_us) == 0:
         raise ValueError("mask_us: no mask timings (play at least one decision)")
     samples = np.asarray(mask_us, dtype=float)
     return {
-        f"shield_mask_us_median{suffix}": float(np.median(samples)),
-        f"shield_mask_us_mean{suffix}": float(np.mean(samples)),
-        f"shield_mask_us_p99{suffix}": float(np.percentile(samples, 99)),
+        f"{prefix}_mask_us_median{suffix}": float(np.median(samples)),
+        f"{prefix}_mask_us_mean{suffix}": float(np.mean(samples)),
+        f"{prefix}_mask_us_p99{suffix}": float(np.percentile(samples, 99)),
     }
+
+
+def committed_mask_figures(
+    episodes: int = COMMITTED_EPISODES, seed: int = 0, reading: str = COMMITTED_READING
+) -> dict[str, Any]:
+    """The committed shield mode's cost per decision beside the robust mode's, on the same states: ``episodes``
+    episodes of the ``fast`` preset on the fast simulator (seeds ``seed``, ``seed + 1``, …) with the random policy,
+    its action replaced by the closest one the committed mask allows (as ``shield.override`` does, so the kept plan
+    drives as it would). At every decision, untimed between the two: the robust shield's ``compute_result`` and the
+    committed shield's (``shield.reading`` = ``reading``, ``shield.engine`` as the preset says), plus its
+    ``commit`` of the executed action (its memory: the plan kept for the next decision). Both shields are those
+    :func:`~safelane.env.factory.make_env` builds from the preset. Figures [µs]: ``committed_mask_us_median_fast``,
+    ``…_mean_fast``, ``…_p99_fast`` and the robust mask's on the same states, ``committed_robust_mask_us_…_fast``;
+    ``committed_mask_ratio_fast``: the committed mean ÷ the robust mean (the target: ≤ 3);
+    ``committed_mask_decisions``: the decisions timed; ``committed_engine``, ``committed_reading``."""
+    if episodes < 1:
+        raise ValueError(f"episodes: must be >= 1 (got {episodes})")
+    env = make_env(BENCH_PRESET, simulator="fast")  # no shield of its own: the two below judge its states
+    committed = find_shield(make_env(BENCH_PRESET, simulator="fast", **{"shield.mode": "committed",
+                                                                         "shield.reading": reading}))  # fmt: skip
+    robust = find_shield(make_env(BENCH_PRESET, simulator="fast", **{"shield.mode": "robust"}))
+    family = committed.family
+    committed_us: list[float] = []
+    robust_us: list[float] = []
+    try:
+        for i in range(-1, episodes):  # episode -1: its first decisions compile (or load) the kernels, untimed
+            policy = fixed_policy("random", seed + max(i, 0))
+            obs, info = env.reset(seed=seed + max(i, 0))
+            family.reset()  # type: ignore[attr-defined]
+            done, decisions = False, 0
+            while not done and (i >= 0 or decisions < 3):
+                action = int(policy(obs, info))
+                t0 = time.perf_counter()
+                robust.compute_result(info["snapshot"])
+                t1 = time.perf_counter()
+                mask = committed.compute_result(info["snapshot"]).mask
+                t2 = time.perf_counter()
+                executed = action if mask[action] else next(a for a in OVERRIDE_ORDER[action] if mask[a])
+                t3 = time.perf_counter()
+                family.commit(executed)  # type: ignore[attr-defined]
+                t4 = time.perf_counter()
+                if i >= 0:
+                    robust_us.append((t1 - t0) * 1e6)
+                    committed_us.append((t2 - t1 + t4 - t3) * 1e6)
+                obs, _, terminated, truncated, info = env.step(executed)
+                done, decisions = terminated or truncated, decisions + 1
+    finally:
+        env.close()
+        committed.close()
+        robust.close()
+    figures: dict[str, Any] = {
+        **mask_cost_figures(committed_us, "_fast", prefix="committed"),
+        **mask_cost_figures(robust_us, "_fast", prefix="committed_robust"),
+    }
+    figures["committed_mask_ratio_fast"] = (
+        figures["committed_mask_us_mean_fast"] / figures["committed_robust_mask_us_mean_fast"]
+    )
+    figures.update(
+        committed_mask_decisions=len(committed_us), committed_engine=committed.engine, committed_reading=reading
+    )
+    return figures
 
 
 def measure_envpool(cfg: dict[str, Any], decisions: int, seed: int) -> float | None:
@@ -193,6 +262,10 @@ def run_bench(
       second pass and forecast sit in the tail the median hides;
     * ``shield_mask_share_fast``: that median mask cost as a share of a shielded fast decision
       (median µs × ``fast_shielded_decisions_per_s``);
+    * ``committed_mask_us_median_fast`` / ``_mean_fast`` / ``_p99_fast`` [µs]: the committed mode's decision
+      (evaluate and commit, reading :data:`COMMITTED_READING`) and ``committed_robust_mask_us_…_fast`` the robust
+      mask's on the same states, ``committed_mask_ratio_fast`` committed ÷ robust (means), on the first
+      ``min(episodes, COMMITTED_EPISODES)`` seeds (:func:`committed_mask_figures`);
     * ``fast_batched_decisions_per_s``: ``{N: summed decisions/s}`` of ``make_vector_env`` with N
       shielded fast-simulator environments on one thread, N in :data:`BATCH_SIZES`
       (:func:`measure_batched`), and ``fast_batched_speedup`` each ÷ stock highway-env;
@@ -288,6 +361,7 @@ def run_bench(
         stock.close()
         fast.close()
         fast_shielded.close()
+    committed = committed_mask_figures(min(episodes, COMMITTED_EPISODES), seed)
     envpool_rate = measure_envpool(dict(preset_cfg.env), max(fast_n, 1000), seed)
     batch_decisions = max(fast_n, 12_000)  # about a second of each batch size
     batched = {str(n): measure_batched(n, batch_decisions, seed, shield) for n in BATCH_SIZES}
@@ -338,6 +412,7 @@ def run_bench(
         "fast_speedup": (fast_shield_n / fast_shield_s) / (stock_n / stock_s),
         **mask_cost_figures(fast_mask_us, "_fast"),
         "shield_mask_share_fast": float(np.median(fast_mask_us)) * 1e-6 * (fast_shield_n / fast_shield_s),
+        **committed,
         "fast_batched_decisions_per_s": batched,
         "fast_batched_speedup": {n: rate / (stock_n / stock_s) for n, rate in batched.items()},
         # time share = 1 − (time without ÷ time with) = 1 − (rate with ÷ rate without)

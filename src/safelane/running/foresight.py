@@ -8,7 +8,9 @@ receding horizon (a beam search: every surviving sequence is extended by each al
 ones are dropped, the ``beam`` that got farthest along the road are kept) and plays the best plan's
 first action(s). Unmasked, it bounds the speed any collision-free policy reaches in this traffic (from
 below: a deeper search could only drive faster); restricted to the nominal or robust mask at every
-node of the search, it gives that shield's real ceiling.
+node of the search, it gives that shield's real ceiling. The committed mask has memory (the plan kept from one
+decision to the next, :class:`~safelane.safety.committed.CommittedFamily`): every node of the search carries its
+own copy of it, committed along the node's actions (:func:`clone_memory`).
 
 :func:`~safelane.running.policies.overtaking_probe` is a hand-written FASTER-first heuristic (it reads the
 snapshot and the mask); :func:`ceiling_table` runs the comparison at several decision rates.
@@ -16,6 +18,7 @@ snapshot and the mask); :func:`ceiling_table` runs the comparison at several dec
 
 from __future__ import annotations
 
+import copy
 import time
 from collections.abc import Callable
 from typing import Any, Literal, NamedTuple
@@ -27,11 +30,20 @@ from safelane.core.snapshot import RoadSnapshot
 from safelane.core.spaces import ACTION_NAMES, N_ACTIONS
 from safelane.env.factory import make_env
 from safelane.running.policies import overtaking_probe, snap_of
+from safelane.safety.committed import CommittedFamily
 from safelane.safety.shield import SafetyShield
 from safelane.sim.fast.env import FastHighwayEnv, SimState
 
-PlannerMask = Literal["none", "nominal", "robust"]
-PLANNER_MASKS: tuple[str, ...] = ("none", "nominal", "robust")
+PlannerMask = Literal["none", "nominal", "robust", "committed"]
+PLANNER_MASKS: tuple[str, ...] = ("none", "nominal", "robust", "committed")
+
+
+def clone_memory(family: CommittedFamily) -> CommittedFamily:
+    """An independent copy of a committed family's memory (kept plan, carried sets, follower bounds), sharing
+    only the verdict it evaluated last (read, never changed, by :meth:`~CommittedFamily.commit`), so that each
+    copy can commit another action in that state."""
+    pending = getattr(family, "_pending", None)
+    return copy.deepcopy(family, memo={id(pending): pending} if pending is not None else None)
 
 
 def fast_simulator_of(env: Any) -> FastHighwayEnv:
@@ -46,8 +58,10 @@ class ForesightPlanner:
     """A policy with perfect foresight: a beam search over the fast simulator's exact future.
 
     ``env``: the safelane environment it acts in (built with ``simulator: fast``). ``mask``: ``none``
-    (any action), ``nominal`` or ``robust`` (only actions that shield allows, at every node of the
-    search; in a fallback state, the shield's least-bad action). ``horizon`` [s]: how far each search
+    (any action), ``nominal``, ``robust`` or ``committed`` (only actions that shield allows, at every node of the
+    search; in a fallback state, the shield's least-bad action; ``committed``: the committed mask with
+    ``reading`` and ``engine``, its memory carried by every node and, between searches, by :attr:`memory`, which
+    records the actions played: the environment must play them). ``horizon`` [s]: how far each search
     looks; ``beam``: sequences kept per depth; ``replan`` [s]: how often it searches again (the plan is
     exact, so replaying it between searches loses nothing but horizon). Call it like any policy:
     ``planner(obs, info) -> action``; it restores the simulator's state after each search.
@@ -61,6 +75,8 @@ class ForesightPlanner:
         beam: int = 8,
         replan: float = 1.0,
         margin: float | None = None,
+        reading: str = "sound",
+        engine: str = "compiled",
     ) -> None:
         if mask not in PLANNER_MASKS:
             raise ConfigError(f"mask: got {mask!r}; allowed: {', '.join(PLANNER_MASKS)}")
@@ -78,18 +94,33 @@ class ForesightPlanner:
         self.mask_mode: PlannerMask = mask
         kwargs = {} if margin is None else {"margin": margin}
         # A shield over the bare simulator, only to evaluate masks of predicted states (never stepped).
-        self.shield = None if mask == "none" else SafetyShield(self.sim, mode=mask, **kwargs)
+        self.memory: CommittedFamily | None = None
+        if mask == "committed":
+            self.memory = CommittedFamily(reading, engine)  # type: ignore[arg-type]
+            self.shield = SafetyShield(self.sim, mode=self.memory, engine=engine, **kwargs)  # type: ignore[arg-type]
+        else:
+            self.shield = None if mask == "none" else SafetyShield(self.sim, mode=mask, **kwargs)
         self.plan: list[int] = []
         self.searches = 0
         self.nodes = 0
         self.search_time = 0.0
+        self.last_frontier: list[tuple[list[int], CommittedFamily | None]] = []
+        """The sequences the last search ended with, best first, each with the committed mask's memory after it
+        (None under the other masks): what a node carries."""
 
-    def allowed(self, snap: RoadSnapshot) -> tuple[np.ndarray, bool]:
+    def allowed(self, snap: RoadSnapshot, memory: CommittedFamily | None = None) -> tuple[np.ndarray, bool]:
         """The actions the planner may take in ``snap`` (bool (5,)) and whether ``snap`` is a fallback
-        state of the mask (no action safe: the mask holds the least-bad one)."""
+        state of the mask (no action safe: the mask holds the least-bad one; committed: no plan verified).
+        ``memory``: the committed mask's memory in ``snap`` (default :attr:`memory`), left holding the verdict
+        that its :meth:`~CommittedFamily.commit` then reads."""
         if self.shield is None:
             return np.ones(N_ACTIONS, dtype=bool), False
-        result = self.shield.compute_result(snap)
+        if self.memory is None:
+            result = self.shield.compute_result(snap)
+        else:
+            leave = self.shield.ego_leave_time(snap)
+            assert self.shield.dynamics is not None
+            result = (memory or self.memory).evaluate(snap, self.shield.dynamics, leave)
         return result.mask, bool(result.fallback)
 
     def search(self) -> list[int]:
@@ -103,15 +134,23 @@ class ForesightPlanner:
         # Under a mask, a sequence that has passed through a fallback state (no safe action) ranks below
         # every one that stayed in the safe set: the planner knows the future, so it can keep the rule's
         # promise. A state is judged when it is extended, so the last depth's states are not judged.
-        frontier: list[tuple[SimState, RoadSnapshot, list[int], int]] = [(root, root_snap, [], 0)]
+        # Under the committed mask each node carries the mask's memory after its actions (None: no memory).
+        root_memory = clone_memory(self.memory) if self.memory is not None else None
+        frontier: list[tuple[SimState, RoadSnapshot, list[int], int, CommittedFamily | None]] = [
+            (root, root_snap, [], 0, root_memory)
+        ]
         best_crashed: tuple[int, float, list[int]] | None = None
         for _ in range(self.depth):
             children: list[Node] = []
             seen: set[tuple[float, float, float, int]] = set()
-            for state, snap, actions, fallbacks in frontier:
-                mask, fallback = self.allowed(snap)
+            for state, snap, actions, fallbacks, memory in frontier:
+                mask, fallback = self.allowed(snap, memory)
                 fallbacks += int(fallback and bool(actions))
                 for action in np.flatnonzero(mask):
+                    child_memory = None
+                    if memory is not None:  # the mask's memory after this action: the plan it keeps
+                        child_memory = clone_memory(memory)
+                        child_memory.commit(int(action))
                     sim.set_state(state)
                     _, _, terminated, _, info = sim.step(int(action))
                     self.nodes += 1
@@ -128,34 +167,42 @@ class ForesightPlanner:
                     if signature in seen:
                         continue
                     seen.add(signature)
-                    children.append(Node(-fallbacks, x, v, sim.get_state(), child, seq))
+                    children.append(Node(-fallbacks, x, v, sim.get_state(), child, seq, child_memory))
             if not children:
                 break
-            frontier = [(c.state, c.snap, c.actions, -c.rank) for c in diverse_beam(children, self.beam)]
-            if all(snap.time >= sim.sim.duration for _, snap, _, _ in frontier):
+            frontier = [(c.state, c.snap, c.actions, -c.rank, c.memory) for c in diverse_beam(children, self.beam)]
+            if all(snap.time >= sim.sim.duration for _, snap, _, _, _ in frontier):
                 break
         sim.set_state(root)
+        self.last_frontier = [(actions, memory) for _, _, actions, _, memory in frontier]
         self.searches += 1
         self.search_time += time.perf_counter() - start_clock
         if frontier and frontier[0][2]:
             return frontier[0][2]
         if best_crashed is not None:
             return best_crashed[2]
-        return [int(np.flatnonzero(self.allowed(root_snap)[0])[-1])]
+        return [int(np.flatnonzero(self.allowed(root_snap, clone_memory(self.memory) if self.memory else None)[0])[-1])]
 
     def __call__(self, obs: np.ndarray, info: dict[str, Any]) -> int:
         if not self.plan:
             self.plan = self.search()[: self.every]
-        return self.plan.pop(0)
+        action = self.plan.pop(0)
+        if self.memory is not None:  # the committed mask's memory follows the episode: this state, this action
+            self.allowed(snap_of(info))
+            self.memory.commit(action)
+        return action
 
     def reset(self) -> None:
-        """Forget the current plan (call at the start of an episode)."""
+        """Forget the current plan and the committed mask's memory (call at the start of an episode)."""
         self.plan = []
+        if self.memory is not None:
+            self.memory.reset()
 
 
 class Node(NamedTuple):
     """A sequence in the search: its rank (minus the fallback states it passed), the ego's position [m]
-    along the road and speed [m/s] at its end, the simulator state there, its snapshot, its actions."""
+    along the road and speed [m/s] at its end, the simulator state there, its snapshot, its actions, and the
+    committed mask's memory after them (None under the other masks)."""
 
     rank: int
     x: float
@@ -163,6 +210,7 @@ class Node(NamedTuple):
     state: SimState
     snap: RoadSnapshot
     actions: list[int]
+    memory: CommittedFamily | None = None
 
 
 def diverse_beam(children: list[Node], beam: int) -> list[Node]:
@@ -203,7 +251,7 @@ def play(
 ) -> dict[str, Any]:
     """Play ``episodes`` episodes (reset seeds ``seed + i``) with the policy ``policy_of(env)`` builds;
     collisions, mean speed [m/s] over all decisions, fallback and intervention rates, wall time [s]."""
-    from safelane.running.evaluation import run_episodes, summarize
+    from safelane.running.evaluation import COMMITTED_FIGURES, run_episodes, summarize
 
     env = make_env(cfg)
     try:
@@ -215,6 +263,7 @@ def play(
     finally:
         env.close()
     summary = summarize(records)
+    committed = {k: summary[k] for k in COMMITTED_FIGURES if k in summary}  # the committed shield's rows only
     return {
         "episodes": episodes,
         "collisions": int(sum(r.collision for r in records)),
@@ -224,6 +273,7 @@ def play(
         "invariant_breaks": int(summary["invariant_breaks"]),
         "wall_time_s": wall,
         "actions": {name: int(sum(r.actions[i] for r in records)) for i, name in enumerate(ACTION_NAMES)},
+        **committed,
     }
 
 
@@ -241,15 +291,25 @@ def _resetting(policy: Callable[[np.ndarray, dict[str, Any]], int]) -> Callable[
 
 # --- the price-of-robustness table ------------------------------------------------------------------
 
-ROWS: tuple[str, ...] = ("foresight", "foresight_nominal", "foresight_robust", "probe_robust", "agent_robust")
+ROWS: tuple[str, ...] = (
+    "foresight", "foresight_nominal", "foresight_robust", "probe_robust", "agent_robust", "foresight_committed",
+    "agent_committed",
+)  # fmt: skip
 """The table's rows per decision rate: the planner unmasked / under the nominal / under the robust mask,
-the overtaking probe under the robust shield, and a trained robust agent (where one is given)."""
+the overtaking probe under the robust shield, a trained robust agent (where one is given); the planner under the
+committed mask and the same agent under the committed shield (``shield.reading`` and ``shield.engine`` of the
+table's config)."""
+ROW_SHIELDS = {
+    "foresight": "none", "foresight_nominal": "nominal", "foresight_committed": "committed",
+    "agent_committed": "committed",
+}  # fmt: skip
+"""The shield of each row of :data:`ROWS` not under the robust one."""
 
 
 def row_config(cfg: SafelaneConfig, row: str) -> SafelaneConfig:
     """The environment of a row: the fast simulator; the shield the row acts under, with override so a
     mask-respecting policy is never overridden (the shield's counters then show it)."""
-    shield = {"foresight": "none", "foresight_nominal": "nominal"}.get(row, "robust")
+    shield = ROW_SHIELDS.get(row, "robust")
     overrides: dict[str, Any] = {"simulator": "fast", "shield.mode": shield}
     if shield != "none":
         overrides["shield.override"] = True
@@ -261,7 +321,7 @@ def play_row(
 ) -> dict[str, Any]:
     """One cell of the table (a task of :func:`safelane.running.engine.run_tasks`: plain arguments)."""
     cfg = row_config(build_config(cfg_data), row)
-    if row == "agent_robust":
+    if row in ("agent_robust", "agent_committed"):
         from safelane.running.runs import run_env_config
         from safelane.running.training import GreedyPolicy, load_agent, load_run_config
 
@@ -269,15 +329,21 @@ def play_row(
             raise ConfigError("agent: no trained agent given for this rate")
         run = load_run_config(agent_dir)
         agent = load_agent(agent_dir)
-        env_cfg = run_env_config(run, shield="robust", override=True)
+        # The committed shield with the table's reading and engine (the run's own config may have none).
+        sets = [f"shield.reading={cfg.shield.reading}", f"shield.engine={cfg.shield.engine}"]
+        shield = cfg.shield.mode
+        env_cfg = run_env_config(run, sets=sets if shield == "committed" else None, shield=shield, override=True)
         return {"row": row, "agent": agent_dir, **play(env_cfg, lambda env: GreedyPolicy(agent, run), episodes, seed)}
     if row == "probe_robust":
         return {"row": row, **play(cfg, lambda env: overtaking_probe, episodes, seed)}
-    mask: PlannerMask = {"foresight": "none", "foresight_nominal": "nominal", "foresight_robust": "robust"}[row]  # type: ignore[assignment]
+    mask: PlannerMask = cfg.shield.mode if row in ROW_SHIELDS else "robust"  # type: ignore[assignment]
     planners: list[ForesightPlanner] = []
 
     def make(env: Any) -> ForesightPlanner:
-        planners.append(ForesightPlanner(env, mask=mask, horizon=horizon, beam=beam))
+        planners.append(
+            ForesightPlanner(env, mask=mask, horizon=horizon, beam=beam, reading=cfg.shield.reading,
+                             engine=cfg.shield.engine)
+        )  # fmt: skip
         return planners[-1]
 
     result = play(cfg, make, episodes, seed)
@@ -299,6 +365,12 @@ def _merge(parts: list[dict[str, Any]]) -> dict[str, Any]:
         merged[key] = sum(p[key] * d for p, d in zip(parts, decisions, strict=True)) / total
     merged["actions"] = {a: sum(p["actions"][a] for p in parts) for a in ACTION_NAMES}
     merged["wall_time_s"] = sum(p["wall_time_s"] for p in parts)
+    if "plan_forced_rate" in parts[0]:  # the committed shield's rows: counts summed, the rate by decisions
+        merged["plan_forced_rate"] = (
+            sum(p["plan_forced_rate"] * d for p, d in zip(parts, decisions, strict=True)) / total
+        )
+        for key in ("lapses", "lapses_in_model", "uncertified_starts", "redraws"):
+            merged[key] = sum(p[key] for p in parts)
     for key in ("searches", "nodes"):
         if key in parts[0]:
             merged[key] = sum(p[key] for p in parts)
@@ -317,11 +389,13 @@ def ceiling_table(
     chunk: int = 25,
     workers: int | None = None,
     progress: Callable[[int, int], None] | None = None,
+    rows: tuple[str, ...] = ROWS,
 ) -> dict[str, Any]:
-    """The price-of-robustness table: every row of :data:`ROWS` at every decision rate (physics at
-    5·rate Hz) on the same episodes (reset seeds ``seed + i``). Work is cut into chunks of ``chunk``
+    """The price-of-robustness table: every row of ``rows`` (default :data:`ROWS`) at every decision rate (physics
+    at 5·rate Hz) on the same episodes (reset seeds ``seed + i``). Work is cut into chunks of ``chunk``
     episodes written to ``out/cells/`` as they finish, so a killed run resumes where it stopped;
-    ``out/ceiling.json`` and ``out/ceiling.md`` are rebuilt from them. Rows without an agent are skipped."""
+    ``out/ceiling.json`` and ``out/ceiling.md`` are rebuilt from them (with every row's cells there, so rows
+    played by earlier calls stay in the table). Rows without an agent are skipped."""
     import json
     from pathlib import Path
 
@@ -330,6 +404,9 @@ def ceiling_table(
 
     if episodes < 1:
         raise ConfigError(f"--episodes: must be >= 1 (got {episodes})")
+    unknown = [row for row in rows if row not in ROWS]
+    if unknown or not rows:
+        raise ConfigError(f"--rows: got {','.join(rows)!r}; allowed: {', '.join(ROWS)}")
     for rate in rates:
         if rate < 1:
             raise ConfigError(f"--rates: decision rates must be >= 1 per second (got {rate})")
@@ -344,8 +421,8 @@ def ceiling_table(
     names: list[Path] = []
     for rate in rates:
         data = config_to_dict(at_rate(cfg, rate))
-        for row in ROWS:
-            if row == "agent_robust" and rate not in agents:
+        for row in rows:
+            if row.startswith("agent_") and rate not in agents:
                 continue
             for start in range(0, episodes, chunk):
                 path = cells / f"{rate}hz-{row}-{start:06d}.json"
@@ -386,22 +463,31 @@ ROW_LABELS = {
     "foresight_robust": "foresight under the robust mask",
     "probe_robust": "overtaking probe, robust shield",
     "agent_robust": "learned robust agent",
+    "foresight_committed": "foresight under the committed mask",
+    "agent_committed": "learned robust agent, committed shield",
 }
 
 
 def ceiling_markdown(table: dict[str, Any]) -> str:
-    """The table as Markdown: one line per rate and row (speed [m/s], collisions, breaks, fallbacks)."""
+    """The table as Markdown: one line per rate and row (speed [m/s], collisions, breaks, fallbacks; the committed
+    shield's rows: plan-forced decisions, lapses and those in the model)."""
     lines = [
         f"Episodes per cell: {table['episodes']} (reset seeds {table['seed']}+); planner horizon "
         f"{table['horizon_s']:g} s, beam {table['beam']}.",
         "",
-        "| decisions/s | policy | mean speed [m/s] | collisions | invariant breaks | fallback rate |",
-        "|---|---|---|---|---|---|",
+        "| decisions/s | policy | mean speed [m/s] | collisions | invariant breaks | fallback rate | plan-forced "
+        "rate | lapses (in the model) |",
+        "|---|---|---|---|---|---|---|---|",
     ]
     for rate, rows in table["rates"].items():
         for row, r in rows.items():
+            committed = (
+                f"{r['plan_forced_rate']:.4f} | {r['lapses']} ({r['lapses_in_model']})"
+                if "plan_forced_rate" in r
+                else "— | —"
+            )
             lines.append(
                 f"| {rate} | {ROW_LABELS[row]} | {r['mean_speed']:.2f} | {r['collisions']}/{r['episodes']} | "
-                f"{r['invariant_breaks']} | {r['fallback_rate']:.4f} |"
+                f"{r['invariant_breaks']} | {r['fallback_rate']:.4f} | {committed} |"
             )
     return "\n".join(lines) + "\n"

@@ -204,6 +204,11 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
         state = road_state(snap, dyn.rule.ego_speed_magnitude)
         return state, dataclasses.replace(dyn, ego_leave_time=leave)
 
+    def ego_leave_time(self, snap: RoadSnapshot) -> float:
+        """[s] The time the ego takes to leave its lane in the state of ``snap``: what :meth:`compute_result` gives
+        the family (with it, and :attr:`dynamics`, a caller can judge ``snap`` with a family of its own)."""
+        return self._ego_leave_time(snap)
+
     def _ego_leave_time(self, snap: RoadSnapshot) -> float:
         """The time [s] the ego takes to leave its lane in the state of ``snap``."""
         if self.dynamics is None:

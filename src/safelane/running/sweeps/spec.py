@@ -27,6 +27,9 @@ METRICS: tuple[str, ...] = (
     "mean_vehicles_passed",
 )
 """Test metrics a trial reports (per seed) and an objective or constraint may name."""
+COMMITTED_METRICS: tuple[str, ...] = ("plan_forced_rate", "lapses", "lapses_in_model")
+"""Test metrics a trial under the committed shield also reports (per seed, beside ``fallback_rate``): the share of
+decisions the kept plan drove, and the lapses (counts, pooled over seeds as sums) and those in the model."""
 
 _CONSTRAINT = re.compile(r"^\s*([a-z_]+)\s*(<=|>=|<|>)\s*([-+0-9.eE]+)\s*$")
 

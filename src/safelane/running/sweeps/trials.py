@@ -17,7 +17,7 @@ import yaml
 
 from safelane.core.errors import ConfigError
 from safelane.core.files import atomic_write_text
-from safelane.running.sweeps.spec import METRICS, SweepSpec
+from safelane.running.sweeps.spec import COMMITTED_METRICS, METRICS, SweepSpec
 
 
 def _value_text(value: Any) -> str:
@@ -74,7 +74,7 @@ def _write_failure(directory: Path, seed: int, kind: str, message: str) -> None:
 
 def _metrics_of(record: dict[str, Any]) -> dict[str, float]:
     summary, episodes = record["summary"], record["episodes"]
-    metrics = {k: float(summary[k]) for k in METRICS if k in summary}
+    metrics = {k: float(summary[k]) for k in (*METRICS, *COMMITTED_METRICS) if k in summary}
     metrics["return_before_collision"] = float(np.mean([e["return_before_collision"] for e in episodes]))
     metrics["collisions"] = float(summary["collisions"])
     metrics["test_episodes"] = float(summary["episodes"])
@@ -216,10 +216,15 @@ def read_trials(out: Path, spec: SweepSpec) -> list[dict[str, Any]]:
 
 
 def pooled_metrics(ok: list[dict[str, Any]]) -> dict[str, float]:
-    """A trial's test metrics over its finished seeds: means, and the collision rate of all its episodes."""
+    """A trial's test metrics over its finished seeds: means, and the collision rate of all its episodes; under the
+    committed shield also the mean ``plan_forced_rate`` and the lapses summed (:data:`COMMITTED_METRICS`)."""
     episodes = sum(int(r["test_episodes"]) for r in ok)
     pooled = {m: float(np.mean([r[m] for r in ok])) for m in METRICS if m in ok[0]}
     pooled["collision_rate"] = sum(int(r["collisions"]) for r in ok) / episodes
+    if all(m in r for r in ok for m in COMMITTED_METRICS):
+        pooled["plan_forced_rate"] = float(np.mean([r["plan_forced_rate"] for r in ok]))
+        pooled["lapses"] = float(sum(r["lapses"] for r in ok))
+        pooled["lapses_in_model"] = float(sum(r["lapses_in_model"] for r in ok))
     return pooled
 
 
@@ -294,7 +299,8 @@ def write_results(out: Path, spec: SweepSpec) -> dict[str, Any]:
     rows = read_trials(out, spec)
     keys = list(spec.space)
     extra = ["collisions", "test_episodes", "train_wall_time_s"]
-    columns = ["trial", "seed", *keys, "status", *METRICS, *extra, "error"]
+    committed = [m for m in COMMITTED_METRICS if any(m in r for r in rows)]  # committed-shield trials only
+    columns = ["trial", "seed", *keys, "status", *METRICS, *committed, *extra, "error"]
     buffer = io.StringIO()
     writer = csv.DictWriter(buffer, fieldnames=columns, extrasaction="ignore", lineterminator="\n")
     writer.writeheader()
@@ -311,9 +317,12 @@ def write_results(out: Path, spec: SweepSpec) -> dict[str, Any]:
 
 
 def summary_markdown(spec: SweepSpec, summary: dict[str, Any]) -> str:
-    """The summary table: one line per trial (objective mean [95 % CI], collisions, feasibility)."""
+    """The summary table: one line per trial (objective mean [95 % CI], collisions, feasibility; under the committed
+    shield, its fallback and plan-forced rates and lapses)."""
     metric = spec.objective.metric
     keys = list(spec.space)
+    committed = any("plan_forced_rate" in t.get("metrics", {}) for t in summary["trials"])
+    extra = " fallback rate | plan-forced rate | lapses (in the model) |" if committed else ""
     constraint = " and ".join(spec.objective.constraints) or "none"
     lines = [
         f"# Sweep {spec.name}: {spec.method}",
@@ -326,8 +335,8 @@ def summary_markdown(spec: SweepSpec, summary: dict[str, Any]) -> str:
         "",
         "| trial | "
         + " | ".join(f"`{k}`" for k in keys)
-        + f" | {metric} [95 % CI] | collisions (Wilson 95 %) | feasible |",
-        "|---" * (len(keys) + 4) + "|",
+        + f" | {metric} [95 % CI] | collisions (Wilson 95 %) | feasible |{extra}",
+        "|---" * (len(keys) + 4 + 3 * committed) + "|",
     ]
     best = summary["best"]["trial"] if summary["best"] else None
     for t in summary["trials"]:
@@ -341,7 +350,16 @@ def summary_markdown(spec: SweepSpec, summary: dict[str, Any]) -> str:
         else:
             obj, col, feas = "—", "—", f"failed: {t.get('error', 'not run')}" if t["failed"] else "not run"
         mark = " **best**" if t["trial"] == best else ""
-        lines.append(f"| t{t['trial']:03d}{mark} | {values} | {obj} | {col} | {feas} |")
+        line = f"| t{t['trial']:03d}{mark} | {values} | {obj} | {col} | {feas} |"
+        if committed:
+            m = t.get("metrics", {})
+            line += (
+                f" {m['fallback_rate']:.4f} | {m['plan_forced_rate']:.4f} | {m['lapses']:.0f} "
+                f"({m['lapses_in_model']:.0f}) |"
+                if "plan_forced_rate" in m
+                else " — | — | — |"
+            )
+        lines.append(line)
     lines.append("")
     return "\n".join(lines)
 

@@ -30,7 +30,9 @@ def _dynamics(policy_hz: int, sim_hz: int) -> Dynamics:
     )  # fmt: skip
 
 
-DYNAMICS = st.sampled_from([_dynamics(1, 5), _dynamics(2, 10), _dynamics(1, 15)])
+DYNAMICS = st.sampled_from(
+    [_dynamics(1, 5), _dynamics(2, 10), _dynamics(1, 15), dataclasses.replace(_dynamics(1, 5), ego_leave_time=np.inf)]
+)  # the last: an ego too slow to leave its lane (no lane change is verified)
 finite = st.floats(allow_nan=False, allow_infinity=False)
 
 

@@ -39,12 +39,13 @@ import numpy as np
 from safelane.core.snapshot import DRIVER_FIELDS, RoadSnapshot
 from safelane.core.spaces import IDLE, LANE_LEFT, LANE_RIGHT, N_ACTIONS, SLOWER
 from safelane.safety.committed_compiled import (
+    CarArrays,
     car_arrays,
     car_gaps_compiled,
     car_sets_compiled,
-    ego_trajectories_compiled,
     follower_bound_compiled,
-    plan_set_points_compiled,
+    prepare,
+    verify_plans_compiled,
 )
 from safelane.safety.committed_sets import (
     ESCAPE_TOLERANCE,
@@ -215,28 +216,31 @@ Lanes = list[tuple[int, float]]
 
 
 def verify_plans(
-    state: RoadState, dyn: Dynamics, sets: CarSets, reading: Reading = "sound", engine: Engine = "numpy"
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    state: RoadState, dyn: Dynamics, sets: CarSets, reading: Reading = "sound", engine: Engine = "numpy",
+    cars: CarArrays | None = None,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:  # fmt: skip
     """(5, holds) each plan's worst bumper-to-bumper gap [m] to every car's reachable occupancy over the horizon
     (−inf: action unavailable, inf: no car in reach), and the ego's positions [m], speeds [m/s] and set-points
     [m/s] (:func:`plan_set_points`; NaN for an unavailable action), each (5, holds, frames + 1) (:func:`plan_gaps`
-    for one action). ``engine``: the numpy reference or its compiled kernels (the same bits)."""
-    compiled = engine == "compiled"
-    ego_x, ego_v = (ego_trajectories_compiled if compiled else ego_trajectories)(state, dyn)
+    for one action). ``engine``: the numpy reference or its compiled kernels (the same bits; ``cars``: the
+    state's :func:`~safelane.safety.committed_compiled.car_arrays` when already computed)."""
     available = available_actions(state, dyn)
+    verify = available.copy()
+    if not math.isfinite(dyn.ego_leave_time):  # too slow to leave the lane: no lane change (docs/safety.md §4)
+        verify &= ~np.isin(np.arange(N_ACTIONS), (LANE_LEFT, LANE_RIGHT))
+    if engine == "compiled":
+        lanes = [action_lanes(state, dyn, a) if available[a] else [] for a in range(N_ACTIONS)]
+        plan_onsets = np.stack([onsets(dyn, a) for a in range(N_ACTIONS)])
+        cars = car_arrays(state, dyn) if cars is None else cars
+        return verify_plans_compiled(state, dyn, sets, reading, available, verify, lanes, plan_onsets, cars)
+    ego_x, ego_v = ego_trajectories(state, dyn)
     set_points = np.full_like(ego_v, np.nan)
     for a in np.flatnonzero(available):
-        set_points[a] = (plan_set_points_compiled if compiled else plan_set_points)(state, dyn, ego_v[a], int(a))
-    if not math.isfinite(dyn.ego_leave_time):  # too slow to leave the lane: no lane change (docs/safety.md §4)
-        available = available & ~np.isin(np.arange(N_ACTIONS), (LANE_LEFT, LANE_RIGHT))
+        set_points[a] = plan_set_points(state, dyn, ego_v[a], int(a))
     worst = np.full((N_ACTIONS, MAX_HOLD_DECISIONS + 1), -np.inf)
-    cars = car_arrays(state, dyn) if compiled else None
-    for a in np.flatnonzero(available):
-        args = (state, dyn, sets, ego_x[a], ego_v[a], onsets(dyn, int(a)), action_lanes(state, dyn, int(a)), reading)
-        if compiled:
-            gaps = car_gaps_compiled(*args, ego_set=set_points[a], cars=cars)
-        else:
-            gaps = car_gaps(*args, ego_set=set_points[a])
+    for a in np.flatnonzero(verify):
+        gaps = car_gaps(state, dyn, sets, ego_x[a], ego_v[a], onsets(dyn, int(a)), action_lanes(state, dyn, int(a)),
+                        reading, ego_set=set_points[a])  # fmt: skip
         worst[a] = gaps.min(axis=0) if gaps.shape[0] else np.inf
     return worst, ego_x, ego_v, set_points
 
@@ -416,7 +420,11 @@ class CommittedFamily:
         to the next) with ``dyn.ego_leave_time`` set; ``uncertified``: the one-decision robust rule's verdict in this
         state (default: the numpy reference's)."""
         compiled = self.engine == "compiled"
-        sets = (car_sets_compiled if compiled else car_sets)(state, dyn, vehicle)
+        if compiled:  # the per-car quantities once, for the sets and the gaps
+            prep = prepare(state, dyn)
+            sets, cars = car_sets_compiled(state, dyn, vehicle, prep), car_arrays(state, dyn, prep)
+        else:
+            sets, cars = car_sets(state, dyn, vehicle), None
         escaped = np.zeros(state.n, dtype=bool)
         unbraked = np.zeros(state.n, dtype=bool)
         older: CarSets | None = None
@@ -429,7 +437,7 @@ class CommittedFamily:
             escaped = escaped_cars(state, dyn, older, vehicle) | unbraked
             checked = int(np.isin(vehicle, older.vehicle).sum())
             sets = sets.intersect(older, ~escaped)
-        worst, ego_x, ego_v, set_points = verify_plans(state, dyn, sets, self.reading, self.engine)
+        worst, ego_x, ego_v, set_points = verify_plans(state, dyn, sets, self.reading, self.engine, cars)
         verified = worst >= dyn.margin  # (5, holds)
         available = available_actions(state, dyn)
         best = np.argmax(np.where(verified, worst, -np.inf), axis=1)
@@ -451,9 +459,9 @@ class CommittedFamily:
                 for v, (lane, high) in self.followers.items()
                 if v in rows and not escaped[rows[v]]
             }
-            gaps = (car_gaps_compiled if compiled else car_gaps)(
-                state, dyn, sets, ego_x[a, k : k + 1], ego_v[a, k : k + 1], np.array([tail.onset]),
-                list(tail.occupied), self.reading, tail.frames, followers, set_points[a, k : k + 1])[:, 0]  # fmt: skip
+            args = (state, dyn, sets, ego_x[a, k : k + 1], ego_v[a, k : k + 1], np.array([tail.onset]),
+                    list(tail.occupied), self.reading, tail.frames, followers, set_points[a, k : k + 1])  # fmt: skip
+            gaps = (car_gaps_compiled(*args, cars=cars) if compiled else car_gaps(*args))[:, 0]
             gap = gaps.min() if gaps.size else np.inf
             # A lapse: the plan verified at the last decision no longer is (a plan kept on after one stays unverified);
             # the cars it fails on are those whose own gap to the tail is below the margin.

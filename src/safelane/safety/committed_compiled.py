@@ -22,18 +22,17 @@ from numba import njit
 from safelane.core.kernel_cache import drop_stale_kernel_cache
 from safelane.safety import compiled_parts
 from safelane.safety.committed_sets import (
+    LANE_CHANGES_BEGUN,
+    MAX_SPEED,
     CarSets,
-    acceleration_law,
-    lane_entry_times,
-    lanes_now,
-    linear_set_point_bound,
+    lane_change_allowance,
+    lane_crossing_time,
     path_speed,
-    shortfall,
     speed_bounds,
 )
 from safelane.safety.compiled_parts import N_ACTIONS, N_FALLBACKS, speed_index
 from safelane.safety.ego import action_targets
-from safelane.safety.world import Dynamics, RoadState
+from safelane.safety.world import LATERAL_MOTION_THRESHOLD, Dynamics, RoadState
 
 drop_stale_kernel_cache(__file__, (compiled_parts.__file__,))
 
@@ -308,24 +307,179 @@ def car_gaps_kernel(
     return worst
 
 
+@njit(cache=True, error_model="numpy")
+def prepare_kernel(
+    x: np.ndarray, y: np.ndarray, vx: np.ndarray, vy: np.ndarray, heading: np.ndarray, length: np.ndarray,
+    crashed: np.ndarray, can_change: np.ndarray, target: np.ndarray, k0: np.ndarray, k1: np.ndarray, k2: np.ndarray,
+    idm_acc: np.ndarray, idm_delta: np.ndarray, max_braking: np.ndarray, ego_x: float, ego_length: float,
+    t: np.ndarray, consts: np.ndarray, lanes_count: int,
+) -> tuple:  # fmt: skip
+    """Every per-car quantity of ``committed_sets`` and ``committed.car_gaps`` in one pass (the numpy functions'
+    operations, elementwise): (speed along the path, the sets' speed bounds v_min / v_max, the turning shortfall
+    (cars, frames), the law's rows and gains, the lanes occupied / now / entry times (cars, lanes), and for the
+    gaps: half-lengths' sum, ahead, MOBIL drivers, own lane, the follower speed bounds). ``consts``: dt, lane
+    width, body width, the lateral-motion threshold, cut-in time, lane-crossing time, one change's shortfall,
+    the changes begun, the top speed (:func:`prepare_consts`)."""
+    dt, lane_width, body_width, lateral = consts[0], consts[1], consts[2], consts[3]
+    cut_in, crossing, per_change, begun, top = consts[4], consts[5], consts[6], int(consts[7]), consts[8]
+    n, m = x.shape[0], t.shape[0]
+    speed, v_min, v_max = np.empty(n), np.empty(n), np.empty(n)
+    fv_min, fv_max = np.empty(n), np.empty(n)
+    allowance = np.empty((n, m))
+    law_rows, law_k = np.empty(n, dtype=np.bool_), np.empty(n)
+    occupied, now = np.empty((n, lanes_count), dtype=np.bool_), np.empty((n, lanes_count), dtype=np.bool_)
+    entry = np.empty((n, lanes_count))
+    half, ahead, mobil = np.empty(n), np.empty(n, dtype=np.bool_), np.empty(n, dtype=np.bool_)
+    own_lane = np.empty(n, dtype=np.int64)
+    half_lane = 0.5 * lane_width
+    for i in range(n):
+        v = vx[i] * np.cos(heading[i]) + vy[i] * np.sin(heading[i])
+        speed[i] = v
+        linear_gain = np.isfinite(k0[i])
+        bounded_linear = (linear_gain and np.isfinite(k1[i]) and np.isfinite(k2[i]) and k0[i] >= 0.0 and k1[i] >= 0.0
+                          and k2[i] >= 0.0 and np.isfinite(target[i]))  # fmt: skip
+        known = np.isfinite(target[i])
+        # speed_bounds: the sets' (linear drivers without the set-point bound: MAX_SPEED), the followers' (every
+        # linear driver: MAX_SPEED).
+        capped = nmax(v, target[i] if known else 0.0)
+        top_set = top if ((linear_gain and not bounded_linear) or not known) else capped
+        v_min[i], v_max[i] = nmin(v, 0.0), nmax(top_set, v)
+        top_follow = top if (linear_gain or not known) else capped
+        fv_min[i], fv_max[i] = nmin(v, 0.0), nmax(top_follow, v)
+        # acceleration_law
+        idm = (not linear_gain) and known and target[i] > 0.0
+        if bounded_linear:
+            monotone = dt * _nan_to_num(k0[i]) <= 1.0
+        else:
+            monotone = dt * idm_acc[i] * idm_delta[i] <= (target[i] if idm else 0.0)
+        law_rows[i] = (bounded_linear or idm) and monotone and not crashed[i]
+        law_k[i] = k0[i] if bounded_linear else np.nan
+        # shortfall: one allowance per lane change under way or begun
+        turning = abs(heading[i]) > lateral or abs(vy[i]) > 0.3
+        count = (1 if turning else 0) + (begun if can_change[i] else 0)
+        for j in range(m):
+            allowed = float(count) if t[j] > 0.0 else 0.0
+            allowance[i, j] = 0.0 if crashed[i] else per_change * allowed
+        # occupied_lanes, lanes_now, lane_entry_times
+        reach = abs(0.5 * length[i] * np.sin(heading[i])) + abs(0.5 * body_width * np.cos(heading[i]))
+        lo, hi = y[i] - reach, y[i] + reach
+        own = int(nmin(nmax(np.rint(y[i] / lane_width), 0.0), lanes_count - 1.0))
+        own_lane[i] = own
+        for lane in range(lanes_count):
+            centre = lane * lane_width
+            occupied[i, lane] = hi > centre - half_lane and lo < centre + half_lane
+            now[i, lane] = occupied[i, lane]
+        if turning:
+            toward = own + (1 if vy[i] > 0 else -1)
+            now[i, min(max(toward, 0), lanes_count - 1)] = True
+        for lane in range(lanes_count):
+            dist = 10**6
+            for other in range(lanes_count):
+                if now[i, other]:
+                    dist = min(dist, abs(lane - other))
+            value = cut_in + (dist - 1) * crossing if dist > 0 else 0.0
+            entry[i, lane] = value if (can_change[i] or dist == 0) else np.inf
+        half[i] = 0.5 * (length[i] + ego_length)
+        ahead[i] = x[i] >= ego_x
+        mobil[i] = ((not linear_gain) or bounded_linear) and can_change[i] and not crashed[i]
+        mobil[i] = mobil[i] and np.isfinite(max_braking[i])
+    return (speed, v_min, v_max, allowance, law_rows, law_k, occupied, now, entry, half, ahead, mobil, own_lane,
+            fv_min, fv_max)  # fmt: skip
+
+
+@njit(cache=True, error_model="numpy")
+def plans_kernel(
+    available: np.ndarray, lane_ids: np.ndarray, lane_until: np.ndarray, lane_counts: np.ndarray, onsets: np.ndarray,
+    targets: np.ndarray, ego_x0: float, ego_speed: float, ts: np.ndarray, powers: np.ndarray, frames: int,
+    horizon: int, frame_dt: float, ego_kp: float,
+    x_lo: np.ndarray, x_hi: np.ndarray, v_lo: np.ndarray, v_hi: np.ndarray, entry: np.ndarray, now: np.ndarray,
+    held_a: int, held_b: int, responsibility: bool, verify: np.ndarray,
+    x: np.ndarray, half: np.ndarray, ahead: np.ndarray, mobil: np.ndarray, own_lane: np.ndarray,
+    speed: np.ndarray, accel_max: np.ndarray, brake_max: np.ndarray, fv_min: np.ndarray, fv_max: np.ndarray,
+    comfort_acc: np.ndarray, comfort_dec: np.ndarray, delta: np.ndarray, wanted: np.ndarray, time_wanted: np.ndarray,
+    max_braking: np.ndarray, k0: np.ndarray, k1: np.ndarray, k2: np.ndarray, top_speed: float, speed_limit: float,
+    t: np.ndarray, cut_in_time: float, follower_reaction: float,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:  # fmt: skip
+    """``committed.verify_plans`` in one call: the ego's paths, each available action's set-points, and the worst
+    gap of each action in ``verify`` (its lanes: ``lane_counts[a]`` rows of ``lane_ids``/``lane_until`` from
+    ``a``'s offset). Returns (worst (5, holds), xs, vs, set-points (5, holds, frames + 1))."""
+    xs, vs = ego_paths(ego_x0, ego_speed, targets, ts, powers, frames, horizon, frame_dt, ego_kp)
+    set_points = np.full(vs.shape, np.nan)
+    worst = np.full((N_ACTIONS, N_FALLBACKS), -np.inf)
+    no_carried = np.full(x.shape[0], -1, dtype=np.int64)
+    empty = np.empty((0, 0))
+    start = 0
+    for a in range(N_ACTIONS):
+        stop = start + lane_counts[a]
+        first, start = start, stop
+        if not available[a]:
+            continue
+        set_points[a] = set_points_kernel(vs[a], targets[a], ts, frames)
+        if not verify[a]:
+            continue
+        gaps = car_gaps_kernel(x_lo, x_hi, v_lo, v_hi, entry, now, xs[a], vs[a], onsets[a], lane_ids[first:stop],
+                               lane_until[first:stop], held_a, held_b, responsibility, t.shape[0] - 1, no_carried,
+                               empty, set_points[a], True, x, half, ahead, mobil, own_lane, speed, accel_max,
+                               brake_max, fv_min, fv_max, comfort_acc, comfort_dec, delta, wanted, time_wanted,
+                               max_braking, k0, k1, k2, top_speed, speed_limit, t, cut_in_time,
+                               follower_reaction)  # fmt: skip
+        for h in range(N_FALLBACKS):
+            low = np.inf
+            for i in range(gaps.shape[0]):
+                low = gaps[i, h] if i == 0 else nmin(low, gaps[i, h])
+            worst[a, h] = low
+    return worst, xs, vs, set_points
+
+
 # --------------------------------------------------------------------------------------------
 # The Python entries: the reference functions' signatures.
 # --------------------------------------------------------------------------------------------
 
 
-def car_sets_compiled(state: RoadState, dyn: Dynamics, vehicle: np.ndarray) -> CarSets:
-    """:func:`safelane.safety.committed_sets.car_sets`, the frame loops compiled (the same bits)."""
-    t = dyn.times
-    unbounded = np.isfinite(state.linear_speed_gain) & ~linear_set_point_bound(state)
-    v = path_speed(state)
-    v_min, v_max = speed_bounds(v, state.target_speed, unbounded)
-    rows, k, acc, delta = acceleration_law(state, dyn.frame_dt)
+class Prepared(NamedTuple):
+    """:func:`prepare_kernel`'s per-car quantities of one state."""
+
+    speed: np.ndarray
+    v_min: np.ndarray
+    v_max: np.ndarray
+    allowance: np.ndarray
+    law_rows: np.ndarray
+    law_k: np.ndarray
+    occupied: np.ndarray
+    now: np.ndarray
+    entry: np.ndarray
+    half: np.ndarray
+    ahead: np.ndarray
+    mobil: np.ndarray
+    own_lane: np.ndarray
+    fv_min: np.ndarray
+    fv_max: np.ndarray
+
+
+def prepare(state: RoadState, dyn: Dynamics) -> Prepared:
+    """The per-car quantities of ``state`` (:func:`prepare_kernel`), computed once per state."""
+    consts = np.array([dyn.frame_dt, dyn.lane_width, dyn.body_width, LATERAL_MOTION_THRESHOLD, dyn.cut_in_time,
+                       lane_crossing_time(dyn), lane_change_allowance(dyn), LANE_CHANGES_BEGUN, MAX_SPEED])  # fmt: skip
+    return Prepared(*prepare_kernel(
+        _f(state.x), _f(state.y), _f(state.vx), _f(state.vy), _f(state.heading), _f(state.length),
+        np.asarray(state.crashed, dtype=np.bool_), np.asarray(state.can_change_lane, dtype=np.bool_),
+        _f(state.target_speed), _f(state.linear_speed_gain), _f(state.linear_speed_difference_gain),
+        _f(state.linear_distance_gain), _f(state.idm_comfort_acc), _f(state.idm_delta),
+        _f(state.max_braking_imposed), float(state.ego_x), float(state.ego_length), dyn.times, consts,
+        int(dyn.lanes_count),
+    ))  # fmt: skip
+
+
+def car_sets_compiled(state: RoadState, dyn: Dynamics, vehicle: np.ndarray, prep: Prepared | None = None) -> CarSets:
+    """:func:`safelane.safety.committed_sets.car_sets`, compiled (the same bits); ``prep``: :func:`prepare` of
+    ``state`` when already computed."""
+    prep = prepare(state, dyn) if prep is None else prep
     x_lo, x_hi, v_lo, v_hi = sets_kernel(
-        _f(state.x), _f(v), _f(state.accel_max), _f(state.brake_max), _f(v_min), _f(v_max),
-        np.ascontiguousarray(shortfall(state, dyn, t), dtype=float), t, np.asarray(rows, dtype=np.bool_), _f(k),
-        _f(acc), _f(delta), _f(state.target_speed), np.asarray(state.crashed, dtype=np.bool_), float(dyn.frame_dt),
+        _f(state.x), prep.speed, _f(state.accel_max), _f(state.brake_max), prep.v_min, prep.v_max, prep.allowance,
+        dyn.times, prep.law_rows, prep.law_k, _f(state.idm_comfort_acc), _f(state.idm_delta), _f(state.target_speed),
+        np.asarray(state.crashed, dtype=np.bool_), float(dyn.frame_dt),
     )  # fmt: skip
-    return CarSets(np.asarray(vehicle), x_lo, x_hi, v_lo, v_hi, lane_entry_times(state, dyn), lanes_now(state, dyn))
+    return CarSets(np.asarray(vehicle), x_lo, x_hi, v_lo, v_hi, prep.entry, prep.now)
 
 
 def ego_trajectories_compiled(state: RoadState, dyn: Dynamics) -> tuple[np.ndarray, np.ndarray]:
@@ -367,21 +521,44 @@ class CarArrays(NamedTuple):
     k2: np.ndarray
 
 
-def car_arrays(state: RoadState, dyn: Dynamics) -> CarArrays:
+def car_arrays(state: RoadState, dyn: Dynamics, prep: Prepared | None = None) -> CarArrays:
     """The per-car inputs of :func:`car_gaps_compiled` (as :func:`safelane.safety.committed.car_gaps` derives
-    them)."""
-    crashed = np.asarray(state.crashed, dtype=bool)
-    mobil = (~np.isfinite(state.linear_speed_gain) | linear_set_point_bound(state)) & state.can_change_lane
-    mobil &= ~crashed & np.isfinite(state.max_braking_imposed)
-    speed = path_speed(state)
-    fv_min, fv_max = speed_bounds(speed, state.target_speed, np.isfinite(state.linear_speed_gain))
+    them); ``prep``: :func:`prepare` of ``state`` when already computed."""
+    p = prepare(state, dyn) if prep is None else prep
     return CarArrays(
-        _f(state.x), _f(0.5 * (state.length + state.ego_length)), np.asarray(state.x >= state.ego_x),
-        np.asarray(mobil, dtype=np.bool_), state.lane_of(state.y, dyn.lanes_count, dyn.lane_width).astype(np.int64),
-        _f(speed), _f(state.accel_max), _f(state.brake_max), _f(fv_min), _f(fv_max), _f(state.idm_comfort_acc),
-        _f(state.idm_comfort_dec), _f(state.idm_delta), _f(state.idm_distance_wanted), _f(state.idm_time_wanted),
-        _f(state.max_braking_imposed), _f(state.linear_speed_gain), _f(state.linear_speed_difference_gain),
-        _f(state.linear_distance_gain),
+        _f(state.x), p.half, p.ahead, p.mobil, p.own_lane, p.speed, _f(state.accel_max), _f(state.brake_max),
+        p.fv_min, p.fv_max, _f(state.idm_comfort_acc), _f(state.idm_comfort_dec), _f(state.idm_delta),
+        _f(state.idm_distance_wanted), _f(state.idm_time_wanted), _f(state.max_braking_imposed),
+        _f(state.linear_speed_gain), _f(state.linear_speed_difference_gain), _f(state.linear_distance_gain),
+    )  # fmt: skip
+
+
+def verify_plans_compiled(
+    state: RoadState,
+    dyn: Dynamics,
+    sets: CarSets,
+    reading: str,
+    available: np.ndarray,
+    verify: np.ndarray,
+    lanes: list[list[tuple[int, float]]],
+    onsets: np.ndarray,
+    cars: CarArrays,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`safelane.safety.committed.verify_plans`' arithmetic in one call (the same bits): ``available`` the
+    actions whose set-points are drawn, ``verify`` those verified, ``lanes`` each action's lanes, ``onsets``
+    (5, holds) [s] each plan's braking onset."""
+    decay = 1.0 - dyn.ego_kp * dyn.frame_dt
+    powers = decay ** np.arange(dyn.frames_per_decision + 1)
+    flat = [lane for per_action in lanes for lane in per_action]
+    return plans_kernel(
+        available, np.array([lane for lane, _ in flat], dtype=np.int64),
+        np.array([until for _, until in flat], dtype=float), np.array([len(x) for x in lanes], dtype=np.int64),
+        onsets, action_targets(state, dyn), float(state.ego_x), float(state.ego_speed),
+        np.asarray(dyn.target_speeds, dtype=float), powers, dyn.frames_per_decision, dyn.horizon_decisions,
+        float(dyn.frame_dt), float(dyn.ego_kp), sets.x_lo, sets.x_hi, sets.v_lo, sets.v_hi, sets.entry,
+        np.asarray(sets.now, dtype=np.bool_), int(state.ego_lane), int(state.ego_target_lane),
+        reading == "responsibility", verify, *cars, float(max(dyn.target_speeds)), float(state.speed_limit),
+        dyn.times, float(dyn.cut_in_time), float(dyn.follower_reaction),
     )  # fmt: skip
 
 

@@ -94,35 +94,52 @@ def sets_kernel(
     v_lo, v_hi = np.empty((n, m)), np.empty((n, m))
     for i in range(n):
         vi, ai, bi, lo, hi = v[i], a[i], b[i], v_min[i], v_max[i]
+        if crashed[i]:  # a wall where it stands
+            x_lo[i], x_hi[i], v_lo[i], v_hi[i] = x[i], x[i], 0.0, 0.0
+            continue
+        # The closed forms' switching times do not depend on the frame: computed once (the same operations).
+        t_low = nmax(vi - lo, 0.0) / nmax(bi, 1e-9)
+        start, top = nmax(vi, 0.0), nmax(hi, 0.0)
+        t0 = nmax(-vi / nmax(ai, 1e-9), 0.0)
+        t_top = nmax(top - start, 0.0) / nmax(ai, 1e-9)
+        back_v, back_low = nmin(vi, 0.0), nmin(lo, 0.0)
+        t0b = nmax(vi / nmax(bi, 1e-9), 0.0)
+        t_back = nmax(back_v - back_low, 0.0) / nmax(bi, 1e-9)
         # The law's bound (law_rise): highway-env's explicit Euler, the acceleration at most min(a, max(law, 0)).
-        safe_target = target[i] if (law_rows[i] and np.isfinite(target[i]) and target[i] > 0.0) else 1.0
-        vk = vi if law_rows[i] else 0.0
+        ruled = law_rows[i]
+        safe_target = target[i] if (ruled and np.isfinite(target[i]) and target[i] > 0.0) else 1.0
+        vk = vi if ruled else 0.0
         xk = 0.0
         linear = np.isfinite(law_k[i])
         k = _nan_to_num(law_k[i])
+        settled = False  # the speed stopped changing: the law's input, and so its step, stays the same
         for j in range(m):
             tj = t[j]
-            if j > 0 and law_rows[i]:
-                linear_law = k * (target[i] - vk)
-                idm_law = law_acc[i] * (1.0 - np.power(nmax(vk, 0.0) / safe_target, law_delta[i]))
-                law = linear_law if linear else idm_law
+            if j > 0 and ruled:
                 xk = xk + dt * nmax(vk, 0.0)
-                vk = vk + dt * nmin(ai, nmax(_nan_to_num(law), 0.0))
+                if not settled:
+                    linear_law = k * (target[i] - vk)
+                    idm_law = law_acc[i] * (1.0 - np.power(nmax(vk, 0.0) / safe_target, law_delta[i]))
+                    law = linear_law if linear else idm_law
+                    before = vk
+                    vk = vk + dt * nmin(ai, nmax(_nan_to_num(law), 0.0))
+                    settled = vk == before
             # envelope: the speeds' bang-bang bounds, the forward and backward parts of the positions.
             v_up = nmin(vi + ai * tj, hi)
             v_down = nmax(vi - bi * tj, lo)
-            d_lo = _fall_distance(vi, bi, lo, tj)
-            t0 = nmax(-vi / nmax(ai, 1e-9), 0.0)
-            d_hi = _rise_distance(nmax(vi, 0.0), ai, nmax(hi, 0.0), nmax(tj - t0, 0.0))
-            t0b = nmax(vi / nmax(bi, 1e-9), 0.0)
-            back = _fall_distance(nmin(vi, 0.0), bi, nmin(lo, 0.0), nmax(tj - t0b, 0.0))
+            tt = nmin(tj, t_low)
+            d_lo = vi * tt - 0.5 * bi * tt * tt + lo * nmax(tj - t_low, 0.0)
+            t_up = nmax(tj - t0, 0.0)
+            tt = nmin(t_up, t_top)
+            d_hi = start * tt + 0.5 * ai * tt * tt + top * nmax(t_up - t_top, 0.0)
+            t_down = nmax(tj - t0b, 0.0)
+            tt = nmin(t_down, t_back)
+            back = back_v * tt - 0.5 * bi * tt * tt + back_low * nmax(t_down - t_back, 0.0)
             d_lo = nmax(d_lo - allowance[i, j], back)
             xl, xh = x[i] + d_lo, x[i] + d_hi
-            if law_rows[i]:
+            if ruled:
                 xh = nmin(xh, x[i] + xk)
                 v_up = nmin(v_up, vk)
-            if crashed[i]:
-                xl, xh, v_down, v_up = x[i], x[i], 0.0, 0.0
             x_lo[i, j], x_hi[i, j], v_lo[i, j], v_hi[i, j] = xl, xh, v_down, v_up
     return x_lo, x_hi, v_lo, v_hi
 

@@ -37,6 +37,8 @@ from safelane.safety.world import LATERAL_MOTION_THRESHOLD, Dynamics, RoadState
 drop_stale_kernel_cache(__file__, (compiled_parts.__file__,))
 
 _BIG = np.finfo(np.float64).max  # np.nan_to_num's image of +inf
+CHUNK = 8
+"""Frames per chunk of the cheap bound that lets the plans' kernel skip cars far from every plan."""
 
 
 @njit(cache=True, inline="always")
@@ -113,8 +115,8 @@ def sets_kernel(
         linear = np.isfinite(law_k[i])
         k = _nan_to_num(law_k[i])
         settled = False  # the speed stopped changing: the law's input, and so its step, stays the same
+        law_v, law_x = v_hi[i], x_hi[i]  # the law's bounds first, in the output rows (a sequential recursion)
         for j in range(m):
-            tj = t[j]
             if j > 0 and ruled:
                 xk = xk + dt * nmax(vk, 0.0)
                 if not settled:
@@ -124,6 +126,9 @@ def sets_kernel(
                     before = vk
                     vk = vk + dt * nmin(ai, nmax(_nan_to_num(law), 0.0))
                     settled = vk == before
+            law_v[j], law_x[j] = vk, xk
+        for j in range(m):  # the envelope, frame by frame independent
+            tj = t[j]
             # envelope: the speeds' bang-bang bounds, the forward and backward parts of the positions.
             v_up = nmin(vi + ai * tj, hi)
             v_down = nmax(vi - bi * tj, lo)
@@ -138,8 +143,8 @@ def sets_kernel(
             d_lo = nmax(d_lo - allowance[i, j], back)
             xl, xh = x[i] + d_lo, x[i] + d_hi
             if ruled:
-                xh = nmin(xh, x[i] + xk)
-                v_up = nmin(v_up, vk)
+                xh = nmin(xh, x[i] + law_x[j])
+                v_up = nmin(v_up, law_v[j])
             x_lo[i, j], x_hi[i, j], v_lo[i, j], v_hi[i, j] = xl, xh, v_down, v_up
     return x_lo, x_hi, v_lo, v_hi
 
@@ -224,15 +229,24 @@ def _permit_entry(
     ego_v: np.ndarray, ego_set: np.ndarray, has_set: bool, top_speed: float, speed_limit: float,
     comfort_acc: np.ndarray, comfort_dec: np.ndarray, delta: np.ndarray, wanted: np.ndarray, time_wanted: np.ndarray,
     max_braking: np.ndarray, k0: np.ndarray, k1: np.ndarray, k2: np.ndarray, t: np.ndarray, cut_in_time: float,
-    out: np.ndarray,
+    out: np.ndarray, powers: np.ndarray, powers_delta: np.ndarray,
 ) -> None:  # fmt: skip
     """``committed._permit_entry`` of car ``i``: ``out`` (holds,) [s] the first time MOBIL's criterion could let it
-    in front of the ego on each plan (with ``_linear_criterion`` for linear drivers), plus the cut-in time."""
+    in front of the ego on each plan (with ``_linear_criterion`` for linear drivers), plus the cut-in time.
+    ``powers`` (holds, frames): ``(v_ego / v_limit)^δ`` for the exponent ``powers_delta[0]`` (NaN: not yet
+    computed), filled on first use and reused by every driver with the same δ (the same inputs, the same bits)."""
     acc = comfort_acc[i]
     ab = -comfort_acc[i] * comfort_dec[i]
     target = max(speed_limit, 1e-2)
     linear = np.isfinite(k0[i])
     two_root = 2 * np.sqrt(ab)
+    cached = not linear and powers_delta[0] == delta[i]
+    if not linear and not cached and powers_delta[0] != powers_delta[0]:  # the first IDM driver fills the cache
+        for h in range(ego_x.shape[0]):
+            for j in range(t.shape[0]):
+                powers[h, j] = np.power(nmax(ego_v[h, j], 0.0) / target, delta[i])
+        powers_delta[0] = delta[i]
+        cached = True
     for h in range(ego_x.shape[0]):
         first = np.inf
         for j in range(t.shape[0]):
@@ -244,7 +258,7 @@ def _permit_entry(
                 pred = k0[i] * (aim - ev) + k1[i] * nmin(v_hi[i, j] - ev, 0.0) + k2[i] * nmin(gap - d_safe, 0.0)
                 ok = pred >= -max_braking[i]
             else:
-                free = acc * (1 - np.power(ev / target, delta[i]))
+                free = acc * (1 - (powers[h, j] if cached else np.power(ev / target, delta[i])))
                 base = wanted[i] + ev * time_wanted[i]
                 d_fast = base + ev * (ev - nmax(v_hi[i, j], 0.0)) / two_root
                 d_slow = base + ev * (ev - nmin(v_lo[i, j], 0.0)) / two_root
@@ -271,31 +285,55 @@ def car_gaps_kernel(
     speed: np.ndarray, accel_max: np.ndarray, brake_max: np.ndarray, fv_min: np.ndarray, fv_max: np.ndarray,
     comfort_acc: np.ndarray, comfort_dec: np.ndarray, delta: np.ndarray, wanted: np.ndarray, time_wanted: np.ndarray,
     max_braking: np.ndarray, k0: np.ndarray, k1: np.ndarray, k2: np.ndarray, top_speed: float, speed_limit: float,
-    t: np.ndarray, cut_in_time: float, follower_reaction: float,
+    t: np.ndarray, cut_in_time: float, follower_reaction: float, order: np.ndarray, least: bool,
+    lo_min: np.ndarray, hi_max: np.ndarray,
 ) -> np.ndarray:  # fmt: skip
     """``committed.car_gaps``: (cars, holds) each car's worst bumper-to-bumper gap [m] to the plans (the
     reference documents the arguments; lanes as ``lane_ids``/``lane_until``, the carried follower bounds as
     ``carried_lane`` (−1: none) and ``carried_high``, ``ego_set`` read when ``has_set``; per car: ``half`` the
     half-lengths' sum, ``own_lane`` its lane, ``speed`` along its path, ``fv_min``/``fv_max`` its follower speed
-    bounds)."""
+    bounds). Cars are visited in ``order``. With ``least`` only the least gap over the cars is wanted: a car is
+    skipped (its row left inf) when a bound below its gap (from ``lo_min``/``hi_max`` (cars, chunks), its lowest
+    and highest position in each chunk of :data:`CHUNK` frames) is already above the least gap so far for every
+    plan — rounding is monotone, so the computed gap is at least the computed bound and the least gap is the same
+    to the bit."""
     n, holds, m = x.shape[0], ego_x.shape[0], t.shape[0]
     worst = np.full((n, holds), np.inf)
+    running = np.full(holds, np.inf)
+    chunks = lo_min.shape[1] if least else 0
+    ego_lo, ego_hi = np.full((holds, chunks), np.inf), np.full((holds, chunks), -np.inf)
+    for h in range(holds):
+        for j in range(m if least else 0):
+            c = j // CHUNK
+            ego_lo[h, c], ego_hi[h, c] = nmin(ego_lo[h, c], ego_x[h, j]), nmax(ego_hi[h, c], ego_x[h, j])
     t_last = t[min(max(last_frame, 0), m - 1)]
     entry_h = np.empty(holds)
     permit = np.empty(holds)
+    powers, powers_delta = np.empty((holds, m)), np.full(1, np.nan)
     react = np.empty(holds)
     for h in range(holds):
         react[h] = nmax(onset[h] + follower_reaction, 0.0)  # a past reaction: braking from now
     for li in range(lane_ids.shape[0]):
         lane, until = lane_ids[li], lane_until[li]
         held_lane = lane in (held_a, held_b)
-        for i in range(n):
+        for oi in range(n):
+            i = order[oi]
+            if least:
+                below = True  # the bound is above the least gap so far for every plan: this car cannot lower it
+                for h in range(holds):
+                    bound = np.inf
+                    for c in range(chunks):
+                        chunk = nmax(lo_min[i, c] - ego_hi[h, c] - half[i], ego_lo[h, c] - hi_max[i, c] - half[i])
+                        bound = nmin(bound, chunk)
+                    below = below and bound > running[h]
+                if below:
+                    continue
             for h in range(holds):
                 entry_h[h] = entry[i, lane]
             if held_lane and ahead[i] and mobil[i] and not now[i, lane]:
                 _permit_entry(i, x_hi, x_lo, v_lo, v_hi, ego_x, ego_v, ego_set, has_set, top_speed, speed_limit,
                               comfort_acc, comfort_dec, delta, wanted, time_wanted, max_braking, k0, k1, k2, t,
-                              cut_in_time, permit)  # fmt: skip
+                              cut_in_time, permit, powers, powers_delta)  # fmt: skip
                 for h in range(holds):
                     entry_h[h] = nmax(entry_h[h], permit[h])
             count = False
@@ -321,6 +359,8 @@ def car_gaps_kernel(
                     gap = nmax(x_lo[i, j] - ego_x[h, j] - half[i], ego_x[h, j] - high - half[i])
                     low = nmin(low, gap)
                 worst[i, h] = nmin(worst[i, h], low)
+                if least:
+                    running[h] = nmin(running[h], low)
     return worst
 
 
@@ -423,8 +463,17 @@ def plans_kernel(
     xs, vs = ego_paths(ego_x0, ego_speed, targets, ts, powers, frames, horizon, frame_dt, ego_kp)
     set_points = np.full(vs.shape, np.nan)
     worst = np.full((N_ACTIONS, N_FALLBACKS), -np.inf)
-    no_carried = np.full(x.shape[0], -1, dtype=np.int64)
+    n = x.shape[0]
+    no_carried = np.full(n, -1, dtype=np.int64)
     empty = np.empty((0, 0))
+    # The nearest cars first, so that the far ones are skipped (car_gaps_kernel's ``least``).
+    order = np.argsort(np.abs(x - ego_x0), kind="mergesort")
+    chunks = -(-x_lo.shape[1] // CHUNK)
+    lo_min, hi_max = np.full((n, chunks), np.inf), np.full((n, chunks), -np.inf)
+    for i in range(n):
+        for j in range(x_lo.shape[1]):
+            c = j // CHUNK
+            lo_min[i, c], hi_max[i, c] = nmin(lo_min[i, c], x_lo[i, j]), nmax(hi_max[i, c], x_hi[i, j])
     start = 0
     for a in range(N_ACTIONS):
         stop = start + lane_counts[a]
@@ -439,7 +488,7 @@ def plans_kernel(
                                empty, set_points[a], True, x, half, ahead, mobil, own_lane, speed, accel_max,
                                brake_max, fv_min, fv_max, comfort_acc, comfort_dec, delta, wanted, time_wanted,
                                max_braking, k0, k1, k2, top_speed, speed_limit, t, cut_in_time,
-                               follower_reaction)  # fmt: skip
+                               follower_reaction, order, True, lo_min, hi_max)  # fmt: skip
         for h in range(N_FALLBACKS):
             low = np.inf
             for i in range(gaps.shape[0]):
@@ -604,7 +653,7 @@ def car_gaps_compiled(
         t.size - 1 if until_frame is None else int(until_frame), carried_lane, carried_high,
         np.ascontiguousarray(ego_set) if has_set else np.empty((0, 0)), has_set, *cars,
         float(max(dyn.target_speeds)), float(state.speed_limit), t, float(dyn.cut_in_time),
-        float(dyn.follower_reaction),
+        float(dyn.follower_reaction), np.arange(n, dtype=np.int64), False, np.empty((0, 0)), np.empty((0, 0)),
     )  # fmt: skip
 
 
@@ -629,10 +678,11 @@ def permit_entry_compiled(
     cars = car_arrays(state, dyn)
     out = np.empty((len(rows), ego_x.shape[0]))
     has_set = ego_set is not None
+    cache, cache_delta = np.empty(ego_x.shape), np.full(1, np.nan)
     for r, i in enumerate(rows):
         _permit_entry(int(i), sets.x_hi, sets.x_lo, sets.v_lo, sets.v_hi, np.ascontiguousarray(ego_x),
                       np.ascontiguousarray(ego_v), np.ascontiguousarray(ego_set) if has_set else np.empty((0, 0)),
                       has_set, float(max(dyn.target_speeds)), float(state.speed_limit), cars.comfort_acc,
                       cars.comfort_dec, cars.delta, cars.wanted, cars.time_wanted, cars.max_braking, cars.k0, cars.k1,
-                      cars.k2, dyn.times, float(dyn.cut_in_time), out[r])  # fmt: skip
+                      cars.k2, dyn.times, float(dyn.cut_in_time), out[r], cache, cache_delta)  # fmt: skip
     return out

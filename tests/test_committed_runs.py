@@ -2,7 +2,7 @@
 model, plan-forced share, uncertified starts, redraws), its collision contexts, lapse counterexample files and their
 replay, the redraw option for uncertified starts, the vector env and training. The other modes' figures unchanged.
 
-Short runs on the fast simulator (the committed prototype is numpy: ≈ 25 ms a decision)."""
+Short runs on the fast simulator."""
 
 from __future__ import annotations
 
@@ -17,7 +17,7 @@ import yaml
 
 from safelane.config import ConfigError, load_config
 from safelane.core.errors import NotSupported
-from safelane.core.spaces import FASTER, IDLE, SLOWER
+from safelane.core.spaces import FASTER, IDLE
 from safelane.running import evaluation
 from safelane.running.collisions import COMMITTED_CONTEXTS, collision_contexts
 from safelane.running.counterexamples import load_counterexample, replay, save_counterexamples
@@ -277,28 +277,40 @@ def test_redraw_is_refused_for_the_other_modes() -> None:
 # --- the vector env, the batch, training --------------------------------------------------------------
 
 
-def test_the_vector_env_runs_committed_and_the_batch_refuses_it_in_one_line() -> None:
+def test_the_fast_batch_runs_committed_as_the_single_environments_do() -> None:
+    """The fast batch (one family per environment) and the loop over ``make_env`` environments give the same rows:
+    observations, rewards, masks, executed actions and the committed flags, across autoresets; the batch refuses
+    ``shield.redraw_uncertified`` in one line."""
+    from safelane.env.factory import make_env
     from safelane.env.fast_batch import FastBatch
-    from safelane.env.vector import SafelaneVectorEnv, make_vector_env
+    from safelane.env.vector import FastVectorEnv, SafelaneVectorEnv, make_vector_env
 
-    cfg = load_config("fast", overrides={**COMMITTED, **SHORT, "shield.override": False})
-    vector = make_vector_env(cfg, num_envs=2, seed=0)
-    assert isinstance(vector, SafelaneVectorEnv)
-    masks = vector.action_masks()
-    assert masks.shape == (2, 5) and masks.any(axis=1).all()
-    for _ in range(3):
-        actions = np.array(
-            [a if m[a] else int(np.flatnonzero(m)[0]) for a, m in zip((FASTER, SLOWER), masks, strict=True)]
-        )
-        _, _, _, _, infos = vector.step(actions)
-        masks = infos["action_mask"]
-        assert not infos["unsafe_action"].any()
-        assert {"plan_forced", "lapse", "lapse_in_model"} <= set(infos) and infos["lapse"].shape == (2,)
-    vector.close()
+    overrides = {**COMMITTED, "env.vehicles_density": 2.0, "shield.reading": "responsibility"}
+    cfg = load_config("fast", overrides=overrides)
+    fast = make_vector_env(cfg, num_envs=3, seed=3)
+    loop = SafelaneVectorEnv([make_env(cfg) for _ in range(3)])
+    loop.reset(seed=3)
+    assert isinstance(fast, FastVectorEnv)
+    assert np.array_equal(fast.action_masks(), loop.action_masks())
+    forced = lapses = 0
+    for _ in range(42):  # always FASTER, as the shield allows: seeds 3 and 5 drive on kept plans and lapse
+        actions = np.full(3, FASTER)
+        got, want = fast.step(actions), loop.step(actions)
+        for a, b in zip(got[:4], want[:4], strict=True):
+            assert np.array_equal(a, b)
+        for key in ("action_mask", "executed_action", "fallback", "collision", "plan_forced", "lapse",
+                    "lapse_in_model"):  # fmt: skip
+            assert np.array_equal(got[4][key], want[4][key]), key
+        forced += int(got[4]["plan_forced"].sum())
+        lapses += int(got[4]["lapse"].sum())
+    assert forced >= 2 and lapses >= 1
+    fast.close()
+    loop.close()
+    redraw = load_config("fast", overrides={**COMMITTED, "shield.redraw_uncertified": True})
     with pytest.raises(NotSupported) as err:
-        FastBatch(cfg, 2)
+        FastBatch(redraw, 2)
     message = str(err.value)
-    assert "\n" not in message and "shield.mode: committed" in message and "none, nominal, robust" in message
+    assert "\n" not in message and "shield.redraw_uncertified" in message
 
 
 def test_training_under_the_committed_shield(tmp_path: Path) -> None:
@@ -344,3 +356,20 @@ def test_falsify_reports_the_committed_figures(tmp_path: Path) -> None:
     assert set(COMMITTED_FIGURES) <= set(header)
     assert tuple(summary["collision_contexts"]) == collision_contexts(True)
     assert "lapses" in (tmp_path / "out" / "summary.md").read_text()
+
+
+def test_evaluation_on_the_fast_batch_gives_the_committed_records_of_one_environment() -> None:
+    """``run_config``'s fast batch, the loop over ``make_env`` stacks and one environment give the same committed
+    records: lapses (and their cars), plan-forced decisions, uncertified starts, collision contexts."""
+    from safelane.env.factory import make_env
+    from safelane.running.evaluation import run_episodes, run_episodes_batched
+
+    overrides = {**COMMITTED, "env.vehicles_density": 2.0, "shield.reading": "responsibility"}
+    cfg = load_config("fast", overrides=overrides)
+    policy = fixed_policy("faster")
+    fused = run_config(cfg, policy, 6, 3, num_envs=3)
+    stacks = run_episodes_batched([make_env(cfg) for _ in range(3)], policy, 6, 3)
+    one = run_episodes(make_env(cfg), policy, 6, 3)
+    as_dicts = [[r.to_dict() for r in records] for records in (fused, stacks, one)]
+    assert as_dicts[0] == as_dicts[1] == as_dicts[2]
+    assert sum(len(r.lapses) for r in one) >= 1 and sum(r.plan_forced for r in one) >= 2

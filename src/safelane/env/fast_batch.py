@@ -4,7 +4,9 @@
 (:func:`safelane.sim.fast.env.stacked_storage`). One :meth:`FastBatch.step` runs every scene's physics
 in one numba call (:func:`safelane.sim.fast.kernels.simulate` per scene), then the paper's state, the
 shield's mask (the compiled safety kernel, :data:`safelane.safety.compiled.snapshot_kernel`), the
-reward's forward speed and the crash flags of every scene in a second one. Around them only a few numpy
+reward's forward speed and the crash flags of every scene in a second one. The ``committed`` shield mode keeps a
+plan per environment: its :class:`~safelane.safety.committed.CommittedFamily` (compiled kernels, called once per
+environment and decision) judges each scene after the second call. Around them only a few numpy
 operations over the batch remain, where :func:`safelane.env.make_env`'s wrapper stack spends ~100 µs of
 Python per environment and decision.
 
@@ -12,7 +14,8 @@ It is the same environment, not an approximation: row ``i`` after any sequence o
 the observation, reward, flags, mask and fallback of ``make_env(config)`` driven the same way
 (``tests/test_vector_env.py``, ``tests/test_evaluation.py``). Supported: the fast simulator with
 ``state`` ``paper`` or ``lanes``, any ``traffic.vehicles_behind``, no ``traffic.adversary``, and any
-shield mode on the compiled engine except nominal with the ``paper`` formula (:func:`supports`);
+shield mode on the compiled engine except nominal with the ``paper`` formula, the committed mode without
+``shield.redraw_uncertified`` (:func:`supports`);
 :func:`safelane.env.vector.make_vector_env` falls back to a loop over ``make_env`` environments otherwise.
 
 Used by :class:`safelane.env.vector.FastVectorEnv` (gymnasium's autoreset) and by the evaluation
@@ -34,9 +37,10 @@ from safelane.core.kernel_cache import drop_stale_kernel_cache
 from safelane.core.snapshot import DRIVER_FIELDS, RoadSnapshot
 from safelane.core.spaces import N_ACTIONS
 from safelane.env.observations import OBS_SIZE, lane_state_kernel, paper_state_kernel
+from safelane.safety.committed import CommittedFamily, CommittedResult
 from safelane.safety.compiled import N_CONSTS, kernel_constants, snapshot_kernel
 from safelane.safety.model import OVERRIDE_ORDER
-from safelane.safety.shield import FALLBACK_SLOWDOWN, dynamics_of, ego_leave_times
+from safelane.safety.shield import FALLBACK_SLOWDOWN, dynamics_of, ego_leave_time_of, ego_leave_times
 from safelane.sim.fast import kernels as K
 from safelane.sim.fast import layout as L
 from safelane.sim.fast.env import FastHighwayEnv, stacked_storage
@@ -72,9 +76,9 @@ def supports(cfg: SafelaneConfig) -> str | None:
     if cfg.traffic.adversary != "none":  # make_env refuses it on the fast simulator: so does the batch
         return f"traffic.adversary: {cfg.traffic.adversary} (the fast simulator places no adversary)"
     shield = cfg.shield
-    if shield.mode == "committed":  # the experimental prototype keeps a plan per environment, in numpy
-        return "shield.mode: committed (a numpy prototype, no batch kernel; allowed: none, nominal, robust)"
-    if shield.mode != "none" and shield.engine != "compiled":
+    if shield.mode == "committed" and shield.redraw_uncertified:
+        return "shield.redraw_uncertified: true (the batch plays highway-env's spawns as they are)"
+    if shield.mode in ("nominal", "robust") and shield.engine != "compiled":
         return f"shield.engine: {shield.engine} (the batch runs the compiled kernel)"
     if shield.mode == "nominal" and shield.formula == "paper":
         return "shield.formula: paper (eq. 12 is evaluated by the numpy reference only)"
@@ -236,6 +240,13 @@ class FastBatch:
         shield = cfg.shield
         self.shielded = shield.mode != "none"
         self.robust = shield.mode == "robust"
+        # The committed mode keeps a plan per environment: its family judges each state after the kernel ran.
+        self.committed = shield.mode == "committed"
+        self.families = [
+            CommittedFamily(shield.reading, shield.engine) for _ in range(num_envs if self.committed else 0)
+        ]
+        self.results: list[CommittedResult | None] = [None] * (num_envs if self.committed else 0)
+        self._dynamics = None
         self.override = bool(shield.override)
         reward = cfg.reward
         self._reward = (float(reward.b), float(reward.c), float(reward.v_min), float(reward.v_max))
@@ -286,7 +297,11 @@ class FastBatch:
                 self.is_vehicle[i] = snap.is_vehicle
                 self.can_change_lane[i] = snap.can_change_lane
                 self._statics_set[i] = True
-            if self.shielded and self._kernel_args is None:
+            if self.committed:
+                self.families[i].reset()
+                if self._dynamics is None:
+                    self._dynamics = dynamics_of(snap, self.cfg.shield.margin, self.cfg.shield.resolved_rule())
+            elif self.shielded and self._kernel_args is None:
                 self._kernel_args = self._shield_constants(snap)
         self.times[rows] = 0.0
         self._observe(rows)
@@ -316,7 +331,20 @@ class FastBatch:
         }
         if self.shielded:
             info.update(action_mask=self.masks[i].copy(), fallback=bool(self.fallback[i]), shield_intervened=False)
+        if self.committed:
+            info.update(self.committed_info(i), uncertified_start=not self.results[i].certified)
         return info
+
+    def committed_info(self, i: int) -> dict[str, Any]:
+        """The committed mode's ``info`` keys of environment ``i``'s current state (``SafetyShield``'s)."""
+        result = self.results[i]
+        return {
+            "plan_forced": result.plan_forced, "lapse": result.lapse, "lapse_in_model": result.lapse_in_model,
+            "lapse_cars": result.lapse_cars, "lapse_escaped_cars": result.lapse_escaped,
+            "escaped_cars": result.escaped, "rolled_back": result.rolled_back,
+            "unbraked_followers": result.unbraked_followers, "entered_cars": result.entered,
+            "certified": result.certified, "shield_reading": self.cfg.shield.reading,
+        }  # fmt: skip
 
     def speeds(self) -> np.ndarray:
         """[m/s] Every ego's speed now (``info["speed"]``), shape ``(N,)``."""
@@ -345,6 +373,8 @@ class FastBatch:
                     executed[j] = order[np.argmax(before_masks[j][order])]
         else:
             executed = chosen
+        for j, i in enumerate(rows.tolist() if self.committed else ()):  # each kept plan follows the action
+            self.families[i].commit(int(executed[j]))
         self._actions[rows] = executed
         sc = self.sim
         st = self.storage
@@ -390,10 +420,16 @@ class FastBatch:
             numba.set_num_threads(self.threads)
         args = (
             st.F, st.G, st.E, self.length, self.is_vehicle, self.can_change_lane, self.drivers,
-            self.state_kind, float(self.P[L.P_LANE_WIDTH]), self.sim.lanes_count, self.shielded, self.robust,
+            self.state_kind, float(self.P[L.P_LANE_WIDTH]), self.sim.lanes_count, self.shielded and not self.committed,
+            self.robust,
             *shield_args, self.obs, self.masks, self.fallback, self._forward, self._crashed, self._speed, self._bad,
         )  # fmt: skip
         self._observe_rows(rows, args)
+        for i in rows.tolist() if self.committed else ():  # the committed family, environment by environment
+            snap = self.snapshot(i)
+            result = self.families[i].evaluate(snap, self._dynamics, ego_leave_time_of(snap, self._dynamics))
+            self.results[i] = result
+            self.masks[i], self.fallback[i] = result.mask, result.fallback
         if self.shielded and self._bad[rows].any():
             i = int(rows[np.argmax(self._bad[rows])])
             raise RuntimeError(f"fast batch: environment {i}'s ego speed is not a number; no mask exists")

@@ -41,8 +41,7 @@ from safelane.env.observations import OBS_SIZE
 BOOL_INFO = ("collision", "fallback", "shield_intervened", "unsafe_action", "invariant_break")
 """Per-environment flags of a step, batched as bool arrays (False where the env does not report one)."""
 COMMITTED_INFO = ("plan_forced", "lapse", "lapse_in_model")
-"""The committed shield mode's flags of a step, batched like :data:`BOOL_INFO` by :class:`SafelaneVectorEnv` when
-its environments report them (the fast batch has no committed mode)."""
+"""The committed shield mode's flags of a step, batched like :data:`BOOL_INFO` when the environments report them."""
 
 
 class SafelaneVectorEnv(VectorEnv):
@@ -194,6 +193,9 @@ class FastVectorEnv(VectorEnv):
             "speed": out.speed,
             "executed_action": out.executed,
         }
+        if batch.committed:  # read before the finished rows restart
+            flags = [batch.committed_info(i) for i in range(self.num_envs)]
+            infos.update({key: np.array([f[key] for f in flags], dtype=bool) for key in COMMITTED_INFO})
         if done.any():
             infos.update(
                 final_obs=np.where(done[:, None], batch.obs, 0.0).astype(batch.obs.dtype),

@@ -399,6 +399,8 @@ def run_episodes_fast_batch(
                     executed_action=int(out.executed[j]),
                     action_mask=batch.masks[i].copy(),
                 )
+            if batch.committed:
+                info.update(batch.committed_info(i))
             if out.collision[j] or done[j] or needs_snapshot:
                 info["snapshot"] = batch.snapshot(i)
             index, tally = slots[i]

@@ -42,8 +42,8 @@ from safelane.sim.highway import HighwayEnvAdapter, lane_change_timing
 DEFAULT_MARGIN = Dynamics.__dataclass_fields__["margin"].default
 """[m] The safety model's default bumper-to-bumper margin (``shield.margin``)."""
 __all__ = [
-    "ENGINES", "CannotStopWarning", "Engine", "SafetyShield", "dynamics_of", "ego_leave_time_at", "ego_leave_times",
-    "road_state", "road_state_bodies", "stoppable_action_config",
+    "ENGINES", "CannotStopWarning", "Engine", "SafetyShield", "dynamics_of", "ego_leave_time_at", "ego_leave_time_of",
+    "ego_leave_times", "road_state", "road_state_bodies", "stoppable_action_config",
 ]  # fmt: skip
 
 
@@ -106,6 +106,26 @@ def ego_leave_times(dyn: Dynamics) -> np.ndarray:
     table a batched kernel looks the leave time up in, exactly as :class:`SafetyShield` computes it."""
     count = int(LEAVE_TIME_MAX_SPEED * 2) + 1
     return np.array([ego_leave_time_at(dyn, k / 2) for k in range(count)])
+
+
+def ego_leave_time_of(snap: RoadSnapshot, dyn: Dynamics) -> float:
+    """[s] The time the ego takes to leave its lane in the state of ``snap`` (what the shield gives the rule)."""
+    # The ego's speed along the road, as road_state computes it (the compiled path builds no RoadState).
+    direction = snap.lane_direction
+    lane_heading = math.atan2(direction[1], direction[0])
+    e = snap.ego
+    ego_speed = float(snap.speed[e] * math.cos(float(snap.heading[e]) - lane_heading))
+    # The ego leaves its old lane more slowly at low speed (the steering turns the car in
+    # proportion to its speed; at a standstill it never leaves). Time it at the lowest speed
+    # the ego may have while still changing lane — its speed or set-point, minus what a
+    # fallback SLOWER removes in the next second (4.5 m/s) — rounded down to 0.5 m/s so the
+    # simulation is cached, plus one frame because the change starts at the next physics frame.
+    slowest = min(ego_speed, snap.ego_target_speed) - FALLBACK_SLOWDOWN
+    if math.isfinite(slowest):  # the numpy expression below with Python scalars (≈3 µs less, same value)
+        speed = min(max(math.floor(slowest * 2) / 2, 0.0), LEAVE_TIME_MAX_SPEED)
+    else:
+        speed = float(np.clip(np.floor(slowest * 2) / 2, 0.0, LEAVE_TIME_MAX_SPEED))
+    return ego_leave_time_at(dyn, speed)
 
 
 class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
@@ -213,23 +233,7 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
         """The time [s] the ego takes to leave its lane in the state of ``snap``."""
         if self.dynamics is None:
             self.dynamics = dynamics_of(snap, self.margin, self.rule)
-        dyn = self.dynamics
-        # The ego's speed along the road, as road_state computes it (the compiled path builds no RoadState).
-        direction = snap.lane_direction
-        lane_heading = math.atan2(direction[1], direction[0])
-        e = snap.ego
-        ego_speed = float(snap.speed[e] * math.cos(float(snap.heading[e]) - lane_heading))
-        # The ego leaves its old lane more slowly at low speed (the steering turns the car in
-        # proportion to its speed; at a standstill it never leaves). Time it at the lowest speed
-        # the ego may have while still changing lane — its speed or set-point, minus what a
-        # fallback SLOWER removes in the next second (4.5 m/s) — rounded down to 0.5 m/s so the
-        # simulation is cached, plus one frame because the change starts at the next physics frame.
-        slowest = min(ego_speed, snap.ego_target_speed) - FALLBACK_SLOWDOWN
-        if math.isfinite(slowest):  # the numpy expression below with Python scalars (≈3 µs less, same value)
-            speed = min(max(math.floor(slowest * 2) / 2, 0.0), LEAVE_TIME_MAX_SPEED)
-        else:
-            speed = float(np.clip(np.floor(slowest * 2) / 2, 0.0, LEAVE_TIME_MAX_SPEED))
-        return ego_leave_time_at(dyn, speed)
+        return ego_leave_time_of(snap, self.dynamics)
 
     def refresh(self) -> SafetyResult:
         """Re-read the scene from the simulator and recompute the verdict (after editing the road by hand)."""

@@ -132,7 +132,7 @@ class ShieldConfig(_Section):
         "compiled",
         description="How the shield evaluates the safety model: 'compiled' (safelane.safety.compiled, numba, "
         "microseconds a mask) or 'numpy' (safelane.safety.model.evaluate, the readable reference, about a "
-        "millisecond). Identical masks.",
+        "millisecond); in the committed mode its numba kernels or the numpy reference. Identical masks.",
     )
     margin: float = Field(
         1.0,

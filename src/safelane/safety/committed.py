@@ -1,7 +1,8 @@
 """Committed fail-safe plans (experimental): a shield that keeps a verified plan from one decision to the next.
 
-*Experimental numpy prototype* of the ``committed`` shield mode (design and measurement:
-``docs/research/committed-plans.md``). Pure maths: no simulator, no highway-env, no torch.
+The ``committed`` shield mode (experimental; design and measurement: ``docs/research/committed-plans.md``), its
+numpy reference: ``engine="compiled"`` runs the arithmetic in :mod:`safelane.safety.committed_compiled`, with the
+same bits. Pure maths: no simulator, no highway-env, no torch.
 
 * A **plan** (:class:`Plan`) is a sequence of ego set-points [m/s] and target lanes, one per decision, ending
   with the ego at a standstill. The family: the action, hold the set-point ``k ∈ {0..3}`` decisions, then SLOWER

@@ -140,7 +140,8 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
     ``engine``: ``"compiled"`` (:mod:`safelane.safety.compiled`, microseconds) or ``"numpy"`` (the
     reference :func:`safelane.safety.model.evaluate`, about a millisecond); the same masks either way.
     ``formula``: ``"kinematic"`` (derived for highway-env, docs/safety.md) or ``"paper"`` (eq. 12, nominal).
-    ``mode="committed"`` (experimental, :mod:`safelane.safety.committed`, numpy only): a plan verified against the
+    ``mode="committed"`` (experimental, :mod:`safelane.safety.committed`; its ``engine`` ``"compiled"``,
+    :mod:`safelane.safety.committed_compiled`, gives the numpy reference's bits): a plan verified against the
     others' reachable sets is kept between decisions; ``mode=CommittedFamily(reading="responsibility")`` chooses
     the reading (default ``"sound"``); ``info`` gains ``plan_forced``, ``lapse``, ``lapse_in_model``,
     ``lapse_cars`` (the cars the lapse's kept plan fails on), ``lapse_escaped_cars`` (those of them outside their

@@ -487,6 +487,22 @@ def test_the_responsibility_reading_leaves_a_car_behind_to_its_driver() -> None:
     assert not sound.safe[IDLE] and responsibility.safe[IDLE]
 
 
+def test_a_car_that_overtakes_the_ego_while_it_may_turn_in_is_a_cut_in() -> None:
+    """``responsibility``: a car beside and behind the ego, turning toward its lane, does not count when IDLE is
+    kept; a decision later it has passed the ego and counts: the kept plan fails on it, a lapse traced to a car that
+    cut in after the plan was drawn (``entered``), not a gap in the construction."""
+    turning = {"lane": 2, "y": 7.0, "vx": 30.0, "vy": -1.0, "heading": -0.05, "target_speed": 35.0}
+    before = scene([{**turning, "x": -8.0}])
+    family = CommittedFamily("responsibility")
+    first = family.evaluate_state(before, np.array([4]), DYN)
+    assert first.safe[IDLE]
+    family.commit(IDLE)
+    after = scene([{**turning, "x": 22.0, "y": 6.2}], ego_x=20.0)
+    result = family.evaluate_state(after, np.array([4]), DYN)
+    assert result.lapse and result.lapse_cars == (4,) and not result.escaped
+    assert result.entered == (4,) and not result.lapse_in_model
+
+
 def test_the_shield_reports_the_committed_mode() -> None:
     """``shield.mode: committed`` with ``shield.reading``: the info keys, the reading, one line per bad value."""
     from safelane.config import ConfigError
@@ -503,13 +519,13 @@ def test_the_shield_reports_the_committed_mode() -> None:
         _, _, _, _, info = env.step(FASTER)
         assert {"plan_forced", "lapse", "lapse_in_model", "escaped_cars", "certified"} <= set(info)
     env.close()
-    # The batch and the vector env have no committed kernel: they fall back to one shielded copy per environment.
+    # The fast batch runs the committed mode (a family per environment), but not the redrawing of spawns.
     from safelane.config import load_config
     from safelane.env.fast_batch import supports
 
-    assert "committed" in (
-        supports(load_config("fast", overrides={"shield.mode": "committed", "simulator": "fast"})) or ""
-    )
+    assert supports(load_config("fast", overrides={"shield.mode": "committed", "simulator": "fast"})) is None
+    redraw = {"shield.mode": "committed", "simulator": "fast", "shield.redraw_uncertified": True}
+    assert "shield.redraw_uncertified" in (supports(load_config("fast", overrides=redraw)) or "")
     with pytest.raises(ValueError, match=r"^shield\.reading: got 'x'; allowed: 'sound', 'responsibility'$"):
         CommittedFamily("x")  # type: ignore[arg-type]
     with pytest.raises(ConfigError, match=r"shield\.reading"):

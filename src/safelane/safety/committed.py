@@ -64,6 +64,7 @@ from safelane.safety.committed_sets import (
     path_speed,
     rise,
     rolling_back,
+    rows_in,
     speed_bounds,
 )
 from safelane.safety.ego import action_lanes, action_targets, available_actions, ego_trajectories, speed_to_index
@@ -391,6 +392,7 @@ class CommittedFamily:
     kept: Plan | None = None
     kept_verified: bool = False
     carried: CarSets | None = None
+    carried_ahead: np.ndarray | None = None
     followers: dict[int, tuple[int, np.ndarray]] = field(default_factory=dict)
     _pending: tuple[CommittedResult, RoadState, Dynamics, CarSets, np.ndarray] | None = field(default=None, repr=False)
 
@@ -401,6 +403,7 @@ class CommittedFamily:
     def reset(self) -> None:
         """Forget the kept plan and the carried sets (a new episode)."""
         self.kept, self.kept_verified, self.carried, self.followers, self._pending = None, False, None, {}, None
+        self.carried_ahead = None
 
     def evaluate(self, snap: RoadSnapshot, dyn: Dynamics, ego_leave_time: float) -> CommittedResult:
         """The verdict in the state of ``snap`` (see the class docstring)."""
@@ -432,7 +435,7 @@ class CommittedFamily:
         checked = 0
         entered = np.zeros(state.n, dtype=bool)
         if self.carried is not None:
-            entered = _entered_held_lanes(state, self.carried, sets, vehicle)
+            entered = _entered_held_lanes(state, self.carried, sets, vehicle, self.carried_ahead)
             older = self.carried.shifted(dyn.frames_per_decision, dyn.decision_period)
             unbraked = self._followers_escaped(state, dyn, vehicle)
             escaped = escaped_cars(state, dyn, older, vehicle) | unbraked
@@ -510,6 +513,7 @@ class CommittedFamily:
             same_plan = True
         self.kept = plan
         self.carried = sets
+        self.carried_ahead = state.x >= state.ego_x  # which cars counted as ahead of the ego (the reading's line)
         if plan is None:
             self.followers = {}
         else:  # the follower bounds of this plan, inside those carried for the same plan (a nested law)
@@ -535,14 +539,23 @@ class CommittedFamily:
         return out
 
 
-def _entered_held_lanes(state: RoadState, older: CarSets, sets: CarSets, vehicle: np.ndarray) -> np.ndarray:
-    """(cars,) the cars in (or moving into) a lane the ego holds now that were not at the last decision."""
-    rows = {int(v): r for r, v in enumerate(older.vehicle)}
+def _entered_held_lanes(
+    state: RoadState, older: CarSets, sets: CarSets, vehicle: np.ndarray, older_ahead: np.ndarray | None = None
+) -> np.ndarray:
+    """(cars,) the cars in (or moving into) a lane the ego holds now that were not at the last decision, and (with
+    ``older_ahead``, each carried row's place then: ahead of the ego or not) those in it then but behind the ego and
+    ahead of it now: a car that overtook the ego beside it while it may turn in. Under ``responsibility`` both cut
+    in after the plan was drawn, when a car behind did not count."""
+    rows = rows_in(older.vehicle, vehicle)
+    ahead = state.x >= state.ego_x
     out = np.zeros(state.n, dtype=bool)
     for lane in {state.ego_lane, state.ego_target_lane}:
         for i in np.flatnonzero(sets.now[:, lane]):
-            r = rows.get(int(vehicle[i]))
-            out[i] |= r is not None and not older.now[r, lane]
+            r = rows[i]
+            if r < 0:
+                continue
+            passed = older_ahead is not None and not older_ahead[r] and ahead[i]
+            out[i] |= not older.now[r, lane] or passed
     return out
 
 

@@ -257,3 +257,28 @@ def test_collision_context_is_none_without_a_shield() -> None:
     record = run_episode(env, fixed_policy("faster"), 0)
     env.close()
     assert record.collision and record.collision_context is None
+
+
+def test_the_cli_plays_a_spec_under_another_shield(tmp_path: Path) -> None:
+    """``--shield`` and ``--set`` play a spec's cells under another shield without copying the spec: the campaign
+    records both (a resume under others is refused), the summary has the committed mode's figures; a bad mode or
+    key is one line."""
+    from typer.testing import CliRunner
+
+    from safelane.cli import app
+
+    spec = write_spec(tmp_path / "s.yaml", axes={"lanes": [{"env.lanes_count": 3}]}, episodes=2)
+    out = tmp_path / "out"
+    args = ["falsify", str(spec), "--out", str(out), "--workers", "1", "--json"]
+    result = CliRunner().invoke(app, [*args, "--shield", "committed", "--set", "shield.reading=responsibility"])
+    assert result.exit_code == 0, result.output
+    record = json.loads((out / "campaign.json").read_text())
+    assert record["shield"] == "committed" and record["sets"][-1] == "shield.reading=responsibility"
+    summary = json.loads((out / "summary.json").read_text())
+    assert {"lapses", "lapses_in_model", "plan_forced_rate"} <= set(summary)
+    again = CliRunner().invoke(app, [*args, "--shield", "robust"])
+    assert again.exit_code == 2 and len(again.output.strip().splitlines()) == 1
+    for bad, word in ((["--shield", "strong"], "shield"), (["--set", "shield.nope=1"], "shield.nope")):
+        result = CliRunner().invoke(app, ["falsify", str(spec), "--out", str(tmp_path / "o2"), *bad])
+        assert result.exit_code == 2 and word in result.output and "Traceback" not in result.output
+        assert len(result.output.strip().splitlines()) == 1

@@ -8,7 +8,16 @@ from typing import Annotated
 
 import typer
 
-from safelane.cli.common import AddressOpt, BackendOpt, JsonOpt, check_positive, check_seed, cli_errors, units_progress
+from safelane.cli.common import (
+    AddressOpt,
+    BackendOpt,
+    JsonOpt,
+    SetOpt,
+    check_positive,
+    check_seed,
+    cli_errors,
+    units_progress,
+)
 
 
 @cli_errors
@@ -34,6 +43,15 @@ def falsify(
             "fresh traffic, recorded in campaign.json and summary.json).",
         ),
     ] = None,
+    shield: Annotated[
+        str | None,
+        typer.Option(
+            "--shield",
+            help="Play the spec under this shield: nominal, robust, committed (default: the spec's).",
+            metavar="MODE",
+        ),
+    ] = None,
+    sets: SetOpt = None,
     as_json: JsonOpt = False,
 ) -> None:
     """Drive the shield over a grid of traffic conditions, or search them (a spec with a search section:
@@ -46,7 +64,9 @@ def falsify(
             check_positive(option, value)
     if seed is not None:
         check_seed(seed)
-    spec = load_falsify_spec(spec_file, {"episodes": episodes, "sample": sample, "seed": seed})
+    spec = load_falsify_spec(spec_file, {"episodes": episodes, "sample": sample, "seed": seed, "shield": shield})
+    if sets:  # after the spec's own: a campaign's record keeps them, so a resume under others is refused
+        spec = spec.model_copy(update={"sets": [*spec.sets, *sets]})
     if isinstance(spec, SearchSpec):
         with units_progress(f"falsify search {spec.name} (samples)") as tick:
             summary = run_search(spec, out, backend=backend, workers=workers, address=address, progress=tick)

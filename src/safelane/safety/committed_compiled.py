@@ -94,6 +94,32 @@ def sets_kernel(
     n, m = x.shape[0], t.shape[0]
     x_lo, x_hi = np.empty((n, m)), np.empty((n, m))
     v_lo, v_hi = np.empty((n, m)), np.empty((n, m))
+    # The law's bound (law_rise): highway-env's explicit Euler, the acceleration at most min(a, max(law, 0)). Each
+    # car's recursion is sequential; the cars are stepped side by side, frame by frame, so that their powers (the
+    # costly part) do not wait on one another. The bounds go in the output rows first.
+    ruled = law_rows & ~crashed
+    vk, xk = np.where(ruled, v, 0.0), np.zeros(n)
+    safe_target, k = np.ones(n), np.empty(n)
+    settled = np.zeros(n, dtype=np.bool_)  # the speed stopped changing: the law's input, and so its step, stays
+    for i in range(n):
+        if ruled[i] and np.isfinite(target[i]) and target[i] > 0.0:
+            safe_target[i] = target[i]
+        k[i] = _nan_to_num(law_k[i])
+        v_hi[i, 0], x_hi[i, 0] = vk[i], 0.0
+    for j in range(1, m):
+        for i in range(n):
+            if not ruled[i]:
+                continue
+            xk[i] = xk[i] + dt * nmax(vk[i], 0.0)
+            if not settled[i]:
+                if np.isfinite(law_k[i]):
+                    law = k[i] * (target[i] - vk[i])
+                else:
+                    law = law_acc[i] * (1.0 - np.power(nmax(vk[i], 0.0) / safe_target[i], law_delta[i]))
+                before = vk[i]
+                vk[i] = vk[i] + dt * nmin(a[i], nmax(_nan_to_num(law), 0.0))
+                settled[i] = vk[i] == before
+            v_hi[i, j], x_hi[i, j] = vk[i], xk[i]
     for i in range(n):
         vi, ai, bi, lo, hi = v[i], a[i], b[i], v_min[i], v_max[i]
         if crashed[i]:  # a wall where it stands
@@ -107,26 +133,6 @@ def sets_kernel(
         back_v, back_low = nmin(vi, 0.0), nmin(lo, 0.0)
         t0b = nmax(vi / nmax(bi, 1e-9), 0.0)
         t_back = nmax(back_v - back_low, 0.0) / nmax(bi, 1e-9)
-        # The law's bound (law_rise): highway-env's explicit Euler, the acceleration at most min(a, max(law, 0)).
-        ruled = law_rows[i]
-        safe_target = target[i] if (ruled and np.isfinite(target[i]) and target[i] > 0.0) else 1.0
-        vk = vi if ruled else 0.0
-        xk = 0.0
-        linear = np.isfinite(law_k[i])
-        k = _nan_to_num(law_k[i])
-        settled = False  # the speed stopped changing: the law's input, and so its step, stays the same
-        law_v, law_x = v_hi[i], x_hi[i]  # the law's bounds first, in the output rows (a sequential recursion)
-        for j in range(m):
-            if j > 0 and ruled:
-                xk = xk + dt * nmax(vk, 0.0)
-                if not settled:
-                    linear_law = k * (target[i] - vk)
-                    idm_law = law_acc[i] * (1.0 - np.power(nmax(vk, 0.0) / safe_target, law_delta[i]))
-                    law = linear_law if linear else idm_law
-                    before = vk
-                    vk = vk + dt * nmin(ai, nmax(_nan_to_num(law), 0.0))
-                    settled = vk == before
-            law_v[j], law_x[j] = vk, xk
         for j in range(m):  # the envelope, frame by frame independent
             tj = t[j]
             # envelope: the speeds' bang-bang bounds, the forward and backward parts of the positions.
@@ -142,9 +148,9 @@ def sets_kernel(
             back = back_v * tt - 0.5 * bi * tt * tt + back_low * nmax(t_down - t_back, 0.0)
             d_lo = nmax(d_lo - allowance[i, j], back)
             xl, xh = x[i] + d_lo, x[i] + d_hi
-            if ruled:
-                xh = nmin(xh, x[i] + law_x[j])
-                v_up = nmin(v_up, law_v[j])
+            if ruled[i]:
+                xh = nmin(xh, x[i] + x_hi[i, j])
+                v_up = nmin(v_up, v_hi[i, j])
             x_lo[i, j], x_hi[i, j], v_lo[i, j], v_hi[i, j] = xl, xh, v_down, v_up
     return x_lo, x_hi, v_lo, v_hi
 

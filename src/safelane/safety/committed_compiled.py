@@ -306,6 +306,7 @@ def car_gaps_kernel(
     n, holds, m = x.shape[0], ego_x.shape[0], t.shape[0]
     worst = np.full((n, holds), np.inf)
     running = np.full(holds, np.inf)
+    skip = np.zeros(holds, dtype=np.bool_)
     chunks = lo_min.shape[1] if least else 0
     ego_lo, ego_hi = np.full((holds, chunks), np.inf), np.full((holds, chunks), -np.inf)
     for h in range(holds):
@@ -331,7 +332,8 @@ def car_gaps_kernel(
                     for c in range(chunks):
                         chunk = nmax(lo_min[i, c] - ego_hi[h, c] - half[i], ego_lo[h, c] - hi_max[i, c] - half[i])
                         bound = nmin(bound, chunk)
-                    below = below and bound > running[h]
+                    skip[h] = bound > running[h]
+                    below = below and skip[h]
                 if below:
                     continue
             for h in range(holds):
@@ -352,6 +354,8 @@ def car_gaps_kernel(
             following = held_lane and not ahead[i] and own_lane[i] == lane
             carried = carried_lane[i] == lane
             for h in range(holds):
+                if least and skip[h]:  # this plan's least gap is already below the car's bound
+                    continue
                 low = np.inf
                 for j in range(m):
                     if not (t[j] >= entry_h[h] and t[j] <= t_last and t[j] <= until):

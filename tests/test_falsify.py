@@ -50,7 +50,12 @@ def test_the_claim_s_grid_has_every_axis_of_the_issue_and_100k_episodes() -> Non
     spec loads and names the rule it runs (search specs have their own loader, tests/test_falsify_search.py)."""
     shipped = [p for p in sorted(GRID.parent.glob("*.yaml")) if "search" not in read_spec_yaml(p)]
     assert len(shipped) >= 5 and all(load_campaign_spec(p).name for p in shipped)
-    assert all(load_campaign_spec(p).sets == ["shield.rule=forecast-fallback"] for p in shipped)
+    assert all(load_campaign_spec(p).sets[0] == "shield.rule=forecast-fallback" for p in shipped)
+    committed = load_campaign_spec(CLAIM.parent / "claim-committed.yaml")  # the claim's grid, another shield
+    assert committed.shield == "committed" and committed.sets[1:] == ["shield.reading=responsibility"]
+    assert committed.model_dump(exclude={"name", "description", "shield", "sets"}) == load_campaign_spec(
+        CLAIM
+    ).model_dump(exclude={"name", "description", "shield", "sets"})
     spec = load_campaign_spec(CLAIM)
     assert set(spec.axes) == {"rate", "lanes", "density", "drivers", "behind"}
     behind = [s["traffic.vehicles_behind"] for s in spec.axes["behind"]]

@@ -55,6 +55,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--out", type=Path, help="write the manifest here")
     parser.add_argument("--command", default="", help="the command that wrote the folder (recorded)")
     parser.add_argument("--check", type=Path, help="compare the folder with this manifest")
+    parser.add_argument("--commit", help="the commit that wrote the folder (default: this checkout's)")
     args = parser.parse_args(argv)
     if not (args.folder / "cells.csv").is_file():
         print(f"folder: {args.folder} has no cells.csv (not a campaign's --out folder)", file=sys.stderr)
@@ -65,7 +66,10 @@ def main(argv: list[str] | None = None) -> int:
         same = all(pinned.get(key) == value for key, value in found.items())
         print(json.dumps({"same": same, **found}, indent=1))
         return 0 if same else 1
-    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True).stdout.strip()
+    commit = (
+        args.commit
+        or subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True).stdout.strip()
+    )
     record = {"command": args.command, "commit": commit, **found}
     text = json.dumps(record, indent=1) + "\n"
     if args.out is not None:

@@ -373,3 +373,30 @@ def test_evaluation_on_the_fast_batch_gives_the_committed_records_of_one_environ
     as_dicts = [[r.to_dict() for r in records] for records in (fused, stacks, one)]
     assert as_dicts[0] == as_dicts[1] == as_dicts[2]
     assert sum(len(r.lapses) for r in one) >= 1 and sum(r.plan_forced for r in one) >= 2
+
+
+FOUND = Path(__file__).resolve().parent / "fixtures" / "claim-committed"
+
+
+@pytest.mark.parametrize(
+    "name",
+    ["cell01017-seed4010170025-lapse_in_model-step3.json", "cell01703-seed4017030000-lapse_in_model-step98.json"],
+)
+def test_a_kept_plan_keeps_the_lanes_it_held_when_the_ego_finishes_a_lane_change(name: str) -> None:
+    """Two lapses the claim grid filed in the model (``responsibility``): the ego finished a lane change between two
+    decisions, so the lane it left was no longer held and a car that might turn into it two lanes away counted
+    against the kept plan. The plan keeps the lanes it held when verified (``Plan.held``): no lapse now."""
+    cx = load_counterexample(FOUND / name)
+    result = replay(cx, "fast")
+    assert not result.reproduced and not result.decisions[-1].committed["lapse"]
+    assert result.decisions[-1].committed["certified"]
+
+
+def test_a_car_overtaking_beside_the_ego_is_a_traced_cut_in_on_replay() -> None:
+    """The claim grid's overtaking lapse (cell 219): a lapse traced to the car that passed the ego while it may turn
+    in (``entered_cars``), not one in the model."""
+    cx = load_counterexample(FOUND / "cell00219-seed4002190002-lapse-step36.json")
+    result = replay(cx, "fast")
+    verdict = result.decisions[-1].committed
+    assert result.reproduced and verdict["lapse"] and not verdict["lapse_in_model"]
+    assert verdict["lapse_cars"] == [49] and 49 in verdict["entered_cars"]

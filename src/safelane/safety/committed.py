@@ -103,6 +103,9 @@ class Plan:
     occupied: tuple[tuple[int, float], ...]
     onset: float
     frames: int
+    held: tuple[int, ...] = ()
+    """The lanes the ego held (its lane and target lane) when the plan was verified: the ``responsibility``
+    reading's line stays where it was drawn while the plan is kept (:func:`car_gaps`' ``held``)."""
 
     def next_step(self) -> int:
         """The meta-action that realises the plan's next decision: IDLE while the set-point holds, SLOWER once it
@@ -120,7 +123,7 @@ class Plan:
         period = dyn.decision_period
         return Plan(a, k, self.set_points[1:] or self.set_points[-1:], self.lanes[1:] or self.lanes[-1:],
                     tuple((lane, until - period) for lane, until in self.occupied), self.onset - period,
-                    self.frames - dyn.frames_per_decision)  # fmt: skip
+                    self.frames - dyn.frames_per_decision, self.held)  # fmt: skip
 
 
 def plan_of(state: RoadState, dyn: Dynamics, set_points: np.ndarray, action: int, hold: int) -> Plan:
@@ -136,7 +139,8 @@ def plan_of(state: RoadState, dyn: Dynamics, set_points: np.ndarray, action: int
     occupied = tuple(action_lanes(state, dyn, action))
     lane = occupied[-1][0]
     onset = float(onsets(dyn, action)[hold])
-    return Plan(action, hold, tuple(points), (lane,) * len(points), occupied, onset, int(dyn.times.size - 1))
+    return Plan(action, hold, tuple(points), (lane,) * len(points), occupied, onset, int(dyn.times.size - 1),
+                (int(state.ego_lane), int(state.ego_target_lane)))  # fmt: skip
 
 
 def onsets(dyn: Dynamics, action: int) -> np.ndarray:
@@ -262,6 +266,7 @@ def car_gaps(
     state: RoadState, dyn: Dynamics, sets: CarSets, ego_x: np.ndarray, ego_v: np.ndarray, onset: np.ndarray,
     lanes: Lanes, reading: Reading = "sound", until_frame: int | None = None,
     carried_followers: dict[int, tuple[int, np.ndarray]] | None = None, ego_set: np.ndarray | None = None,
+    held: tuple[int, ...] | None = None,
 ) -> np.ndarray:  # fmt: skip
     """(cars, holds) each car's worst bumper-to-bumper gap [m] to plans whose ego moves as ``ego_x``/``ego_v``
     (holds, frames) and brakes first at ``onset`` [s] (holds,), occupying ``lanes``, at every frame up to
@@ -277,7 +282,8 @@ def car_gaps(
     moving into it) count: a car behind, or one that cuts in later, is responsible for the gap it makes.
     ``carried_followers``: {row: (lane, highest position [m] per frame)}, the follower bounds a kept plan drew, kept
     in that lane; ``ego_set`` (holds, frames): the plans' set-points [m/s] (:func:`plan_set_points`; the linear
-    drivers' MOBIL criterion reads it)."""
+    drivers' MOBIL criterion reads it); ``held``: the lanes the ego holds (default: its lane and target lane now; a
+    kept plan's tail passes those it held when verified, :attr:`Plan.held`)."""
     t = dyn.times
     half = 0.5 * (state.length + state.ego_length)
     ahead = state.x >= state.ego_x
@@ -285,7 +291,7 @@ def car_gaps(
     # with gains ≥ 0 (linear_set_point_bound).
     mobil = (~np.isfinite(state.linear_speed_gain) | linear_set_point_bound(state)) & state.can_change_lane
     mobil &= ~state.crashed & np.isfinite(state.max_braking_imposed)
-    held = {state.ego_lane, state.ego_target_lane}
+    held = {state.ego_lane, state.ego_target_lane} if not held else set(held)
     n_fb = ego_x.shape[0]
     frames = t <= (t[-1] if until_frame is None else t[min(max(until_frame, 0), t.size - 1)])
     worst = np.full((state.n, n_fb), np.inf)
@@ -435,7 +441,8 @@ class CommittedFamily:
         checked = 0
         entered = np.zeros(state.n, dtype=bool)
         if self.carried is not None:
-            entered = _entered_held_lanes(state, self.carried, sets, vehicle, self.carried_ahead)
+            kept_held = self.kept.held if self.kept is not None else ()
+            entered = _entered_held_lanes(state, self.carried, sets, vehicle, self.carried_ahead, kept_held)
             older = self.carried.shifted(dyn.frames_per_decision, dyn.decision_period)
             unbraked = self._followers_escaped(state, dyn, vehicle)
             escaped = escaped_cars(state, dyn, older, vehicle) | unbraked
@@ -464,7 +471,8 @@ class CommittedFamily:
                 if v in rows and not escaped[rows[v]]
             }
             args = (state, dyn, sets, ego_x[a, k : k + 1], ego_v[a, k : k + 1], np.array([tail.onset]),
-                    list(tail.occupied), self.reading, tail.frames, followers, set_points[a, k : k + 1])  # fmt: skip
+                    list(tail.occupied), self.reading, tail.frames, followers, set_points[a, k : k + 1],
+                    tail.held)  # fmt: skip
             gaps = (car_gaps_compiled(*args, cars=cars) if compiled else car_gaps(*args))[:, 0]
             gap = gaps.min() if gaps.size else np.inf
             # A lapse: the plan verified at the last decision no longer is (a plan kept on after one stays unverified);
@@ -540,16 +548,18 @@ class CommittedFamily:
 
 
 def _entered_held_lanes(
-    state: RoadState, older: CarSets, sets: CarSets, vehicle: np.ndarray, older_ahead: np.ndarray | None = None
-) -> np.ndarray:
+    state: RoadState, older: CarSets, sets: CarSets, vehicle: np.ndarray, older_ahead: np.ndarray | None = None,
+    kept_held: tuple[int, ...] = (),
+) -> np.ndarray:  # fmt: skip
     """(cars,) the cars in (or moving into) a lane the ego holds now that were not at the last decision, and (with
     ``older_ahead``, each carried row's place then: ahead of the ego or not) those in it then but behind the ego and
     ahead of it now: a car that overtook the ego beside it while it may turn in. Under ``responsibility`` both cut
-    in after the plan was drawn, when a car behind did not count."""
+    in after the plan was drawn, when a car behind did not count. The held lanes: the ego's lane and target lane now
+    and those the kept plan held when verified (``kept_held``)."""
     rows = rows_in(older.vehicle, vehicle)
     ahead = state.x >= state.ego_x
     out = np.zeros(state.n, dtype=bool)
-    for lane in {state.ego_lane, state.ego_target_lane}:
+    for lane in {state.ego_lane, state.ego_target_lane, *kept_held}:
         for i in np.flatnonzero(sets.now[:, lane]):
             r = rows[i]
             if r < 0:

@@ -642,7 +642,7 @@ def car_gaps_compiled(
     state: RoadState, dyn: Dynamics, sets: CarSets, ego_x: np.ndarray, ego_v: np.ndarray, onset: np.ndarray,
     lanes: list[tuple[int, float]], reading: str = "sound", until_frame: int | None = None,
     carried_followers: dict[int, tuple[int, np.ndarray]] | None = None, ego_set: np.ndarray | None = None,
-    cars: CarArrays | None = None,
+    held: tuple[int, ...] | None = None, cars: CarArrays | None = None,
 ) -> np.ndarray:  # fmt: skip
     """:func:`safelane.safety.committed.car_gaps`, compiled (the same bits); ``cars``: :func:`car_arrays` of
     ``state`` when already computed."""
@@ -659,7 +659,7 @@ def car_gaps_compiled(
     return car_gaps_kernel(
         sets.x_lo, sets.x_hi, sets.v_lo, sets.v_hi, sets.entry, np.asarray(sets.now, dtype=np.bool_),
         np.ascontiguousarray(ego_x), np.ascontiguousarray(ego_v), _f(onset), lane_ids, lane_until,
-        int(state.ego_lane), int(state.ego_target_lane), reading == "responsibility",
+        *_held_pair(state, held), reading == "responsibility",
         t.size - 1 if until_frame is None else int(until_frame), carried_lane, carried_high,
         np.ascontiguousarray(ego_set) if has_set else np.empty((0, 0)), has_set, *cars,
         float(max(dyn.target_speeds)), float(state.speed_limit), t, float(dyn.cut_in_time),
@@ -673,6 +673,14 @@ def follower_bound_compiled(state: RoadState, i: int, react: np.ndarray, t: np.n
     v_min, v_max = speed_bounds(speed, state.target_speed[i : i + 1], np.isfinite(state.linear_speed_gain[i : i + 1]))
     return follower_kernel(float(state.x[i]), float(speed[0]), float(state.accel_max[i]), float(state.brake_max[i]),
                            float(v_min[0]), float(v_max[0]), _f(react), t)  # fmt: skip
+
+
+def _held_pair(state: RoadState, held: tuple[int, ...] | None) -> tuple[int, int]:
+    """The (at most two) lanes the ego holds, as the kernel takes them (default: its lane and target lane)."""
+    lanes = (int(state.ego_lane), int(state.ego_target_lane)) if not held else tuple(int(h) for h in held)
+    if len(lanes) > 2:
+        raise ValueError(f"held: at most two lanes (the ego's lane and its target lane), got {lanes}")
+    return lanes[0], lanes[-1]
 
 
 def _f(a: np.ndarray | float) -> np.ndarray:

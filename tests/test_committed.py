@@ -487,6 +487,21 @@ def test_the_responsibility_reading_leaves_a_car_behind_to_its_driver() -> None:
     assert not sound.safe[IDLE] and responsibility.safe[IDLE]
 
 
+def test_a_car_beside_the_ego_in_the_lane_it_is_entering_is_the_egos_to_keep_clear_of() -> None:
+    """``responsibility``: the ego, still in lane 1 (its centre nearer lane 1's), changing into lane 2 beside a
+    faster car 4 m behind in lane 2: going on (IDLE keeps the target lane) is not verified under either reading —
+    the car is in the lane the ego is entering, not behind it in its own lane. Once the ego is in lane 2, a car
+    behind it there is its driver's to avoid again (``responsibility``)."""
+    car = {"x": -4.0, "lane": 2, "vx": 27.0}
+    entering = dataclasses.replace(scene([car]), ego_y=1.4 * DYN.lane_width, ego_target_lane=2)
+    for reading in ("sound", "responsibility"):
+        result = CommittedFamily(reading).evaluate_state(entering, np.arange(1), DYN)
+        assert not result.safe[IDLE], reading
+    inside = scene([{**car, "x": -15.0}], ego_lane=2)
+    assert CommittedFamily("responsibility").evaluate_state(inside, np.arange(1), DYN).safe[IDLE]
+    assert not CommittedFamily("sound").evaluate_state(inside, np.arange(1), DYN).safe[IDLE]
+
+
 def test_a_car_that_overtakes_the_ego_while_it_may_turn_in_is_a_cut_in() -> None:
     """``responsibility``: a car beside and behind the ego, turning toward its lane, does not count when IDLE is
     kept; a decision later it has passed the ego and counts: the kept plan fails on it, a lapse traced to a car that

@@ -23,8 +23,8 @@ same bits. Pure maths: no simulator, no highway-env, no torch.
   (:class:`~safelane.safety.family.OneDecisionFamily`, ``engine``). A decision at which the plan kept (verified)
   at the last decision no longer verifies is a **lapse**; it names the cars the kept plan fails on and which of
   them left the sets drawn for them (cars by their index in the road snapshot, one car's for a whole episode).
-  Readings: ``sound`` (every car) or ``responsibility`` (a car behind the ego in a lane it holds is not the ego's
-  to avoid).
+  Readings: ``sound`` (every car) or ``responsibility`` (a car behind the ego in the lane it is in, or one cutting
+  into a lane it holds, is not the ego's to avoid; a car in a lane it is entering is).
 """
 
 from __future__ import annotations
@@ -278,8 +278,10 @@ def car_gaps(
     driver ahead, entering a lane the ego holds from the start, enters only after MOBIL's criterion against the
     plan could allow it (:func:`_permit_entry`); a car in such a lane behind the ego now follows it: accelerates
     at most until ``follower_reaction`` after the plan's braking onset, then brakes (:func:`follower_bound`). With
-    ``reading="responsibility"``, in a lane the ego holds, only the cars ahead of it and in that lane now (or
-    moving into it) count: a car behind, or one that cuts in later, is responsible for the gap it makes.
+    ``reading="responsibility"``, in a lane the ego holds, only the cars in that lane now (or moving into it)
+    count, and of those in the lane the ego is in (``held``'s first) only the ones ahead: a car behind the ego in
+    its lane, or one that cuts in later, is responsible for the gap it makes; a car in a lane the ego is entering
+    is the ego's to keep clear of, ahead or behind.
     ``carried_followers``: {row: (lane, highest position [m] per frame)}, the follower bounds a kept plan drew, kept
     in that lane; ``ego_set`` (holds, frames): the plans' set-points [m/s] (:func:`plan_set_points`; the linear
     drivers' MOBIL criterion reads it); ``held``: the lanes the ego holds (default: its lane and target lane now; a
@@ -291,6 +293,7 @@ def car_gaps(
     # with gains ≥ 0 (linear_set_point_bound).
     mobil = (~np.isfinite(state.linear_speed_gain) | linear_set_point_bound(state)) & state.can_change_lane
     mobil &= ~state.crashed & np.isfinite(state.max_braking_imposed)
+    in_lane = state.ego_lane if not held else held[0]  # the lane the ego is in (held's first), not entering
     held = {state.ego_lane, state.ego_target_lane} if not held else set(held)
     n_fb = ego_x.shape[0]
     frames = t <= (t[-1] if until_frame is None else t[min(max(until_frame, 0), t.size - 1)])
@@ -302,8 +305,8 @@ def car_gaps(
         if law.size:
             entry[law] = np.maximum(entry[law], _permit_entry(state, dyn, sets, law, ego_x, ego_v, ego_set))
         count = np.isfinite(entry).any(axis=1)
-        if held_lane and reading == "responsibility":  # cut-ins and cars behind: theirs to avoid the ego
-            count &= ahead & sets.now[:, lane]
+        if held_lane and reading == "responsibility":  # cut-ins, and cars behind in the ego's lane: theirs to avoid
+            count &= sets.now[:, lane] & (ahead | (lane != in_lane))
         # A follower: its own lane is this one (highway-env's IDM sees the ego as its leader only then).
         following = held_lane & ~ahead & (state.lane_of(state.y, dyn.lanes_count, dyn.lane_width) == lane)
         in_time = frames & (t <= until)
@@ -553,18 +556,20 @@ def _entered_held_lanes(
 ) -> np.ndarray:  # fmt: skip
     """(cars,) the cars in (or moving into) a lane the ego holds now that were not at the last decision, and (with
     ``older_ahead``, each carried row's place then: ahead of the ego or not) those in it then but behind the ego and
-    ahead of it now: a car that overtook the ego beside it while it may turn in. Under ``responsibility`` both cut
-    in after the plan was drawn, when a car behind did not count. The held lanes: the ego's lane and target lane now
-    and those the kept plan held when verified (``kept_held``)."""
+    ahead of it now in the lane the ego was in (a car behind there did not count; one behind in a lane the ego was
+    entering did): a car that overtook the ego beside it while it may turn in. Under ``responsibility`` both cut
+    in after the plan was drawn. The held lanes: the ego's lane and target lane now and those the kept plan held
+    when verified (``kept_held``, the lane the ego was in first)."""
     rows = rows_in(older.vehicle, vehicle)
     ahead = state.x >= state.ego_x
+    in_lane = kept_held[0] if kept_held else state.ego_lane
     out = np.zeros(state.n, dtype=bool)
     for lane in {state.ego_lane, state.ego_target_lane, *kept_held}:
         for i in np.flatnonzero(sets.now[:, lane]):
             r = rows[i]
             if r < 0:
                 continue
-            passed = older_ahead is not None and not older_ahead[r] and ahead[i]
+            passed = older_ahead is not None and not older_ahead[r] and ahead[i] and lane == in_lane
             out[i] |= not older.now[r, lane] or passed
     return out
 

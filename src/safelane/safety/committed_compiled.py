@@ -347,8 +347,8 @@ def car_gaps_kernel(
             count = False
             for h in range(holds):
                 count = count or np.isfinite(entry_h[h])
-            if held_lane and responsibility:  # cut-ins and cars behind: theirs to avoid the ego
-                count = count and ahead[i] and now[i, lane]
+            if held_lane and responsibility:  # cut-ins, and cars behind in the ego's lane (held_a): theirs to avoid
+                count = count and now[i, lane] and (ahead[i] or lane != held_a)
             if not count:
                 continue
             following = held_lane and not ahead[i] and own_lane[i] == lane

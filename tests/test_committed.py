@@ -382,6 +382,7 @@ def test_a_lapse_in_the_model_is_one_a_car_inside_its_set_failed() -> None:
     assert lapse(lapse_cars=(4,), escaped=(9,))  # the car that broke the plan was inside its set
     assert lapse(lapse_cars=(4, 5), escaped=(4,))  # one of two traced: the other is a gap in the construction
     assert lapse(lapse_cars=())  # a lapse no car explains
+    assert not lapse(lapse_cars=(4,), escaped=(9,), ego_crashed=True)  # the impact moved the ego off its plan
     assert not dataclasses.replace(base, lapse=False, lapse_cars=(4,)).lapse_in_model
 
 

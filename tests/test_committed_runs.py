@@ -392,6 +392,26 @@ def test_a_kept_plan_keeps_the_lanes_it_held_when_the_ego_finishes_a_lane_change
     assert result.decisions[-1].committed["certified"]
 
 
+@pytest.mark.parametrize(
+    "name",
+    [
+        "cell01698-seed4016980002-lapse_in_model-step8.json",
+        "cell02293-seed4022930002-lapse_in_model-step15.json",
+        "cell02303-seed4023030019-lapse_in_model-step14.json",
+    ],
+)
+def test_a_lapse_at_the_step_the_ego_is_rear_ended_is_the_impacts(name: str) -> None:
+    """The three lapses the claim grid still filed in the model (``responsibility``): each at the decision a car
+    behind rear-ended the ego, whose impact pushed it toward the leader its plan brakes behind. The lapse stays a
+    lapse, traced to the crash, not one in the model."""
+    cx = load_counterexample(FOUND / name)
+    result = replay(cx, "fast")
+    last = result.decisions[-1]
+    assert len(result.decisions) == cx.step and last.collision and result.collision_kind == "rear_ended"
+    assert last.committed["lapse"] and not last.committed["lapse_in_model"] and not result.reproduced
+    assert not any(d.committed["lapse"] for d in result.decisions[:-1])
+
+
 def test_a_car_overtaking_beside_the_ego_is_a_traced_cut_in_on_replay() -> None:
     """The claim grid's overtaking lapse (cell 219): a lapse traced to the car that passed the ego while it may turn
     in (``entered_cars``), not one in the model."""

@@ -359,8 +359,9 @@ class CommittedResult(SafetyResult):
     ahead of the follower bound the kept plan drew for them (the follower law is an assumption, not IDM's: a
     follower far behind does not brake at its limit because the ego plans to), ``checked`` how many cars were
     checked against a set drawn at the last decision; ``entered`` (``responsibility``):
-    those that entered a lane the ego holds since the last decision; ``certified``: some plan is verified
-    or kept; ``plans``: the verified plan of each action (None: none)."""
+    those that entered a lane the ego holds since the last decision; ``ego_crashed``: the ego has crashed (its
+    motion after an impact is no plan's); ``certified``: some plan is verified or kept; ``plans``: the verified plan
+    of each action (None: none)."""
 
     plan_forced: bool = False
     lapse: bool = False
@@ -370,6 +371,7 @@ class CommittedResult(SafetyResult):
     unbraked_followers: tuple[int, ...] = ()
     checked: int = 0
     entered: tuple[int, ...] = ()
+    ego_crashed: bool = False
     certified: bool = False
     plans: tuple[Plan | None, ...] = ()
 
@@ -384,9 +386,12 @@ class CommittedResult(SafetyResult):
         ``responsibility``) did not enter a lane the ego holds since the last decision (such a car made the gap it
         is responsible for), or no car is named. With every car inside its set the sets nest and the plan verifies
         again, so this is a gap in the construction. A car outside its set that the plan does not fail on (far
-        ahead, in another lane) traces nothing."""
+        ahead, in another lane) traces nothing. A lapse in a state where the ego has crashed is the impact's: the
+        simulator pushes the bodies apart and brakes a crashed car at its speed per second, so the ego is no longer
+        where its plan put it (struck from behind, pushed toward its leader)."""
         traced = {*self.escaped, *self.entered}
-        return self.lapse and (not self.lapse_cars or any(v not in traced for v in self.lapse_cars))
+        in_model = not self.lapse_cars or any(v not in traced for v in self.lapse_cars)
+        return self.lapse and not self.ego_crashed and in_model
 
 
 @dataclass
@@ -419,7 +424,11 @@ class CommittedFamily:
         dyn = dataclasses.replace(dyn, ego_leave_time=ego_leave_time)
         state, vehicle = _whole_state(snap, dyn)
         return self.evaluate_state(
-            state, vehicle, dyn, lambda: OneDecisionFamily("robust", self.engine).evaluate(snap, dyn, ego_leave_time)
+            state,
+            vehicle,
+            dyn,
+            lambda: OneDecisionFamily("robust", self.engine).evaluate(snap, dyn, ego_leave_time),
+            ego_crashed=bool(snap.crashed[snap.ego]),
         )
 
     def evaluate_state(
@@ -428,10 +437,12 @@ class CommittedFamily:
         vehicle: np.ndarray,
         dyn: Dynamics,
         uncertified: Callable[[], SafetyResult] | None = None,
+        ego_crashed: bool = False,
     ) -> CommittedResult:
         """:meth:`evaluate` on a :class:`RoadState` (every car, ``vehicle``: their identities, kept from one decision
         to the next) with ``dyn.ego_leave_time`` set; ``uncertified``: the one-decision robust rule's verdict in this
-        state (default: the numpy reference's)."""
+        state (default: the numpy reference's); ``ego_crashed``: the ego has crashed (a :class:`RoadState` holds
+        the other cars' flags only)."""
         compiled = self.engine == "compiled"
         if compiled:  # the per-car quantities once, for the sets and the gaps
             prep = prepare(state, dyn)
@@ -504,7 +515,7 @@ class CommittedFamily:
             rolled_back=tuple(int(v) for v in vehicle[rolling_back(state, escaped, older, vehicle)]), checked=checked,
             unbraked_followers=tuple(int(v) for v in vehicle[unbraked]),
             entered=tuple(int(v) for v in vehicle[entered]) if self.reading == "responsibility" else (),
-            certified=bool(safe.any()) or self.kept is not None, plans=tuple(plans),
+            ego_crashed=ego_crashed, certified=bool(safe.any()) or self.kept is not None, plans=tuple(plans),
         )  # fmt: skip
         self._pending = (result, state, dyn, sets, vehicle)
         return result

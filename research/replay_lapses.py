@@ -1,6 +1,7 @@
 """What a campaign's lapses in the model are under this checkout's code: replay every ``lapse_in_model`` file of a
 campaign folder (or the files given) on the fast simulator and count what each becomes — no lapse at that decision,
-a lapse traced to a car that left its set or cut in, or still a lapse in the model (named, for the next look).
+a lapse traced (to a car that left its set or cut in, or to the ego's crash), or still a lapse in the model (named,
+for the next look).
 
     python research/replay_lapses.py runs/falsify/claim-committed/counterexamples --out runs/replayed_lapses.json
 

@@ -45,6 +45,7 @@ from safelane.safety.committed_compiled import (
     car_gaps_compiled,
     car_sets_compiled,
     follower_bound_compiled,
+    held_lanes,
     prepare,
     verify_plans_compiled,
 )
@@ -293,8 +294,8 @@ def car_gaps(
     # with gains ≥ 0 (linear_set_point_bound).
     mobil = (~np.isfinite(state.linear_speed_gain) | linear_set_point_bound(state)) & state.can_change_lane
     mobil &= ~state.crashed & np.isfinite(state.max_braking_imposed)
-    in_lane = state.ego_lane if not held else held[0]  # the lane the ego is in (held's first), not entering
-    held = {state.ego_lane, state.ego_target_lane} if not held else set(held)
+    holding = held_lanes(state, held)
+    in_lane, held = holding[0], set(holding)  # the lane the ego is in, not one it is entering
     n_fb = ego_x.shape[0]
     frames = t <= (t[-1] if until_frame is None else t[min(max(until_frame, 0), t.size - 1)])
     worst = np.full((state.n, n_fb), np.inf)
@@ -573,7 +574,7 @@ def _entered_held_lanes(
     when verified (``kept_held``, the lane the ego was in first)."""
     rows = rows_in(older.vehicle, vehicle)
     ahead = state.x >= state.ego_x
-    in_lane = kept_held[0] if kept_held else state.ego_lane
+    in_lane = held_lanes(state, kept_held)[0]
     out = np.zeros(state.n, dtype=bool)
     for lane in {state.ego_lane, state.ego_target_lane, *kept_held}:
         for i in np.flatnonzero(sets.now[:, lane]):

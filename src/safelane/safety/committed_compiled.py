@@ -675,9 +675,15 @@ def follower_bound_compiled(state: RoadState, i: int, react: np.ndarray, t: np.n
                            float(v_min[0]), float(v_max[0]), _f(react), t)  # fmt: skip
 
 
+def held_lanes(state: RoadState, held: tuple[int, ...] | None) -> tuple[int, ...]:
+    """The lanes the ego holds, the lane it is in first (the one where a car behind is its driver's to avoid under
+    ``responsibility``): ``held`` (a kept plan's, when verified) or, by default, its lane and target lane now."""
+    return (int(state.ego_lane), int(state.ego_target_lane)) if not held else tuple(int(h) for h in held)
+
+
 def _held_pair(state: RoadState, held: tuple[int, ...] | None) -> tuple[int, int]:
-    """The (at most two) lanes the ego holds, as the kernel takes them (default: its lane and target lane)."""
-    lanes = (int(state.ego_lane), int(state.ego_target_lane)) if not held else tuple(int(h) for h in held)
+    """The (at most two) lanes the ego holds, as the kernel takes them (:func:`held_lanes`)."""
+    lanes = held_lanes(state, held)
     if len(lanes) > 2:
         raise ValueError(f"held: at most two lanes (the ego's lane and its target lane), got {lanes}")
     return lanes[0], lanes[-1]

@@ -18,8 +18,9 @@ same bits. Pure maths: no simulator, no highway-env, no torch.
   entering a lane the ego holds), and followers reacting ``ρ`` after the plan's braking onset — an assumption, not
   IDM's law: a follower that does not brake so is named (``unbraked_followers``) (:func:`verify_plans`).
 * An action is **verified** when a plan starting with it keeps ``margin`` to every car's reachable occupancy at
-  every frame of the horizon. :class:`CommittedFamily` allows the verified actions; with none it allows only the
-  kept plan's next step (``plan_forced``); with no plan at all (uncertified) the one-decision robust rule's mask
+  every frame of the horizon. :class:`CommittedFamily` allows the verified actions the one-decision robust rule
+  also calls safe (courtesy: followers and cars turning in keep their room), all the verified ones where none of
+  them is (``courtesy_waived``); with none verified it allows only the kept plan's next step (``plan_forced``); with no plan at all (uncertified) the one-decision robust rule's mask
   (:class:`~safelane.safety.family.OneDecisionFamily`, ``engine``). A decision at which the plan kept (verified)
   at the last decision no longer verifies is a **lapse**; it names the cars the kept plan fails on and which of
   them left the sets drawn for them (cars by their index in the road snapshot, one car's for a whole episode).
@@ -362,7 +363,8 @@ class CommittedResult(SafetyResult):
     checked against a set drawn at the last decision; ``entered`` (``responsibility``):
     those that entered a lane the ego holds since the last decision; ``ego_crashed``: the ego has crashed (its
     motion after an impact is no plan's); ``certified``: some plan is verified or kept; ``plans``: the verified plan
-    of each action (None: none)."""
+    of each action (None: none); ``courtesy_waived``: some action is verified but none is safe by the one-decision
+    robust rule, so ``mask`` holds every verified one (otherwise it holds only those both allow)."""
 
     plan_forced: bool = False
     lapse: bool = False
@@ -375,6 +377,7 @@ class CommittedResult(SafetyResult):
     ego_crashed: bool = False
     certified: bool = False
     plans: tuple[Plan | None, ...] = ()
+    courtesy_waived: bool = False
 
     @property
     def lapse_escaped(self) -> tuple[int, ...]:
@@ -437,12 +440,13 @@ class CommittedFamily:
         state: RoadState,
         vehicle: np.ndarray,
         dyn: Dynamics,
-        uncertified: Callable[[], SafetyResult] | None = None,
+        one_decision: Callable[[], SafetyResult] | None = None,
         ego_crashed: bool = False,
     ) -> CommittedResult:
         """:meth:`evaluate` on a :class:`RoadState` (every car, ``vehicle``: their identities, kept from one decision
-        to the next) with ``dyn.ego_leave_time`` set; ``uncertified``: the one-decision robust rule's verdict in this
-        state (default: the numpy reference's); ``ego_crashed``: the ego has crashed (a :class:`RoadState` holds
+        to the next) with ``dyn.ego_leave_time`` set; ``one_decision``: the one-decision robust rule's verdict in
+        this state (default: the numpy reference's), which orders the verified actions (courtesy) and drives an
+        uncertified state; ``ego_crashed``: the ego has crashed (a :class:`RoadState` holds
         the other cars' flags only)."""
         compiled = self.engine == "compiled"
         if compiled:  # the per-car quantities once, for the sets and the gaps
@@ -506,9 +510,18 @@ class CommittedFamily:
         if forced:
             mask[step] = True
         best_gap = np.where(available, worst.max(axis=1), -np.inf)
-        if not mask.any():  # no plan verified, none kept: uncertified, the one-decision robust rule drives
-            robust = uncertified() if uncertified is not None else evaluate_one_decision(state, dyn, "robust")
-            mask = robust.mask.copy()
+        one_decision = one_decision or (lambda: evaluate_one_decision(state, dyn, "robust"))
+        courtesy_waived = False
+        if safe.any():
+            # Courtesy: among the verified actions, those the one-decision robust rule also calls safe leave every
+            # follower (under its own driver law) and every car that may turn in able to avoid the ego; the others
+            # only when none is. It orders the verified actions, never adds one: the promise is the plans'.
+            courteous = safe & one_decision().safe
+            courtesy_waived = not courteous.any()
+            if not courtesy_waived:
+                mask = courteous
+        elif not mask.any():  # no plan verified, none kept: uncertified, the one-decision robust rule drives
+            mask = one_decision().mask.copy()
         result = CommittedResult(
             mask, safe, available, not bool(safe.any()), best_gap, None,
             plan_forced=forced, lapse=lapse, lapse_cars=tuple(int(v) for v in vehicle[failed]),
@@ -517,6 +530,7 @@ class CommittedFamily:
             unbraked_followers=tuple(int(v) for v in vehicle[unbraked]),
             entered=tuple(int(v) for v in vehicle[entered]) if self.reading == "responsibility" else (),
             ego_crashed=ego_crashed, certified=bool(safe.any()) or self.kept is not None, plans=tuple(plans),
+            courtesy_waived=courtesy_waived,
         )  # fmt: skip
         self._pending = (result, state, dyn, sets, vehicle)
         return result

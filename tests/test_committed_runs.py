@@ -314,7 +314,8 @@ def test_the_fast_batch_runs_committed_as_the_single_environments_do() -> None:
 
 
 def test_training_under_the_committed_shield(tmp_path: Path) -> None:
-    from safelane.running.training import load_run_config, make_train_config, train
+    from safelane.running.run_directory import load_run_config, make_train_config
+    from safelane.running.training import train
 
     sets = ["shield.mode=committed", "simulator=fast", "env.duration=4", "env.vehicles_count=8",
             "agent.learning_starts=4", "agent.batch_size=8", "agent.buffer_size=10"]  # fmt: skip

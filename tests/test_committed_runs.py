@@ -414,7 +414,7 @@ def test_a_lapse_at_the_step_the_ego_is_rear_ended_is_the_impacts(name: str) -> 
 
 
 def test_a_car_overtaking_beside_the_ego_is_a_traced_cut_in_on_replay() -> None:
-    """The claim grid's overtaking lapse (cell 219): a lapse traced to the car that passed the ego while it may turn
+    """The claim grid's overtaking lapse: a lapse traced to the car that passed the ego while it may turn
     in (``entered_cars``), not one in the model."""
     cx = load_counterexample(FOUND / "cell00219-seed4002190002-lapse-step36.json")
     result = replay(cx, "fast")

@@ -24,8 +24,9 @@ import tempfile
 from pathlib import Path
 
 from safelane.running.evaluation import run_config, summarize
+from safelane.running.run_directory import load_policy, make_train_config
 from safelane.running.runs import run_env_config
-from safelane.running.training import EpisodeReport, load_policy, make_train_config, train
+from safelane.running.training import EpisodeReport, train
 
 
 def train_robust(out: Path, episodes: int, seed: int) -> Path:

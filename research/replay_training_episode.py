@@ -23,6 +23,7 @@ from typing import Any
 import gymnasium as gym
 import yaml
 
+import safelane.running.run_directory as run_directory
 import safelane.running.training as training
 from safelane.running.collisions import classify_collision
 
@@ -100,8 +101,8 @@ def main() -> None:
     parser.add_argument("--keep", type=int, default=15, help="how many of the last decisions to write")
     parser.add_argument("--work", type=Path, default=None, help="where to re-train (default: a temp dir)")
     args = parser.parse_args()
-    stored = yaml.safe_load((args.run_dir / training.CONFIG_FILE).read_text())["train"]
-    cfg = training.make_train_config(
+    stored = yaml.safe_load((args.run_dir / run_directory.CONFIG_FILE).read_text())["train"]
+    cfg = run_directory.make_train_config(
         method=stored["method"],
         agent_preset=stored["agent_preset"],
         env_preset=stored["env_preset"],
@@ -111,8 +112,8 @@ def main() -> None:
         checkpoint_every=50,
     )
     work = args.work or Path(tempfile.mkdtemp(prefix="safelane-replay-")) / "run"
-    resume = (work / training.CHECKPOINT_FILE).is_file()
-    first = training.load_checkpoint(work)["episode"] if resume else 0
+    resume = (work / run_directory.CHECKPOINT_FILE).is_file()
+    first = run_directory.load_checkpoint(work)["episode"] if resume else 0
     make_env = training.make_env
 
     def logged_env(*a: Any, **k: Any) -> gym.Env:

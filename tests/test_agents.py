@@ -457,7 +457,7 @@ def test_robust_acts_and_bootstraps_exactly_like_qmask(
 
 
 def test_method_properties_live_on_the_agent_classes() -> None:
-    from safelane.running.training import TRAIN_SHIELD_MODE
+    from safelane.running.run_directory import TRAIN_SHIELD_MODE
 
     assert {m: (c.uses_mask, c.needs_cost, c.train_shield) for m, c in AGENT_CLASSES.items()} == {
         "dqn": (False, False, "nominal"),

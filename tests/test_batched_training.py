@@ -18,15 +18,10 @@ import torch
 from safelane.agents.batched import BatchedLearner
 from safelane.agents.dqn import load_agent_config
 from safelane.config import ConfigError
+from safelane.reporting.metrics_file import METRICS_FILE, TIMING_COLUMNS
 from safelane.running.batched_training import train_batched, train_batched_steps_per_s
-from safelane.running.training import (
-    CHECKPOINT_FILE,
-    METRICS_FILE,
-    TIMING_COLUMNS,
-    load_checkpoint,
-    make_train_config,
-    train,
-)
+from safelane.running.run_directory import CHECKPOINT_FILE, load_checkpoint, make_train_config
+from safelane.running.training import train
 
 FAST = ["simulator=fast", "agent.learning_starts=64", "agent.target_update_interval=50"]
 

@@ -1,4 +1,5 @@
-"""The mask's cost figures of ``safelane bench``: median, mean and 99th percentile from the timings."""
+"""The mask's cost figures of ``safelane bench``: median, mean and 99th percentile from the timings, and the
+committed mode's figures under the names its docstring documents."""
 
 from __future__ import annotations
 
@@ -16,8 +17,7 @@ def test_mask_cost_figures_report_the_tail_the_median_hides() -> None:
     assert figures["shield_mask_us_median_fast"] == 20.0
     assert figures["shield_mask_us_mean_fast"] == pytest.approx((98 * 20.0 + 1000.0) / 100)
     assert figures["shield_mask_us_p99_fast"] == pytest.approx(float(np.percentile(samples, 99)))
-    assert figures["shield_mask_us_median_fast"] <= figures["shield_mask_us_mean_fast"]
-    assert figures["shield_mask_us_median_fast"] <= figures["shield_mask_us_p99_fast"]
+    assert mask_cost_figures(samples, prefix="committed")["committed_mask_us_median"] == 20.0
 
 
 def test_mask_cost_figures_without_timings_is_an_error() -> None:
@@ -25,14 +25,16 @@ def test_mask_cost_figures_without_timings_is_an_error() -> None:
         mask_cost_figures([])
 
 
-def test_committed_mask_is_timed_beside_the_robust_one_on_the_same_states() -> None:
+def test_committed_mask_figures_are_the_documented_ones() -> None:
+    """Exactly the names :func:`committed_mask_figures` documents (the bench JSON's keys), its timed decisions
+    those of the one episode played."""
     figures = committed_mask_figures(episodes=1, seed=3)
-    for who in ("committed", "committed_robust"):
-        median, mean, p99 = (figures[f"{who}_mask_us_{stat}_fast"] for stat in ("median", "mean", "p99"))
-        assert 0 < median <= p99 and mean > 0
-    assert figures["committed_mask_ratio_fast"] == pytest.approx(
-        figures["committed_mask_us_mean_fast"] / figures["committed_robust_mask_us_mean_fast"]
-    )
+    stats = ("median", "mean", "p99")
+    timings = {f"{who}_mask_us_{stat}_fast" for who in ("committed", "committed_robust") for stat in stats}
+    assert set(figures) == timings | {
+        "committed_mask_ratio_fast", "committed_mask_decisions", "committed_engine", "committed_reading"
+    }  # fmt: skip
+    assert all(isinstance(figures[k], float) for k in (*timings, "committed_mask_ratio_fast"))
     assert 1 <= figures["committed_mask_decisions"] <= 40  # one episode of the fast preset: 40 s at 1 decision/s
     assert figures["committed_reading"] == "responsibility" and figures["committed_engine"] in ("compiled", "numpy")
 

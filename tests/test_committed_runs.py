@@ -314,7 +314,8 @@ def test_the_fast_batch_runs_committed_as_the_single_environments_do() -> None:
 
 
 def test_training_under_the_committed_shield(tmp_path: Path) -> None:
-    from safelane.running.training import load_run_config, make_train_config, train
+    from safelane.running.run_directory import load_run_config, make_train_config
+    from safelane.running.training import train
 
     sets = ["shield.mode=committed", "simulator=fast", "env.duration=4", "env.vehicles_count=8",
             "agent.learning_starts=4", "agent.batch_size=8", "agent.buffer_size=10"]  # fmt: skip
@@ -413,7 +414,7 @@ def test_a_lapse_at_the_step_the_ego_is_rear_ended_is_the_impacts(name: str) -> 
 
 
 def test_a_car_overtaking_beside_the_ego_is_a_traced_cut_in_on_replay() -> None:
-    """The claim grid's overtaking lapse (cell 219): a lapse traced to the car that passed the ego while it may turn
+    """The claim grid's overtaking lapse: a lapse traced to the car that passed the ego while it may turn
     in (``entered_cars``), not one in the model."""
     cx = load_counterexample(FOUND / "cell00219-seed4002190002-lapse-step36.json")
     result = replay(cx, "fast")

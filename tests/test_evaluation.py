@@ -266,8 +266,8 @@ def test_batched_evaluation_plays_the_same_episodes_as_one_environment(method: s
     round) gives the records of the same episodes played one by one: same seeds, same decisions."""
     from safelane.agents.dqn import make_agent
     from safelane.running.evaluation import BatchPolicy, run_config
+    from safelane.running.run_directory import GreedyPolicy, make_train_config, resolve
     from safelane.running.runs import run_env_config
-    from safelane.running.training import GreedyPolicy, make_train_config, resolve
 
     run = resolve(make_train_config(method=method, episodes=1, seed=0, sets=["simulator=fast"]))
     policy = GreedyPolicy(make_agent(run.agent, seed=3), run)

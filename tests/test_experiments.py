@@ -8,10 +8,10 @@ from pathlib import Path
 import pytest
 
 from safelane.config import ConfigError
-from safelane.reporting.report import write_report
 from safelane.running.conditions import load_conditions
 from safelane.running.experiments import make_spec, run_dir_of, run_experiment
 from safelane.running.policies import fixed_policy
+from safelane.running.reproduction_report import write_report
 from safelane.running.stress import run_condition
 
 TINY = ["env.duration=4", "env.vehicles_count=15"]

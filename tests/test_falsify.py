@@ -142,7 +142,8 @@ def test_a_trained_agent_joins_the_campaign_where_its_interface_fits(tmp_path: P
     from safelane.env.factory import make_env
     from safelane.running.evaluation import run_episodes
     from safelane.running.falsify.grid import cell_config
-    from safelane.running.training import load_policy, make_train_config, train
+    from safelane.running.run_directory import load_policy, make_train_config
+    from safelane.running.training import train
 
     run_dir = train(make_train_config(method="robust", episodes=1, seed=0, sets=["simulator=fast"]), tmp_path / "r")
     rates = [

@@ -64,7 +64,8 @@ def test_clone_memory_is_independent_of_its_source() -> None:
 
 
 def test_ceiling_table_has_the_committed_rows(tmp_path: Path) -> None:
-    from safelane.running.training import make_train_config, train
+    from safelane.running.run_directory import make_train_config
+    from safelane.running.training import train
 
     run_dir = train(
         make_train_config(method="robust", episodes=1, seed=0, sets=["simulator=fast", "env.duration=4"]),

@@ -1,4 +1,4 @@
-"""Training-curve figures from synthetic run directories."""
+"""The metrics file read and written, and training-curve figures from synthetic run directories."""
 
 from __future__ import annotations
 
@@ -8,7 +8,9 @@ import numpy as np
 import pytest
 from matplotlib.figure import Figure
 
-from safelane.reporting.plots import plot_training_curves, read_metrics
+from safelane.reporting.metrics_file import METRIC_COLUMNS, MetricsAppender, read_metrics
+from safelane.reporting.metrics_file import write_metrics as write_metrics_file
+from safelane.reporting.plots import plot_training_curves
 from safelane.reporting.stats import smooth
 
 
@@ -20,6 +22,21 @@ def write_metrics(run_dir: Path, returns: list[float], epsilon: bool = True) -> 
         eps = f"{max(0.05, 1.0 - 0.1 * i):.2f}," if epsilon else ""
         lines.append(f"{i},{r},{eps}{'True' if i % 3 == 0 else 'False'},{20 + i}")
     (run_dir / "metrics.csv").write_text("\n".join(lines) + "\n")
+
+
+def test_metrics_file_written_and_appended_reads_back(tmp_path: Path) -> None:
+    """What the training loops write (a whole file, then rows appended) is what the reader returns."""
+    path = tmp_path / "metrics.csv"
+    first = {"episode": 1, "return": 0.1 + 0.2, "collision": 0, "mean_loss": None, "wall_time_s": 1.23456789}
+    write_metrics_file(path, [first])
+    with MetricsAppender(path) as appender:
+        appender.append({"episode": 2, "return": -3.0, "collision": 1, "mean_loss": 0.5, "wall_time_s": 2.0})
+    assert path.read_text().splitlines()[0] == ",".join(METRIC_COLUMNS)
+    data = read_metrics(path, ["episode", "return", "collision", "mean_loss", "wall_time_s"])
+    np.testing.assert_array_equal(data["episode"], [1.0, 2.0])
+    assert data["return"][0] == 0.1 + 0.2  # full precision: repr, not a rounded format
+    np.testing.assert_array_equal(data["mean_loss"], [np.nan, 0.5])
+    np.testing.assert_array_equal(data["wall_time_s"], [1.234568, 2.0])  # clocks to the µs
 
 
 def test_read_metrics_parses_numbers_and_booleans(tmp_path: Path) -> None:

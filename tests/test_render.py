@@ -26,8 +26,8 @@ from safelane.reporting.render import (
     UNSAFE_COLOUR,
     draw_action_legend,
     legend_box,
-    render_episode,
 )
+from safelane.running.episode_video import render_episode
 
 os.environ.setdefault("SDL_VIDEODRIVER", "dummy")
 

@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 
 from safelane.core.files import atomic_write_text
-from safelane.reporting import report, stats
+from safelane.reporting import stats
+from safelane.running import reproduction_report as report
 from safelane.running.experiments import collect, make_spec, run_dir_of
 
 TEST_EPISODES = 4

@@ -1,4 +1,4 @@
-"""Sweeps and the task engine: specs, trials.csv, best.yaml, failures, kills, and both backends (real
+"""Sweeps and the task backend: specs, trials.csv, best.yaml, failures, kills, and both backends (real
 training on tiny budgets)."""
 
 from __future__ import annotations
@@ -18,7 +18,7 @@ import yaml
 
 from safelane.agents.dqn import load_agent_config
 from safelane.config import ConfigError
-from safelane.running.engine import TaskFailure, run_tasks
+from safelane.running.backend import TaskFailure, run_tasks
 from safelane.running.sweeps import SweepSpec, load_sweep_spec, run_sweep
 
 TINY = ["simulator=fast", "env.duration=3", "env.vehicles_count=10"]

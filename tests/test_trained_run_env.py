@@ -19,8 +19,9 @@ from safelane.cli import app
 from safelane.config import ConfigError
 from safelane.env.factory import make_env
 from safelane.running.evaluation import run_episodes
+from safelane.running.run_directory import load_policy, load_run_config, make_train_config
 from safelane.running.runs import run_env_config
-from safelane.running.training import load_policy, load_run_config, make_train_config, train
+from safelane.running.training import train
 
 runner = CliRunner()
 RUN_SETS = [

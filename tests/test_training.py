@@ -19,20 +19,17 @@ import torch
 from safelane.agents.dqn import METHODS
 from safelane.config import ConfigError
 from safelane.env.factory import make_env
-from safelane.running.training import (
+from safelane.reporting.metrics_file import METRIC_COLUMNS, TIMING_COLUMNS
+from safelane.running.run_directory import (
     CHECKPOINT_FILE,
-    METRIC_COLUMNS,
-    TIMING_COLUMNS,
-    EpisodeReport,
     TrainConfig,
-    TrainingInterrupted,
     load_checkpoint,
     load_policy,
     load_run_config,
     make_train_config,
     resolve,
-    train,
 )
+from safelane.running.training import EpisodeReport, TrainingInterrupted, train
 
 os.environ.setdefault("SDL_VIDEODRIVER", "dummy")
 
@@ -153,7 +150,8 @@ def test_ctrl_c_checkpoints_the_last_episode_and_resume_is_identical(tmp_path: P
 SCRIPT = textwrap.dedent(
     """
     import sys, time, pathlib
-    from safelane.running.training import make_train_config, train
+    from safelane.running.run_directory import make_train_config
+    from safelane.running.training import train
     out, marker = pathlib.Path(sys.argv[1]), pathlib.Path(sys.argv[2])
 
     def progress(report):

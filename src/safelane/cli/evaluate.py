@@ -118,8 +118,8 @@ def evaluate_run(
     """Evaluate a trained run's greedy policy on its own environment config (plus --set / --shield);
     ``counterexamples``: save its crashes, invariant breaks and lapses there."""
     from safelane.running.evaluation import run_config, summarize
+    from safelane.running.run_directory import load_policy, load_run_config
     from safelane.running.runs import run_env_config
-    from safelane.running.training import load_policy, load_run_config
 
     run = load_run_config(run_dir)
     cfg = run_env_config(run_dir, sets=sets, shield=shield)

@@ -27,12 +27,12 @@ def render(
     max_steps: Annotated[int | None, typer.Option("--max-steps", help="Stop after this many decisions.")] = None,
 ) -> None:
     """Render one episode offscreen with the action mask and the chosen action drawn on each frame."""
-    from safelane.reporting.render import render_episode
+    from safelane.running.episode_video import render_episode
     from safelane.running.policies import FIXED_POLICIES, fixed_policy
 
     if run_dir is not None:
+        from safelane.running.run_directory import load_policy
         from safelane.running.runs import run_env_config
-        from safelane.running.training import load_policy
 
         cfg = run_env_config(run_dir, sets=sets, shield=shield)
         act = load_policy(run_dir)

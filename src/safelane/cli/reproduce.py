@@ -76,8 +76,8 @@ def reproduce(
 ) -> None:
     """Train every method × seed, evaluate on held-out episodes, write Table 4 / Fig. 6 / Fig. 7 and claims."""
     from safelane.agents.dqn import parse_methods
-    from safelane.reporting.report import render_gifs, write_report
     from safelane.running.experiments import make_spec, run_experiment
+    from safelane.running.reproduction_report import render_gifs, write_report
 
     earlier: list[str] | None = None
     if (out / "spec.json").is_file():  # an experiment being resumed keeps its simulator

@@ -65,7 +65,7 @@ def stress(
         raise ConfigError(f"--shield: unknown shield '{shield}'; allowed: {', '.join(SHIELD_CHOICES)}")
     run = None
     if run_dir is not None:
-        from safelane.running.training import load_policy, load_run_config
+        from safelane.running.run_directory import load_policy, load_run_config
 
         run = load_run_config(run_dir)
         mode, override = shield, None  # the run's own shield unless --shield says otherwise

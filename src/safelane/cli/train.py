@@ -47,7 +47,8 @@ def train(
 ) -> None:
     """Train a DQN with one of the paper's four methods; Ctrl-C checkpoints, --resume continues."""
 
-    from safelane.running.training import TrainingInterrupted, load_run_config, make_train_config
+    from safelane.running.run_directory import load_run_config, make_train_config
+    from safelane.running.training import TrainingInterrupted
     from safelane.running.training import train as run_training
 
     earlier: list[str] | None = None

@@ -6,48 +6,14 @@ backend, and ``fig.savefig`` renders with Agg.
 
 from __future__ import annotations
 
-import csv
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 
 import numpy as np
 from matplotlib.figure import Figure
 
+from safelane.reporting.metrics_file import METRICS_FILE, read_metrics
 from safelane.reporting.stats import Band, Profile, scale_01, smooth
-
-METRICS_FILE = "metrics.csv"
-"""Per-episode training metrics in a run directory (columns ``episode``, ``return``, ``epsilon``…)."""
-
-
-_BOOLEANS = {"true": 1.0, "false": 0.0}
-
-
-def read_metrics(path: str | Path, columns: Sequence[str], optional: Sequence[str] = ()) -> dict[str, np.ndarray]:
-    """The numeric ``columns`` (required) and ``optional`` columns (when present) of a metrics CSV.
-
-    Values become float arrays (``True``/``False`` → 1/0, an empty cell → NaN, as training writes
-    for e.g. ``mean_loss`` before learning starts). Raises :class:`FileNotFoundError` for a
-    missing file and :class:`ValueError` naming the file for a missing required column or a
-    non-numeric value.
-    """
-    path = Path(path)
-    with path.open(newline="") as handle:
-        reader = csv.DictReader(handle)
-        header = reader.fieldnames or []
-        missing = [c for c in columns if c not in header]
-        if missing:
-            raise ValueError(f"{path}: missing column(s) {missing}; has {header}")
-        wanted = [*columns, *(c for c in optional if c in header)]
-        values: dict[str, list[float]] = {c: [] for c in wanted}
-        for line, row in enumerate(reader, start=2):
-            for c in wanted:
-                text = (row[c] or "").strip()
-                try:
-                    key = text.lower()
-                    values[c].append(_BOOLEANS[key] if key in _BOOLEANS else float(text or "nan"))
-                except ValueError:
-                    raise ValueError(f"{path}:{line}: column {c!r} is not a number: {text!r}") from None
-    return {c: np.asarray(v, dtype=float) for c, v in values.items()}
 
 
 def plot_training_curves(

@@ -1,8 +1,7 @@
-"""Episode videos with the action mask drawn under each frame.
+"""Episode frames with the action mask drawn under each, and the video they make.
 
-:func:`render_episode` plays one episode with highway-env's ``render_mode="rgb_array"`` (offscreen,
-``SDL_VIDEODRIVER=dummy``), one frame per decision, and appends to every frame a legend bar of the
-five meta-actions (:data:`safelane.core.spaces.ACTION_NAMES`):
+:func:`draw_action_legend` appends to a frame a legend bar of the five meta-actions
+(:data:`safelane.core.spaces.ACTION_NAMES`):
 
 * a safe action is green, an unsafe one (``info["action_mask"][a]`` false) is grey;
 * the action the policy chose in that state is blue, or red if it was unsafe;
@@ -12,25 +11,22 @@ five meta-actions (:data:`safelane.core.spaces.ACTION_NAMES`):
 Without an ``action_mask`` in ``info`` (no shield), every action is drawn safe. Boxes are drawn with
 numpy; their labels, and a caption with the decision index, ego speed and any collision, with Pillow
 when it can be imported (imageio depends on it). The caption also keeps consecutive frames distinct,
-which GIF writers would otherwise merge.
+which GIF writers would otherwise merge. :func:`write_video` writes the frames as a GIF or MP4.
+Playing the episode that gives the frames is :func:`safelane.running.episode_video.render_episode`'s.
 """
 
 from __future__ import annotations
 
 import importlib.util
-import os
 import tempfile
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Any, NamedTuple
+from typing import Any
 
 import numpy as np
 
-from safelane.config import ConfigError, SafelaneConfig
+from safelane.config import ConfigError
 from safelane.core.spaces import ACTION_NAMES, N_ACTIONS
-
-Policy = Callable[[np.ndarray, dict[str, Any]], int]
-"""``policy(obs, info) -> action``: ``info`` is the one returned with ``obs`` (it holds the mask)."""
 
 LEGEND_HEIGHT = 28
 """Height [px] of the legend bar appended under each frame."""
@@ -54,15 +50,6 @@ assert len(SHORT_NAMES) == len(ACTION_NAMES)
 VIDEO_EXTENSIONS = (".gif", ".mp4")
 
 
-class RenderedEpisode(NamedTuple):
-    """What :func:`render_episode` wrote."""
-
-    path: Path
-    frames: int
-    """Frames rendered: decisions + 1 (the last state). A GIF writer merges identical consecutive
-    frames into one longer frame, so a GIF read back may hold fewer."""
-
-
 def legend_box(width: int, action: int) -> tuple[int, int]:
     """Horizontal extent ``[x0, x1)`` [px] of ``action``'s box in a legend of ``width`` pixels.
 
@@ -75,7 +62,7 @@ def legend_box(width: int, action: int) -> tuple[int, int]:
     return round(action * cell) + BOX_GAP, round((action + 1) * cell) - BOX_GAP
 
 
-def _mask_of(info: dict[str, Any]) -> np.ndarray:
+def mask_of(info: dict[str, Any]) -> np.ndarray:
     """``info["action_mask"]`` as 5 booleans (True = safe); all True when absent."""
     mask = info.get("action_mask")
     if mask is None:
@@ -86,7 +73,7 @@ def _mask_of(info: dict[str, Any]) -> np.ndarray:
     return mask
 
 
-def _executed_of(info: dict[str, Any]) -> int | None:
+def executed_of(info: dict[str, Any]) -> int | None:
     """The action the environment executed, as reported in a step's ``info``, if any."""
     for key in ("executed_action", "action"):
         value = info.get(key)
@@ -160,7 +147,7 @@ def _write_text(image: np.ndarray, frame_height: int, caption: str | None) -> No
     image[:] = np.asarray(pil)
 
 
-def _caption(step: int, info: dict[str, Any]) -> str:
+def caption_of(step: int, info: dict[str, Any]) -> str:
     """``t=<decision>  v=<ego speed> m/s`` and, after a crash, ``COLLISION``."""
     text = f"t={step}"
     if "speed" in info:
@@ -175,7 +162,7 @@ def mp4_writer_available() -> bool:
     return importlib.util.find_spec("imageio_ffmpeg") is not None
 
 
-def _write_video(frames: list[np.ndarray], out_path: Path, fps: float) -> None:
+def write_video(frames: list[np.ndarray], out_path: Path, fps: float) -> None:
     import imageio.v2 as imageio
 
     if out_path.suffix.lower() == ".gif":
@@ -187,7 +174,7 @@ def _write_video(frames: list[np.ndarray], out_path: Path, fps: float) -> None:
     imageio.mimsave(out_path, [np.pad(f, pad) for f in frames], fps=fps, macro_block_size=1)
 
 
-def _check_out_path(out_path: Path) -> None:
+def check_out_path(out_path: Path) -> None:
     """Fail early, in one line, unless a video can be written at ``out_path``.
 
     Checks the extension, then creates the directory (as the write would) and writes a temporary
@@ -213,99 +200,3 @@ def _check_out_path(out_path: Path) -> None:
         raise ConfigError(
             f"out_path: cannot write a file in {directory} ({reason}); choose a writable directory"
         ) from None
-
-
-def _open_env(env: Any) -> tuple[Any, bool]:
-    """The rgb_array env to render and whether this module owns (and must close) it."""
-    if isinstance(env, SafelaneConfig | str):
-        from safelane.env.factory import make_env, resolve_env_config
-
-        cfg = resolve_env_config(env)
-        if cfg.simulator == "fast":  # it does not draw; highway-env plays the same episode, bit for bit
-            cfg = cfg.model_copy(update={"simulator": "highway-env"})
-        return make_env(cfg, render_mode="rgb_array"), True
-    if hasattr(env, "step") and hasattr(env, "reset"):
-        owned = False
-    elif callable(env):
-        env, owned = env(), True
-    else:
-        raise TypeError(f"env: expected a gymnasium Env, an env factory or a config, got {type(env)!r}")
-    if getattr(env, "render_mode", None) != "rgb_array":
-        mode = getattr(env, "render_mode", None)
-        if owned:
-            env.close()
-        raise ValueError(
-            f"env: render_mode must be 'rgb_array' (got {mode!r}); "
-            "build it with safelane.make_env(cfg, render_mode='rgb_array')"
-        )
-    return env, owned
-
-
-def _enable_drawing(env: Any) -> None:
-    """Make highway-env actually draw under ``SDL_VIDEODRIVER=dummy``.
-
-    highway-env 1.12's ``EnvViewer.__init__`` sets ``enabled = False`` when the driver is ``dummy``,
-    and ``display()`` then draws nothing: every ``rgb_array`` frame is black. Drawing onto the
-    viewer's pygame Surface works under the dummy driver, so the flag is switched back on.
-    """
-    base = env.unwrapped
-    if getattr(base, "viewer", None) is None:
-        env.render()  # creates the viewer
-    viewer = getattr(base, "viewer", None)
-    if viewer is not None and hasattr(viewer, "enabled"):
-        viewer.enabled = True
-
-
-def render_episode(
-    env: Any,
-    policy: Policy,
-    seed: int,
-    out_path: str | Path,
-    max_steps: int | None = None,
-    fps: float | None = None,
-) -> RenderedEpisode:
-    """Play one episode of ``policy`` and write it, with the action legend, to ``out_path``.
-
-    ``env``: a gymnasium Env built with ``render_mode="rgb_array"``, a zero-argument factory returning
-    one (closed afterwards), or a :class:`SafelaneConfig` / preset name passed to
-    ``make_env(..., render_mode="rgb_array")`` (a ``simulator: fast`` config is drawn on highway-env,
-    which plays the same episode). The env is reset with ``seed``; the episode runs until
-    termination, truncation or ``max_steps`` decisions. Frame ``t`` shows the state before decision
-    ``t`` with that state's mask, the chosen action and (if different) the executed one; the last frame
-    shows the final state with no action chosen. ``fps`` defaults to the env's ``policy_frequency``
-    (real time). ``out_path`` must end in ``.gif``, or ``.mp4`` when imageio-ffmpeg is installed
-    (otherwise :class:`~safelane.config.ConfigError`, a ``ValueError``).
-    """
-    out_path = Path(out_path)
-    _check_out_path(out_path)
-    if max_steps is not None and max_steps < 0:
-        raise ValueError(f"max_steps: must be non-negative, got {max_steps}")
-    os.environ.setdefault("SDL_VIDEODRIVER", "dummy")
-    env, owned = _open_env(env)
-    try:
-        if fps is None:
-            fps = float(getattr(env.unwrapped, "config", {}).get("policy_frequency", 1))
-        if fps <= 0:
-            raise ValueError(f"fps: must be positive, got {fps}")
-        obs, info = env.reset(seed=seed)
-        _enable_drawing(env)
-        frames: list[np.ndarray] = []
-        steps = 0
-        done = False
-        while not done and (max_steps is None or steps < max_steps):
-            raw = np.asarray(env.render())
-            mask, caption = _mask_of(info), _caption(steps, info)
-            action = int(policy(obs, info))
-            obs, _, terminated, truncated, info = env.step(action)
-            executed = _executed_of(info)
-            frames.append(draw_action_legend(raw, mask, action, executed, caption))
-            steps += 1
-            done = bool(terminated or truncated)
-        final = np.asarray(env.render())
-        frames.append(draw_action_legend(final, _mask_of(info), caption=_caption(steps, info)))
-    finally:
-        if owned:
-            env.close()
-    out_path.parent.mkdir(parents=True, exist_ok=True)
-    _write_video(frames, out_path, fps)
-    return RenderedEpisode(out_path, len(frames))

@@ -1,6 +1,6 @@
 """Many training runs as one: their environments in fast batches, their learners one batched computation.
 
-``train_batched(cfgs, out_dirs)`` trains every :class:`~safelane.running.training.TrainConfig` of ``cfgs``
+``train_batched(cfgs, out_dirs)`` trains every :class:`~safelane.running.run_directory.TrainConfig` of ``cfgs``
 into its own run directory, as :func:`safelane.running.training.train` would — the same ``config.yaml``,
 ``metrics.csv`` rows and ``checkpoint.pt`` format, the same numbers bit for bit (wall and environment
 times aside) — but steps all runs' environments together (one :class:`safelane.env.fast_batch.FastBatch`
@@ -37,23 +37,18 @@ from safelane.agents.dqn import ConstrainedAgent, linear_epsilon, load_agent_con
 from safelane.config import ConfigError, config_to_dict
 from safelane.core.spaces import N_ACTIONS, OBS_SIZE
 from safelane.env.fast_batch import FastBatch, supports
-from safelane.running.training import (
+from safelane.reporting.metrics_file import METRICS_FILE, MetricsAppender, write_metrics
+from safelane.running.run_directory import (
     CHECKPOINT_FILE,
-    METRIC_COLUMNS,
-    METRICS_FILE,
-    EpisodeReport,
     RunConfig,
     TrainConfig,
-    deterministic_torch,
-    episode_seed,
-    format_metrics_row,
     make_train_config,
     prepare_run_dir,
     resolve,
     save_checkpoint,
     training_snapshot,
-    write_metrics,
 )
+from safelane.running.training import EpisodeReport, deterministic_torch, episode_seed
 
 
 class _BufferOf:
@@ -158,8 +153,7 @@ def train_batched(
         for arr in (ep_return, speed_sum, ep_cost, length, interventions, fallbacks, breaks, n_losses, loss_sum):
             arr[ks] = 0
 
-    files = [open(o / METRICS_FILE, "a", newline="") for o in outs]  # noqa: SIM115 - closed in finally
-    writers = [csv.DictWriter(f, fieldnames=METRIC_COLUMNS, lineterminator="\n") for f in files]
+    appenders = [MetricsAppender(o / METRICS_FILE) for o in outs]  # closed in finally
     t0 = last_charge = time.perf_counter()
     steps0 = global_step.copy()
     try:
@@ -244,8 +238,7 @@ def train_batched(
                         "env_steps": int(global_step[k]),
                     }
                     rows[k].append(row)
-                    writers[k].writerow(format_metrics_row(row))
-                    files[k].flush()
+                    appenders[k].append(row)
                     last = episode[k] == episodes[k]
                     if episode[k] % cfgs[k].checkpoint_every == 0 or last:
                         learner.export(k)
@@ -282,8 +275,8 @@ def train_batched(
                     reset(restart)
                     env_pending += time.perf_counter() - t_env
     finally:
-        for f in files:
-            f.close()
+        for appender in appenders:
+            appender.close()
         for batch, _ in batches:
             batch.close()
     return outs
@@ -324,10 +317,10 @@ def train_batched_steps_per_s(
     return {str(s): measure_batched_training(s, episodes, seed, shield) for s in sizes}
 
 
-# --- the engine's task -----------------------------------------------------------------------------
+# --- the backend's task ---------------------------------------------------------------------------
 def train_runs_task(cfgs_json: list[str], out_dirs: list[str]) -> dict[str, Any]:
-    """The engine's task that trains (or resumes) runs as one batch: ``cfgs_json[k]`` (a
-    :class:`~safelane.running.training.TrainConfig` as JSON) into ``out_dirs[k]``. A directory left without a
+    """The backend's task that trains (or resumes) runs as one batch: ``cfgs_json[k]`` (a
+    :class:`~safelane.running.run_directory.TrainConfig` as JSON) into ``out_dirs[k]``. A directory left without a
     checkpoint (killed before its first) is started afresh, as ``reproduce`` does for one run. Returns
     ``{"runs": out_dirs}``; the runs' evaluation tasks then find them trained."""
     import shutil

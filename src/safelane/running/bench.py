@@ -28,9 +28,10 @@ from safelane.env.factory import make_env
 from safelane.env.observations import paper_state_compiled as paper_state
 from safelane.env.scenarios import find_shield
 from safelane.env.vector import make_vector_env
-from safelane.reporting.plots import read_metrics
+from safelane.reporting.metrics_file import METRICS_FILE, read_metrics
 from safelane.running.policies import fixed_policy
-from safelane.running.training import METRICS_FILE, make_train_config, train
+from safelane.running.run_directory import make_train_config
+from safelane.running.training import train
 from safelane.safety.model import OVERRIDE_ORDER
 
 BENCH_PRESET = "fast"

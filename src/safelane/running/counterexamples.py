@@ -311,7 +311,7 @@ def _committed_verdict(info: dict[str, Any]) -> dict[str, Any] | None:
 
 def render_counterexample(cx: Counterexample, out_path: str | Path) -> Path:
     """Draw the replay (on highway-env, which plays the same episode) to a GIF / MP4 with the mask legend."""
-    from safelane.reporting.render import render_episode
+    from safelane.running.episode_video import render_episode
 
     actions = iter(cx.actions)
 

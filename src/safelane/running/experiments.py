@@ -4,7 +4,7 @@
 (resuming a run that was interrupted), evaluates its greedy policy on ``test_episodes`` episodes
 whose seeds are never used in training, and writes ``out_dir/results.json`` atomically. A task whose
 evaluation file exists is skipped, so re-running after a crash loses nothing and duplicates
-nothing. Tasks run on :mod:`safelane.running.engine` (``local``: a process pool of ``workers``, default all
+nothing. Tasks run on :mod:`safelane.running.backend` (``local``: a process pool of ``workers``, default all
 cores; ``ray``: Ray Tune trials).
 """
 
@@ -21,7 +21,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_valida
 
 from safelane.config import ConfigError, validation_message
 from safelane.core.files import atomic_write_text
-from safelane.running.engine import TaskFailure, check_backend, format_failure, run_tasks
+from safelane.running.backend import TaskFailure, check_backend, format_failure, run_tasks
 
 METHODS: tuple[str, ...] = ("dqn", "constrained", "qmask", "robust")
 LEARNERS: tuple[str, ...] = ("batched", "per-run")
@@ -89,8 +89,8 @@ def run_dir_of(out_dir: Path, method: str, seed: int) -> Path:
 
 
 def train_config_of(spec: ExperimentSpec, method: str, seed: int) -> Any:
-    """The :class:`~safelane.running.training.TrainConfig` of the (``method``, ``seed``) run of ``spec``."""
-    from safelane.running.training import make_train_config
+    """The :class:`~safelane.running.run_directory.TrainConfig` of the (``method``, ``seed``) run of ``spec``."""
+    from safelane.running.run_directory import make_train_config
 
     return make_train_config(
         method=method,
@@ -132,14 +132,15 @@ def _batched_training(
 
 
 def run_task(out_dir: str, spec_json: str, method: str, seed: int) -> dict[str, Any]:
-    """The engine's task of an experiment: train (or resume) the (``method``, ``seed``) run of the experiment
+    """The backend's task of an experiment: train (or resume) the (``method``, ``seed``) run of the experiment
     ``spec_json`` under ``out_dir`` and evaluate it; returns its evaluation record (also on disk)."""
     import torch
 
-    from safelane.reporting.plots import read_metrics
+    from safelane.reporting.metrics_file import METRICS_FILE, read_metrics
     from safelane.running.evaluation import run_config, summarize
+    from safelane.running.run_directory import load_policy, load_run_config
     from safelane.running.runs import run_env_config
-    from safelane.running.training import METRICS_FILE, load_policy, load_run_config, train
+    from safelane.running.training import train
 
     torch.set_num_threads(1)
     spec = ExperimentSpec.model_validate_json(spec_json)
@@ -205,8 +206,8 @@ def confirm_test_episodes(run_dir: Path, spec: ExperimentSpec, episodes: list[di
     """Play the run's first ``spec.confirm_count()`` test episodes again (same seeds, same greedy policy)
     on ``spec.confirm_on``: their summary, and how many came out the same as the recorded ``episodes``."""
     from safelane.running.evaluation import run_config, summarize
+    from safelane.running.run_directory import load_policy, load_run_config
     from safelane.running.runs import run_env_config
-    from safelane.running.training import load_policy, load_run_config
 
     run = load_run_config(run_dir)
     cfg = run_env_config(run).model_copy(update={"simulator": spec.confirm_on})
@@ -227,7 +228,7 @@ def confirm_test_episodes(run_dir: Path, spec: ExperimentSpec, episodes: list[di
 
 def _validate_runs(spec: ExperimentSpec) -> None:
     """Resolve each method's run configuration once (raises the one-line :class:`ConfigError` of a bad value)."""
-    from safelane.running.training import make_train_config, resolve
+    from safelane.running.run_directory import make_train_config, resolve
 
     for method in spec.methods:
         resolve(
@@ -252,7 +253,7 @@ def run_experiment(
 ) -> dict[str, Any]:
     """Run every (method, seed) task not yet done, then collect all into ``out_dir/results.json``.
 
-    ``backend`` / ``address``: where the tasks run (:mod:`safelane.running.engine`; same results).
+    ``backend`` / ``address``: where the tasks run (:mod:`safelane.running.backend`; same results).
     ``learner``: ``batched`` trains the runs on the fast simulator as one batch per worker
     (:mod:`safelane.running.batched_training`), ``per-run`` one run per task; the same runs, bit for bit
     (highway-env runs always train one by one). A batched run's ``train_wall_time_s`` is its share of its batch's clock.

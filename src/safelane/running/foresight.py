@@ -319,11 +319,11 @@ def row_config(cfg: SafelaneConfig, row: str) -> SafelaneConfig:
 def play_row(
     cfg_data: dict[str, Any], row: str, episodes: int, seed: int, agent_dir: str | None, horizon: float, beam: int
 ) -> dict[str, Any]:
-    """One cell of the table (a task of :func:`safelane.running.engine.run_tasks`: plain arguments)."""
+    """One cell of the table (a task of :func:`safelane.running.backend.run_tasks`: plain arguments)."""
     cfg = row_config(build_config(cfg_data), row)
     if row in ("agent_robust", "agent_committed"):
+        from safelane.running.run_directory import GreedyPolicy, load_agent, load_run_config
         from safelane.running.runs import run_env_config
-        from safelane.running.training import GreedyPolicy, load_agent, load_run_config
 
         if agent_dir is None:
             raise ConfigError("agent: no trained agent given for this rate")
@@ -400,7 +400,7 @@ def ceiling_table(
     from pathlib import Path
 
     from safelane.core.files import atomic_write_text
-    from safelane.running.engine import TaskFailure, run_tasks
+    from safelane.running.backend import TaskFailure, run_tasks
 
     if episodes < 1:
         raise ConfigError(f"--episodes: must be >= 1 (got {episodes})")

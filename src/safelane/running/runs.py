@@ -25,7 +25,7 @@ from safelane.config import (
 )
 from safelane.env.factory import check_same_interface, env_interface
 from safelane.running.conditions import Condition
-from safelane.running.training import RunConfig, load_run_config
+from safelane.running.run_directory import RunConfig, load_run_config
 
 SHIELD_MODES: tuple[str, ...] = get_args(ShieldConfig.model_fields["mode"].annotation)
 """Values of ``shield.mode``."""

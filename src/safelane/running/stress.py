@@ -18,7 +18,7 @@ from safelane.core.errors import NotSupported
 from safelane.running.conditions import Condition, condition_config, load_conditions, traffic_seed_base
 
 if TYPE_CHECKING:
-    from safelane.running.training import RunConfig
+    from safelane.running.run_directory import RunConfig
 
 STRESS_SEED_BASE = 3_000_000_000
 """Stress episodes are reset with ``STRESS_SEED_BASE + k`` (never used in training or testing); traffic seed ``N``

@@ -7,7 +7,7 @@ overtaking ``probe``, and trained agents as ``run:RUN_DIR``), the
 shield, the episodes per cell and the simulator. A *cell* is one combination of the axes and one policy;
 ``sample`` draws that many cells (seeded) instead of the whole product.
 
-:func:`run_campaign` plays every cell not yet done (engine backends, as sweeps), writes each cell's record
+:func:`run_campaign` plays every cell not yet done (on the task backend, as sweeps), writes each cell's record
 to ``DIR/cells/CELL.json`` and every crash and invariant break as a replayable file under
 ``DIR/counterexamples/`` (:mod:`safelane.running.counterexamples`), each break with a *class* from its
 replay (:func:`break_class`), and rebuilds ``DIR/cells.csv`` and ``DIR/summary.md`` from the cell files
@@ -198,7 +198,7 @@ def _cell_policy(name: str, seed: int) -> Any:
     from safelane.running.policies import fixed_policy
 
     if name.startswith(RUN_PREFIX):
-        from safelane.running.training import load_policy
+        from safelane.running.run_directory import load_policy
 
         return load_policy(name[len(RUN_PREFIX) :])
     return fixed_policy(name, seed)
@@ -277,7 +277,7 @@ def check_policies(spec: CampaignBase) -> None:
 def open_campaign(spec: CampaignBase, out_dir: str | Path, backend: str) -> Path:
     """The checks every campaign kind runs before playing (backend, ``run:`` policies), then ``out_dir`` claimed
     for ``spec`` (a killed run of the same spec resumes there; another spec is refused). Returns it."""
-    from safelane.running.engine import check_backend, claim_out_dir
+    from safelane.running.backend import check_backend, claim_out_dir
 
     check_backend(backend)
     check_policies(spec)
@@ -295,7 +295,7 @@ def run_campaign(
     progress: Callable[[int, int], None] | None = None,
 ) -> dict[str, Any]:
     """Play every cell of ``spec`` not yet done into ``out_dir``; returns the totals (also summary.json)."""
-    from safelane.running.engine import TaskFailure, format_failure, run_tasks
+    from safelane.running.backend import TaskFailure, format_failure, run_tasks
 
     out = open_campaign(spec, out_dir, backend)
     cells = spec.cells()

@@ -444,9 +444,9 @@ def _play_samples(
     total: int,
     progress: Callable[[int, int], None] | None,
 ) -> list[dict[str, Any]]:
-    """Play the cells of one iteration not yet played (on the engine's backend); their records, in order.
+    """Play the cells of one iteration not yet played (on the task backend); their records, in order.
     ``done``: samples finished so far (updated), reported to ``progress`` with ``total``."""
-    from safelane.running.engine import TaskFailure, format_failure, run_tasks
+    from safelane.running.backend import TaskFailure, format_failure, run_tasks
 
     todo = [cell for cell in cells if _read_sample(out, cell) is None]
     done[0] += len(cells) - len(todo)

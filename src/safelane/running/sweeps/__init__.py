@@ -9,7 +9,7 @@ objective: a test metric to maximise or minimise, subject to constraints such as
 
 :func:`~safelane.running.sweeps.sweep.run_sweep` turns the spec into *trials* (a point of the space,
 ``DIR/trials/tNNN/``), each trained and tested once per seed by the experiment runner's task
-(``DIR/trials/tNNN/runs/METHOD-sS``), on either backend of :mod:`safelane.running.engine`. What it writes, always
+(``DIR/trials/tNNN/runs/METHOD-sS``), on either backend of :mod:`safelane.running.backend`. What it writes, always
 rebuilt from the trial directories (so a killed sweep, re-run, neither repeats nor loses nor doubles a row):
 
 * ``trials.csv``: one row per trial and seed — parameters, seed, status (``ok`` / ``failed``), metrics,

@@ -30,7 +30,7 @@ def run_sweep(
 
     ``progress(done, total)`` is called as tasks finish. Returns the summary (also ``summary.json``).
     """
-    from safelane.running.engine import check_backend, claim_out_dir
+    from safelane.running.backend import check_backend, claim_out_dir
 
     check_backend(backend)
     out = Path(out_dir)

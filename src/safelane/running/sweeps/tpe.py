@@ -1,9 +1,9 @@
-"""A model-based sweep: Optuna's TPE sampler proposes the trials, the engine runs them (``search: tpe``).
+"""A model-based sweep: Optuna's TPE sampler proposes the trials, the task backend runs them (``search: tpe``).
 
 The driver — this process, never a worker — owns the study: an in-memory Optuna study with
 ``TPESampler(seed=search_seed, n_startup_trials=…)``, used through ask/tell in synchronous batches of
 ``batch`` trials. Each batch is asked, written (``DIR/trials/tNNN/params.json``), run trial × seed
-through :func:`safelane.running.engine.run_tasks` on either backend, and told back in trial order. The
+through :func:`safelane.running.backend.run_tasks` on either backend, and told back in trial order. The
 proposals depend only on the seed and on what was told, and what is told is read from the trial
 directories, so the same spec gives the same trials on ``local`` and ``ray``.
 
@@ -176,7 +176,7 @@ def run_tpe(
 ) -> None:
     """Run (or resume) the TPE sweep ``spec`` (its ``batch`` fixed, see :meth:`SweepSpec.with_batch`)
     into ``out``, batch by batch; the summary files are rebuilt after every task."""
-    from safelane.running.engine import backend_context
+    from safelane.running.backend import backend_context
 
     assert spec.batch is not None, "fix the batch first (SweepSpec.with_batch)"
     search = TpeSearch(spec)

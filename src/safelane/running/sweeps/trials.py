@@ -59,7 +59,7 @@ def _sweep_task(out_dir: str, spec_json: str, index: int, seed: int, params_json
     directory = trial_dir(Path(out_dir), index)
     experiment = _trial_experiment(spec, params)
     atomic_write_text(directory / "params.json", json.dumps(params))
-    # A ConfigError propagates: the engine reports it as a final TaskFailure and run_sweep writes it.
+    # A ConfigError propagates: the backend reports it as a final TaskFailure and run_sweep writes it.
     record = run_task(str(directory), experiment.model_dump_json(), spec.method, seed)
     return {"trial": index, "seed": seed, "metrics": _metrics_of(record)}
 
@@ -115,10 +115,10 @@ def run_trial_tasks(
     address: str | None,
     name: str,
 ) -> None:
-    """Run ``(trial, seed, params JSON or None for the spec's point)`` tasks on the engine; after each,
+    """Run ``(trial, seed, params JSON or None for the spec's point)`` tasks on the backend; after each,
     record its failure (if any), count it in ``done`` (one-element list, shared with the caller), rebuild
     the summary files (a kill loses only the tasks in flight) and report ``progress(done, total)``."""
-    from safelane.running.engine import TaskFailure, run_tasks
+    from safelane.running.backend import TaskFailure, run_tasks
 
     _train_batched_first(out, spec, tasks, backend=backend, workers=workers, address=address, name=name)
     spec_json = spec.model_dump_json()
@@ -159,8 +159,8 @@ def _train_batched_first(
     its run trained, evaluates it, and trains (one by one) or reports whatever a batch left undone."""
     import os
 
+    from safelane.running.backend import run_tasks
     from safelane.running.batched_training import batches_of, train_runs_task
-    from safelane.running.engine import run_tasks
     from safelane.running.experiments import run_dir_of, train_config_of
 
     points = spec.points() if any(params is None for _, _, params in tasks) else []

@@ -4,7 +4,9 @@ curves with bands).
 
 ``write_report(out_dir)`` reads ``results.json`` and every run's ``metrics.csv`` written by
 :mod:`safelane.running.experiments` and writes ``report.md`` with PNG figures beside it. Verdicts on the
-paper's claims are computed from the numbers (never written by hand).
+paper's claims are computed from the numbers (never written by hand). It is the reproduction's last step
+(``safelane reproduce``): it reads the experiment's run directories, so it lives in ``running`` and builds on
+``reporting``'s statistics and figures, which know nothing of run directories.
 """
 
 from __future__ import annotations
@@ -18,7 +20,8 @@ from matplotlib.figure import Figure
 
 from safelane.core.files import atomic_write_text
 from safelane.reporting import stats
-from safelane.reporting.plots import plot_curve_bands, plot_performance_profiles, read_metrics
+from safelane.reporting.metrics_file import read_metrics
+from safelane.reporting.plots import plot_curve_bands, plot_performance_profiles
 from safelane.running.experiments import ExperimentSpec, run_dir_of
 
 LABELS = {"dqn": "Traditional DQN", "constrained": "Constrained Q", "qmask": "Q-masking", "robust": "Robust Q-masking"}
@@ -455,10 +458,10 @@ def write_report(out_dir: str | Path, gifs: dict[str, str] | None = None) -> Pat
 
 def render_gifs(out_dir: str | Path, max_steps: int = 40) -> dict[str, str]:
     """One GIF per method: the first seed's greedy policy on the first test episode."""
-    from safelane.reporting.render import render_episode
+    from safelane.running.episode_video import render_episode
     from safelane.running.experiments import TEST_SEED_BASE
+    from safelane.running.run_directory import load_policy
     from safelane.running.runs import run_env_config
-    from safelane.running.training import load_policy
 
     out = Path(out_dir)
     spec = ExperimentSpec.model_validate(json.loads((out / "results.json").read_text())["spec"])

@@ -34,7 +34,7 @@ def test_committed_mask_is_timed_beside_the_robust_one_on_the_same_states() -> N
         figures["committed_mask_us_mean_fast"] / figures["committed_robust_mask_us_mean_fast"]
     )
     assert 1 <= figures["committed_mask_decisions"] <= 40  # one episode of the fast preset: 40 s at 1 decision/s
-    assert figures["committed_reading"] == "responsibility" and figures["committed_engine"] in ("compiled", "numpy")
+    assert figures["committed_engine"] in ("compiled", "numpy")
 
 
 def test_committed_mask_figures_need_an_episode() -> None:

@@ -227,7 +227,7 @@ def test_recorded_configs_with_a_removed_option() -> None:
     flat = {k: v for k, v in data["shield"].items() if k not in ("rule", "options")}
     cfg = recorded_config({**data, "shield": {**flat, "projected_cut_ins": False, "body_extent": True}})
     assert cfg.shield.rule == "basic" and cfg.shield.options == {"body_extent": True}
-    with pytest.raises(ConfigError, match=r"^shield\.robust_fallback: .*removed.*f9bfa5a") as err:
+    with pytest.raises(ConfigError, match=r"^shield\.robust_fallback: .*removed.*changelog") as err:
         recorded_config({**data, "shield": {**flat, "robust_fallback": True}})
     assert "\n" not in str(err.value)
 

@@ -242,9 +242,7 @@ class FastBatch:
         self.robust = shield.mode == "robust"
         # The committed mode keeps a plan per environment: its family judges each state after the kernel ran.
         self.committed = shield.mode == "committed"
-        self.families = [
-            CommittedFamily(shield.reading, shield.engine) for _ in range(num_envs if self.committed else 0)
-        ]
+        self.families = [CommittedFamily(shield.engine) for _ in range(num_envs if self.committed else 0)]
         self.results: list[CommittedResult | None] = [None] * (num_envs if self.committed else 0)
         self._dynamics = None
         self.override = bool(shield.override)
@@ -343,7 +341,7 @@ class FastBatch:
             "lapse_cars": result.lapse_cars, "lapse_escaped_cars": result.lapse_escaped,
             "escaped_cars": result.escaped, "rolled_back": result.rolled_back,
             "unbraked_followers": result.unbraked_followers, "entered_cars": result.entered,
-            "certified": result.certified, "shield_reading": self.cfg.shield.reading,
+            "certified": result.certified,
         }  # fmt: skip
 
     def speeds(self) -> np.ndarray:

@@ -35,8 +35,8 @@ override, or a crash right after a fallback state that no break led to).
 
 The ``committed`` shield mode (a plan kept between decisions) names three more, checked first, in this order:
 ``uncertified_start`` — no state before the crash had a verified plan (the episode started uncertified and
-stayed so: the committed mode's ``started_unsafe``, which it does not use); ``others_at_fault`` — under the
-``responsibility`` reading, the ego was rear-ended or hit by a car that entered a lane the ego holds (the gap
+stayed so: the committed mode's ``started_unsafe``, which it does not use); ``others_at_fault`` — the ego was
+rear-ended or hit by a car that entered a lane the ego holds (the gap
 that car made was its own to keep); ``outside_model`` — a car had left the set drawn for it before the crash:
 the crash partner (also one rolling back, ``info["rolled_back"]``, or a follower ahead of the bound the plan drew
 for it, ``info["unbraked_followers"]``, by the crash's own decision), or a car a lapse's kept plan failed on

@@ -141,7 +141,6 @@ class EpisodeTally:
         # The committed mode (its reset info says whether the start is certified): lapses, plan-forced decisions,
         # and the cars that left their sets or entered a lane the ego holds, for the collision's context.
         self.committed = "uncertified_start" in reset_info
-        self.responsibility = reset_info.get("shield_reading") == "responsibility"
         self.uncertified_start = bool(reset_info["uncertified_start"]) if self.committed else None
         self.redraws = int(reset_info.get("redraws", 0))
         self.lapses: list[int] = []
@@ -222,7 +221,7 @@ class EpisodeTally:
         if not self.safe_seen:
             return "uncertified_start"
         entered = self.entered_seen | {int(v) for v in info.get("entered_cars", ())}  # a cut-in into the crash counts
-        if self.responsibility and (classify_collision(snap) == "rear_ended" or partner in entered):
+        if classify_collision(snap) == "rear_ended" or partner in entered:
             return "others_at_fault"
         if named:
             self.outside_model_cars = named

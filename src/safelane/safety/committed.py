@@ -23,8 +23,8 @@ same bits. Pure maths: no simulator, no highway-env, no torch.
   (:class:`~safelane.safety.family.OneDecisionFamily`, ``engine``). A decision at which the plan kept (verified)
   at the last decision no longer verifies is a **lapse**; it names the cars the kept plan fails on and which of
   them left the sets drawn for them (cars by their index in the road snapshot, one car's for a whole episode).
-  Readings: ``sound`` (every car) or ``responsibility`` (a car behind the ego in the lane it is in, or one cutting
-  into a lane it holds, is not the ego's to avoid; a car in a lane it is entering is).
+  Whose gap a car is: a car behind the ego in the lane it is in, or one cutting into a lane it holds, is not the
+  ego's to avoid (that driver makes the gap); a car in a lane the ego is entering is, ahead or behind.
 """
 
 from __future__ import annotations
@@ -33,7 +33,6 @@ import dataclasses
 import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Literal
 
 import numpy as np
 
@@ -73,14 +72,10 @@ from safelane.safety.family import Engine, OneDecisionFamily, road_state
 from safelane.safety.model import evaluate as evaluate_one_decision
 from safelane.safety.world import MAX_HOLD_DECISIONS, Dynamics, RoadState, SafetyResult
 
-Reading = Literal["sound", "responsibility"]
-READINGS: tuple[str, ...] = ("sound", "responsibility")
-
 __all__ = [
-    "ESCAPE_TOLERANCE", "MAX_SPEED", "READINGS", "CarSets", "CommittedFamily", "CommittedResult", "Lanes", "Plan",
-    "Reading", "car_gaps", "car_sets", "envelope", "escaped_cars", "follower_bound", "lane_crossing_time",
-    "lane_entry_times", "lanes_now", "onsets", "path_speed", "plan_gaps", "plan_of", "rolling_back", "speed_bounds",
-    "verify_plans",
+    "ESCAPE_TOLERANCE", "MAX_SPEED", "CarSets", "CommittedFamily", "CommittedResult", "Lanes", "Plan", "car_gaps",
+    "car_sets", "envelope", "escaped_cars", "follower_bound", "lane_crossing_time", "lane_entry_times", "lanes_now",
+    "onsets", "path_speed", "plan_gaps", "plan_of", "rolling_back", "speed_bounds", "verify_plans",
 ]  # fmt: skip
 
 
@@ -105,8 +100,8 @@ class Plan:
     onset: float
     frames: int
     held: tuple[int, ...] = ()
-    """The lanes the ego held (its lane and target lane) when the plan was verified: the ``responsibility``
-    reading's line stays where it was drawn while the plan is kept (:func:`car_gaps`' ``held``)."""
+    """The lanes the ego held (its lane and target lane) when the plan was verified: the line between the cars
+    that count and those that do not stays where it was drawn while the plan is kept (:func:`car_gaps`' ``held``)."""
 
     def next_step(self) -> int:
         """The meta-action that realises the plan's next decision: IDLE while the set-point holds, SLOWER once it
@@ -223,8 +218,7 @@ Lanes = list[tuple[int, float]]
 
 
 def verify_plans(
-    state: RoadState, dyn: Dynamics, sets: CarSets, reading: Reading = "sound", engine: Engine = "numpy",
-    cars: CarArrays | None = None,
+    state: RoadState, dyn: Dynamics, sets: CarSets, engine: Engine = "numpy", cars: CarArrays | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:  # fmt: skip
     """(5, holds) each plan's worst bumper-to-bumper gap [m] to every car's reachable occupancy over the horizon
     (−inf: action unavailable, inf: no car in reach), and the ego's positions [m], speeds [m/s] and set-points
@@ -239,7 +233,7 @@ def verify_plans(
         lanes = [action_lanes(state, dyn, a) if available[a] else [] for a in range(N_ACTIONS)]
         plan_onsets = np.stack([onsets(dyn, a) for a in range(N_ACTIONS)])
         cars = car_arrays(state, dyn) if cars is None else cars
-        return verify_plans_compiled(state, dyn, sets, reading, available, verify, lanes, plan_onsets, cars)
+        return verify_plans_compiled(state, dyn, sets, available, verify, lanes, plan_onsets, cars)
     ego_x, ego_v = ego_trajectories(state, dyn)
     set_points = np.full_like(ego_v, np.nan)
     for a in np.flatnonzero(available):
@@ -247,27 +241,26 @@ def verify_plans(
     worst = np.full((N_ACTIONS, MAX_HOLD_DECISIONS + 1), -np.inf)
     for a in np.flatnonzero(verify):
         gaps = car_gaps(state, dyn, sets, ego_x[a], ego_v[a], onsets(dyn, int(a)), action_lanes(state, dyn, int(a)),
-                        reading, ego_set=set_points[a])  # fmt: skip
+                        ego_set=set_points[a])  # fmt: skip
         worst[a] = gaps.min(axis=0) if gaps.shape[0] else np.inf
     return worst, ego_x, ego_v, set_points
 
 
 def plan_gaps(
     state: RoadState, dyn: Dynamics, sets: CarSets, ego_x: np.ndarray, ego_v: np.ndarray, onset: np.ndarray,
-    lanes: Lanes, reading: Reading = "sound", until_frame: int | None = None,
-    carried_followers: dict[int, tuple[int, np.ndarray]] | None = None, ego_set: np.ndarray | None = None,
+    lanes: Lanes, until_frame: int | None = None, carried_followers: dict[int, tuple[int, np.ndarray]] | None = None,
+    ego_set: np.ndarray | None = None,
 ) -> np.ndarray:  # fmt: skip
     """(holds,) the worst bumper-to-bumper gap [m] of plans whose ego moves as ``ego_x``/``ego_v`` (holds, frames)
     over every car (inf: no car in reach): the least of :func:`car_gaps`, which documents the arguments."""
-    gaps = car_gaps(state, dyn, sets, ego_x, ego_v, onset, lanes, reading, until_frame, carried_followers, ego_set)
+    gaps = car_gaps(state, dyn, sets, ego_x, ego_v, onset, lanes, until_frame, carried_followers, ego_set)
     return gaps.min(axis=0) if gaps.shape[0] else np.full(ego_x.shape[0], np.inf)
 
 
 def car_gaps(
     state: RoadState, dyn: Dynamics, sets: CarSets, ego_x: np.ndarray, ego_v: np.ndarray, onset: np.ndarray,
-    lanes: Lanes, reading: Reading = "sound", until_frame: int | None = None,
-    carried_followers: dict[int, tuple[int, np.ndarray]] | None = None, ego_set: np.ndarray | None = None,
-    held: tuple[int, ...] | None = None,
+    lanes: Lanes, until_frame: int | None = None, carried_followers: dict[int, tuple[int, np.ndarray]] | None = None,
+    ego_set: np.ndarray | None = None, held: tuple[int, ...] | None = None,
 ) -> np.ndarray:  # fmt: skip
     """(cars, holds) each car's worst bumper-to-bumper gap [m] to plans whose ego moves as ``ego_x``/``ego_v``
     (holds, frames) and brakes first at ``onset`` [s] (holds,), occupying ``lanes``, at every frame up to
@@ -275,18 +268,17 @@ def car_gaps(
     margin are the ones a plan fails on (a lapse names them).
 
     In each lane, from each car's entry time on, the car's interval ``[x_lo, x_hi]`` must stay clear of the ego by
-    ``margin`` on one side or the other at every frame (a car that may be on either side conflicts). Laws: an IDM
-    driver ahead, entering a lane the ego holds from the start, enters only after MOBIL's criterion against the
-    plan could allow it (:func:`_permit_entry`); a car in such a lane behind the ego now follows it: accelerates
-    at most until ``follower_reaction`` after the plan's braking onset, then brakes (:func:`follower_bound`). With
-    ``reading="responsibility"``, in a lane the ego holds, only the cars in that lane now (or moving into it)
-    count, and of those in the lane the ego is in (``held``'s first) only the ones ahead: a car behind the ego in
-    its lane, or one that cuts in later, is responsible for the gap it makes; a car in a lane the ego is entering
-    is the ego's to keep clear of, ahead or behind.
-    ``carried_followers``: {row: (lane, highest position [m] per frame)}, the follower bounds a kept plan drew, kept
-    in that lane; ``ego_set`` (holds, frames): the plans' set-points [m/s] (:func:`plan_set_points`; the linear
-    drivers' MOBIL criterion reads it); ``held``: the lanes the ego holds (default: its lane and target lane now; a
-    kept plan's tail passes those it held when verified, :attr:`Plan.held`)."""
+    ``margin`` on one side or the other at every frame (a car that may be on either side conflicts). Laws: an IDM driver
+    ahead, entering a lane the ego holds from the start, enters only after MOBIL's criterion against the plan could
+    allow it (:func:`_permit_entry`); a car in such a lane behind the ego now follows it: accelerates at most until
+    ``follower_reaction`` after the plan's braking onset, then brakes (:func:`follower_bound`). In a lane the ego holds,
+    only the cars in that lane now (or moving into it) count, and of those in the lane the ego is in (``held``'s first)
+    only the ones ahead: a car behind the ego in its lane, or one that cuts in later, is responsible for the gap it
+    makes; a car in a lane the ego is entering is the ego's to keep clear of, ahead or behind. ``carried_followers``:
+    {row: (lane, highest position [m] per frame)}, the follower bounds a kept plan drew, kept in that lane; ``ego_set``
+    (holds, frames): the plans' set-points [m/s] (:func:`plan_set_points`; the linear drivers' MOBIL criterion reads
+    it); ``held``: the lanes the ego holds (default: its lane and target lane now; a kept plan's tail passes those it
+    held when verified, :attr:`Plan.held`)."""
     t = dyn.times
     half = 0.5 * (state.length + state.ego_length)
     ahead = state.x >= state.ego_x
@@ -306,7 +298,7 @@ def car_gaps(
         if law.size:
             entry[law] = np.maximum(entry[law], _permit_entry(state, dyn, sets, law, ego_x, ego_v, ego_set))
         count = np.isfinite(entry).any(axis=1)
-        if held_lane and reading == "responsibility":  # cut-ins, and cars behind in the ego's lane: theirs to avoid
+        if held_lane:  # cut-ins, and cars behind in the ego's lane: theirs to avoid
             count &= sets.now[:, lane] & (ahead | (lane != in_lane))
         # A follower: its own lane is this one (highway-env's IDM sees the ego as its leader only then).
         following = held_lane & ~ahead & (state.lane_of(state.y, dyn.lanes_count, dyn.lane_width) == lane)
@@ -349,20 +341,18 @@ def follower_bound(state: RoadState, i: int, react: np.ndarray, t: np.ndarray) -
 @dataclass(frozen=True)
 class CommittedResult(SafetyResult):
     """:class:`SafetyResult` of the committed family: ``safe`` lists the verified actions, ``fallback`` is set when
-    none is; ``plan_forced``: the kept plan's next step drives (nothing verified); ``lapse``: the plan kept,
-    verified, at the last decision no longer verifies (a plan driven on after a lapse is not verified again);
-    ``lapse_cars``: at a lapse, the cars the kept plan fails on (their own worst gap to its tail below the margin;
-    :attr:`lapse_escaped` those of them outside their sets). Cars are named by their index in the road snapshot
-    (the simulator's order of its vehicles, which highway-env's road and the fast simulator keep for the whole
-    episode: a car keeps its index). ``escaped``: the cars outside the sets drawn for them, anywhere on the road,
-    ``rolled_back`` those of them moving
-    backwards (outside IDM, :func:`~safelane.safety.committed_sets.rolling_back`), ``unbraked_followers`` those
-    ahead of the follower bound the kept plan drew for them (the follower law is an assumption, not IDM's: a
-    follower far behind does not brake at its limit because the ego plans to), ``checked`` how many cars were
-    checked against a set drawn at the last decision; ``entered`` (``responsibility``):
-    those that entered a lane the ego holds since the last decision; ``ego_crashed``: the ego has crashed (its
-    motion after an impact is no plan's); ``certified``: some plan is verified or kept; ``plans``: the verified plan
-    of each action (None: none)."""
+    none is; ``plan_forced``: the kept plan's next step drives (nothing verified); ``lapse``: the plan kept, verified,
+    at the last decision no longer verifies (a plan driven on after a lapse is not verified again); ``lapse_cars``: at a
+    lapse, the cars the kept plan fails on (their own worst gap to its tail below the margin; :attr:`lapse_escaped`
+    those of them outside their sets). Cars are named by their index in the road snapshot (the simulator's order of its
+    vehicles, which highway-env's road and the fast simulator keep for the whole episode: a car keeps its index).
+    ``escaped``: the cars outside the sets drawn for them, anywhere on the road, ``rolled_back`` those of them moving
+    backwards (outside IDM, :func:`~safelane.safety.committed_sets.rolling_back`), ``unbraked_followers`` those ahead of
+    the follower bound the kept plan drew for them (the follower law is an assumption, not IDM's: a follower far behind
+    does not brake at its limit because the ego plans to), ``checked`` how many cars were checked against a set drawn at
+    the last decision; ``entered``: those that entered a lane the ego holds since the last decision; ``ego_crashed``:
+    the ego has crashed (its motion after an impact is no plan's); ``certified``: some plan is verified or kept;
+    ``plans``: the verified plan of each action (None: none)."""
 
     plan_forced: bool = False
     lapse: bool = False
@@ -383,8 +373,8 @@ class CommittedResult(SafetyResult):
 
     @property
     def lapse_in_model(self) -> bool:
-        """A lapse not traced to the model's exits: some car the kept plan fails on is inside its set and (under
-        ``responsibility``) did not enter a lane the ego holds since the last decision (such a car made the gap it
+        """A lapse not traced to the model's exits: some car the kept plan fails on is inside its set and did not enter
+        a lane the ego holds since the last decision (such a car made the gap it
         is responsible for), or no car is named. With every car inside its set the sets nest and the plan verifies
         again, so this is a gap in the construction. A car outside its set that the plan does not fail on (far
         ahead, in another lane) traces nothing. A lapse in a state where the ego has crashed is the impact's: the
@@ -401,7 +391,6 @@ class CommittedFamily:
     with memory. :meth:`evaluate` judges a state without changing the memory (it may be called again on the same
     state); :meth:`commit` records the executed action; :meth:`reset` forgets the episode."""
 
-    reading: Reading = "sound"
     engine: Engine = "compiled"
     mode: str = "committed"
     kept: Plan | None = None
@@ -410,10 +399,6 @@ class CommittedFamily:
     carried_ahead: np.ndarray | None = None
     followers: dict[int, tuple[int, np.ndarray]] = field(default_factory=dict)
     _pending: tuple[CommittedResult, RoadState, Dynamics, CarSets, np.ndarray] | None = field(default=None, repr=False)
-
-    def __post_init__(self) -> None:
-        if self.reading not in READINGS:
-            raise ValueError(f"shield.reading: got {self.reading!r}; allowed: 'sound', 'responsibility'")
 
     def reset(self) -> None:
         """Forget the kept plan and the carried sets (a new episode)."""
@@ -463,7 +448,7 @@ class CommittedFamily:
             escaped = escaped_cars(state, dyn, older, vehicle) | unbraked
             checked = int(np.isin(vehicle, older.vehicle).sum())
             sets = sets.intersect(older, ~escaped)
-        worst, ego_x, ego_v, set_points = verify_plans(state, dyn, sets, self.reading, self.engine, cars)
+        worst, ego_x, ego_v, set_points = verify_plans(state, dyn, sets, self.engine, cars)
         verified = worst >= dyn.margin  # (5, holds)
         available = available_actions(state, dyn)
         best = np.argmax(np.where(verified, worst, -np.inf), axis=1)
@@ -486,7 +471,7 @@ class CommittedFamily:
                 if v in rows and not escaped[rows[v]]
             }
             args = (state, dyn, sets, ego_x[a, k : k + 1], ego_v[a, k : k + 1], np.array([tail.onset]),
-                    list(tail.occupied), self.reading, tail.frames, followers, set_points[a, k : k + 1],
+                    list(tail.occupied), tail.frames, followers, set_points[a, k : k + 1],
                     tail.held)  # fmt: skip
             gaps = (car_gaps_compiled(*args, cars=cars) if compiled else car_gaps(*args))[:, 0]
             gap = gaps.min() if gaps.size else np.inf
@@ -515,7 +500,7 @@ class CommittedFamily:
             escaped=tuple(int(v) for v in vehicle[escaped]),
             rolled_back=tuple(int(v) for v in vehicle[rolling_back(state, escaped, older, vehicle)]), checked=checked,
             unbraked_followers=tuple(int(v) for v in vehicle[unbraked]),
-            entered=tuple(int(v) for v in vehicle[entered]) if self.reading == "responsibility" else (),
+            entered=tuple(int(v) for v in vehicle[entered]),
             ego_crashed=ego_crashed, certified=bool(safe.any()) or self.kept is not None, plans=tuple(plans),
         )  # fmt: skip
         self._pending = (result, state, dyn, sets, vehicle)
@@ -536,7 +521,8 @@ class CommittedFamily:
             same_plan = True
         self.kept = plan
         self.carried = sets
-        self.carried_ahead = state.x >= state.ego_x  # which cars counted as ahead of the ego (the reading's line)
+        # Which cars counted as ahead of the ego: the line the kept plan counts cars by.
+        self.carried_ahead = state.x >= state.ego_x
         if plan is None:
             self.followers = {}
         else:  # the follower bounds of this plan, inside those carried for the same plan (a nested law)
@@ -569,8 +555,8 @@ def _entered_held_lanes(
     """(cars,) the cars in (or moving into) a lane the ego holds now that were not at the last decision, and (with
     ``older_ahead``, each carried row's place then: ahead of the ego or not) those in it then but behind the ego and
     ahead of it now in the lane the ego was in (a car behind there did not count; one behind in a lane the ego was
-    entering did): a car that overtook the ego beside it while it may turn in. Under ``responsibility`` both cut
-    in after the plan was drawn. The held lanes: the ego's lane and target lane now and those the kept plan held
+    entering did): a car that overtook the ego beside it while it may turn in. Both cut in after the plan was
+    drawn. The held lanes: the ego's lane and target lane now and those the kept plan held
     when verified (``kept_held``, the lane the ego was in first)."""
     rows = rows_in(older.vehicle, vehicle)
     ahead = state.x >= state.ego_x

@@ -285,7 +285,7 @@ def _permit_entry(
 def car_gaps_kernel(
     x_lo: np.ndarray, x_hi: np.ndarray, v_lo: np.ndarray, v_hi: np.ndarray, entry: np.ndarray, now: np.ndarray,
     ego_x: np.ndarray, ego_v: np.ndarray, onset: np.ndarray, lane_ids: np.ndarray, lane_until: np.ndarray,
-    held_a: int, held_b: int, responsibility: bool, last_frame: int, carried_lane: np.ndarray,
+    held_a: int, held_b: int, last_frame: int, carried_lane: np.ndarray,
     carried_high: np.ndarray, ego_set: np.ndarray, has_set: bool,
     x: np.ndarray, half: np.ndarray, ahead: np.ndarray, mobil: np.ndarray, own_lane: np.ndarray,
     speed: np.ndarray, accel_max: np.ndarray, brake_max: np.ndarray, fv_min: np.ndarray, fv_max: np.ndarray,
@@ -347,7 +347,7 @@ def car_gaps_kernel(
             count = False
             for h in range(holds):
                 count = count or np.isfinite(entry_h[h])
-            if held_lane and responsibility:  # cut-ins, and cars behind in the ego's lane (held_a): theirs to avoid
+            if held_lane:  # cut-ins, and cars behind in the ego's lane (held_a): theirs to avoid
                 count = count and now[i, lane] and (ahead[i] or lane != held_a)
             if not count:
                 continue
@@ -460,7 +460,7 @@ def plans_kernel(
     targets: np.ndarray, ego_x0: float, ego_speed: float, ts: np.ndarray, powers: np.ndarray, frames: int,
     horizon: int, frame_dt: float, ego_kp: float,
     x_lo: np.ndarray, x_hi: np.ndarray, v_lo: np.ndarray, v_hi: np.ndarray, entry: np.ndarray, now: np.ndarray,
-    held_a: int, held_b: int, responsibility: bool, verify: np.ndarray,
+    held_a: int, held_b: int, verify: np.ndarray,
     x: np.ndarray, half: np.ndarray, ahead: np.ndarray, mobil: np.ndarray, own_lane: np.ndarray,
     speed: np.ndarray, accel_max: np.ndarray, brake_max: np.ndarray, fv_min: np.ndarray, fv_max: np.ndarray,
     comfort_acc: np.ndarray, comfort_dec: np.ndarray, delta: np.ndarray, wanted: np.ndarray, time_wanted: np.ndarray,
@@ -494,7 +494,7 @@ def plans_kernel(
         if not verify[a]:
             continue
         gaps = car_gaps_kernel(x_lo, x_hi, v_lo, v_hi, entry, now, xs[a], vs[a], onsets[a], lane_ids[first:stop],
-                               lane_until[first:stop], held_a, held_b, responsibility, t.shape[0] - 1, no_carried,
+                               lane_until[first:stop], held_a, held_b, t.shape[0] - 1, no_carried,
                                empty, set_points[a], True, x, half, ahead, mobil, own_lane, speed, accel_max,
                                brake_max, fv_min, fv_max, comfort_acc, comfort_dec, delta, wanted, time_wanted,
                                max_braking, k0, k1, k2, top_speed, speed_limit, t, cut_in_time,
@@ -613,7 +613,6 @@ def verify_plans_compiled(
     state: RoadState,
     dyn: Dynamics,
     sets: CarSets,
-    reading: str,
     available: np.ndarray,
     verify: np.ndarray,
     lanes: list[list[tuple[int, float]]],
@@ -632,15 +631,15 @@ def verify_plans_compiled(
         onsets, action_targets(state, dyn), float(state.ego_x), float(state.ego_speed),
         np.asarray(dyn.target_speeds, dtype=float), powers, dyn.frames_per_decision, dyn.horizon_decisions,
         float(dyn.frame_dt), float(dyn.ego_kp), sets.x_lo, sets.x_hi, sets.v_lo, sets.v_hi, sets.entry,
-        np.asarray(sets.now, dtype=np.bool_), int(state.ego_lane), int(state.ego_target_lane),
-        reading == "responsibility", verify, *cars, float(max(dyn.target_speeds)), float(state.speed_limit),
-        dyn.times, float(dyn.cut_in_time), float(dyn.follower_reaction),
+        np.asarray(sets.now, dtype=np.bool_), int(state.ego_lane), int(state.ego_target_lane), verify, *cars,
+        float(max(dyn.target_speeds)), float(state.speed_limit), dyn.times, float(dyn.cut_in_time),
+        float(dyn.follower_reaction),
     )  # fmt: skip
 
 
 def car_gaps_compiled(
     state: RoadState, dyn: Dynamics, sets: CarSets, ego_x: np.ndarray, ego_v: np.ndarray, onset: np.ndarray,
-    lanes: list[tuple[int, float]], reading: str = "sound", until_frame: int | None = None,
+    lanes: list[tuple[int, float]], until_frame: int | None = None,
     carried_followers: dict[int, tuple[int, np.ndarray]] | None = None, ego_set: np.ndarray | None = None,
     held: tuple[int, ...] | None = None, cars: CarArrays | None = None,
 ) -> np.ndarray:  # fmt: skip
@@ -659,7 +658,7 @@ def car_gaps_compiled(
     return car_gaps_kernel(
         sets.x_lo, sets.x_hi, sets.v_lo, sets.v_hi, sets.entry, np.asarray(sets.now, dtype=np.bool_),
         np.ascontiguousarray(ego_x), np.ascontiguousarray(ego_v), _f(onset), lane_ids, lane_until,
-        *_held_pair(state, held), reading == "responsibility",
+        *_held_pair(state, held),
         t.size - 1 if until_frame is None else int(until_frame), carried_lane, carried_high,
         np.ascontiguousarray(ego_set) if has_set else np.empty((0, 0)), has_set, *cars,
         float(max(dyn.target_speeds)), float(state.speed_limit), t, float(dyn.cut_in_time),
@@ -676,8 +675,8 @@ def follower_bound_compiled(state: RoadState, i: int, react: np.ndarray, t: np.n
 
 
 def held_lanes(state: RoadState, held: tuple[int, ...] | None) -> tuple[int, ...]:
-    """The lanes the ego holds, the lane it is in first (the one where a car behind is its driver's to avoid under
-    ``responsibility``): ``held`` (a kept plan's, when verified) or, by default, its lane and target lane now."""
+    """The lanes the ego holds, the lane it is in first (the one where a car behind is its driver's to avoid): ``held``
+    (a kept plan's, when verified) or, by default, its lane and target lane now."""
     return (int(state.ego_lane), int(state.ego_target_lane)) if not held else tuple(int(h) for h in held)
 
 

@@ -33,7 +33,7 @@ import gymnasium as gym
 import numpy as np
 
 from safelane.core.snapshot import RoadSnapshot
-from safelane.safety.committed import CommittedFamily, CommittedResult, Reading
+from safelane.safety.committed import CommittedFamily, CommittedResult
 from safelane.safety.family import ENGINES, Engine, RuleFamily, family_for, road_state, road_state_bodies
 from safelane.safety.model import OVERRIDE_ORDER, Dynamics, Formula, Mode, RoadState, SafetyResult
 from safelane.safety.rule import DEFAULT_RULE_NAME, Rule, as_rule
@@ -142,11 +142,11 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
     ``formula``: ``"kinematic"`` (derived for highway-env, docs/safety.md) or ``"paper"`` (eq. 12, nominal).
     ``mode="committed"`` (experimental, :mod:`safelane.safety.committed`; its ``engine`` ``"compiled"``,
     :mod:`safelane.safety.committed_compiled`, gives the numpy reference's bits): a plan verified against the
-    others' reachable sets is kept between decisions; ``mode=CommittedFamily(reading="responsibility")`` chooses
-    the reading (default ``"sound"``); ``info`` gains ``plan_forced``, ``lapse``, ``lapse_in_model``,
+    others' reachable sets is kept between decisions (``mode=CommittedFamily(...)`` passes a family of one's own);
+    ``info`` gains ``plan_forced``, ``lapse``, ``lapse_in_model``,
     ``lapse_cars`` (the cars the lapse's kept plan fails on), ``lapse_escaped_cars`` (those of them outside their
     sets), ``escaped_cars`` (every car outside its set), ``rolled_back``, ``unbraked_followers``, ``entered_cars``,
-    ``certified``, ``shield_reading`` (and ``uncertified_start`` after a reset); cars by their snapshot index.
+    ``certified`` (and ``uncertified_start`` after a reset); cars by their snapshot index.
     """
 
     def __init__(
@@ -162,7 +162,7 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
         if not (isinstance(margin, int | float) and math.isfinite(margin) and margin >= 0):
             raise ValueError(f"shield.margin: must be a finite number >= 0 [m] (got {margin!r})")
         family: CommittedFamily | None = None
-        if isinstance(mode, CommittedFamily):  # a committed family with its reading (experimental)
+        if isinstance(mode, CommittedFamily):  # a committed family of the caller's (experimental)
             family, mode = mode, "committed"  # type: ignore[assignment]
         if mode not in ("nominal", "robust", "committed"):
             raise ValueError(f"shield.mode: got {mode!r}; allowed: 'nominal', 'robust', 'committed'")
@@ -180,7 +180,6 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
             env = HighwayEnvAdapter(env)
         super().__init__(env)
         self.mode: Mode = mode  # type: ignore[assignment]
-        self.reading: Reading = family.reading if family is not None else "sound"
         self.formula: Formula = formula
         self.override = override
         self.engine: Engine = engine
@@ -188,7 +187,7 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
         self.rule: Rule = resolved
         self._family: tuple[tuple[str, str, str], RuleFamily] | None = None
         if family is not None:
-            self._family = ((mode, family.reading, family.engine), family)
+            self._family = ((mode, family.engine, formula), family)
         self.dynamics: Dynamics | None = None
         self.result: SafetyResult | None = None
         self.snapshot: RoadSnapshot | None = None
@@ -200,9 +199,8 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
         ``engine`` and ``formula`` as they are now."""
         key = (self.mode, self.engine, self.formula)
         if self.mode == "committed":  # one family per shield: it keeps the episode's plan
-            key = (self.mode, self.reading, self.engine)
             if self._family is None or self._family[0] != key:
-                self._family = (key, CommittedFamily(self.reading, self.engine))
+                self._family = (key, CommittedFamily(self.engine))
         elif self._family is None or self._family[0] != key:
             self._family = (key, family_for(*key))
         return self._family[1]
@@ -270,7 +268,6 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
             info["unbraked_followers"] = self.result.unbraked_followers
             info["entered_cars"] = self.result.entered
             info["certified"] = self.result.certified
-            info["shield_reading"] = self.reading  # the collision contexts read it (others_at_fault)
 
     def reset(self, **kwargs: Any) -> tuple[Any, dict[str, Any]]:
         self.dynamics = None

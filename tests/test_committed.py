@@ -15,16 +15,10 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from safelane.core.spaces import FASTER, IDLE, SLOWER
-from safelane.safety.committed import (
-    CommittedFamily,
-    car_sets,
-    envelope,
-    lane_crossing_time,
-    lane_entry_times,
-    speed_bounds,
-)
+from safelane.safety.committed.family import CommittedFamily
+from safelane.safety.committed.sets import car_sets, envelope, lane_crossing_time, lane_entry_times, speed_bounds
 from safelane.safety.ego import ego_trajectories
-from safelane.safety.model import evaluate as evaluate_one_decision
+from safelane.safety.one_decision.reference import evaluate as evaluate_one_decision
 from safelane.safety.world import Dynamics, RoadState
 
 DYN = Dynamics(
@@ -149,7 +143,7 @@ def test_the_acceleration_law_bound_nests_in_time(v, target, gain, idm, hz, step
     """A driver accelerating at most ``min(a, law)`` toward its set-point (linear ``k·(v* − v)`` or IDM's free
     term): from any successor the bound allows after Δ frames, the bound of speed and position is inside the
     first one's from Δ on, and the successor itself inside it at Δ."""
-    from safelane.safety.committed_sets import law_rise
+    from safelane.safety.committed.sets import law_rise
 
     dt = 1.0 / hz
     car = {"x": 0.0, "vx": v, "target_speed": target, "accel_max": 3.0 if idm else 6.0}
@@ -171,7 +165,7 @@ def test_the_acceleration_law_bound_nests_in_time(v, target, gain, idm, hz, step
 @pytest.mark.parametrize("hz", [5, 15])
 def test_a_driver_stays_below_its_acceleration_law(driver: str, hz: int) -> None:
     """highway-env's drivers on one lane — free, then behind a slower car — stay below the speed and position
-    their own acceleration law allows (:func:`~safelane.safety.committed_sets.law_rise`, inside :func:`car_sets`),
+    their own acceleration law allows (:func:`~safelane.safety.committed.sets.law_rise`, inside :func:`car_sets`),
     which the linear models reach far below their ACC_MAX bound."""
     from highway_env.road.road import Road, RoadNetwork
     from highway_env.vehicle import behavior
@@ -235,7 +229,7 @@ def _lane_changing_car(hz: int, v0: float, accel: float, changes: int) -> list[A
 def _outside(states: list[RoadState], dyn: Dynamics, hz: int) -> int:
     """How many (decision, frame) pairs find the car outside the set drawn for it at the decision (position along
     the road, speed along the path)."""
-    from safelane.safety.committed_sets import path_speed
+    from safelane.safety.committed.sets import path_speed
 
     out = 0
     for k0 in range(0, len(states), hz):

@@ -12,10 +12,11 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from safelane.safety import committed as reference
-from safelane.safety import committed_compiled as compiled
-from safelane.safety.committed import CommittedFamily, onsets
-from safelane.safety.committed_sets import car_sets
+from safelane.safety.committed import compiled
+from safelane.safety.committed import plans as reference
+from safelane.safety.committed.family import CommittedFamily
+from safelane.safety.committed.plan_family import onsets
+from safelane.safety.committed.sets import car_sets
 from safelane.safety.ego import action_lanes, ego_trajectories
 from safelane.safety.world import Dynamics, RoadState
 

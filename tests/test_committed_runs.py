@@ -106,7 +106,7 @@ def _context(
 
     reset = {"fallback": not start_certified, "uncertified_start": not start_certified, "redraws": 0}
     monkeypatch.setattr(evaluation, "vehicles_ahead", lambda snap: 0)
-    tally = EpisodeTally(0, {**reset, "snapshot": Snap()})
+    tally = EpisodeTally(0, {**reset, "snapshot": Snap()}, committed=True)
     for i, info in enumerate(steps):
         tally.add(IDLE, 0.0, {**info, "snapshot": Snap(), "collision": i == len(steps) - 1})
     return tally.context, tally.outside_model_cars
@@ -132,7 +132,7 @@ def test_under_a_bare_shield_a_rear_end_is_others_at_fault(monkeypatch: pytest.M
     """A ``SafetyShield`` with a committed family of its own, no ``make_env`` wrapper above it: every reset and step
     reports the committed keys, and the tally sees a rear-end as ``others_at_fault`` (the follower's gap)."""
     from safelane.env.factory import make_env
-    from safelane.safety.committed import CommittedFamily
+    from safelane.safety.committed.family import CommittedFamily
     from safelane.safety.shield import SafetyShield
 
     env = SafetyShield(make_env("fast", simulator="fast", **SHORT), mode=CommittedFamily(), override=True)
@@ -144,7 +144,7 @@ def test_under_a_bare_shield_a_rear_end_is_others_at_fault(monkeypatch: pytest.M
     monkeypatch.setattr(evaluation, "collision_partner", lambda snap: 7)
     monkeypatch.setattr(evaluation, "classify_collision", lambda snap: "rear_ended")
     monkeypatch.setattr(evaluation, "vehicles_ahead", lambda snap: 0)
-    tally = EpisodeTally(0, {**reset, "fallback": False, "uncertified_start": False})
+    tally = EpisodeTally(0, {**reset, "fallback": False, "uncertified_start": False}, committed=True)
     tally.add(IDLE, 0.0, {**_step(), "snapshot": info["snapshot"], "collision": True})
     assert tally.context == "others_at_fault"
 

@@ -263,7 +263,7 @@ def test_every_rule_option_reaches_the_shield_of_make_env_and_of_the_batch() -> 
 
     from safelane.env.factory import make_env
     from safelane.env.fast_batch import FastBatch
-    from safelane.safety.compiled import KernelConstants
+    from safelane.safety.one_decision.compiled import KernelConstants
     from safelane.safety.rule import OPTIONS, RULES
     from safelane.safety.shield import SafetyShield
 

@@ -124,9 +124,10 @@ class ShieldConfig(_Section):
     )
     engine: Literal["compiled", "numpy"] = Field(
         "compiled",
-        description="How the shield evaluates the safety model: 'compiled' (safelane.safety.compiled, numba, "
-        "microseconds a mask) or 'numpy' (safelane.safety.model.evaluate, the readable reference, about a "
-        "millisecond); in the committed mode its numba kernels or the numpy reference. Identical masks.",
+        description="How the shield evaluates the safety model: 'compiled' (numba kernels, microseconds a mask: "
+        "safelane.safety.one_decision.compiled) or 'numpy' (the readable reference, about a millisecond: "
+        "safelane.safety.one_decision.reference); in the committed mode its numba kernels or the numpy reference "
+        "(safelane.safety.committed). Identical masks.",
     )
     margin: float = Field(
         1.0,

@@ -35,7 +35,6 @@ from safelane.core.snapshot import RoadSnapshot
 from safelane.env.observations import PaperObservation
 from safelane.env.redraw import RedrawUncertified
 from safelane.env.reward import PaperReward
-from safelane.safety.committed import CommittedFamily
 from safelane.safety.shield import SafetyShield
 from safelane.sim.highway import HighwayEnvAdapter
 from safelane.sim.traffic import TrafficLayout
@@ -156,7 +155,7 @@ def make_env(
         shield = cfg.shield
         env = SafetyShield(
             env,
-            mode=CommittedFamily(shield.engine) if shield.mode == "committed" else shield.mode,
+            mode=shield.mode,
             override=shield.override,
             margin=shield.margin,
             rule=shield.resolved_rule(),

@@ -31,7 +31,7 @@ from safelane.env.vector import make_vector_env
 from safelane.reporting.plots import read_metrics
 from safelane.running.policies import fixed_policy
 from safelane.running.training import METRICS_FILE, make_train_config, train
-from safelane.safety.model import OVERRIDE_ORDER
+from safelane.safety.world import OVERRIDE_ORDER
 
 BENCH_PRESET = "fast"
 BENCH_SHIELDS = ("nominal", "robust")
@@ -115,7 +115,7 @@ def committed_mask_figures(episodes: int = COMMITTED_EPISODES, seed: int = 0) ->
         for i in range(-1, episodes):  # episode -1: its first decisions compile (or load) the kernels, untimed
             policy = fixed_policy("random", seed + max(i, 0))
             obs, info = env.reset(seed=seed + max(i, 0))
-            family.reset()  # type: ignore[attr-defined]
+            family.reset()
             done, decisions = False, 0
             while not done and (i >= 0 or decisions < 3):
                 action = int(policy(obs, info))
@@ -126,7 +126,7 @@ def committed_mask_figures(episodes: int = COMMITTED_EPISODES, seed: int = 0) ->
                 t2 = time.perf_counter()
                 executed = action if mask[action] else next(a for a in OVERRIDE_ORDER[action] if mask[a])
                 t3 = time.perf_counter()
-                family.commit(executed)  # type: ignore[attr-defined]
+                family.commit(executed)
                 t4 = time.perf_counter()
                 if i >= 0:
                     robust_us.append((t1 - t0) * 1e6)

@@ -138,7 +138,7 @@ def classify_collision(snap: RoadSnapshot) -> str | None:
         s_o, r_o = _lane_coordinates(snap, lane, positions[other])
         return s_o - s_e, r_o - r_e
 
-    lane_heading = math.atan2(snap.lane_direction[1], snap.lane_direction[0])
+    lane_heading = snap.lane_heading
     ego_long, ego_lat = _extents(snap.length[e], snap.width[e], float(snap.heading[e]) - lane_heading)
     other_long, other_lat = _extents(snap.length[other], snap.width[other], float(snap.heading[other]) - lane_heading)
     return collision_kind(offset(before), offset(after), ego_long + other_long, ego_lat + other_lat)

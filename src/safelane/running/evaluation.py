@@ -32,6 +32,7 @@ from safelane.running.collisions import (
     collision_partner,
 )
 from safelane.running.policies import Policy, fixed_policy
+from safelane.safety.shield import SafetyShield
 
 if TYPE_CHECKING:
     from safelane.env.fast_batch import FastBatch
@@ -76,7 +77,7 @@ class EpisodeRecord:
     """``committed`` mode: decisions (1-based) after which the plan kept, verified, no longer verified."""
     lapses_in_model: list[int] = field(default_factory=list)
     """``committed`` mode: the lapses not traced to the model's exits (a car the kept plan fails on inside its
-    set, :attr:`safelane.safety.committed.CommittedResult.lapse_in_model`): gaps in the construction."""
+    set, :attr:`safelane.safety.committed.family.CommittedResult.lapse_in_model`): gaps in the construction."""
     lapse_cars: list[list[int]] = field(default_factory=list)
     """``committed`` mode: per lapse, the cars (snapshot indices) the kept plan fails on (``info["lapse_cars"]``)."""
     plan_forced: int = 0
@@ -121,7 +122,8 @@ class EpisodeTally:
     """What an episode's steps add up to, step by step: the one bookkeeping of :func:`run_episode` and
     :func:`run_episodes_batched` (so both give the same :class:`EpisodeRecord` for the same steps)."""
 
-    def __init__(self, seed: int, reset_info: dict[str, Any]) -> None:
+    def __init__(self, seed: int, reset_info: dict[str, Any], committed: bool = False) -> None:
+        """``reset_info``: the episode's reset ``info``; ``committed``: the shield is the committed mode's."""
         self.seed = seed
         self.ahead_at_start = vehicles_ahead(reset_info["snapshot"])
         self.total_reward = 0.0
@@ -138,9 +140,9 @@ class EpisodeTally:
         self.shielded = "fallback" in reset_info
         self.safe_seen = self.state_safe = reset_info.get("fallback") is False
         self.context: str | None = None
-        # The committed mode (its reset info says whether the start is certified): lapses, plan-forced decisions,
-        # and the cars that left their sets or entered a lane the ego holds, for the collision's context.
-        self.committed = "uncertified_start" in reset_info
+        # The committed mode: lapses, plan-forced decisions, and the cars that left their sets or entered a lane
+        # the ego holds, for the collision's context.
+        self.committed = committed
         self.uncertified_start = bool(reset_info["uncertified_start"]) if self.committed else None
         self.redraws = int(reset_info.get("redraws", 0))
         self.lapses: list[int] = []
@@ -261,10 +263,20 @@ class EpisodeTally:
         )
 
 
+def shield_mode(env: gym.Env) -> str:
+    """The ``shield.mode`` of the :class:`SafetyShield` among ``env``'s wrappers (``"none"``: no shield)."""
+    layer: Any = env
+    while isinstance(layer, gym.Wrapper):
+        if isinstance(layer, SafetyShield):
+            return layer.mode
+        layer = layer.env
+    return "none"
+
+
 def run_episode(env: gym.Env, policy: Policy, seed: int) -> EpisodeRecord:
     """Play one episode reset with ``seed`` until it terminates or is truncated."""
     obs, info = env.reset(seed=seed)
-    tally = EpisodeTally(seed, info)
+    tally = EpisodeTally(seed, info, committed=shield_mode(env) == "committed")
     done = False
     while not done:
         action = int(policy(obs, info))
@@ -326,7 +338,7 @@ def run_episodes_batched(
         nonlocal next_episode
         index, next_episode = next_episode, next_episode + 1
         obs, info = env.reset(seed=seed + index)
-        return index, EpisodeTally(seed + index, info), obs, info
+        return index, EpisodeTally(seed + index, info, committed=shield_mode(env) == "committed"), obs, info
 
     active = list(envs[:episodes])
     slots = [start(env) for env in active]
@@ -377,7 +389,7 @@ def run_episodes_fast_batch(
         index, next_episode = next_episode, next_episode + 1
         batch.reset_env(i, seed + index)
         info = batch.reset_info(i)
-        slots[i] = (index, EpisodeTally(seed + index, info))
+        slots[i] = (index, EpisodeTally(seed + index, info, committed=batch.committed))
         infos[i] = info
 
     for i in range(min(batch.num_envs, episodes)):

@@ -9,7 +9,7 @@ ones are dropped, the ``beam`` that got farthest along the road are kept) and pl
 first action(s). Unmasked, it bounds the speed any collision-free policy reaches in this traffic (from
 below: a deeper search could only drive faster); restricted to the nominal or robust mask at every
 node of the search, it gives that shield's real ceiling. The committed mask has memory (the plan kept from one
-decision to the next, :class:`~safelane.safety.committed.CommittedFamily`): every node of the search carries its
+decision to the next, :class:`~safelane.safety.committed.family.CommittedFamily`): every node of the search carries its
 own copy of it, committed along the node's actions (:func:`clone_memory`).
 
 :func:`~safelane.running.policies.overtaking_probe` is a hand-written FASTER-first heuristic (it reads the
@@ -30,8 +30,9 @@ from safelane.core.snapshot import RoadSnapshot
 from safelane.core.spaces import ACTION_NAMES, N_ACTIONS
 from safelane.env.factory import make_env
 from safelane.running.policies import overtaking_probe, snap_of
-from safelane.safety.committed import CommittedFamily
+from safelane.safety.committed.family import CommittedFamily
 from safelane.safety.shield import SafetyShield
+from safelane.safety.world import Engine
 from safelane.sim.fast.env import FastHighwayEnv, SimState
 
 PlannerMask = Literal["none", "nominal", "robust", "committed"]
@@ -75,7 +76,7 @@ class ForesightPlanner:
         beam: int = 8,
         replan: float = 1.0,
         margin: float | None = None,
-        engine: str = "compiled",
+        engine: Engine = "compiled",
     ) -> None:
         if mask not in PLANNER_MASKS:
             raise ConfigError(f"mask: got {mask!r}; allowed: {', '.join(PLANNER_MASKS)}")
@@ -95,8 +96,8 @@ class ForesightPlanner:
         # A shield over the bare simulator, only to evaluate masks of predicted states (never stepped).
         self.memory: CommittedFamily | None = None
         if mask == "committed":
-            self.memory = CommittedFamily(engine)  # type: ignore[arg-type]
-            self.shield = SafetyShield(self.sim, mode=self.memory, engine=engine, **kwargs)  # type: ignore[arg-type]
+            self.memory = CommittedFamily(engine)
+            self.shield = SafetyShield(self.sim, mode=self.memory, **kwargs)
         else:
             self.shield = None if mask == "none" else SafetyShield(self.sim, mode=mask, **kwargs)
         self.plan: list[int] = []

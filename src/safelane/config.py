@@ -178,11 +178,17 @@ class ShieldConfig(_Section):
         return options
 
     @model_validator(mode="after")
-    def _redraw_committed_only(self) -> ShieldConfig:
+    def _mode_only_fields(self) -> ShieldConfig:
+        """A field that only one mode reads, set away from its default under another mode, is a one-line error
+        (it would be ignored): ``redraw_uncertified`` is the committed mode's, ``formula`` the nominal mode's."""
         if self.redraw_uncertified and self.mode != "committed":
             raise ConfigError(
                 f"shield.redraw_uncertified: only for shield.mode committed (got mode {self.mode!r}); "
                 "allowed otherwise: false"
+            )
+        if self.formula != "kinematic" and self.mode != "nominal":
+            raise ConfigError(
+                f"shield.formula: only for shield.mode nominal (got mode {self.mode!r}); allowed otherwise: 'kinematic'"
             )
         return self
 
@@ -606,7 +612,8 @@ published campaign files pass ``shield.reading=responsibility``); the other read
 
 def drop_removed_reading(shield: dict[str, Any]) -> dict[str, Any]:
     """``shield`` without ``reading`` (the committed mode has one reading, :data:`KEPT_READING`); a ``reading``
-    other than it is a one-line :class:`ConfigError`."""
+    other than it is a one-line :class:`ConfigError`. Accepted under any mode: published commands pass it before
+    the mode is chosen (``safelane ceiling --rows foresight_committed --set shield.reading=responsibility``)."""
     if "reading" not in shield:
         return shield
     if shield["reading"] != KEPT_READING:

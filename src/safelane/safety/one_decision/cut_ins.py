@@ -60,7 +60,7 @@ def occupancy(state: RoadState, dyn: Dynamics, mode: Mode, near: np.ndarray) -> 
         if dyn.rule.body_extent:
             # Its body, rotated by its heading, reaches this far either side of its centre [m]; it is
             # in every lane whose band that overlaps (a slow car turning hard sticks its rear corner
-            # into the lane it is leaving: cell00537).
+            # into the lane it is leaving).
             reach = abs(0.5 * state.length[i] * math.sin(state.heading[i])) + abs(
                 0.5 * dyn.body_width * math.cos(state.heading[i])
             )

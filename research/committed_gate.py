@@ -3,7 +3,7 @@
 plan-forced decisions, uncertified starts, collisions by context, car-decisions outside the sets drawn for them
 (those rolling back, the unbraked followers and crashed cars apart) — beside collisions and mean speed.
 
-    python research/committed_gate.py research/committed_subset.yaml --reading sound --out runs/committed/sound.json
+    python research/committed_gate.py research/committed_subset.yaml --out runs/committed/subset.json
 
 Episodes and seeds are the campaign's (cell ``i``, episode ``k``: ``FALSIFY_SEED_BASE + 10 000·i + k``), the policy
 the cell's, override on. ``--match TEXT`` (repeatable) plays only the cells whose axis labels contain every TEXT.
@@ -93,7 +93,6 @@ def main(argv: list[str] | None = None) -> int:
 
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("spec")
-    parser.add_argument("--reading", choices=("sound", "responsibility"), default="sound")
     parser.add_argument("--match", action="append", default=[])
     parser.add_argument("--out", required=True)
     args = parser.parse_args(argv)
@@ -105,7 +104,6 @@ def main(argv: list[str] | None = None) -> int:
     start = time.perf_counter()
     for cell in cells:
         cfg = cell_config(spec, cell).model_copy(deep=True)
-        cfg.shield.reading = args.reading
         seed = traffic_seed_base(FALSIFY_SEED_BASE, spec.seed) + CELL_SEED_STRIDE * cell["index"]
         env = make_env(cfg)
         policy = fixed_policy(cell["policy"], seed)
@@ -120,7 +118,7 @@ def main(argv: list[str] | None = None) -> int:
             flush=True,
         )
     summary = summarize(played)
-    out.write_text(json.dumps({"spec": args.spec, "reading": args.reading, "match": args.match,
+    out.write_text(json.dumps({"spec": args.spec, "match": args.match,
                                "summary": summary, "cells": played}, indent=1))  # fmt: skip
     print(json.dumps(summary, indent=1))
     return 0

@@ -20,7 +20,7 @@ from safelane.config import ConfigError
 from safelane.running.counterexamples import NEAR, Counterexample
 
 if TYPE_CHECKING:
-    from safelane.safety.model import CarriedFollowers
+    from safelane.safety.one_decision.reference import CarriedFollowers
 
 
 def _snapshots_around_event(env: Any, cx: Counterexample) -> tuple[Any, Any]:
@@ -38,11 +38,11 @@ def _break_states(cx: Counterexample, simulator: str | None, what: str) -> tuple
     """Replay the invariant break ``cx``: the road snapshots of the state before its event and of the
     event's state; ``judge(snapshot, options=None, carried=None)``, the numpy reference model on the shield's own
     inputs for a (possibly edited) snapshot of that episode, its Dynamics fields ``options`` replaced (and
-    :class:`~safelane.safety.model.CarriedFollowers` passed on); and the shield. ``what`` names
+    :class:`~safelane.safety.one_decision.reference.CarriedFollowers` passed on); and the shield. ``what`` names
     the caller's product in the one-line error for a file that is not a break."""
 
     from safelane.env.factory import make_env
-    from safelane.safety.model import evaluate
+    from safelane.safety.one_decision.reference import evaluate
 
     if cx.kind != "invariant_break":
         raise ConfigError(f"{cx.kind}: {what} defined for invariant breaks only")
@@ -66,8 +66,8 @@ def _break_states(cx: Counterexample, simulator: str | None, what: str) -> tuple
 
 def carried_followers(before: Any, after: Any, reaction: float, reacting_only: bool = True) -> CarriedFollowers:
     """The follower bounds of the decision ``before`` (a road snapshot) carried to the state ``after``
-    (:class:`~safelane.safety.model.CarriedFollowers`): every body of ``after``'s road state that was behind the
-    ego in ``before``, except one already beyond that bound (outside the model as ``before`` drew it). Bodies
+    (:class:`~safelane.safety.one_decision.reference.CarriedFollowers`): every body of ``after``'s road state that was
+    behind the ego in ``before``, except one already beyond that bound (outside the model as ``before`` drew it). Bodies
     are matched by their snapshot index (the fast simulator's rows, stable through an episode).
 
     ``reacting_only``: only the cars whose reaction had begun by ``before``, by the model's own reading of the
@@ -76,7 +76,7 @@ def carried_followers(before: Any, after: Any, reaction: float, reacting_only: b
     the lane's centre). False: every car behind (docs/research/nested-follower-bound.md's first probe; a car in the
     next lane had no reason to
     react, so its carried bound is not the model's)."""
-    from safelane.safety.model import IDM_LANE_MARGIN, CarriedFollowers, follower_positions
+    from safelane.safety.one_decision.reference import IDM_LANE_MARGIN, CarriedFollowers, follower_positions
     from safelane.safety.shield import road_state_bodies
 
     bodies = road_state_bodies(after)
@@ -126,10 +126,10 @@ def break_with_carried_followers(
 
 def check_rule_options(options: dict[str, Any]) -> None:
     """Raise a one-line :class:`ConfigError` naming the first key of ``options`` that is not a field of the
-    rule's :class:`~safelane.safety.model.Dynamics`, with the allowed names."""
+    rule's :class:`~safelane.safety.one_decision.reference.Dynamics`, with the allowed names."""
     import dataclasses
 
-    from safelane.safety.model import Dynamics
+    from safelane.safety.one_decision.reference import Dynamics
     from safelane.safety.rule import OPTION_NAMES
 
     fields = {f.name for f in dataclasses.fields(Dynamics)} | set(OPTION_NAMES)
@@ -142,12 +142,13 @@ def break_under_options(
     cx: Counterexample, options: dict[str, Any], simulator: str | None = None
 ) -> dict[str, Any]:  # fmt: skip
     """What a change of the rule does to an invariant break: replay ``cx`` to its event's state (no safe action
-    under the rule it ran with) and judge that state with the rule's :class:`~safelane.safety.model.Dynamics`
-    fields ``options`` replaced (e.g. ``{"follower_reaction": 0.0}``, ``{"level_when_incentive": False}``).
-    ``safe_with_options``: it then has a safe action (the change reaches what broke it — a diagnostic, not a
-    proof that the change is sound); ``unlocks``: those actions; ``best_gap`` / ``best_gap_with_options`` [m]:
-    the largest worst-case gap over the available actions, as it ran and with the options. Uses the numpy
-    reference model on the shield's inputs; an unknown field is a one-line :class:`ConfigError`."""
+    under the rule it ran with) and judge that state with the rule's
+    :class:`~safelane.safety.one_decision.reference.Dynamics` fields ``options`` replaced (e.g. ``{"follower_reaction":
+    0.0}``, ``{"level_when_incentive": False}``). ``safe_with_options``: it then has a safe action (the change reaches
+    what broke it — a diagnostic, not a proof that the change is sound); ``unlocks``: those actions; ``best_gap`` /
+    ``best_gap_with_options`` [m]: the largest worst-case gap over the available actions, as it ran and with the
+    options. Uses the numpy reference model on the shield's inputs; an unknown field is a one-line
+    :class:`ConfigError`."""
     check_rule_options(options)
     _, after, judge, _ = _break_states(cx, simulator, "options are")
     plain, changed = judge(after), judge(after, options)

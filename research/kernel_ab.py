@@ -26,7 +26,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the repository root, for `research.*`
 
 from research import mask_cost_profile as mcp
-from safelane.safety.compiled import snapshot_kernel
+from safelane.safety.one_decision.compiled import snapshot_kernel
 
 KERNEL_MODULES = ("compiled_parts", "forecast", "compiled_rule", "compiled")
 """The modules of the compiled shield that are loaded from the other commit (the rest is this tree's)."""
@@ -39,18 +39,13 @@ def reference_kernel(commit: str, package: str = "kernel_at_commit") -> Any:
     folder.mkdir()
     (folder / "__init__.py").write_text("")
     for name in KERNEL_MODULES:
-        text = subprocess.run(
-            ["git", "show", f"{commit}:src/safelane/safety/{name}.py"],
-            check=True,
-            capture_output=True,
-            text=True,
-            cwd=Path(__file__).resolve().parents[1],
-        ).stdout
-        for other in KERNEL_MODULES:  # its own modules from the package, the rest (model, rule, core) from here
-            text = re.sub(rf"\bsafelane\.safety\.{other}\b", f"{package}.{other}", text)
+        text = _source_at(commit, name)
+        for other in KERNEL_MODULES:  # its own modules from the package, the rest (reference, rule, core) from here
+            text = re.sub(rf"\bsafelane\.safety\.(one_decision\.)?{other}\b", f"{package}.{other}", text)
+        text = re.sub(r"\bsafelane\.safety\.model\b", "safelane.safety.one_decision.reference", text)  # older layout
         text = re.sub(
-            r"from safelane\.safety import ([\w, ]+)\n",
-            lambda m: _split_import(m.group(1), package),
+            r"from (safelane\.safety(?:\.one_decision)?) import ([\w, ]+)\n",
+            lambda m: _split_import(m.group(2), package, m.group(1)),
             text,
         )
         (folder / f"{name}.py").write_text(text)
@@ -58,11 +53,32 @@ def reference_kernel(commit: str, package: str = "kernel_at_commit") -> Any:
     return importlib.import_module(f"{package}.compiled").snapshot_kernel
 
 
-def _split_import(names: str, package: str) -> str:
+def _source_at(commit: str, name: str) -> str:
+    """The text of kernel module ``name`` at ``commit``: in ``safety/one_decision/``, or at older commits
+    ``safety/``."""
+    for folder in ("src/safelane/safety/one_decision", "src/safelane/safety"):
+        shown = subprocess.run(
+            ["git", "show", f"{commit}:{folder}/{name}.py"],
+            capture_output=True,
+            text=True,
+            cwd=Path(__file__).resolve().parents[1],
+        )
+        if shown.returncode == 0:
+            return shown.stdout
+    raise FileNotFoundError(f"{name}.py: not in src/safelane/safety[/one_decision] at {commit}")
+
+
+def _split_import(names: str, package: str, source: str = "safelane.safety") -> str:
+    """``from SOURCE import NAMES`` with the kernel modules taken from ``package`` and the rest from ``source``
+    (an older commit's ``model``: this tree's one-decision reference)."""
     ours = [n.strip() for n in names.split(",") if n.strip() in KERNEL_MODULES]
     theirs = [n.strip() for n in names.split(",") if n.strip() not in KERNEL_MODULES]
     lines = [f"from {package} import {', '.join(ours)}\n"] if ours else []
-    lines += [f"from safelane.safety import {', '.join(theirs)}\n"] if theirs else []
+    for name in theirs:
+        if name == "model":
+            lines.append("from safelane.safety.one_decision import reference as model\n")
+        else:
+            lines.append(f"from {source} import {name}\n")
     return "".join(lines)
 
 

@@ -33,9 +33,9 @@ import numpy as np
 
 from safelane.env.factory import make_env
 from safelane.running.policies import fixed_policy
-from safelane.safety import model
-from safelane.safety.compiled import C_RELEVANCE, C_TURNING_ALLOWANCE, kernel_constants, snapshot_kernel
-from safelane.safety.compiled_rule import evaluate_rule
+from safelane.safety.one_decision import reference as model
+from safelane.safety.one_decision.compiled import C_RELEVANCE, C_TURNING_ALLOWANCE, kernel_constants, snapshot_kernel
+from safelane.safety.one_decision.compiled_rule import evaluate_rule
 from safelane.safety.rule import FLAG_TURNING_IN_NOMINAL
 from safelane.safety.shield import SafetyShield
 

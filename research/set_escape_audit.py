@@ -1,6 +1,6 @@
 """Do the cars stay inside the sets drawn for them? Play episodes, draw every car's reachable set at each decision
-from the observable state (:func:`safelane.safety.committed.car_sets`, as the committed shield draws it), then
-check each car against it at every physics frame until the next decision (:func:`~safelane.safety.committed.
+from the observable state (:func:`safelane.safety.committed.sets.car_sets`, as the committed shield draws it), then
+check each car against it at every physics frame until the next decision (:func:`~safelane.safety.committed.sets.
 escaped_cars` on the sets shifted to that frame) and classify every escape.
 
     python research/set_escape_audit.py --episodes 200 --out docs/results/set-escape-audit/summary.json
@@ -33,13 +33,13 @@ from typing import Any
 import numpy as np
 
 from safelane.core.snapshot import RoadSnapshot
-from safelane.safety.committed import CarSets, car_sets, escaped_cars
-from safelane.safety.committed import _whole_state as whole_state  # the family's own state: the sets it draws
+from safelane.safety.committed.sets import CarSets, car_sets, escaped_cars
+from safelane.safety.road import whole_road_state  # the committed family's own state: the sets it draws
 from safelane.safety.shield import dynamics_of
 from safelane.safety.world import LATERAL_MOTION_THRESHOLD, Dynamics, RoadState
 
 try:  # the speed the sets bound, for the figures reported: along the car's path where the sets define it so
-    from safelane.safety.committed import path_speed as set_speed
+    from safelane.safety.committed.sets import path_speed as set_speed
 except ImportError:  # sets drawn on the speed along the road
 
     def set_speed(state: RoadState) -> np.ndarray:
@@ -213,7 +213,7 @@ def audit_episode(
     snap = info["snapshot"]
     dyn = dynamics_of(snap)
     ids = recorder.identities() if recorder else np.arange(snap.n)
-    state, rows = whole_state(snap, dyn)
+    state, rows = whole_road_state(snap, dyn.rule.ego_speed_magnitude)
     vehicle = ids[rows]
     sets = car_sets(state, dyn, vehicle)
     seen_out: set[int] = set()
@@ -237,7 +237,7 @@ def audit_episode(
         turning_at_draw = set(turned)
         out_this: set[int] = set()
         for k, frame_snap, frame_ids in frames:
-            st, fr = whole_state(frame_snap, dyn)
+            st, fr = whole_road_state(frame_snap, dyn.rule.ego_speed_magnitude)
             fv = frame_ids[fr]
             traced.update(int(v) for v in fv)
             turned.update(int(v) for v, h in zip(fv, st.heading, strict=True) if abs(h) > LATERAL_MOTION_THRESHOLD)
@@ -284,7 +284,7 @@ def audit_episode(
         tally.decisions += 1
         snap = info["snapshot"]
         ids = recorder.identities() if recorder else np.arange(snap.n)
-        state, rows = whole_state(snap, dyn)
+        state, rows = whole_road_state(snap, dyn.rule.ego_speed_magnitude)
         vehicle = ids[rows]
         sets = car_sets(state, dyn, vehicle)
     tally.episodes += 1

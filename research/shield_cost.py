@@ -22,8 +22,8 @@ from typing import Any
 import numpy as np
 
 from safelane.env.factory import make_env
-from safelane.safety.compiled import evaluate_compiled
-from safelane.safety.model import evaluate
+from safelane.safety.one_decision.compiled import evaluate_compiled
+from safelane.safety.one_decision.reference import evaluate
 from safelane.safety.shield import SafetyShield, road_state
 
 

@@ -15,7 +15,8 @@ bookkeeping the campaign uses (:class:`safelane.running.evaluation.EpisodeTally`
 For each braking decision in the window it also records whether a non-braking action was verified (the sets did
 not require braking: ``brake_not_required``), whether the one-decision robust rule called SLOWER safe there, and
 whether some verified action was safe by that rule (the courtesy ordering's alternative existed:
-``courteous_alternative``). The ego's deceleration over the window's hardest decision [m/s²] is reported.
+``courteous_alternative``). The ego's mean deceleration over the window's hardest decision before the crash's own
+[m/s²] is reported (None for a crash at the first decision).
 
     .venv/bin/python research/trace_rear_ends.py runs/falsify/claim-committed/counterexamples \
         --out runs/falsify/claim-committed/rear_end_trace.json
@@ -79,7 +80,8 @@ def trace(path: str, window_s: float = 3.0) -> dict[str, Any]:
                 "chosen": int(action), "executed": int(info.get("executed_action", action)),
                 "verified": [bool(v) for v in result.safe], "robust_safe": [bool(v) for v in one.safe],
                 "plan_forced": bool(getattr(result, "plan_forced", False)),
-                "speed_before": float(snap.speed[e]), "speed_after": float(info["snapshot"].speed[info["snapshot"].ego]),
+                "speed_before": float(snap.speed[e]),
+                "speed_after": float(info["snapshot"].speed[info["snapshot"].ego]),
                 "lane": int(snap.lane[e]), "entered": [int(v) for v in info.get("entered_cars", ())],
                 "snap": snap,
             })  # fmt: skip
@@ -105,15 +107,17 @@ def trace(path: str, window_s: float = 3.0) -> dict[str, Any]:
         kind = "lane_change_into_follower"
     elif partner is not None and any(partner in d["entered"] for d in window):
         kind = "partner_cut_in"
-    decel = [(d["speed_before"] - d["speed_after"]) / period for d in window]
+    # The crash's own decision is left out: the impact changes the ego's speed.
+    decel = [(d["speed_before"] - d["speed_after"]) / period for d in window[:-1]]
     row.update(
         partner=partner,
         trace=kind,
         braking_decisions=len(braking),
         brake_not_required=any(any(v for a, v in enumerate(d["verified"]) if a != SLOWER) for d in braking),
         slower_robust_safe=all(d["robust_safe"][SLOWER] for d in braking) if braking else None,
-        courteous_alternative=any(any(v and r for v, r in zip(d["verified"], d["robust_safe"], strict=True))
-                                  for d in window),  # fmt: skip
+        courteous_alternative=any(
+            any(v and r for v, r in zip(d["verified"], d["robust_safe"], strict=True)) for d in window
+        ),
         hardest_decel=round(max(decel), 2) if decel else None,
     )
     return row
@@ -146,12 +150,12 @@ def table(rows: list[dict[str, Any]]) -> str:
         if not rs:
             continue
         decels = sorted(r["hardest_decel"] for r in rs if r["hardest_decel"] is not None)
-        median = decels[len(decels) // 2] if decels else float("nan")
+        median = f"{decels[len(decels) // 2]:.2f}" if decels else "–"
         braked = [r for r in rs if r["braking_decisions"]]
         lines.append(
             f"| {name} | {len(rs)} | {sum(r['brake_not_required'] for r in braked)} / {len(braked)} | "
             f"{sum(bool(r['slower_robust_safe']) for r in braked)} / {len(braked)} | "
-            f"{sum(r['courteous_alternative'] for r in rs)} / {len(rs)} | {median:.2f} |"
+            f"{sum(r['courteous_alternative'] for r in rs)} / {len(rs)} | {median} |"
         )
     return "\n".join(lines) + "\n"
 

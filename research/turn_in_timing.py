@@ -22,7 +22,7 @@ import numpy as np
 from highway_env.vehicle.behavior import AggressiveVehicle, DefensiveVehicle, IDMVehicle, LinearVehicle
 
 from safelane.env.scenarios import VehicleSpec, build_scene, find_shield
-from safelane.safety import model
+from safelane.safety.one_decision import reference as model
 
 
 def one_case(rng: np.random.Generator, all_drivers: bool = False) -> dict | None:

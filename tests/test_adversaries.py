@@ -11,7 +11,7 @@ import pytest
 
 from safelane import ConfigError, make_env
 from safelane.env.scenarios import VehicleSpec, build_scene, find_shield
-from safelane.safety import model
+from safelane.safety.one_decision import reference as model
 from safelane.sim.adversaries import MobilCutInVehicle
 
 

@@ -222,7 +222,7 @@ def test_bench_json(tmp_path: Path) -> None:
     assert out["committed_mask_ratio_fast"] == pytest.approx(
         out["committed_mask_us_mean_fast"] / out["committed_robust_mask_us_mean_fast"]
     )
-    assert out["committed_mask_decisions"] >= 1 and out["committed_reading"] == "responsibility"
+    assert out["committed_mask_decisions"] >= 1
     assert set(out["fast_batched_decisions_per_s"]) == {"1", "16", "64", "256"}
     assert all(rate > 0 for rate in out["fast_batched_decisions_per_s"].values())
     for n, rate in out["fast_batched_decisions_per_s"].items():

@@ -15,16 +15,10 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from safelane.core.spaces import FASTER, IDLE, SLOWER
-from safelane.safety.committed import (
-    CommittedFamily,
-    car_sets,
-    envelope,
-    lane_crossing_time,
-    lane_entry_times,
-    speed_bounds,
-)
+from safelane.safety.committed.family import CommittedFamily
+from safelane.safety.committed.sets import car_sets, envelope, lane_crossing_time, lane_entry_times, speed_bounds
 from safelane.safety.ego import ego_trajectories
-from safelane.safety.model import evaluate as evaluate_one_decision
+from safelane.safety.one_decision.reference import evaluate as evaluate_one_decision
 from safelane.safety.world import Dynamics, RoadState
 
 DYN = Dynamics(
@@ -149,7 +143,7 @@ def test_the_acceleration_law_bound_nests_in_time(v, target, gain, idm, hz, step
     """A driver accelerating at most ``min(a, law)`` toward its set-point (linear ``k·(v* − v)`` or IDM's free
     term): from any successor the bound allows after Δ frames, the bound of speed and position is inside the
     first one's from Δ on, and the successor itself inside it at Δ."""
-    from safelane.safety.committed_sets import law_rise
+    from safelane.safety.committed.sets import law_rise
 
     dt = 1.0 / hz
     car = {"x": 0.0, "vx": v, "target_speed": target, "accel_max": 3.0 if idm else 6.0}
@@ -171,7 +165,7 @@ def test_the_acceleration_law_bound_nests_in_time(v, target, gain, idm, hz, step
 @pytest.mark.parametrize("hz", [5, 15])
 def test_a_driver_stays_below_its_acceleration_law(driver: str, hz: int) -> None:
     """highway-env's drivers on one lane — free, then behind a slower car — stay below the speed and position
-    their own acceleration law allows (:func:`~safelane.safety.committed_sets.law_rise`, inside :func:`car_sets`),
+    their own acceleration law allows (:func:`~safelane.safety.committed.sets.law_rise`, inside :func:`car_sets`),
     which the linear models reach far below their ACC_MAX bound."""
     from highway_env.road.road import Road, RoadNetwork
     from highway_env.vehicle import behavior
@@ -235,7 +229,7 @@ def _lane_changing_car(hz: int, v0: float, accel: float, changes: int) -> list[A
 def _outside(states: list[RoadState], dyn: Dynamics, hz: int) -> int:
     """How many (decision, frame) pairs find the car outside the set drawn for it at the decision (position along
     the road, speed along the path)."""
-    from safelane.safety.committed_sets import path_speed
+    from safelane.safety.committed.sets import path_speed
 
     out = 0
     for k0 in range(0, len(states), hz):
@@ -300,15 +294,13 @@ LEADER = [{"x": 70.0, "lane": 1, "vx": 20.0}]
 
 
 @settings(max_examples=40, deadline=None)
-@given(
-    fractions=st.lists(st.floats(0, 1), min_size=5, max_size=5), reading=st.sampled_from(["sound", "responsibility"])
-)
-def test_a_kept_plan_stays_verified_while_the_cars_stay_in_their_sets(fractions, reading) -> None:
+@given(fractions=st.lists(st.floats(0, 1), min_size=5, max_size=5))
+def test_a_kept_plan_stays_verified_while_the_cars_stay_in_their_sets(fractions) -> None:
     """FASTER is verified behind a leader 70 m ahead; after it, whatever the leader does within its model (here
     any acceleration history between −6 m/s² and IDM's free term), the kept plan's tail still verifies: no lapse,
     and its next step is allowed, with a worst gap no smaller than when it was kept."""
     state = scene(LEADER)
-    family = CommittedFamily(reading)
+    family = CommittedFamily()
     first = family.evaluate_state(state, np.array([0]), DYN)
     assert first.safe[FASTER]
     plan = first.plans[FASTER]
@@ -329,7 +321,7 @@ def test_a_car_leaving_its_set_makes_a_lapse_that_names_it() -> None:
     """The same plan, but the leader stops dead 12 m ahead of the ego one decision later (no driver model brakes
     so hard): a lapse, the leader named, nothing verified, and the kept plan's next step (SLOWER) drives."""
     state = scene([*LEADER, {"x": -30.0, "lane": 0, "vx": 20.0}])
-    family = CommittedFamily("responsibility")
+    family = CommittedFamily()
     first = family.evaluate_state(state, np.array([4, 9]), DYN)
     plan = first.plans[FASTER]
     assert plan is not None and plan.next_step() == SLOWER
@@ -348,7 +340,7 @@ def test_a_lapse_names_the_cars_that_failed_the_plan_not_every_car_outside_its_s
     10 m/s in one second (outside its set too, far from the plan): the lapse names the leader alone, and of it
     that it left its set; the far car is among the escapes, not a cause."""
     state = scene([*LEADER, {"x": 500.0, "lane": 1, "vx": 25.0}])
-    family = CommittedFamily("sound")
+    family = CommittedFamily()
     first = family.evaluate_state(state, np.array([4, 9]), DYN)
     plan = first.plans[FASTER]
     assert plan is not None
@@ -360,7 +352,7 @@ def test_a_lapse_names_the_cars_that_failed_the_plan_not_every_car_outside_its_s
     assert result.lapse and result.escaped == (4, 9)
     assert result.lapse_cars == (4,) and result.lapse_escaped == (4,) and not result.lapse_in_model
     # The same far car, the leader braking within its model: no lapse, nobody named, the far car still escaped.
-    family = CommittedFamily("sound")
+    family = CommittedFamily()
     family.evaluate_state(state, np.array([4, 9]), DYN)
     family.commit(FASTER)
     inside = scene([{"x": 70.0 + 20.0, "lane": 1, "vx": 20.0}, {"x": 500.0 + 20.0, "lane": 1, "vx": 15.0}],
@@ -370,7 +362,7 @@ def test_a_lapse_names_the_cars_that_failed_the_plan_not_every_car_outside_its_s
 
 
 def test_a_lapse_in_the_model_is_one_a_car_inside_its_set_failed() -> None:
-    """``lapse_in_model``: a lapse with a car the kept plan fails on that is inside its set and (``responsibility``)
+    """``lapse_in_model``: a lapse with a car the kept plan fails on that is inside its set and
     entered no lane the ego holds, or with no car named; a car outside its set elsewhere traces nothing."""
     base = CommittedFamily().evaluate_state(scene(LEADER), np.array([4]), DYN)
 
@@ -387,14 +379,13 @@ def test_a_lapse_in_the_model_is_one_a_car_inside_its_set_failed() -> None:
 
 
 def test_cars_braking_at_their_limit_stay_in_their_sets_and_a_lapse_names_the_cut_in() -> None:
-    """The fast preset, seeds 3 and 9, one decision of IDLE (``responsibility``): cars 480–1 000 m ahead turn and
+    """The fast preset, seeds 3 and 9, one decision of IDLE: cars 480–1 000 m ahead turn and
     brake at exactly ``ACC_MAX`` (6 m/s in 1 s along their path), inside the sets drawn for them (the speed along
     the path and a lane change's shortfall; the speed along the road left them); the lapse names the one car that
     entered the ego's lane and broke the plan, not the others that entered a lane the ego holds far ahead."""
     from safelane.env.factory import make_env
 
-    env = make_env("fast", simulator="fast", **{"shield.mode": "committed", "shield.reading": "responsibility",
-                                                "shield.override": True})  # fmt: skip
+    env = make_env("fast", simulator="fast", **{"shield.mode": "committed", "shield.override": True})
     for seed, car in ((3, 2), (9, 1)):
         _, info = env.reset(seed=seed)
         before = info["snapshot"]
@@ -413,7 +404,7 @@ def test_a_car_rolling_back_is_named_outside_the_model() -> None:
     again — outside the set drawn for it (its lowest position) and named as rolled back; a car that braked harder
     than its model allows is outside its set but not rolled back."""
     state = scene([{"x": 150.0, "lane": 1, "vx": -0.5}, {"x": 60.0, "lane": 0, "vx": 20.0}])
-    family = CommittedFamily("responsibility")
+    family = CommittedFamily()
     first = family.evaluate_state(state, np.array([3, 8]), DYN)
     family.commit(int(np.flatnonzero(first.safe)[0]))
     after = scene([{"x": 147.0, "lane": 1, "vx": 0.5}, {"x": 60.0 + 12.0, "lane": 0, "vx": 10.0}], ego_x=20.0)
@@ -432,42 +423,12 @@ def test_a_state_with_no_verified_plan_is_an_uncertified_start() -> None:
     assert result.mask.tolist() == evaluate_one_decision(state, DYN, "robust").mask.tolist()
 
 
-def test_a_follower_reacts_to_the_plan() -> None:
-    """Under ``sound`` a car 40 m behind in the ego's lane at the ego's speed leaves IDLE verified only because it
-    follows the ego: it accelerates at most until the reaction time after the plan's braking onset, then brakes.
-    Its envelope alone (accelerating for the whole horizon) would reach the ego."""
-    state = scene([*LEADER, {"x": -40.0, "lane": 1, "vx": 20.0}])
-    result = CommittedFamily("sound").evaluate_state(state, np.arange(2), DYN)
-    assert result.safe[IDLE] and result.plans[IDLE] is not None
-    beside = scene([*LEADER, {"x": -40.0, "lane": 1, "vx": 20.0, "y": 6.1}])  # its own lane the next one: no law
-    assert not CommittedFamily("sound").evaluate_state(beside, np.arange(2), DYN).safe[IDLE]
-
-
-def test_mobil_s_safety_criterion_holds_back_a_linear_driver_cutting_in() -> None:
-    """An Aggressive driver 20 m ahead in the next lane at 15 m/s, the ego at 25 m/s: by its own linear law the ego
-    behind it would brake harder than ``max_braking_imposed``, so MOBIL lets it cut in only later (1.8 s instead
-    of the cut-in time); every plan's worst gap is at least what it is without the law (gains of a sign the bound
-    does not cover), and FASTER's far larger."""
-    from safelane.safety.committed import verify_plans
-
-    aggressive = dict(x=20.0, lane=2, vx=15.0, target_speed=15.0, linear_speed_gain=0.107, idm_time_wanted=2.5,
-                      linear_speed_difference_gain=0.036, linear_distance_gain=0.5, accel_max=6.0)  # fmt: skip
-    worst = []
-    for gain in (0.5, -0.5):
-        state = scene([{**aggressive, "linear_distance_gain": gain}], ego_speed=25.0)
-        worst.append(verify_plans(state, DYN, car_sets(state, DYN, np.array([1])), "sound")[0])
-    with_law, without = worst
-    finite = np.isfinite(without)
-    assert (with_law[finite] >= without[finite] - 1e-9).all()
-    assert with_law[FASTER].max() > without[FASTER].max() + 50.0
-
-
 def test_a_follower_that_does_not_brake_for_the_plan_is_named() -> None:
     """The follower law is an assumption, not IDM's: a follower that keeps accelerating at its limit while the ego
     carries out a plan that brakes leaves the bound drawn for it — named as an unbraked follower (and escaped),
     though inside its envelope."""
     state = scene([*LEADER, {"x": -40.0, "lane": 1, "vx": 20.0}])
-    family = CommittedFamily("sound")
+    family = CommittedFamily()
     first = family.evaluate_state(state, np.arange(2), DYN)
     action = SLOWER if first.safe[SLOWER] else IDLE
     plan = first.plans[action]
@@ -479,37 +440,32 @@ def test_a_follower_that_does_not_brake_for_the_plan_is_named() -> None:
     assert result.unbraked_followers == (1,) and result.escaped == (1,)
 
 
-def test_the_responsibility_reading_leaves_a_car_behind_to_its_driver() -> None:
-    """A fast car 15 m behind in the ego's lane: under ``sound`` it is the ego's to avoid (IDLE unverified), under
-    ``responsibility`` it is not."""
+def test_a_car_behind_in_the_egos_lane_is_its_drivers_to_avoid() -> None:
+    """A fast car 15 m behind in the ego's lane does not count: IDLE is verified (the gap it closes is its
+    driver's)."""
     state = scene([*LEADER, {"x": -15.0, "lane": 1, "vx": 30.0}])
-    sound = CommittedFamily("sound").evaluate_state(state, np.arange(2), DYN)
-    responsibility = CommittedFamily("responsibility").evaluate_state(state, np.arange(2), DYN)
-    assert not sound.safe[IDLE] and responsibility.safe[IDLE]
+    assert CommittedFamily().evaluate_state(state, np.arange(2), DYN).safe[IDLE]
 
 
 def test_a_car_beside_the_ego_in_the_lane_it_is_entering_is_the_egos_to_keep_clear_of() -> None:
-    """``responsibility``: the ego, still in lane 1 (its centre nearer lane 1's), changing into lane 2 beside a
-    faster car 4 m behind in lane 2: going on (IDLE keeps the target lane) is not verified under either reading —
-    the car is in the lane the ego is entering, not behind it in its own lane. Once the ego is in lane 2, a car
-    behind it there is its driver's to avoid again (``responsibility``)."""
+    """The ego, still in lane 1 (its centre nearer lane 1's), changing into lane 2 beside a faster car 4 m behind
+    in lane 2: going on (IDLE keeps the target lane) is not verified — the car is in the lane the ego is entering,
+    not behind it in its own lane. Once the ego is in lane 2, a car behind it there is its driver's to avoid
+    again."""
     car = {"x": -4.0, "lane": 2, "vx": 27.0}
     entering = dataclasses.replace(scene([car]), ego_y=1.4 * DYN.lane_width, ego_target_lane=2)
-    for reading in ("sound", "responsibility"):
-        result = CommittedFamily(reading).evaluate_state(entering, np.arange(1), DYN)
-        assert not result.safe[IDLE], reading
+    assert not CommittedFamily().evaluate_state(entering, np.arange(1), DYN).safe[IDLE]
     inside = scene([{**car, "x": -15.0}], ego_lane=2)
-    assert CommittedFamily("responsibility").evaluate_state(inside, np.arange(1), DYN).safe[IDLE]
-    assert not CommittedFamily("sound").evaluate_state(inside, np.arange(1), DYN).safe[IDLE]
+    assert CommittedFamily().evaluate_state(inside, np.arange(1), DYN).safe[IDLE]
 
 
 def test_a_car_that_overtakes_the_ego_while_it_may_turn_in_is_a_cut_in() -> None:
-    """``responsibility``: a car beside and behind the ego, turning toward its lane, does not count when IDLE is
+    """A car beside and behind the ego, turning toward its lane, does not count when IDLE is
     kept; a decision later it has passed the ego and counts: the kept plan fails on it, a lapse traced to a car that
     cut in after the plan was drawn (``entered``), not a gap in the construction."""
     turning = {"lane": 2, "y": 7.0, "vx": 30.0, "vy": -1.0, "heading": -0.05, "target_speed": 35.0}
     before = scene([{**turning, "x": -8.0}])
-    family = CommittedFamily("responsibility")
+    family = CommittedFamily()
     first = family.evaluate_state(before, np.array([4]), DYN)
     assert first.safe[IDLE]
     family.commit(IDLE)
@@ -520,7 +476,8 @@ def test_a_car_that_overtakes_the_ego_while_it_may_turn_in_is_a_cut_in() -> None
 
 
 def test_the_shield_reports_the_committed_mode() -> None:
-    """``shield.mode: committed`` with ``shield.reading``: the info keys, the reading, one line per bad value."""
+    """``shield.mode: committed``: the info keys; ``shield.reading`` accepted at ``responsibility`` only (older
+    specs name it), ``sound`` refused in one line."""
     from safelane.config import ConfigError
     from safelane.env.factory import make_env
     from safelane.env.scenarios import find_shield
@@ -530,7 +487,7 @@ def test_the_shield_reports_the_committed_mode() -> None:
     _, info = env.reset(seed=3)
     assert isinstance(info["uncertified_start"], bool)
     family = find_shield(env).family
-    assert isinstance(family, CommittedFamily) and family.reading == "responsibility"
+    assert isinstance(family, CommittedFamily)
     for _ in range(3):
         _, _, _, _, info = env.step(FASTER)
         assert {"plan_forced", "lapse", "lapse_in_model", "escaped_cars", "certified"} <= set(info)
@@ -542,7 +499,7 @@ def test_the_shield_reports_the_committed_mode() -> None:
     assert supports(load_config("fast", overrides={"shield.mode": "committed", "simulator": "fast"})) is None
     redraw = {"shield.mode": "committed", "simulator": "fast", "shield.redraw_uncertified": True}
     assert "shield.redraw_uncertified" in (supports(load_config("fast", overrides=redraw)) or "")
-    with pytest.raises(ValueError, match=r"^shield\.reading: got 'x'; allowed: 'sound', 'responsibility'$"):
-        CommittedFamily("x")  # type: ignore[arg-type]
-    with pytest.raises(ConfigError, match=r"shield\.reading"):
-        make_env("fast", **{"shield.mode": "committed", "shield.reading": "lenient"})
+    for removed in ("sound", "lenient"):
+        with pytest.raises(ConfigError, match=r"^shield\.reading: 'sound' was removed .*5 %.*responsibility") as err:
+            make_env("fast", **{"shield.mode": "committed", "shield.reading": removed})
+        assert "\n" not in str(err.value)

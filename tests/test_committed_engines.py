@@ -1,5 +1,5 @@
 """The committed shield's two engines give the same bits: each compiled kernel against its numpy reference on
-hypothesis states (every driver model, crashed and turning cars, both readings, carried follower bounds), the
+hypothesis states (every driver model, crashed and turning cars, carried follower bounds), the
 family's verdicts decision by decision (lapses, escapes, followers), and whole episodes on both simulators."""
 
 from __future__ import annotations
@@ -12,10 +12,11 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from safelane.safety import committed as reference
-from safelane.safety import committed_compiled as compiled
-from safelane.safety.committed import CommittedFamily, onsets
-from safelane.safety.committed_sets import car_sets
+from safelane.safety.committed import compiled
+from safelane.safety.committed import plans as reference
+from safelane.safety.committed.family import CommittedFamily
+from safelane.safety.committed.plan_family import onsets
+from safelane.safety.committed.sets import car_sets
 from safelane.safety.ego import action_lanes, ego_trajectories
 from safelane.safety.world import Dynamics, RoadState
 
@@ -105,13 +106,12 @@ def test_the_compiled_sets_and_ego_paths_are_the_references_bits(state: RoadStat
     state=states(),
     dyn=DYNAMICS,
     action=st.integers(0, 4),
-    reading=st.sampled_from(["sound", "responsibility"]),
     until=st.one_of(st.none(), st.integers(-2, 80)),
     with_set=st.booleans(),
     carried=st.booleans(),
 )
 def test_the_compiled_car_gaps_are_the_references_bits(
-    state: RoadState, dyn: Dynamics, action: int, reading: str, until: int | None, with_set: bool, carried: bool
+    state: RoadState, dyn: Dynamics, action: int, until: int | None, with_set: bool, carried: bool
 ) -> None:  # fmt: skip
     vehicle = np.arange(state.n)
     sets = car_sets(state, dyn, vehicle)
@@ -122,7 +122,7 @@ def test_the_compiled_car_gaps_are_the_references_bits(
     followers = (
         {i: (lanes[i % len(lanes)][0], sets.x_hi[i] - 3.0 * (i % 3)) for i in range(state.n)} if carried else None
     )
-    args = (state, dyn, sets, ego_x[action], ego_v[action], onsets(dyn, action), lanes, reading, until, followers,
+    args = (state, dyn, sets, ego_x[action], ego_v[action], onsets(dyn, action), lanes, until, followers,
             ego_set)  # fmt: skip
     assert same(compiled.car_gaps_compiled(*args), reference.car_gaps(*args))
 
@@ -156,15 +156,15 @@ def _moved(state: RoadState, rng: np.random.Generator, dyn: Dynamics, sets: Any)
 
 
 @settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.too_slow])
-@given(state=states(), dyn=DYNAMICS, reading=st.sampled_from(["sound", "responsibility"]), seed=st.integers(0, 99),
+@given(state=states(), dyn=DYNAMICS, seed=st.integers(0, 99),
        actions=st.lists(st.integers(0, 4), min_size=3, max_size=3))  # fmt: skip
 def test_the_families_verdicts_are_the_same_decision_by_decision(
-    state: RoadState, dyn: Dynamics, reading: str, seed: int, actions: list[int]
+    state: RoadState, dyn: Dynamics, seed: int, actions: list[int]
 ) -> None:  # fmt: skip
     """Three decisions, each car moved somewhere in (or just outside) its set: the same mask, gaps, plans, lapses,
     named cars and follower bounds from both engines."""
     rng = np.random.default_rng(seed)
-    families = {engine: CommittedFamily(reading, engine) for engine in ("numpy", "compiled")}
+    families = {engine: CommittedFamily(engine) for engine in ("numpy", "compiled")}
     vehicle = np.arange(state.n) * 2 + 1  # snapshot indices that are not row numbers
     for action in actions:
         results = {engine: fam.evaluate_state(state, vehicle, dyn) for engine, fam in families.items()}
@@ -189,7 +189,7 @@ def _episode(simulator: str, engine: str, seeds: list[int], policy: str) -> list
     from safelane.running.policies import fixed_policy
 
     overrides = {"simulator": simulator, "shield.mode": "committed", "shield.engine": engine, "shield.override": True,
-                 "shield.reading": "responsibility", "env.vehicles_density": 2.0}  # fmt: skip
+                 "env.vehicles_density": 2.0}  # fmt: skip
     env = make_env("fast", **overrides)
     act = fixed_policy(policy, 7)
     out = []

@@ -25,34 +25,33 @@ from safelane.running.evaluation import COMMITTED_FIELDS, EpisodeTally, run_conf
 from safelane.running.policies import fixed_policy
 
 COMMITTED = {"simulator": "fast", "shield.mode": "committed", "shield.override": True}
-RESPONSIBILITY = {**COMMITTED, "shield.reading": "responsibility"}
 DENSE = {"env.vehicles_density": 2.0, "env.lanes_count": 3, "traffic.vehicles_behind": 12}
-"""A dense scene with cars behind: about half the spawns start uncertified under ``responsibility``."""
+"""A dense scene with cars behind: about half the spawns start uncertified."""
 SHORT = {"env.duration": 8}
 
 
 @pytest.fixture(scope="module")
-def responsibility_records() -> list[Any]:
-    """Six random-policy episodes under ``responsibility`` on the fast preset: two of them lapse (seeds 3, 5)."""
-    cfg = load_config("fast", overrides=RESPONSIBILITY)
+def committed_records() -> list[Any]:
+    """Six random-policy episodes under the committed shield on the fast preset: two of them lapse (seeds 3, 5)."""
+    cfg = load_config("fast", overrides=COMMITTED)
     return run_config(cfg, fixed_policy("random", 0), 6, 0)
 
 
 # --- the figures ------------------------------------------------------------------------------------
 
 
-def test_the_summary_counts_what_the_shield_reported(responsibility_records: list[Any]) -> None:
+def test_the_summary_counts_what_the_shield_reported(committed_records: list[Any]) -> None:
     """Lapses, lapses in the model, plan-forced decisions and uncertified starts: the shield's own ``info``, step by
     step, replayed by hand, adds up to the summary's figures."""
     from safelane.env.factory import make_env
 
-    cfg = load_config("fast", overrides=RESPONSIBILITY)
+    cfg = load_config("fast", overrides=COMMITTED)
     env = make_env(cfg)
     lapses = in_model = forced = uncertified = decisions = 0
-    for record in responsibility_records:
+    for record in committed_records:
         _, info = env.reset(seed=record.seed)
         uncertified += info["uncertified_start"]
-        assert info["redraws"] == 0 and info["shield_reading"] == "responsibility"
+        assert info["redraws"] == 0
         for action in record.chosen_actions:
             _, _, _, _, info = env.step(action)
             lapses += info["lapse"]
@@ -60,14 +59,14 @@ def test_the_summary_counts_what_the_shield_reported(responsibility_records: lis
             forced += info["plan_forced"]
             decisions += 1
     env.close()
-    s = summarize(responsibility_records)
+    s = summarize(committed_records)
     assert lapses >= 1  # the scene has lapses: the count is not vacuous
     assert (s["lapses"], s["lapses_in_model"], s["uncertified_starts"]) == (lapses, in_model, uncertified)
     assert s["plan_forced_rate"] == pytest.approx(forced / decisions) and s["decisions"] == decisions
     assert s["redraws"] == 0
     assert tuple(s["collision_contexts"]) == collision_contexts(True)
     assert "started_unsafe" not in s["collision_contexts"]
-    lapsed = [r for r in responsibility_records if r.lapses]
+    lapsed = [r for r in committed_records if r.lapses]
     assert all(len(r.lapse_cars) == len(r.lapses) for r in lapsed)
     assert all(cars for r in lapsed for cars in r.lapse_cars)  # every lapse so far traced to a car
     assert set(COMMITTED_FIELDS) <= set(lapsed[0].to_dict())
@@ -95,8 +94,8 @@ def _step(**info: Any) -> dict[str, Any]:
 
 
 def _context(
-    monkeypatch: pytest.MonkeyPatch, steps: list[dict[str, Any]], reading: str = "sound", start_certified: bool = True,
-    partner: int = 7, kind: str = "ego_hit_front",
+    monkeypatch: pytest.MonkeyPatch, steps: list[dict[str, Any]], start_certified: bool = True, partner: int = 7,
+    kind: str = "ego_hit_front",
 ) -> tuple[str | None, list[int]]:  # fmt: skip
     """The context the tally gives a crash at the last of ``steps`` (the crash partner and kind stubbed)."""
     monkeypatch.setattr(evaluation, "collision_partner", lambda snap: partner)
@@ -105,10 +104,9 @@ def _context(
     class Snap:
         time = 1.0
 
-    reset = {"fallback": not start_certified, "uncertified_start": not start_certified, "shield_reading": reading,
-             "redraws": 0}  # fmt: skip
+    reset = {"fallback": not start_certified, "uncertified_start": not start_certified, "redraws": 0}
     monkeypatch.setattr(evaluation, "vehicles_ahead", lambda snap: 0)
-    tally = EpisodeTally(0, {**reset, "snapshot": Snap()})
+    tally = EpisodeTally(0, {**reset, "snapshot": Snap()}, committed=True)
     for i, info in enumerate(steps):
         tally.add(IDLE, 0.0, {**info, "snapshot": Snap(), "collision": i == len(steps) - 1})
     return tally.context, tally.outside_model_cars
@@ -130,35 +128,32 @@ def test_a_crash_after_a_car_left_its_set_is_outside_the_model_and_names_the_car
     assert _context(monkeypatch, [_step(), _step(escaped_cars=(7,))]) == ("from_safe_state", [])
 
 
-def test_a_bare_shield_reports_its_reading_and_a_rear_end_is_others_at_fault(monkeypatch: pytest.MonkeyPatch) -> None:
+def test_under_a_bare_shield_a_rear_end_is_others_at_fault(monkeypatch: pytest.MonkeyPatch) -> None:
     """A ``SafetyShield`` with a committed family of its own, no ``make_env`` wrapper above it: every reset and step
-    reports the reading, so the tally sees a rear-end as ``others_at_fault`` under ``responsibility`` (the rule's own
-    hole under ``sound``)."""
+    reports the committed keys, and the tally sees a rear-end as ``others_at_fault`` (the follower's gap)."""
     from safelane.env.factory import make_env
-    from safelane.safety.committed import CommittedFamily
+    from safelane.safety.committed.family import CommittedFamily
     from safelane.safety.shield import SafetyShield
 
-    for reading, expected in (("responsibility", "others_at_fault"), ("sound", "from_safe_state")):
-        env = SafetyShield(make_env("fast", simulator="fast", **SHORT), mode=CommittedFamily(reading), override=True)
-        _, reset = env.reset(seed=0)
-        assert reset["shield_reading"] == reading and "redraws" not in reset
-        _, _, _, _, info = env.step(IDLE)
-        assert info["shield_reading"] == reading
-        assert {"lapse_cars", "lapse_escaped_cars", "rolled_back", "unbraked_followers"} <= set(info)
-        env.close()
-        monkeypatch.setattr(evaluation, "collision_partner", lambda snap: 7)
-        monkeypatch.setattr(evaluation, "classify_collision", lambda snap: "rear_ended")
-        monkeypatch.setattr(evaluation, "vehicles_ahead", lambda snap: 0)
-        tally = EpisodeTally(0, {**reset, "fallback": False, "uncertified_start": False})
-        tally.add(IDLE, 0.0, {**_step(), "snapshot": info["snapshot"], "collision": True})
-        assert tally.context == expected
+    env = SafetyShield(make_env("fast", simulator="fast", **SHORT), mode=CommittedFamily(), override=True)
+    _, reset = env.reset(seed=0)
+    assert "uncertified_start" in reset and "redraws" not in reset
+    _, _, _, _, info = env.step(IDLE)
+    assert {"lapse_cars", "lapse_escaped_cars", "rolled_back", "unbraked_followers", "entered_cars"} <= set(info)
+    env.close()
+    monkeypatch.setattr(evaluation, "collision_partner", lambda snap: 7)
+    monkeypatch.setattr(evaluation, "classify_collision", lambda snap: "rear_ended")
+    monkeypatch.setattr(evaluation, "vehicles_ahead", lambda snap: 0)
+    tally = EpisodeTally(0, {**reset, "fallback": False, "uncertified_start": False}, committed=True)
+    tally.add(IDLE, 0.0, {**_step(), "snapshot": info["snapshot"], "collision": True})
+    assert tally.context == "others_at_fault"
 
 
 def test_a_crash_with_a_car_rolling_back_or_unbraked_is_outside_the_model(monkeypatch: pytest.MonkeyPatch) -> None:
     """The partner rolling back, or a follower ahead of the bound the plan drew for it, at the crash's own decision
     (exits the impact does not make): ``outside_model``, the car named. Its other escapes there are the impact's."""
     for key in ("rolled_back", "unbraked_followers"):
-        context, cars = _context(monkeypatch, [_step(), _step(escaped_cars=(7,), **{key: (7,)})], kind="rear_ended")
+        context, cars = _context(monkeypatch, [_step(), _step(escaped_cars=(7,), **{key: (7,)})])
         assert (context, cars) == ("outside_model", [7])
     # Another car rolling back, not the partner: not a cause.
     assert _context(monkeypatch, [_step(), _step(rolled_back=(4,), escaped_cars=(4,))])[0] == "from_safe_state"
@@ -171,7 +166,8 @@ def test_a_lapse_names_only_the_cars_that_failed_the_plan(monkeypatch: pytest.Mo
                   plan_forced=True)  # fmt: skip
     context, cars = _context(monkeypatch, [lapse, _step()], partner=2)
     assert (context, cars) == ("outside_model", [4])
-    # The car the plan failed on was inside its set (a cut-in under sound, say): nothing outside the model is named.
+    # The car the plan failed on was inside its set (a car ahead it could not avoid, say): nothing outside the model
+    # is named.
     lapse = _step(lapse=True, lapse_cars=(5,), escaped_cars=(30,), fallback=True, plan_forced=True)
     assert _context(monkeypatch, [lapse, _step()], partner=2) == ("after_break", [])
 
@@ -181,11 +177,10 @@ def test_the_committed_contexts_in_their_order(monkeypatch: pytest.MonkeyPatch) 
     assert _context(monkeypatch, [_step(fallback=True), _step(fallback=True)], start_certified=False)[0] == (
         "uncertified_start"
     )
-    # Rear-ended: the follower's fault under responsibility, the rule's own hole under sound.
-    assert _context(monkeypatch, [_step()], "responsibility", kind="rear_ended")[0] == "others_at_fault"
-    assert _context(monkeypatch, [_step()], "sound", kind="rear_ended")[0] == "from_safe_state"
+    # Rear-ended: the follower's fault.
+    assert _context(monkeypatch, [_step()], kind="rear_ended")[0] == "others_at_fault"
     # Hit by a car that entered a lane the ego holds (at the crash's own decision too).
-    assert _context(monkeypatch, [_step(), _step(entered_cars=(7,))], "responsibility")[0] == "others_at_fault"
+    assert _context(monkeypatch, [_step(), _step(entered_cars=(7,))])[0] == "others_at_fault"
     # A lapse in the model came first: after_break (the lapse is the hole).
     lapse = _step(lapse=True, lapse_in_model=True, fallback=True, plan_forced=True)
     assert _context(monkeypatch, [lapse, _step(fallback=True, plan_forced=True)])[0] == "after_break"
@@ -197,11 +192,11 @@ def test_the_committed_contexts_in_their_order(monkeypatch: pytest.MonkeyPatch) 
 # --- lapse files and their replay --------------------------------------------------------------------
 
 
-def test_lapses_are_saved_and_replay_to_the_same_lapse(responsibility_records: list[Any], tmp_path: Path) -> None:
-    cfg = load_config("fast", overrides=RESPONSIBILITY)
-    files = save_counterexamples(responsibility_records, cfg, tmp_path, "test")
+def test_lapses_are_saved_and_replay_to_the_same_lapse(committed_records: list[Any], tmp_path: Path) -> None:
+    cfg = load_config("fast", overrides=COMMITTED)
+    files = save_counterexamples(committed_records, cfg, tmp_path, "test")
     lapse_files = [p for p in files if "-lapse-" in p.name]
-    assert len(lapse_files) == sum(len(r.lapses) - len(r.lapses_in_model) for r in responsibility_records) >= 1
+    assert len(lapse_files) == sum(len(r.lapses) - len(r.lapses_in_model) for r in committed_records) >= 1
     cx = load_counterexample(lapse_files[0])
     assert cx.kind == "lapse" and cx.cars and len(cx.actions) == cx.step
     result = replay(cx)
@@ -217,9 +212,9 @@ def test_lapses_are_saved_and_replay_to_the_same_lapse(responsibility_records: l
     assert json.loads(lapse_files[0].read_text())["cars"] == cx.cars
 
 
-def test_a_lapse_replays_on_highway_env(responsibility_records: list[Any], tmp_path: Path) -> None:
-    cfg = load_config("fast", overrides=RESPONSIBILITY)
-    files = [p for p in save_counterexamples(responsibility_records, cfg, tmp_path) if "-lapse" in p.name]
+def test_a_lapse_replays_on_highway_env(committed_records: list[Any], tmp_path: Path) -> None:
+    cfg = load_config("fast", overrides=COMMITTED)
+    files = [p for p in save_counterexamples(committed_records, cfg, tmp_path) if "-lapse" in p.name]
     result = replay(load_counterexample(files[0]), simulator="highway-env")
     assert result.simulator == "highway-env" and result.reproduced
 
@@ -230,7 +225,7 @@ def test_a_lapse_replays_on_highway_env(responsibility_records: list[Any], tmp_p
 def test_redraw_uncertified_draws_the_next_spawn_until_a_plan_verifies() -> None:
     from safelane.env.factory import make_env
 
-    plain = make_env("fast", **RESPONSIBILITY, **DENSE)
+    plain = make_env("fast", **COMMITTED, **DENSE)
     _, info = plain.reset(seed=1)
     assert info["uncertified_start"] and info["redraws"] == 0  # seed 1 spawns uncertified
     # The redraws are the environment's next draws: reset without a seed after the seeded one.
@@ -243,7 +238,7 @@ def test_redraw_uncertified_draws_the_next_spawn_until_a_plan_verifies() -> None
     assert not draws[-1]
     plain.close()
 
-    redraw = make_env("fast", **RESPONSIBILITY, **DENSE, **{"shield.redraw_uncertified": True})
+    redraw = make_env("fast", **COMMITTED, **DENSE, **{"shield.redraw_uncertified": True})
     obs, info = redraw.reset(seed=1)
     assert not info["uncertified_start"] and info["redraws"] == len(draws) - 1 >= 1
     np.testing.assert_array_equal(obs, first_obs[-1])
@@ -251,7 +246,7 @@ def test_redraw_uncertified_draws_the_next_spawn_until_a_plan_verifies() -> None
     np.testing.assert_array_equal(obs_again, obs)
     redraw.close()
     # At most redraw_tries: then the episode starts uncertified, the redraws reported.
-    bounded = make_env("fast", **RESPONSIBILITY, **DENSE, **{"shield.redraw_uncertified": True,
+    bounded = make_env("fast", **COMMITTED, **DENSE, **{"shield.redraw_uncertified": True,
                                                              "shield.redraw_tries": 1})  # fmt: skip
     _, info = bounded.reset(seed=1)
     assert info["redraws"] == 1 and info["uncertified_start"] == draws[1]
@@ -259,7 +254,7 @@ def test_redraw_uncertified_draws_the_next_spawn_until_a_plan_verifies() -> None
 
 
 def test_redraws_are_reported_in_the_summary() -> None:
-    cfg = load_config("fast", overrides={**RESPONSIBILITY, **DENSE, **SHORT, "shield.redraw_uncertified": True})
+    cfg = load_config("fast", overrides={**COMMITTED, **DENSE, **SHORT, "shield.redraw_uncertified": True})
     records = run_config(cfg, fixed_policy("faster"), 3, 0)
     s = summarize(records)
     assert s["redraws"] == sum(r.redraws for r in records) >= 1  # seed 1 is redrawn
@@ -285,7 +280,7 @@ def test_the_fast_batch_runs_committed_as_the_single_environments_do() -> None:
     from safelane.env.fast_batch import FastBatch
     from safelane.env.vector import FastVectorEnv, SafelaneVectorEnv, make_vector_env
 
-    overrides = {**COMMITTED, "env.vehicles_density": 2.0, "shield.reading": "responsibility"}
+    overrides = {**COMMITTED, "env.vehicles_density": 2.0}
     cfg = load_config("fast", overrides=overrides)
     fast = make_vector_env(cfg, num_envs=3, seed=3)
     loop = SafelaneVectorEnv([make_env(cfg) for _ in range(3)])
@@ -346,6 +341,7 @@ def test_falsify_reports_the_committed_figures(tmp_path: Path) -> None:
     from safelane.running.falsify.grid import load_campaign_spec, run_campaign
 
     spec_path = tmp_path / "c.yaml"
+    # ``shield.reading=responsibility``: an older spec's, accepted as the committed mode's one reading.
     spec_path.write_text(yaml.safe_dump({"name": "c", "shield": "committed", "policies": ["random"], "episodes": 2,
                                          "sets": ["env.duration=8", "shield.reading=responsibility"],
                                          "axes": {"lanes": [{"env.lanes_count": 3}]}}))  # fmt: skip
@@ -365,7 +361,7 @@ def test_evaluation_on_the_fast_batch_gives_the_committed_records_of_one_environ
     from safelane.env.factory import make_env
     from safelane.running.evaluation import run_episodes, run_episodes_batched
 
-    overrides = {**COMMITTED, "env.vehicles_density": 2.0, "shield.reading": "responsibility"}
+    overrides = {**COMMITTED, "env.vehicles_density": 2.0}
     cfg = load_config("fast", overrides=overrides)
     policy = fixed_policy("faster")
     fused = run_config(cfg, policy, 6, 3, num_envs=3)
@@ -384,7 +380,7 @@ FOUND = Path(__file__).resolve().parent / "fixtures" / "claim-committed"
     ["cell01017-seed4010170025-lapse_in_model-step3.json", "cell01703-seed4017030000-lapse_in_model-step98.json"],
 )
 def test_a_kept_plan_keeps_the_lanes_it_held_when_the_ego_finishes_a_lane_change(name: str) -> None:
-    """Two lapses the claim grid filed in the model (``responsibility``): the ego finished a lane change between two
+    """Two lapses the claim grid filed in the model: the ego finished a lane change between two
     decisions, so the lane it left was no longer held and a car that might turn into it two lanes away counted
     against the kept plan. The plan keeps the lanes it held when verified (``Plan.held``): no lapse now."""
     cx = load_counterexample(FOUND / name)
@@ -402,7 +398,7 @@ def test_a_kept_plan_keeps_the_lanes_it_held_when_the_ego_finishes_a_lane_change
     ],
 )
 def test_a_lapse_at_the_step_the_ego_is_rear_ended_is_the_impacts(name: str) -> None:
-    """The three lapses the claim grid still filed in the model (``responsibility``): each at the decision a car
+    """The three lapses the claim grid still filed in the model: each at the decision a car
     behind rear-ended the ego, whose impact pushed it toward the leader its plan brakes behind. The lapse stays a
     lapse, traced to the crash, not one in the model."""
     cx = load_counterexample(FOUND / name)

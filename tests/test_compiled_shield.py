@@ -13,8 +13,9 @@ from hypothesis import given, settings
 from safelane.core.errors import ConfigError, NotSupported
 from safelane.core.snapshot import RoadSnapshot
 from safelane.env.factory import make_env
-from safelane.safety import compiled, model
-from safelane.safety.model import Dynamics, RoadState, SafetyResult
+from safelane.safety.one_decision import compiled
+from safelane.safety.one_decision import reference as model
+from safelane.safety.one_decision.reference import Dynamics, RoadState, SafetyResult
 from safelane.safety.shield import SafetyShield
 from test_safety import LINEAR_AND_TURNING_OPTIONS, PROPERTY_SETTINGS, road
 

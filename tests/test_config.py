@@ -100,6 +100,23 @@ def test_bad_shield_mode_lists_the_modes() -> None:
         assert f"'{mode}'" in message
 
 
+def test_a_field_of_another_mode_is_an_error_not_ignored() -> None:
+    """``shield.formula`` is the nominal mode's: under another mode a value away from the default is one line
+    naming the field and its allowed value. ``shield.reading`` accepts only the committed mode's one reading."""
+    assert load_config("fast", sets=["shield.mode=nominal", "shield.formula=paper"]).shield.formula == "paper"
+    for mode in ("none", "robust", "committed"):
+        with pytest.raises(ConfigError, match=r"^shield\.formula: only for shield\.mode nominal .*'kinematic'$"):
+            load_config("fast", sets=[f"shield.mode={mode}", "shield.formula=paper"])
+    assert load_config("fast", sets=["shield.mode=robust", "shield.formula=kinematic"]).shield.mode == "robust"
+    with pytest.raises(ConfigError, match=r"^shield\.reading: 'sound' was removed") as err:
+        load_config("fast", sets=["shield.mode=committed", "shield.reading=sound"])
+    assert "\n" not in str(err.value)
+    cfg = load_config("fast", sets=["shield.mode=committed", "shield.reading=responsibility"])
+    assert "reading" not in cfg.shield.model_dump()
+    # Published commands pass it before the committed rows choose the mode: accepted, as a no-op.
+    assert load_config("fast", sets=["shield.reading=responsibility"]).shield.mode == "none"
+
+
 @pytest.mark.parametrize("v_max", ["0", "-10"])
 def test_reward_v_max_must_exceed_v_min(v_max: str) -> None:
     message = error_of(sets=[f"reward.v_max={v_max}"])
@@ -227,7 +244,7 @@ def test_recorded_configs_with_a_removed_option() -> None:
     flat = {k: v for k, v in data["shield"].items() if k not in ("rule", "options")}
     cfg = recorded_config({**data, "shield": {**flat, "projected_cut_ins": False, "body_extent": True}})
     assert cfg.shield.rule == "basic" and cfg.shield.options == {"body_extent": True}
-    with pytest.raises(ConfigError, match=r"^shield\.robust_fallback: .*removed.*f9bfa5a") as err:
+    with pytest.raises(ConfigError, match=r"^shield\.robust_fallback: .*removed.*changelog") as err:
         recorded_config({**data, "shield": {**flat, "robust_fallback": True}})
     assert "\n" not in str(err.value)
 
@@ -263,7 +280,7 @@ def test_every_rule_option_reaches_the_shield_of_make_env_and_of_the_batch() -> 
 
     from safelane.env.factory import make_env
     from safelane.env.fast_batch import FastBatch
-    from safelane.safety.compiled import KernelConstants
+    from safelane.safety.one_decision.compiled import KernelConstants
     from safelane.safety.rule import OPTIONS, RULES
     from safelane.safety.shield import SafetyShield
 

@@ -1,5 +1,5 @@
-"""The nominal forecast that ranks the fallback's choices (safelane.safety.forecast, shield.forecast_fallback):
-its predictions against the simulators, and the scene it was made for."""
+"""The nominal forecast that ranks the fallback's choices (safelane.safety.one_decision.forecast,
+shield.forecast_fallback): its predictions against the simulators, and the scene it was made for."""
 
 from __future__ import annotations
 
@@ -12,9 +12,9 @@ from safelane.core.snapshot import RoadSnapshot
 from safelane.core.spaces import IDLE, LANE_RIGHT, SLOWER
 from safelane.env import scenarios
 from safelane.env.factory import make_env
-from safelane.safety import model
-from safelane.safety.forecast import forecast_keys
-from safelane.safety.model import MAX_HOLD_DECISIONS, RELEVANCE_RANGE
+from safelane.safety.one_decision import reference as model
+from safelane.safety.one_decision.forecast import forecast_keys
+from safelane.safety.one_decision.reference import MAX_HOLD_DECISIONS, RELEVANCE_RANGE
 from safelane.safety.shield import SafetyShield
 from safelane.safety.world import Dynamics, RoadState
 
@@ -149,7 +149,7 @@ def test_forecast_keys_of_stops_early_with_the_same_keys(drivers: str) -> None:
     available actions, at margins from 0.1 m (every key capped early) to 50 m (nothing capped), and with the
     vehicles' speeds jittered so that gaps cross zero at other frames."""
     from safelane.safety.ego import available_actions
-    from safelane.safety.forecast import forecast_gaps_of, forecast_keys_of
+    from safelane.safety.one_decision.forecast import forecast_gaps_of, forecast_keys_of
 
     env = make_env(
         "fast",
@@ -225,7 +225,7 @@ def _one_lane_scenes(draw: st.DrawFn) -> tuple:
 def test_forecast_keys_of_is_forecast_keys_of_the_gaps(scene: tuple, margin: float, pool_bits: int) -> None:
     """Property: on any one-lane scene, forecast_keys_of's early stops give forecast_keys(forecast_gaps_of)'s keys
     to the bit, for any pool of actions."""
-    from safelane.safety.forecast import forecast_gaps_of, forecast_keys_of
+    from safelane.safety.one_decision.forecast import forecast_gaps_of, forecast_keys_of
 
     xs, last, tail = scene
     available = np.ones(5, dtype=bool)

@@ -14,7 +14,7 @@ from safelane.env.factory import make_env
 from safelane.env.scenarios import find_shield
 from safelane.running.foresight import ForesightPlanner, at_rate, ceiling_table, clone_memory, with_overrides
 
-COMMITTED = {"shield.reading": "responsibility", "shield.engine": "numpy"}
+COMMITTED = {"shield.engine": "numpy"}
 
 
 def committed_env(duration: int, rate: int = 1):
@@ -29,8 +29,7 @@ def test_committed_planner_plays_only_what_the_committed_mask_allows_at_that_nod
     # node with that node's own memory; the environment's shield (its own memory) must allow each one.
     env = committed_env(duration=6, rate=rate)
     obs, info = env.reset(seed=4)
-    planner = ForesightPlanner(env, mask="committed", horizon=2.0, beam=3, replan=2.0, **{
-        "reading": "responsibility", "engine": "numpy"})  # fmt: skip
+    planner = ForesightPlanner(env, mask="committed", horizon=2.0, beam=3, replan=2.0, engine="numpy")
     shield_memory = find_shield(env).family
     done, played = False, 0
     while not done:
@@ -47,7 +46,7 @@ def test_committed_planner_plays_only_what_the_committed_mask_allows_at_that_nod
 def test_clone_memory_is_independent_of_its_source() -> None:
     env = committed_env(duration=4)
     _, info = env.reset(seed=1)
-    planner = ForesightPlanner(env, mask="committed", horizon=1.0, beam=2, reading="responsibility", engine="numpy")
+    planner = ForesightPlanner(env, mask="committed", horizon=1.0, beam=2, engine="numpy")
     memory = planner.memory
     assert memory is not None
     mask, _ = planner.allowed(info["snapshot"])
@@ -95,7 +94,7 @@ def test_ceiling_table_has_the_committed_rows(tmp_path: Path) -> None:
 def test_every_search_node_carries_the_memory_the_shield_has_after_its_actions() -> None:
     env = committed_env(duration=8)
     env.reset(seed=6)
-    planner = ForesightPlanner(env, mask="committed", horizon=3.0, beam=4, reading="responsibility", engine="numpy")
+    planner = ForesightPlanner(env, mask="committed", horizon=3.0, beam=4, engine="numpy")
     planner.search()
     assert len(planner.last_frontier) > 1
     for actions, memory in planner.last_frontier:

@@ -71,7 +71,7 @@ def test_the_config_selects_a_rule_by_name_and_switches_options() -> None:
         (["shield.rule=newest"], r"^shield\.rule: unknown rule 'newest'; allowed: forecast-fallback, "),
         (["shield.options.nope=true"], r"^shield\.options\.nope: not an option of the rule; allowed: "),
         (["shield.options.body_extent=1"], r"^shield\.options\.body_extent: expected true or false, got 1$"),
-        (["shield.lateral_schedule=true"], r"^shield\.lateral_schedule: this option was removed .*f9bfa5a"),
+        (["shield.lateral_schedule=true"], r"^shield\.lateral_schedule: this option was removed .*changelog"),
     ):
         with pytest.raises(ConfigError, match=pattern) as err:
             load_config("fast", sets)
@@ -95,11 +95,14 @@ def test_shield_takes_a_rule_or_its_name() -> None:
 
 
 def test_the_shield_asks_a_rule_family() -> None:
-    """Both modes are :class:`RuleFamily` adapters over the one-decision rule; the numpy reference reports the
-    conflict that decided each action (its gap is the action's min_gap), the compiled engine the same verdict
-    without them."""
+    """Both one-decision modes are :class:`RuleFamily` adapters over the one-decision rule; the numpy reference
+    reports the conflict that decided each action (its gap is the action's min_gap), the compiled engine the same
+    verdict without them. :func:`family_for` builds every mode, the committed one a new family with its own memory;
+    a mode outside them is one line."""
     from safelane.env import scenarios
-    from safelane.safety.family import OneDecisionFamily, RuleFamily, family_for
+    from safelane.safety.committed.family import CommittedFamily
+    from safelane.safety.family import RuleFamily, family_for
+    from safelane.safety.one_decision.family import OneDecisionFamily
 
     for mode in ("nominal", "robust"):
         results = {}
@@ -115,5 +118,8 @@ def test_the_shield_asks_a_rule_family() -> None:
         for conflict in numpy_result.conflicts:
             assert conflict.gap == numpy_result.min_gap[conflict.action]
         assert {c.action for c in numpy_result.conflicts} <= set(np.flatnonzero(numpy_result.available).tolist())
-    with pytest.raises(ValueError, match=r"^shield\.mode: got 'committed'; allowed: 'nominal', 'robust'$"):
-        family_for("committed")
+    committed = family_for("committed", "numpy")
+    assert isinstance(committed, CommittedFamily) and isinstance(committed, RuleFamily)
+    assert committed.engine == "numpy" and committed is not family_for("committed", "numpy")
+    with pytest.raises(ValueError, match=r"^shield\.mode: got 'strict'; allowed: 'nominal', 'robust', 'committed'$"):
+        family_for("strict")

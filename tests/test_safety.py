@@ -14,8 +14,8 @@ from hypothesis import strategies as st
 
 from safelane.core.spaces import FASTER, IDLE, LANE_LEFT, LANE_RIGHT, SLOWER
 from safelane.env import scenarios
-from safelane.safety.compiled import evaluate_compiled
-from safelane.safety.model import (
+from safelane.safety.one_decision.compiled import evaluate_compiled
+from safelane.safety.one_decision.reference import (
     CarriedFollowers,
     Dynamics,
     RoadState,
@@ -401,7 +401,7 @@ def test_turning_allowance_covers_highway_env_s_lane_change() -> None:
     from highway_env.vehicle.behavior import IDMVehicle
     from highway_env.vehicle.controller import ControlledVehicle
 
-    from safelane.safety.model import braking_positions, turning_allowance
+    from safelane.safety.one_decision.reference import braking_positions, turning_allowance
 
     dyn = scenarios.ego_leftmost_lane(mode="robust").shield.dynamics
     allowance = turning_allowance(dyn.with_options(turning_leaders=True))
@@ -1294,7 +1294,7 @@ def test_invalid_mode_is_a_clear_error(evaluate: Evaluator) -> None:
 def test_road_state_keeps_exactly_the_vehicles_evaluate_considers(evaluate: Evaluator) -> None:
     """road_state snapshots only vehicles within RELEVANCE_RANGE along the road (what evaluate reads),
     and moving a far vehicle around beyond that range changes neither the snapshot nor the mask."""
-    from safelane.safety.model import RELEVANCE_RANGE
+    from safelane.safety.one_decision.reference import RELEVANCE_RANGE
     from safelane.safety.shield import road_state
     from safelane.sim.highway import snapshot_of
 

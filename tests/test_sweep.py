@@ -370,7 +370,7 @@ def test_a_killed_tpe_sweep_resumes_without_repeating_or_losing_rows(
 def test_a_committed_shield_sweep_reports_plan_forced_decisions_and_lapses_beside_the_fallback_rate(
     tmp_path: Path,
 ) -> None:
-    committed = ["shield.mode=committed", "shield.reading=responsibility", "shield.engine=numpy"]
+    committed = ["shield.mode=committed", "shield.engine=numpy"]
     spec = load_sweep_spec(
         write_spec(tmp_path / "s.yaml", sets=[*TINY, *committed], space={"agent.lr": {"grid": [0.001]}})
     )

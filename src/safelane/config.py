@@ -98,12 +98,6 @@ class ShieldConfig(_Section):
     """Which safety model masks the actions (``none`` = no shield)."""
 
     mode: Literal["none", "nominal", "robust", "committed"] = "none"
-    reading: Literal["sound", "responsibility"] = Field(
-        "sound",
-        description="The committed mode's reading of cars that can end up behind the ego (experimental): 'sound' "
-        "(every behaviour the driver model permits) or 'responsibility' (a car behind the ego in a lane it holds "
-        "is not the ego's to avoid).",
-    )
     redraw_uncertified: bool = Field(
         False,
         strict=True,
@@ -130,9 +124,10 @@ class ShieldConfig(_Section):
     )
     engine: Literal["compiled", "numpy"] = Field(
         "compiled",
-        description="How the shield evaluates the safety model: 'compiled' (safelane.safety.compiled, numba, "
-        "microseconds a mask) or 'numpy' (safelane.safety.model.evaluate, the readable reference, about a "
-        "millisecond); in the committed mode its numba kernels or the numpy reference. Identical masks.",
+        description="How the shield evaluates the safety model: 'compiled' (numba kernels, microseconds a mask: "
+        "safelane.safety.one_decision.compiled) or 'numpy' (the readable reference, about a millisecond: "
+        "safelane.safety.one_decision.reference); in the committed mode its numba kernels or the numpy reference "
+        "(safelane.safety.committed). Identical masks.",
     )
     margin: float = Field(
         1.0,
@@ -158,9 +153,10 @@ class ShieldConfig(_Section):
     @classmethod
     def _flat_options(cls, data: Any) -> Any:
         """A rule option given as a key of its own (``shield.body_extent: false``) is read as
-        ``shield.options.body_extent``; a removed option is accepted at its old default, else an error."""
+        ``shield.options.body_extent``; a removed option is accepted at its old default, else an error (so is
+        ``reading``, :func:`drop_removed_reading`)."""
         if isinstance(data, dict):
-            return fold_flat_options(data)
+            return fold_flat_options(drop_removed_reading(data))
         return data
 
     @field_validator("rule")
@@ -182,11 +178,17 @@ class ShieldConfig(_Section):
         return options
 
     @model_validator(mode="after")
-    def _redraw_committed_only(self) -> ShieldConfig:
+    def _mode_only_fields(self) -> ShieldConfig:
+        """A field that only one mode reads, set away from its default under another mode, is a one-line error
+        (it would be ignored): ``redraw_uncertified`` is the committed mode's, ``formula`` the nominal mode's."""
         if self.redraw_uncertified and self.mode != "committed":
             raise ConfigError(
                 f"shield.redraw_uncertified: only for shield.mode committed (got mode {self.mode!r}); "
                 "allowed otherwise: false"
+            )
+        if self.formula != "kinematic" and self.mode != "nominal":
+            raise ConfigError(
+                f"shield.formula: only for shield.mode nominal (got mode {self.mode!r}); allowed otherwise: 'kinematic'"
             )
         return self
 
@@ -601,7 +603,26 @@ REMOVED_OPTIONS: dict[str, bool] = {
     "forecast_lane_changes": False,
 }  # fmt: skip
 """Options measured and not adopted, removed from the rule, with the value they always had: a file that sets one
-to it still loads; any other value is an error (the code that ran it is at commit f9bfa5a)."""
+to it still loads; any other value is an error (the changelog names the commit that still runs them)."""
+
+KEPT_READING = "responsibility"
+"""The committed mode's one reading of whose gap a car is: ``shield.reading`` may still name it (older specs and
+published campaign files pass ``shield.reading=responsibility``); the other reading, ``sound``, is removed."""
+
+
+def drop_removed_reading(shield: dict[str, Any]) -> dict[str, Any]:
+    """``shield`` without ``reading`` (the committed mode has one reading, :data:`KEPT_READING`); a ``reading``
+    other than it is a one-line :class:`ConfigError`. Accepted under any mode: published commands pass it before
+    the mode is chosen (``safelane ceiling --rows foresight_committed --set shield.reading=responsibility``)."""
+    if "reading" not in shield:
+        return shield
+    if shield["reading"] != KEPT_READING:
+        raise ConfigError(
+            f"shield.reading: 'sound' was removed (measured: it verified a plan at about 5 % of decisions in "
+            f"traffic); the committed mode reads cars by responsibility, got {shield['reading']!r}"
+        )
+    return {k: v for k, v in shield.items() if k != "reading"}
+
 
 RECORDED_DEFAULTS: dict[str, bool] = RULES["basic"].options
 """The value a rule option has in a *recorded* configuration (a run's config.yaml, a counterexample file) that
@@ -624,8 +645,8 @@ def fold_flat_options(shield: dict[str, Any]) -> dict[str, Any]:
         if name in REMOVED_OPTIONS:
             if value is not REMOVED_OPTIONS[name]:
                 raise ConfigError(
-                    f"shield.{name}: this option was removed from the rule (measured, not adopted; the code that "
-                    f"ran it: commit f9bfa5a); only {str(REMOVED_OPTIONS[name]).lower()} is accepted, got {value!r}"
+                    f"shield.{name}: this option was removed from the rule (measured, not adopted; "
+                    f"docs/changelog.md); only {str(REMOVED_OPTIONS[name]).lower()} is accepted, got {value!r}"
                 )
             continue
         options[name] = value

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 import research.set_escape_audit as audit
-from safelane.safety.committed import CarSets
+from safelane.safety.committed.sets import CarSets
 from safelane.safety.world import Dynamics, RoadState
 
 TINY = ["env.duration=3", "env.vehicles_count=8", "env.lanes_count=2"]

@@ -41,6 +41,7 @@ EVALUATE_UNITS = {
     "lapses": "decisions",
     "lapses_in_model": "decisions",
     "plan_forced_rate": "per decision",
+    "courtesy_waived_rate": "per decision",
     "uncertified_starts": "episodes",
     "redraws": "spawns",
     "wall_time_s": "s",

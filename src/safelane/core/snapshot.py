@@ -17,6 +17,7 @@ Snapshots are read-only: consumers never modify the arrays.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, fields
 
 import numpy as np
@@ -169,6 +170,12 @@ class RoadSnapshot:
     def ego_heading(self) -> float:
         """[rad] the ego's heading."""
         return float(self.heading[self.ego])
+
+    @property
+    def lane_heading(self) -> float:
+        """[rad] the road's heading, ``atan2`` of the lane direction: lane coordinates measure headings from it."""
+        direction = self.lane_direction
+        return math.atan2(direction[1], direction[0])
 
     @property
     def ego_crashed(self) -> bool:

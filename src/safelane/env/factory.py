@@ -11,7 +11,7 @@
    ``lanes`` state;
 5. :class:`safelane.safety.shield.SafetyShield` — only when ``shield.mode`` is not ``none``;
 6. :class:`safelane.env.redraw.RedrawUncertified` — the ``committed`` mode only: each reset reports the
-   reading and the spawns drawn again (``shield.redraw_uncertified``).
+   spawns drawn again (``shield.redraw_uncertified``).
 """
 
 from __future__ import annotations
@@ -35,7 +35,6 @@ from safelane.core.snapshot import RoadSnapshot
 from safelane.env.observations import PaperObservation
 from safelane.env.redraw import RedrawUncertified
 from safelane.env.reward import PaperReward
-from safelane.safety.committed import CommittedFamily
 from safelane.safety.shield import SafetyShield
 from safelane.sim.highway import HighwayEnvAdapter
 from safelane.sim.traffic import TrafficLayout
@@ -156,14 +155,14 @@ def make_env(
         shield = cfg.shield
         env = SafetyShield(
             env,
-            mode=CommittedFamily(shield.reading, shield.engine) if shield.mode == "committed" else shield.mode,
+            mode=shield.mode,
             override=shield.override,
             margin=shield.margin,
             rule=shield.resolved_rule(),
             engine=shield.engine,
             formula=shield.formula,
         )
-        if shield.mode == "committed":  # its starts reported (the reading, redraws), redrawn if asked
+        if shield.mode == "committed":  # its starts reported (redraws), redrawn if asked
             env = RedrawUncertified(env, shield.redraw_tries if shield.redraw_uncertified else 0)
     env.safelane_config = cfg  # type: ignore[attr-defined]
     if seed is not None:

@@ -3,9 +3,9 @@
 :class:`FastBatch` holds ``N`` :class:`safelane.sim.fast.env.FastHighwayEnv` scenes in stacked arrays
 (:func:`safelane.sim.fast.env.stacked_storage`). One :meth:`FastBatch.step` runs every scene's physics
 in one numba call (:func:`safelane.sim.fast.kernels.simulate` per scene), then the paper's state, the
-shield's mask (the compiled safety kernel, :data:`safelane.safety.compiled.snapshot_kernel`), the
+shield's mask (the compiled safety kernel, :data:`safelane.safety.one_decision.compiled.snapshot_kernel`), the
 reward's forward speed and the crash flags of every scene in a second one. The ``committed`` shield mode keeps a
-plan per environment: its :class:`~safelane.safety.committed.CommittedFamily` (compiled kernels, called once per
+plan per environment: its :class:`~safelane.safety.committed.family.CommittedFamily` (compiled kernels, called once per
 environment and decision) judges each scene after the second call. Around them only a few numpy
 operations over the batch remain, where :func:`safelane.env.make_env`'s wrapper stack spends ~100 µs of
 Python per environment and decision.
@@ -37,9 +37,9 @@ from safelane.core.kernel_cache import drop_stale_kernel_cache
 from safelane.core.snapshot import DRIVER_FIELDS, RoadSnapshot
 from safelane.core.spaces import N_ACTIONS
 from safelane.env.observations import OBS_SIZE, lane_state_kernel, paper_state_kernel
-from safelane.safety.committed import CommittedFamily, CommittedResult
-from safelane.safety.compiled import N_CONSTS, kernel_constants, snapshot_kernel
-from safelane.safety.model import OVERRIDE_ORDER
+from safelane.safety.committed.family import CommittedFamily, CommittedResult
+from safelane.safety.one_decision.compiled import N_CONSTS, kernel_constants, snapshot_kernel
+from safelane.safety.one_decision.reference import OVERRIDE_ORDER
 from safelane.safety.shield import FALLBACK_SLOWDOWN, dynamics_of, ego_leave_time_of, ego_leave_times
 from safelane.sim.fast import kernels as K
 from safelane.sim.fast import layout as L
@@ -51,7 +51,8 @@ def _drop_stale_kernel_cache() -> None:
     (its kernels, lanes, numerics and layout), the safety rule's (its parts, its forecast, its options' bits) and
     the observations' (:mod:`safelane.core.kernel_cache`)."""
     from safelane.env import observations
-    from safelane.safety import compiled, compiled_parts, compiled_rule, forecast, rule
+    from safelane.safety import rule
+    from safelane.safety.one_decision import compiled, compiled_parts, compiled_rule, forecast
     from safelane.sim.fast import lanes, numerics
 
     safety = (compiled.__file__, compiled_rule.__file__, compiled_parts.__file__, forecast.__file__, rule.__file__)
@@ -242,9 +243,7 @@ class FastBatch:
         self.robust = shield.mode == "robust"
         # The committed mode keeps a plan per environment: its family judges each state after the kernel ran.
         self.committed = shield.mode == "committed"
-        self.families = [
-            CommittedFamily(shield.reading, shield.engine) for _ in range(num_envs if self.committed else 0)
-        ]
+        self.families = [CommittedFamily(shield.engine) for _ in range(num_envs if self.committed else 0)]
         self.results: list[CommittedResult | None] = [None] * (num_envs if self.committed else 0)
         self._dynamics = None
         self.override = bool(shield.override)
@@ -310,12 +309,10 @@ class FastBatch:
         """The safety kernel's arguments that stay the same for the batch (SafetyShield's dynamics)."""
         shield = self.cfg.shield
         dyn = dynamics_of(snap, shield.margin, shield.resolved_rule())
-        direction = snap.lane_direction
-        lane_heading = math.atan2(direction[1], direction[0])
         return (
             ego_leave_times(dyn), FALLBACK_SLOWDOWN, float(snap.speed_limit),
-            *(_readonly(np.array(a, dtype=float)) for a in (snap.lane_origin, direction, snap.lane_lateral)),
-            lane_heading, *kernel_constants(dyn),
+            *(_readonly(np.array(a, dtype=float)) for a in (snap.lane_origin, snap.lane_direction, snap.lane_lateral)),
+            snap.lane_heading, *kernel_constants(dyn),
         )  # fmt: skip
 
     def reset_info(self, i: int) -> dict[str, Any]:
@@ -338,13 +335,8 @@ class FastBatch:
     def committed_info(self, i: int) -> dict[str, Any]:
         """The committed mode's ``info`` keys of environment ``i``'s current state (``SafetyShield``'s)."""
         result = self.results[i]
-        return {
-            "plan_forced": result.plan_forced, "lapse": result.lapse, "lapse_in_model": result.lapse_in_model,
-            "lapse_cars": result.lapse_cars, "lapse_escaped_cars": result.lapse_escaped,
-            "escaped_cars": result.escaped, "rolled_back": result.rolled_back,
-            "unbraked_followers": result.unbraked_followers, "entered_cars": result.entered,
-            "certified": result.certified, "shield_reading": self.cfg.shield.reading,
-        }  # fmt: skip
+        assert result is not None
+        return result.info()
 
     def speeds(self) -> np.ndarray:
         """[m/s] Every ego's speed now (``info["speed"]``), shape ``(N,)``."""
@@ -450,5 +442,5 @@ _NO_SHIELD = (
     _readonly(np.zeros(1)), _readonly(np.zeros(1)), _readonly(np.zeros(1)), np.zeros(1, dtype=np.int64),
     _readonly(np.zeros(N_CONSTS)), 0,
 )  # fmt: skip
-"""Placeholders of :class:`safelane.safety.compiled.KernelConstants`'s fields when no shield runs (typed
+"""Placeholders of :class:`safelane.safety.one_decision.compiled.KernelConstants`'s fields when no shield runs (typed
 as the real ones, so both cases share one compiled kernel)."""

@@ -1,11 +1,10 @@
 """The committed shield's episode starts: each reset reports them, and can redraw an uncertified spawn.
 
-The ``committed`` shield mode (:mod:`safelane.safety.committed`) promises nothing in an episode whose first state
-has no verified plan (``info["uncertified_start"]``). :class:`RedrawUncertified` sits above the shield and adds
-to every reset's ``info`` the number of spawns drawn again (``redraws``; the shield itself reports its reading,
-``shield_reading``, which the collision contexts read); with ``tries`` > 0 (``shield.redraw_uncertified``) it
-resets again, without a seed — the environment's generator draws the next spawn, so the same seed still gives
-the same episode — until the first state has a verified plan, at most ``tries`` times.
+The ``committed`` shield mode (:mod:`safelane.safety.committed`) promises nothing in an episode whose first state has no
+verified plan (``info["uncertified_start"]``). :class:`RedrawUncertified` sits above the shield and adds to every
+reset's ``info`` the number of spawns drawn again (``redraws``); with ``tries`` > 0 (``shield.redraw_uncertified``) it
+resets again, without a seed — the environment's generator draws the next spawn, so the same seed still gives the same
+episode — until the first state has a verified plan, at most ``tries`` times.
 """
 
 from __future__ import annotations

@@ -21,7 +21,7 @@ import numpy as np
 from highway_env.vehicle.behavior import AggressiveVehicle, IDMVehicle, LinearVehicle
 
 from safelane.env.factory import make_env
-from safelane.safety.model import Mode, SafetyResult
+from safelane.safety.one_decision.reference import Mode, SafetyResult
 from safelane.safety.shield import SafetyShield
 
 

@@ -32,7 +32,7 @@ from safelane.reporting.metrics_file import METRICS_FILE, read_metrics
 from safelane.running.policies import fixed_policy
 from safelane.running.run_directory import make_train_config
 from safelane.running.training import train
-from safelane.safety.model import OVERRIDE_ORDER
+from safelane.safety.world import OVERRIDE_ORDER
 
 BENCH_PRESET = "fast"
 BENCH_SHIELDS = ("nominal", "robust")
@@ -47,8 +47,6 @@ FAST_REPEATS = 5
 COMMITTED_EPISODES = 2
 """Episodes (of the bench's first seeds) on which the committed mask is timed beside the robust one: the committed
 mode's numpy reference costs milliseconds per decision, so a few dozen decisions keep bench's runtime."""
-COMMITTED_READING = "responsibility"
-"""The committed mode's reading that bench times (the one the claim campaign measures)."""
 HIGHER_IS_BETTER = (
     "fast_decisions_per_s",
     "fast_shielded_decisions_per_s",
@@ -95,24 +93,21 @@ def mask_cost_figures(mask_us: Sequence[float], suffix: str = "", prefix: str = 
     }
 
 
-def committed_mask_figures(
-    episodes: int = COMMITTED_EPISODES, seed: int = 0, reading: str = COMMITTED_READING
-) -> dict[str, Any]:
+def committed_mask_figures(episodes: int = COMMITTED_EPISODES, seed: int = 0) -> dict[str, Any]:
     """The committed shield mode's cost per decision beside the robust mode's, on the same states: ``episodes``
     episodes of the ``fast`` preset on the fast simulator (seeds ``seed``, ``seed + 1``, …) with the random policy,
     its action replaced by the closest one the committed mask allows (as ``shield.override`` does, so the kept plan
     drives as it would). At every decision, untimed between the two: the robust shield's ``compute_result`` and the
-    committed shield's (``shield.reading`` = ``reading``, ``shield.engine`` as the preset says), plus its
+    committed shield's (``shield.engine`` as the preset says), plus its
     ``commit`` of the executed action (its memory: the plan kept for the next decision). Both shields are those
     :func:`~safelane.env.factory.make_env` builds from the preset. Figures [µs]: ``committed_mask_us_median_fast``,
     ``…_mean_fast``, ``…_p99_fast`` and the robust mask's on the same states, ``committed_robust_mask_us_…_fast``;
     ``committed_mask_ratio_fast``: the committed mean ÷ the robust mean (the target: ≤ 3);
-    ``committed_mask_decisions``: the decisions timed; ``committed_engine``, ``committed_reading``."""
+    ``committed_mask_decisions``: the decisions timed; ``committed_engine``."""
     if episodes < 1:
         raise ValueError(f"episodes: must be >= 1 (got {episodes})")
     env = make_env(BENCH_PRESET, simulator="fast")  # no shield of its own: the two below judge its states
-    committed = find_shield(make_env(BENCH_PRESET, simulator="fast", **{"shield.mode": "committed",
-                                                                         "shield.reading": reading}))  # fmt: skip
+    committed = find_shield(make_env(BENCH_PRESET, simulator="fast", **{"shield.mode": "committed"}))
     robust = find_shield(make_env(BENCH_PRESET, simulator="fast", **{"shield.mode": "robust"}))
     family = committed.family
     committed_us: list[float] = []
@@ -121,7 +116,7 @@ def committed_mask_figures(
         for i in range(-1, episodes):  # episode -1: its first decisions compile (or load) the kernels, untimed
             policy = fixed_policy("random", seed + max(i, 0))
             obs, info = env.reset(seed=seed + max(i, 0))
-            family.reset()  # type: ignore[attr-defined]
+            family.reset()
             done, decisions = False, 0
             while not done and (i >= 0 or decisions < 3):
                 action = int(policy(obs, info))
@@ -132,7 +127,7 @@ def committed_mask_figures(
                 t2 = time.perf_counter()
                 executed = action if mask[action] else next(a for a in OVERRIDE_ORDER[action] if mask[a])
                 t3 = time.perf_counter()
-                family.commit(executed)  # type: ignore[attr-defined]
+                family.commit(executed)
                 t4 = time.perf_counter()
                 if i >= 0:
                     robust_us.append((t1 - t0) * 1e6)
@@ -150,9 +145,7 @@ def committed_mask_figures(
     figures["committed_mask_ratio_fast"] = (
         figures["committed_mask_us_mean_fast"] / figures["committed_robust_mask_us_mean_fast"]
     )
-    figures.update(
-        committed_mask_decisions=len(committed_us), committed_engine=committed.engine, committed_reading=reading
-    )
+    figures.update(committed_mask_decisions=len(committed_us), committed_engine=committed.engine)
     return figures
 
 
@@ -264,7 +257,7 @@ def run_bench(
     * ``shield_mask_share_fast``: that median mask cost as a share of a shielded fast decision
       (median µs × ``fast_shielded_decisions_per_s``);
     * ``committed_mask_us_median_fast`` / ``_mean_fast`` / ``_p99_fast`` [µs]: the committed mode's decision
-      (evaluate and commit, reading :data:`COMMITTED_READING`) and ``committed_robust_mask_us_…_fast`` the robust
+      (evaluate and commit) and ``committed_robust_mask_us_…_fast`` the robust
       mask's on the same states, ``committed_mask_ratio_fast`` committed ÷ robust (means), on the first
       ``min(episodes, COMMITTED_EPISODES)`` seeds (:func:`committed_mask_figures`);
     * ``fast_batched_decisions_per_s``: ``{N: summed decisions/s}`` of ``make_vector_env`` with N

@@ -35,8 +35,8 @@ override, or a crash right after a fallback state that no break led to).
 
 The ``committed`` shield mode (a plan kept between decisions) names three more, checked first, in this order:
 ``uncertified_start`` — no state before the crash had a verified plan (the episode started uncertified and
-stayed so: the committed mode's ``started_unsafe``, which it does not use); ``others_at_fault`` — under the
-``responsibility`` reading, the ego was rear-ended or hit by a car that entered a lane the ego holds (the gap
+stayed so: the committed mode's ``started_unsafe``, which it does not use); ``others_at_fault`` — the ego was
+rear-ended or hit by a car that entered a lane the ego holds (the gap
 that car made was its own to keep); ``outside_model`` — a car had left the set drawn for it before the crash:
 the crash partner (also one rolling back, ``info["rolled_back"]``, or a follower ahead of the bound the plan drew
 for it, ``info["unbraked_followers"]``, by the crash's own decision), or a car a lapse's kept plan failed on
@@ -138,7 +138,7 @@ def classify_collision(snap: RoadSnapshot) -> str | None:
         s_o, r_o = _lane_coordinates(snap, lane, positions[other])
         return s_o - s_e, r_o - r_e
 
-    lane_heading = math.atan2(snap.lane_direction[1], snap.lane_direction[0])
+    lane_heading = snap.lane_heading
     ego_long, ego_lat = _extents(snap.length[e], snap.width[e], float(snap.heading[e]) - lane_heading)
     other_long, other_lat = _extents(snap.length[other], snap.width[other], float(snap.heading[other]) - lane_heading)
     return collision_kind(offset(before), offset(after), ego_long + other_long, ego_lat + other_lat)

@@ -32,6 +32,7 @@ from safelane.running.collisions import (
     collision_partner,
 )
 from safelane.running.policies import Policy, fixed_policy
+from safelane.safety.shield import SafetyShield
 
 if TYPE_CHECKING:
     from safelane.env.fast_batch import FastBatch
@@ -76,12 +77,15 @@ class EpisodeRecord:
     """``committed`` mode: decisions (1-based) after which the plan kept, verified, no longer verified."""
     lapses_in_model: list[int] = field(default_factory=list)
     """``committed`` mode: the lapses not traced to the model's exits (a car the kept plan fails on inside its
-    set, :attr:`safelane.safety.committed.CommittedResult.lapse_in_model`): gaps in the construction."""
+    set, :attr:`safelane.safety.committed.family.CommittedResult.lapse_in_model`): gaps in the construction."""
     lapse_cars: list[list[int]] = field(default_factory=list)
     """``committed`` mode: per lapse, the cars (snapshot indices) the kept plan fails on (``info["lapse_cars"]``)."""
     plan_forced: int = 0
     """``committed`` mode: decisions at which nothing verified and the kept plan's next step drove (counted like
     ``fallbacks``, from the state each step ends in)."""
+    courtesy_waived: int = 0
+    """``committed`` mode: decisions at which some action was verified but none was safe by the one-decision robust
+    rule (:func:`safelane.safety.committed.family.courteous`; counted like ``plan_forced``)."""
     redraws: int = 0
     """``committed`` mode with ``shield.redraw_uncertified``: spawns drawn again before this one
     (:class:`safelane.env.redraw.RedrawUncertified`)."""
@@ -102,7 +106,8 @@ class EpisodeRecord:
 
 
 COMMITTED_FIELDS: tuple[str, ...] = (
-    "uncertified_start", "lapses", "lapses_in_model", "lapse_cars", "plan_forced", "redraws", "outside_model_cars",
+    "uncertified_start", "lapses", "lapses_in_model", "lapse_cars", "plan_forced", "courtesy_waived", "redraws",
+    "outside_model_cars",
 )  # fmt: skip
 """The :class:`EpisodeRecord` fields only the ``committed`` shield mode fills."""
 
@@ -121,7 +126,8 @@ class EpisodeTally:
     """What an episode's steps add up to, step by step: the one bookkeeping of :func:`run_episode` and
     :func:`run_episodes_batched` (so both give the same :class:`EpisodeRecord` for the same steps)."""
 
-    def __init__(self, seed: int, reset_info: dict[str, Any]) -> None:
+    def __init__(self, seed: int, reset_info: dict[str, Any], committed: bool = False) -> None:
+        """``reset_info``: the episode's reset ``info``; ``committed``: the shield is the committed mode's."""
         self.seed = seed
         self.ahead_at_start = vehicles_ahead(reset_info["snapshot"])
         self.total_reward = 0.0
@@ -138,16 +144,16 @@ class EpisodeTally:
         self.shielded = "fallback" in reset_info
         self.safe_seen = self.state_safe = reset_info.get("fallback") is False
         self.context: str | None = None
-        # The committed mode (its reset info says whether the start is certified): lapses, plan-forced decisions,
-        # and the cars that left their sets or entered a lane the ego holds, for the collision's context.
-        self.committed = "uncertified_start" in reset_info
-        self.responsibility = reset_info.get("shield_reading") == "responsibility"
+        # The committed mode: lapses, plan-forced decisions, and the cars that left their sets or entered a lane
+        # the ego holds, for the collision's context.
+        self.committed = committed
         self.uncertified_start = bool(reset_info["uncertified_start"]) if self.committed else None
         self.redraws = int(reset_info.get("redraws", 0))
         self.lapses: list[int] = []
         self.lapses_in_model: list[int] = []
         self.lapse_cars: list[list[int]] = []
         self.plan_forced = 0
+        self.courtesy_waived = 0
         self.escaped_seen: set[int] = set()
         self.entered_seen: set[int] = set()
         self.lapse_named: set[int] = set()
@@ -192,6 +198,7 @@ class EpisodeTally:
         """The committed mode's figures of one step (after its collision's context: the crash step's own escapes
         are the impact's, not a cause)."""
         self.plan_forced += bool(info.get("plan_forced", False))
+        self.courtesy_waived += bool(info.get("courtesy_waived", False))
         escaped = [int(v) for v in info.get("escaped_cars", ())]
         entered = [int(v) for v in info.get("entered_cars", ())]
         if not self.collision:
@@ -222,7 +229,7 @@ class EpisodeTally:
         if not self.safe_seen:
             return "uncertified_start"
         entered = self.entered_seen | {int(v) for v in info.get("entered_cars", ())}  # a cut-in into the crash counts
-        if self.responsibility and (classify_collision(snap) == "rear_ended" or partner in entered):
+        if classify_collision(snap) == "rear_ended" or partner in entered:
             return "others_at_fault"
         if named:
             self.outside_model_cars = named
@@ -257,15 +264,26 @@ class EpisodeTally:
             lapses_in_model=self.lapses_in_model,
             lapse_cars=self.lapse_cars,
             plan_forced=self.plan_forced,
+            courtesy_waived=self.courtesy_waived,
             redraws=self.redraws,
             outside_model_cars=self.outside_model_cars,
         )
 
 
+def shield_mode(env: gym.Env) -> str:
+    """The ``shield.mode`` of the :class:`SafetyShield` among ``env``'s wrappers (``"none"``: no shield)."""
+    layer: Any = env
+    while isinstance(layer, gym.Wrapper):
+        if isinstance(layer, SafetyShield):
+            return layer.mode
+        layer = layer.env
+    return "none"
+
+
 def run_episode(env: gym.Env, policy: Policy, seed: int) -> EpisodeRecord:
     """Play one episode reset with ``seed`` until it terminates or is truncated."""
     obs, info = env.reset(seed=seed)
-    tally = EpisodeTally(seed, info)
+    tally = EpisodeTally(seed, info, committed=shield_mode(env) == "committed")
     done = False
     while not done:
         action = int(policy(obs, info))
@@ -327,7 +345,7 @@ def run_episodes_batched(
         nonlocal next_episode
         index, next_episode = next_episode, next_episode + 1
         obs, info = env.reset(seed=seed + index)
-        return index, EpisodeTally(seed + index, info), obs, info
+        return index, EpisodeTally(seed + index, info, committed=shield_mode(env) == "committed"), obs, info
 
     active = list(envs[:episodes])
     slots = [start(env) for env in active]
@@ -378,7 +396,7 @@ def run_episodes_fast_batch(
         index, next_episode = next_episode, next_episode + 1
         batch.reset_env(i, seed + index)
         info = batch.reset_info(i)
-        slots[i] = (index, EpisodeTally(seed + index, info))
+        slots[i] = (index, EpisodeTally(seed + index, info, committed=batch.committed))
         infos[i] = info
 
     for i in range(min(batch.num_envs, episodes)):
@@ -462,7 +480,9 @@ def summarize(records: list[EpisodeRecord], **meta: Any) -> dict[str, Any]:
     return summary
 
 
-COMMITTED_FIGURES: tuple[str, ...] = ("lapses", "lapses_in_model", "plan_forced_rate", "uncertified_starts", "redraws")
+COMMITTED_FIGURES: tuple[str, ...] = (
+    "lapses", "lapses_in_model", "plan_forced_rate", "courtesy_waived_rate", "uncertified_starts", "redraws",
+)  # fmt: skip
 """The committed mode's figures a summary adds (:func:`committed_figures`), as stress and falsify records carry
 them."""
 
@@ -470,6 +490,7 @@ them."""
 def committed_figures(records: list[EpisodeRecord]) -> dict[str, Any]:
     """The committed shield mode's figures of ``records`` (empty for the other modes, whose summaries keep their
     keys): ``lapses`` and ``lapses_in_model`` (counts), ``plan_forced_rate`` (plan-forced decisions ÷ decisions),
+    ``courtesy_waived_rate`` (decisions with no verified action the one-decision rule calls safe ÷ decisions),
     ``uncertified_starts`` (episodes) and ``redraws`` (spawns drawn again, ``shield.redraw_uncertified``)."""
     committed = [r for r in records if r.uncertified_start is not None]
     if not committed:
@@ -479,6 +500,7 @@ def committed_figures(records: list[EpisodeRecord]) -> dict[str, Any]:
         "lapses": sum(len(r.lapses) for r in committed),
         "lapses_in_model": sum(len(r.lapses_in_model) for r in committed),
         "plan_forced_rate": sum(r.plan_forced for r in committed) / max(decisions, 1),
+        "courtesy_waived_rate": sum(r.courtesy_waived for r in committed) / max(decisions, 1),
         "uncertified_starts": sum(bool(r.uncertified_start) for r in committed),
         "redraws": sum(r.redraws for r in committed),
     }

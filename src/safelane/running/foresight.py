@@ -9,7 +9,7 @@ ones are dropped, the ``beam`` that got farthest along the road are kept) and pl
 first action(s). Unmasked, it bounds the speed any collision-free policy reaches in this traffic (from
 below: a deeper search could only drive faster); restricted to the nominal or robust mask at every
 node of the search, it gives that shield's real ceiling. The committed mask has memory (the plan kept from one
-decision to the next, :class:`~safelane.safety.committed.CommittedFamily`): every node of the search carries its
+decision to the next, :class:`~safelane.safety.committed.family.CommittedFamily`): every node of the search carries its
 own copy of it, committed along the node's actions (:func:`clone_memory`).
 
 :func:`~safelane.running.policies.overtaking_probe` is a hand-written FASTER-first heuristic (it reads the
@@ -30,8 +30,9 @@ from safelane.core.snapshot import RoadSnapshot
 from safelane.core.spaces import ACTION_NAMES, N_ACTIONS
 from safelane.env.factory import make_env
 from safelane.running.policies import overtaking_probe, snap_of
-from safelane.safety.committed import CommittedFamily
+from safelane.safety.committed.family import CommittedFamily
 from safelane.safety.shield import SafetyShield
+from safelane.safety.world import Engine
 from safelane.sim.fast.env import FastHighwayEnv, SimState
 
 PlannerMask = Literal["none", "nominal", "robust", "committed"]
@@ -60,7 +61,7 @@ class ForesightPlanner:
     ``env``: the safelane environment it acts in (built with ``simulator: fast``). ``mask``: ``none``
     (any action), ``nominal``, ``robust`` or ``committed`` (only actions that shield allows, at every node of the
     search; in a fallback state, the shield's least-bad action; ``committed``: the committed mask with
-    ``reading`` and ``engine``, its memory carried by every node and, between searches, by :attr:`memory`, which
+    ``engine``, its memory carried by every node and, between searches, by :attr:`memory`, which
     records the actions played: the environment must play them). ``horizon`` [s]: how far each search
     looks; ``beam``: sequences kept per depth; ``replan`` [s]: how often it searches again (the plan is
     exact, so replaying it between searches loses nothing but horizon). Call it like any policy:
@@ -75,8 +76,7 @@ class ForesightPlanner:
         beam: int = 8,
         replan: float = 1.0,
         margin: float | None = None,
-        reading: str = "sound",
-        engine: str = "compiled",
+        engine: Engine = "compiled",
     ) -> None:
         if mask not in PLANNER_MASKS:
             raise ConfigError(f"mask: got {mask!r}; allowed: {', '.join(PLANNER_MASKS)}")
@@ -96,8 +96,8 @@ class ForesightPlanner:
         # A shield over the bare simulator, only to evaluate masks of predicted states (never stepped).
         self.memory: CommittedFamily | None = None
         if mask == "committed":
-            self.memory = CommittedFamily(reading, engine)  # type: ignore[arg-type]
-            self.shield = SafetyShield(self.sim, mode=self.memory, engine=engine, **kwargs)  # type: ignore[arg-type]
+            self.memory = CommittedFamily(engine)
+            self.shield = SafetyShield(self.sim, mode=self.memory, **kwargs)
         else:
             self.shield = None if mask == "none" else SafetyShield(self.sim, mode=mask, **kwargs)
         self.plan: list[int] = []
@@ -297,8 +297,7 @@ ROWS: tuple[str, ...] = (
 )  # fmt: skip
 """The table's rows per decision rate: the planner unmasked / under the nominal / under the robust mask,
 the overtaking probe under the robust shield, a trained robust agent (where one is given); the planner under the
-committed mask and the same agent under the committed shield (``shield.reading`` and ``shield.engine`` of the
-table's config)."""
+committed mask and the same agent under the committed shield (``shield.engine`` of the table's config)."""
 ROW_SHIELDS = {
     "foresight": "none", "foresight_nominal": "nominal", "foresight_committed": "committed",
     "agent_committed": "committed",
@@ -329,8 +328,8 @@ def play_row(
             raise ConfigError("agent: no trained agent given for this rate")
         run = load_run_config(agent_dir)
         agent = load_agent(agent_dir)
-        # The committed shield with the table's reading and engine (the run's own config may have none).
-        sets = [f"shield.reading={cfg.shield.reading}", f"shield.engine={cfg.shield.engine}"]
+        # The committed shield with the table's engine (the run's own config may have none).
+        sets = [f"shield.engine={cfg.shield.engine}"]
         shield = cfg.shield.mode
         env_cfg = run_env_config(run, sets=sets if shield == "committed" else None, shield=shield, override=True)
         return {"row": row, "agent": agent_dir, **play(env_cfg, lambda env: GreedyPolicy(agent, run), episodes, seed)}
@@ -341,8 +340,7 @@ def play_row(
 
     def make(env: Any) -> ForesightPlanner:
         planners.append(
-            ForesightPlanner(env, mask=mask, horizon=horizon, beam=beam, reading=cfg.shield.reading,
-                             engine=cfg.shield.engine)
+            ForesightPlanner(env, mask=mask, horizon=horizon, beam=beam, engine=cfg.shield.engine)
         )  # fmt: skip
         return planners[-1]
 

@@ -83,7 +83,8 @@ def action_lanes(state: RoadState, dyn: Dynamics, action: int) -> list[tuple[int
 
     With the rule's ``crossed_lanes`` also every lane the ego crosses on the way to its target: a lane
     change chained onto one under way (lane 0 → 1, then RIGHT again → 2) takes the ego through lane 1 whole,
-    which the leave time of one lane change does not bound (cells 2009 and 2833)."""
+    which the leave time of one lane change does not bound (the claim grid found it twice: a second change
+    begun before the first ended)."""
     base = {state.ego_lane, state.ego_target_lane}
     if action not in (LANE_LEFT, LANE_RIGHT):
         if dyn.rule.crossed_lanes:

@@ -1,8 +1,8 @@
 """The safety rule as data: every option of the rule declared once, and the named rules.
 
 A :class:`Rule` is the value of every :data:`OPTIONS` entry (on or off). The numpy reference
-(:mod:`safelane.safety.model`) reads them by name (``rule.body_extent``); the compiled kernels
-(:mod:`safelane.safety.compiled`, the fast batch) take one integer, :attr:`Rule.flags`, and test its bits
+(:mod:`safelane.safety.one_decision.reference`) reads them by name (``rule.body_extent``); the compiled kernels
+(:mod:`safelane.safety.one_decision.compiled`, the fast batch) take one integer, :attr:`Rule.flags`, and test its bits
 (``flags & FLAG_BODY_EXTENT``). The named rules (:data:`RULES`) are what a configuration selects
 (``shield.rule``); ``shield.options`` switches single options of it for research.
 
@@ -86,7 +86,7 @@ _BIT: dict[str, int] = {o.name: 1 << i for i, o in enumerate(OPTIONS)}
 ALL_FLAGS = (1 << len(OPTIONS)) - 1
 
 # The bits as module constants: the compiled kernels read them as globals (numba freezes them at compile time;
-# safelane.safety.compiled drops its cache when this file changes).
+# safelane.safety.one_decision.compiled drops its cache when this file changes).
 FLAG_BODY_EXTENT = _BIT["body_extent"]
 FLAG_LINEAR_MOBIL = _BIT["linear_mobil"]
 FLAG_REVERSING_LEADERS = _BIT["reversing_leaders"]

@@ -2,14 +2,14 @@
 
 ``SafetyShield(env, mode="robust")`` reads the road snapshot (``info["snapshot"]``, a
 :class:`safelane.core.snapshot.RoadSnapshot`) after every reset and step, turns it into a
-:class:`safelane.safety.model.RoadState` (SI units, lane coordinates) and asks
-:func:`safelane.safety.model.evaluate` which of the 5 meta-actions are safe:
+:class:`safelane.safety.one_decision.reference.RoadState` (SI units, lane coordinates) and asks
+:func:`safelane.safety.one_decision.reference.evaluate` which of the 5 meta-actions are safe:
 
 * ``action_masks()`` returns the mask (sb3-contrib's convention, so ``MaskablePPO`` uses it as is);
 * ``info["action_mask"]``, ``info["fallback"]`` (no action was safe, the least-bad one is allowed)
   and ``info["shield_intervened"]`` (the override replaced the chosen action) are added;
 * with ``override=True`` an unsafe action is replaced by the closest safe one
-  (:data:`safelane.safety.model.OVERRIDE_ORDER`), so any agent — SB3's DQN, a random policy, a human —
+  (:data:`safelane.safety.one_decision.reference.OVERRIDE_ORDER`), so any agent — SB3's DQN, a random policy, a human —
   drives safely.
 
 Every constant of the dynamics comes from the snapshot, which the simulator fills from its own
@@ -33,10 +33,21 @@ import gymnasium as gym
 import numpy as np
 
 from safelane.core.snapshot import RoadSnapshot
-from safelane.safety.committed import CommittedFamily, CommittedResult, Reading
-from safelane.safety.family import ENGINES, Engine, RuleFamily, family_for, road_state, road_state_bodies
-from safelane.safety.model import OVERRIDE_ORDER, Dynamics, Formula, Mode, RoadState, SafetyResult
+from safelane.safety.family import RuleFamily, family_for
+from safelane.safety.road import road_state, road_state_bodies
 from safelane.safety.rule import DEFAULT_RULE_NAME, Rule, as_rule
+from safelane.safety.world import (
+    ENGINES,
+    OVERRIDE_ORDER,
+    SHIELD_MODES,
+    Dynamics,
+    Engine,
+    Formula,
+    Mode,
+    RoadState,
+    SafetyResult,
+    check_choices,
+)
 from safelane.sim.highway import HighwayEnvAdapter, lane_change_timing
 
 DEFAULT_MARGIN = Dynamics.__dataclass_fields__["margin"].default
@@ -111,10 +122,8 @@ def ego_leave_times(dyn: Dynamics) -> np.ndarray:
 def ego_leave_time_of(snap: RoadSnapshot, dyn: Dynamics) -> float:
     """[s] The time the ego takes to leave its lane in the state of ``snap`` (what the shield gives the rule)."""
     # The ego's speed along the road, as road_state computes it (the compiled path builds no RoadState).
-    direction = snap.lane_direction
-    lane_heading = math.atan2(direction[1], direction[0])
     e = snap.ego
-    ego_speed = float(snap.speed[e] * math.cos(float(snap.heading[e]) - lane_heading))
+    ego_speed = float(snap.speed[e] * math.cos(float(snap.heading[e]) - snap.lane_heading))
     # The ego leaves its old lane more slowly at low speed (the steering turns the car in
     # proportion to its speed; at a standstill it never leaves). Time it at the lowest speed
     # the ego may have while still changing lane — its speed or set-point, minus what a
@@ -137,22 +146,23 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
     ``rule``: the rule's options, a :class:`~safelane.safety.rule.Rule` or the name of one in
     :data:`safelane.safety.rule.RULES` (default ``"forecast-fallback"``; ``Rule.with_options`` switches single
     options, each declared with its meaning in :data:`safelane.safety.rule.OPTIONS`).
-    ``engine``: ``"compiled"`` (:mod:`safelane.safety.compiled`, microseconds) or ``"numpy"`` (the
-    reference :func:`safelane.safety.model.evaluate`, about a millisecond); the same masks either way.
+    ``engine``: ``"compiled"`` (:mod:`safelane.safety.one_decision.compiled`, microseconds) or ``"numpy"`` (the
+    reference :func:`safelane.safety.one_decision.reference.evaluate`, about a millisecond); the same masks either way.
     ``formula``: ``"kinematic"`` (derived for highway-env, docs/safety.md) or ``"paper"`` (eq. 12, nominal).
     ``mode="committed"`` (experimental, :mod:`safelane.safety.committed`; its ``engine`` ``"compiled"``,
-    :mod:`safelane.safety.committed_compiled`, gives the numpy reference's bits): a plan verified against the
-    others' reachable sets is kept between decisions; ``mode=CommittedFamily(reading="responsibility")`` chooses
-    the reading (default ``"sound"``); ``info`` gains ``plan_forced``, ``lapse``, ``lapse_in_model``,
+    :mod:`safelane.safety.committed.compiled`, gives the numpy reference's bits): a plan verified against the
+    others' reachable sets is kept between decisions; ``info`` gains ``plan_forced``, ``lapse``, ``lapse_in_model``,
     ``lapse_cars`` (the cars the lapse's kept plan fails on), ``lapse_escaped_cars`` (those of them outside their
     sets), ``escaped_cars`` (every car outside its set), ``rolled_back``, ``unbraked_followers``, ``entered_cars``,
-    ``certified``, ``shield_reading`` (and ``uncertified_start`` after a reset); cars by their snapshot index.
+    ``certified`` (and ``uncertified_start`` after a reset); cars by their snapshot index.
+    ``mode`` may also be a :class:`~safelane.safety.family.RuleFamily` of the caller's (its memory the caller's
+    to read; its ``engine`` then overrides ``engine``).
     """
 
     def __init__(
         self,
         env: gym.Env,
-        mode: Mode | Literal["committed"] | CommittedFamily = "robust",
+        mode: Mode | Literal["committed"] | RuleFamily = "robust",
         override: bool = False,
         margin: float = DEFAULT_MARGIN,
         rule: Rule | str = DEFAULT_RULE_NAME,
@@ -161,15 +171,10 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
     ) -> None:
         if not (isinstance(margin, int | float) and math.isfinite(margin) and margin >= 0):
             raise ValueError(f"shield.margin: must be a finite number >= 0 [m] (got {margin!r})")
-        family: CommittedFamily | None = None
-        if isinstance(mode, CommittedFamily):  # a committed family with its reading (experimental)
-            family, mode = mode, "committed"  # type: ignore[assignment]
-        if mode not in ("nominal", "robust", "committed"):
-            raise ValueError(f"shield.mode: got {mode!r}; allowed: 'nominal', 'robust', 'committed'")
-        if formula not in ("kinematic", "paper"):
-            raise ValueError(f"shield.formula: got {formula!r}; allowed: 'kinematic', 'paper'")
-        if engine not in ENGINES:
-            raise ValueError(f"shield.engine: got {engine!r}; allowed: 'compiled', 'numpy'")
+        family: RuleFamily | None = None
+        if isinstance(mode, RuleFamily):  # a family of the caller's (the committed mode's memory, say)
+            family, mode, engine = mode, mode.mode, mode.engine  # type: ignore[assignment]
+        check_choices(mode, engine, formula, modes=SHIELD_MODES)
         resolved = as_rule(rule)
         gym.utils.RecordConstructorArgs.__init__(
             self, mode=family or mode, override=override, margin=margin, rule=rule, engine=engine, formula=formula
@@ -180,7 +185,6 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
             env = HighwayEnvAdapter(env)
         super().__init__(env)
         self.mode: Mode = mode  # type: ignore[assignment]
-        self.reading: Reading = family.reading if family is not None else "sound"
         self.formula: Formula = formula
         self.override = override
         self.engine: Engine = engine
@@ -188,7 +192,7 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
         self.rule: Rule = resolved
         self._family: tuple[tuple[str, str, str], RuleFamily] | None = None
         if family is not None:
-            self._family = ((mode, family.reading, family.engine), family)
+            self._family = ((self.mode, self.engine, self.formula), family)
         self.dynamics: Dynamics | None = None
         self.result: SafetyResult | None = None
         self.snapshot: RoadSnapshot | None = None
@@ -199,11 +203,7 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
         """The rule family that judges the states (:mod:`safelane.safety.family`), for the shield's ``mode``,
         ``engine`` and ``formula`` as they are now."""
         key = (self.mode, self.engine, self.formula)
-        if self.mode == "committed":  # one family per shield: it keeps the episode's plan
-            key = (self.mode, self.reading, self.engine)
-            if self._family is None or self._family[0] != key:
-                self._family = (key, CommittedFamily(self.reading, self.engine))
-        elif self._family is None or self._family[0] != key:
+        if self._family is None or self._family[0] != key:  # one family per shield: it keeps the episode's memory
             self._family = (key, family_for(*key))
         return self._family[1]
 
@@ -257,31 +257,16 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
     def _annotate(self, info: dict[str, Any]) -> None:
         self.snapshot = info["snapshot"]
         self.result = self.compute_result()
-        info["action_mask"] = self.result.mask.copy()
-        info["fallback"] = bool(self.result.fallback)
-        if isinstance(self.result, CommittedResult):
-            info["plan_forced"] = self.result.plan_forced
-            info["lapse"] = self.result.lapse
-            info["lapse_in_model"] = self.result.lapse_in_model
-            info["lapse_cars"] = self.result.lapse_cars
-            info["lapse_escaped_cars"] = self.result.lapse_escaped
-            info["escaped_cars"] = self.result.escaped
-            info["rolled_back"] = self.result.rolled_back
-            info["unbraked_followers"] = self.result.unbraked_followers
-            info["entered_cars"] = self.result.entered
-            info["certified"] = self.result.certified
-            info["shield_reading"] = self.reading  # the collision contexts read it (others_at_fault)
+        info.update(self.result.info())
 
     def reset(self, **kwargs: Any) -> tuple[Any, dict[str, Any]]:
         self.dynamics = None
         self.result = None
-        reset_memory = getattr(self.family, "reset", None)
-        if reset_memory is not None:  # a family with memory (committed plans) starts each episode afresh
-            reset_memory()
+        self.family.reset()  # a family with memory (committed plans) starts each episode afresh
         obs, info = self.env.reset(**kwargs)
         self._annotate(info)
-        if isinstance(self.result, CommittedResult):
-            info["uncertified_start"] = not self.result.certified
+        if self.mode == "committed":
+            info["uncertified_start"] = not info["certified"]
         info["shield_intervened"] = False
         self._warn_if_the_ego_cannot_stop()
         return obs, info
@@ -312,9 +297,7 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
         executed = chosen
         if self.override and not mask[chosen]:
             executed = next(a for a in OVERRIDE_ORDER[chosen] if mask[a])
-        commit = getattr(self.family, "commit", None)
-        if commit is not None:  # a family with memory keeps the plan of the action executed
-            commit(executed)
+        self.family.commit(executed)  # a family with memory keeps the plan of the action executed
         obs, reward, terminated, truncated, info = self.env.step(executed)
         info["shield_intervened"] = executed != chosen
         info["unsafe_action"] = not bool(mask[chosen])

@@ -2,7 +2,7 @@
 
 :class:`Dynamics` (the simulated world's constants and the rule's options, :mod:`safelane.safety.rule`),
 :class:`RoadState` (the scene in lane coordinates, SI units), :class:`SafetyResult` (what the rule says about
-the 5 meta-actions) and the constants of the rule (:mod:`safelane.safety.model` derives it).
+the 5 meta-actions) and the constants of the rule (:mod:`safelane.safety.one_decision.reference` derives it).
 """
 
 from __future__ import annotations
@@ -18,6 +18,28 @@ from safelane.safety.rule import DEFAULTS, OPTION_NAMES, Rule
 
 Mode = Literal["nominal", "robust"]
 Formula = Literal["kinematic", "paper"]
+Engine = Literal["compiled", "numpy"]
+MODES: tuple[Mode, ...] = ("nominal", "robust")
+"""The one-decision rule's modes (:mod:`safelane.safety.one_decision`)."""
+SHIELD_MODES: tuple[str, ...] = (*MODES, "committed")
+"""Every ``shield.mode`` a :class:`~safelane.safety.family.RuleFamily` implements."""
+ENGINES: tuple[Engine, ...] = ("compiled", "numpy")
+FORMULAS: tuple[Formula, ...] = ("kinematic", "paper")
+
+
+def check_choices(
+    mode: str | None = None,
+    engine: str | None = None,
+    formula: str | None = None,
+    modes: tuple[str, ...] = MODES,
+    prefix: str = "shield.",
+) -> None:
+    """A one-line :class:`ValueError` naming the first of ``mode`` (one of ``modes``), ``engine`` and ``formula``
+    outside its allowed values (None: not checked); ``prefix`` starts the name (``shield.mode``)."""
+    for name, value, allowed in (("mode", mode, modes), ("engine", engine, ENGINES), ("formula", formula, FORMULAS)):
+        if value is not None and value not in allowed:
+            raise ValueError(f"{prefix}{name}: got {value!r}; allowed: {', '.join(repr(a) for a in allowed)}")
+
 
 MAX_HOLD_DECISIONS = 3
 """Fallbacks hold the speed target for 0..3 decisions before braking (lets a far leader and a close
@@ -159,6 +181,10 @@ class SafetyResult:
     fallback: bool  # no action was safe: ``mask`` holds the least-bad one
     min_gap: np.ndarray  # (5,) [m] worst-case smallest gap under the best fallback (inf: no conflict)
     conflicts: tuple[Conflict, ...] | None = None  # the conflict that decided each action (None: not reported)
+
+    def info(self) -> dict[str, Any]:
+        """The keys the shield adds to a step's ``info``: ``action_mask`` and ``fallback``."""
+        return {"action_mask": self.mask.copy(), "fallback": bool(self.fallback)}
 
 
 class Conflict(NamedTuple):

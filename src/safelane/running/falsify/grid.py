@@ -399,6 +399,8 @@ def write_summary(out: Path, spec: CampaignSpec) -> dict[str, Any]:
             lapses=sum(r["lapses"] for r in counted),
             lapses_in_model=sum(r["lapses_in_model"] for r in counted),
             plan_forced_rate=_per_decision(counted, "plan_forced_rate"),
+            courtesy_waived_rate=_per_decision([r for r in counted if "courtesy_waived_rate" in r],
+                                               "courtesy_waived_rate"),
             uncertified_starts=sum(r["uncertified_starts"] for r in counted),
             redraws=sum(r["redraws"] for r in counted),
         )
@@ -481,10 +483,11 @@ def _markdown(spec: CampaignSpec, summary: dict[str, Any], played: list[dict[str
     ]
     committed = spec.shield == "committed"
     if committed and "lapses" in summary:
-        forced = summary["plan_forced_rate"]
+        forced, waived = summary["plan_forced_rate"], summary.get("courtesy_waived_rate")
         lines += [
             f"Committed plans: **{summary['lapses']} lapses, {summary['lapses_in_model']} in the model** (every car "
             f"inside its set); plan-forced decisions {'–' if forced is None else f'{100 * forced:.3f} %'}; "
+            f"courtesy waived at {'–' if waived is None else f'{100 * waived:.3f} %'} of decisions; "
             f"{summary['uncertified_starts']} uncertified starts, {summary['redraws']} spawns redrawn.",
             "",
         ]

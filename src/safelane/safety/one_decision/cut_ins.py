@@ -53,14 +53,14 @@ def occupancy(state: RoadState, dyn: Dynamics, mode: Mode, near: np.ndarray) -> 
                 occ.add(int(i), nxt, 0.0, False)
         if dyn.rule.reversing_noses and state.vx[i] < 0.0 and abs(state.heading[i]) > LATERAL_MOTION_THRESHOLD:
             # Rolling backwards it moves away from the lane its nose points to, and drives there as soon as
-            # it moves forward again (a jammed IDM car: the agents' cell 126).
+            # it moves forward again (a jammed IDM car rolling back, found by the trained agents).
             nose = own + (1 if state.heading[i] > 0 else -1)
             if nose != nxt and 0 <= nose < dyn.lanes_count:
                 occ.add(int(i), nose, 0.0, False)
         if dyn.rule.body_extent:
             # Its body, rotated by its heading, reaches this far either side of its centre [m]; it is
             # in every lane whose band that overlaps (a slow car turning hard sticks its rear corner
-            # into the lane it is leaving: cell00537).
+            # into the lane it is leaving).
             reach = abs(0.5 * state.length[i] * math.sin(state.heading[i])) + abs(
                 0.5 * dyn.body_width * math.cos(state.heading[i])
             )
@@ -234,20 +234,17 @@ def cut_in_candidates(
     on the action's trajectory). Into a lane the ego is only *entering*, the other driver cannot see the
     ego there when it decides, so any moving vehicle ahead may cut in.
 
-    A vehicle whose centre is behind the ego's, now or at the end of the period (the ego overtaking it),
-    sees the ego as its new *leader*: MOBIL's safety criterion then protects its new follower, not the
-    ego, so any of them may turn in (cell 470: a car just overtaken turned into the ego's
-    rear flank). With ``level_cut_ins`` the rule counts them as followers entering the ego's lanes; with
-    ``level_incentive`` only those MOBIL's incentive lets move behind the ego (:func:`turn_in_incentive`).
-    That incentive is judged with the ego in the lane, so into a lane the ego is only *entering* it does
-    not hold either (the trained agents' cells 169 and 440: a car two lanes over, level with the
-    ego, changed into the lane the ego was changing into — it saw no ego there when it decided): with
-    ``level_entering`` every level car counts there.
-    A car moving backwards steers the wrong way (highway-env's steering assumes forward motion: a lane change
-    away from the ego swings its nose into the ego's lane; the trained agents' cell 615): with
-    ``reversing_cut_ins`` it may enter the ego's lanes whatever MOBIL says, ahead or level.
-    ``ego_path``: the ego's positions [m] and speeds [m/s] at the decision's frames (0 … frames), for
-    ``linear_incentive_braking``.
+    A vehicle whose centre is behind the ego's, now or at the end of the period (the ego overtaking it), sees the ego as
+    its new *leader*: MOBIL's safety criterion then protects its new follower, not the ego, so any of them may turn in
+    (a car just overtaken turned into the ego's rear flank). With ``level_cut_ins`` the rule counts them as followers
+    entering the ego's lanes; with ``level_incentive`` only those MOBIL's incentive lets move behind the ego
+    (:func:`turn_in_incentive`). That incentive is judged with the ego in the lane, so into a lane the ego is only
+    *entering* it does not hold either (found twice by the trained agents: a car two lanes over, level with the ego,
+    changed into the lane the ego was changing into — it saw no ego there when it decided): with ``level_entering``
+    every level car counts there. A car moving backwards steers the wrong way (highway-env's steering assumes forward
+    motion: a lane change away from the ego swings its nose into the ego's lane, found by the trained agents): with
+    ``reversing_cut_ins`` it may enter the ego's lanes whatever MOBIL says, ahead or level. ``ego_path``: the ego's
+    positions [m] and speeds [m/s] at the decision's frames (0 … frames), for ``linear_incentive_braking``.
     """
     if near.size == 0:
         return (np.zeros(0, dtype=bool),) * 4
@@ -301,14 +298,14 @@ def turn_in_incentive(
     state: RoadState, dyn: Dynamics, near: np.ndarray, d_now: np.ndarray, d_end: np.ndarray, ego_v_end: float
 ) -> np.ndarray:
     """Whether each vehicle of ``near``, with its centre behind the ego's (``d_now`` / ``d_end`` [m]: its
-    offset ahead of the ego now / at the end of the decision, others at constant speed), may gain by moving
-    behind the ego: MOBIL's incentive with politeness 0 (highway-env's ``IDMVehicle``), ``a(behind the
-    ego) − a(behind its leader) ≥`` :data:`MOBIL_MIN_ACC_GAIN`. The free-road terms cancel, leaving
-    ``acc·(d*/d)²_leader − acc·(d*/d)²_ego``. Its leader's term is taken as the largest over every vehicle
-    ahead of it in its lane (IDM sees the nearest; the largest can only overstate the gain, and it keeps
-    the rule monotone: adding a vehicle never removes a conflict); none: 0. Checked now and at the end of
-    the decision, as the cut-in criterion is (an approximation within the decision, not a bound): a car in
-    free flow loses by tucking in behind the ego at a short gap; one stuck in a slow queue gains (cell 470)."""
+    offset ahead of the ego now / at the end of the decision, others at constant speed), may gain by moving behind the
+    ego: MOBIL's incentive with politeness 0 (highway-env's ``IDMVehicle``), ``a(behind the ego) − a(behind its leader)
+    ≥`` :data:`MOBIL_MIN_ACC_GAIN`. The free-road terms cancel, leaving ``acc·(d*/d)²_leader − acc·(d*/d)²_ego``. Its
+    leader's term is taken as the largest over every vehicle ahead of it in its lane (IDM sees the nearest; the largest
+    can only overstate the gain, and it keeps the rule monotone: adding a vehicle never removes a conflict); none: 0.
+    Checked now and at the end of the decision, as the cut-in criterion is (an approximation within the decision, not a
+    bound): a car in free flow loses by tucking in behind the ego at a short gap; one stuck in a slow queue gains (the
+    car just overtaken that turned into the ego's rear flank)."""
     x, v, t = state.x[near], state.vx[near], dyn.decision_period
     lanes = state.lane_of(state.y[near], dyn.lanes_count, dyn.lane_width)
     acc = state.idm_comfort_acc[near]
@@ -371,7 +368,7 @@ def linear_turn_in_incentive_braking(
     its lane braking at its maximum from now (a crashed one stopped), the driver itself at constant speed:
     ``shield.linear_incentive_braking``. Its leader braking only makes the driver's own lane worse, so this
     can only find more turn-ins than the check now and at the end at constant speeds (which it is OR-ed
-    with). Why (cell 535): a Linear car closing on a slow car 9 m ahead at 7.5
+    with). Why: a Linear car closing on a slow car 9 m ahead at 7.5
     m/s gained −5.4 m/s² now and −1 at the end by moving behind the ego, and turned in within the decision
     as its leader braked."""
     x, v = state.x[near], state.vx[near]

@@ -1,9 +1,10 @@
 """The pieces of the compiled rule: numpy's scalar semantics and the per-vehicle kernels that
-:mod:`safelane.safety.compiled_rule` calls, each one function of :mod:`safelane.safety.model` (or a part of one)
-for one vehicle, with the same operations in the same order (bit-identical; metres, m/s, seconds).
+:mod:`safelane.safety.one_decision.compiled_rule` calls, each one function of
+:mod:`safelane.safety.one_decision.reference` (or a part of one) for one vehicle, with the same operations in the same
+order (bit-identical; metres, m/s, seconds).
 
 The literals below are read by the kernels as globals, which numba freezes at compile time:
-:mod:`safelane.safety.compiled` checks them against the model's.
+:mod:`safelane.safety.one_decision.compiled` checks them against the model's.
 """
 
 from __future__ import annotations
@@ -27,14 +28,15 @@ NOT_ZERO = 1e-2
 
 @njit(cache=True, inline="always")
 def nmin(a: float, b: float) -> float:
-    """``np.minimum(a, b)``: NaN if either is NaN (Python's ``min`` is not)."""
-    return a if (a <= b or a != a) else b
+    """``np.minimum(a, b)`` to the bit: NaN if either is, and ``b`` when they compare equal (numpy's loops return
+    the second of −0.0 and 0.0; Python's ``min`` is neither)."""
+    return a if (a < b or a != a) else b
 
 
 @njit(cache=True, inline="always")
 def nmax(a: float, b: float) -> float:
-    """``np.maximum(a, b)``: NaN if either is NaN."""
-    return a if (a >= b or a != a) else b
+    """``np.maximum(a, b)`` to the bit (:func:`nmin`'s conventions)."""
+    return a if (a > b or a != a) else b
 
 
 @njit(cache=True, inline="always")

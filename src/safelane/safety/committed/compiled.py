@@ -1,13 +1,13 @@
 """The committed shield's arithmetic compiled: the reachable sets, the ego's plans and every car's worst gap to
 them, as numba kernels bit-identical to the numpy reference (:mod:`safelane.safety.committed`,
-:mod:`safelane.safety.committed_sets`).
+:mod:`safelane.safety.committed.sets`).
 
-Each kernel follows its reference function operation by operation and in the same order, so the IEEE-754
-arithmetic (no fastmath) rounds the same way (the conventions of :mod:`safelane.safety.compiled`: ``np.minimum`` /
-``np.maximum`` propagate NaN, ``x**2`` on arrays is ``x*x``, ``np.power`` and ``np.sqrt`` are libm's). What is
-per car and cheap (the lanes a car is in, its entry times, its speed bounds, the turning shortfall) stays numpy
-and is shared by both engines; the loops over frames, plans and cars are here. ``tests/test_committed_engines.py``
-checks every kernel against its reference on hypothesis states and both simulators' episodes.
+Each kernel follows its reference function operation by operation and in the same order, so the IEEE-754 arithmetic (no
+fastmath) rounds the same way (the conventions of :mod:`safelane.safety.one_decision.compiled`: ``np.minimum`` /
+``np.maximum`` propagate NaN, ``x**2`` on arrays is ``x*x``, ``np.power`` and ``np.sqrt`` are libm's). What is per car
+and cheap (the lanes a car is in, its entry times, its speed bounds, the turning shortfall) stays numpy and is shared by
+both engines; the loops over frames, plans and cars are here. ``tests/test_committed_engines.py`` checks every kernel
+against its reference on hypothesis states and both simulators' episodes.
 
 Units: metres, m/s, seconds.
 """
@@ -20,8 +20,8 @@ import numpy as np
 from numba import njit
 
 from safelane.core.kernel_cache import drop_stale_kernel_cache
-from safelane.safety import compiled_parts
-from safelane.safety.committed_sets import (
+from safelane.safety.committed.plan_family import Lanes, held_lanes, onsets, plan_actions
+from safelane.safety.committed.sets import (
     LANE_CHANGES_BEGUN,
     MAX_SPEED,
     CarSets,
@@ -30,8 +30,9 @@ from safelane.safety.committed_sets import (
     path_speed,
     speed_bounds,
 )
-from safelane.safety.compiled_parts import N_ACTIONS, N_FALLBACKS, speed_index
-from safelane.safety.ego import action_targets
+from safelane.safety.ego import action_lanes, action_targets
+from safelane.safety.one_decision import compiled_parts
+from safelane.safety.one_decision.compiled_parts import N_ACTIONS, N_FALLBACKS, nmax, nmin, speed_index
 from safelane.safety.world import LATERAL_MOTION_THRESHOLD, Dynamics, RoadState
 
 drop_stale_kernel_cache(__file__, (compiled_parts.__file__,))
@@ -39,19 +40,6 @@ drop_stale_kernel_cache(__file__, (compiled_parts.__file__,))
 _BIG = np.finfo(np.float64).max  # np.nan_to_num's image of +inf
 CHUNK = 8
 """Frames per chunk of the cheap bound that lets the plans' kernel skip cars far from every plan."""
-
-
-@njit(cache=True, inline="always")
-def nmin(a: float, b: float) -> float:
-    """``np.minimum(a, b)`` to the bit: NaN if either is, and ``b`` when they compare equal (numpy's loops return
-    the second of −0.0 and 0.0)."""
-    return a if (a < b or a != a) else b
-
-
-@njit(cache=True, inline="always")
-def nmax(a: float, b: float) -> float:
-    """``np.maximum(a, b)`` to the bit (:func:`nmin`'s conventions)."""
-    return a if (a > b or a != a) else b
 
 
 @njit(cache=True, inline="always")
@@ -285,7 +273,7 @@ def _permit_entry(
 def car_gaps_kernel(
     x_lo: np.ndarray, x_hi: np.ndarray, v_lo: np.ndarray, v_hi: np.ndarray, entry: np.ndarray, now: np.ndarray,
     ego_x: np.ndarray, ego_v: np.ndarray, onset: np.ndarray, lane_ids: np.ndarray, lane_until: np.ndarray,
-    held_a: int, held_b: int, responsibility: bool, last_frame: int, carried_lane: np.ndarray,
+    held_a: int, held_b: int, last_frame: int, carried_lane: np.ndarray,
     carried_high: np.ndarray, ego_set: np.ndarray, has_set: bool,
     x: np.ndarray, half: np.ndarray, ahead: np.ndarray, mobil: np.ndarray, own_lane: np.ndarray,
     speed: np.ndarray, accel_max: np.ndarray, brake_max: np.ndarray, fv_min: np.ndarray, fv_max: np.ndarray,
@@ -347,7 +335,7 @@ def car_gaps_kernel(
             count = False
             for h in range(holds):
                 count = count or np.isfinite(entry_h[h])
-            if held_lane and responsibility:  # cut-ins, and cars behind in the ego's lane (held_a): theirs to avoid
+            if held_lane:  # cut-ins, and cars behind in the ego's lane (held_a): theirs to avoid
                 count = count and now[i, lane] and (ahead[i] or lane != held_a)
             if not count:
                 continue
@@ -460,7 +448,7 @@ def plans_kernel(
     targets: np.ndarray, ego_x0: float, ego_speed: float, ts: np.ndarray, powers: np.ndarray, frames: int,
     horizon: int, frame_dt: float, ego_kp: float,
     x_lo: np.ndarray, x_hi: np.ndarray, v_lo: np.ndarray, v_hi: np.ndarray, entry: np.ndarray, now: np.ndarray,
-    held_a: int, held_b: int, responsibility: bool, verify: np.ndarray,
+    held_a: int, held_b: int, verify: np.ndarray,
     x: np.ndarray, half: np.ndarray, ahead: np.ndarray, mobil: np.ndarray, own_lane: np.ndarray,
     speed: np.ndarray, accel_max: np.ndarray, brake_max: np.ndarray, fv_min: np.ndarray, fv_max: np.ndarray,
     comfort_acc: np.ndarray, comfort_dec: np.ndarray, delta: np.ndarray, wanted: np.ndarray, time_wanted: np.ndarray,
@@ -494,7 +482,7 @@ def plans_kernel(
         if not verify[a]:
             continue
         gaps = car_gaps_kernel(x_lo, x_hi, v_lo, v_hi, entry, now, xs[a], vs[a], onsets[a], lane_ids[first:stop],
-                               lane_until[first:stop], held_a, held_b, responsibility, t.shape[0] - 1, no_carried,
+                               lane_until[first:stop], held_a, held_b, t.shape[0] - 1, no_carried,
                                empty, set_points[a], True, x, half, ahead, mobil, own_lane, speed, accel_max,
                                brake_max, fv_min, fv_max, comfort_acc, comfort_dec, delta, wanted, time_wanted,
                                max_braking, k0, k1, k2, top_speed, speed_limit, t, cut_in_time,
@@ -547,7 +535,7 @@ def prepare(state: RoadState, dyn: Dynamics) -> Prepared:
 
 
 def car_sets_compiled(state: RoadState, dyn: Dynamics, vehicle: np.ndarray, prep: Prepared | None = None) -> CarSets:
-    """:func:`safelane.safety.committed_sets.car_sets`, compiled (the same bits); ``prep``: :func:`prepare` of
+    """:func:`safelane.safety.committed.sets.car_sets`, compiled (the same bits); ``prep``: :func:`prepare` of
     ``state`` when already computed."""
     prep = prepare(state, dyn) if prep is None else prep
     x_lo, x_hi, v_lo, v_hi = sets_kernel(
@@ -568,7 +556,7 @@ def ego_trajectories_compiled(state: RoadState, dyn: Dynamics) -> tuple[np.ndarr
 
 
 def plan_set_points_compiled(state: RoadState, dyn: Dynamics, ego_v: np.ndarray, action: int) -> np.ndarray:
-    """:func:`safelane.safety.committed.plan_set_points`, compiled (the same bits)."""
+    """:func:`safelane.safety.committed.plans.plan_set_points`, compiled (the same bits)."""
     return set_points_kernel(np.ascontiguousarray(ego_v), float(action_targets(state, dyn)[action]),
                              np.asarray(dyn.target_speeds, dtype=float), dyn.frames_per_decision)  # fmt: skip
 
@@ -598,7 +586,7 @@ class CarArrays(NamedTuple):
 
 
 def car_arrays(state: RoadState, dyn: Dynamics, prep: Prepared | None = None) -> CarArrays:
-    """The per-car inputs of :func:`car_gaps_compiled` (as :func:`safelane.safety.committed.car_gaps` derives
+    """The per-car inputs of :func:`car_gaps_compiled` (as :func:`safelane.safety.committed.plans.car_gaps` derives
     them); ``prep``: :func:`prepare` of ``state`` when already computed."""
     p = prepare(state, dyn) if prep is None else prep
     return CarArrays(
@@ -610,41 +598,36 @@ def car_arrays(state: RoadState, dyn: Dynamics, prep: Prepared | None = None) ->
 
 
 def verify_plans_compiled(
-    state: RoadState,
-    dyn: Dynamics,
-    sets: CarSets,
-    reading: str,
-    available: np.ndarray,
-    verify: np.ndarray,
-    lanes: list[list[tuple[int, float]]],
-    onsets: np.ndarray,
-    cars: CarArrays,
+    state: RoadState, dyn: Dynamics, sets: CarSets, cars: CarArrays | None = None
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """:func:`safelane.safety.committed.verify_plans`' arithmetic in one call (the same bits): ``available`` the
-    actions whose set-points are drawn, ``verify`` those verified, ``lanes`` each action's lanes, ``onsets``
-    (5, holds) [s] each plan's braking onset."""
+    """:func:`safelane.safety.committed.plans.verify_plans` in one kernel call (the same bits); ``cars``: the
+    state's :func:`car_arrays` when already computed."""
+    available, verify = plan_actions(state, dyn)
+    lanes = [action_lanes(state, dyn, a) if available[a] else [] for a in range(N_ACTIONS)]
+    plan_onsets = np.stack([onsets(dyn, a) for a in range(N_ACTIONS)])
+    cars = car_arrays(state, dyn) if cars is None else cars
     decay = 1.0 - dyn.ego_kp * dyn.frame_dt
     powers = decay ** np.arange(dyn.frames_per_decision + 1)
     flat = [lane for per_action in lanes for lane in per_action]
     return plans_kernel(
         available, np.array([lane for lane, _ in flat], dtype=np.int64),
         np.array([until for _, until in flat], dtype=float), np.array([len(x) for x in lanes], dtype=np.int64),
-        onsets, action_targets(state, dyn), float(state.ego_x), float(state.ego_speed),
+        plan_onsets, action_targets(state, dyn), float(state.ego_x), float(state.ego_speed),
         np.asarray(dyn.target_speeds, dtype=float), powers, dyn.frames_per_decision, dyn.horizon_decisions,
         float(dyn.frame_dt), float(dyn.ego_kp), sets.x_lo, sets.x_hi, sets.v_lo, sets.v_hi, sets.entry,
-        np.asarray(sets.now, dtype=np.bool_), int(state.ego_lane), int(state.ego_target_lane),
-        reading == "responsibility", verify, *cars, float(max(dyn.target_speeds)), float(state.speed_limit),
-        dyn.times, float(dyn.cut_in_time), float(dyn.follower_reaction),
+        np.asarray(sets.now, dtype=np.bool_), int(state.ego_lane), int(state.ego_target_lane), verify, *cars,
+        float(max(dyn.target_speeds)), float(state.speed_limit), dyn.times, float(dyn.cut_in_time),
+        float(dyn.follower_reaction),
     )  # fmt: skip
 
 
 def car_gaps_compiled(
     state: RoadState, dyn: Dynamics, sets: CarSets, ego_x: np.ndarray, ego_v: np.ndarray, onset: np.ndarray,
-    lanes: list[tuple[int, float]], reading: str = "sound", until_frame: int | None = None,
+    lanes: Lanes, until_frame: int | None = None,
     carried_followers: dict[int, tuple[int, np.ndarray]] | None = None, ego_set: np.ndarray | None = None,
     held: tuple[int, ...] | None = None, cars: CarArrays | None = None,
 ) -> np.ndarray:  # fmt: skip
-    """:func:`safelane.safety.committed.car_gaps`, compiled (the same bits); ``cars``: :func:`car_arrays` of
+    """:func:`safelane.safety.committed.plans.car_gaps`, compiled (the same bits); ``cars``: :func:`car_arrays` of
     ``state`` when already computed."""
     cars = car_arrays(state, dyn) if cars is None else cars
     t = dyn.times
@@ -659,7 +642,7 @@ def car_gaps_compiled(
     return car_gaps_kernel(
         sets.x_lo, sets.x_hi, sets.v_lo, sets.v_hi, sets.entry, np.asarray(sets.now, dtype=np.bool_),
         np.ascontiguousarray(ego_x), np.ascontiguousarray(ego_v), _f(onset), lane_ids, lane_until,
-        *_held_pair(state, held), reading == "responsibility",
+        *_held_pair(state, held),
         t.size - 1 if until_frame is None else int(until_frame), carried_lane, carried_high,
         np.ascontiguousarray(ego_set) if has_set else np.empty((0, 0)), has_set, *cars,
         float(max(dyn.target_speeds)), float(state.speed_limit), t, float(dyn.cut_in_time),
@@ -668,17 +651,11 @@ def car_gaps_compiled(
 
 
 def follower_bound_compiled(state: RoadState, i: int, react: np.ndarray, t: np.ndarray) -> np.ndarray:
-    """:func:`safelane.safety.committed.follower_bound`, compiled (the same bits)."""
+    """:func:`safelane.safety.committed.plans.follower_bound`, compiled (the same bits)."""
     speed = path_speed(state)[i : i + 1]
     v_min, v_max = speed_bounds(speed, state.target_speed[i : i + 1], np.isfinite(state.linear_speed_gain[i : i + 1]))
     return follower_kernel(float(state.x[i]), float(speed[0]), float(state.accel_max[i]), float(state.brake_max[i]),
                            float(v_min[0]), float(v_max[0]), _f(react), t)  # fmt: skip
-
-
-def held_lanes(state: RoadState, held: tuple[int, ...] | None) -> tuple[int, ...]:
-    """The lanes the ego holds, the lane it is in first (the one where a car behind is its driver's to avoid under
-    ``responsibility``): ``held`` (a kept plan's, when verified) or, by default, its lane and target lane now."""
-    return (int(state.ego_lane), int(state.ego_target_lane)) if not held else tuple(int(h) for h in held)
 
 
 def _held_pair(state: RoadState, held: tuple[int, ...] | None) -> tuple[int, int]:
@@ -698,7 +675,7 @@ def permit_entry_compiled(
     state: RoadState, dyn: Dynamics, sets: CarSets, rows: np.ndarray, ego_x: np.ndarray, ego_v: np.ndarray,
     ego_set: np.ndarray | None = None,
 ) -> np.ndarray:  # fmt: skip
-    """:func:`safelane.safety.committed._permit_entry` (rows, holds) [s], compiled (the same bits)."""
+    """:func:`safelane.safety.committed.plans._permit_entry` (rows, holds) [s], compiled (the same bits)."""
     cars = car_arrays(state, dyn)
     out = np.empty((len(rows), ego_x.shape[0]))
     has_set = ego_set is not None

@@ -1,4 +1,4 @@
-"""The compiled rule's kernel: :func:`evaluate_rule`, ``safelane.safety.model._evaluate`` (formula
+"""The compiled rule's kernel: :func:`evaluate_rule`, ``safelane.safety.one_decision.reference._evaluate`` (formula
 ``kinematic``) for one state, operation by operation and in the same order (bit-identical; metres, m/s,
 seconds). The rule's options arrive as one integer (:attr:`safelane.safety.rule.Rule.flags`), tested bit by bit;
 the dynamics' numbers as one float64 array at the ``C_*`` indices below.
@@ -12,8 +12,9 @@ import numpy as np
 from numba import njit
 
 from safelane.core.kernel_cache import drop_stale_kernel_cache
-from safelane.safety import compiled_parts, forecast, rule
-from safelane.safety.compiled_parts import (
+from safelane.safety import rule
+from safelane.safety.one_decision import compiled_parts, forecast
+from safelane.safety.one_decision.compiled_parts import (
     FASTER,
     IDLE,
     IDM_LANE_MARGIN,
@@ -38,7 +39,7 @@ from safelane.safety.compiled_parts import (
     passing_path,
     speed_index,
 )
-from safelane.safety.forecast import forecast_keys_of
+from safelane.safety.one_decision.forecast import forecast_keys_of
 from safelane.safety.rule import (
     FLAG_BODY_EXTENT,
     FLAG_CROSSED_LANES,

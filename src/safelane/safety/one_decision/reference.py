@@ -34,12 +34,12 @@ with or behind the ego may turn in behind it, if MOBIL's incentive lets it, and 
 and **one** fallback must handle every leader braking and every follower accelerating at the same
 time.
 
-``robust ⊆ nominal ⊆ available`` holds by construction: robust adds conflicts and requires a
-joint fallback; its one looser bound, a moving leader braking along its path (the rule's ``turning_leaders``),
-is also nominal's wherever it is the looser (the rule's ``turning_in_nominal``). The mask is never empty:
-when no action is safe the least-bad one is allowed and ``fallback`` is set (:func:`least_bad_action`), ranked
-first by a nominal forecast of the others (the rule's ``forecast_fallback``, :mod:`safelane.safety.forecast`),
-which orders the unsafe actions and never makes one safe.
+``robust ⊆ nominal ⊆ available`` holds by construction: robust adds conflicts and requires a joint fallback; its one
+looser bound, a moving leader braking along its path (the rule's ``turning_leaders``), is also nominal's wherever it is
+the looser (the rule's ``turning_in_nominal``). The mask is never empty: when no action is safe the least-bad one is
+allowed and ``fallback`` is set (:func:`least_bad_action`), ranked first by a nominal forecast of the others (the rule's
+``forecast_fallback``, :mod:`safelane.safety.one_decision.forecast`), which orders the unsafe actions and never makes
+one safe.
 
 The rule's options (:mod:`safelane.safety.rule`) travel in ``Dynamics.rule`` and are read by name
 (``dyn.rule.follower_idm``).
@@ -53,7 +53,16 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from safelane.core.spaces import IDLE, LANE_LEFT, LANE_RIGHT, N_ACTIONS
-from safelane.safety.cut_ins import (
+from safelane.safety.ego import (
+    action_lanes,
+    action_targets,
+    available_actions,
+    ego_last_frames,
+    ego_trajectories,
+    final_lane,
+    speed_to_index,
+)
+from safelane.safety.one_decision.cut_ins import (
     cut_in_candidates,
     finishing_change,
     incentive_times,
@@ -66,16 +75,7 @@ from safelane.safety.cut_ins import (
     required_gap,
     turn_in_incentive,
 )
-from safelane.safety.ego import (
-    action_lanes,
-    action_targets,
-    available_actions,
-    ego_last_frames,
-    ego_trajectories,
-    final_lane,
-    speed_to_index,
-)
-from safelane.safety.forecast import forecast_gaps, forecast_keys, forecast_paths
+from safelane.safety.one_decision.forecast import forecast_gaps, forecast_keys, forecast_paths
 from safelane.safety.others import (
     braking_positions,
     follower_positions,
@@ -105,6 +105,7 @@ from safelane.safety.world import (
     Mode,
     RoadState,
     SafetyResult,
+    check_choices,
 )
 
 __all__ = [
@@ -157,10 +158,7 @@ def _evaluate(
 ) -> SafetyResult:
     """:func:`evaluate`; ``nominal_leaders``: the leaders bounded as nominal mode bounds them (nominal mode, and
     robust's straight fallback), else by ``turning_leaders``' bound."""
-    if mode not in ("nominal", "robust"):
-        raise ValueError(f"mode: got {mode!r}; allowed: 'nominal', 'robust'")
-    if formula not in ("kinematic", "paper"):
-        raise ValueError(f"formula: got {formula!r}; allowed: 'kinematic', 'paper'")
+    check_choices(mode, formula=formula, prefix="")
     available = available_actions(state, dyn)
     if mode == "nominal" and formula == "paper":
         safe, gaps = _paper_eq12(state, dyn)
@@ -365,7 +363,7 @@ def _evaluate(
 
 def forecast_ranking(state: RoadState, dyn: Dynamics, ego_x: np.ndarray, available: np.ndarray) -> np.ndarray:
     """(5,) the rule's ``forecast_fallback``'s first key of the least-bad choice: each action's gap [m] under
-    :func:`safelane.safety.forecast.forecast_gaps` (the others as they will most likely drive), capped at
+    :func:`safelane.safety.one_decision.forecast.forecast_gaps` (the others as they will most likely drive), capped at
     ``margin`` — actions the forecast keeps ``margin`` clear of everybody rank among themselves by their
     worst-case gaps, since past the margin the forecast says nothing about the risk the worst case measures —
     and −1 for every action the forecast sees collide (they too then rank by their worst-case gaps: the depth

@@ -1,11 +1,11 @@
 """A nominal forecast of the traffic, to rank the fallback's choices when no action is safe.
 
-The rule (:mod:`safelane.safety.model`) decides what is *safe* from worst cases only. When nothing is safe
-it still has to pick one action, and ranking the unsafe actions by their worst-case gaps alone drives badly:
-in a spawned squeeze — a leader close ahead braking for its own leader, an empty lane beside — the worst
-case says every action collides and SLOWER collides least, while the planner that knows the future changes
-lane at once and drives through (the claim campaign's 567 crashes from unsafe spawns: 402 of
-them driven through by the foresight planner, ``examples/spawn_foresight.py``).
+The rule (:mod:`safelane.safety.one_decision.reference`) decides what is *safe* from worst cases only. When nothing is
+safe it still has to pick one action, and ranking the unsafe actions by their worst-case gaps alone drives badly: in a
+spawned squeeze — a leader close ahead braking for its own leader, an empty lane beside — the worst case says every
+action collides and SLOWER collides least, while the planner that knows the future changes lane at once and drives
+through (the claim campaign's 567 crashes from unsafe spawns: 402 of them driven through by the foresight planner,
+``research/spawn_foresight.py``).
 
 :func:`forecast_gaps` predicts what the others will most likely do instead: every vehicle keeps its lane
 (the one it is heading to, if it is moving sideways) and drives by its own law — IDM, or the linear model
@@ -65,7 +65,7 @@ def forecast_gaps(
     ``xs``: (5, fallbacks, frames + 1) the ego's positions [m] (``model.ego_trajectories``; the last frame,
     which credits the ego's creep beyond the horizon, is not used); ``ego_last_frame``: (5, lanes) the last
     frame the ego occupies each lane under each action (−1: never); ``available``: (5,) bool. The other
-    vehicles' arrays are the :class:`~safelane.safety.model.RoadState`'s (metres, m/s, m/s²; ``lin_k0``
+    vehicles' arrays are the :class:`~safelane.safety.one_decision.reference.RoadState`'s (metres, m/s, m/s²; ``lin_k0``
     NaN: an IDM driver; ``target_speed`` NaN or absent: a body with no known law — highway-env's static objects
     have none — which keeps its speed).
     """

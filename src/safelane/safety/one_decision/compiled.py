@@ -1,8 +1,8 @@
-"""The safety model compiled: :func:`safelane.safety.model.evaluate` as one numba kernel per state.
+"""The safety model compiled: :func:`safelane.safety.one_decision.reference.evaluate` as one numba kernel per state.
 
 :func:`evaluate_compiled` has ``evaluate``'s signature and returns the same :class:`SafetyResult` —
 the same mask, safe, available and fallback, and ``min_gap`` to the bit — in microseconds instead of
-a millisecond. :mod:`safelane.safety.model` stays the readable specification; this module follows it
+a millisecond. :mod:`safelane.safety.one_decision.reference` stays the readable specification; this module follows it
 operation by operation and in the same order, so the IEEE-754 arithmetic (no fastmath) rounds the
 same way: numpy's ``x**2`` on arrays is ``x*x``, ``np.cumsum`` a sequential sum, ``np.minimum`` /
 ``np.maximum`` propagate NaN (``compiled_parts.nmin``, ``nmax``), ``np.power`` / ``np.cos`` & co. are
@@ -16,10 +16,10 @@ builds the :class:`RoadState` arrays inside the kernel (as :func:`safelane.safet
 does, bit for bit on axis-aligned roads — every highway-env straight road), so no Python object per
 vehicle and no ``RoadState`` is built.
 
-The kernel is :func:`safelane.safety.compiled_rule.evaluate_rule` (its pieces in
-:mod:`safelane.safety.compiled_parts`); this module adds the straight fallback, the snapshot's projection and
-the Python entries. Units: metres, m/s, seconds. ``formula="paper"`` (eq. 12, nominal only) is delegated to the numpy
-reference: it is a baseline evaluated at decision time, not on the shield's hot path.
+The kernel is :func:`safelane.safety.one_decision.compiled_rule.evaluate_rule` (its pieces in
+:mod:`safelane.safety.one_decision.compiled_parts`); this module adds the straight fallback, the snapshot's projection
+and the Python entries. Units: metres, m/s, seconds. ``formula="paper"`` (eq. 12, nominal only) is delegated to the
+numpy reference: it is a baseline evaluated at decision time, not on the shield's hot path.
 """
 
 from __future__ import annotations
@@ -34,9 +34,10 @@ from numba import njit
 from safelane.core import spaces
 from safelane.core.kernel_cache import drop_stale_kernel_cache
 from safelane.core.snapshot import RoadSnapshot
-from safelane.safety import compiled_parts, compiled_rule, forecast, model, rule
-from safelane.safety.compiled_parts import IDM_LANE_MARGIN, N_ACTIONS, N_FALLBACKS, NOT_ZERO
-from safelane.safety.compiled_rule import (
+from safelane.safety import rule
+from safelane.safety.one_decision import compiled_parts, compiled_rule, forecast, reference
+from safelane.safety.one_decision.compiled_parts import IDM_LANE_MARGIN, N_ACTIONS, N_FALLBACKS, NOT_ZERO
+from safelane.safety.one_decision.compiled_rule import (
     C_BODY_WIDTH,
     C_CUT_IN_TIME,
     C_DECISION_PERIOD,
@@ -55,13 +56,13 @@ from safelane.safety.compiled_rule import (
     N_CONSTS,
     evaluate_rule,
 )
-from safelane.safety.model import Dynamics, Formula, Mode, RoadState, SafetyResult
 from safelane.safety.rule import (
     FLAG_EGO_SPEED_MAGNITUDE,
     FLAG_FORECAST_FALLBACK,
     FLAG_STRAIGHT_FALLBACK,
     FLAG_TURNING_IN_NOMINAL,
 )
+from safelane.safety.world import Dynamics, Formula, Mode, RoadState, SafetyResult, check_choices
 
 # These kernels compile in the rule's kernel, its parts, the forecast and the rule's bits: numba's cache watches
 # this file only.
@@ -70,14 +71,14 @@ drop_stale_kernel_cache(__file__, (compiled_rule.__file__, compiled_parts.__file
 # The kernels use the action indices and the model's literals as frozen globals (numba freezes globals at compile
 # time, and its disk cache only watches their file): check here that they are still the core's and the model's.
 assert (spaces.LANE_LEFT, spaces.IDLE, spaces.LANE_RIGHT, spaces.FASTER, spaces.SLOWER) == (0, 1, 2, 3, 4)
-assert spaces.N_ACTIONS == N_ACTIONS and model.MAX_HOLD_DECISIONS + 1 == N_FALLBACKS, "update compiled_parts.py"
-assert (model.IDM_LANE_MARGIN, model.NOT_ZERO) == (IDM_LANE_MARGIN, NOT_ZERO), "update compiled_parts.py"
+assert spaces.N_ACTIONS == N_ACTIONS and reference.MAX_HOLD_DECISIONS + 1 == N_FALLBACKS, "update compiled_parts.py"
+assert (reference.IDM_LANE_MARGIN, reference.NOT_ZERO) == (IDM_LANE_MARGIN, NOT_ZERO), "update compiled_parts.py"
 
 # The model's other constants travel as arguments for the same reason (no stale cached kernel).
-_TIE_BREAK = np.array(model.TIE_BREAK_ORDER, dtype=np.int64)
-_RELEVANCE = float(model.RELEVANCE_RANGE)
-_LATERAL = float(model.LATERAL_MOTION_THRESHOLD)
-_MIN_ACC_GAIN = float(model.MOBIL_MIN_ACC_GAIN)
+_TIE_BREAK = np.array(reference.TIE_BREAK_ORDER, dtype=np.int64)
+_RELEVANCE = float(reference.RELEVANCE_RANGE)
+_LATERAL = float(reference.LATERAL_MOTION_THRESHOLD)
+_MIN_ACC_GAIN = float(reference.MOBIL_MIN_ACC_GAIN)
 
 __all__ = [
     "C_BODY_WIDTH", "C_CUT_IN_TIME", "C_DECISION_PERIOD", "C_EGO_KP", "C_FOLLOWER_REACTION", "C_FRAMES",
@@ -110,7 +111,7 @@ def _evaluate(
     nominal_allowance = turning_allowance if flags & FLAG_TURNING_IN_NOMINAL else 0.0
     main_nominal_allowance = 0.0 if robust else nominal_allowance  # robust: turning_leaders' own bound
     # With the straight fallback below, a fallback state's mask is the straight rule's: the main rule's least-bad
-    # choice is discarded, so its forecast (about 0.06 ms) is not run (model.evaluate returns first).
+    # choice is discarded, so its forecast (about 0.06 ms) is not run (reference.evaluate returns first).
     straight = robust and (flags & FLAG_STRAIGHT_FALLBACK) != 0 and turning_allowance > 0.0
     forecast_on = (flags & FLAG_FORECAST_FALLBACK) != 0
     main_forecast = forecast_on and not straight
@@ -211,13 +212,6 @@ def _horizon_arrays(
     return ts, t, powers
 
 
-def _check(mode: str, formula: str) -> None:
-    if mode not in ("nominal", "robust"):
-        raise ValueError(f"mode: got {mode!r}; allowed: 'nominal', 'robust'")
-    if formula not in ("kinematic", "paper"):
-        raise ValueError(f"formula: got {formula!r}; allowed: 'kinematic', 'paper'")
-
-
 class KernelConstants(NamedTuple):
     """A :class:`Dynamics` as the kernels take it (everything but ``ego_leave_time``, the per-state one): the
     horizon's arrays, the numbers (:func:`dynamics_consts`) and the rule's options as one integer."""
@@ -225,7 +219,7 @@ class KernelConstants(NamedTuple):
     ts: np.ndarray  # [m/s] the ego's set-points
     t: np.ndarray  # [s] the horizon's frame times
     powers: np.ndarray  # the P-controller's decay per frame, to the power 0..frames
-    tie_break: np.ndarray  # model.TIE_BREAK_ORDER
+    tie_break: np.ndarray  # reference.TIE_BREAK_ORDER
     consts: np.ndarray  # float64 (N_CONSTS,), at the C_* indices
     flags: int  # safelane.safety.rule.Rule.flags
 
@@ -247,7 +241,7 @@ def dynamics_consts(dyn: Dynamics) -> np.ndarray:
     consts[C_RELEVANCE] = _RELEVANCE
     consts[C_LATERAL_THRESHOLD] = _LATERAL
     consts[C_BODY_WIDTH] = dyn.body_width
-    consts[C_TURNING_ALLOWANCE] = model.turning_allowance(dyn)
+    consts[C_TURNING_ALLOWANCE] = reference.turning_allowance(dyn)
     consts[C_MIN_ACC_GAIN] = _MIN_ACC_GAIN
     consts.flags.writeable = False
     return consts
@@ -288,23 +282,23 @@ def _result(out: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, bool]) ->
 def evaluate_compiled(
     state: RoadState, dyn: Dynamics, mode: Mode = "robust", formula: Formula = "kinematic"
 ) -> SafetyResult:
-    """The safety mask of ``state`` — :func:`safelane.safety.model.evaluate`, compiled.
+    """The safety mask of ``state`` — :func:`safelane.safety.one_decision.reference.evaluate`, compiled.
 
     Same arguments (positions in metres, speeds in m/s, times in seconds), same errors, same result:
     mask, safe, available and fallback identical, ``min_gap`` [m] bit for bit. ``formula="paper"`` in
     nominal mode is computed by the numpy reference (eq. 12 is a baseline off the hot path; robust
     mode ignores the formula, as the reference does).
     """
-    _check(mode, formula)
+    check_choices(mode, formula=formula, prefix="")
     if mode == "nominal" and formula == "paper":
-        return model.evaluate(state, dyn, mode, formula)
+        return reference.evaluate(state, dyn, mode, formula)
     s = state
     out = _evaluate(
         s.ego_x, s.ego_speed, s.ego_lane, s.ego_target_lane, s.ego_target_speed, s.ego_speed_index,
         s.ego_length, s.speed_limit, s.x, s.y, s.vx, s.vy, s.heading, s.length, s.crashed, s.brake_max,
         s.accel_max, s.can_change_lane, s.idm_delta, s.idm_comfort_acc, s.idm_comfort_dec,
         s.idm_distance_wanted, s.idm_time_wanted, s.max_braking_imposed, s.linear_speed_gain,
-        s.linear_speed_difference_gain, s.linear_distance_gain, model.set_points(s),
+        s.linear_speed_difference_gain, s.linear_distance_gain, reference.set_points(s),
         *kernel_constants(dyn), mode == "robust", dyn.ego_leave_time,
     )  # fmt: skip
     return _result(out)
@@ -328,7 +322,7 @@ def evaluate_snapshot(
     snapshot (the caller checks). ``lane_heading`` [rad]: ``atan2`` of the lane direction, computed
     once per episode; ``ego_leave_time`` [s] replaces ``dyn``'s.
     """
-    _check(mode, "kinematic")
+    check_choices(mode, prefix="")
     e = snap.ego
     out = _evaluate_snapshot(
         snap.position, snap.speed, snap.heading, snap.length, snap.crashed, snap.brake_max, snap.accel_max,

@@ -68,7 +68,7 @@ def trace(path: str, window_s: float = 3.0) -> dict[str, Any]:
     try:
         _, info = env.reset(seed=cx.seed)
         shield = _shield_of(env)
-        tally = EpisodeTally(cx.seed, info)
+        tally = EpisodeTally(cx.seed, info, committed=shield.mode == "committed")
         for action in cx.actions:
             snap = info["snapshot"]
             result = shield.result

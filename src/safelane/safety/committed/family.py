@@ -1,8 +1,8 @@
 """The committed rule as a :class:`~safelane.safety.family.RuleFamily`: memory between decisions.
 
 :class:`CommittedFamily` allows the actions with a verified plan, ordered by courtesy to the cars behind
-(:func:`courteous`: those the one-decision robust rule also calls safe first); with none it allows only the kept
-plan's next step (``plan_forced``); with no plan at all (uncertified) the one-decision robust rule's mask
+(:func:`courteous`: those the one-decision robust rule also calls safe, where there are any); with none it allows
+only the kept plan's next step (``plan_forced``); with no plan at all (uncertified) the one-decision robust rule's mask
 (:class:`~safelane.safety.one_decision.family.OneDecisionFamily`, ``engine``). A decision at which the plan kept
 (verified) at the last decision no longer verifies is a **lapse**; it names the cars the kept plan fails on and
 which of them left the sets drawn for them (cars by their index in the road snapshot, one car's for a whole
@@ -111,20 +111,14 @@ class CommittedResult(SafetyResult):
 
 
 def courteous(verified: np.ndarray, one_decision: SafetyResult) -> tuple[np.ndarray, bool]:
-    """(mask, waived) the verified actions (``verified``, (5,) bool, some True) in the order courtesy prefers them,
-    by the one-decision robust rule's verdict in the same state: those it calls safe (every follower, under its own
-    driver law, and every car that may turn in keeps its room); where none is (``waived``), its own least-bad choice
-    if verified, else the verified actions with its largest worst-case gap. It orders the verified actions, never
-    adds one: the promise stays the plans'."""
+    """(mask, waived) the verified actions (``verified``, (5,) bool, some True) courtesy allows, by the one-decision
+    robust rule's verdict in the same state: those it calls safe (every follower, under its own driver law, and every
+    car that may turn in keeps its room), or every verified one where none is (``waived``). It orders the verified
+    actions, never adds one: the promise stays the plans'."""
     preferred = verified & one_decision.safe
     if preferred.any():
         return preferred, False
-    preferred = verified & one_decision.mask
-    if preferred.any():
-        return preferred, True
-    gaps = np.where(verified, one_decision.min_gap, -np.inf)
-    best = verified & (gaps == gaps.max())
-    return (best if best.any() else verified.copy()), True
+    return verified.copy(), True
 
 
 @dataclass

@@ -196,9 +196,9 @@ class CommittedFamily:
             checked = int(np.isin(vehicle, older.vehicle).sum())
             sets = sets.intersect(older, ~escaped)
         if compiled:
-            worst, ego_x, ego_v, set_points = verify_plans_compiled(state, dyn, sets, cars)
+            worst, ego_x, _, set_points = verify_plans_compiled(state, dyn, sets, cars)
         else:
-            worst, ego_x, ego_v, set_points = verify_plans(state, dyn, sets)
+            worst, ego_x, _, set_points = verify_plans(state, dyn, sets)
         verified = worst >= dyn.margin  # (5, holds)
         available = available_actions(state, dyn)
         best = np.argmax(np.where(verified, worst, -np.inf), axis=1)
@@ -220,9 +220,8 @@ class CommittedFamily:
                 for v, (lane, high) in self.followers.items()
                 if v in rows and not escaped[rows[v]]
             }
-            args = (state, dyn, sets, ego_x[a, k : k + 1], ego_v[a, k : k + 1], np.array([tail.onset]),
-                    list(tail.occupied), tail.frames, followers, set_points[a, k : k + 1],
-                    tail.held)  # fmt: skip
+            args = (state, dyn, sets, ego_x[a, k : k + 1], np.array([tail.onset]), list(tail.occupied),
+                    tail.frames, followers, tail.held)  # fmt: skip
             gaps = (car_gaps_compiled(*args, cars=cars) if compiled else car_gaps(*args))[:, 0]
             gap = gaps.min() if gaps.size else np.inf
             # A lapse: the plan verified at the last decision no longer is (a plan kept on after one stays unverified);

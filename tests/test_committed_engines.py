@@ -145,7 +145,7 @@ def test_the_families_verdicts_are_the_same_decision_by_decision(
     state: RoadState, dyn: Dynamics, seed: int, actions: list[int]
 ) -> None:  # fmt: skip
     """Three decisions, each car moved somewhere in (or just outside) its set: the same mask, gaps, plans, lapses,
-    named cars and follower bounds from both engines."""
+    named cars, follower bounds and carried sets from both engines."""
     rng = np.random.default_rng(seed)
     families = {engine: CommittedFamily(engine) for engine in ("numpy", "compiled")}
     vehicle = np.arange(state.n) * 2 + 1  # snapshot indices that are not row numbers
@@ -163,6 +163,8 @@ def test_the_families_verdicts_are_the_same_decision_by_decision(
         kept = {engine: (fam.kept, sorted((v, lane, high.tobytes()) for v, (lane, high) in fam.followers.items()))
                 for engine, fam in families.items()}  # fmt: skip
         assert kept["compiled"] == kept["numpy"]
+        for name in ("x_lo", "x_hi", "v_lo", "v_hi", "entry", "now"):  # the sets carried (intersected) to the next
+            assert same(getattr(families["compiled"].carried, name), getattr(families["numpy"].carried, name)), name
         state = _moved(state, rng, dyn, car_sets(state, dyn, vehicle))
 
 

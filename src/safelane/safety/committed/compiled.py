@@ -22,12 +22,14 @@ from numba import njit
 from safelane.core.kernel_cache import drop_stale_kernel_cache
 from safelane.safety.committed.plan_family import Lanes, held_lanes, onsets, plan_actions
 from safelane.safety.committed.sets import (
+    ESCAPE_TOLERANCE,
     LANE_CHANGES_BEGUN,
     MAX_SPEED,
     CarSets,
     lane_change_allowance,
     lane_crossing_time,
     path_speed,
+    rows_in,
     speed_bounds,
 )
 from safelane.safety.ego import action_lanes, action_targets
@@ -418,6 +420,58 @@ def plans_kernel(
     return worst, xs, vs, set_points
 
 
+@njit(cache=True, error_model="numpy")
+def carry_kernel(
+    x_lo: np.ndarray, x_hi: np.ndarray, v_lo: np.ndarray, v_hi: np.ndarray, entry: np.ndarray,
+    old_x_lo: np.ndarray, old_x_hi: np.ndarray, old_v_lo: np.ndarray, old_v_hi: np.ndarray, old_entry: np.ndarray,
+    rows: np.ndarray, frames: int, seconds: float, x: np.ndarray, speed: np.ndarray, occupied: np.ndarray,
+    unbraked: np.ndarray, tol: float,
+) -> tuple:  # fmt: skip
+    """The carried sets' step of :meth:`~safelane.safety.committed.family.CommittedFamily.evaluate_state` in one
+    pass, the numpy functions' operations element by element: the sets carried from the last decision
+    (``old_*``) shifted ``frames`` frames (``seconds`` [s]) to now (``CarSets.shifted``), the cars outside them
+    (``escaped_cars``, or'ed with ``unbraked``), the fresh sets (``x_lo``, …) intersected with them for the cars
+    inside (``CarSets.intersect``) and the escaped cars that rolled back (``rolling_back``). ``rows``: each car's
+    row among the carried sets (−1: none; ``rows_in``); ``speed``: along its path (``path_speed``); ``occupied``:
+    (cars, lanes) the lanes its body overlaps (``occupied_lanes``). Returns (x_lo, x_hi, v_lo, v_hi, entry,
+    escaped, rolled back, how many cars had a carried set)."""
+    n, m = x_lo.shape
+    lanes = entry.shape[1]
+    out_x_lo, out_x_hi, out_v_lo, out_v_hi, out_entry = x_lo.copy(), x_hi.copy(), v_lo.copy(), v_hi.copy(), entry.copy()
+    escaped, rolled = np.zeros(n, dtype=np.bool_), np.zeros(n, dtype=np.bool_)
+    checked = 0
+    for i in range(n):
+        r = rows[i]
+        if r < 0:
+            escaped[i] = unbraked[i]
+            rolled[i] = escaped[i] and speed[i] < 0.0
+            continue
+        checked += 1
+        # The carried set at frame 0 of now: frame ``frames`` of the last decision's (the padding beyond it).
+        lo0 = old_x_lo[r, frames] if frames < m else -np.inf
+        hi0 = old_x_hi[r, frames] if frames < m else np.inf
+        vlo0 = old_v_lo[r, frames] if frames < m else -np.inf
+        vhi0 = old_v_hi[r, frames] if frames < m else np.inf
+        inside = (lo0 - tol <= x[i]) and (x[i] <= hi0 + tol)
+        inside = inside and (vlo0 - tol <= speed[i]) and (speed[i] <= vhi0 + tol)
+        entered = False
+        for lane in range(lanes):
+            entered = entered or (nmax(old_entry[r, lane] - seconds, 0.0) > tol and occupied[i, lane])
+        escaped[i] = (not (inside and not entered)) or unbraked[i]
+        if escaped[i]:
+            rolled[i] = speed[i] < 0.0 or (vlo0 < 0.0 and x[i] < lo0)
+            continue
+        for j in range(m):
+            shifted = j + frames < m
+            out_x_lo[i, j] = nmax(x_lo[i, j], old_x_lo[r, j + frames] if shifted else -np.inf)
+            out_x_hi[i, j] = nmin(x_hi[i, j], old_x_hi[r, j + frames] if shifted else np.inf)
+            out_v_lo[i, j] = nmax(v_lo[i, j], old_v_lo[r, j + frames] if shifted else -np.inf)
+            out_v_hi[i, j] = nmin(v_hi[i, j], old_v_hi[r, j + frames] if shifted else np.inf)
+        for lane in range(lanes):
+            out_entry[i, lane] = nmax(entry[i, lane], nmax(old_entry[r, lane] - seconds, 0.0))
+    return out_x_lo, out_x_hi, out_v_lo, out_v_hi, out_entry, escaped, rolled, checked
+
+
 # --------------------------------------------------------------------------------------------
 # The Python entries: the reference functions' signatures.
 # --------------------------------------------------------------------------------------------
@@ -561,6 +615,20 @@ def follower_bound_compiled(state: RoadState, i: int, react: np.ndarray, t: np.n
                            float(v_min[0]), float(v_max[0]), _f(react), t)  # fmt: skip
 
 
+def follower_bounds_compiled(state: RoadState, rows: np.ndarray, react: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """(rows, frames) [m] :func:`follower_bound_compiled` of each car of ``rows`` for one plan (``react``: (1,)),
+    the speeds along the path computed once (the same bits)."""
+    speed = path_speed(state)
+    linear = np.isfinite(state.linear_speed_gain)
+    out = np.empty((len(rows), t.size))
+    for k, i in enumerate(rows):
+        v_min, v_max = speed_bounds(speed[i : i + 1], state.target_speed[i : i + 1], linear[i : i + 1])
+        out[k] = follower_kernel(float(state.x[i]), float(speed[i]), float(state.accel_max[i]),
+                                 float(state.brake_max[i]), float(v_min[0]), float(v_max[0]), _f(react),
+                                 t)[0]  # fmt: skip
+    return out
+
+
 def _held_pair(state: RoadState, held: tuple[int, ...] | None) -> tuple[int, int]:
     """The (at most two) lanes the ego holds, as the kernel takes them (:func:`held_lanes`)."""
     lanes = held_lanes(state, held)
@@ -572,3 +640,21 @@ def _held_pair(state: RoadState, held: tuple[int, ...] | None) -> tuple[int, int
 def _f(a: np.ndarray | float) -> np.ndarray:
     """``a`` as a contiguous float64 array (the kernels' one signature)."""
     return np.ascontiguousarray(a, dtype=np.float64)
+
+
+def carry_compiled(
+    state: RoadState, dyn: Dynamics, sets: CarSets, carried: CarSets, vehicle: np.ndarray, unbraked: np.ndarray,
+    occupied: np.ndarray,
+) -> tuple[CarSets, np.ndarray, np.ndarray, int]:  # fmt: skip
+    """The fresh ``sets`` against those ``carried`` from the last decision (not yet shifted), compiled (the same
+    bits as the reference's ``carried.shifted``, ``escaped_cars(…) | unbraked``, ``sets.intersect(…, ~escaped)``,
+    ``rolling_back`` and the count of cars with a carried set): (the sets intersected, escaped, rolled back,
+    checked). ``occupied``: ``occupied_lanes`` of ``state``."""
+    rows = rows_in(carried.vehicle, vehicle)
+    x_lo, x_hi, v_lo, v_hi, entry, escaped, rolled, checked = carry_kernel(
+        sets.x_lo, sets.x_hi, sets.v_lo, sets.v_hi, sets.entry, carried.x_lo, carried.x_hi, carried.v_lo,
+        carried.v_hi, carried.entry, rows, int(dyn.frames_per_decision), float(dyn.decision_period), _f(state.x),
+        _f(path_speed(state)), np.asarray(occupied, dtype=np.bool_), np.asarray(unbraked, dtype=np.bool_),
+        float(ESCAPE_TOLERANCE),
+    )  # fmt: skip
+    return CarSets(sets.vehicle, x_lo, x_hi, v_lo, v_hi, entry, sets.now), escaped, rolled, int(checked)

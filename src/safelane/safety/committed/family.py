@@ -27,7 +27,8 @@ from safelane.safety.committed.compiled import (
     car_arrays,
     car_gaps_compiled,
     car_sets_compiled,
-    follower_bound_compiled,
+    carry_compiled,
+    follower_bounds_compiled,
     prepare,
     verify_plans_compiled,
 )
@@ -184,17 +185,23 @@ class CommittedFamily:
             sets = car_sets(state, dyn, vehicle)
         escaped = np.zeros(state.n, dtype=bool)
         unbraked = np.zeros(state.n, dtype=bool)
-        older: CarSets | None = None
+        rolled: np.ndarray | None = None
         checked = 0
         entered = np.zeros(state.n, dtype=bool)
         if self.carried is not None:
             kept_held = self.kept.held if self.kept is not None else ()
             entered = _entered_held_lanes(state, self.carried, sets, vehicle, self.carried_ahead, kept_held)
-            older = self.carried.shifted(dyn.frames_per_decision, dyn.decision_period)
-            unbraked = self._followers_escaped(state, dyn, vehicle)
-            escaped = escaped_cars(state, dyn, older, vehicle) | unbraked
-            checked = int(np.isin(vehicle, older.vehicle).sum())
-            sets = sets.intersect(older, ~escaped)
+            occupied = occupied_lanes(state, dyn)
+            unbraked = self._followers_escaped(state, dyn, vehicle, occupied)
+            if compiled:  # shifted, escaped_cars, intersect and rolling_back in one kernel, the same bits
+                sets, escaped, rolled, checked = carry_compiled(state, dyn, sets, self.carried, vehicle, unbraked,
+                                                                occupied)  # fmt: skip
+            else:
+                older = self.carried.shifted(dyn.frames_per_decision, dyn.decision_period)
+                escaped = escaped_cars(state, dyn, older, vehicle) | unbraked
+                checked = int(np.isin(vehicle, older.vehicle).sum())
+                sets = sets.intersect(older, ~escaped)
+                rolled = rolling_back(state, escaped, older, vehicle)
         if compiled:
             worst, ego_x, _, set_points = verify_plans_compiled(state, dyn, sets, cars)
         else:
@@ -250,7 +257,8 @@ class CommittedFamily:
             mask, safe, available, not bool(safe.any()), best_gap, None,
             plan_forced=forced, lapse=lapse, lapse_cars=tuple(int(v) for v in vehicle[failed]),
             escaped=tuple(int(v) for v in vehicle[escaped]),
-            rolled_back=tuple(int(v) for v in vehicle[rolling_back(state, escaped, older, vehicle)]), checked=checked,
+            rolled_back=tuple(int(v) for v in vehicle[rolling_back(state, escaped) if rolled is None else rolled]),
+            checked=checked,
             unbraked_followers=tuple(int(v) for v in vehicle[unbraked]),
             entered=tuple(int(v) for v in vehicle[entered]),
             ego_crashed=ego_crashed, certified=bool(safe.any()) or self.kept is not None, plans=tuple(plans),
@@ -288,11 +296,12 @@ class CommittedFamily:
             self.followers = fresh
         self._pending = None
 
-    def _followers_escaped(self, state: RoadState, dyn: Dynamics, vehicle: np.ndarray) -> np.ndarray:
+    def _followers_escaped(
+        self, state: RoadState, dyn: Dynamics, vehicle: np.ndarray, occupied: np.ndarray
+    ) -> np.ndarray:  # fmt: skip
         """(cars,) the followers of the kept plan (a car behind the ego in a lane it held) still in that lane and
-        ahead of the bound their reaction to the plan allowed."""
+        ahead of the bound their reaction to the plan allowed; ``occupied``: :func:`occupied_lanes` of ``state``."""
         out = np.zeros(state.n, dtype=bool)
-        occupied = occupied_lanes(state, dyn)
         f = dyn.frames_per_decision
         for i, v in enumerate(vehicle):
             follower = self.followers.get(int(v))
@@ -331,14 +340,20 @@ def _followers_of(
     """{snapshot index: (lane, highest position [m] per frame)} of the cars that follow the ego under ``plan``
     (:func:`plan_gaps`' follower law): the bound a lapse is traced against."""
     held = {state.ego_lane, state.ego_target_lane}
-    t = dyn.times
+    lanes = [lane for lane, _ in plan.occupied if lane in held]
     out: dict[int, tuple[int, np.ndarray]] = {}
-    for lane, _ in plan.occupied:
-        if lane not in held:
-            continue
-        own = state.lane_of(state.y, dyn.lanes_count, dyn.lane_width)
-        for i in np.flatnonzero((state.x < state.ego_x) & (own == lane)):
-            bound = (follower_bound_compiled if engine == "compiled" else follower_bound)(
-                state, int(i), np.array([max(plan.onset + dyn.follower_reaction, 0.0)]), t)[0]  # fmt: skip
+    if not lanes:
+        return out
+    t = dyn.times
+    react = np.array([max(plan.onset + dyn.follower_reaction, 0.0)])
+    own = state.lane_of(state.y, dyn.lanes_count, dyn.lane_width)
+    behind = state.x < state.ego_x
+    for lane in lanes:
+        rows = np.flatnonzero(behind & (own == lane))
+        if engine == "compiled":
+            bounds = follower_bounds_compiled(state, rows, react, t)
+        else:
+            bounds = [follower_bound(state, int(i), react, t)[0] for i in rows]
+        for i, bound in zip(rows, bounds, strict=True):
             out[int(vehicle[i])] = (lane, np.minimum(bound, sets.x_hi[i]))
     return out

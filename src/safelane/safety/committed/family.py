@@ -153,13 +153,15 @@ class CommittedFamily:
 
     def evaluate(self, snap: RoadSnapshot, dyn: Dynamics, ego_leave_time: float) -> CommittedResult:
         """The verdict in the state of ``snap`` (see the class docstring)."""
-        dyn = dataclasses.replace(dyn, ego_leave_time=ego_leave_time)
+        # The one-decision rule is given ``dyn`` as passed (it takes the leave time apart): the caller's one Dynamics
+        # for an episode, whose kernel constants it caches.
+        one_decision = lambda: OneDecisionFamily("robust", self.engine).evaluate(snap, dyn, ego_leave_time)  # noqa: E731
         state, vehicle = whole_road_state(snap, dyn.rule.ego_speed_magnitude)
         return self.evaluate_state(
             state,
             vehicle,
-            dyn,
-            lambda: OneDecisionFamily("robust", self.engine).evaluate(snap, dyn, ego_leave_time),
+            dataclasses.replace(dyn, ego_leave_time=ego_leave_time),
+            one_decision,
             ego_crashed=bool(snap.crashed[snap.ego]),
         )
 

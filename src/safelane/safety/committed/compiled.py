@@ -220,6 +220,21 @@ def follower_kernel(
 
 
 @njit(cache=True, error_model="numpy")
+def followers_kernel(
+    x: np.ndarray, speed: np.ndarray, a: np.ndarray, b: np.ndarray, v_min: np.ndarray, v_max: np.ndarray,
+    rows: np.ndarray, react: float, t: np.ndarray,
+) -> np.ndarray:  # fmt: skip
+    """:func:`follower_kernel` of each car of ``rows`` (per car: position, speed along its path, acceleration and
+    braking limits, follower speed bounds) for one reaction time ``react`` [s]: (rows, frames) [m]."""
+    out = np.empty((rows.shape[0], t.shape[0]))
+    for k in range(rows.shape[0]):
+        i = rows[k]
+        for j in range(t.shape[0]):
+            out[k, j] = _follower_high(x[i], speed[i], a[i], b[i], v_min[i], v_max[i], react, t[j])
+    return out
+
+
+@njit(cache=True, error_model="numpy")
 def car_gaps_kernel(
     x_lo: np.ndarray, x_hi: np.ndarray, entry: np.ndarray, now: np.ndarray, ego_x: np.ndarray, onset: np.ndarray,
     lane_ids: np.ndarray, lane_until: np.ndarray, held_a: int, held_b: int, last_frame: int,
@@ -496,16 +511,52 @@ class Prepared(NamedTuple):
     fv_max: np.ndarray
 
 
-def prepare(state: RoadState, dyn: Dynamics) -> Prepared:
-    """The per-car quantities of ``state`` (:func:`prepare_kernel`), computed once per state."""
+class DynamicsArrays(NamedTuple):
+    """What the kernels read of a :class:`Dynamics`, as arrays (computed as the reference computes them)."""
+
+    times: np.ndarray
+    """(frames + 1,) [s] ``dyn.times``."""
+    onsets: np.ndarray
+    """(5, holds) [s] each action's :func:`onsets`."""
+    powers: np.ndarray
+    """(frames per decision + 1,) the ego's P-controller's decay powers."""
+    target_speeds: np.ndarray
+    """[m/s] ``dyn.target_speeds``."""
+    prepare_consts: np.ndarray
+    """:func:`prepare_kernel`'s ``consts``."""
+
+
+_ARRAYS: dict[int, tuple[Dynamics, DynamicsArrays]] = {}
+"""The arrays of each Dynamics object: a family evaluates one Dynamics for as long as the ego's leave time stays
+(:meth:`~safelane.safety.committed.family.CommittedFamily.evaluate`)."""
+
+
+def dynamics_arrays(dyn: Dynamics) -> DynamicsArrays:
+    """``dyn``'s :class:`DynamicsArrays`, built once per Dynamics object (read them, never write them)."""
+    hit = _ARRAYS.get(id(dyn))
+    if hit is not None and hit[0] is dyn:  # the entry holds dyn, so its id is not reused meanwhile
+        return hit[1]
+    decay = 1.0 - dyn.ego_kp * dyn.frame_dt
     consts = np.array([dyn.frame_dt, dyn.lane_width, dyn.body_width, LATERAL_MOTION_THRESHOLD, dyn.cut_in_time,
                        lane_crossing_time(dyn), lane_change_allowance(dyn), LANE_CHANGES_BEGUN, MAX_SPEED])  # fmt: skip
+    arrays = DynamicsArrays(dyn.times, np.stack([onsets(dyn, a) for a in range(N_ACTIONS)]),
+                            decay ** np.arange(dyn.frames_per_decision + 1),
+                            np.asarray(dyn.target_speeds, dtype=float), consts)  # fmt: skip
+    if len(_ARRAYS) >= 64:
+        _ARRAYS.clear()
+    _ARRAYS[id(dyn)] = (dyn, arrays)
+    return arrays
+
+
+def prepare(state: RoadState, dyn: Dynamics) -> Prepared:
+    """The per-car quantities of ``state`` (:func:`prepare_kernel`), computed once per state."""
+    arrays = dynamics_arrays(dyn)
     return Prepared(*prepare_kernel(
         _f(state.x), _f(state.y), _f(state.vx), _f(state.vy), _f(state.heading), _f(state.length),
         np.asarray(state.crashed, dtype=np.bool_), np.asarray(state.can_change_lane, dtype=np.bool_),
         _f(state.target_speed), _f(state.linear_speed_gain), _f(state.linear_speed_difference_gain),
         _f(state.linear_distance_gain), _f(state.idm_comfort_acc), _f(state.idm_delta), float(state.ego_x),
-        float(state.ego_length), dyn.times, consts, int(dyn.lanes_count),
+        float(state.ego_length), arrays.times, arrays.prepare_consts, int(dyn.lanes_count),
     ))  # fmt: skip
 
 
@@ -515,7 +566,8 @@ def car_sets_compiled(state: RoadState, dyn: Dynamics, vehicle: np.ndarray, prep
     prep = prepare(state, dyn) if prep is None else prep
     x_lo, x_hi, v_lo, v_hi = sets_kernel(
         _f(state.x), prep.speed, _f(state.accel_max), _f(state.brake_max), prep.v_min, prep.v_max, prep.allowance,
-        dyn.times, prep.law_rows, prep.law_k, _f(state.idm_comfort_acc), _f(state.idm_delta), _f(state.target_speed),
+        dynamics_arrays(dyn).times, prep.law_rows, prep.law_k, _f(state.idm_comfort_acc), _f(state.idm_delta),
+        _f(state.target_speed),
         np.asarray(state.crashed, dtype=np.bool_), float(dyn.frame_dt),
     )  # fmt: skip
     return CarSets(np.asarray(vehicle), x_lo, x_hi, v_lo, v_hi, prep.entry, prep.now)
@@ -567,19 +619,16 @@ def verify_plans_compiled(
     state's :func:`car_arrays` when already computed."""
     available, verify = plan_actions(state, dyn)
     lanes = [action_lanes(state, dyn, a) if available[a] else [] for a in range(N_ACTIONS)]
-    plan_onsets = np.stack([onsets(dyn, a) for a in range(N_ACTIONS)])
+    arrays = dynamics_arrays(dyn)
     cars = car_arrays(state, dyn) if cars is None else cars
-    decay = 1.0 - dyn.ego_kp * dyn.frame_dt
-    powers = decay ** np.arange(dyn.frames_per_decision + 1)
     flat = [lane for per_action in lanes for lane in per_action]
     return plans_kernel(
         available, np.array([lane for lane, _ in flat], dtype=np.int64),
         np.array([until for _, until in flat], dtype=float), np.array([len(x) for x in lanes], dtype=np.int64),
-        plan_onsets, action_targets(state, dyn), float(state.ego_x), float(state.ego_speed),
-        np.asarray(dyn.target_speeds, dtype=float), powers, dyn.frames_per_decision, dyn.horizon_decisions,
-        float(dyn.frame_dt), float(dyn.ego_kp), sets.x_lo, sets.x_hi, sets.entry,
-        np.asarray(sets.now, dtype=np.bool_), int(state.ego_lane), int(state.ego_target_lane), verify, *cars,
-        dyn.times, float(dyn.follower_reaction),
+        arrays.onsets, action_targets(state, dyn), float(state.ego_x), float(state.ego_speed), arrays.target_speeds,
+        arrays.powers, dyn.frames_per_decision, dyn.horizon_decisions, float(dyn.frame_dt),
+        float(dyn.ego_kp), sets.x_lo, sets.x_hi, sets.entry, np.asarray(sets.now, dtype=np.bool_),
+        int(state.ego_lane), int(state.ego_target_lane), verify, *cars, arrays.times, float(dyn.follower_reaction),
     )  # fmt: skip
 
 
@@ -591,7 +640,7 @@ def car_gaps_compiled(
     """:func:`safelane.safety.committed.plans.car_gaps`, compiled (the same bits); ``cars``: :func:`car_arrays` of
     ``state`` when already computed."""
     cars = car_arrays(state, dyn) if cars is None else cars
-    t = dyn.times
+    t = dynamics_arrays(dyn).times
     n = state.n
     carried_lane = np.full(n, -1, dtype=np.int64)
     carried_high = np.empty((n if carried_followers else 0, t.size))
@@ -616,17 +665,12 @@ def follower_bound_compiled(state: RoadState, i: int, react: np.ndarray, t: np.n
 
 
 def follower_bounds_compiled(state: RoadState, rows: np.ndarray, react: np.ndarray, t: np.ndarray) -> np.ndarray:
-    """(rows, frames) [m] :func:`follower_bound_compiled` of each car of ``rows`` for one plan (``react``: (1,)),
-    the speeds along the path computed once (the same bits)."""
+    """(rows, frames) [m] :func:`follower_bound_compiled` of each car of ``rows`` for one plan (``react``: (1,)) in
+    one kernel call, the speeds and their bounds computed over every car at once (elementwise: the same bits)."""
     speed = path_speed(state)
-    linear = np.isfinite(state.linear_speed_gain)
-    out = np.empty((len(rows), t.size))
-    for k, i in enumerate(rows):
-        v_min, v_max = speed_bounds(speed[i : i + 1], state.target_speed[i : i + 1], linear[i : i + 1])
-        out[k] = follower_kernel(float(state.x[i]), float(speed[i]), float(state.accel_max[i]),
-                                 float(state.brake_max[i]), float(v_min[0]), float(v_max[0]), _f(react),
-                                 t)[0]  # fmt: skip
-    return out
+    v_min, v_max = speed_bounds(speed, state.target_speed, np.isfinite(state.linear_speed_gain))
+    return followers_kernel(_f(state.x), _f(speed), _f(state.accel_max), _f(state.brake_max), _f(v_min), _f(v_max),
+                            np.asarray(rows, dtype=np.int64), float(react[0]), t)  # fmt: skip
 
 
 def _held_pair(state: RoadState, held: tuple[int, ...] | None) -> tuple[int, int]:

@@ -142,6 +142,9 @@ class CommittedFamily:
     carried_ahead: np.ndarray | None = None
     followers: dict[int, tuple[int, np.ndarray]] = field(default_factory=dict)
     _pending: tuple[CommittedResult, RoadState, Dynamics, CarSets, np.ndarray] | None = field(default=None, repr=False)
+    _dynamics: tuple[Dynamics, str, Dynamics] | None = field(default=None, repr=False)
+    """(dyn, leave time as ``float.hex``, dyn with that leave time): the last Dynamics evaluated, kept while the caller
+    passes the same one and the same leave time, so that what the kernels read of it is built once."""
 
     def __post_init__(self) -> None:
         check_choices(engine=self.engine)
@@ -160,10 +163,19 @@ class CommittedFamily:
         return self.evaluate_state(
             state,
             vehicle,
-            dataclasses.replace(dyn, ego_leave_time=ego_leave_time),
+            self._with_leave_time(dyn, ego_leave_time),
             one_decision,
             ego_crashed=bool(snap.crashed[snap.ego]),
         )
+
+    def _with_leave_time(self, dyn: Dynamics, ego_leave_time: float) -> Dynamics:
+        """``dyn`` with ``ego_leave_time``: the same object as at the last decision when both are the same (the bits:
+        ``float.hex`` tells −0.0 from 0.0)."""
+        leave = float(ego_leave_time).hex()
+        hit = self._dynamics
+        if hit is None or hit[0] is not dyn or hit[1] != leave:
+            hit = self._dynamics = (dyn, leave, dataclasses.replace(dyn, ego_leave_time=ego_leave_time))
+        return hit[2]
 
     def evaluate_state(
         self,

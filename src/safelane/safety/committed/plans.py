@@ -83,16 +83,14 @@ def plan_of(state: RoadState, dyn: Dynamics, set_points: np.ndarray, action: int
     """The :class:`Plan` of (``action``, ``hold``) in ``state``: its set-points decision by decision, read from
     ``set_points`` [m/s], the plan's set-point per frame (a row of :func:`plan_set_points`), up to the first 0 m/s
     after the hold."""
-    f = dyn.frames_per_decision
-    points = [float(set_points[0])]
-    for d in range(1, dyn.horizon_decisions):
-        points.append(float(set_points[d * f]))
-        if points[-1] == 0.0 and d > hold:
-            break
+    f, horizon = dyn.frames_per_decision, dyn.horizon_decisions
+    decisions = set_points[: horizon * f : f].tolist()  # the set-point at each decision's first frame
+    stop = next((d for d in range(hold + 1, len(decisions)) if decisions[d] == 0.0), len(decisions) - 1)
+    points = decisions[: stop + 1]
     occupied = tuple(action_lanes(state, dyn, action))
     lane = occupied[-1][0]
     onset = float(onsets(dyn, action)[hold])
-    return Plan(action, hold, tuple(points), (lane,) * len(points), occupied, onset, int(dyn.times.size - 1),
+    return Plan(action, hold, tuple(points), (lane,) * len(points), occupied, onset, horizon * f,
                 (int(state.ego_lane), int(state.ego_target_lane)))  # fmt: skip
 
 

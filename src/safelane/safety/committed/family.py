@@ -339,12 +339,10 @@ def _entered_held_lanes(
     in_lane = held_lanes(state, kept_held)[0]
     out = np.zeros(state.n, dtype=bool)
     for lane in {state.ego_lane, state.ego_target_lane, *kept_held}:
-        for i in np.flatnonzero(sets.now[:, lane]):
-            r = rows[i]
-            if r < 0:
-                continue
-            passed = older_ahead is not None and not older_ahead[r] and ahead[i] and lane == in_lane
-            out[i] |= not older.now[r, lane] or passed
+        i = np.flatnonzero(sets.now[:, lane] & (rows >= 0))  # in the lane now, with a row then
+        r = rows[i]
+        passed = ~older_ahead[r] & ahead[i] if older_ahead is not None and lane == in_lane else False
+        out[i] |= ~older.now[r, lane] | passed
     return out
 
 

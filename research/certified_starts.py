@@ -46,22 +46,20 @@ def blocking_cars(snap: Any, dyn: Any) -> list[str]:
     """The classes of the cars failing the plan with the fewest failing cars in ``snap``'s state."""
     from safelane.core.spaces import N_ACTIONS
     from safelane.safety.committed.plan_family import onsets
-    from safelane.safety.committed.plans import car_gaps, plan_set_points
+    from safelane.safety.committed.plans import car_gaps
     from safelane.safety.committed.sets import car_sets
     from safelane.safety.ego import action_lanes, available_actions, ego_trajectories
     from safelane.safety.road import whole_road_state
 
     state, vehicle = whole_road_state(snap, dyn.rule.ego_speed_magnitude)
     sets = car_sets(state, dyn, vehicle)
-    ego_x, ego_v = ego_trajectories(state, dyn)
+    ego_x, _ = ego_trajectories(state, dyn)
     available = available_actions(state, dyn)
     best: np.ndarray | None = None
     for a in range(N_ACTIONS):
         if not available[a]:
             continue
-        ego_set = plan_set_points(state, dyn, ego_v[a], a)
-        gaps = car_gaps(state, dyn, sets, ego_x[a], ego_v[a], onsets(dyn, a), action_lanes(state, dyn, a),
-                        ego_set=ego_set)
+        gaps = car_gaps(state, dyn, sets, ego_x[a], onsets(dyn, a), action_lanes(state, dyn, a))
         failing = ~(gaps >= dyn.margin)  # (cars, holds)
         for k in range(failing.shape[1]):
             if best is None or failing[:, k].sum() < best.sum():

@@ -107,38 +107,21 @@ def test_the_compiled_sets_and_ego_paths_are_the_references_bits(state: RoadStat
     dyn=DYNAMICS,
     action=st.integers(0, 4),
     until=st.one_of(st.none(), st.integers(-2, 80)),
-    with_set=st.booleans(),
     carried=st.booleans(),
 )
 def test_the_compiled_car_gaps_are_the_references_bits(
-    state: RoadState, dyn: Dynamics, action: int, until: int | None, with_set: bool, carried: bool
+    state: RoadState, dyn: Dynamics, action: int, until: int | None, carried: bool
 ) -> None:  # fmt: skip
     vehicle = np.arange(state.n)
     sets = car_sets(state, dyn, vehicle)
-    ego_x, ego_v = ego_trajectories(state, dyn)
+    ego_x, _ = ego_trajectories(state, dyn)
     lanes = action_lanes(state, dyn, action)
-    ego_set = reference.plan_set_points(state, dyn, ego_v[action], action) if with_set else None
     # A follower bound carried from a kept plan for every other car, in a lane the plan occupies.
     followers = (
         {i: (lanes[i % len(lanes)][0], sets.x_hi[i] - 3.0 * (i % 3)) for i in range(state.n)} if carried else None
     )
-    args = (state, dyn, sets, ego_x[action], ego_v[action], onsets(dyn, action), lanes, until, followers,
-            ego_set)  # fmt: skip
+    args = (state, dyn, sets, ego_x[action], onsets(dyn, action), lanes, until, followers)
     assert same(compiled.car_gaps_compiled(*args), reference.car_gaps(*args))
-
-
-@settings(max_examples=150, deadline=None, suppress_health_check=[HealthCheck.too_slow])
-@given(state=states(), dyn=DYNAMICS, action=st.integers(0, 4), with_set=st.booleans())
-def test_the_compiled_mobil_entry_times_are_the_references_bits(
-    state: RoadState, dyn: Dynamics, action: int, with_set: bool
-) -> None:  # fmt: skip
-    """The first time MOBIL's safety criterion could let each car in front of the ego (IDM and linear drivers)."""
-    sets = car_sets(state, dyn, np.arange(state.n))
-    ego_x, ego_v = ego_trajectories(state, dyn)
-    ego_set = reference.plan_set_points(state, dyn, ego_v[action], action) if with_set else None
-    rows = np.arange(state.n)
-    ours = compiled.permit_entry_compiled(state, dyn, sets, rows, ego_x[action], ego_v[action], ego_set)
-    assert same(ours, reference._permit_entry(state, dyn, sets, rows, ego_x[action], ego_v[action], ego_set))
 
 
 def _moved(state: RoadState, rng: np.random.Generator, dyn: Dynamics, sets: Any) -> RoadState:
@@ -162,7 +145,7 @@ def test_the_families_verdicts_are_the_same_decision_by_decision(
     state: RoadState, dyn: Dynamics, seed: int, actions: list[int]
 ) -> None:  # fmt: skip
     """Three decisions, each car moved somewhere in (or just outside) its set: the same mask, gaps, plans, lapses,
-    named cars and follower bounds from both engines."""
+    named cars, follower bounds and carried sets from both engines."""
     rng = np.random.default_rng(seed)
     families = {engine: CommittedFamily(engine) for engine in ("numpy", "compiled")}
     vehicle = np.arange(state.n) * 2 + 1  # snapshot indices that are not row numbers
@@ -180,6 +163,8 @@ def test_the_families_verdicts_are_the_same_decision_by_decision(
         kept = {engine: (fam.kept, sorted((v, lane, high.tobytes()) for v, (lane, high) in fam.followers.items()))
                 for engine, fam in families.items()}  # fmt: skip
         assert kept["compiled"] == kept["numpy"]
+        for name in ("x_lo", "x_hi", "v_lo", "v_hi", "entry", "now"):  # the sets carried (intersected) to the next
+            assert same(getattr(families["compiled"].carried, name), getattr(families["numpy"].carried, name)), name
         state = _moved(state, rng, dyn, car_sets(state, dyn, vehicle))
 
 

@@ -8,7 +8,6 @@ body at a finite position); the compiled one-decision kernel projects inside its
 
 from __future__ import annotations
 
-import dataclasses
 import math
 from typing import NamedTuple
 
@@ -76,18 +75,25 @@ def road_state(snap: RoadSnapshot, ego_speed_magnitude: bool = True) -> RoadStat
     Only bodies within :data:`~safelane.safety.world.RELEVANCE_RANGE` [m] of the ego along the road are included —
     the ones :func:`safelane.safety.one_decision.reference.evaluate` considers.
     """
-    e = snap.ego
     others = snap.others(vehicles_only=False)
-    ego_rel = snap.position[e] - snap.lane_origin
-    ego_x = float(ego_rel @ snap.lane_direction)
+    ego_x = float((snap.position[snap.ego] - snap.lane_origin) @ snap.lane_direction)
     if others.size:
         frame = lane_frame(snap, others)  # over every other body, then the relevant ones (the bits road_state had)
         near = np.flatnonzero(_relevant(frame.x, ego_x))
-        x, y, vx, vy, heading = (a[near] for a in frame)
+        frame = LaneFrame(*(a[near] for a in frame))
     else:
         near = np.zeros(0, dtype=int)
-        x = y = vx = vy = heading = np.zeros(0)
-    nearby = others[near]
+        frame = LaneFrame(*(np.zeros(0) for _ in LaneFrame._fields))
+    return _state(snap, ego_speed_magnitude, frame, others[near])
+
+
+def _state(snap: RoadSnapshot, ego_speed_magnitude: bool, frame: LaneFrame, nearby: np.ndarray) -> RoadState:
+    """The :class:`RoadState` of ``snap``'s ego and of the bodies ``nearby`` (snapshot indices), ``frame`` their
+    lane coordinates (:func:`road_state` documents ``ego_speed_magnitude``)."""
+    e = snap.ego
+    ego_rel = snap.position[e] - snap.lane_origin
+    ego_x = float(ego_rel @ snap.lane_direction)
+    x, y, vx, vy, heading = frame
     ego_heading = float(snap.heading[e]) - snap.lane_heading
     return RoadState(
         ego_x=ego_x,
@@ -117,10 +123,4 @@ def whole_road_state(snap: RoadSnapshot, ego_speed_magnitude: bool = True) -> tu
     rule's, not a bound on a reachable set) and the snapshot index of each row (the committed rule's)."""
     others = snap.others(vehicles_only=False)
     bodies = others[np.isfinite(snap.longitudinal(snap.position[others]))]
-    frame = lane_frame(snap, bodies)
-    state = dataclasses.replace(
-        road_state(snap, ego_speed_magnitude), **frame._asdict(), length=snap.length[bodies],
-        crashed=snap.crashed[bodies], target_speed=snap.target_speed[bodies],
-        **{name: getattr(snap, name)[bodies] for name in DRIVER_FIELDS},
-    )  # fmt: skip
-    return state, bodies
+    return _state(snap, ego_speed_magnitude, lane_frame(snap, bodies), bodies), bodies

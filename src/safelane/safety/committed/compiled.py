@@ -22,12 +22,14 @@ from numba import njit
 from safelane.core.kernel_cache import drop_stale_kernel_cache
 from safelane.safety.committed.plan_family import Lanes, held_lanes, onsets, plan_actions
 from safelane.safety.committed.sets import (
+    ESCAPE_TOLERANCE,
     LANE_CHANGES_BEGUN,
     MAX_SPEED,
     CarSets,
     lane_change_allowance,
     lane_crossing_time,
     path_speed,
+    rows_in,
     speed_bounds,
 )
 from safelane.safety.ego import action_lanes, action_targets
@@ -218,79 +220,37 @@ def follower_kernel(
 
 
 @njit(cache=True, error_model="numpy")
-def _permit_entry(
-    i: int, x_hi: np.ndarray, x_lo: np.ndarray, v_lo: np.ndarray, v_hi: np.ndarray, ego_x: np.ndarray,
-    ego_v: np.ndarray, ego_set: np.ndarray, has_set: bool, top_speed: float, speed_limit: float,
-    comfort_acc: np.ndarray, comfort_dec: np.ndarray, delta: np.ndarray, wanted: np.ndarray, time_wanted: np.ndarray,
-    max_braking: np.ndarray, k0: np.ndarray, k1: np.ndarray, k2: np.ndarray, t: np.ndarray, cut_in_time: float,
-    out: np.ndarray, powers: np.ndarray, powers_delta: np.ndarray,
-) -> None:  # fmt: skip
-    """``committed._permit_entry`` of car ``i``: ``out`` (holds,) [s] the first time MOBIL's criterion could let it
-    in front of the ego on each plan (with ``_linear_criterion`` for linear drivers), plus the cut-in time.
-    ``powers`` (holds, frames): ``(v_ego / v_limit)^δ`` for the exponent ``powers_delta[0]`` (NaN: not yet
-    computed), filled on first use and reused by every driver with the same δ (the same inputs, the same bits)."""
-    acc = comfort_acc[i]
-    ab = -comfort_acc[i] * comfort_dec[i]
-    target = max(speed_limit, 1e-2)
-    linear = np.isfinite(k0[i])
-    two_root = 2 * np.sqrt(ab)
-    cached = not linear and powers_delta[0] == delta[i]
-    if not linear and not cached and powers_delta[0] != powers_delta[0]:  # the first IDM driver fills the cache
-        for h in range(ego_x.shape[0]):
-            for j in range(t.shape[0]):
-                powers[h, j] = np.power(nmax(ego_v[h, j], 0.0) / target, delta[i])
-        powers_delta[0] = delta[i]
-        cached = True
-    for h in range(ego_x.shape[0]):
-        first = np.inf
+def followers_kernel(
+    x: np.ndarray, speed: np.ndarray, a: np.ndarray, b: np.ndarray, v_min: np.ndarray, v_max: np.ndarray,
+    rows: np.ndarray, react: float, t: np.ndarray,
+) -> np.ndarray:  # fmt: skip
+    """:func:`follower_kernel` of each car of ``rows`` (per car: position, speed along its path, acceleration and
+    braking limits, follower speed bounds) for one reaction time ``react`` [s]: (rows, frames) [m]."""
+    out = np.empty((rows.shape[0], t.shape[0]))
+    for k in range(rows.shape[0]):
+        i = rows[k]
         for j in range(t.shape[0]):
-            gap = x_hi[i, j] - ego_x[h, j]
-            ev = nmax(ego_v[h, j], 0.0)
-            if linear:
-                aim = ego_set[h, j] if has_set else top_speed
-                d_safe = wanted[i] + ev * time_wanted[i]
-                pred = k0[i] * (aim - ev) + k1[i] * nmin(v_hi[i, j] - ev, 0.0) + k2[i] * nmin(gap - d_safe, 0.0)
-                ok = pred >= -max_braking[i]
-            else:
-                free = acc * (1 - (powers[h, j] if cached else np.power(ev / target, delta[i])))
-                base = wanted[i] + ev * time_wanted[i]
-                d_fast = base + ev * (ev - nmax(v_hi[i, j], 0.0)) / two_root
-                d_slow = base + ev * (ev - nmin(v_lo[i, j], 0.0)) / two_root
-                lo, hi = nmin(d_fast, d_slow), nmax(d_fast, d_slow)
-                least = lo if lo > 0.0 else (-hi if hi < 0.0 else 0.0)
-                d = nmax(gap, 1e-2)
-                r = least / d
-                ok = free - acc * (r * r) >= -max_braking[i]
-            ok = ok and gap > 0.0
-            ok = ok or x_lo[i, j] < ego_x[h, j]
-            if ok:
-                first = t[j]
-                break
-        out[h] = first + cut_in_time
+            out[k, j] = _follower_high(x[i], speed[i], a[i], b[i], v_min[i], v_max[i], react, t[j])
+    return out
 
 
 @njit(cache=True, error_model="numpy")
 def car_gaps_kernel(
-    x_lo: np.ndarray, x_hi: np.ndarray, v_lo: np.ndarray, v_hi: np.ndarray, entry: np.ndarray, now: np.ndarray,
-    ego_x: np.ndarray, ego_v: np.ndarray, onset: np.ndarray, lane_ids: np.ndarray, lane_until: np.ndarray,
-    held_a: int, held_b: int, last_frame: int, carried_lane: np.ndarray,
-    carried_high: np.ndarray, ego_set: np.ndarray, has_set: bool,
-    x: np.ndarray, half: np.ndarray, ahead: np.ndarray, mobil: np.ndarray, own_lane: np.ndarray,
-    speed: np.ndarray, accel_max: np.ndarray, brake_max: np.ndarray, fv_min: np.ndarray, fv_max: np.ndarray,
-    comfort_acc: np.ndarray, comfort_dec: np.ndarray, delta: np.ndarray, wanted: np.ndarray, time_wanted: np.ndarray,
-    max_braking: np.ndarray, k0: np.ndarray, k1: np.ndarray, k2: np.ndarray, top_speed: float, speed_limit: float,
-    t: np.ndarray, cut_in_time: float, follower_reaction: float, order: np.ndarray, least: bool,
-    lo_min: np.ndarray, hi_max: np.ndarray,
+    x_lo: np.ndarray, x_hi: np.ndarray, entry: np.ndarray, now: np.ndarray, ego_x: np.ndarray, onset: np.ndarray,
+    lane_ids: np.ndarray, lane_until: np.ndarray, held_a: int, held_b: int, last_frame: int,
+    carried_lane: np.ndarray, carried_high: np.ndarray,
+    x: np.ndarray, half: np.ndarray, ahead: np.ndarray, own_lane: np.ndarray, speed: np.ndarray,
+    accel_max: np.ndarray, brake_max: np.ndarray, fv_min: np.ndarray, fv_max: np.ndarray,
+    t: np.ndarray, follower_reaction: float, order: np.ndarray, least: bool, lo_min: np.ndarray, hi_max: np.ndarray,
 ) -> np.ndarray:  # fmt: skip
     """``committed.car_gaps``: (cars, holds) each car's worst bumper-to-bumper gap [m] to the plans (the
     reference documents the arguments; lanes as ``lane_ids``/``lane_until``, the carried follower bounds as
-    ``carried_lane`` (−1: none) and ``carried_high``, ``ego_set`` read when ``has_set``; per car: ``half`` the
-    half-lengths' sum, ``own_lane`` its lane, ``speed`` along its path, ``fv_min``/``fv_max`` its follower speed
-    bounds). Cars are visited in ``order``. With ``least`` only the least gap over the cars is wanted: a car is
-    skipped (its row left inf) when a bound below its gap (from ``lo_min``/``hi_max`` (cars, chunks), its lowest
-    and highest position in each chunk of :data:`CHUNK` frames) is already above the least gap so far for every
-    plan — rounding is monotone, so the computed gap is at least the computed bound and the least gap is the same
-    to the bit."""
+    ``carried_lane`` (−1: none) and ``carried_high``; per car: ``half`` the half-lengths' sum, ``own_lane`` its
+    lane, ``speed`` along its path, ``fv_min``/``fv_max`` its follower speed bounds). Cars are visited in
+    ``order``. With ``least`` only the least gap over the cars is wanted: a car is skipped (its row left inf) when a
+    bound below its gap (from ``lo_min``/``hi_max`` (cars, chunks), its lowest and highest position in each chunk
+    of :data:`CHUNK` frames) is already above the least gap so far for every plan — rounding is monotone, so the
+    computed gap is at least the computed bound and the least gap is the same to the bit."""
     n, holds, m = x.shape[0], ego_x.shape[0], t.shape[0]
     worst = np.full((n, holds), np.inf)
     running = np.full(holds, np.inf)
@@ -302,9 +262,6 @@ def car_gaps_kernel(
             c = j // CHUNK
             ego_lo[h, c], ego_hi[h, c] = nmin(ego_lo[h, c], ego_x[h, j]), nmax(ego_hi[h, c], ego_x[h, j])
     t_last = t[min(max(last_frame, 0), m - 1)]
-    entry_h = np.empty(holds)
-    permit = np.empty(holds)
-    powers, powers_delta = np.empty((holds, m)), np.full(1, np.nan)
     react = np.empty(holds)
     for h in range(holds):
         react[h] = nmax(onset[h] + follower_reaction, 0.0)  # a past reaction: braking from now
@@ -324,17 +281,8 @@ def car_gaps_kernel(
                     below = below and skip[h]
                 if below:
                     continue
-            for h in range(holds):
-                entry_h[h] = entry[i, lane]
-            if held_lane and ahead[i] and mobil[i] and not now[i, lane]:
-                _permit_entry(i, x_hi, x_lo, v_lo, v_hi, ego_x, ego_v, ego_set, has_set, top_speed, speed_limit,
-                              comfort_acc, comfort_dec, delta, wanted, time_wanted, max_braking, k0, k1, k2, t,
-                              cut_in_time, permit, powers, powers_delta)  # fmt: skip
-                for h in range(holds):
-                    entry_h[h] = nmax(entry_h[h], permit[h])
-            count = False
-            for h in range(holds):
-                count = count or np.isfinite(entry_h[h])
+            entry_i = entry[i, lane]  # the same for every plan
+            count = np.isfinite(entry_i)
             if held_lane:  # cut-ins, and cars behind in the ego's lane (held_a): theirs to avoid
                 count = count and now[i, lane] and (ahead[i] or lane != held_a)
             if not count:
@@ -346,7 +294,7 @@ def car_gaps_kernel(
                     continue
                 low = np.inf
                 for j in range(m):
-                    if not (t[j] >= entry_h[h] and t[j] <= t_last and t[j] <= until):
+                    if not (t[j] >= entry_i and t[j] <= t_last and t[j] <= until):
                         continue
                     high = x_hi[i, j]
                     if following:
@@ -366,13 +314,13 @@ def car_gaps_kernel(
 def prepare_kernel(
     x: np.ndarray, y: np.ndarray, vx: np.ndarray, vy: np.ndarray, heading: np.ndarray, length: np.ndarray,
     crashed: np.ndarray, can_change: np.ndarray, target: np.ndarray, k0: np.ndarray, k1: np.ndarray, k2: np.ndarray,
-    idm_acc: np.ndarray, idm_delta: np.ndarray, max_braking: np.ndarray, ego_x: float, ego_length: float,
-    t: np.ndarray, consts: np.ndarray, lanes_count: int,
+    idm_acc: np.ndarray, idm_delta: np.ndarray, ego_x: float, ego_length: float, t: np.ndarray,
+    consts: np.ndarray, lanes_count: int,
 ) -> tuple:  # fmt: skip
     """Every per-car quantity of ``committed_sets`` and ``committed.car_gaps`` in one pass (the numpy functions'
     operations, elementwise): (speed along the path, the sets' speed bounds v_min / v_max, the turning shortfall
     (cars, frames), the law's rows and gains, the lanes occupied / now / entry times (cars, lanes), and for the
-    gaps: half-lengths' sum, ahead, MOBIL drivers, own lane, the follower speed bounds). ``consts``: dt, lane
+    gaps: half-lengths' sum, ahead, own lane, the follower speed bounds). ``consts``: dt, lane
     width, body width, the lateral-motion threshold, cut-in time, lane-crossing time, one change's shortfall,
     the changes begun, the top speed (:func:`prepare_consts`)."""
     dt, lane_width, body_width, lateral = consts[0], consts[1], consts[2], consts[3]
@@ -384,7 +332,7 @@ def prepare_kernel(
     law_rows, law_k = np.empty(n, dtype=np.bool_), np.empty(n)
     occupied, now = np.empty((n, lanes_count), dtype=np.bool_), np.empty((n, lanes_count), dtype=np.bool_)
     entry = np.empty((n, lanes_count))
-    half, ahead, mobil = np.empty(n), np.empty(n, dtype=np.bool_), np.empty(n, dtype=np.bool_)
+    half, ahead = np.empty(n), np.empty(n, dtype=np.bool_)
     own_lane = np.empty(n, dtype=np.int64)
     half_lane = 0.5 * lane_width
     for i in range(n):
@@ -436,10 +384,7 @@ def prepare_kernel(
             entry[i, lane] = value if (can_change[i] or dist == 0) else np.inf
         half[i] = 0.5 * (length[i] + ego_length)
         ahead[i] = x[i] >= ego_x
-        mobil[i] = ((not linear_gain) or bounded_linear) and can_change[i] and not crashed[i]
-        mobil[i] = mobil[i] and np.isfinite(max_braking[i])
-    return (speed, v_min, v_max, allowance, law_rows, law_k, occupied, now, entry, half, ahead, mobil, own_lane,
-            fv_min, fv_max)  # fmt: skip
+    return speed, v_min, v_max, allowance, law_rows, law_k, occupied, now, entry, half, ahead, own_lane, fv_min, fv_max
 
 
 @njit(cache=True, error_model="numpy")
@@ -447,13 +392,10 @@ def plans_kernel(
     available: np.ndarray, lane_ids: np.ndarray, lane_until: np.ndarray, lane_counts: np.ndarray, onsets: np.ndarray,
     targets: np.ndarray, ego_x0: float, ego_speed: float, ts: np.ndarray, powers: np.ndarray, frames: int,
     horizon: int, frame_dt: float, ego_kp: float,
-    x_lo: np.ndarray, x_hi: np.ndarray, v_lo: np.ndarray, v_hi: np.ndarray, entry: np.ndarray, now: np.ndarray,
-    held_a: int, held_b: int, verify: np.ndarray,
-    x: np.ndarray, half: np.ndarray, ahead: np.ndarray, mobil: np.ndarray, own_lane: np.ndarray,
-    speed: np.ndarray, accel_max: np.ndarray, brake_max: np.ndarray, fv_min: np.ndarray, fv_max: np.ndarray,
-    comfort_acc: np.ndarray, comfort_dec: np.ndarray, delta: np.ndarray, wanted: np.ndarray, time_wanted: np.ndarray,
-    max_braking: np.ndarray, k0: np.ndarray, k1: np.ndarray, k2: np.ndarray, top_speed: float, speed_limit: float,
-    t: np.ndarray, cut_in_time: float, follower_reaction: float,
+    x_lo: np.ndarray, x_hi: np.ndarray, entry: np.ndarray, now: np.ndarray, held_a: int, held_b: int,
+    verify: np.ndarray, x: np.ndarray, half: np.ndarray, ahead: np.ndarray, own_lane: np.ndarray, speed: np.ndarray,
+    accel_max: np.ndarray, brake_max: np.ndarray, fv_min: np.ndarray, fv_max: np.ndarray, t: np.ndarray,
+    follower_reaction: float,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:  # fmt: skip
     """``committed.verify_plans`` in one call: the ego's paths, each available action's set-points, and the worst
     gap of each action in ``verify`` (its lanes: ``lane_counts[a]`` rows of ``lane_ids``/``lane_until`` from
@@ -481,18 +423,68 @@ def plans_kernel(
         set_points[a] = set_points_kernel(vs[a], targets[a], ts, frames)
         if not verify[a]:
             continue
-        gaps = car_gaps_kernel(x_lo, x_hi, v_lo, v_hi, entry, now, xs[a], vs[a], onsets[a], lane_ids[first:stop],
-                               lane_until[first:stop], held_a, held_b, t.shape[0] - 1, no_carried,
-                               empty, set_points[a], True, x, half, ahead, mobil, own_lane, speed, accel_max,
-                               brake_max, fv_min, fv_max, comfort_acc, comfort_dec, delta, wanted, time_wanted,
-                               max_braking, k0, k1, k2, top_speed, speed_limit, t, cut_in_time,
-                               follower_reaction, order, True, lo_min, hi_max)  # fmt: skip
+        gaps = car_gaps_kernel(x_lo, x_hi, entry, now, xs[a], onsets[a], lane_ids[first:stop],
+                               lane_until[first:stop], held_a, held_b, t.shape[0] - 1, no_carried, empty, x, half,
+                               ahead, own_lane, speed, accel_max, brake_max, fv_min, fv_max, t, follower_reaction,
+                               order, True, lo_min, hi_max)  # fmt: skip
         for h in range(N_FALLBACKS):
             low = np.inf
             for i in range(gaps.shape[0]):
                 low = gaps[i, h] if i == 0 else nmin(low, gaps[i, h])
             worst[a, h] = low
     return worst, xs, vs, set_points
+
+
+@njit(cache=True, error_model="numpy")
+def carry_kernel(
+    x_lo: np.ndarray, x_hi: np.ndarray, v_lo: np.ndarray, v_hi: np.ndarray, entry: np.ndarray,
+    old_x_lo: np.ndarray, old_x_hi: np.ndarray, old_v_lo: np.ndarray, old_v_hi: np.ndarray, old_entry: np.ndarray,
+    rows: np.ndarray, frames: int, seconds: float, x: np.ndarray, speed: np.ndarray, occupied: np.ndarray,
+    unbraked: np.ndarray, tol: float,
+) -> tuple:  # fmt: skip
+    """The carried sets' step of :meth:`~safelane.safety.committed.family.CommittedFamily.evaluate_state` in one
+    pass, the numpy functions' operations element by element: the sets carried from the last decision
+    (``old_*``) shifted ``frames`` frames (``seconds`` [s]) to now (``CarSets.shifted``), the cars outside them
+    (``escaped_cars``, or'ed with ``unbraked``), the fresh sets (``x_lo``, …) intersected with them for the cars
+    inside (``CarSets.intersect``) and the escaped cars that rolled back (``rolling_back``). ``rows``: each car's
+    row among the carried sets (−1: none; ``rows_in``); ``speed``: along its path (``path_speed``); ``occupied``:
+    (cars, lanes) the lanes its body overlaps (``occupied_lanes``). Returns (x_lo, x_hi, v_lo, v_hi, entry,
+    escaped, rolled back, how many cars had a carried set)."""
+    n, m = x_lo.shape
+    lanes = entry.shape[1]
+    out_x_lo, out_x_hi, out_v_lo, out_v_hi, out_entry = x_lo.copy(), x_hi.copy(), v_lo.copy(), v_hi.copy(), entry.copy()
+    escaped, rolled = np.zeros(n, dtype=np.bool_), np.zeros(n, dtype=np.bool_)
+    checked = 0
+    for i in range(n):
+        r = rows[i]
+        if r < 0:
+            escaped[i] = unbraked[i]
+            rolled[i] = escaped[i] and speed[i] < 0.0
+            continue
+        checked += 1
+        # The carried set at frame 0 of now: frame ``frames`` of the last decision's (the padding beyond it).
+        lo0 = old_x_lo[r, frames] if frames < m else -np.inf
+        hi0 = old_x_hi[r, frames] if frames < m else np.inf
+        vlo0 = old_v_lo[r, frames] if frames < m else -np.inf
+        vhi0 = old_v_hi[r, frames] if frames < m else np.inf
+        inside = (lo0 - tol <= x[i]) and (x[i] <= hi0 + tol)
+        inside = inside and (vlo0 - tol <= speed[i]) and (speed[i] <= vhi0 + tol)
+        entered = False
+        for lane in range(lanes):
+            entered = entered or (nmax(old_entry[r, lane] - seconds, 0.0) > tol and occupied[i, lane])
+        escaped[i] = (not (inside and not entered)) or unbraked[i]
+        if escaped[i]:
+            rolled[i] = speed[i] < 0.0 or (vlo0 < 0.0 and x[i] < lo0)
+            continue
+        for j in range(m):
+            shifted = j + frames < m
+            out_x_lo[i, j] = nmax(x_lo[i, j], old_x_lo[r, j + frames] if shifted else -np.inf)
+            out_x_hi[i, j] = nmin(x_hi[i, j], old_x_hi[r, j + frames] if shifted else np.inf)
+            out_v_lo[i, j] = nmax(v_lo[i, j], old_v_lo[r, j + frames] if shifted else -np.inf)
+            out_v_hi[i, j] = nmin(v_hi[i, j], old_v_hi[r, j + frames] if shifted else np.inf)
+        for lane in range(lanes):
+            out_entry[i, lane] = nmax(entry[i, lane], nmax(old_entry[r, lane] - seconds, 0.0))
+    return out_x_lo, out_x_hi, out_v_lo, out_v_hi, out_entry, escaped, rolled, checked
 
 
 # --------------------------------------------------------------------------------------------
@@ -514,23 +506,57 @@ class Prepared(NamedTuple):
     entry: np.ndarray
     half: np.ndarray
     ahead: np.ndarray
-    mobil: np.ndarray
     own_lane: np.ndarray
     fv_min: np.ndarray
     fv_max: np.ndarray
 
 
-def prepare(state: RoadState, dyn: Dynamics) -> Prepared:
-    """The per-car quantities of ``state`` (:func:`prepare_kernel`), computed once per state."""
+class DynamicsArrays(NamedTuple):
+    """What the kernels read of a :class:`Dynamics`, as arrays (computed as the reference computes them)."""
+
+    times: np.ndarray
+    """(frames + 1,) [s] ``dyn.times``."""
+    onsets: np.ndarray
+    """(5, holds) [s] each action's :func:`onsets`."""
+    powers: np.ndarray
+    """(frames per decision + 1,) the ego's P-controller's decay powers."""
+    target_speeds: np.ndarray
+    """[m/s] ``dyn.target_speeds``."""
+    prepare_consts: np.ndarray
+    """:func:`prepare_kernel`'s ``consts``."""
+
+
+_ARRAYS: dict[int, tuple[Dynamics, DynamicsArrays]] = {}
+"""The arrays of each Dynamics object: a family evaluates one Dynamics for as long as the ego's leave time stays
+(:meth:`~safelane.safety.committed.family.CommittedFamily.evaluate`)."""
+
+
+def dynamics_arrays(dyn: Dynamics) -> DynamicsArrays:
+    """``dyn``'s :class:`DynamicsArrays`, built once per Dynamics object (read them, never write them)."""
+    hit = _ARRAYS.get(id(dyn))
+    if hit is not None and hit[0] is dyn:  # the entry holds dyn, so its id is not reused meanwhile
+        return hit[1]
+    decay = 1.0 - dyn.ego_kp * dyn.frame_dt
     consts = np.array([dyn.frame_dt, dyn.lane_width, dyn.body_width, LATERAL_MOTION_THRESHOLD, dyn.cut_in_time,
                        lane_crossing_time(dyn), lane_change_allowance(dyn), LANE_CHANGES_BEGUN, MAX_SPEED])  # fmt: skip
+    arrays = DynamicsArrays(dyn.times, np.stack([onsets(dyn, a) for a in range(N_ACTIONS)]),
+                            decay ** np.arange(dyn.frames_per_decision + 1),
+                            np.asarray(dyn.target_speeds, dtype=float), consts)  # fmt: skip
+    if len(_ARRAYS) >= 64:
+        _ARRAYS.clear()
+    _ARRAYS[id(dyn)] = (dyn, arrays)
+    return arrays
+
+
+def prepare(state: RoadState, dyn: Dynamics) -> Prepared:
+    """The per-car quantities of ``state`` (:func:`prepare_kernel`), computed once per state."""
+    arrays = dynamics_arrays(dyn)
     return Prepared(*prepare_kernel(
         _f(state.x), _f(state.y), _f(state.vx), _f(state.vy), _f(state.heading), _f(state.length),
         np.asarray(state.crashed, dtype=np.bool_), np.asarray(state.can_change_lane, dtype=np.bool_),
         _f(state.target_speed), _f(state.linear_speed_gain), _f(state.linear_speed_difference_gain),
-        _f(state.linear_distance_gain), _f(state.idm_comfort_acc), _f(state.idm_delta),
-        _f(state.max_braking_imposed), float(state.ego_x), float(state.ego_length), dyn.times, consts,
-        int(dyn.lanes_count),
+        _f(state.linear_distance_gain), _f(state.idm_comfort_acc), _f(state.idm_delta), float(state.ego_x),
+        float(state.ego_length), arrays.times, arrays.prepare_consts, int(dyn.lanes_count),
     ))  # fmt: skip
 
 
@@ -540,7 +566,8 @@ def car_sets_compiled(state: RoadState, dyn: Dynamics, vehicle: np.ndarray, prep
     prep = prepare(state, dyn) if prep is None else prep
     x_lo, x_hi, v_lo, v_hi = sets_kernel(
         _f(state.x), prep.speed, _f(state.accel_max), _f(state.brake_max), prep.v_min, prep.v_max, prep.allowance,
-        dyn.times, prep.law_rows, prep.law_k, _f(state.idm_comfort_acc), _f(state.idm_delta), _f(state.target_speed),
+        dynamics_arrays(dyn).times, prep.law_rows, prep.law_k, _f(state.idm_comfort_acc), _f(state.idm_delta),
+        _f(state.target_speed),
         np.asarray(state.crashed, dtype=np.bool_), float(dyn.frame_dt),
     )  # fmt: skip
     return CarSets(np.asarray(vehicle), x_lo, x_hi, v_lo, v_hi, prep.entry, prep.now)
@@ -567,22 +594,12 @@ class CarArrays(NamedTuple):
     x: np.ndarray
     half: np.ndarray
     ahead: np.ndarray
-    mobil: np.ndarray
     own_lane: np.ndarray
     speed: np.ndarray
     accel_max: np.ndarray
     brake_max: np.ndarray
     fv_min: np.ndarray
     fv_max: np.ndarray
-    comfort_acc: np.ndarray
-    comfort_dec: np.ndarray
-    delta: np.ndarray
-    wanted: np.ndarray
-    time_wanted: np.ndarray
-    max_braking: np.ndarray
-    k0: np.ndarray
-    k1: np.ndarray
-    k2: np.ndarray
 
 
 def car_arrays(state: RoadState, dyn: Dynamics, prep: Prepared | None = None) -> CarArrays:
@@ -590,10 +607,8 @@ def car_arrays(state: RoadState, dyn: Dynamics, prep: Prepared | None = None) ->
     them); ``prep``: :func:`prepare` of ``state`` when already computed."""
     p = prepare(state, dyn) if prep is None else prep
     return CarArrays(
-        _f(state.x), p.half, p.ahead, p.mobil, p.own_lane, p.speed, _f(state.accel_max), _f(state.brake_max),
-        p.fv_min, p.fv_max, _f(state.idm_comfort_acc), _f(state.idm_comfort_dec), _f(state.idm_delta),
-        _f(state.idm_distance_wanted), _f(state.idm_time_wanted), _f(state.max_braking_imposed),
-        _f(state.linear_speed_gain), _f(state.linear_speed_difference_gain), _f(state.linear_distance_gain),
+        _f(state.x), p.half, p.ahead, p.own_lane, p.speed, _f(state.accel_max), _f(state.brake_max), p.fv_min,
+        p.fv_max,
     )  # fmt: skip
 
 
@@ -604,33 +619,28 @@ def verify_plans_compiled(
     state's :func:`car_arrays` when already computed."""
     available, verify = plan_actions(state, dyn)
     lanes = [action_lanes(state, dyn, a) if available[a] else [] for a in range(N_ACTIONS)]
-    plan_onsets = np.stack([onsets(dyn, a) for a in range(N_ACTIONS)])
+    arrays = dynamics_arrays(dyn)
     cars = car_arrays(state, dyn) if cars is None else cars
-    decay = 1.0 - dyn.ego_kp * dyn.frame_dt
-    powers = decay ** np.arange(dyn.frames_per_decision + 1)
     flat = [lane for per_action in lanes for lane in per_action]
     return plans_kernel(
         available, np.array([lane for lane, _ in flat], dtype=np.int64),
         np.array([until for _, until in flat], dtype=float), np.array([len(x) for x in lanes], dtype=np.int64),
-        plan_onsets, action_targets(state, dyn), float(state.ego_x), float(state.ego_speed),
-        np.asarray(dyn.target_speeds, dtype=float), powers, dyn.frames_per_decision, dyn.horizon_decisions,
-        float(dyn.frame_dt), float(dyn.ego_kp), sets.x_lo, sets.x_hi, sets.v_lo, sets.v_hi, sets.entry,
-        np.asarray(sets.now, dtype=np.bool_), int(state.ego_lane), int(state.ego_target_lane), verify, *cars,
-        float(max(dyn.target_speeds)), float(state.speed_limit), dyn.times, float(dyn.cut_in_time),
-        float(dyn.follower_reaction),
+        arrays.onsets, action_targets(state, dyn), float(state.ego_x), float(state.ego_speed), arrays.target_speeds,
+        arrays.powers, dyn.frames_per_decision, dyn.horizon_decisions, float(dyn.frame_dt),
+        float(dyn.ego_kp), sets.x_lo, sets.x_hi, sets.entry, np.asarray(sets.now, dtype=np.bool_),
+        int(state.ego_lane), int(state.ego_target_lane), verify, *cars, arrays.times, float(dyn.follower_reaction),
     )  # fmt: skip
 
 
 def car_gaps_compiled(
-    state: RoadState, dyn: Dynamics, sets: CarSets, ego_x: np.ndarray, ego_v: np.ndarray, onset: np.ndarray,
-    lanes: Lanes, until_frame: int | None = None,
-    carried_followers: dict[int, tuple[int, np.ndarray]] | None = None, ego_set: np.ndarray | None = None,
+    state: RoadState, dyn: Dynamics, sets: CarSets, ego_x: np.ndarray, onset: np.ndarray, lanes: Lanes,
+    until_frame: int | None = None, carried_followers: dict[int, tuple[int, np.ndarray]] | None = None,
     held: tuple[int, ...] | None = None, cars: CarArrays | None = None,
 ) -> np.ndarray:  # fmt: skip
     """:func:`safelane.safety.committed.plans.car_gaps`, compiled (the same bits); ``cars``: :func:`car_arrays` of
     ``state`` when already computed."""
     cars = car_arrays(state, dyn) if cars is None else cars
-    t = dyn.times
+    t = dynamics_arrays(dyn).times
     n = state.n
     carried_lane = np.full(n, -1, dtype=np.int64)
     carried_high = np.empty((n if carried_followers else 0, t.size))
@@ -638,14 +648,10 @@ def car_gaps_compiled(
         carried_lane[row], carried_high[row] = lane, high
     lane_ids = np.array([lane for lane, _ in lanes], dtype=np.int64)
     lane_until = np.array([until for _, until in lanes], dtype=float)
-    has_set = ego_set is not None
     return car_gaps_kernel(
-        sets.x_lo, sets.x_hi, sets.v_lo, sets.v_hi, sets.entry, np.asarray(sets.now, dtype=np.bool_),
-        np.ascontiguousarray(ego_x), np.ascontiguousarray(ego_v), _f(onset), lane_ids, lane_until,
-        *_held_pair(state, held),
-        t.size - 1 if until_frame is None else int(until_frame), carried_lane, carried_high,
-        np.ascontiguousarray(ego_set) if has_set else np.empty((0, 0)), has_set, *cars,
-        float(max(dyn.target_speeds)), float(state.speed_limit), t, float(dyn.cut_in_time),
+        sets.x_lo, sets.x_hi, sets.entry, np.asarray(sets.now, dtype=np.bool_), np.ascontiguousarray(ego_x),
+        _f(onset), lane_ids, lane_until, *_held_pair(state, held),
+        t.size - 1 if until_frame is None else int(until_frame), carried_lane, carried_high, *cars, t,
         float(dyn.follower_reaction), np.arange(n, dtype=np.int64), False, np.empty((0, 0)), np.empty((0, 0)),
     )  # fmt: skip
 
@@ -656,6 +662,15 @@ def follower_bound_compiled(state: RoadState, i: int, react: np.ndarray, t: np.n
     v_min, v_max = speed_bounds(speed, state.target_speed[i : i + 1], np.isfinite(state.linear_speed_gain[i : i + 1]))
     return follower_kernel(float(state.x[i]), float(speed[0]), float(state.accel_max[i]), float(state.brake_max[i]),
                            float(v_min[0]), float(v_max[0]), _f(react), t)  # fmt: skip
+
+
+def follower_bounds_compiled(state: RoadState, rows: np.ndarray, react: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """(rows, frames) [m] :func:`follower_bound_compiled` of each car of ``rows`` for one plan (``react``: (1,)) in
+    one kernel call, the speeds and their bounds computed over every car at once (elementwise: the same bits)."""
+    speed = path_speed(state)
+    v_min, v_max = speed_bounds(speed, state.target_speed, np.isfinite(state.linear_speed_gain))
+    return followers_kernel(_f(state.x), _f(speed), _f(state.accel_max), _f(state.brake_max), _f(v_min), _f(v_max),
+                            np.asarray(rows, dtype=np.int64), float(react[0]), t)  # fmt: skip
 
 
 def _held_pair(state: RoadState, held: tuple[int, ...] | None) -> tuple[int, int]:
@@ -671,19 +686,19 @@ def _f(a: np.ndarray | float) -> np.ndarray:
     return np.ascontiguousarray(a, dtype=np.float64)
 
 
-def permit_entry_compiled(
-    state: RoadState, dyn: Dynamics, sets: CarSets, rows: np.ndarray, ego_x: np.ndarray, ego_v: np.ndarray,
-    ego_set: np.ndarray | None = None,
-) -> np.ndarray:  # fmt: skip
-    """:func:`safelane.safety.committed.plans._permit_entry` (rows, holds) [s], compiled (the same bits)."""
-    cars = car_arrays(state, dyn)
-    out = np.empty((len(rows), ego_x.shape[0]))
-    has_set = ego_set is not None
-    cache, cache_delta = np.empty(ego_x.shape), np.full(1, np.nan)
-    for r, i in enumerate(rows):
-        _permit_entry(int(i), sets.x_hi, sets.x_lo, sets.v_lo, sets.v_hi, np.ascontiguousarray(ego_x),
-                      np.ascontiguousarray(ego_v), np.ascontiguousarray(ego_set) if has_set else np.empty((0, 0)),
-                      has_set, float(max(dyn.target_speeds)), float(state.speed_limit), cars.comfort_acc,
-                      cars.comfort_dec, cars.delta, cars.wanted, cars.time_wanted, cars.max_braking, cars.k0, cars.k1,
-                      cars.k2, dyn.times, float(dyn.cut_in_time), out[r], cache, cache_delta)  # fmt: skip
-    return out
+def carry_compiled(
+    state: RoadState, dyn: Dynamics, sets: CarSets, carried: CarSets, vehicle: np.ndarray, unbraked: np.ndarray,
+    occupied: np.ndarray,
+) -> tuple[CarSets, np.ndarray, np.ndarray, int]:  # fmt: skip
+    """The fresh ``sets`` against those ``carried`` from the last decision (not yet shifted), compiled (the same
+    bits as the reference's ``carried.shifted``, ``escaped_cars(…) | unbraked``, ``sets.intersect(…, ~escaped)``,
+    ``rolling_back`` and the count of cars with a carried set): (the sets intersected, escaped, rolled back,
+    checked). ``occupied``: ``occupied_lanes`` of ``state``."""
+    rows = rows_in(carried.vehicle, vehicle)
+    x_lo, x_hi, v_lo, v_hi, entry, escaped, rolled, checked = carry_kernel(
+        sets.x_lo, sets.x_hi, sets.v_lo, sets.v_hi, sets.entry, carried.x_lo, carried.x_hi, carried.v_lo,
+        carried.v_hi, carried.entry, rows, int(dyn.frames_per_decision), float(dyn.decision_period), _f(state.x),
+        _f(path_speed(state)), np.asarray(occupied, dtype=np.bool_), np.asarray(unbraked, dtype=np.bool_),
+        float(ESCAPE_TOLERANCE),
+    )  # fmt: skip
+    return CarSets(sets.vehicle, x_lo, x_hi, v_lo, v_hi, entry, sets.now), escaped, rolled, int(checked)

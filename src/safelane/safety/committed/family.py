@@ -27,7 +27,8 @@ from safelane.safety.committed.compiled import (
     car_arrays,
     car_gaps_compiled,
     car_sets_compiled,
-    follower_bound_compiled,
+    carry_compiled,
+    follower_bounds_compiled,
     prepare,
     verify_plans_compiled,
 )
@@ -135,6 +136,9 @@ class CommittedFamily:
     carried_ahead: np.ndarray | None = None
     followers: dict[int, tuple[int, np.ndarray]] = field(default_factory=dict)
     _pending: tuple[CommittedResult, RoadState, Dynamics, CarSets, np.ndarray] | None = field(default=None, repr=False)
+    _dynamics: tuple[Dynamics, str, Dynamics] | None = field(default=None, repr=False)
+    """(dyn, leave time as ``float.hex``, dyn with that leave time): the last Dynamics evaluated, kept while the caller
+    passes the same one and the same leave time, so that what the kernels read of it is built once."""
 
     def __post_init__(self) -> None:
         check_choices(engine=self.engine)
@@ -146,15 +150,26 @@ class CommittedFamily:
 
     def evaluate(self, snap: RoadSnapshot, dyn: Dynamics, ego_leave_time: float) -> CommittedResult:
         """The verdict in the state of ``snap`` (see the class docstring)."""
-        dyn = dataclasses.replace(dyn, ego_leave_time=ego_leave_time)
+        # The one-decision rule is given ``dyn`` as passed (it takes the leave time apart): the caller's one Dynamics
+        # for an episode, whose kernel constants it caches.
+        one_decision = lambda: OneDecisionFamily("robust", self.engine).evaluate(snap, dyn, ego_leave_time)  # noqa: E731
         state, vehicle = whole_road_state(snap, dyn.rule.ego_speed_magnitude)
         return self.evaluate_state(
             state,
             vehicle,
-            dyn,
-            lambda: OneDecisionFamily("robust", self.engine).evaluate(snap, dyn, ego_leave_time),
+            self._with_leave_time(dyn, ego_leave_time),
+            one_decision,
             ego_crashed=bool(snap.crashed[snap.ego]),
         )
+
+    def _with_leave_time(self, dyn: Dynamics, ego_leave_time: float) -> Dynamics:
+        """``dyn`` with ``ego_leave_time``: the same object as at the last decision when both are the same (the bits:
+        ``float.hex`` tells −0.0 from 0.0)."""
+        leave = float(ego_leave_time).hex()
+        hit = self._dynamics
+        if hit is None or hit[0] is not dyn or hit[1] != leave:
+            hit = self._dynamics = (dyn, leave, dataclasses.replace(dyn, ego_leave_time=ego_leave_time))
+        return hit[2]
 
     def evaluate_state(
         self,
@@ -178,21 +193,27 @@ class CommittedFamily:
             sets = car_sets(state, dyn, vehicle)
         escaped = np.zeros(state.n, dtype=bool)
         unbraked = np.zeros(state.n, dtype=bool)
-        older: CarSets | None = None
+        rolled: np.ndarray | None = None
         checked = 0
         entered = np.zeros(state.n, dtype=bool)
         if self.carried is not None:
             kept_held = self.kept.held if self.kept is not None else ()
             entered = _entered_held_lanes(state, self.carried, sets, vehicle, self.carried_ahead, kept_held)
-            older = self.carried.shifted(dyn.frames_per_decision, dyn.decision_period)
-            unbraked = self._followers_escaped(state, dyn, vehicle)
-            escaped = escaped_cars(state, dyn, older, vehicle) | unbraked
-            checked = int(np.isin(vehicle, older.vehicle).sum())
-            sets = sets.intersect(older, ~escaped)
+            occupied = occupied_lanes(state, dyn)
+            unbraked = self._followers_escaped(state, dyn, vehicle, occupied)
+            if compiled:  # shifted, escaped_cars, intersect and rolling_back in one kernel, the same bits
+                sets, escaped, rolled, checked = carry_compiled(state, dyn, sets, self.carried, vehicle, unbraked,
+                                                                occupied)  # fmt: skip
+            else:
+                older = self.carried.shifted(dyn.frames_per_decision, dyn.decision_period)
+                escaped = escaped_cars(state, dyn, older, vehicle) | unbraked
+                checked = int(np.isin(vehicle, older.vehicle).sum())
+                sets = sets.intersect(older, ~escaped)
+                rolled = rolling_back(state, escaped, older, vehicle)
         if compiled:
-            worst, ego_x, ego_v, set_points = verify_plans_compiled(state, dyn, sets, cars)
+            worst, ego_x, _, set_points = verify_plans_compiled(state, dyn, sets, cars)
         else:
-            worst, ego_x, ego_v, set_points = verify_plans(state, dyn, sets)
+            worst, ego_x, _, set_points = verify_plans(state, dyn, sets)
         verified = worst >= dyn.margin  # (5, holds)
         available = available_actions(state, dyn)
         best = np.argmax(np.where(verified, worst, -np.inf), axis=1)
@@ -214,9 +235,8 @@ class CommittedFamily:
                 for v, (lane, high) in self.followers.items()
                 if v in rows and not escaped[rows[v]]
             }
-            args = (state, dyn, sets, ego_x[a, k : k + 1], ego_v[a, k : k + 1], np.array([tail.onset]),
-                    list(tail.occupied), tail.frames, followers, set_points[a, k : k + 1],
-                    tail.held)  # fmt: skip
+            args = (state, dyn, sets, ego_x[a, k : k + 1], np.array([tail.onset]), list(tail.occupied),
+                    tail.frames, followers, tail.held)  # fmt: skip
             gaps = (car_gaps_compiled(*args, cars=cars) if compiled else car_gaps(*args))[:, 0]
             gap = gaps.min() if gaps.size else np.inf
             # A lapse: the plan verified at the last decision no longer is (a plan kept on after one stays unverified);
@@ -245,7 +265,8 @@ class CommittedFamily:
             mask, safe, available, not bool(safe.any()), best_gap, None,
             plan_forced=forced, lapse=lapse, lapse_cars=tuple(int(v) for v in vehicle[failed]),
             escaped=tuple(int(v) for v in vehicle[escaped]),
-            rolled_back=tuple(int(v) for v in vehicle[rolling_back(state, escaped, older, vehicle)]), checked=checked,
+            rolled_back=tuple(int(v) for v in vehicle[rolling_back(state, escaped) if rolled is None else rolled]),
+            checked=checked,
             unbraked_followers=tuple(int(v) for v in vehicle[unbraked]),
             entered=tuple(int(v) for v in vehicle[entered]),
             ego_crashed=ego_crashed, certified=bool(safe.any()) or self.kept is not None, plans=tuple(plans),
@@ -283,11 +304,12 @@ class CommittedFamily:
             self.followers = fresh
         self._pending = None
 
-    def _followers_escaped(self, state: RoadState, dyn: Dynamics, vehicle: np.ndarray) -> np.ndarray:
+    def _followers_escaped(
+        self, state: RoadState, dyn: Dynamics, vehicle: np.ndarray, occupied: np.ndarray
+    ) -> np.ndarray:  # fmt: skip
         """(cars,) the followers of the kept plan (a car behind the ego in a lane it held) still in that lane and
-        ahead of the bound their reaction to the plan allowed."""
+        ahead of the bound their reaction to the plan allowed; ``occupied``: :func:`occupied_lanes` of ``state``."""
         out = np.zeros(state.n, dtype=bool)
-        occupied = occupied_lanes(state, dyn)
         f = dyn.frames_per_decision
         for i, v in enumerate(vehicle):
             follower = self.followers.get(int(v))
@@ -311,12 +333,10 @@ def _entered_held_lanes(
     in_lane = held_lanes(state, kept_held)[0]
     out = np.zeros(state.n, dtype=bool)
     for lane in {state.ego_lane, state.ego_target_lane, *kept_held}:
-        for i in np.flatnonzero(sets.now[:, lane]):
-            r = rows[i]
-            if r < 0:
-                continue
-            passed = older_ahead is not None and not older_ahead[r] and ahead[i] and lane == in_lane
-            out[i] |= not older.now[r, lane] or passed
+        i = np.flatnonzero(sets.now[:, lane] & (rows >= 0))  # in the lane now, with a row then
+        r = rows[i]
+        passed = ~older_ahead[r] & ahead[i] if older_ahead is not None and lane == in_lane else False
+        out[i] |= ~older.now[r, lane] | passed
     return out
 
 
@@ -326,14 +346,20 @@ def _followers_of(
     """{snapshot index: (lane, highest position [m] per frame)} of the cars that follow the ego under ``plan``
     (:func:`plan_gaps`' follower law): the bound a lapse is traced against."""
     held = {state.ego_lane, state.ego_target_lane}
-    t = dyn.times
+    lanes = [lane for lane, _ in plan.occupied if lane in held]
     out: dict[int, tuple[int, np.ndarray]] = {}
-    for lane, _ in plan.occupied:
-        if lane not in held:
-            continue
-        own = state.lane_of(state.y, dyn.lanes_count, dyn.lane_width)
-        for i in np.flatnonzero((state.x < state.ego_x) & (own == lane)):
-            bound = (follower_bound_compiled if engine == "compiled" else follower_bound)(
-                state, int(i), np.array([max(plan.onset + dyn.follower_reaction, 0.0)]), t)[0]  # fmt: skip
+    if not lanes:
+        return out
+    t = dyn.times
+    react = np.array([max(plan.onset + dyn.follower_reaction, 0.0)])
+    own = state.lane_of(state.y, dyn.lanes_count, dyn.lane_width)
+    behind = state.x < state.ego_x
+    for lane in lanes:
+        rows = np.flatnonzero(behind & (own == lane))
+        if engine == "compiled":
+            bounds = follower_bounds_compiled(state, rows, react, t)
+        else:
+            bounds = [follower_bound(state, int(i), react, t)[0] for i in rows]
+        for i, bound in zip(rows, bounds, strict=True):
             out[int(vehicle[i])] = (lane, np.minimum(bound, sets.x_hi[i]))
     return out

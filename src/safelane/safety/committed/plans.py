@@ -7,9 +7,9 @@
 * Every other car's **reachable set** (:class:`~safelane.safety.committed.sets.CarSets`) comes from
   :mod:`safelane.safety.committed.sets`.
 * Laws apply under a plan where they nest with the plan kept: the drivers' acceleration laws toward their
-  set-points (in the sets), MOBIL's safety criterion against the ego's known plan (IDM and linear-model drivers
-  entering a lane the ego holds), and followers reacting ``ρ`` after the plan's braking onset — an assumption, not
-  IDM's law: a follower that does not brake so is named (``unbraked_followers``) (:func:`car_gaps`).
+  set-points (in the sets) and followers reacting ``ρ`` after the plan's braking onset — an assumption, not IDM's
+  law: a follower that does not brake so is named (``unbraked_followers``) (:func:`car_gaps`). A car cutting into
+  a lane the ego holds does not count at all (below), so no lane-change law is needed for it.
 * An action is **verified** when a plan starting with it keeps ``margin`` to every car's reachable occupancy at
   every frame of the horizon (:func:`verify_plans`). Whose gap a car is: a car behind the ego in the lane it is
   in, or one cutting into a lane it holds, is not the ego's to avoid (that driver makes the gap); a car in a lane
@@ -28,7 +28,7 @@ import numpy as np
 
 from safelane.core.spaces import IDLE, N_ACTIONS, SLOWER
 from safelane.safety.committed.plan_family import Lanes, held_lanes, onsets, plan_actions
-from safelane.safety.committed.sets import CarSets, fall, linear_set_point_bound, path_speed, rise, speed_bounds
+from safelane.safety.committed.sets import CarSets, fall, path_speed, rise, speed_bounds
 from safelane.safety.ego import action_lanes, action_targets, ego_trajectories, speed_to_index
 from safelane.safety.world import MAX_HOLD_DECISIONS, Dynamics, RoadState
 
@@ -83,16 +83,14 @@ def plan_of(state: RoadState, dyn: Dynamics, set_points: np.ndarray, action: int
     """The :class:`Plan` of (``action``, ``hold``) in ``state``: its set-points decision by decision, read from
     ``set_points`` [m/s], the plan's set-point per frame (a row of :func:`plan_set_points`), up to the first 0 m/s
     after the hold."""
-    f = dyn.frames_per_decision
-    points = [float(set_points[0])]
-    for d in range(1, dyn.horizon_decisions):
-        points.append(float(set_points[d * f]))
-        if points[-1] == 0.0 and d > hold:
-            break
+    f, horizon = dyn.frames_per_decision, dyn.horizon_decisions
+    decisions = set_points[: horizon * f : f].tolist()  # the set-point at each decision's first frame
+    stop = next((d for d in range(hold + 1, len(decisions)) if decisions[d] == 0.0), len(decisions) - 1)
+    points = decisions[: stop + 1]
     occupied = tuple(action_lanes(state, dyn, action))
     lane = occupied[-1][0]
     onset = float(onsets(dyn, action)[hold])
-    return Plan(action, hold, tuple(points), (lane,) * len(points), occupied, onset, int(dyn.times.size - 1),
+    return Plan(action, hold, tuple(points), (lane,) * len(points), occupied, onset, horizon * f,
                 (int(state.ego_lane), int(state.ego_target_lane)))  # fmt: skip
 
 
@@ -112,57 +110,6 @@ def plan_set_points(state: RoadState, dyn: Dynamics, ego_v: np.ndarray, action: 
     return out
 
 
-def _linear_criterion(
-    state: RoadState, sets: CarSets, rows: np.ndarray, gap: np.ndarray, ev: np.ndarray, ego_set: np.ndarray | None,
-    dyn: Dynamics,
-) -> np.ndarray:  # fmt: skip
-    """(rows, holds, frames) whether MOBIL's safety criterion of linear-model drivers could hold: the ego's
-    acceleration behind the car by the car's own linear law (:func:`~safelane.safety.others.
-    linear_acceleration_behind`), at its largest over the car's set (fastest, farthest: the law is monotone in both)
-    and the ego's set-point (the plan's; without it the highest), at least ``−max_braking_imposed``."""
-    k0, k1, k2 = (getattr(state, name)[rows][:, None, None] for name in
-                  ("linear_speed_gain", "linear_speed_difference_gain", "linear_distance_gain"))  # fmt: skip
-    target = (ego_set if ego_set is not None else np.full_like(ev[0], max(dyn.target_speeds)))[None]
-    d_safe = state.idm_distance_wanted[rows][:, None, None] + ev * state.idm_time_wanted[rows][:, None, None]
-    own = sets.v_hi[rows][:, None, :]  # highway-env reads the car's speed along its path
-    pred = k0 * (target - ev) + k1 * np.minimum(own - ev, 0.0) + k2 * np.minimum(gap - d_safe, 0.0)
-    return pred >= -state.max_braking_imposed[rows][:, None, None]
-
-
-def _permit_entry(
-    state: RoadState, dyn: Dynamics, sets: CarSets, rows: np.ndarray, ego_x: np.ndarray, ego_v: np.ndarray,
-    ego_set: np.ndarray | None = None,
-) -> np.ndarray:  # fmt: skip
-    """(rows, holds) [s] the first time MOBIL's safety criterion could let each car (IDM and linear-model drivers,
-    ahead) move in front of the ego on each plan (its loosest state in reach: the largest gap, the speed that makes
-    the criterion loosest, the ego's set-point at the lane's limit for IDM, the plan's ``ego_set`` (holds, frames)
-    for the linear models) or could be behind the ego, plus the cut-in time; inf: never in the horizon."""
-    t = dyn.times
-    acc = state.idm_comfort_acc[rows][:, None, None]
-    ab = (-state.idm_comfort_acc * state.idm_comfort_dec)[rows][:, None, None]
-    gap = sets.x_hi[rows][:, None, :] - ego_x[None]  # (rows, holds, frames) centre distance
-    ev = np.maximum(ego_v[None], 0.0)
-    target = max(state.speed_limit, 1e-2)
-    free = acc * (1 - np.power(ev / target, state.idm_delta[rows][:, None, None]))
-    base = state.idm_distance_wanted[rows][:, None, None] + ev * state.idm_time_wanted[rows][:, None, None]
-    d_fast = base + ev * (ev - np.maximum(sets.v_hi[rows], 0.0)[:, None, :]) / (2 * np.sqrt(ab))
-    # IDM's desired gap projects the car's velocity on the ego's heading: at most its speed along its path, at
-    # least min(its lowest, 0) (both may be turned).
-    d_slow = base + ev * (ev - np.minimum(sets.v_lo[rows], 0.0)[:, None, :]) / (2 * np.sqrt(ab))
-    lo, hi = np.minimum(d_fast, d_slow), np.maximum(d_fast, d_slow)
-    least = np.where(lo > 0.0, lo, np.where(hi < 0.0, -hi, 0.0))
-    d = np.maximum(gap, 1e-2)
-    ok = free - acc * (least / d) ** 2 >= -state.max_braking_imposed[rows][:, None, None]
-    linear = np.isfinite(state.linear_speed_gain[rows])
-    if linear.any():
-        ok[linear] = _linear_criterion(state, sets, rows[linear], gap[linear], ev, ego_set, dyn)
-    ok &= gap > 0.0
-    # Once it may be behind the ego, MOBIL protects its new follower, not the ego: it may turn in behind it.
-    ok |= sets.x_lo[rows][:, None, :] < ego_x[None]
-    first = np.where(ok.any(axis=2), t[np.argmax(ok, axis=2)], np.inf)
-    return first + dyn.cut_in_time
-
-
 def verify_plans(
     state: RoadState, dyn: Dynamics, sets: CarSets
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:  # fmt: skip
@@ -178,52 +125,44 @@ def verify_plans(
         set_points[a] = plan_set_points(state, dyn, ego_v[a], int(a))
     worst = np.full((N_ACTIONS, MAX_HOLD_DECISIONS + 1), -np.inf)
     for a in np.flatnonzero(verify):
-        gaps = car_gaps(state, dyn, sets, ego_x[a], ego_v[a], onsets(dyn, int(a)), action_lanes(state, dyn, int(a)),
-                        ego_set=set_points[a])  # fmt: skip
+        gaps = car_gaps(state, dyn, sets, ego_x[a], onsets(dyn, int(a)), action_lanes(state, dyn, int(a)))
         worst[a] = gaps.min(axis=0) if gaps.shape[0] else np.inf
     return worst, ego_x, ego_v, set_points
 
 
 def plan_gaps(
-    state: RoadState, dyn: Dynamics, sets: CarSets, ego_x: np.ndarray, ego_v: np.ndarray, onset: np.ndarray,
-    lanes: Lanes, until_frame: int | None = None, carried_followers: dict[int, tuple[int, np.ndarray]] | None = None,
-    ego_set: np.ndarray | None = None,
+    state: RoadState, dyn: Dynamics, sets: CarSets, ego_x: np.ndarray, onset: np.ndarray, lanes: Lanes,
+    until_frame: int | None = None, carried_followers: dict[int, tuple[int, np.ndarray]] | None = None,
 ) -> np.ndarray:  # fmt: skip
-    """(holds,) the worst bumper-to-bumper gap [m] of plans whose ego moves as ``ego_x``/``ego_v`` (holds, frames)
-    over every car (inf: no car in reach): the least of :func:`car_gaps`, which documents the arguments."""
-    gaps = car_gaps(state, dyn, sets, ego_x, ego_v, onset, lanes, until_frame, carried_followers, ego_set)
+    """(holds,) the worst bumper-to-bumper gap [m] of plans whose ego moves as ``ego_x`` (holds, frames) over every
+    car (inf: no car in reach): the least of :func:`car_gaps`, which documents the arguments."""
+    gaps = car_gaps(state, dyn, sets, ego_x, onset, lanes, until_frame, carried_followers)
     return gaps.min(axis=0) if gaps.shape[0] else np.full(ego_x.shape[0], np.inf)
 
 
 def car_gaps(
-    state: RoadState, dyn: Dynamics, sets: CarSets, ego_x: np.ndarray, ego_v: np.ndarray, onset: np.ndarray,
-    lanes: Lanes, until_frame: int | None = None, carried_followers: dict[int, tuple[int, np.ndarray]] | None = None,
-    ego_set: np.ndarray | None = None, held: tuple[int, ...] | None = None,
+    state: RoadState, dyn: Dynamics, sets: CarSets, ego_x: np.ndarray, onset: np.ndarray, lanes: Lanes,
+    until_frame: int | None = None, carried_followers: dict[int, tuple[int, np.ndarray]] | None = None,
+    held: tuple[int, ...] | None = None,
 ) -> np.ndarray:  # fmt: skip
-    """(cars, holds) each car's worst bumper-to-bumper gap [m] to plans whose ego moves as ``ego_x``/``ego_v``
-    (holds, frames) and brakes first at ``onset`` [s] (holds,), occupying ``lanes``, at every frame up to
-    ``until_frame`` (default: the horizon's end); inf where the car never reaches the plan. The cars below the
-    margin are the ones a plan fails on (a lapse names them).
+    """(cars, holds) each car's worst bumper-to-bumper gap [m] to plans whose ego moves as ``ego_x`` (holds,
+    frames) and brakes first at ``onset`` [s] (holds,), occupying ``lanes``, at every frame up to ``until_frame``
+    (default: the horizon's end); inf where the car never reaches the plan. The cars below the margin are the ones a
+    plan fails on (a lapse names them).
 
     In each lane, from each car's entry time on, the car's interval ``[x_lo, x_hi]`` must stay clear of the ego by
-    ``margin`` on one side or the other at every frame (a car that may be on either side conflicts). Laws: an IDM driver
-    ahead, entering a lane the ego holds from the start, enters only after MOBIL's criterion against the plan could
-    allow it (:func:`_permit_entry`); a car in such a lane behind the ego now follows it: accelerates at most until
-    ``follower_reaction`` after the plan's braking onset, then brakes (:func:`follower_bound`). In a lane the ego holds,
-    only the cars in that lane now (or moving into it) count, and of those in the lane the ego is in (``held``'s first)
-    only the ones ahead: a car behind the ego in its lane, or one that cuts in later, is responsible for the gap it
-    makes; a car in a lane the ego is entering is the ego's to keep clear of, ahead or behind. ``carried_followers``:
-    {row: (lane, highest position [m] per frame)}, the follower bounds a kept plan drew, kept in that lane; ``ego_set``
-    (holds, frames): the plans' set-points [m/s] (:func:`plan_set_points`; the linear drivers' MOBIL criterion reads
-    it); ``held``: the lanes the ego holds (default: its lane and target lane now; a kept plan's tail passes those it
-    held when verified, :attr:`Plan.held`)."""
+    ``margin`` on one side or the other at every frame (a car that may be on either side conflicts). In a lane the
+    ego holds, only the cars in that lane now (or moving into it) count, and of those in the lane the ego is in
+    (``held``'s first) only the ones ahead: a car behind the ego in its lane, or one that cuts in later, is
+    responsible for the gap it makes; a car in a lane the ego is entering is the ego's to keep clear of, ahead or
+    behind. Law: a car in a lane the ego holds behind the ego now follows it: accelerates at most until
+    ``follower_reaction`` after the plan's braking onset, then brakes (:func:`follower_bound`).
+    ``carried_followers``: {row: (lane, highest position [m] per frame)}, the follower bounds a kept plan drew, kept
+    in that lane; ``held``: the lanes the ego holds (default: its lane and target lane now; a kept plan's tail
+    passes those it held when verified, :attr:`Plan.held`)."""
     t = dyn.times
     half = 0.5 * (state.length + state.ego_length)
     ahead = state.x >= state.ego_x
-    # Drivers that change lane by MOBIL with a formula the criterion can be bounded for: IDM, or the linear model
-    # with gains ≥ 0 (linear_set_point_bound).
-    mobil = (~np.isfinite(state.linear_speed_gain) | linear_set_point_bound(state)) & state.can_change_lane
-    mobil &= ~state.crashed & np.isfinite(state.max_braking_imposed)
     holding = held_lanes(state, held)
     in_lane, held = holding[0], set(holding)  # the lane the ego is in, not one it is entering
     n_fb = ego_x.shape[0]
@@ -231,18 +170,15 @@ def car_gaps(
     worst = np.full((state.n, n_fb), np.inf)
     for lane, until in lanes:
         held_lane = lane in held
-        entry = np.repeat(sets.entry[:, lane][:, None], n_fb, axis=1)  # (cars, holds)
-        law = np.flatnonzero(held_lane & ahead & mobil & ~sets.now[:, lane])
-        if law.size:
-            entry[law] = np.maximum(entry[law], _permit_entry(state, dyn, sets, law, ego_x, ego_v, ego_set))
-        count = np.isfinite(entry).any(axis=1)
+        entry = sets.entry[:, lane]  # (cars,)
+        count = np.isfinite(entry)
         if held_lane:  # cut-ins, and cars behind in the ego's lane: theirs to avoid
             count &= sets.now[:, lane] & (ahead | (lane != in_lane))
         # A follower: its own lane is this one (highway-env's IDM sees the ego as its leader only then).
         following = held_lane & ~ahead & (state.lane_of(state.y, dyn.lanes_count, dyn.lane_width) == lane)
         in_time = frames & (t <= until)
         for i in np.flatnonzero(count):
-            window = (t[None, :] >= entry[i][:, None]) & in_time[None, :]  # (holds, frames)
+            window = (t >= entry[i]) & in_time  # (frames,), the same for every plan
             if not window.any():
                 continue
             high = sets.x_hi[i][None, :]

@@ -224,8 +224,8 @@ def slow_car_turning_out(mode: Mode = "robust", dx: float = 10.0, **kw: Any) -> 
     """The ego in lane 2 at 5 m/s (set-point 5); a car ``dx`` m ahead, nearly stopped (2 m/s), turning
     hard out of the ego's lane toward lane 0: its centre is already in lane 1 (0.85 m right of lane 1's
     centre), its heading −0.78 rad. At that angle its rear corner still reaches 1.5 m into lane 2 — the
-    falsification campaign's one crash from states the rule called safe (``cell00537``, 5 decisions/s),
-    which the robust rule sees since ``shield.body_extent`` (off in the rule ``basic``)."""
+    falsification campaign's one crash from states the rule called safe (5 decisions/s), which the robust rule
+    sees since ``shield.body_extent`` (off in the rule ``basic``)."""
     specs = [VehicleSpec(1, dx, 2.0, heading=-0.78, target_lane=0, lateral_offset=0.85)]
     return build_scene(2, 5.0, specs, mode=mode, ego_target_speed=5.0, **kw)
 
@@ -233,8 +233,8 @@ def slow_car_turning_out(mode: Mode = "robust", dx: float = 10.0, **kw: Any) -> 
 def linear_car_alongside(mode: Mode = "robust", **kw: Any) -> Scene:
     """The ego in the leftmost lane at 19.35 m/s (set-point 20), a Linear-model driver in the next lane
     just level with it (its centre 0.1 m behind the ego's) at 20.25 m/s, and a Linear leader 42 m ahead at
-    17.3 m/s: the falsification campaign's most common break with those drivers (``adjacent_behind``,
-    cell00011). By its own MOBIL rule with the linear formula the car alongside can neither cut in (the ego
+    17.3 m/s: the falsification campaign's most common break with those drivers (``adjacent_behind``).
+    By its own MOBIL rule with the linear formula the car alongside can neither cut in (the ego
     would be its new follower at a gap far below its safe distance: ``shield.linear_mobil: true``) nor gain
     by turning in behind the ego (``shield.linear_incentive: true``); the default rule assumes either, and
     then nothing is safe."""
@@ -500,9 +500,8 @@ def squeezed_by_a_linear_follower(mode: Mode = "robust", **kw: Any) -> Scene:
 def car_settling_next_to_the_ego(mode: Mode = "robust", **kw: Any) -> Scene:
     """6 lanes; the ego in lane 5 at 29.34 m/s (set-point 30); 25.18 m ahead a car at 17.16 m/s that has just
     crossed from lane 3 into lane 4, the lane next to the ego, 1.27 m short of its centre and still turned
-    0.188 rad toward it (its target lane is lane 4) — the 100 800-episode campaign's cell 614
-    (``cell00614-seed4006140008``, the overtaking probe, 1 decision per second) at its break, the
-    ``second_lane_cut_in`` class. With ``shield.finishing_changes`` off (rule ``basic``) the heading projection put
+    0.188 rad toward it (its target lane is lane 4) — a break the 100 800-episode campaign found with the
+    overtaking probe at 1 decision per second, of the ``second_lane_cut_in`` class. With ``shield.finishing_changes`` off (rule ``basic``) the heading projection put
     the car in the ego's lane from now,
     braking: nothing was safe. With ``shield.finishing_changes`` (on in ``forecast-fallback``)
     it is a car finishing its change into lane 4, a cut-in candidate from there, and MOBIL would not let it cut

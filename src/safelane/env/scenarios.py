@@ -501,8 +501,8 @@ def car_settling_next_to_the_ego(mode: Mode = "robust", **kw: Any) -> Scene:
     """6 lanes; the ego in lane 5 at 29.34 m/s (set-point 30); 25.18 m ahead a car at 17.16 m/s that has just
     crossed from lane 3 into lane 4, the lane next to the ego, 1.27 m short of its centre and still turned
     0.188 rad toward it (its target lane is lane 4) — a break the 100 800-episode campaign found with the
-    overtaking probe at 1 decision per second, of the ``second_lane_cut_in`` class. With ``shield.finishing_changes`` off (rule ``basic``) the heading projection put
-    the car in the ego's lane from now,
+    overtaking probe at 1 decision per second, of the ``second_lane_cut_in`` class. With
+    ``shield.finishing_changes`` off (rule ``basic``) the heading projection put the car in the ego's lane from now,
     braking: nothing was safe. With ``shield.finishing_changes`` (on in ``forecast-fallback``)
     it is a car finishing its change into lane 4, a cut-in candidate from there, and MOBIL would not let it cut
     in 25 m ahead of a car closing at 12 m/s: IDLE and SLOWER are safe."""

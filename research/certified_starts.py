@@ -74,6 +74,7 @@ def blocking_cars(snap: Any, dyn: Any) -> list[str]:
 def condition_spawns(spec_path: str, index: int, spawns: int) -> dict[str, Any]:
     """One traffic condition (``index`` into the spec's cells of its first policy): ``spawns`` first states."""
     from safelane.env.factory import make_env
+    from safelane.env.scenarios import find_shield
     from safelane.running.falsify.grid import (
         CELL_SEED_STRIDE,
         FALSIFY_SEED_BASE,
@@ -89,9 +90,7 @@ def condition_spawns(spec_path: str, index: int, spawns: int) -> dict[str, Any]:
     env = make_env(cell_config(spec, cell))
     robust = family_for("robust", "compiled")
     seed = traffic_seed_base(FALSIFY_SEED_BASE, spec.seed) + CELL_SEED_STRIDE * index
-    shield = env
-    while not hasattr(shield, "family"):
-        shield = shield.env
+    shield = find_shield(env)
     rows = []
     try:
         for k in range(spawns):

@@ -45,16 +45,10 @@ CLASSES: tuple[str, ...] = (
 )  # fmt: skip
 
 
-def _shield_of(env: Any) -> Any:
-    shield = env
-    while not hasattr(shield, "family"):
-        shield = shield.env
-    return shield
-
-
 def trace(path: str, window_s: float = 3.0) -> dict[str, Any]:
     """One collision file: its context and, for an ``others_at_fault`` crash, the window's decisions sorted."""
     from safelane.env.factory import make_env
+    from safelane.env.scenarios import find_shield
     from safelane.running.collisions import classify_collision, collision_partner
     from safelane.running.evaluation import EpisodeTally
     from safelane.safety.family import family_for
@@ -67,7 +61,7 @@ def trace(path: str, window_s: float = 3.0) -> dict[str, Any]:
     log: list[dict[str, Any]] = []
     try:
         _, info = env.reset(seed=cx.seed)
-        shield = _shield_of(env)
+        shield = find_shield(env)
         tally = EpisodeTally(cx.seed, info, committed=shield.mode == "committed")
         for action in cx.actions:
             snap = info["snapshot"]

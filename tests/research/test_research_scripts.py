@@ -48,3 +48,36 @@ def test_turn_ins_behind_the_ego_decide_no_earlier_than_the_incentive_bound() ->
     assert summary["turn_ins_within_the_decision"] == 45
     assert summary["before_any_speed_time"] == 0 and summary["any_speed_never"] == 0
     assert summary["before_incentive_time"] == 5
+
+
+def test_the_rear_end_trace_sorts_what_the_ego_did_before_each_crash(tmp_path: Path) -> None:
+    """research/trace_rear_ends.py on three crashes of the committed shield (tests/fixtures/claim-sample): the
+    override to SLOWER with IDLE or FASTER verified and the policy's own SLOWER are others at fault, traced; the
+    crash from an uncertified spawn is counted and not traced."""
+    out = tmp_path / "trace.json"
+    script = ROOT / "research" / "trace_rear_ends.py"
+    folder = ROOT / "tests" / "fixtures" / "claim-sample"
+    subprocess.run([sys.executable, str(script), str(folder), "--out", str(out), "--workers", "1"], check=True,
+                   capture_output=True)  # fmt: skip
+    rows = {r["file"].split("-")[0]: r for r in json.loads(out.read_text())["rows"]}
+    assert rows["cell00011"]["context"] == "uncertified_start" and "trace" not in rows["cell00011"]
+    override, own = rows["cell00082"], rows["cell00134"]
+    assert override["context"] == own["context"] == "others_at_fault"
+    assert override["trace"] == "override_to_slower" and override["brake_not_required"]
+    assert not override["courteous_alternative"] and override["hardest_decel"] > 6.0
+    assert own["trace"] == "policy_slower" and not own["brake_not_required"]
+    assert "| override_to_slower | 1 |" in out.with_suffix(".md").read_text()
+
+
+def test_certified_starts_sets_the_two_rules_side_by_side_on_the_grid_s_spawns() -> None:
+    """research/certified_starts.py on one dense condition of the claim grid (5 lanes, density 2, IDM drivers, 12
+    behind, 5 decisions/s), its first two spawns: the first safe by the one-decision rule and certified, the second
+    neither; the summary counts them and names no blocking car (none safe and uncertified)."""
+    from research.certified_starts import condition_spawns, position_class, summary
+
+    condition = condition_spawns(str(ROOT / "configs" / "falsify" / "claim-committed.yaml"), 2703, 2)
+    assert condition["spawns"] == [{"robust_safe": True, "certified": True}, {"robust_safe": False, "certified": False}]
+    text = summary([condition])
+    assert "one-decision rule safe 1 (50.0 %), committed rule certified 1 (50.0 %)" in text
+    assert "safe by the one-decision rule but uncertified: 0" in text
+    assert position_class(-1, -12.0) == "next_behind" and position_class(0, 4.0) == "same_beside"

@@ -14,6 +14,7 @@ same bits.
 from __future__ import annotations
 
 import dataclasses
+import functools
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
@@ -152,7 +153,7 @@ class CommittedFamily:
         """The verdict in the state of ``snap`` (see the class docstring)."""
         # The one-decision rule is given ``dyn`` as passed (it takes the leave time apart): the caller's one Dynamics
         # for an episode, whose kernel constants it caches.
-        one_decision = lambda: OneDecisionFamily("robust", self.engine).evaluate(snap, dyn, ego_leave_time)  # noqa: E731
+        one_decision = functools.partial(OneDecisionFamily("robust", self.engine).evaluate, snap, dyn, ego_leave_time)
         state, vehicle = whole_road_state(snap, dyn.rule.ego_speed_magnitude)
         return self.evaluate_state(
             state,

@@ -154,7 +154,8 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
     others' reachable sets is kept between decisions; ``info`` gains ``plan_forced``, ``lapse``, ``lapse_in_model``,
     ``lapse_cars`` (the cars the lapse's kept plan fails on), ``lapse_escaped_cars`` (those of them outside their
     sets), ``escaped_cars`` (every car outside its set), ``rolled_back``, ``unbraked_followers``, ``entered_cars``,
-    ``certified`` (and ``uncertified_start`` after a reset); cars by their snapshot index.
+    ``certified``, ``courtesy_waived`` (no verified action was safe by the one-decision robust rule, so every verified
+    one was allowed) (and ``uncertified_start`` after a reset); cars by their snapshot index.
     ``mode`` may also be a :class:`~safelane.safety.family.RuleFamily` of the caller's (its memory the caller's
     to read; its ``engine`` then overrides ``engine``).
     """

@@ -102,7 +102,8 @@ def test_bad_shield_mode_lists_the_modes() -> None:
 
 def test_a_field_of_another_mode_is_an_error_not_ignored() -> None:
     """``shield.formula`` is the nominal mode's: under another mode a value away from the default is one line
-    naming the field and its allowed value. ``shield.reading`` accepts only the committed mode's one reading."""
+    naming the field and its allowed value; so are ``shield.redraw_uncertified`` and ``shield.redraw_tries`` away
+    from the committed mode. ``shield.reading`` accepts only the committed mode's one reading, under that mode."""
     assert load_config("fast", sets=["shield.mode=nominal", "shield.formula=paper"]).shield.formula == "paper"
     for mode in ("none", "robust", "committed"):
         with pytest.raises(ConfigError, match=r"^shield\.formula: only for shield\.mode nominal .*'kinematic'$"):
@@ -113,8 +114,15 @@ def test_a_field_of_another_mode_is_an_error_not_ignored() -> None:
     assert "\n" not in str(err.value)
     cfg = load_config("fast", sets=["shield.mode=committed", "shield.reading=responsibility"])
     assert "reading" not in cfg.shield.model_dump()
-    # Published commands pass it before the committed rows choose the mode: accepted, as a no-op.
-    assert load_config("fast", sets=["shield.reading=responsibility"]).shield.mode == "none"
+    for mode in ("none", "nominal", "robust"):
+        reading_error = rf"^shield\.reading: only for shield\.mode committed \(got mode '{mode}'\)"
+        with pytest.raises(ConfigError, match=reading_error):
+            load_config("fast", sets=[f"shield.mode={mode}", "shield.reading=responsibility"])
+        with pytest.raises(ConfigError, match=r"^shield\.redraw_uncertified: only for shield\.mode committed .*false$"):
+            load_config("fast", sets=[f"shield.mode={mode}", "shield.redraw_uncertified=true"])
+        with pytest.raises(ConfigError, match=r"^shield\.redraw_tries: only for shield\.mode committed .*20$"):
+            load_config("fast", sets=[f"shield.mode={mode}", "shield.redraw_tries=5"])
+    assert load_config("fast", sets=["shield.mode=committed", "shield.redraw_tries=5"]).shield.redraw_tries == 5
 
 
 @pytest.mark.parametrize("v_max", ["0", "-10"])

@@ -94,6 +94,15 @@ class TrafficConfig(_Section):
     )
 
 
+MODE_ONLY_FIELDS: dict[str, tuple[str, ...]] = {
+    "redraw_uncertified": ("committed",),
+    "redraw_tries": ("committed",),
+    "formula": ("nominal",),
+}
+"""The shield's fields that only some modes read (``shield.reading`` too: the committed mode's,
+:func:`drop_removed_reading`); every other field is read by each mode with a shield."""
+
+
 class ShieldConfig(_Section):
     """Which safety model masks the actions (``none`` = no shield)."""
 
@@ -156,7 +165,7 @@ class ShieldConfig(_Section):
         ``shield.options.body_extent``; a removed option is accepted at its old default, else an error (so is
         ``reading``, :func:`drop_removed_reading`)."""
         if isinstance(data, dict):
-            return fold_flat_options(drop_removed_reading(data))
+            return fold_flat_options(drop_removed_reading(data, data.get("mode", "none")))
         return data
 
     @field_validator("rule")
@@ -179,17 +188,15 @@ class ShieldConfig(_Section):
 
     @model_validator(mode="after")
     def _mode_only_fields(self) -> ShieldConfig:
-        """A field that only one mode reads, set away from its default under another mode, is a one-line error
-        (it would be ignored): ``redraw_uncertified`` is the committed mode's, ``formula`` the nominal mode's."""
-        if self.redraw_uncertified and self.mode != "committed":
-            raise ConfigError(
-                f"shield.redraw_uncertified: only for shield.mode committed (got mode {self.mode!r}); "
-                "allowed otherwise: false"
-            )
-        if self.formula != "kinematic" and self.mode != "nominal":
-            raise ConfigError(
-                f"shield.formula: only for shield.mode nominal (got mode {self.mode!r}); allowed otherwise: 'kinematic'"
-            )
+        """A field that only some modes read (:data:`MODE_ONLY_FIELDS`), set away from its default under another
+        mode, is a one-line error: it would be silently ignored."""
+        for name, modes in MODE_ONLY_FIELDS.items():
+            default = type(self).model_fields[name].default
+            if getattr(self, name) != default and self.mode not in modes:
+                raise ConfigError(
+                    f"shield.{name}: only for shield.mode {' or '.join(modes)} (got mode {self.mode!r}); "
+                    f"allowed otherwise: {str(default).lower() if isinstance(default, bool) else repr(default)}"
+                )
         return self
 
     def resolved_rule(self) -> Rule:
@@ -610,12 +617,13 @@ KEPT_READING = "responsibility"
 published campaign files pass ``shield.reading=responsibility``); the other reading, ``sound``, is removed."""
 
 
-def drop_removed_reading(shield: dict[str, Any]) -> dict[str, Any]:
+def drop_removed_reading(shield: dict[str, Any], mode: str) -> dict[str, Any]:
     """``shield`` without ``reading`` (the committed mode has one reading, :data:`KEPT_READING`); a ``reading``
-    other than it is a one-line :class:`ConfigError`. Accepted under any mode: published commands pass it before
-    the mode is chosen (``safelane ceiling --rows foresight_committed --set shield.reading=responsibility``)."""
+    under another ``mode``, or other than it, is a one-line :class:`ConfigError`."""
     if "reading" not in shield:
         return shield
+    if mode != "committed":
+        raise ConfigError(f"shield.reading: only for shield.mode committed (got mode {mode!r}); remove it")
     if shield["reading"] != KEPT_READING:
         raise ConfigError(
             f"shield.reading: 'sound' was removed (measured: it verified a plan at about 5 % of decisions in "

@@ -71,6 +71,15 @@ TrainSimulatorOpt = Annotated[
         metavar="SIM",
     ),
 ]
+ActionsOpt = Annotated[
+    str | None,
+    typer.Option(
+        "--actions",
+        help="The ego's actions (sets actions=): discrete, the paper's 5 meta-actions, or continuous, "
+        "acceleration and steering (default: the config's).",
+        metavar="KIND",
+    ),
+]
 EpisodesOpt = Annotated[int, typer.Option("--episodes", "-n", help="Number of episodes (>= 1).")]
 SeedOpt = Annotated[int, typer.Option("--seed", help="Random seed: the same seed gives the same numbers.")]
 TrafficSeedOpt = Annotated[
@@ -154,9 +163,12 @@ def training_simulator(sets: list[str] | None, simulator: str | None, earlier_se
     return with_simulator(sets, "fast")
 
 
-def with_simulator(sets: list[str] | None, simulator: str | None) -> list[str]:
-    """``sets`` with ``simulator=SIM`` appended when ``--simulator`` was given (validated by the config)."""
-    return [*(sets or []), *([f"simulator={simulator}"] if simulator is not None else [])]
+def with_simulator(sets: list[str] | None, simulator: str | None, actions: str | None = None) -> list[str]:
+    """``sets`` with ``simulator=SIM`` and ``actions=KIND`` appended when ``--simulator`` / ``--actions`` were
+    given (validated by the config)."""
+    extra = [f"simulator={simulator}"] if simulator is not None else []
+    extra += [f"actions={actions}"] if actions is not None else []
+    return [*(sets or []), *extra]
 
 
 def warn_if_numpy_is_not_libm() -> None:

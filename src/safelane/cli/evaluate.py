@@ -8,6 +8,7 @@ from typing import Annotated, Any
 import typer
 
 from safelane.cli.common import (
+    ActionsOpt,
     CounterexamplesOpt,
     EpisodesOpt,
     JsonOpt,
@@ -38,6 +39,7 @@ EVALUATE_UNITS = {
     "invariant_break_rate": "per decision",
     "unsafe_action_rate": "per decision",
     "mean_vehicles_passed": "vehicles / episode",
+    "off_road_rate": "per episode",
     "lapses": "decisions",
     "lapses_in_model": "decisions",
     "plan_forced_rate": "per decision",
@@ -55,8 +57,14 @@ def evaluate(
     ),
     policy: Annotated[
         str | None,
-        typer.Option("--policy", help="Fixed policy: random, idle, faster, slower, probe.", metavar="POLICY"),
+        typer.Option(
+            "--policy",
+            help="Fixed policy: random, idle, faster, slower, probe; with --actions continuous: random, faster "
+            "(full throttle in its lane), weave.",
+            metavar="POLICY",
+        ),
     ] = None,
+    actions: ActionsOpt = None,
     episodes: EpisodesOpt = 20,
     seed: SeedOpt = 0,
     preset: PresetOpt = "fast",
@@ -74,9 +82,9 @@ def evaluate(
     method's raw Q-network (what its values learned about unsafe actions, without the mask).
     """
     from safelane.running.evaluation import evaluate_fixed
-    from safelane.running.policies import FIXED_POLICIES
+    from safelane.running.policies import CONTINUOUS_POLICIES, FIXED_POLICIES
 
-    sets = with_simulator(sets, simulator)
+    sets = with_simulator(sets, simulator, actions)
 
     if run_dir is not None:
         if policy is not None:
@@ -89,13 +97,14 @@ def evaluate(
         else:
             print_table(f"{summary['method']} run {run_dir}, shield {summary['shield']}", summary, EVALUATE_UNITS)
         return
+    cfg = resolve_config(preset, sets, shield)
+    allowed = CONTINUOUS_POLICIES if cfg.actions == "continuous" else FIXED_POLICIES
     if policy is None:
-        raise ConfigError(f"evaluate: give --policy (one of {', '.join(FIXED_POLICIES)})")
-    if policy not in FIXED_POLICIES:
-        raise ConfigError(f"--policy: unknown policy '{policy}'; allowed: {', '.join(FIXED_POLICIES)}")
+        raise ConfigError(f"evaluate: give --policy (one of {', '.join(allowed)})")
+    if policy not in allowed:
+        raise ConfigError(f"--policy: unknown {cfg.actions} policy '{policy}'; allowed: {', '.join(allowed)}")
     check_positive("--episodes", episodes)
     check_seed(seed)
-    cfg = resolve_config(preset, sets, shield)
     override_set = any(s.split("=", 1)[0].strip() == "shield.override" for s in sets or [])
     if cfg.shield.mode != "none" and not override_set:
         cfg = resolve_config(preset, sets, shield, overrides={"shield.override": True})
@@ -104,7 +113,10 @@ def evaluate(
     if as_json:
         print_json(summary)
         return
-    title = f"{policy} on {cfg.preset} ({cfg.env_id}), shield {cfg.shield.mode}, seeds {seed}..{seed + episodes - 1}"
+    kind = ", continuous actions" if cfg.actions == "continuous" else ""
+    title = (
+        f"{policy} on {cfg.preset} ({cfg.env_id}){kind}, shield {cfg.shield.mode}, seeds {seed}..{seed + episodes - 1}"
+    )
     print_table(title, summary, EVALUATE_UNITS)
 
 

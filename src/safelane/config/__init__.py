@@ -64,6 +64,15 @@ class RewardConfig(_Section):
         30.0, strict=True, description="Speed [m/s] that earns the full speed reward b (clipped above)."
     )
 
+    lane_centring: float = Field(
+        0.5,
+        ge=0,
+        le=1,
+        strict=True,
+        description="Continuous actions only: the share of the speed reward lost at a lane's edge; the speed term "
+        "is multiplied by 1 − lane_centring·(2·offset/lane width)², so the ego is paid most at a lane's centre.",
+    )
+
     @field_validator("v_max")
     @classmethod
     def _ordered(cls, v_max: float, info: Any) -> float:
@@ -218,6 +227,14 @@ class SafelaneConfig(_Section):
         "loops, the simulator untouched). "
         "Not the choice of simulator.",
     )
+    actions: Literal["discrete", "continuous"] = Field(
+        "discrete",
+        description="The ego's actions: 'discrete' (the paper's five meta-actions, highway-env's "
+        "DiscreteMetaAction) or 'continuous' (acceleration and steering in [-1, 1], highway-env's "
+        "ContinuousAction with its own ranges: env.action becomes one, keeping its ContinuousAction keys; "
+        "env.offroad_terminal defaults to true; the state gains the lane offset and lane index, the reward "
+        "its lane-centring term, safelane.env.reward.ContinuousReward).",
+    )
     state: Literal["paper", "lanes"] = Field(
         "paper",
         description="The agent's 26-number state: 'paper' (eq. 3: the 4 nearest vehicles, ego speed and "
@@ -229,6 +246,24 @@ class SafelaneConfig(_Section):
     traffic: TrafficConfig = Field(default_factory=TrafficConfig)
     shield: ShieldConfig = Field(default_factory=ShieldConfig)
 
+    @model_validator(mode="before")
+    @classmethod
+    def _continuous_action_type(cls, data: Any) -> Any:
+        """``actions: continuous`` turns a meta-action ``env.action`` (a preset's) into highway-env's
+        ContinuousAction, dropping the meta-actions' set-points and keeping every other key; the episode ends
+        off the road unless ``env.offroad_terminal`` says otherwise."""
+        if not isinstance(data, dict) or data.get("actions") != "continuous":
+            return data
+        env = dict(data.get("env") or {})
+        action = env.get("action")
+        action = dict(action) if isinstance(action, dict) else {}
+        if action.get("type", "DiscreteMetaAction") == "DiscreteMetaAction":
+            action = {**{k: v for k, v in action.items() if k not in ("type", "target_speeds")},
+                      "type": "ContinuousAction"}  # fmt: skip
+        env["action"] = action
+        env.setdefault("offroad_terminal", True)
+        return {**data, "env": env}
+
     @field_validator("preset")
     @classmethod
     def _known_preset(cls, name: str) -> str:
@@ -239,8 +274,9 @@ class SafelaneConfig(_Section):
     @model_validator(mode="after")
     def _consistent(self) -> SafelaneConfig:
         """highway-env keys (:func:`validate_env_keys`) and the checks that span sections."""
-        validate_env_keys(self.env_id, self.env)
         env = {**highway_env_defaults(self.env_id), **self.env}
+        self._check_actions(env["action"].get("type") if isinstance(env["action"], dict) else None)
+        validate_env_keys(self.env_id, self.env)
         if self.traffic.vehicles_behind > env["vehicles_count"]:
             raise ConfigError(
                 f"traffic.vehicles_behind: must be at most env.vehicles_count ({env['vehicles_count']}), "
@@ -252,6 +288,25 @@ class SafelaneConfig(_Section):
                 f"got {env['lanes_count']}"
             )
         return self
+
+    def _check_actions(self, action_type: str | None) -> None:
+        """``actions`` agrees with ``env.action.type``; continuous actions have no shield rule and no set-point
+        for the ``lanes`` state (one-line errors naming the field)."""
+        if self.actions == "discrete" and action_type == "ContinuousAction":
+            raise ConfigError("env.action.type: ContinuousAction needs actions: continuous (--actions continuous)")
+        if self.actions != "continuous":
+            if self.reward.lane_centring != RewardConfig.model_fields["lane_centring"].default:
+                raise ConfigError("reward.lane_centring: only for actions: continuous; allowed otherwise: 0.5")
+            return
+        if self.shield.mode != "none":
+            raise ConfigError(
+                f"shield.mode: {self.shield.mode!r} decides among meta-actions; allowed with actions continuous: none"
+            )
+        if self.state != "paper":
+            raise ConfigError(
+                f"state: {self.state!r} reads the ego's set-point, which continuous actions lack; allowed with "
+                "actions continuous: paper"
+            )
 
 
 ENV_PRESETS = ("fast", "paper")

@@ -71,11 +71,12 @@ KINEMATICS_FEATURES = (
 
 KINEMATICS_ORDERS = ("sorted", "shuffled")
 
-ACTION_TYPES = ("DiscreteMetaAction",)
-"""``env.action.type`` values: safelane's 5 meta-actions (lane left, idle, lane right, faster, slower)."""
+ACTION_TYPES = ("DiscreteMetaAction", "ContinuousAction")
+"""``env.action.type`` values: safelane's 5 meta-actions (lane left, idle, lane right, faster, slower), or
+acceleration and steering (``actions: continuous``)."""
 
 ACTION_KEYS = ("type", "longitudinal", "lateral", "target_speeds")
-"""Keys of ``env.action`` (DiscreteMetaAction's arguments)."""
+"""Keys of a DiscreteMetaAction ``env.action`` (its arguments)."""
 
 
 def _is_number(value: Any) -> bool:
@@ -132,20 +133,49 @@ def check_target_speeds(value: Any, key: str = "env.action.target_speeds") -> No
 
 
 def _check_action(action: dict[str, Any]) -> None:
-    """``env.action``: a DiscreteMetaAction with both lateral and longitudinal actions (safelane's 5)."""
+    """``env.action``: a DiscreteMetaAction with both lateral and longitudinal actions (safelane's 5), or a
+    kinematic ContinuousAction (:func:`_check_continuous_action`)."""
+    kind = action.get("type")
+    if kind not in ACTION_TYPES:
+        raise ConfigError(f"env.action.type: got {kind!r}; allowed: {', '.join(ACTION_TYPES)}")
+    if kind == "ContinuousAction":
+        _check_continuous_action(action)
+        return
     for key in action:
         if key not in ACTION_KEYS:
             raise ConfigError(f"env.action.{key}: unknown key; allowed: {', '.join(ACTION_KEYS)}")
-    kind = action.get("type")
-    if kind not in ACTION_TYPES:
-        raise ConfigError(
-            f"env.action.type: got {kind!r}; allowed: {', '.join(ACTION_TYPES)} (safelane's 5 meta-actions)"
-        )
     for key in ("longitudinal", "lateral"):
         if key in action and action[key] is not True:
             raise ConfigError(f"env.action.{key}: must be true (safelane uses all 5 meta-actions), got {action[key]!r}")
     if action.get("target_speeds") is not None:
         check_target_speeds(action["target_speeds"])
+
+
+@functools.cache
+def continuous_action_keys() -> tuple[str, ...]:
+    """Keys of a ContinuousAction ``env.action``: ``type`` and highway-env's ``ContinuousAction`` arguments."""
+    from highway_env.envs.common.action import ContinuousAction
+
+    params = inspect.signature(ContinuousAction.__init__).parameters
+    return ("type", *(p for p, spec in params.items() if p not in ("self", "env") and spec.kind != spec.VAR_KEYWORD))
+
+
+def _check_continuous_action(action: dict[str, Any]) -> None:
+    """``env.action`` of type ContinuousAction: highway-env's arguments, acceleration and steering both on, the
+    kinematic ego (``dynamical`` false), ranges as increasing pairs."""
+    allowed = continuous_action_keys()
+    for key, value in action.items():
+        name = f"env.action.{key}"
+        if key not in allowed:
+            raise ConfigError(f"{name}: unknown key for ContinuousAction; allowed: {', '.join(allowed)}")
+        if key in ("longitudinal", "lateral") and value is not True:
+            raise ConfigError(f"{name}: must be true (safelane's continuous actions are acceleration and steering)")
+        if key == "dynamical" and value is not False:
+            raise ConfigError(f"{name}: must be false (the kinematic ego, highway-env's Vehicle), got {value!r}")
+        if key == "clip" and not isinstance(value, bool):
+            raise ConfigError(f"{name}: expected bool (true or false), got {value!r}")
+        if key in ("acceleration_range", "steering_range", "speed_range") and value is not None:
+            _check_number_pair(name, value, increasing=True)
 
 
 @functools.cache

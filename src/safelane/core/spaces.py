@@ -17,3 +17,6 @@ FEATURES_PER_VEHICLE = 6
 """δx, δy, δvx, δvy, heading, presence flag."""
 OBS_SIZE = OBSERVED_VEHICLES * FEATURES_PER_VEHICLE + 2
 """26: four vehicles plus ego speed and ego heading (the ``lanes`` state has the same size)."""
+CONTINUOUS_OBS_SIZE = OBS_SIZE + 2
+"""28: eq. 3's 26 numbers, then the ego's offset from its lane's centre and its lane index (continuous actions:
+a policy that steers must know where it is in its lane and on the road)."""

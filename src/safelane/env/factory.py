@@ -6,9 +6,10 @@
    neighbour-search patch (``neighbour_search``);
 2. :class:`safelane.sim.highway.HighwayEnvAdapter` — the road snapshot in ``info["snapshot"]``: every
    layer above reads the scene from it, never from highway-env's objects;
-3. :class:`safelane.env.reward.PaperReward` — eq. 6 and the ``collision`` / ``speed`` info fields;
+3. :class:`safelane.env.reward.PaperReward` — eq. 6 and the ``collision`` / ``speed`` info fields (with
+   ``actions: continuous``, :class:`safelane.env.reward.ContinuousReward`);
 4. :class:`safelane.env.observations.PaperObservation` — the paper's 26-number state (eq. 3), or the
-   ``lanes`` state;
+   ``lanes`` state (with continuous actions eq. 3 and the ego's place in its lane: 28 numbers);
 5. :class:`safelane.safety.shield.SafetyShield` — only when ``shield.mode`` is not ``none``;
 6. :class:`safelane.env.redraw.RedrawUncertified` — the ``committed`` mode only: each reset reports the
    spawns drawn again (``shield.redraw_uncertified``).
@@ -34,7 +35,7 @@ from safelane.core.errors import NotSupported
 from safelane.core.snapshot import RoadSnapshot
 from safelane.env.observations import PaperObservation
 from safelane.env.redraw import RedrawUncertified
-from safelane.env.reward import PaperReward
+from safelane.env.reward import ContinuousReward, PaperReward
 from safelane.safety.shield import SafetyShield
 from safelane.sim.highway import HighwayEnvAdapter
 from safelane.sim.traffic import TrafficLayout
@@ -48,10 +49,14 @@ class EnvInterface(NamedTuple):
     policy_frequency: float
     """[Hz] decisions per second."""
     target_speeds: tuple[float, ...]
-    """[m/s] the ego's set-points, which FASTER and SLOWER step through."""
+    """[m/s] the ego's set-points, which FASTER and SLOWER step through (none with continuous actions)."""
+    actions: str = "discrete"
+    """``discrete`` (meta-actions) or ``continuous`` (acceleration and steering)."""
 
     def describe(self) -> str:
         """One-line description, e.g. ``state 'paper', 1 decisions/s, target speeds [20, 25, 30] m/s``."""
+        if self.actions == "continuous":
+            return f"state '{self.state}', {self.policy_frequency:g} decisions/s, continuous actions"
         speeds = ", ".join(f"{s:g}" for s in self.target_speeds)
         return f"state '{self.state}', {self.policy_frequency:g} decisions/s, target speeds [{speeds}] m/s"
 
@@ -62,11 +67,12 @@ def env_interface(cfg: SafelaneConfig) -> EnvInterface:
     action = {**defaults.get("action", {}), **cfg.env.get("action", {})}
     speeds = action.get("target_speeds")
     if speeds is None:
-        speeds = MDPVehicle.DEFAULT_TARGET_SPEEDS
+        speeds = MDPVehicle.DEFAULT_TARGET_SPEEDS if cfg.actions == "discrete" else ()
     return EnvInterface(
         state=cfg.state,
         policy_frequency=float(cfg.env.get("policy_frequency", defaults["policy_frequency"])),
         target_speeds=tuple(float(s) for s in speeds),
+        actions=cfg.actions,
     )
 
 
@@ -76,7 +82,8 @@ def interface_of(info: dict[str, Any]) -> EnvInterface | None:
     state = info.get("state")
     if snap is None or state is None:
         return None
-    return EnvInterface(state, snap.policy_frequency, snap.ego_target_speeds)
+    actions = "discrete" if snap.ego_target_speeds else "continuous"
+    return EnvInterface(state, snap.policy_frequency, snap.ego_target_speeds, actions)
 
 
 def check_same_interface(trained: EnvInterface, actual: EnvInterface, source: str = "the run") -> None:
@@ -149,8 +156,12 @@ def make_env(
     """
     cfg = resolve_env_config(config, **overrides)
     env = _fast_simulator(cfg, render_mode) if cfg.simulator == "fast" else _highway_env(cfg, render_mode)
-    env = PaperReward(env, cfg.reward.b, cfg.reward.c, cfg.reward.v_min, cfg.reward.v_max)
-    env = PaperObservation(env, cfg.state)
+    reward = cfg.reward
+    if cfg.actions == "continuous":
+        env = ContinuousReward(env, reward.b, reward.c, reward.v_min, reward.v_max, reward.lane_centring)
+    else:
+        env = PaperReward(env, reward.b, reward.c, reward.v_min, reward.v_max)
+    env = PaperObservation(env, cfg.state, continuous=cfg.actions == "continuous")
     if cfg.shield.mode != "none":
         shield = cfg.shield
         env = SafetyShield(

@@ -1,6 +1,7 @@
 """The agent's state, computed from a :class:`~safelane.core.snapshot.RoadSnapshot`: eq. 3 or the lanes state.
 
-Both are 26 numbers in [-1, 1] (:data:`safelane.core.spaces.OBS_SIZE`). :class:`PaperObservation`
+Both are 26 numbers in [-1, 1] (:data:`safelane.core.spaces.OBS_SIZE`); with continuous actions eq. 3 gains the
+ego's lane offset and lane index (28, :data:`safelane.core.spaces.CONTINUOUS_OBS_SIZE`). :class:`PaperObservation`
 replaces the simulator's own observation by one of them, reading ``info["snapshot"]``.
 """
 
@@ -17,7 +18,7 @@ import numpy as np
 from safelane.core.errors import ConfigError
 from safelane.core.geometry import wrap_to_pi
 from safelane.core.snapshot import RoadSnapshot
-from safelane.core.spaces import FEATURES_PER_VEHICLE, OBS_SIZE, OBSERVED_VEHICLES
+from safelane.core.spaces import CONTINUOUS_OBS_SIZE, FEATURES_PER_VEHICLE, OBS_SIZE, OBSERVED_VEHICLES
 
 # --- observation normalisation: every scale in one place, with units --------------------------
 X_SCALE = 100.0  # [m] longitudinal offset mapped to ±1
@@ -256,6 +257,15 @@ def lane_state_compiled(snap: RoadSnapshot) -> np.ndarray:
     return obs
 
 
+def _with_lane_position(state_of: Callable[[RoadSnapshot], np.ndarray]) -> Callable[[RoadSnapshot], np.ndarray]:
+    """``state_of`` followed by :func:`lane_position`."""
+
+    def continuous_state(snap: RoadSnapshot) -> np.ndarray:
+        return np.concatenate((state_of(snap), lane_position(snap)))
+
+    return continuous_state
+
+
 STATE_FUNCTIONS: dict[str, Callable[[RoadSnapshot], np.ndarray]] = {
     "paper": paper_state_compiled,
     "lanes": lane_state_compiled,
@@ -263,18 +273,37 @@ STATE_FUNCTIONS: dict[str, Callable[[RoadSnapshot], np.ndarray]] = {
 """The agent's state by ``SafelaneConfig.state`` name (the compiled form where one exists)."""
 
 
+def lane_position(snap: RoadSnapshot) -> np.ndarray:
+    """(2,) float32: the ego's offset from its lane's centre / (lane width / 2) and its lane index /
+    (lanes − 1) (0 on a one-lane road), clipped to [-1, 1]: what eq. 3 lacks for steering (its heading is
+    already eq. 3's last number)."""
+    lanes = snap.lanes_count
+    out = np.array(
+        [
+            2.0 * snap.ego_lane_offset / snap.lane_width,
+            int(snap.lane[snap.ego]) / (lanes - 1) if lanes > 1 else 0.0,
+        ],
+        dtype=np.float32,
+    )
+    return np.clip(out, -1.0, 1.0, out=out)
+
+
 class PaperObservation(gym.Wrapper, gym.utils.RecordConstructorArgs):
     """Replace the simulator's observation by the paper's 26-number state (eq. 3), or with
     ``state="lanes"`` by :func:`lane_state` (same size), computed from ``info["snapshot"]``; ``info``
-    gains ``state`` (the state's name), so a trained policy can check it reads what it learned on."""
+    gains ``state`` (the state's name), so a trained policy can check it reads what it learned on.
+    ``continuous``: eq. 3 followed by :func:`lane_position` (28 numbers, for acceleration and steering)."""
 
-    def __init__(self, env: gym.Env, state: str = "paper") -> None:
-        gym.utils.RecordConstructorArgs.__init__(self, state=state)
+    def __init__(self, env: gym.Env, state: str = "paper", continuous: bool = False) -> None:
+        gym.utils.RecordConstructorArgs.__init__(self, state=state, continuous=continuous)
         super().__init__(env)
         if state not in STATE_FUNCTIONS:
             raise ConfigError(f"state: got {state!r}; allowed: {', '.join(STATE_FUNCTIONS)}")
-        self.state_of = STATE_FUNCTIONS[state]
-        self.observation_space = gym.spaces.Box(-1.0, 1.0, shape=(OBS_SIZE,), dtype=np.float32)
+        if continuous and state != "paper":
+            raise ConfigError(f"state: got {state!r} with continuous actions; allowed: paper")
+        self.state_of = _with_lane_position(STATE_FUNCTIONS[state]) if continuous else STATE_FUNCTIONS[state]
+        size = CONTINUOUS_OBS_SIZE if continuous else OBS_SIZE
+        self.observation_space = gym.spaces.Box(-1.0, 1.0, shape=(size,), dtype=np.float32)
         self.state = state
 
     def reset(self, **kwargs: Any) -> tuple[np.ndarray, dict[str, Any]]:

@@ -1,12 +1,14 @@
 """Gymnasium ids of the paper's environment: ``gym.make("safelane/Highway-v0")`` and friends.
 
-``import safelane`` registers two ids (:func:`register_envs`); gymnasium's ``"module:id"`` form imports the
+``import safelane`` registers four ids (:func:`register_envs`); gymnasium's ``"module:id"`` form imports the
 package for a caller that has not, so ``gym.make("safelane:safelane/HighwayFast-v0")`` needs no import at all:
 
 * ``safelane/Highway-v0`` — the paper's environment on highway-env, the reference simulator;
 * ``safelane/HighwayFast-v0`` — the same environment on safelane's compiled simulator (``simulator: fast``,
   the same episodes as highway-env, checked by ``safelane sim check``; hundreds of times faster with the shield
-  on, docs/results/speed.md; no rendering).
+  on, docs/results/speed.md; no rendering);
+* ``safelane/HighwayContinuous-v0`` and ``safelane/HighwayContinuousFast-v0`` — the same road and traffic with the
+  ego driven by acceleration and steering (``actions: continuous``), without a shield.
 
 Both take the same keywords, all optional (:func:`make_highway`): ``preset`` (``"fast"``: highway-fast-v0's
 5 Hz physics; ``"paper"``: highway-v0's 15 Hz), ``shield`` (``"robust"``, ``"nominal"``, ``"committed"`` or ``"none"``),
@@ -30,10 +32,15 @@ from safelane.config import ConfigError, SafelaneConfig, ShieldConfig
 from safelane.env.factory import make_env, resolve_env_config
 from safelane.env.vector import FastVectorEnv, SafelaneVectorEnv, make_vector_env
 
-ENV_IDS: dict[str, str] = {"safelane/Highway-v0": "highway-env", "safelane/HighwayFast-v0": "fast"}
-"""Each registered id and the simulator it runs on."""
+ENV_IDS: dict[str, str] = {
+    "safelane/Highway-v0": "highway-env",
+    "safelane/HighwayFast-v0": "fast",
+    "safelane/HighwayContinuous-v0": "highway-env",
+    "safelane/HighwayContinuousFast-v0": "fast",
+}
+"""Each registered id and the simulator it runs on (the ``Continuous`` ids: acceleration and steering)."""
 SHIELD_MODES: tuple[str, ...] = get_args(ShieldConfig.model_fields["mode"].annotation)
-OWN_KEYS = ("simulator", "preset", "shield.mode", "shield.override")
+OWN_KEYS = ("simulator", "actions", "preset", "shield.mode", "shield.override")
 """Settings the id and the keywords own: ``config`` may not set them."""
 
 
@@ -53,6 +60,7 @@ def env_config(
     shield: str = "robust",
     override: bool = False,
     config: dict[str, Any] | None = None,
+    actions: str = "discrete",
 ) -> SafelaneConfig:
     """The :class:`SafelaneConfig` an id's keywords describe (a one-line :class:`ConfigError` on bad input)."""
     if shield not in SHIELD_MODES:
@@ -66,10 +74,12 @@ def env_config(
     owned = sorted(_flat_keys(config or {}) & set(OWN_KEYS))
     if owned:
         raise ConfigError(
-            f"config: '{owned[0]}' is chosen by the id or a keyword (simulator: the id; "
+            f"config: '{owned[0]}' is chosen by the id or a keyword (simulator, actions: the id; "
             "preset, shield, override: keywords), not by config"
         )
-    overrides = {**(config or {}), "simulator": simulator, "shield.mode": shield, "shield.override": override}
+    overrides = {
+        **(config or {}), "simulator": simulator, "actions": actions, "shield.mode": shield, "shield.override": override
+    }  # fmt: skip
     return resolve_env_config(preset, **overrides)
 
 
@@ -131,9 +141,69 @@ def make_highway_fast_vector(
     return make_vector_env(env_config("fast", preset, shield, override, config), num_envs=num_envs)
 
 
+def make_highway_continuous(
+    *,
+    preset: str = "fast",
+    shield: str = "none",
+    config: dict[str, Any] | None = None,
+    render_mode: str | None = None,
+) -> gym.Env:
+    """``safelane/HighwayContinuous-v0``: the paper's road and traffic on highway-env, the ego driven by
+    acceleration and steering (``actions: continuous``: highway-env's ContinuousAction, 28-number state,
+    :class:`safelane.env.reward.ContinuousReward`). No shield decides among continuous actions: ``shield``
+    other than ``"none"`` is a one-line error."""
+    cfg = env_config("highway-env", preset, shield, False, config, actions="continuous")
+    return make_env(cfg, render_mode=render_mode)
+
+
+def make_highway_continuous_fast(
+    *,
+    preset: str = "fast",
+    shield: str = "none",
+    config: dict[str, Any] | None = None,
+    render_mode: str | None = None,
+) -> gym.Env:
+    """``safelane/HighwayContinuousFast-v0``: :func:`make_highway_continuous` on the compiled simulator (the same
+    episodes, ``safelane sim check``); ``render_mode`` accepted and ignored as for ``safelane/HighwayFast-v0``."""
+    return make_env(env_config("fast", preset, shield, False, config, actions="continuous"))
+
+
+def make_highway_continuous_vector(
+    num_envs: int = 1,
+    *,
+    preset: str = "fast",
+    shield: str = "none",
+    config: dict[str, Any] | None = None,
+    render_mode: str | None = None,
+) -> SafelaneVectorEnv:
+    """``gym.make_vec("safelane/HighwayContinuous-v0", num_envs=N)``: ``N`` environments in one vector env."""
+    if render_mode is not None:
+        raise ConfigError("render_mode: a vector environment does not render; render one gym.make environment")
+    cfg = env_config("highway-env", preset, shield, False, config, actions="continuous")
+    return make_vector_env(cfg, num_envs=num_envs)  # type: ignore[return-value]
+
+
+def make_highway_continuous_fast_vector(
+    num_envs: int = 1,
+    *,
+    preset: str = "fast",
+    shield: str = "none",
+    config: dict[str, Any] | None = None,
+    render_mode: str | None = None,
+) -> FastVectorEnv | SafelaneVectorEnv:
+    """``gym.make_vec("safelane/HighwayContinuousFast-v0", num_envs=N)`` (a loop over fast environments: the
+    batched kernels step meta-actions)."""
+    if render_mode is not None:
+        raise ConfigError("render_mode: the fast simulator does not render; use safelane/HighwayContinuous-v0")
+    cfg = env_config("fast", preset, shield, False, config, actions="continuous")
+    return make_vector_env(cfg, num_envs=num_envs)
+
+
 _ENTRY_POINTS = {
     "safelane/Highway-v0": ("make_highway", "make_highway_vector"),
     "safelane/HighwayFast-v0": ("make_highway_fast", "make_highway_fast_vector"),
+    "safelane/HighwayContinuous-v0": ("make_highway_continuous", "make_highway_continuous_vector"),
+    "safelane/HighwayContinuousFast-v0": ("make_highway_continuous_fast", "make_highway_continuous_fast_vector"),
 }
 
 

@@ -54,6 +54,8 @@ class SafelaneVectorEnv(VectorEnv):
         self.num_envs = len(envs)
         self.single_observation_space = envs[0].observation_space
         self.single_action_space = envs[0].action_space
+        # acceleration and steering (a Box) or a meta-action index (Discrete)
+        self.continuous = isinstance(self.single_action_space, gym.spaces.Box)
         self.observation_space = batch_space(self.single_observation_space, self.num_envs)
         self.action_space = batch_space(self.single_action_space, self.num_envs)
         self.metadata = {"autoreset_mode": AutoresetMode.SAME_STEP}
@@ -84,8 +86,12 @@ class SafelaneVectorEnv(VectorEnv):
         return self._obs.copy(), {"action_mask": self._masks.copy(), "speed": speeds}
 
     def step(self, actions: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, dict[str, Any]]:
-        """Step every environment with its action (shape ``(N,)``); finished ones are reset at once."""
-        actions = np.asarray(actions).reshape(self.num_envs)
+        """Step every environment with its action (shape ``(N,)``, with continuous actions ``(N, 2)``); finished
+        ones are reset at once."""
+        if self.continuous:
+            actions = np.asarray(actions, dtype=np.float32).reshape(self.num_envs, *self.single_action_space.shape)
+        else:
+            actions = np.asarray(actions).reshape(self.num_envs)
         n = self.num_envs
         rewards = np.zeros(n)
         terminated = np.zeros(n, dtype=bool)
@@ -94,13 +100,13 @@ class SafelaneVectorEnv(VectorEnv):
         committed = {key: np.zeros(n, dtype=bool) for key in COMMITTED_INFO}
         reported = False
         speeds = np.zeros(n)
-        executed = np.asarray(actions, dtype=np.int64).copy()
+        executed = actions.copy() if self.continuous else np.asarray(actions, dtype=np.int64).copy()
         final_obs = np.zeros_like(self._obs)
         final_masks = np.zeros((n, N_ACTIONS), dtype=bool)
         episode_r = np.zeros(n)
         episode_l = np.zeros(n, dtype=np.int64)
         for i, env in enumerate(self.envs):
-            obs, reward, term, trunc, info = env.step(int(actions[i]))
+            obs, reward, term, trunc, info = env.step(actions[i] if self.continuous else int(actions[i]))
             rewards[i], terminated[i], truncated[i] = reward, term, trunc
             for key in BOOL_INFO:
                 flags[key][i] = bool(info.get(key, False))
@@ -108,7 +114,8 @@ class SafelaneVectorEnv(VectorEnv):
             for key in COMMITTED_INFO:
                 committed[key][i] = bool(info.get(key, False))
             speeds[i] = float(info.get("speed", 0.0))
-            executed[i] = int(info.get("executed_action", actions[i]))
+            if not self.continuous:
+                executed[i] = int(info.get("executed_action", actions[i]))
             self._returns[i] += float(reward)
             self._lengths[i] += 1
             if term or trunc:

@@ -66,7 +66,7 @@ class EpisodeRecord:
     collision_context: str | None = None
     """Where a collision stands with respect to the shield's promise (None without a collision or a
     shield): see :data:`~safelane.running.collisions.COLLISION_CONTEXTS`."""
-    chosen_actions: list[int] = field(default_factory=list, repr=False)
+    chosen_actions: list[int] | list[list[float]] = field(default_factory=list, repr=False)
     """The action the policy chose at each decision (before any override): with the seed and the
     configuration, enough to replay the episode (:mod:`safelane.running.counterexamples`). Not in
     :meth:`to_dict` (a run's 1 000 test episodes would carry 40 000 of them)."""
@@ -93,15 +93,21 @@ class EpisodeRecord:
     """A collision in context ``outside_model``: the cars (snapshot indices) that had left their sets: those a
     lapse's kept plan failed on, and the crash partner if it had (or rolled back, or did not brake as a follower
     of the plan, by the crash's own decision)."""
+    off_road: bool | None = None
+    """Continuous actions: the episode ended with the ego off the road (None: meta-actions, which keep it on)."""
 
     def to_dict(self) -> dict[str, Any]:
         """A JSON-ready dict of the record (without ``chosen_actions``; the committed mode's fields only for
-        that mode)."""
+        that mode, ``off_road`` only for continuous actions, which have no ``actions`` histogram)."""
         data = asdict(self)
         del data["chosen_actions"]
         if self.uncertified_start is None:
             for name in COMMITTED_FIELDS:
                 del data[name]
+        if self.off_road is None:
+            del data["off_road"]
+        else:
+            del data["actions"]
         return data
 
 
@@ -111,6 +117,9 @@ COMMITTED_FIELDS: tuple[str, ...] = (
 )  # fmt: skip
 """The :class:`EpisodeRecord` fields only the ``committed`` shield mode fills."""
 
+
+Action = int | np.ndarray
+"""A meta-action index, or ``[acceleration, steering]`` in [-1, 1] with continuous actions."""
 
 ProgressCallback = Callable[[int, EpisodeRecord], None]
 """Called as ``progress(episode_index, record)`` after each episode."""
@@ -158,11 +167,20 @@ class EpisodeTally:
         self.entered_seen: set[int] = set()
         self.lapse_named: set[int] = set()
         self.outside_model_cars: list[int] = []
+        # Continuous actions (the reward reports ``off_road``): the chosen controls, no meta-action histogram.
+        self.continuous = "off_road" in reset_info
+        self.off_road = bool(reset_info["off_road"]) if self.continuous else None
+        self.controls: list[list[float]] = []
 
-    def add(self, action: int, reward: float, info: dict[str, Any]) -> None:
+    def add(self, action: Action, reward: float, info: dict[str, Any]) -> None:
         """Count one decision: the ``action`` chosen, the ``reward`` and ``info`` its step returned."""
         self.steps += 1
-        self.chosen.append(int(action))
+        if self.continuous:
+            self.controls.append([float(a) for a in np.asarray(action).ravel()])
+            self.off_road = bool(info["off_road"])
+        else:
+            self.chosen.append(int(action))
+            self.actions[int(info.get("executed_action", action))] += 1
         self.total_reward += float(reward)
         self.speeds.append(float(info["speed"]))
         self.interventions += bool(info.get("shield_intervened", False))
@@ -170,7 +188,6 @@ class EpisodeTally:
         self.unsafe_actions += bool(info.get("unsafe_action", False))
         if info.get("invariant_break", False):
             self.breaks.append(self.steps)
-        self.actions[int(info.get("executed_action", action))] += 1
         if info.get("collision", False) and not self.collision:
             self.collision = True
             self.time_to_collision = info["snapshot"].time
@@ -258,7 +275,7 @@ class EpisodeTally:
             vehicles_passed=self.ahead_at_start - vehicles_ahead(snap),
             invariant_breaks=self.breaks,
             collision_context=self.context,
-            chosen_actions=self.chosen,
+            chosen_actions=self.controls if self.continuous else self.chosen,
             uncertified_start=self.uncertified_start,
             lapses=self.lapses,
             lapses_in_model=self.lapses_in_model,
@@ -267,6 +284,7 @@ class EpisodeTally:
             courtesy_waived=self.courtesy_waived,
             redraws=self.redraws,
             outside_model_cars=self.outside_model_cars,
+            off_road=self.off_road,
         )
 
 
@@ -286,7 +304,8 @@ def run_episode(env: gym.Env, policy: Policy, seed: int) -> EpisodeRecord:
     tally = EpisodeTally(seed, info, committed=shield_mode(env) == "committed")
     done = False
     while not done:
-        action = int(policy(obs, info))
+        chosen = policy(obs, info)
+        action = chosen if isinstance(chosen, np.ndarray) else int(chosen)
         obs, reward, terminated, truncated, info = env.step(action)
         tally.add(action, float(reward), info)
         done = terminated or truncated
@@ -475,6 +494,10 @@ def summarize(records: list[EpisodeRecord], **meta: Any) -> dict[str, Any]:
         "collision_contexts": {c: sum(r.collision_context == c for r in records) for c in contexts},
         "actions": dict(zip(ACTION_NAMES, actions, strict=True)),
     }
+    continuous = [r for r in records if r.off_road is not None]
+    if continuous:  # acceleration and steering: how many episodes ended off the road, no meta-action histogram
+        del summary["actions"]
+        summary["off_road_rate"] = sum(bool(r.off_road) for r in continuous) / len(continuous)
     summary.update(committed_figures(records))
     summary.update(meta)
     return summary
@@ -566,7 +589,7 @@ def evaluate_fixed(
         raise ConfigError(f"--episodes: must be >= 1 (got {episodes})")
     if seed < 0:
         raise ConfigError(f"--seed: must be >= 0 (got {seed})")
-    act = fixed_policy(policy, seed)
+    act = fixed_policy(policy, seed, config.actions, config.env.get("action"))
     start = time.perf_counter()
     records = run_config(config, act, episodes, seed, progress)
     files: list[Path] = []

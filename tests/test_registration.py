@@ -25,7 +25,7 @@ SHORT = {"env.duration": 4}  # [s] four decisions an episode at the presets' 1 d
 
 
 def test_ids_registered_on_import_and_registration_idempotent() -> None:
-    assert set(ENV_IDS) == {FAST_ID, HIGHWAY_ID}
+    assert set(ENV_IDS) == {FAST_ID, HIGHWAY_ID, "safelane/HighwayContinuous-v0", "safelane/HighwayContinuousFast-v0"}
     assert all(env_id in gym.registry for env_id in ENV_IDS)
     entry = gym.spec(FAST_ID).entry_point
     with warnings.catch_warnings():

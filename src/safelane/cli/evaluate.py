@@ -102,7 +102,8 @@ def evaluate(
     if policy is None:
         raise ConfigError(f"evaluate: give --policy (one of {', '.join(allowed)})")
     if policy not in allowed:
-        raise ConfigError(f"--policy: unknown {cfg.actions} policy '{policy}'; allowed: {', '.join(allowed)}")
+        what = "continuous policy" if cfg.actions == "continuous" else "policy"
+        raise ConfigError(f"--policy: unknown {what} '{policy}'; allowed: {', '.join(allowed)}")
     check_positive("--episodes", episodes)
     check_seed(seed)
     override_set = any(s.split("=", 1)[0].strip() == "shield.override" for s in sets or [])

@@ -6,6 +6,10 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+import os
+import subprocess
+import sys
+from pathlib import Path
 from typing import Any
 
 import gymnasium as gym
@@ -22,6 +26,7 @@ from safelane.running.evaluation import run_episodes
 from safelane.running.policies import CONTINUOUS_POLICIES, continuous_policy, continuous_ranges
 
 SHORT = {"env.duration": 10, "env.vehicles_count": 10}
+REPO_ROOT = Path(__file__).resolve().parents[1]
 
 
 def continuous_env(simulator: str = "fast", **overrides: Any) -> gym.Env:
@@ -108,7 +113,7 @@ def test_spinning_or_stopping_earns_nothing_and_driving_on_earns_most() -> None:
     assert ranges == ((-5.0, 5.0), (-math.pi / 4, math.pi / 4))  # highway-env's own, read from its class
 
     def returns(policy: Any, episodes: int = 4) -> float:
-        env = continuous_env(**{"env.vehicles_count": 3, "env.offroad_terminal": False})
+        env = continuous_env(**{"env.vehicles_count": 1, "env.offroad_terminal": False})
         records = run_episodes(env, policy, episodes, seed=0)
         return float(np.mean([r.return_ for r in records]))
 
@@ -208,3 +213,43 @@ def test_evaluate_continuous_policy_from_the_cli() -> None:
     result = CliRunner().invoke(app, ["evaluate", "--actions", "continuous", "--policy", "probe"])
     assert result.exit_code == 2
     assert "--policy: unknown continuous policy 'probe'; allowed: random, faster, weave" in result.stderr
+
+
+def test_sb3_sac_and_ppo_train_on_the_continuous_id() -> None:
+    """SB3's SAC and PPO, as their users build them: ``make_vec_env`` on the id, a few updates, a prediction."""
+    from stable_baselines3 import PPO, SAC
+    from stable_baselines3.common.env_util import make_vec_env
+
+    short = {"config": {"env.duration": 4}}
+    vec = make_vec_env("safelane/HighwayContinuousFast-v0", n_envs=2, seed=0, env_kwargs=short)
+    try:
+        sac = SAC("MlpPolicy", vec, learning_starts=8, batch_size=8, buffer_size=100, seed=0, device="cpu")
+        sac.learn(total_timesteps=24)
+        ppo = PPO("MlpPolicy", vec, n_steps=8, batch_size=8, n_epochs=1, seed=0, device="cpu")
+        ppo.learn(total_timesteps=16)
+        action, _ = ppo.predict(vec.reset(), deterministic=True)
+        assert action.shape == (2, 2) and sac.num_timesteps >= 24
+    finally:
+        vec.close()
+
+
+def test_rl_zoo_trains_sac_on_the_continuous_id(tmp_path) -> None:
+    """RL Zoo's train script with a user's own hyperparameter file for the continuous id."""
+    conf = tmp_path / "sac.yml"
+    conf.write_text(
+        "safelane/HighwayContinuousFast-v0:\n  policy: MlpPolicy\n  n_timesteps: 40\n  learning_starts: 10\n"
+        "  buffer_size: 200\n  batch_size: 8\n  env_kwargs:\n    config: {env.duration: 4}\n"
+    )
+    cmd = [
+        sys.executable, "-m", "rl_zoo3.train", "--algo", "sac", "--env", "safelane/HighwayContinuousFast-v0",
+        "--gym-packages", "safelane", "-n", "40", "--conf-file", str(conf), "--log-folder", str(tmp_path / "logs"),
+        "--seed", "0", "--eval-freq", "-1", "--save-freq", "-1", "--vec-env", "dummy",
+    ]  # fmt: skip
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(REPO_ROOT / "src"), os.environ.get("PYTHONPATH", "")])}
+    out = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=600, cwd=tmp_path)
+    assert out.returncode == 0, out.stderr[-2000:]
+    from stable_baselines3 import SAC
+
+    model = SAC.load(tmp_path / "logs/sac/safelane-HighwayContinuousFast-v0_1/safelane-HighwayContinuousFast-v0.zip")
+    assert model.observation_space.shape == (CONTINUOUS_OBS_SIZE,) and model.action_space.shape == (2,)
+    assert model.num_timesteps == 40

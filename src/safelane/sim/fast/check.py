@@ -19,6 +19,7 @@ from typing import Any
 
 import numpy as np
 
+from safelane.core.snapshot import RoadSnapshot
 from safelane.sim.fast import layout as L
 from safelane.sim.fast.env import FastHighwayEnv
 
@@ -41,10 +42,11 @@ class Alignment:
         return self.divergent_step is None
 
 
-def make_oracle(config: dict[str, Any], env_id: str, vehicles_behind: int = 0) -> Any:
+def make_oracle(config: dict[str, Any], env_id: str, vehicles_behind: int = 0, snapshots: bool = False) -> Any:
     """Stock highway-env, as the project makes it: ``gym.make(env_id, config=config)``; with
     ``vehicles_behind`` > 0 wrapped in :class:`safelane.sim.traffic.TrafficLayout` (highway-env's own
-    neighbour search kept), which moves that many vehicles behind the ego at reset."""
+    neighbour search kept), which moves that many vehicles behind the ego at reset; with ``snapshots`` in
+    :class:`safelane.sim.highway.HighwayEnvAdapter` (``info["snapshot"]``, read from highway-env's objects)."""
     import gymnasium as gym
     import highway_env  # noqa: F401  (registers the envs)
 
@@ -53,6 +55,10 @@ def make_oracle(config: dict[str, Any], env_id: str, vehicles_behind: int = 0) -
         from safelane.sim.traffic import TrafficLayout
 
         env = TrafficLayout(env, vehicles_behind, vectorized=False)
+    if snapshots:
+        from safelane.sim.highway import HighwayEnvAdapter
+
+        env = HighwayEnvAdapter(env)
     return env
 
 
@@ -66,11 +72,12 @@ def oracle_state(env: Any) -> dict[str, np.ndarray]:
         "y": np.array([float(v.position[1]) for v in vs]),
         "heading": np.array([float(v.heading) for v in vs]),
         "speed": np.array([float(v.speed) for v in vs]),
-        "target_speed": np.array([float(v.target_speed) for v in vs]),
+        # a ContinuousAction ego (a plain Vehicle) has no set-point, target lane or speed index
+        "target_speed": np.array([float(getattr(v, "target_speed", np.nan)) for v in vs]),
         "lane": np.array([int(v.lane_index[2]) for v in vs]),
-        "target_lane": np.array([int(v.target_lane_index[2]) for v in vs]),
+        "target_lane": np.array([int(getattr(v, "target_lane_index", v.lane_index)[2]) for v in vs]),
         "crashed": np.array([bool(v.crashed) for v in vs]),
-        "speed_index": np.array([int(ego.speed_index)]),
+        "speed_index": np.array([int(getattr(ego, "speed_index", -1))]),
         "is_ego_first": np.array([vs[0] is ego]),
         "delta": np.array([float(getattr(v, "DELTA", np.nan)) for v in vs[1:]]),
         "timer": np.array([float(getattr(v, "timer", np.nan)) for v in vs[1:]]),
@@ -82,7 +89,8 @@ _DISC = ("lane", "target_lane", "crashed", "speed_index")
 
 
 def compare_states(fast: dict[str, np.ndarray], ref: dict[str, np.ndarray], tol: float, full: bool = False):
-    """(cause or None, max abs error, bitwise) comparing two state dicts."""
+    """(cause or None, max abs error, bitwise) comparing two state dicts (NaN equals NaN: a field a body
+    does not have)."""
     if not ref["is_ego_first"][0]:
         return "highway-env's ego is not road.vehicles[0]", np.inf, False
     if fast["x"].shape != ref["x"].shape:
@@ -95,10 +103,12 @@ def compare_states(fast: dict[str, np.ndarray], ref: dict[str, np.ndarray], tol:
         a = fast[f][1:] if f in ("delta", "timer") else fast[f]
         b = ref[f]
         d = np.abs(a - b)
+        d[np.isnan(a) & np.isnan(b)] = 0.0
+        d[np.isnan(d)] = np.inf  # NaN on one side only
         if d.size:
             e = float(np.max(d))
             err = max(err, e)
-            if not np.array_equal(a, b):
+            if not np.array_equal(a, b, equal_nan=True):
                 bitwise = False
             if cause is None and e > tol:
                 i = int(np.argmax(d))
@@ -121,28 +131,38 @@ def compare_episode(
     fast: FastHighwayEnv | None = None,
     stop_at_end: bool = True,
     vehicles_behind: int = 0,
+    snapshots: bool = False,
 ) -> Alignment:
     """Run ``actions`` from ``reset(seed=seed)`` in both simulators and report the first divergence.
 
+    ``actions``: meta-actions (ints), or continuous actions (arrays or lists, handed to both simulators as
+    they are: a float32 action maps in float32 on both) when ``config`` has ``action.type: ContinuousAction``.
+    ``snapshots``: also require the two ``info["snapshot"]`` to be equal (``RoadSnapshot.__eq__``: every
+    field, to the bit) after the reset and every decision (the oracle is then made with ``snapshots``).
     ``oracle`` / ``fast``: envs to reuse (made from ``config`` / ``env_id`` / ``vehicles_behind`` when None).
     ``vehicles_behind``: safelane's ``traffic.vehicles_behind`` (see :func:`make_oracle`).
     ``stop_at_end``: stop at the oracle's termination / truncation (False: play every action, which
     also checks the crashed ego and the traffic after the episode would have ended).
     """
-    oracle = oracle if oracle is not None else make_oracle(config, env_id, vehicles_behind)
+    oracle = oracle if oracle is not None else make_oracle(config, env_id, vehicles_behind, snapshots)
     fast = fast if fast is not None else FastHighwayEnv(config, env_id, vehicles_behind=vehicles_behind)
-    oracle.reset(seed=seed)
-    fast.reset(seed=seed)
+    _, info_o = oracle.reset(seed=seed)
+    _, info_f = fast.reset(seed=seed)
     cause, err, bitwise = compare_states(fast.state(), oracle_state(oracle), tol, full=True)
+    if cause is None and snapshots:
+        cause = snapshot_difference(info_f["snapshot"], info_o["snapshot"])
     if cause is not None:
         return Alignment(seed, 0, 0, "reset: " + cause, err, bitwise)
     max_err = err
     steps = 0
     for t, a in enumerate(actions, start=1):
-        _, _, term_o, trunc_o, info_o = oracle.step(int(a))
-        _, _, term_f, trunc_f, info_f = fast.step(int(a))
+        action = int(a) if np.ndim(a) == 0 else a
+        _, _, term_o, trunc_o, info_o = oracle.step(action)
+        _, _, term_f, trunc_f, info_f = fast.step(action)
         steps = t
         cause, err, bw = compare_states(fast.state(), oracle_state(oracle), tol, full=True)
+        if cause is None and snapshots:
+            cause = snapshot_difference(info_f["snapshot"], info_o["snapshot"])
         max_err = max(max_err, err)
         bitwise = bitwise and bw
         if cause is None and (bool(term_o), bool(trunc_o)) != (term_f, trunc_f):
@@ -154,6 +174,14 @@ def compare_episode(
         if stop_at_end and (term_o or trunc_o):
             break
     return Alignment(seed, steps, None, None, max_err, bitwise)
+
+
+def snapshot_difference(fast: RoadSnapshot, ref: RoadSnapshot) -> str | None:
+    """What first differs between two snapshots (``RoadSnapshot.__eq__``'s test), None when they are equal."""
+    name = fast.first_difference(ref)
+    if name is None:
+        return None
+    return f"snapshot {name}: {getattr(fast, name)!r} vs {getattr(ref, name)!r}"
 
 
 def random_actions(seed: int, n: int = 40) -> list[int]:
@@ -193,6 +221,7 @@ __all__ = [
     "oracle_state",
     "policy_actions",
     "random_actions",
+    "snapshot_difference",
 ]
 
 

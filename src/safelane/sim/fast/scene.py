@@ -162,9 +162,7 @@ def resolve_config(config: dict[str, Any] | None, env_id: str) -> SimConfig:
     elif action.get("type") == "DiscreteMetaAction":
         target_speeds = _meta_action_speeds(action)
     else:
-        raise ValueError(
-            f"action.type: {action.get('type')!r} is not supported; allowed: {', '.join(ACTION_TYPES)}"
-        )
+        raise ValueError(f"action.type: {action.get('type')!r} is not supported; allowed: {', '.join(ACTION_TYPES)}")
     sim_f = cfg["simulation_frequency"]
     pol_f = cfg["policy_frequency"]
     lanes = int(cfg["lanes_count"])

@@ -92,7 +92,8 @@ CASES: list[tuple[str, str, dict[str, Any], int, int, int, Driver | None, bool]]
     ("full-throttle-crash", FAST, {"vehicles_count": 30}, 0, 0, 20, _keep(1.0), True),
     ("braking-before-followers", FAST, {"vehicles_count": 20, "lanes_count": 3}, 12, 5, 15,
      _random_throttle(-0.4, 0.1), False),
-    ("linear-drivers-behind", FAST, {"vehicles_count": 20, "lanes_count": 3, "other_vehicles_type": LINEAR}, 12, 6,
+    # MOBIL's linear drivers see the ego (their new follower) without a speed-tracking term: not ego.speed - 0
+    ("linear-drivers-behind", FAST, {"vehicles_count": 20, "lanes_count": 2, "other_vehicles_type": LINEAR}, 12, 1,
      15, _random_throttle(-0.4, 0.1), False),
     ("longitudinal-only", FAST, {"vehicles_count": 20, "action": {**CONTINUOUS, "lateral": False}}, 5, 7, 15,
      lambda k, snap, rng: rng.uniform(-0.5, 0.5, 1).astype(np.float32), False),
@@ -100,9 +101,6 @@ CASES: list[tuple[str, str, dict[str, Any], int, int, int, Driver | None, bool]]
      lambda k, snap, rng: lane_keeping_action(snap, 0.0, _weave(k))[1:], False),
     ("unclipped", FAST, {"vehicles_count": 20, "action": {**CONTINUOUS, "clip": False}}, 0, 9, 12,
      _keep(2.5, scale=1.6), False),
-    ("speed-range", FAST,
-     {"vehicles_count": 20, "action": {**CONTINUOUS, "speed_range": [5, 28], "acceleration_range": [-8, 8.0]}}, 0,
-     10, 12, lambda k, snap, rng: lane_keeping_action(snap, 1.0 if k < 5 else -1.0), False),
 ]  # fmt: skip
 
 
@@ -119,6 +117,43 @@ def test_continuous_episode_matches_highway_env_to_the_bit(
     )
     assert r.matched, f"diverged after decision {r.divergent_step}: {r.cause}"
     assert r.bitwise and r.max_abs_error == 0.0
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2, 3])
+def test_whole_episodes_match_highway_env(seed: int) -> None:
+    """highway-fast-v0's own settings (50 vehicles, 30 decisions): whole episodes, to the episode's end
+    (a crash or the time limit), under uniform random float32 actions (even seeds) or lane keeping at a
+    random throttle (odd)."""
+    config = {"action": CONTINUOUS}
+    n = 30
+    driver = _random_throttle(-0.5, 0.5)
+    actions = _uniform(seed, n) if seed % 2 == 0 else _driven(config, FAST, seed, driver, n)
+    r = compare_episode(config, FAST, seed, actions, tol=0.0, snapshots=True)
+    assert r.matched and r.bitwise, f"diverged after decision {r.divergent_step}: {r.cause}"
+
+
+@settings(max_examples=8, deadline=None)
+@given(
+    env_id=st.sampled_from([FAST, FULL]),
+    lanes=st.integers(2, 5),
+    policy_frequency=st.sampled_from([1, 2, 5]),
+    vehicles=st.integers(3, 20),
+    behind=st.integers(0, 3),
+    seed=st.integers(0, 2**16),
+)
+def test_random_settings_match_highway_env(
+    env_id: str, lanes: int, policy_frequency: int, vehicles: int, behind: int, seed: int
+) -> None:
+    """Any lane count, decision rate, traffic and vehicles behind: 6 decisions of lane keeping at a random
+    throttle towards random lanes, bit for bit."""
+    config = {"action": CONTINUOUS, "lanes_count": lanes, "policy_frequency": policy_frequency}
+    config["vehicles_count"] = vehicles
+    rng = np.random.default_rng(seed)
+    lanes_wanted = rng.integers(0, lanes, 6)
+    driver = _random_throttle(-0.5, 0.5, lambda k: int(lanes_wanted[k]))
+    actions = _driven(config, env_id, seed, driver, 6, behind)
+    r = compare_episode(config, env_id, seed, actions, tol=0.0, vehicles_behind=behind, snapshots=True)
+    assert r.matched and r.bitwise, f"diverged after decision {r.divergent_step}: {r.cause}"
 
 
 def _play(config: dict[str, Any], seed: int, actions: list[Any], env_id: str = FAST) -> tuple[FastHighwayEnv, list]:
@@ -147,18 +182,34 @@ def test_steering_off_the_road_ends_the_episode_as_on_highway_env() -> None:
 
 
 def test_crash_is_reproduced_and_the_crashed_ego_brakes_to_a_stop() -> None:
-    """Full throttle into traffic: the ego crashes at the same decision on both simulators; after it,
-    ``clip_actions`` overrides every action (steering 0, acceleration −speed), on both."""
+    """Full throttle into traffic, then random actions: the ego crashes at the same decision on both simulators,
+    and from then on ``clip_actions`` overrides every action (steering 0: the heading stays; acceleration
+    −speed: the speed decays to nothing), on both, bit for bit."""
     config = {"action": CONTINUOUS, "vehicles_count": 30}
-    actions = _hold([1.0, 0.0], 25)
-    _, infos = _play(config, 0, actions)
+    actions = _hold([1.0, 0.0], 6) + _uniform(0, 8)
+    r = compare_episode(config, FAST, 0, actions, tol=0.0, stop_at_end=False, snapshots=True)
+    assert r.matched and r.bitwise and r.steps == len(actions), r.cause
+    env = FastHighwayEnv(config, FAST)
+    env.reset(seed=0)
+    infos = [env.step(a)[-1] for a in actions]
     crash = next(k for k, info in enumerate(infos) if info["crashed"])
-    assert infos[crash]["snapshot"].impact_before is not None
-    r = compare_episode(config, FAST, 0, actions[:crash] + _uniform(0, 6), tol=0.0, stop_at_end=False,
-                        snapshots=True)  # fmt: skip
-    assert r.matched and r.bitwise, r.cause
-    speeds = [info["speed"] for info in _play(config, 0, actions[:crash])[1]]
-    assert speeds[-1] > 30.0  # still fast when it hit
+    assert crash < 6 and infos[crash]["speed"] > 30.0 and infos[crash]["snapshot"].impact_before is not None
+    headings = [info["snapshot"].ego_heading for info in infos[crash + 1 :]]
+    assert len(set(headings)) == 1 and infos[-1]["speed"] < 1e-2 * infos[crash]["speed"]
+
+
+def test_speed_range_bounds_the_ego_speed_as_on_highway_env() -> None:
+    """``speed_range`` sets the ego's MIN_SPEED / MAX_SPEED: ``clip_actions`` pulls it back to [5, 28] m/s under
+    full throttle and full braking (8 m/s²), on both simulators."""
+    action = {**CONTINUOUS, "speed_range": [5, 28], "acceleration_range": [-8, 8.0]}
+    config = {"action": action, "vehicles_count": 5, "vehicles_density": 0.5}
+    actions = _driven(config, FAST, 0, lambda k, snap, rng: lane_keeping_action(snap, 1.0 if k < 4 else -1.0), 10)
+    r = compare_episode(config, FAST, 0, actions, tol=0.0, snapshots=True)
+    assert r.matched and r.bitwise and r.steps == 10, r.cause
+    speeds = [info["speed"] for info in _play(config, 0, actions)[1]]
+    # a frame (0.2 s × 8 m/s²) may overshoot a bound by 1.6 m/s, the next pulls the speed back
+    assert 28.0 < max(speeds) < 29.6 and 3.4 < min(speeds) < 5.0
+    assert speeds[4] == pytest.approx(28.0, abs=1e-2) and speeds[-1] == pytest.approx(5.0, abs=1e-2)
 
 
 def test_continuous_snapshot_has_no_set_points_on_both_simulators() -> None:
@@ -259,3 +310,46 @@ def test_the_fast_batch_refuses_continuous_actions() -> None:
     continuous = cfg.model_copy(update={"env": {**cfg.env, "action": CONTINUOUS}})
     assert supports(cfg) is None
     assert supports(continuous) == "action.type: ContinuousAction (the batch runs meta-actions)"
+
+
+# --- safelane sim check's continuous section ----------------------------------------------------------------
+
+
+def test_sim_check_names_a_continuous_divergence(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The continuous check catches a fast side a hair off (an acceleration range 0.02 % wider: the ego a few
+    µm ahead after one decision) and names it; with the same settings both agree to the bit."""
+    from safelane.config import load_config
+    from safelane.env.factory import make_simulator
+    from safelane.running import simcheck
+
+    cfg = load_config("fast", sets=["env.duration=3", "env.vehicles_count=10"])
+    found, worst, equal = simcheck.compare_continuous_episode(cfg, 0, "full_throttle")
+    assert found is None and worst == 0.0 and equal
+    original = simcheck._continuous_simulator
+
+    def skewed(c: Any, simulator: str) -> Any:
+        if simulator == "highway-env":
+            return original(c, simulator)
+        wider = {**CONTINUOUS, "acceleration_range": [-5, 5.001]}
+        return make_simulator(simcheck.on_simulator(c, "fast", "continuous"), wider)
+
+    monkeypatch.setattr(simcheck, "_continuous_simulator", skewed)
+    found, worst, equal = simcheck.compare_continuous_episode(cfg, 0, "full_throttle", tol=1e-9)
+    assert found is not None and found.first_step == 1 and found.cause.startswith("vehicle 0 position differs")
+    assert 0.0 < worst < 1e-2 and not equal
+
+
+def test_sim_check_prints_the_continuous_section() -> None:
+    from typer.testing import CliRunner
+
+    from safelane.cli import app
+
+    args = ["sim", "check", "--episodes", "1", "--workers", "1", "--set", "env.duration=2"]
+    args += ["--set", "env.vehicles_count=8"]
+    result = CliRunner().invoke(app, args)
+    assert result.exit_code == 0, result.output
+    text = " ".join(result.output.split())  # rich wraps long lines
+    assert "continuous actions (ContinuousAction ego, the simulators alone; uniform, full_throttle):" in text
+    assert "snapshots: 1.000 of 1 episodes equal at every step" in text
+    plain = CliRunner().invoke(app, [*args, "--no-continuous", "--json"])
+    assert plain.exit_code == 0 and '"continuous": null' in plain.stdout

@@ -212,11 +212,29 @@ def policy_actions(policy: str, seed: int, n: int = 40) -> list[int]:
     raise ValueError(f"policy: {policy!r} is not supported; allowed: {', '.join(POLICIES)}")
 
 
+CONTINUOUS_POLICIES = ("uniform", "throttle", "brake")
+
+
+def continuous_actions(policy: str, seed: int, n: int = 40) -> list[np.ndarray]:
+    """``ContinuousAction`` sequences (float32, as gymnasium's Box gives them): ``uniform`` (uniform in [-1, 1]²,
+    reproducible from ``seed``); ``throttle`` (full throttle, no steering: the heading stays 0, the lane is
+    kept); ``brake`` (a third of full braking, no steering, to a standstill and backwards)."""
+    if policy == "uniform":
+        rng = np.random.default_rng(30_000 + seed)
+        return [rng.uniform(-1.0, 1.0, 2).astype(np.float32) for _ in range(n)]
+    held = {"throttle": [1.0, 0.0], "brake": [-1 / 3, 0.0]}
+    if policy not in held:
+        raise ValueError(f"policy: {policy!r} is not supported; allowed: {', '.join(CONTINUOUS_POLICIES)}")
+    return [np.array(held[policy], dtype=np.float32) for _ in range(n)]
+
+
 __all__ = [
+    "CONTINUOUS_POLICIES",
     "POLICIES",
     "Alignment",
     "compare_episode",
     "compare_states",
+    "continuous_actions",
     "make_oracle",
     "oracle_state",
     "policy_actions",
@@ -226,10 +244,11 @@ __all__ = [
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """``python -m safelane.sim.fast.check [--preset fast|paper|all] [--seeds 0:10] [--policies ...]``
+    """``python -m safelane.sim.fast.check [--preset fast|paper|all] [--seeds 0:10] [--policies ...] [--continuous]``
 
     Compares whole episodes against stock highway-env and prints one line per episode and a summary;
-    exit status 1 if any episode diverged.
+    exit status 1 if any episode diverged. ``--continuous``: the ego under ``ContinuousAction`` instead,
+    driven by :data:`CONTINUOUS_POLICIES`, the snapshots compared too.
     """
     import argparse
     import json
@@ -241,7 +260,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python -m safelane.sim.fast.check")
     ap.add_argument("--preset", default="all", help="fast, paper or all")
     ap.add_argument("--seeds", default="0:5", help="start:stop")
-    ap.add_argument("--policies", default=",".join(POLICIES))
+    ap.add_argument("--policies", default=None, help="default: every policy of the action kind")
+    ap.add_argument("--continuous", action="store_true", help="a ContinuousAction ego (default: meta-actions)")
     ap.add_argument("--decisions", type=int, default=40)
     ap.add_argument("--tol", type=float, default=1e-6)
     ap.add_argument("--stop-at-end", action="store_true", help="stop at termination (default: play on)")
@@ -249,15 +269,20 @@ def main(argv: Sequence[str] | None = None) -> int:
     presets = ("fast", "paper") if args.preset == "all" else (args.preset,)
     a, b = (int(v) for v in args.seeds.split(":"))
     total = matched = bitwise = 0
+    policies = args.policies.split(",") if args.policies else (CONTINUOUS_POLICIES if args.continuous else POLICIES)
     for name in presets:
         data = yaml.safe_load((Path(str(resources.files("safelane"))) / "presets" / f"{name}.yaml").read_text())
         cfg, env_id = data["env"], data["env_id"]
-        oracle, fast = make_oracle(cfg, env_id), FastHighwayEnv(cfg, env_id)
+        if args.continuous:
+            cfg = {**cfg, "action": {"type": "ContinuousAction"}}
+        oracle = make_oracle(cfg, env_id, snapshots=args.continuous)
+        fast = FastHighwayEnv(cfg, env_id)
         for seed in range(a, b):
-            for policy in args.policies.split(","):
+            for policy in policies:
+                actions = (continuous_actions if args.continuous else policy_actions)(policy, seed, args.decisions)
                 r = compare_episode(
-                    cfg, env_id, seed, policy_actions(policy, seed, args.decisions), args.tol, oracle, fast,
-                    stop_at_end=args.stop_at_end,
+                    cfg, env_id, seed, actions, args.tol, oracle, fast, stop_at_end=args.stop_at_end,
+                    snapshots=args.continuous,
                 )  # fmt: skip
                 total += 1
                 matched += r.matched

@@ -7,7 +7,7 @@ hands to the ``Road``), making the same calls in the same order with the same ar
 * ego: ``Vehicle.create_random(road, speed=25, lane_id=initial_lane_id, spacing=ego_spacing)`` ->
   ``choice(["0"])``, ``choice(["1"])`` (one-element choices draw nothing, checked at import),
   ``choice(lanes_count)`` unless ``initial_lane_id`` is set, ``uniform(0.9, 1.1)``;
-  then ``MDPVehicle(road, position, heading, speed)``;
+  then ``MDPVehicle(road, position, heading, speed)`` (``Vehicle`` under ``ContinuousAction``: no draws either);
 * each other vehicle: ``<other_vehicles_type>.create_random(road, spacing=1/vehicles_density)`` ->
   ``choice(lanes_count)``, ``uniform(0.7·30, 0.8·30)``, ``uniform(0.9, 1.1)``; then
   ``randomize_behavior()`` -> (LinearVehicle and subclasses: ``uniform(size=3)``, ``uniform(size=2)``

@@ -349,7 +349,8 @@ def test_sim_check_prints_the_continuous_section() -> None:
     result = CliRunner().invoke(app, args)
     assert result.exit_code == 0, result.output
     text = " ".join(result.output.split())  # rich wraps long lines
-    assert "continuous actions (ContinuousAction ego, the simulators alone; uniform, full_throttle):" in text
+    policies = "uniform, random_throttle, full_throttle"
+    assert f"continuous actions (ContinuousAction ego, the simulators alone; {policies}):" in text
     assert "snapshots: 1.000 of 1 episodes equal at every step" in text
     plain = CliRunner().invoke(app, [*args, "--no-continuous", "--json"])
     assert plain.exit_code == 0 and '"continuous": null' in plain.stdout

@@ -20,7 +20,8 @@ Two checks, both on the whole safelane environment (simulator, snapshot, observa
 * **Continuous actions** (:func:`compare_continuous_episode`, :func:`continuous_stat_episodes_of`): the same
   configuration's simulators alone (:func:`safelane.env.factory.make_simulator`: safelane's environment is
   for meta-actions) with highway-env's ``ContinuousAction`` ego (:data:`CONTINUOUS_ACTION`), driven by
-  :data:`CONTINUOUS_POLICIES` (uniform random float32 actions; full throttle keeping the lane): the same
+  :data:`CONTINUOUS_POLICIES` (uniform random float32 actions; keeping the lane at a random or full
+  throttle): the same
   trajectory comparison (plus whether every snapshot was equal, ``RoadSnapshot.__eq__``), the same two
   tests on independent samples and the same replay. Reported apart (``continuous``), Holm-adjusted apart.
 
@@ -60,7 +61,7 @@ TOLERANCE = 1e-6  # [m, m/s, rad] per vehicle and decision
 CONTINUOUS_ACTION: dict[str, Any] = {"type": "ContinuousAction"}
 """highway-env's action settings of the continuous check: its defaults (acceleration and steering, clipped,
 ``ContinuousAction``'s ranges, a kinematic ego)."""
-CONTINUOUS_POLICIES: tuple[str, ...] = ("uniform", "full_throttle")
+CONTINUOUS_POLICIES: tuple[str, ...] = ("uniform", "random_throttle", "full_throttle")
 """Policies of the continuous check (:func:`continuous_policy`), cycled over its trajectory episodes."""
 HIGHWAY_ENV_SEED_OFFSET = 10_000_000
 FAST_SEED_OFFSET = 20_000_000
@@ -234,11 +235,14 @@ def lane_keeping_action(
 
 def continuous_policy(name: str, seed: int) -> ContinuousPolicy:
     """A policy of the continuous check: ``uniform`` (each action uniform in [-1, 1]², float32 as gymnasium's
-    Box samples them, from a generator seeded with ``seed``) or ``full_throttle`` (:func:`lane_keeping_action`
-    at acceleration 1)."""
+    Box samples them, from a generator seeded with ``seed``: the ego soon spins off the road),
+    ``random_throttle`` (:func:`lane_keeping_action` at an acceleration uniform in [-1, 1] from that generator:
+    the ego stays in traffic) or ``full_throttle`` (:func:`lane_keeping_action` at acceleration 1)."""
+    rng = np.random.default_rng(seed)
     if name == "uniform":
-        rng = np.random.default_rng(seed)
         return lambda snap: rng.uniform(-1.0, 1.0, 2).astype(np.float32)
+    if name == "random_throttle":
+        return lambda snap: lane_keeping_action(snap, float(rng.uniform(-1.0, 1.0)))
     if name == "full_throttle":
         return lane_keeping_action
     raise ConfigError(f"policy: unknown continuous policy '{name}'; allowed: {', '.join(CONTINUOUS_POLICIES)}")

@@ -99,11 +99,11 @@ def _is_number(value: Any) -> bool:
 def _pair(action: dict[str, Any], key: str, default: tuple[Any, Any] | None) -> tuple[Any, Any] | None:
     """``action[key]`` as highway-env reads it (``value if value else default``), checked to be two numbers."""
     value = action.get(key)
-    if not value:  # highway-env's own test: None, [] and () mean the default
+    if isinstance(value, list | tuple) and len(value) == 2 and all(_is_number(v) for v in value):
+        return (value[0], value[1])  # the numbers themselves: their types enter lmap's arithmetic
+    if value is None or (isinstance(value, list | tuple) and not value):  # highway-env's `value if value else ...`
         return default
-    if not isinstance(value, list | tuple) or len(value) != 2 or not all(_is_number(v) for v in value):
-        raise ValueError(f"action.{key}: {value!r} is not supported; allowed: two finite numbers [low, high]")
-    return (value[0], value[1])
+    raise ValueError(f"action.{key}: {value!r} is not supported; allowed: two finite numbers [low, high]")
 
 
 def resolve_continuous(action: dict[str, Any]) -> ContinuousSpec:

@@ -110,6 +110,8 @@ class FastHighwayEnv(gym.Env):
     """A gymnasium-style env reproducing highway-env's straight highway (see the module docstring).
 
     ``state()`` gives every vehicle's arrays (row 0: the ego, then highway-env's ``road.vehicles`` order).
+    ``continuous``: the ego's resolved ``ContinuousAction`` (:class:`safelane.sim.fast.continuous.ContinuousSpec`;
+    None under meta-actions).
     ``storage``: the arrays to live in (default: its own; :class:`SceneStorage`).
     ``vehicles_behind``: how many vehicles (at most ``vehicles_count``) each reset moves from the front
     of the scene to behind the ego, as safelane's ``traffic.vehicles_behind`` on highway-env.
@@ -132,8 +134,7 @@ class FastHighwayEnv(gym.Env):
             raise ValueError(f"vehicles_behind: {vehicles_behind!r} is not supported; allowed: an integer >= 0")
         self.vehicles_behind = int(vehicles_behind)
         self.config = self.sim.config
-        self.continuous = self.sim.continuous
-        """The ego's ``ContinuousAction`` (None: meta-actions)."""
+        self.continuous = self.sim.continuous  # the ego's ContinuousAction (None: meta-actions)
         if self.continuous is None:
             self.action_space: spaces.Space = spaces.Discrete(5)
         else:  # ContinuousAction.space()

@@ -274,6 +274,33 @@ def test_a_float32_action_maps_in_float32_as_on_highway_env() -> None:
     assert single == _highway_env_controls(np.array([0.3, 0.1], dtype=np.float32), CONTINUOUS)
 
 
+def test_highway_env_s_ego_state_stays_float64_under_float32_actions() -> None:
+    """The experiment behind the kernels' float64 state: ``lmap`` gives float32 controls, but ``clip_actions``
+    stores ``float()`` of them, so highway-env's ego keeps a Python-float speed and float64 heading and position."""
+    env = gym.make(FAST, config={"action": CONTINUOUS, "vehicles_count": 3}).unwrapped
+    env.reset(seed=0)
+    ego = env.vehicle
+    action = np.array([0.3, 0.1], dtype=np.float32)
+    assert type(env.action_type.get_action(action)["acceleration"]) is np.float32
+    for _ in range(2):
+        env.step(action)
+        assert type(ego.action["acceleration"]) is float and type(ego.action["steering"]) is float
+        assert type(ego.speed) is float and type(ego.heading) is np.float64 and ego.position.dtype == np.float64
+
+
+def test_get_state_and_set_state_replay_a_continuous_decision() -> None:
+    """A planner's try-and-restore: the held action (with clip_actions' changes) is part of the state."""
+    env = FastHighwayEnv({"action": CONTINUOUS, "vehicles_count": 10})
+    env.reset(seed=2)
+    for a in _uniform(2, 2):
+        env.step(a)
+    saved = env.get_state()
+    tries = [[env.step(a)[-1]["snapshot"] for a in _uniform(7, 3)]]
+    env.set_state(saved)
+    tries.append([env.step(a)[-1]["snapshot"] for a in _uniform(7, 3)])
+    assert all(a == b for a, b in zip(*tries, strict=True))
+
+
 # --- refusals, in one line ------------------------------------------------------------------------------------
 
 

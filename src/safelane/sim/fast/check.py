@@ -7,8 +7,13 @@ timer (tolerance ``tol``, in m, m/s, rad, s), lane, target lane and crashed flag
 first divergent step (``None``: the whole episode matched) and why, plus the largest difference seen and
 whether everything matched bit for bit.
 
+A ``ContinuousAction`` ego takes array actions (handed to both simulators as they are); the ego then has
+no target speed (NaN) nor speed index (-1). ``snapshots=True`` also requires both simulators'
+``info["snapshot"]`` to be equal to the bit (:func:`snapshot_difference`).
+
 Command line (the future ``safelane sim check``): ``python -m safelane.sim.fast.check --preset all
---seeds 0:5`` plays :data:`POLICIES` on both presets and exits 1 if any episode diverged.
+--seeds 0:5`` plays :data:`POLICIES` on both presets and exits 1 if any episode diverged; ``--continuous``
+plays :data:`CONTINUOUS_POLICIES` with a ``ContinuousAction`` ego, snapshots compared.
 """
 
 from __future__ import annotations

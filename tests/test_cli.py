@@ -257,6 +257,14 @@ def test_sim_check_json_reports_trajectories_and_tests() -> None:
     assert {(t["policy"], t["metric"]) for t in out["tests"]} == {(p, m) for p in policies for m in metrics}
     assert all(0 < t["p_value"] <= t["p_value_holm"] <= 1 for t in out["tests"])
     assert out["replay_episodes"] == 5 * 2 and out["replay_identical_fraction"] == 1.0
+    continuous = out["continuous"]  # the same check with a ContinuousAction ego
+    assert continuous["action"] == {"type": "ContinuousAction"} and continuous["divergences"] == []
+    assert continuous["trajectory_match_fraction"] == continuous["snapshot_equal_fraction"] == 1.0
+    continuous_policies = ("uniform", "random_throttle", "full_throttle")
+    assert {(t["policy"], t["metric"]) for t in continuous["tests"]} == {
+        (p, m) for p in continuous_policies for m in metrics
+    }
+    assert continuous["replay_episodes"] == 3 * 2 and continuous["replay_identical_fraction"] == 1.0
 
 
 def test_sim_check_records_units_and_resumes_after_a_kill(tmp_path: Path) -> None:
@@ -268,7 +276,8 @@ def test_sim_check_records_units_and_resumes_after_a_kill(tmp_path: Path) -> Non
     first = runner.invoke(app, [*args, "--record", str(record), "--workers", "2"])
     assert first.exit_code == 0, first.output
     lines = record.read_text().splitlines()
-    assert len(lines) == 1 + 2 + 2 * 5 + 5  # header, 2 trajectories, 5 policies x 2 simulators, 5 replays
+    # header, 2 trajectories, 5 policies x 2 simulators, 5 replays; the same for the 3 continuous policies
+    assert len(lines) == 1 + 2 + 2 * 5 + 5 + 2 + 2 * 3 + 3
     # A kill in the middle of writing the last line: the cut line is dropped and its unit played again.
     record.write_text("\n".join(lines[:-1]) + "\n" + lines[-1][:10])
     again = runner.invoke(app, [*args, "--record", str(record)])

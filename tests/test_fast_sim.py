@@ -183,7 +183,7 @@ def test_snapshot_records_the_impact() -> None:
     [
         ({"other_vehicles_type": "highway_env.vehicle.kinematics.Vehicle"}, "other_vehicles_type"),
         ({"controlled_vehicles": 2}, "controlled_vehicles"),
-        ({"action": {"type": "ContinuousAction"}}, "action.type"),
+        ({"action": {"type": "DiscreteAction"}}, "action.type"),
         ({"some_unknown_key": 1}, "some_unknown_key"),
         ({"manual_control": True}, "manual_control"),
     ],

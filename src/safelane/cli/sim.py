@@ -49,6 +49,14 @@ def sim_check(
             "file resumes (a long check shows its partial results there).",
         ),
     ] = None,
+    continuous: Annotated[
+        bool,
+        typer.Option(
+            "--continuous/--no-continuous",
+            help="Also check an ego under highway-env's ContinuousAction (the simulators alone, as many "
+            "episodes): reported under 'continuous'.",
+        ),
+    ] = True,
     as_json: JsonOpt = False,
 ) -> None:
     """Compare the fast simulator with highway-env on a configuration: trajectories and statistics."""
@@ -71,13 +79,26 @@ def sim_check(
             workers=workers or os.cpu_count() or 1,
             record=record,
             progress=tick,
+            continuous=continuous,
         )
     if as_json:
         print_json(result)
         return
+    tolerance = result["tolerance"]
+    _print_check(result, episodes, stat_episodes, tolerance)
+    section = result["continuous"]
+    if section is not None:
+        policies = ", ".join(section["policies"])
+        stdout.print(f"continuous actions ({section['action']['type']} ego, the simulators alone; {policies}):")
+        _print_check(section, episodes, stat_episodes, tolerance)
+        stdout.print(f"snapshots: {section['snapshot_equal_fraction']:.3f} of {episodes} episodes equal at every step")
+
+
+def _print_check(result: dict, episodes: int, stat_episodes: int, tolerance: float) -> None:
+    """One check's lines: trajectory agreement, its divergences, the tests' table and the replay."""
     stdout.print(
         f"trajectories: {result['trajectory_match_fraction']:.3f} of {episodes} episodes matched within "
-        f"{result['tolerance']:g} (m, m/s, rad); {result['bit_identical_fraction']:.3f} bit-identical"
+        f"{tolerance:g} (m, m/s, rad); {result['bit_identical_fraction']:.3f} bit-identical"
     )
     for d in result["divergences"]:
         stdout.print(f"  seed {d['seed']} ({d['policy']}): step {d['first_step']}: {d['cause']}")

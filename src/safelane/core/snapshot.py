@@ -39,6 +39,17 @@ DRIVER_FIELDS: tuple[str, ...] = (
 """The per-body driver-model arrays of a snapshot, in the order the safety model's ``RoadState`` uses."""
 
 
+def _same(a: object, b: object) -> bool:
+    """Exact equality of two snapshot field values, NaN equal to NaN (in arrays and as a number)."""
+    if isinstance(a, np.ndarray) or isinstance(b, np.ndarray):
+        if a is None or b is None:
+            return False
+        return bool(np.array_equal(a, b, equal_nan=np.asarray(a).dtype.kind == "f"))
+    if isinstance(a, float) and isinstance(b, float) and math.isnan(a) and math.isnan(b):
+        return True
+    return bool(a == b)
+
+
 @dataclass(frozen=True, eq=False)
 class RoadSnapshot:
     """The scene at one instant: the road, every body on it and what the ego's controller holds."""
@@ -68,13 +79,17 @@ class RoadSnapshot:
     ego: int
     """Index of the ego in the body arrays."""
     ego_target_speed: float
-    """[m/s] the ego's current speed set-point."""
+    """[m/s] the ego's current speed set-point (NaN for an ego without set-points: highway-env's
+    ContinuousAction)."""
     ego_speed_index: int
-    """Index of the set-point in ``ego_target_speeds``."""
+    """Index of the set-point in ``ego_target_speeds`` (-1 for an ego without set-points: highway-env's
+    ContinuousAction)."""
     ego_target_speeds: tuple[float, ...]
-    """[m/s] the ego's discrete set-points (MDPVehicle.target_speeds)."""
+    """[m/s] the ego's discrete set-points (MDPVehicle.target_speeds; () for an ego without set-points:
+    highway-env's ContinuousAction)."""
     ego_kp: float
-    """[1/s] the ego's speed P-gain (ControlledVehicle.KP_A)."""
+    """[1/s] the ego's speed P-gain (ControlledVehicle.KP_A; NaN for an ego without set-points: highway-env's
+    ContinuousAction, whose acceleration is the action itself)."""
     ego_lane_offset: float
     """[m] the ego's lateral offset from its lane's centre (positive towards higher lane indices)."""
 
@@ -87,11 +102,13 @@ class RoadSnapshot:
     """(N,) [rad] in world coordinates, as the simulator holds it (not wrapped)."""
     target_speed: np.ndarray
     """(N,) [m/s] each vehicle's speed set-point (its controller's ``target_speed``; NaN for a body without
-    one): the driver parameter of the free-road terms of IDM and the linear model."""
+    one, such as an ego without set-points: highway-env's ContinuousAction): the driver parameter of the
+    free-road terms of IDM and the linear model."""
     lane: np.ndarray
     """(N,) int: the lane the simulator assigns the body to."""
     target_lane: np.ndarray
-    """(N,) int: the lane its controller steers to (its own lane when not changing lanes)."""
+    """(N,) int: the lane its controller steers to (its own lane when not changing lanes, and for a body
+    without a lane controller, such as highway-env's ContinuousAction ego)."""
     length: np.ndarray
     """(N,) [m]"""
     width: np.ndarray
@@ -137,17 +154,18 @@ class RoadSnapshot:
     """(N, 2) [m] positions at the end of that frame, bodies still overlapping."""
 
     def __eq__(self, other: object) -> bool:
-        """Field-by-field equality, arrays compared exactly (NaN equal to NaN): same scene, same snapshot."""
+        """Field-by-field equality, arrays and numbers compared exactly (NaN equal to NaN): same scene, same
+        snapshot."""
         if not isinstance(other, RoadSnapshot):
             return NotImplemented
+        return self.first_difference(other) is None
+
+    def first_difference(self, other: RoadSnapshot) -> str | None:
+        """The name of the first field (in declaration order) whose values differ, None when all are equal."""
         for f in fields(self):
-            a, b = getattr(self, f.name), getattr(other, f.name)
-            if isinstance(a, np.ndarray) or isinstance(b, np.ndarray):
-                if a is None or b is None or not np.array_equal(a, b, equal_nan=a.dtype.kind == "f"):
-                    return False
-            elif a != b:
-                return False
-        return True
+            if not _same(getattr(self, f.name), getattr(other, f.name)):
+                return f.name
+        return None
 
     __hash__ = None  # type: ignore[assignment]  # mutable arrays inside: not hashable
 

@@ -74,6 +74,9 @@ def supports(cfg: SafelaneConfig) -> str | None:
         return f"simulator: {cfg.simulator} (the batch steps the fast simulator)"
     if cfg.state not in STATE_KINDS:
         return f"state: {cfg.state}"
+    action = cfg.env.get("action", {}).get("type", "DiscreteMetaAction")
+    if action != "DiscreteMetaAction":
+        return f"action.type: {action} (the batch runs meta-actions)"
     if cfg.traffic.adversary != "none":  # make_env refuses it on the fast simulator: so does the batch
         return f"traffic.adversary: {cfg.traffic.adversary} (the fast simulator places no adversary)"
     shield = cfg.shield

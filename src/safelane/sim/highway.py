@@ -173,10 +173,11 @@ def snapshot_of(base: Any, cache: dict[int, _DriverRecord] | None = None) -> Roa
         if ego_lane is not None and ego_lane.speed_limit is not None
         else math.inf,
         ego=next(k for k, o in enumerate(found) if o is ego),
-        ego_target_speed=float(getattr(ego, "target_speed", ego.speed)),
-        ego_speed_index=int(getattr(ego, "speed_index", 0)),
+        # a ContinuousAction ego (a plain Vehicle) has no set-points and no speed controller
+        ego_target_speed=float(getattr(ego, "target_speed", math.nan)),
+        ego_speed_index=int(getattr(ego, "speed_index", -1)),
         ego_target_speeds=tuple(float(s) for s in getattr(ego, "target_speeds", ())),
-        ego_kp=float(getattr(type(ego), "KP_A", ControlledVehicle.KP_A)),
+        ego_kp=float(type(ego).KP_A) if isinstance(ego, ControlledVehicle) else math.nan,
         ego_lane_offset=float(ego.lane.local_coordinates(ego.position)[1]),
         position=np.array([o.position for o in found], dtype=float).reshape(n, 2),
         speed=np.array([o.speed for o in found], dtype=float),

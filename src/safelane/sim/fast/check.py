@@ -7,8 +7,13 @@ timer (tolerance ``tol``, in m, m/s, rad, s), lane, target lane and crashed flag
 first divergent step (``None``: the whole episode matched) and why, plus the largest difference seen and
 whether everything matched bit for bit.
 
+A ``ContinuousAction`` ego takes array actions (handed to both simulators as they are); the ego then has
+no target speed (NaN) nor speed index (-1). ``snapshots=True`` also requires both simulators'
+``info["snapshot"]`` to be equal to the bit (:func:`snapshot_difference`).
+
 Command line (the future ``safelane sim check``): ``python -m safelane.sim.fast.check --preset all
---seeds 0:5`` plays :data:`POLICIES` on both presets and exits 1 if any episode diverged.
+--seeds 0:5`` plays :data:`POLICIES` on both presets and exits 1 if any episode diverged; ``--continuous``
+plays :data:`CONTINUOUS_POLICIES` with a ``ContinuousAction`` ego, snapshots compared.
 """
 
 from __future__ import annotations
@@ -19,6 +24,7 @@ from typing import Any
 
 import numpy as np
 
+from safelane.core.snapshot import RoadSnapshot
 from safelane.sim.fast import layout as L
 from safelane.sim.fast.env import FastHighwayEnv
 
@@ -41,10 +47,11 @@ class Alignment:
         return self.divergent_step is None
 
 
-def make_oracle(config: dict[str, Any], env_id: str, vehicles_behind: int = 0) -> Any:
+def make_oracle(config: dict[str, Any], env_id: str, vehicles_behind: int = 0, snapshots: bool = False) -> Any:
     """Stock highway-env, as the project makes it: ``gym.make(env_id, config=config)``; with
     ``vehicles_behind`` > 0 wrapped in :class:`safelane.sim.traffic.TrafficLayout` (highway-env's own
-    neighbour search kept), which moves that many vehicles behind the ego at reset."""
+    neighbour search kept), which moves that many vehicles behind the ego at reset; with ``snapshots`` in
+    :class:`safelane.sim.highway.HighwayEnvAdapter` (``info["snapshot"]``, read from highway-env's objects)."""
     import gymnasium as gym
     import highway_env  # noqa: F401  (registers the envs)
 
@@ -53,6 +60,10 @@ def make_oracle(config: dict[str, Any], env_id: str, vehicles_behind: int = 0) -
         from safelane.sim.traffic import TrafficLayout
 
         env = TrafficLayout(env, vehicles_behind, vectorized=False)
+    if snapshots:
+        from safelane.sim.highway import HighwayEnvAdapter
+
+        env = HighwayEnvAdapter(env)
     return env
 
 
@@ -66,11 +77,12 @@ def oracle_state(env: Any) -> dict[str, np.ndarray]:
         "y": np.array([float(v.position[1]) for v in vs]),
         "heading": np.array([float(v.heading) for v in vs]),
         "speed": np.array([float(v.speed) for v in vs]),
-        "target_speed": np.array([float(v.target_speed) for v in vs]),
+        # a ContinuousAction ego (a plain Vehicle) has no set-point, target lane or speed index
+        "target_speed": np.array([float(getattr(v, "target_speed", np.nan)) for v in vs]),
         "lane": np.array([int(v.lane_index[2]) for v in vs]),
-        "target_lane": np.array([int(v.target_lane_index[2]) for v in vs]),
+        "target_lane": np.array([int(getattr(v, "target_lane_index", v.lane_index)[2]) for v in vs]),
         "crashed": np.array([bool(v.crashed) for v in vs]),
-        "speed_index": np.array([int(ego.speed_index)]),
+        "speed_index": np.array([int(getattr(ego, "speed_index", -1))]),
         "is_ego_first": np.array([vs[0] is ego]),
         "delta": np.array([float(getattr(v, "DELTA", np.nan)) for v in vs[1:]]),
         "timer": np.array([float(getattr(v, "timer", np.nan)) for v in vs[1:]]),
@@ -82,7 +94,8 @@ _DISC = ("lane", "target_lane", "crashed", "speed_index")
 
 
 def compare_states(fast: dict[str, np.ndarray], ref: dict[str, np.ndarray], tol: float, full: bool = False):
-    """(cause or None, max abs error, bitwise) comparing two state dicts."""
+    """(cause or None, max abs error, bitwise) comparing two state dicts (NaN equals NaN: a field a body
+    does not have)."""
     if not ref["is_ego_first"][0]:
         return "highway-env's ego is not road.vehicles[0]", np.inf, False
     if fast["x"].shape != ref["x"].shape:
@@ -95,10 +108,12 @@ def compare_states(fast: dict[str, np.ndarray], ref: dict[str, np.ndarray], tol:
         a = fast[f][1:] if f in ("delta", "timer") else fast[f]
         b = ref[f]
         d = np.abs(a - b)
+        d[np.isnan(a) & np.isnan(b)] = 0.0
+        d[np.isnan(d)] = np.inf  # NaN on one side only
         if d.size:
             e = float(np.max(d))
             err = max(err, e)
-            if not np.array_equal(a, b):
+            if not np.array_equal(a, b, equal_nan=True):
                 bitwise = False
             if cause is None and e > tol:
                 i = int(np.argmax(d))
@@ -121,28 +136,38 @@ def compare_episode(
     fast: FastHighwayEnv | None = None,
     stop_at_end: bool = True,
     vehicles_behind: int = 0,
+    snapshots: bool = False,
 ) -> Alignment:
     """Run ``actions`` from ``reset(seed=seed)`` in both simulators and report the first divergence.
 
+    ``actions``: meta-actions (ints), or continuous actions (arrays or lists, handed to both simulators as
+    they are: a float32 action maps in float32 on both) when ``config`` has ``action.type: ContinuousAction``.
+    ``snapshots``: also require the two ``info["snapshot"]`` to be equal (``RoadSnapshot.__eq__``: every
+    field, to the bit) after the reset and every decision (the oracle is then made with ``snapshots``).
     ``oracle`` / ``fast``: envs to reuse (made from ``config`` / ``env_id`` / ``vehicles_behind`` when None).
     ``vehicles_behind``: safelane's ``traffic.vehicles_behind`` (see :func:`make_oracle`).
     ``stop_at_end``: stop at the oracle's termination / truncation (False: play every action, which
     also checks the crashed ego and the traffic after the episode would have ended).
     """
-    oracle = oracle if oracle is not None else make_oracle(config, env_id, vehicles_behind)
+    oracle = oracle if oracle is not None else make_oracle(config, env_id, vehicles_behind, snapshots)
     fast = fast if fast is not None else FastHighwayEnv(config, env_id, vehicles_behind=vehicles_behind)
-    oracle.reset(seed=seed)
-    fast.reset(seed=seed)
+    _, info_o = oracle.reset(seed=seed)
+    _, info_f = fast.reset(seed=seed)
     cause, err, bitwise = compare_states(fast.state(), oracle_state(oracle), tol, full=True)
+    if cause is None and snapshots:
+        cause = snapshot_difference(info_f["snapshot"], info_o["snapshot"])
     if cause is not None:
         return Alignment(seed, 0, 0, "reset: " + cause, err, bitwise)
     max_err = err
     steps = 0
     for t, a in enumerate(actions, start=1):
-        _, _, term_o, trunc_o, info_o = oracle.step(int(a))
-        _, _, term_f, trunc_f, info_f = fast.step(int(a))
+        action = int(a) if np.ndim(a) == 0 else a
+        _, _, term_o, trunc_o, info_o = oracle.step(action)
+        _, _, term_f, trunc_f, info_f = fast.step(action)
         steps = t
         cause, err, bw = compare_states(fast.state(), oracle_state(oracle), tol, full=True)
+        if cause is None and snapshots:
+            cause = snapshot_difference(info_f["snapshot"], info_o["snapshot"])
         max_err = max(max_err, err)
         bitwise = bitwise and bw
         if cause is None and (bool(term_o), bool(trunc_o)) != (term_f, trunc_f):
@@ -154,6 +179,14 @@ def compare_episode(
         if stop_at_end and (term_o or trunc_o):
             break
     return Alignment(seed, steps, None, None, max_err, bitwise)
+
+
+def snapshot_difference(fast: RoadSnapshot, ref: RoadSnapshot) -> str | None:
+    """What first differs between two snapshots (``RoadSnapshot.__eq__``'s test), None when they are equal."""
+    name = fast.first_difference(ref)
+    if name is None:
+        return None
+    return f"snapshot {name}: {getattr(fast, name)!r} vs {getattr(ref, name)!r}"
 
 
 def random_actions(seed: int, n: int = 40) -> list[int]:
@@ -184,23 +217,43 @@ def policy_actions(policy: str, seed: int, n: int = 40) -> list[int]:
     raise ValueError(f"policy: {policy!r} is not supported; allowed: {', '.join(POLICIES)}")
 
 
+CONTINUOUS_POLICIES = ("uniform", "throttle", "brake")
+
+
+def continuous_actions(policy: str, seed: int, n: int = 40) -> list[np.ndarray]:
+    """``ContinuousAction`` sequences (float32, as gymnasium's Box gives them): ``uniform`` (uniform in [-1, 1]²,
+    reproducible from ``seed``); ``throttle`` (full throttle, no steering: the heading stays 0, the lane is
+    kept); ``brake`` (a third of full braking, no steering, to a standstill and backwards)."""
+    if policy == "uniform":
+        rng = np.random.default_rng(30_000 + seed)
+        return [rng.uniform(-1.0, 1.0, 2).astype(np.float32) for _ in range(n)]
+    held = {"throttle": [1.0, 0.0], "brake": [-1 / 3, 0.0]}
+    if policy not in held:
+        raise ValueError(f"policy: {policy!r} is not supported; allowed: {', '.join(CONTINUOUS_POLICIES)}")
+    return [np.array(held[policy], dtype=np.float32) for _ in range(n)]
+
+
 __all__ = [
+    "CONTINUOUS_POLICIES",
     "POLICIES",
     "Alignment",
     "compare_episode",
     "compare_states",
+    "continuous_actions",
     "make_oracle",
     "oracle_state",
     "policy_actions",
     "random_actions",
+    "snapshot_difference",
 ]
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """``python -m safelane.sim.fast.check [--preset fast|paper|all] [--seeds 0:10] [--policies ...]``
+    """``python -m safelane.sim.fast.check [--preset fast|paper|all] [--seeds 0:10] [--policies ...] [--continuous]``
 
     Compares whole episodes against stock highway-env and prints one line per episode and a summary;
-    exit status 1 if any episode diverged.
+    exit status 1 if any episode diverged. ``--continuous``: the ego under ``ContinuousAction`` instead,
+    driven by :data:`CONTINUOUS_POLICIES`, the snapshots compared too.
     """
     import argparse
     import json
@@ -212,7 +265,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python -m safelane.sim.fast.check")
     ap.add_argument("--preset", default="all", help="fast, paper or all")
     ap.add_argument("--seeds", default="0:5", help="start:stop")
-    ap.add_argument("--policies", default=",".join(POLICIES))
+    ap.add_argument("--policies", default=None, help="default: every policy of the action kind")
+    ap.add_argument("--continuous", action="store_true", help="a ContinuousAction ego (default: meta-actions)")
     ap.add_argument("--decisions", type=int, default=40)
     ap.add_argument("--tol", type=float, default=1e-6)
     ap.add_argument("--stop-at-end", action="store_true", help="stop at termination (default: play on)")
@@ -220,15 +274,20 @@ def main(argv: Sequence[str] | None = None) -> int:
     presets = ("fast", "paper") if args.preset == "all" else (args.preset,)
     a, b = (int(v) for v in args.seeds.split(":"))
     total = matched = bitwise = 0
+    policies = args.policies.split(",") if args.policies else (CONTINUOUS_POLICIES if args.continuous else POLICIES)
     for name in presets:
         data = yaml.safe_load((Path(str(resources.files("safelane"))) / "presets" / f"{name}.yaml").read_text())
         cfg, env_id = data["env"], data["env_id"]
-        oracle, fast = make_oracle(cfg, env_id), FastHighwayEnv(cfg, env_id)
+        if args.continuous:
+            cfg = {**cfg, "action": {"type": "ContinuousAction"}}
+        oracle = make_oracle(cfg, env_id, snapshots=args.continuous)
+        fast = FastHighwayEnv(cfg, env_id)
         for seed in range(a, b):
-            for policy in args.policies.split(","):
+            for policy in policies:
+                actions = (continuous_actions if args.continuous else policy_actions)(policy, seed, args.decisions)
                 r = compare_episode(
-                    cfg, env_id, seed, policy_actions(policy, seed, args.decisions), args.tol, oracle, fast,
-                    stop_at_end=args.stop_at_end,
+                    cfg, env_id, seed, actions, args.tol, oracle, fast, stop_at_end=args.stop_at_end,
+                    snapshots=args.continuous,
                 )  # fmt: skip
                 total += 1
                 matched += r.matched

@@ -10,6 +10,11 @@ frames exactly as ``AbstractEnv._simulate`` (:func:`safelane.sim.fast.kernels.si
 advances by ``1 / policy_frequency`` a step, ``terminated`` = ego crashed (or off-road when
 ``offroad_terminal``), ``truncated`` = ``time >= duration``.
 
+Actions: ``DiscreteMetaAction`` (an ``MDPVehicle`` ego, ``Discrete(5)``) or ``ContinuousAction`` with
+``dynamical: False`` (a kinematic ``Vehicle`` ego, ``Box(-1, 1, (size,), float32)``;
+:mod:`safelane.sim.fast.continuous`). Its snapshot has no set-points: ``ego_target_speed``, ``ego_kp`` and
+the ego's ``target_speed`` NaN, ``ego_speed_index`` -1, ``ego_target_speeds`` ().
+
 Supported: any ``action.target_speeds`` (2 or more, last != first), ``lanes_count``, ``vehicles_count``,
 ``vehicles_density``, ``ego_spacing``, ``initial_lane_id``, ``duration``, ``policy_frequency``,
 ``simulation_frequency``, ``offroad_terminal``, ``other_vehicles_type`` in
@@ -23,6 +28,7 @@ does on highway-env (:func:`safelane.sim.fast.scene.spawn_behind`).
 
 from __future__ import annotations
 
+import math
 from typing import Any, ClassVar, NamedTuple
 
 import gymnasium as gym
@@ -32,6 +38,7 @@ from highway_env.vehicle.behavior import IDMVehicle
 from highway_env.vehicle.controller import ControlledVehicle
 
 from safelane.core.snapshot import RoadSnapshot
+from safelane.sim.fast import continuous as C
 from safelane.sim.fast import kernels as K
 from safelane.sim.fast import layout as L
 from safelane.sim.fast.lanes import on_lane
@@ -103,6 +110,8 @@ class FastHighwayEnv(gym.Env):
     """A gymnasium-style env reproducing highway-env's straight highway (see the module docstring).
 
     ``state()`` gives every vehicle's arrays (row 0: the ego, then highway-env's ``road.vehicles`` order).
+    ``continuous``: the ego's resolved ``ContinuousAction`` (:class:`safelane.sim.fast.continuous.ContinuousSpec`;
+    None under meta-actions).
     ``storage``: the arrays to live in (default: its own; :class:`SceneStorage`).
     ``vehicles_behind``: how many vehicles (at most ``vehicles_count``) each reset moves from the front
     of the scene to behind the ego, as safelane's ``traffic.vehicles_behind`` on highway-env.
@@ -125,9 +134,14 @@ class FastHighwayEnv(gym.Env):
             raise ValueError(f"vehicles_behind: {vehicles_behind!r} is not supported; allowed: an integer >= 0")
         self.vehicles_behind = int(vehicles_behind)
         self.config = self.sim.config
-        self.action_space = spaces.Discrete(5)
+        self.continuous = self.sim.continuous  # the ego's ContinuousAction (None: meta-actions)
+        if self.continuous is None:
+            self.action_space: spaces.Space = spaces.Discrete(5)
+        else:  # ContinuousAction.space()
+            self.action_space = spaces.Box(-1.0, 1.0, shape=(self.continuous.size,), dtype=np.float32)
         self.observation_space = spaces.Box(-np.inf, np.inf, shape=(2,), dtype=np.float32)
         self.P = params()
+        self._P_ego = None if self.continuous is None else C.ego_params(self.P, self.continuous)
         self._obs = np.zeros(2, dtype=np.float32)
         n = 1 + self.sim.vehicles_count
         if storage is None:
@@ -189,12 +203,13 @@ class FastHighwayEnv(gym.Env):
         self._origin = np.zeros(2)
         self._direction = np.array([1.0, 0.0])
         self._lateral = np.array([0.0, 1.0])
-        self._ts_tuple = tuple(float(s) for s in self.sim.target_speeds)
+        # a continuous ego (a plain Vehicle) has no set-points and no speed controller
+        self._ts_tuple = () if self.continuous else tuple(float(s) for s in self.sim.target_speeds)
         self._delta: np.ndarray | None = None
         self._lane_w = float(self.P[L.P_LANE_WIDTH])
         self._pol_f = float(self.sim.policy_frequency)
         self._sim_f = float(self.sim.simulation_frequency)
-        self._kp = float(ControlledVehicle.KP_A)
+        self._kp = math.nan if self.continuous else float(ControlledVehicle.KP_A)
         assert set(RoadSnapshot.__dataclass_fields__) == set(_SNAPSHOT_FIELDS), "RoadSnapshot changed"
 
     # --- gymnasium API -----------------------------------------------------------------------------
@@ -207,6 +222,9 @@ class FastHighwayEnv(gym.Env):
             if array is not built:  # the Python path (a non-PCG64 generator) builds new arrays
                 array[...] = built
         self.F, self.G, self.E = self._buffers
+        if self.continuous is not None:  # Vehicle(road, position, heading, speed): no speed index, no set-point
+            self.E[0] = -1
+            self.F[0, L.TSPD] = 0.0
         if self.vehicles_behind:  # TrafficLayout, right after highway-env's scene
             spawn_behind(self.np_random, self.sim, self.P, self.F, self.G, self.vehicles_behind)
         self.time = 0.0
@@ -225,16 +243,26 @@ class FastHighwayEnv(gym.Env):
         self._episode_fields = self._constant_fields()
         return self._obs.copy(), self._info()
 
-    def step(self, action: int) -> tuple[np.ndarray, float, bool, bool, dict]:
-        a = int(action)
-        if not 0 <= a < 5:
-            raise ValueError(f"action {action!r} not in Discrete(5)")
+    def step(self, action: Any) -> tuple[np.ndarray, float, bool, bool, dict]:
+        """One decision: a meta-action (0..4), or a continuous action (``continuous.size`` numbers in [-1, 1],
+        float32 as gymnasium's Box gives them, float64 or a list; mapped as highway-env maps that very object)."""
         sc = self.sim
-        self.time += 1 / sc.policy_frequency
-        K.simulate(
-            self.F, self.G, self.E, sc.target_speeds, self.P, a, sc.frames, sc.dt, sc.lanes_count,
-            self._before, self._after, self._rec,
-        )  # fmt: skip
+        if self.continuous is not None:
+            acceleration, steering = C.controls(action, self.continuous)
+            self.time += 1 / sc.policy_frequency
+            C.simulate(
+                self.F, self.G, self.P, self._P_ego, acceleration, steering, self._linear_model, sc.frames, sc.dt,
+                sc.lanes_count, self._before, self._after, self._rec,
+            )  # fmt: skip
+        else:
+            a = int(action)
+            if not 0 <= a < 5:
+                raise ValueError(f"action {action!r} not in Discrete(5)")
+            self.time += 1 / sc.policy_frequency
+            K.simulate(
+                self.F, self.G, self.E, sc.target_speeds, self.P, a, sc.frames, sc.dt, sc.lanes_count,
+                self._before, self._after, self._rec,
+            )  # fmt: skip
         self.steps += sc.frames
         terminated = bool(self.G[0, L.CRASHED]) or (sc.offroad_terminal and not self.on_road)
         truncated = bool(self.time >= sc.duration)
@@ -248,14 +276,18 @@ class FastHighwayEnv(gym.Env):
         return bool(on_lane(self.F[0, L.X], self.F[0, L.Y], lane, 0.0, self.P))
 
     def state(self) -> dict[str, np.ndarray]:
-        """Copies of every vehicle's state (row 0: the ego)."""
+        """Copies of every vehicle's state (row 0: the ego; a continuous ego's target speed is NaN and its
+        speed index -1: it has neither)."""
         F, G = self.F, self.G
+        target_speed = F[:, L.TSPD].copy()
+        if self.continuous is not None:
+            target_speed[0] = np.nan
         return {
             "x": F[:, L.X].copy(),
             "y": F[:, L.Y].copy(),
             "heading": F[:, L.H].copy(),
             "speed": F[:, L.V].copy(),
-            "target_speed": F[:, L.TSPD].copy(),
+            "target_speed": target_speed,
             "delta": F[:, L.DELTA].copy(),
             "timer": F[:, L.TIMER].copy(),
             "lane": G[:, L.LANE].copy(),
@@ -339,13 +371,15 @@ class FastHighwayEnv(gym.Env):
         fields = snap.__dict__
         fields.update(self._episode_fields)
         fields["time"] = float(self.time)
-        fields["ego_target_speed"] = float(F[0, L.TSPD])
+        if self.continuous is not None:  # a plain Vehicle: no set-point (the column holds the others' view of it)
+            kin[L.TSPD, 0] = math.nan
+        fields["ego_target_speed"] = float(kin[L.TSPD, 0])
         fields["ego_speed_index"] = int(self.E[0])
         fields["ego_lane_offset"] = float(kin[1, 0] - int(ints[0, 0]) * self._lane_w)
         fields["position"] = kin[: L.Y + 1].T
         fields["speed"] = kin[L.V]
         fields["heading"] = kin[L.H]
-        fields["target_speed"] = kin[L.TSPD]  # every body of this simulator is a vehicle with a set-point
+        fields["target_speed"] = kin[L.TSPD]
         fields["lane"] = ints[L.LANE]
         fields["target_lane"] = ints[L.TLANE]
         fields["crashed"] = ints[L.CRASHED].astype(bool)

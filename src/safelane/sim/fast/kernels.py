@@ -3,9 +3,9 @@
 Every function mirrors one highway-env method, operation by operation and in the same order, so that
 the IEEE-754 arithmetic (no fastmath) gives the same bits as highway-env's numpy scalars:
 
-* ``Road.act``   -> :func:`_act_ego` / :func:`_act_idm` for every vehicle, in ``road.vehicles`` order
+* ``Road.act``   -> :func:`_act_ego` / :func:`act_idm` for every vehicle, in ``road.vehicles`` order
   (vehicle ``k`` sees the target lanes the vehicles before it chose in the same pass);
-* ``Road.step``  -> :func:`_step_vehicle` for every vehicle, then the pairwise collision checks
+* ``Road.step``  -> :func:`step_vehicle` for every vehicle, then the pairwise collision checks
   (:func:`_handle_collisions`, ``i < j``, skipped when neither vehicle checks collisions).
 
 The road is ``RoadNetwork.straight_road_network``: lane ``i`` runs from ``(0, i·w)`` to ``(L, i·w)``
@@ -308,7 +308,7 @@ def _change_lane_policy(F, G, n, j, n_lanes, P, members, mx, cnt, free_j):
 
 
 @njit(cache=True, error_model="numpy", inline="always")
-def _act_idm(F, G, n, j, n_lanes, P, members, mx, cnt):
+def act_idm(F, G, n, j, n_lanes, P, members, mx, cnt):
     """IDMVehicle.act() (LinearVehicle's: the same with its acceleration and steering models)."""
     if G[j, CRASHED]:
         return
@@ -330,7 +330,7 @@ def _act_idm(F, G, n, j, n_lanes, P, members, mx, cnt):
 
 
 @njit(cache=True, error_model="numpy", inline="always")
-def _step_vehicle(F, G, j, dt, n_lanes, P):
+def step_vehicle(F, G, j, dt, n_lanes, P):
     """(IDMVehicle timer +) Vehicle.step(dt): clip_actions, bicycle model, impact, lane update."""
     if G[j, IDM]:
         F[j, TIMER] += dt
@@ -493,7 +493,7 @@ def _handle_collisions(F, G, i, j, dt, P, pa, pb, res):
 
 
 @njit(cache=True, error_model="numpy", inline="always")
-def _collisions(F, G, dt, P, pa, pb, res, reach, cand, order):
+def collisions(F, G, dt, P, pa, pb, res, reach, cand, order):
     """Road.step's pairwise checks: ``vehicles[i].handle_collisions(vehicles[j])`` for i < j, in that order.
 
     Pairs whose |dx| exceeds ``reach`` (the pre-check's radius + (MAX_SPEED + 1)·dt + 1 m) cannot pass
@@ -573,13 +573,13 @@ def simulate(F, G, E, ts, P, action, frames, dt, n_lanes, before, after, rec):
         build_lane_index(F, n_lanes, P, members, mx, cnt, order)
         for k in range(n):
             if G[k, IDM]:
-                _act_idm(F, G, n, k, n_lanes, P, members, mx, cnt)
+                act_idm(F, G, n, k, n_lanes, P, members, mx, cnt)
             else:
                 _act_ego(F, G, E, ts, action if frame == 0 else -1, n_lanes, P)
         # Road.step
         for k in range(n):
-            _step_vehicle(F, G, k, dt, n_lanes, P)
-        _collisions(F, G, dt, P, pa, pb, res, reach, cand, order)
+            step_vehicle(F, G, k, dt, n_lanes, P)
+        collisions(F, G, dt, P, pa, pb, res, reach, cand, order)
         if rec[0] == 0 and not was_crashed and G[0, CRASHED]:
             rec[0] = 1
             for k in range(n):

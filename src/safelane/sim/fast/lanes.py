@@ -96,7 +96,7 @@ def build_lane_index(F, n_lanes, P, members, mx, cnt, order=None):
     ``Road.neighbour_vehicles`` by binary search with the same result and tie rules as the scan.
     """
     n = F.shape[0]
-    if order is None:  # else: the stable x order of the current positions, from the last _collisions
+    if order is None:  # else: the stable x order of the current positions, from the last collisions()
         order = np.argsort(F[:, X], kind="mergesort")  # stable: equal x stay in index order
     for L in range(n_lanes):
         cnt[L] = 0

@@ -8,10 +8,13 @@ TIMER (MOBIL timer), IMPX, IMPY (pending impact), STEER, ACC (last action), COSH
 the heading, refreshed at the start of every ``Road.act`` phase, during which no heading changes).
 
 ``G[n, NI]`` int64 columns LANE, TLANE (target lane), CRASHED, HASIMP (impact pending), CHECK
-(check_collisions), ELC (enable_lane_change), IDM (1: IDM-family driver, 0: the ego MDPVehicle), LIN
-(1: LinearVehicle's models).
+(check_collisions), ELC (enable_lane_change), IDM (1: IDM-family driver, 0: the ego, an MDPVehicle or, under
+ContinuousAction, a Vehicle), LIN (1: LinearVehicle's models).
 
-``E`` int64 (1,): the ego's speed index.
+``E`` int64 (1,): the ego's speed index (-1 under ContinuousAction: a Vehicle has none).
+
+Under ContinuousAction the ego's STEER / ACC hold its action for the decision and its TSPD what the other
+drivers' models read for it (:mod:`safelane.sim.fast.continuous`).
 
 ``P[NP]`` float64: highway-env's class constants at the ``P_*`` indices (SI units: metres, m/s, m/s², seconds).
 """

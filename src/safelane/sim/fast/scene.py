@@ -7,7 +7,7 @@ hands to the ``Road``), making the same calls in the same order with the same ar
 * ego: ``Vehicle.create_random(road, speed=25, lane_id=initial_lane_id, spacing=ego_spacing)`` ->
   ``choice(["0"])``, ``choice(["1"])`` (one-element choices draw nothing, checked at import),
   ``choice(lanes_count)`` unless ``initial_lane_id`` is set, ``uniform(0.9, 1.1)``;
-  then ``MDPVehicle(road, position, heading, speed)``;
+  then ``MDPVehicle(road, position, heading, speed)`` (``Vehicle`` under ``ContinuousAction``: no draws either);
 * each other vehicle: ``<other_vehicles_type>.create_random(road, spacing=1/vehicles_density)`` ->
   ``choice(lanes_count)``, ``uniform(0.7·30, 0.8·30)``, ``uniform(0.9, 1.1)``; then
   ``randomize_behavior()`` -> (LinearVehicle and subclasses: ``uniform(size=3)``, ``uniform(size=2)``
@@ -39,6 +39,7 @@ from highway_env.vehicle.kinematics import Vehicle
 
 from safelane.sim.fast import kernels as K
 from safelane.sim.fast import layout as L
+from safelane.sim.fast.continuous import ContinuousSpec, resolve_continuous
 from safelane.sim.fast.lanes import closest_lane
 
 ENV_IDS = ("highway-v0", "highway-fast-v0")
@@ -49,6 +50,8 @@ OTHER_VEHICLE_TYPES = (
     "highway_env.vehicle.behavior.AggressiveVehicle",
     "highway_env.vehicle.behavior.DefensiveVehicle",
 )
+ACTION_TYPES = ("DiscreteMetaAction", "ContinuousAction")
+"""highway-env's ``action.type`` values this simulator reproduces (ContinuousAction: ``dynamical: False``)."""
 SPEED_LIMIT = 30  # RoadNetwork.straight_road_network(..., speed_limit=30) in HighwayEnv._create_road
 LANE_LENGTH = 10000.0  # straight_road_network's default length
 
@@ -123,6 +126,9 @@ class SimConfig:
     offroad_terminal: bool
     others_check_collisions: bool
     target_speeds: np.ndarray
+    """[m/s] the meta-action ego's set-points (``MDPVehicle.DEFAULT_TARGET_SPEEDS``, unused, for a continuous ego)."""
+    continuous: ContinuousSpec | None
+    """The ego's ``ContinuousAction`` (None: ``DiscreteMetaAction``, an ``MDPVehicle`` ego)."""
     config: dict[str, Any]
     other_class: type
     driver: np.ndarray
@@ -148,18 +154,15 @@ def resolve_config(config: dict[str, Any] | None, env_id: str) -> SimConfig:
     if cfg["manual_control"]:
         raise ValueError("manual_control: True is not supported; allowed: False")
     action = dict(cfg["action"])
-    if action.get("type") != "DiscreteMetaAction":
-        raise ValueError(f"action.type: {action.get('type')!r} is not supported; allowed: DiscreteMetaAction")
-    for flag in ("longitudinal", "lateral"):
-        if not action.get(flag, True):
-            raise ValueError(f"action.{flag}: False is not supported; allowed: True")
-    extra = sorted(set(action) - {"type", "longitudinal", "lateral", "target_speeds"})
-    if extra:
-        raise ValueError(f"action keys not supported by the fast simulator: {extra}")
-    ts = action.get("target_speeds")
-    target_speeds = np.array(ts if ts is not None else MDPVehicle.DEFAULT_TARGET_SPEEDS, dtype=np.float64)
-    if target_speeds.ndim != 1 or target_speeds.size < 2 or target_speeds[-1] == target_speeds[0]:
-        raise ValueError(f"action.target_speeds: {ts!r} is not supported; allowed: 2 or more speeds, last != first")
+    continuous = None
+    if action.get("type") == "ContinuousAction":
+        continuous = resolve_continuous(action)
+        # the scene's draws do not depend on the ego's class; its speed index is discarded (a Vehicle has none)
+        target_speeds = np.array(MDPVehicle.DEFAULT_TARGET_SPEEDS, dtype=np.float64)
+    elif action.get("type") == "DiscreteMetaAction":
+        target_speeds = _meta_action_speeds(action)
+    else:
+        raise ValueError(f"action.type: {action.get('type')!r} is not supported; allowed: {', '.join(ACTION_TYPES)}")
     sim_f = cfg["simulation_frequency"]
     pol_f = cfg["policy_frequency"]
     lanes = int(cfg["lanes_count"])
@@ -183,10 +186,26 @@ def resolve_config(config: dict[str, Any] | None, env_id: str) -> SimConfig:
         offroad_terminal=bool(cfg["offroad_terminal"]),
         others_check_collisions=env_id != "highway-fast-v0",
         target_speeds=target_speeds,
+        continuous=continuous,
         config=cfg,
         other_class=class_from_path(cfg["other_vehicles_type"]),
         driver=driver_constants(class_from_path(cfg["other_vehicles_type"])),
     )
+
+
+def _meta_action_speeds(action: dict[str, Any]) -> np.ndarray:
+    """A ``DiscreteMetaAction`` config's target speeds [m/s] (highway-env's default when unset), checked."""
+    for flag in ("longitudinal", "lateral"):
+        if not action.get(flag, True):
+            raise ValueError(f"action.{flag}: False is not supported; allowed: True")
+    extra = sorted(set(action) - {"type", "longitudinal", "lateral", "target_speeds"})
+    if extra:
+        raise ValueError(f"action keys not supported by the fast simulator: {extra}")
+    ts = action.get("target_speeds")
+    target_speeds = np.array(ts if ts is not None else MDPVehicle.DEFAULT_TARGET_SPEEDS, dtype=np.float64)
+    if target_speeds.ndim != 1 or target_speeds.size < 2 or target_speeds[-1] == target_speeds[0]:
+        raise ValueError(f"action.target_speeds: {ts!r} is not supported; allowed: 2 or more speeds, last != first")
+    return target_speeds
 
 
 def driver_constants(cls: type) -> np.ndarray:

@@ -346,7 +346,6 @@ def test_sim_check_names_a_continuous_divergence(monkeypatch: pytest.MonkeyPatch
     """The continuous check catches a fast side a hair off (an acceleration range 0.02 % wider: the ego a few
     µm ahead after one decision) and names it; with the same settings both agree to the bit."""
     from safelane.config import load_config
-    from safelane.env.factory import make_simulator
     from safelane.running import simcheck
 
     cfg = load_config("fast", sets=["env.duration=3", "env.vehicles_count=10"])
@@ -357,8 +356,8 @@ def test_sim_check_names_a_continuous_divergence(monkeypatch: pytest.MonkeyPatch
     def skewed(c: Any, simulator: str) -> Any:
         if simulator == "highway-env":
             return original(c, simulator)
-        wider = {**CONTINUOUS, "acceleration_range": [-5, 5.001]}
-        return make_simulator(simcheck.on_simulator(c, "fast", "continuous"), wider)
+        wider = c.model_copy(update={"env": {**c.env, "action": {**CONTINUOUS, "acceleration_range": [-5, 5.001]}}})
+        return original(wider, "fast")
 
     monkeypatch.setattr(simcheck, "_continuous_simulator", skewed)
     found, worst, equal = simcheck.compare_continuous_episode(cfg, 0, "full_throttle", tol=1e-9)

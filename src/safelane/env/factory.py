@@ -106,11 +106,10 @@ def resolve_env_config(config: SafelaneConfig | str | None = None, **overrides: 
     return build_config(data)
 
 
-def _highway_env(cfg: SafelaneConfig, render_mode: str | None, env_config: dict[str, Any] | None = None) -> gym.Env:
-    """highway-env itself, with safelane's traffic options and the snapshot adapter (``env_config``: highway-env's
-    settings to use instead of ``cfg.env``)."""
+def _highway_env(cfg: SafelaneConfig, render_mode: str | None) -> gym.Env:
+    """highway-env itself, with safelane's traffic options and the snapshot adapter."""
     try:
-        env = gym.make(cfg.env_id, config=dict(cfg.env if env_config is None else env_config), render_mode=render_mode)
+        env = gym.make(cfg.env_id, config=dict(cfg.env), render_mode=render_mode)
     except (TypeError, ValueError, KeyError, AttributeError, ImportError) as err:
         raise ConfigError(f"env: highway-env rejected the configuration ({err})") from None
     env = TrafficLayout(
@@ -122,9 +121,8 @@ def _highway_env(cfg: SafelaneConfig, render_mode: str | None, env_config: dict[
     return HighwayEnvAdapter(env)
 
 
-def _fast_simulator(cfg: SafelaneConfig, render_mode: str | None, env_config: dict[str, Any] | None = None) -> gym.Env:
-    """safelane's compiled simulator of the same highway (it produces the snapshot itself; ``env_config``:
-    highway-env's settings to use instead of ``cfg.env``)."""
+def _fast_simulator(cfg: SafelaneConfig, render_mode: str | None) -> gym.Env:
+    """safelane's compiled simulator of the same highway (it produces the snapshot itself)."""
     if render_mode is not None:
         raise NotSupported("simulator: fast does not render; use simulator=highway-env to render an episode")
     if cfg.traffic.adversary != "none":
@@ -136,25 +134,18 @@ def _fast_simulator(cfg: SafelaneConfig, render_mode: str | None, env_config: di
     from safelane.sim.fast.env import FastHighwayEnv
 
     try:
-        env = dict(cfg.env if env_config is None else env_config)
-        return FastHighwayEnv(env, cfg.env_id, vehicles_behind=cfg.traffic.vehicles_behind)
+        return FastHighwayEnv(dict(cfg.env), cfg.env_id, vehicles_behind=cfg.traffic.vehicles_behind)
     except ValueError as err:  # a highway-env option the fast simulator does not model
         raise NotSupported(str(err)) from None
 
 
-def make_simulator(config: SafelaneConfig, action: dict[str, Any] | None = None) -> gym.Env:
+def make_simulator(config: SafelaneConfig) -> gym.Env:
     """The simulator tier of :func:`make_env` alone, on ``config.simulator``: highway-env with safelane's traffic
     layout and the snapshot adapter, or the fast simulator; ``info["snapshot"]`` after every reset and step,
-    the simulator's own reward and observation (none of safelane's layers, no shield).
-
-    ``action``: highway-env's ``action`` settings to drive the ego with instead of ``config.env``'s, e.g.
-    ``{"type": "ContinuousAction"}`` (safelane's environment is for meta-actions: its configuration refuses
-    other action types, which only its simulators run).
-    """
-    env_config = None if action is None else {**config.env, "action": dict(action)}
+    the simulator's own reward and observation (none of safelane's layers, no shield)."""
     if config.simulator == "fast":
-        return _fast_simulator(config, None, env_config)
-    return _highway_env(config, None, env_config)
+        return _fast_simulator(config, None)
+    return _highway_env(config, None)
 
 
 def make_env(

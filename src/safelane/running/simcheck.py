@@ -18,8 +18,8 @@ Two checks, both on the whole safelane environment (simulator, snapshot, observa
   speed and length are equal. This separates a simulator difference from the luck of a seed draw.
 
 * **Continuous actions** (:func:`compare_continuous_episode`, :func:`continuous_stat_episodes_of`): the same
-  configuration's simulators alone (:func:`safelane.env.factory.make_simulator`: safelane's environment is
-  for meta-actions) with highway-env's ``ContinuousAction`` ego (:data:`CONTINUOUS_ACTION`), driven by
+  configuration's simulators alone (:func:`safelane.env.factory.make_simulator`) with highway-env's
+  ``ContinuousAction`` ego (:data:`CONTINUOUS_ACTION`), driven by
   :data:`CONTINUOUS_POLICIES` (uniform random float32 actions; keeping the lane at a random or full
   throttle): the same
   trajectory comparison (plus whether every snapshot was equal, ``RoadSnapshot.__eq__``), the same two
@@ -249,8 +249,15 @@ def continuous_policy(name: str, seed: int) -> ContinuousPolicy:
 
 
 def _continuous_simulator(cfg: SafelaneConfig, simulator: str) -> Any:
-    """``cfg``'s simulator tier on ``simulator`` with a :data:`CONTINUOUS_ACTION` ego (no shield, no reward)."""
-    return make_simulator(on_simulator(cfg, simulator, "continuous"), CONTINUOUS_ACTION)
+    """``cfg``'s simulator tier on ``simulator`` with a :data:`CONTINUOUS_ACTION` ego, or ``cfg``'s own
+    ContinuousAction settings where it has them (no shield, no reward; the episode ends off the road only where
+    ``cfg`` says so, as for meta-actions)."""
+    data = config_to_dict(cfg)
+    action = cfg.env.get("action", {})
+    action = dict(action) if action.get("type") == "ContinuousAction" else dict(CONTINUOUS_ACTION)
+    env = {**data["env"], "action": action, "offroad_terminal": cfg.env.get("offroad_terminal", False)}
+    data.update(simulator=simulator, actions="continuous", state="paper", env=env, shield={"mode": "none"})
+    return make_simulator(build_config(data))
 
 
 def compare_continuous_episode(

@@ -17,8 +17,9 @@ from safelane.config import ConfigError
 from safelane.core.snapshot import RoadSnapshot
 from safelane.core.spaces import FASTER, IDLE, LANE_LEFT, LANE_RIGHT, N_ACTIONS, SLOWER
 
-Policy = Callable[[np.ndarray, dict[str, Any]], int]
-"""``policy(obs, info) -> action index`` (0..4: LANE_LEFT, IDLE, LANE_RIGHT, FASTER, SLOWER)."""
+Policy = Callable[[np.ndarray, dict[str, Any]], Any]
+"""``policy(obs, info) -> action``: an index 0..4 (LANE_LEFT, IDLE, LANE_RIGHT, FASTER, SLOWER), or with continuous
+actions ``[acceleration, steering]`` in [-1, 1] (float32)."""
 
 FIXED_POLICIES: tuple[str, ...] = ("random", "idle", "faster", "slower", "probe")
 """Policies that need no training (``safelane evaluate --policy NAME``); ``probe`` is the FASTER-first
@@ -30,7 +31,7 @@ FREE_ROAD = 1e9  # [m] the room reported for a lane with no car ahead
 
 def fixed_policy(
     name: str, seed: int = 0, actions: str = "discrete", action_config: dict[str, Any] | None = None
-) -> Any:
+) -> Policy:
     """A policy that needs no training: ``random`` (uniform over the 5 actions, its own RNG seeded
     with ``seed``), ``idle``, ``faster`` or ``slower`` (always that action) — these ignore masks: run
     them with ``shield.override=true`` to have the shield replace unsafe actions — or ``probe`` (the
@@ -203,7 +204,7 @@ class LaneFollower:
         return np.array([acceleration, _normalised(steering, self.steering_range)], dtype=np.float32)
 
 
-def continuous_policy(name: str, seed: int, action_config: dict[str, Any]) -> Callable[..., np.ndarray]:
+def continuous_policy(name: str, seed: int, action_config: dict[str, Any]) -> Policy:
     """A continuous policy of :data:`CONTINUOUS_POLICIES` (``random``: its own RNG seeded with ``seed``)."""
     if name == "random":
         rng = np.random.default_rng(seed)

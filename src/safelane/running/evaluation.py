@@ -144,7 +144,7 @@ class EpisodeTally:
         self.interventions = self.fallbacks = self.unsafe_actions = 0
         self.breaks: list[int] = []
         self.actions = [0] * N_ACTIONS
-        self.chosen: list[int] = []
+        self.chosen: list[Any] = []  # meta-action indices, or [acceleration, steering] per decision
         self.time_to_collision: float | None = None
         self.collision = False
         self.steps = 0
@@ -170,13 +170,12 @@ class EpisodeTally:
         # Continuous actions (the reward reports ``off_road``): the chosen controls, no meta-action histogram.
         self.continuous = "off_road" in reset_info
         self.off_road = bool(reset_info["off_road"]) if self.continuous else None
-        self.controls: list[list[float]] = []
 
     def add(self, action: Action, reward: float, info: dict[str, Any]) -> None:
         """Count one decision: the ``action`` chosen, the ``reward`` and ``info`` its step returned."""
         self.steps += 1
         if self.continuous:
-            self.controls.append([float(a) for a in np.asarray(action).ravel()])
+            self.chosen.append([float(a) for a in np.asarray(action).ravel()])
             self.off_road = bool(info["off_road"])
         else:
             self.chosen.append(int(action))
@@ -275,7 +274,7 @@ class EpisodeTally:
             vehicles_passed=self.ahead_at_start - vehicles_ahead(snap),
             invariant_breaks=self.breaks,
             collision_context=self.context,
-            chosen_actions=self.controls if self.continuous else self.chosen,
+            chosen_actions=self.chosen,
             uncertified_start=self.uncertified_start,
             lapses=self.lapses,
             lapses_in_model=self.lapses_in_model,

@@ -137,10 +137,19 @@ def counterexamples_of(records: list[Any], config: SafelaneConfig, source: str =
     return found
 
 
+def check_replayable(config: SafelaneConfig) -> None:
+    """A one-line :class:`ConfigError` unless ``config``'s episodes can be saved as counterexample files: the replay
+    steps meta-actions, so continuous actions cannot."""
+    if config.actions == "continuous":
+        raise ConfigError("--save-counterexamples: files replay meta-actions; allowed with actions continuous: none")
+
+
 def save_counterexamples(
     records: list[Any], config: SafelaneConfig, out_dir: str | Path, source: str = "", prefix: str = ""
 ) -> list[Path]:
-    """Write :func:`counterexamples_of` as ``out_dir/PREFIXseedSEED-KIND-stepSTEP.json`` (atomically)."""
+    """Write :func:`counterexamples_of` as ``out_dir/PREFIXseedSEED-KIND-stepSTEP.json`` (atomically); a one-line
+    error for continuous actions (:func:`check_replayable`)."""
+    check_replayable(config)
     out = Path(out_dir)
     paths = []
     for cx in counterexamples_of(records, config, source):

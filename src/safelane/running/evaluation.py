@@ -588,6 +588,10 @@ def evaluate_fixed(
         raise ConfigError(f"--episodes: must be >= 1 (got {episodes})")
     if seed < 0:
         raise ConfigError(f"--seed: must be >= 0 (got {seed})")
+    if counterexamples is not None:
+        from safelane.running.counterexamples import check_replayable
+
+        check_replayable(config)  # before the episodes: no work lost to a refusal
     act = fixed_policy(policy, seed, config.actions, config.env.get("action"))
     start = time.perf_counter()
     records = run_config(config, act, episodes, seed, progress)

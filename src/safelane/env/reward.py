@@ -70,7 +70,8 @@ class ContinuousReward(PaperReward):
     the speed term loses ``lane_centring`` of itself, so the ego is paid to drive in a lane and a lane change costs
     a little, as a meta-action's lane change takes about a second between lanes. Leaving the road costs the
     collision penalty (and ends the episode under ``env.offroad_terminal``, on by default with continuous
-    actions). ``info`` gains ``off_road`` (bool) beside :class:`PaperReward`'s fields.
+    actions; without it, every decision that ends off the road costs it). ``info`` gains ``off_road`` (bool)
+    beside :class:`PaperReward`'s fields.
     """
 
     def __init__(

@@ -295,8 +295,9 @@ class SafelaneConfig(_Section):
         if self.actions == "discrete" and action_type == "ContinuousAction":
             raise ConfigError("env.action.type: ContinuousAction needs actions: continuous (--actions continuous)")
         if self.actions != "continuous":
-            if self.reward.lane_centring != RewardConfig.model_fields["lane_centring"].default:
-                raise ConfigError("reward.lane_centring: only for actions: continuous; allowed otherwise: 0.5")
+            default = RewardConfig.model_fields["lane_centring"].default
+            if self.reward.lane_centring != default:
+                raise ConfigError(f"reward.lane_centring: only for actions: continuous; allowed otherwise: {default}")
             return
         if self.shield.mode != "none":
             raise ConfigError(

@@ -109,6 +109,10 @@ MODE_ONLY_FIELDS: dict[str, tuple[str, ...]] = {
 :func:`drop_removed_reading`); every other field is read by each mode with a shield."""
 
 
+CONTINUOUS_SHIELD_FIELDS = ("intervention", "adaptation_penalty")
+"""The shield's fields that only the shield for continuous actions reads."""
+
+
 class ShieldConfig(_Section):
     """Which safety model masks the actions (``none`` = no shield)."""
 
@@ -143,6 +147,20 @@ class ShieldConfig(_Section):
         "safelane.safety.one_decision.compiled) or 'numpy' (the readable reference, about a millisecond: "
         "safelane.safety.one_decision.reference); in the committed mode its numba kernels or the numpy reference "
         "(safelane.safety.committed). Identical masks.",
+    )
+    intervention: Literal["projection", "replacement"] = Field(
+        "projection",
+        description="Continuous actions only: what the shield executes when the agent's action has no verified "
+        "plan: 'projection' (the verified action nearest it) or 'replacement' (the kept plan's next step, else the "
+        "fail-safe's braking action); safelane.safety.continuous.",
+    )
+    adaptation_penalty: float = Field(
+        0.0,
+        ge=0,
+        strict=False,
+        allow_inf_nan=False,
+        description="Continuous actions only: the reward loses this weight times the distance (normalised "
+        "actions) from the agent's action to the executed one.",
     )
     margin: float = Field(
         1.0,
@@ -298,10 +316,23 @@ class SafelaneConfig(_Section):
             default = RewardConfig.model_fields["lane_centring"].default
             if self.reward.lane_centring != default:
                 raise ConfigError(f"reward.lane_centring: only for actions: continuous; allowed otherwise: {default}")
+            for name in CONTINUOUS_SHIELD_FIELDS:
+                default = ShieldConfig.model_fields[name].default
+                if getattr(self.shield, name) != default:
+                    raise ConfigError(f"shield.{name}: only for actions: continuous; allowed otherwise: {default!r}")
             return
-        if self.shield.mode != "none":
+        if self.shield.mode not in ("none", "committed"):
             raise ConfigError(
-                f"shield.mode: {self.shield.mode!r} decides among meta-actions; allowed with actions continuous: none"
+                f"shield.mode: {self.shield.mode!r} decides among meta-actions; allowed with actions continuous: "
+                "'none', 'committed'"
+            )
+        if self.shield.override:
+            raise ConfigError("shield.override: the shield for continuous actions always intervenes (see "
+                              "shield.intervention); allowed with actions continuous: false")
+        if self.shield.engine != "numpy" and self.shield.mode == "committed":
+            raise ConfigError(
+                f"shield.engine: {self.shield.engine!r} is not built for continuous actions; allowed with actions "
+                "continuous: 'numpy'"
             )
         if self.state != "paper":
             raise ConfigError(

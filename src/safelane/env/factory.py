@@ -36,6 +36,7 @@ from safelane.core.snapshot import RoadSnapshot
 from safelane.env.observations import PaperObservation
 from safelane.env.redraw import RedrawUncertified
 from safelane.env.reward import ContinuousReward, PaperReward
+from safelane.safety.control_shield import ControlShield
 from safelane.safety.shield import SafetyShield
 from safelane.sim.highway import HighwayEnvAdapter
 from safelane.sim.traffic import TrafficLayout
@@ -171,7 +172,11 @@ def make_env(
     else:
         env = PaperReward(env, reward.b, reward.c, reward.v_min, reward.v_max)
     env = PaperObservation(env, cfg.state, continuous=cfg.actions == "continuous")
-    if cfg.shield.mode != "none":
+    if cfg.shield.mode != "none" and cfg.actions == "continuous":
+        shield = cfg.shield
+        env = ControlShield(env, shield.intervention, shield.margin, shield.resolved_rule(), shield.adaptation_penalty)
+        env = RedrawUncertified(env, shield.redraw_tries if shield.redraw_uncertified else 0)
+    elif cfg.shield.mode != "none":
         shield = cfg.shield
         env = SafetyShield(
             env,

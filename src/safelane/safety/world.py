@@ -89,6 +89,9 @@ class Dynamics:
     margin: float = 1.0  # [m] minimum bumper-to-bumper gap kept under the worst case
     body_width: float = 2.0  # [m] the other vehicles' width (highway-env's Vehicle.WIDTH), for body_extent
     rule: Rule = DEFAULTS  # the rule's options (safelane.safety.rule)
+    braking_decisions: int | None = None
+    """Decisions the ego's braking to a standstill may take: None, one per set-point (a meta-action ego steps one
+    down per decision); an ego under continuous controls, its top speed over its braking per decision."""
 
     def with_options(self, **changes: Any) -> Dynamics:
         """These dynamics with rule options (by name) and other fields changed: ``dyn.with_options(
@@ -104,7 +107,8 @@ class Dynamics:
         are 2.6 s at 5 per second: the ego, the P-controller lagging its falling set-point, is still at
         8 m/s there, and the tail credited beyond the horizon assumes a set-point of 0 it has not reached —
         the invariant breaks after which 11 of the grid's crashes happened at 5 per second.)"""
-        base = 1 + MAX_HOLD_DECISIONS + len(self.target_speeds) + TAIL_DECISIONS
+        braking = len(self.target_speeds) if self.braking_decisions is None else self.braking_decisions
+        base = 1 + MAX_HOLD_DECISIONS + braking + TAIL_DECISIONS
         if not self.rule.full_horizon:
             return base
         return max(base, math.ceil(base * BASE_DECISION_PERIOD / self.decision_period - 1e-9))

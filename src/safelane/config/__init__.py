@@ -329,11 +329,7 @@ class SafelaneConfig(_Section):
         if self.shield.override:
             raise ConfigError("shield.override: the shield for continuous actions always intervenes (see "
                               "shield.intervention); allowed with actions continuous: false")
-        if self.shield.engine != "numpy" and self.shield.mode == "committed":
-            raise ConfigError(
-                f"shield.engine: {self.shield.engine!r} is not built for continuous actions; allowed with actions "
-                "continuous: 'numpy'"
-            )
+
         if self.state != "paper":
             raise ConfigError(
                 f"state: {self.state!r} reads the ego's set-point, which continuous actions lack; allowed with "

@@ -174,7 +174,8 @@ def make_env(
     env = PaperObservation(env, cfg.state, continuous=cfg.actions == "continuous")
     if cfg.shield.mode != "none" and cfg.actions == "continuous":
         shield = cfg.shield
-        env = ControlShield(env, shield.intervention, shield.margin, shield.resolved_rule(), shield.adaptation_penalty)
+        env = ControlShield(env, shield.intervention, shield.margin, shield.resolved_rule(), shield.adaptation_penalty,
+                            shield.engine)
         env = RedrawUncertified(env, shield.redraw_tries if shield.redraw_uncertified else 0)
     elif cfg.shield.mode != "none":
         shield = cfg.shield

@@ -38,7 +38,7 @@ from safelane.safety.continuous.search import STEERING_GRID
 from safelane.safety.road import whole_road_state
 from safelane.safety.rule import DEFAULT_RULE_NAME, Rule
 from safelane.safety.shield import DEFAULT_MARGIN, dynamics_of
-from safelane.safety.world import Dynamics
+from safelane.safety.world import Dynamics, Engine
 from safelane.sim.fast.continuous import resolve_continuous
 from safelane.sim.highway import HighwayEnvAdapter
 
@@ -59,8 +59,9 @@ def control_limits(action_config: dict[str, Any]) -> ControlLimits:
 
 
 class ControlShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
-    """The shield for continuous actions (module docstring). ``margin`` [m] and ``rule`` as for
-    :class:`~safelane.safety.shield.SafetyShield` (the rule's options shape the other cars' sets)."""
+    """The shield for continuous actions (module docstring). ``margin`` [m], ``rule`` and ``engine`` as for
+    :class:`~safelane.safety.shield.SafetyShield` (the rule's options shape the other cars' sets; ``"compiled"``:
+    :mod:`safelane.safety.continuous.compiled`, the numpy reference's bits)."""
 
     def __init__(
         self,
@@ -69,6 +70,7 @@ class ControlShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
         margin: float = DEFAULT_MARGIN,
         rule: Rule | str = DEFAULT_RULE_NAME,
         adaptation_penalty: float = 0.0,
+        engine: Engine = "compiled",
     ) -> None:
         if intervention not in INTERVENTIONS:
             raise ValueError(f"shield.intervention: got {intervention!r}; allowed: 'projection', 'replacement'")
@@ -78,7 +80,8 @@ class ControlShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
                 and adaptation_penalty >= 0):  # fmt: skip
             raise ValueError(f"shield.adaptation_penalty: must be a finite number >= 0 (got {adaptation_penalty!r})")
         gym.utils.RecordConstructorArgs.__init__(
-            self, intervention=intervention, margin=margin, rule=rule, adaptation_penalty=adaptation_penalty
+            self, intervention=intervention, margin=margin, rule=rule, adaptation_penalty=adaptation_penalty,
+            engine=engine,
         )
         try:
             env.get_wrapper_attr("road_snapshot")
@@ -86,7 +89,7 @@ class ControlShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
             env = HighwayEnvAdapter(env)
         super().__init__(env)
         self.limits = control_limits(dict(env.unwrapped.config["action"]))
-        self.family = ControlFamily(self.limits, intervention)
+        self.family = ControlFamily(self.limits, intervention, engine)
         self.margin = float(margin)
         self.rule = rule
         self.adaptation_penalty = float(adaptation_penalty)
@@ -138,8 +141,8 @@ class ControlShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
         """(low, high) the verified accelerations at each of ``steerings`` in the current state."""
         assert self.snapshot is not None
         dyn = self._dynamics(self.snapshot)
-        state, _, sets, _ = self.family.state_of(self.snapshot, dyn)
-        search = self.family.search(state, dyn, sets)
+        state, _, sets, trace = self.family.state_of(self.snapshot, dyn)
+        search = self.family.search(state, dyn, sets, trace["cars"])
         return [search.interval(float(np.float32(s)))[:2] for s in steerings]
 
     def safe_acceleration_interval(self, steering: float) -> tuple[float, float]:

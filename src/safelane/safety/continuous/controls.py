@@ -18,10 +18,9 @@ import numpy as np
 
 from safelane.safety.world import Dynamics
 
-LANE_KEEPING_GAIN = 0.5
-"""The share of its lateral offset from the plan's lane centre the fail-safe steers to remove per decision."""
-MAX_LANE_KEEPING_HEADING = 0.3
-"""[rad] The steepest heading the fail-safe steers toward the lane centre with."""
+HEADING_WEIGHT = 1.0
+"""The fail-safe's steering weighs the ego's heading at the end of a decision, as the lateral drift it makes over
+one more decision's path, against its offset from the lane centre then (both in metres)."""
 STOPPED_SPEED = 1e-2
 """[m/s] A plan ends stopped when the ego's speed at the horizon's end is within this of 0 (the float32
 mapping of the last braking control leaves a residue of the order of 1e-6 m/s)."""
@@ -126,10 +125,9 @@ def decision_distance(speed: float, acceleration: float, frames: int, dt: float,
 def fail_safe_action(ego: EgoState, lane_centre: float, braking: bool, dyn: Dynamics, limits: ControlLimits,
                      length: float) -> np.ndarray:  # fmt: skip
     """(2,) float32 the fail-safe's action for the next decision: acceleration 0 (``braking`` False: hold the
-    speed) or toward a standstill at the end of the decision, no harder than the range allows; steering toward
-    the heading that removes :data:`LANE_KEEPING_GAIN` of the offset from ``lane_centre`` [m] over the decision's
-    path (at most :data:`MAX_LANE_KEEPING_HEADING`), which the bicycle model turns by ``sin β · path / (length/2)``.
-    """
+    speed) or toward a standstill at the end of the decision, no harder than the range allows; steering for
+    ``lane_centre`` [m]: the slip angle that best removes the ego's offset and heading by the decision's end
+    (:data:`HEADING_WEIGHT`), within the steering range."""
     period = dyn.decision_period
     low, high = limits.acceleration_range
     wanted = -ego.speed / period if braking else 0.0
@@ -139,12 +137,15 @@ def fail_safe_action(ego: EgoState, lane_centre: float, braking: bool, dyn: Dyna
     steer_low, steer_high = limits.steering_range
     steering = 0.0
     if path > 1e-3:
-        offset = ego.y - lane_centre
-        heading = max(-MAX_LANE_KEEPING_HEADING, min(MAX_LANE_KEEPING_HEADING,
-                                                     -math.atan2(LANE_KEEPING_GAIN * offset, path)))  # fmt: skip
-        sin_beta = (heading - ego.heading) * (length / 2) / path
+        # Small angles over the decision's path D: the heading turns by 2Dβ/L and the ego drifts Dψ + D²β/L + Dβ.
+        # The slip angle β minimises (offset at the end)² + w·(D · heading at the end)², a least-squares step.
+        drift = ego.y - lane_centre + path * ego.heading
+        drift_gain = path * (1.0 + path / length)
+        heading_drift = path * ego.heading
+        heading_gain = 2.0 * path * path / length
+        beta = -(drift * drift_gain + HEADING_WEIGHT * heading_drift * heading_gain) / (
+            drift_gain * drift_gain + HEADING_WEIGHT * heading_gain * heading_gain)
         beta_limit = min(abs(math.atan(0.5 * math.tan(s))) for s in (steer_low, steer_high))
-        beta = math.asin(max(-1.0, min(1.0, sin_beta)))
         beta = max(-beta_limit, min(beta_limit, beta))
         steering = math.atan(2.0 * math.tan(beta))
     return np.array([a_norm, normalised(steering, steer_low, steer_high)], dtype=np.float32)

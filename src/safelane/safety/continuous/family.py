@@ -25,6 +25,7 @@ from typing import Any, Literal
 import numpy as np
 
 from safelane.core.snapshot import RoadSnapshot
+from safelane.safety.committed.compiled import CarArrays, car_arrays, car_sets_compiled, carry_compiled, prepare
 from safelane.safety.committed.family import _entered_held_lanes
 from safelane.safety.committed.plans import follower_bound
 from safelane.safety.committed.sets import (
@@ -35,6 +36,7 @@ from safelane.safety.committed.sets import (
     occupied_lanes,
     rolling_back,
 )
+from safelane.safety.continuous.compiled import limit_arrays, tail_gap_compiled, verify_action_compiled
 from safelane.safety.continuous.controls import ControlLimits, fail_safe_action
 from safelane.safety.continuous.plans import (
     ControlPlan,
@@ -46,7 +48,7 @@ from safelane.safety.continuous.plans import (
 )
 from safelane.safety.continuous.search import ActionSearch, project
 from safelane.safety.road import whole_road_state
-from safelane.safety.world import Dynamics, RoadState
+from safelane.safety.world import Dynamics, Engine, RoadState, check_choices
 
 Intervention = Literal["projection", "replacement"]
 INTERVENTIONS: tuple[Intervention, ...] = ("projection", "replacement")
@@ -128,6 +130,7 @@ class ControlFamily:
 
     limits: ControlLimits = field(default_factory=ControlLimits)
     intervention: Intervention = "projection"
+    engine: Engine = "compiled"
     kept: ControlPlan | None = None
     kept_verified: bool = False
     carried: CarSets | None = None
@@ -138,6 +141,8 @@ class ControlFamily:
     def __post_init__(self) -> None:
         if self.intervention not in INTERVENTIONS:
             raise ValueError(f"shield.intervention: got {self.intervention!r}; allowed: 'projection', 'replacement'")
+        check_choices(engine=self.engine)
+        self._limit_arrays = limit_arrays(self.limits)
 
     def reset(self) -> None:
         """Forget the kept plan and the carried sets (a new episode)."""
@@ -147,27 +152,43 @@ class ControlFamily:
     def state_of(self, snap: RoadSnapshot, dyn: Dynamics) -> tuple[RoadState, np.ndarray, CarSets, dict[str, Any]]:
         """(state, vehicle, sets, trace) in the state of ``snap``: the sets drawn now, intersected with those carried
         from the last decision for the cars still inside them (``trace``: escaped, entered, unbraked followers,
-        rolled back, checked)."""
+        rolled back, checked; ``cars``: the compiled engine's per-car arrays, None for the reference)."""
         state, vehicle = whole_road_state(snap, True)
-        sets = car_sets(state, dyn, vehicle)
+        cars: CarArrays | None = None
+        if self.engine == "compiled":
+            prep = prepare(state, dyn)
+            sets, cars = car_sets_compiled(state, dyn, vehicle, prep), car_arrays(state, dyn, prep)
+        else:
+            sets = car_sets(state, dyn, vehicle)
         escaped = entered = unbraked = np.zeros(state.n, dtype=bool)
-        rolled, checked = np.zeros(state.n, dtype=bool), 0
+        rolled: np.ndarray | None = None
+        checked = 0
         if self.carried is not None:
             held = self.kept.held if self.kept is not None else ()
             entered = _entered_held_lanes(state, self.carried, sets, vehicle, self.carried_ahead, held)
-            unbraked = self._followers_escaped(state, dyn, vehicle, occupied_lanes(state, dyn))
-            older = self.carried.shifted(dyn.frames_per_decision, dyn.decision_period)
-            escaped = escaped_cars(state, dyn, older, vehicle) | unbraked
-            checked = int(np.isin(vehicle, older.vehicle).sum())
-            sets = sets.intersect(older, ~escaped)
-            rolled = rolling_back(state, escaped, older, vehicle)
-        else:
+            occupied = occupied_lanes(state, dyn)
+            unbraked = self._followers_escaped(state, dyn, vehicle, occupied)
+            if cars is not None:  # the same bits as the reference's four steps below
+                sets, escaped, rolled, checked = carry_compiled(state, dyn, sets, self.carried, vehicle, unbraked,
+                                                                occupied)  # fmt: skip
+            else:
+                older = self.carried.shifted(dyn.frames_per_decision, dyn.decision_period)
+                escaped = escaped_cars(state, dyn, older, vehicle) | unbraked
+                checked = int(np.isin(vehicle, older.vehicle).sum())
+                sets = sets.intersect(older, ~escaped)
+                rolled = rolling_back(state, escaped, older, vehicle)
+        if rolled is None:
             rolled = rolling_back(state, escaped)
-        trace = {"escaped": escaped, "entered": entered, "unbraked": unbraked, "rolled": rolled, "checked": checked}
+        trace = {"escaped": escaped, "entered": entered, "unbraked": unbraked, "rolled": rolled, "checked": checked,
+                 "cars": cars}  # fmt: skip
         return state, vehicle, sets, trace
 
-    def search(self, state: RoadState, dyn: Dynamics, sets: CarSets) -> ActionSearch:
-        """A memoised verifier of actions in ``state`` against ``sets``."""
+    def search(self, state: RoadState, dyn: Dynamics, sets: CarSets, cars: CarArrays | None = None) -> ActionSearch:
+        """A memoised verifier of actions in ``state`` against ``sets`` (``cars``: the compiled engine's)."""
+        if self.engine == "compiled":
+            cars = car_arrays(state, dyn) if cars is None else cars
+            arrays = self._limit_arrays
+            return ActionSearch(lambda action: verify_action_compiled(state, dyn, arrays, sets, cars, action))
         return ActionSearch(lambda action: verify_action(state, dyn, self.limits, sets, action))
 
     def judge(self, snap: RoadSnapshot, dyn: Dynamics, wanted: np.ndarray) -> ControlResult:
@@ -175,8 +196,8 @@ class ControlFamily:
         ``braking_decisions`` for these limits)."""
         state, vehicle, sets, trace = self.state_of(snap, dyn)
         wanted = np.clip(np.asarray(wanted, dtype=np.float32), -1, 1).astype(np.float32)
-        tail, lapse, failed = self._kept_tail(state, dyn, sets, vehicle, trace["escaped"])
-        search = self.search(state, dyn, sets)
+        tail, lapse, failed = self._kept_tail(state, dyn, sets, vehicle, trace["escaped"], trace["cars"])
+        search = self.search(state, dyn, sets, trace["cars"])
         lane_keeping = lane_keeping_action(state, dyn, self.limits)
         candidates = ((tail.actions[0], tail),) if tail is not None else ()
         executed: np.ndarray | None = None
@@ -208,14 +229,13 @@ class ControlFamily:
         self._judged = _Judged(result, state, dyn, sets, vehicle, tail)
         return result
 
-    def _kept_tail(self, state: RoadState, dyn: Dynamics, sets: CarSets, vehicle: np.ndarray, escaped: np.ndarray
-                   ) -> tuple[ControlPlan | None, bool, np.ndarray]:  # fmt: skip
+    def _kept_tail(self, state: RoadState, dyn: Dynamics, sets: CarSets, vehicle: np.ndarray, escaped: np.ndarray,
+                   cars: CarArrays | None) -> tuple[ControlPlan | None, bool, np.ndarray]:  # fmt: skip
         """(the kept plan's tail as a plan when it still verifies, lapse, the cars it fails on)."""
         failed = np.zeros(state.n, dtype=bool)
         if self.kept is None:
             return None, False, failed
         f, period = dyn.frames_per_decision, dyn.decision_period
-        trajectory = replay_trajectory(state, dyn, self.limits, self.kept.tail_actions())
         rows = {int(v): r for r, v in enumerate(vehicle)}
         followers = {
             rows[v]: (lane, np.concatenate([high[f:], np.full(f, np.inf)]))
@@ -224,7 +244,13 @@ class ControlFamily:
         }
         onset = self.kept.onset - period
         frames = self.kept.frames - f
-        gaps, lanes = trajectory_gap(state, dyn, sets, trajectory, onset, self.kept.held, frames, followers)
+        if cars is not None:
+            gaps, lanes, trajectory = tail_gap_compiled(state, dyn, self._limit_arrays, sets, cars,
+                                                        self.kept.tail_actions(), onset, self.kept.held, frames,
+                                                        followers)  # fmt: skip
+        else:
+            trajectory = replay_trajectory(state, dyn, self.limits, self.kept.tail_actions())
+            gaps, lanes = trajectory_gap(state, dyn, sets, trajectory, onset, self.kept.held, frames, followers)
         gap = float(gaps.min()) if gaps.size else math.inf
         lapse = self.kept_verified and not gap >= dyn.margin
         if lapse and gaps.size == state.n:
@@ -280,8 +306,8 @@ class ControlFamily:
     def safe_acceleration_interval(self, snap: RoadSnapshot, dyn: Dynamics, steering: float) -> tuple[float, float]:
         """(low, high) [normalised] the verified accelerations at ``steering`` [normalised] in the state of
         ``snap`` (nan, nan: none), by the search's interval structure (:mod:`~safelane.safety.continuous.search`)."""
-        state, _, sets, _ = self.state_of(snap, dyn)
-        low, high, _ = self.search(state, dyn, sets).interval(float(np.float32(steering)))
+        state, _, sets, trace = self.state_of(snap, dyn)
+        low, high, _ = self.search(state, dyn, sets, trace["cars"]).interval(float(np.float32(steering)))
         return low, high
 
 

@@ -84,8 +84,9 @@ def ego_state(state: RoadState) -> EgoState:
 
 
 def plan_lane(y: float, dyn: Dynamics) -> int:
-    """The lane whose centre is nearest the lateral position ``y`` [m] (highway-env's closest lane)."""
-    return int(min(max(round(y / dyn.lane_width), 0), dyn.lanes_count - 1))
+    """The lane whose centre is nearest the lateral position ``y`` [m] (a tie: the one to the left, higher
+    index), on the road."""
+    return int(min(max(math.floor(y / dyn.lane_width + 0.5), 0), dyn.lanes_count - 1))
 
 
 def plan_trajectory(state: RoadState, dyn: Dynamics, limits: ControlLimits, action: np.ndarray, hold: int
@@ -130,26 +131,25 @@ def replay_trajectory(state: RoadState, dyn: Dynamics, limits: ControlLimits, ac
 
 def occupied_lanes(trajectory: Trajectory, dyn: Dynamics, length: float) -> tuple[tuple[int, float], ...]:
     """The lanes the ego's body, turned by its heading, overlaps at some frame of ``trajectory``, each with the time
-    [s] of the last such frame (a lane overlapped at the horizon's end: inf)."""
-    y, heading = trajectory.states[:, 1], trajectory.states[:, 2]
-    reach = np.abs(0.5 * length * np.sin(heading)) + np.abs(0.5 * EGO_WIDTH * np.cos(heading))
-    centres = np.arange(dyn.lanes_count) * dyn.lane_width
-    half = 0.5 * dyn.lane_width
-    over = ((y + reach)[:, None] > centres[None, :] - half) & ((y - reach)[:, None] < centres[None, :] + half)
+    [s] of the last such frame (a lane overlapped at the horizon's end: inf). Frame by frame with libm's functions,
+    as the compiled engine computes it."""
     t = dyn.times
-    out = []
-    for lane in np.flatnonzero(over.any(axis=0)):
-        last = int(np.flatnonzero(over[:, lane])[-1])
-        out.append((int(lane), math.inf if last == t.size - 1 else float(t[last])))
-    return tuple(out)
+    half = 0.5 * dyn.lane_width
+    last = [-1] * dyn.lanes_count
+    for j, (_, y, heading, _) in enumerate(trajectory.states.tolist()):
+        reach = abs(0.5 * length * math.sin(heading)) + abs(0.5 * EGO_WIDTH * math.cos(heading))
+        for lane in range(dyn.lanes_count):
+            centre = lane * dyn.lane_width
+            if y + reach > centre - half and y - reach < centre + half:
+                last[lane] = j
+    return tuple((lane, math.inf if j == t.size - 1 else float(t[j])) for lane, j in enumerate(last) if j >= 0)
 
 
 def reach_excess(trajectory: Trajectory, length: float) -> float:
     """[m] How far the ego's body, turned by its heading, reaches along the road beyond half its length, at worst
     over ``trajectory``."""
-    heading = trajectory.states[:, 2]
-    reach = np.abs(0.5 * length * np.cos(heading)) + np.abs(0.5 * EGO_WIDTH * np.sin(heading))
-    return float(max(reach.max() - 0.5 * length, 0.0))
+    reach = max(abs(0.5 * length * math.cos(h)) + abs(0.5 * EGO_WIDTH * math.sin(h)) for h in trajectory.states[:, 2])
+    return max(reach - 0.5 * length, 0.0)
 
 
 def on_road(trajectory: Trajectory, dyn: Dynamics) -> bool:

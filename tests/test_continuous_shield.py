@@ -12,20 +12,19 @@ import pytest
 from highway_env.utils import lmap
 from hypothesis import given, settings
 from hypothesis import strategies as st
-from test_committed import DYN, scene
 
 from safelane.config import ConfigError, load_config
 from safelane.env.factory import make_env
 from safelane.running.policies import continuous_policy
-from safelane.safety.committed.compiled import car_arrays
 from safelane.safety.committed.sets import car_sets
-from safelane.safety.continuous.compiled import limit_arrays, verify_action_compiled
+from safelane.safety.continuous.compiled import limit_arrays, state_arrays, verify_action_compiled
 from safelane.safety.continuous.controls import ControlLimits, EgoState, lmap_float32, physical, roll_out
 from safelane.safety.continuous.family import ControlFamily, lane_keeping_action
 from safelane.safety.continuous.plans import plan_trajectory, verify_action
 from safelane.safety.continuous.search import ACCELERATION_TOLERANCE, STEERING_GRID, ActionSearch, project
 from safelane.safety.control_shield import ControlShield
 from safelane.safety.road import whole_road_state
+from test_committed import DYN, scene
 
 LIMITS = ControlLimits()
 CONTINUOUS_DYN = dataclasses.replace(DYN, lanes_count=4, target_speeds=(),
@@ -151,7 +150,7 @@ def test_the_compiled_engine_gives_the_references_bits() -> None:
     for state, dyn, sets, cars in _recorded_states("weave", 2, 6):
         for action in rng.uniform(-1, 1, size=(12, 2)).astype(np.float32):
             ref = verify_action(state, dyn, LIMITS, sets, action)
-            fast = verify_action_compiled(state, dyn, arrays, sets, cars, action)
+            fast = verify_action_compiled(state, dyn, arrays, sets, state_arrays(state, sets, cars), action)
             assert (ref is None) == (fast is None)
             checked += 1
             if ref is not None:
@@ -188,7 +187,9 @@ def test_the_projection_is_the_nearest_verified_action_on_a_dense_grid() -> None
     arrays = limit_arrays(LIMITS)
     compared = broken_rows = 0
     for state, dyn, sets, cars in _recorded_states("faster", 3, 8):
-        search = ActionSearch(lambda a, s=state, d=dyn, c=sets, k=cars: verify_action_compiled(s, d, arrays, c, k, a))
+        per_state = state_arrays(state, sets, cars)
+        search = ActionSearch(lambda a, s=state, d=dyn, c=sets, k=per_state: verify_action_compiled(s, d, arrays, c, k,
+                                                                                                    a))  # fmt: skip
         lane_keeping = float(lane_keeping_action(state, dyn, LIMITS)[1])
         found = project(search, wanted, lane_keeping)
         steerings = sorted({float(wanted[1]), float(np.float32(lane_keeping)), *map(float, STEERING_GRID)})
@@ -228,10 +229,10 @@ def test_the_adaptation_penalty_is_the_weight_times_the_projection_distance() ->
     rewards = []
     for weight in (0.0, 0.5):
         env = make_env("fast", **FAST_CONTINUOUS, **{"shield.adaptation_penalty": weight, "env.duration": 6})
-        obs, info = env.reset(seed=1)
+        _obs, info = env.reset(seed=1)
         out = []
         for _ in range(6):
-            obs, reward, terminated, truncated, info = env.step(np.array([1.0, 0.2], dtype=np.float32))
+            _, reward, terminated, truncated, info = env.step(np.array([1.0, 0.2], dtype=np.float32))
             out.append((reward, info["projection_distance"], info["adaptation_penalty"]))
             if terminated or truncated:
                 break

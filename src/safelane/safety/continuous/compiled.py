@@ -20,10 +20,11 @@ from numba import njit
 
 from safelane.core.kernel_cache import drop_stale_kernel_cache
 from safelane.safety.committed import compiled as committed_compiled
-from safelane.safety.committed.compiled import CarArrays, car_gaps_kernel, dynamics_arrays
+from safelane.safety.committed.compiled import CHUNK, CarArrays, car_gaps_kernel, dynamics_arrays
 from safelane.safety.committed.sets import CarSets
 from safelane.safety.continuous.controls import HEADING_WEIGHT, STOPPED_SPEED, ControlLimits
 from safelane.safety.continuous.plans import EGO_WIDTH, ControlPlan, Trajectory
+from safelane.safety.one_decision.compiled_parts import nmax, nmin
 from safelane.safety.world import MAX_HOLD_DECISIONS, Dynamics, RoadState
 
 drop_stale_kernel_cache(__file__, (committed_compiled.__file__,))
@@ -197,8 +198,11 @@ def _trajectory_gaps(states: np.ndarray, onset: float, held_a: int, held_b: int,
                      ahead: np.ndarray, own_lane: np.ndarray, speed: np.ndarray, accel_max: np.ndarray,
                      brake_max: np.ndarray, fv_min: np.ndarray, fv_max: np.ndarray, t: np.ndarray,
                      follower_reaction: float, lane_width: float, lanes_count: int, length: float,
+                     order: np.ndarray, least: bool, lo_min: np.ndarray, hi_max: np.ndarray,
                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # fmt: skip
-    """(gaps (cars,) or (1,) −inf, lane ids, until) of :func:`~safelane.safety.continuous.plans.trajectory_gap`."""
+    """(gaps (cars,) or (1,) −inf, lane ids, until) of :func:`~safelane.safety.continuous.plans.trajectory_gap`;
+    with ``least`` only their least is the reference's (``car_gaps_kernel`` skips the cars that cannot lower it,
+    visiting them in ``order``; ``lo_min``/``hi_max``: :func:`chunk_bounds`)."""
     ids, until, excess = lanes_kernel(states, lane_width, lanes_count, length, t)
     n = x.shape[0]
     ego_x = np.empty((1, states.shape[0]))
@@ -207,7 +211,7 @@ def _trajectory_gaps(states: np.ndarray, onset: float, held_a: int, held_b: int,
     onsets = np.full(1, onset)
     worst = car_gaps_kernel(x_lo, x_hi, entry, now, ego_x, onsets, ids, until, held_a, held_b, last_frame,
                             carried_lane, carried_high, x, half, ahead, own_lane, speed, accel_max, brake_max, fv_min,
-                            fv_max, t, follower_reaction, np.arange(n), False, np.empty((0, 0)), np.empty((0, 0)))
+                            fv_max, t, follower_reaction, order, least, lo_min, hi_max)
     gaps = np.empty(n)
     for i in range(n):
         gaps[i] = worst[i, 0] - excess
@@ -230,9 +234,11 @@ def verify_kernel(ego0: np.ndarray, action: np.ndarray, ego_lane: int, margin: f
                   narrow: np.ndarray, length: float, x_lo: np.ndarray, x_hi: np.ndarray, entry: np.ndarray,
                   now: np.ndarray, x: np.ndarray, half: np.ndarray, ahead: np.ndarray, own_lane: np.ndarray,
                   speed: np.ndarray, accel_max: np.ndarray, brake_max: np.ndarray, fv_min: np.ndarray,
-                  fv_max: np.ndarray, t: np.ndarray, follower_reaction: float):  # fmt: skip
+                  fv_max: np.ndarray, t: np.ndarray, follower_reaction: float, order: np.ndarray, lo_min: np.ndarray,
+                  hi_max: np.ndarray):  # fmt: skip
     """:func:`~safelane.safety.continuous.plans.verify_action`: (hold, gap, states, actions, lane ids, until,
-    plan lane, onset) of the first plan that keeps ``margin``; hold −1: none."""
+    plan lane, onset) of the first plan that keeps ``margin``; hold −1: none. The cars in ``order`` (nearest
+    first), with their :func:`chunk_bounds`, so that the far ones are skipped."""
     empty = np.empty((0, 2), dtype=np.float32)
     no_lane = np.full(x.shape[0], -1, dtype=np.int64)
     no_high = np.empty((0, t.shape[0]))
@@ -244,11 +250,41 @@ def verify_kernel(ego0: np.ndarray, action: np.ndarray, ego_lane: int, margin: f
         gaps, ids, until = _trajectory_gaps(states, onset, ego_lane, lane, t.shape[0] - 1, True, x_lo, x_hi, entry,
                                             now, no_lane, no_high, x, half, ahead, own_lane, speed, accel_max,
                                             brake_max, fv_min, fv_max, t, follower_reaction, lane_width,
-                                            lanes_count, length)  # fmt: skip
+                                            lanes_count, length, order, True, lo_min, hi_max)  # fmt: skip
         gap = np.inf if gaps.shape[0] == 0 else gaps.min()
         if gap >= margin:
             return hold, gap, states, actions, ids, until, lane, onset
     return -1, -np.inf, np.empty((0, 4)), empty, np.empty(0, dtype=np.int64), np.empty(0), -1, 0.0
+
+
+@njit(cache=True, error_model="numpy")
+def chunk_bounds(x: np.ndarray, ego_x: float, x_lo: np.ndarray, x_hi: np.ndarray
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # fmt: skip
+    """(order, lo_min, hi_max): the cars nearest the ego first, and each car's lowest and highest position in each
+    chunk of ``committed.compiled.CHUNK`` frames (``car_gaps_kernel``'s ``least``)."""
+    n = x.shape[0]
+    order = np.argsort(np.abs(x - ego_x), kind="mergesort")
+    chunks = -(-x_lo.shape[1] // CHUNK)
+    lo_min, hi_max = np.full((n, chunks), np.inf), np.full((n, chunks), -np.inf)
+    for i in range(n):
+        for j in range(x_lo.shape[1]):
+            c = j // CHUNK
+            lo_min[i, c], hi_max[i, c] = nmin(lo_min[i, c], x_lo[i, j]), nmax(hi_max[i, c], x_hi[i, j])
+    return order, lo_min, hi_max
+
+
+class StateArrays(NamedTuple):
+    """What the kernels read of one state's cars and sets, computed once per state."""
+
+    cars: CarArrays
+    order: np.ndarray
+    lo_min: np.ndarray
+    hi_max: np.ndarray
+
+
+def state_arrays(state: RoadState, sets: CarSets, cars: CarArrays) -> StateArrays:
+    """The :class:`StateArrays` of ``state`` against ``sets``."""
+    return StateArrays(cars, *chunk_bounds(cars.x, float(state.ego_x), sets.x_lo, sets.x_hi))
 
 
 def _ego(state: RoadState) -> np.ndarray:
@@ -256,16 +292,17 @@ def _ego(state: RoadState) -> np.ndarray:
     return np.array([float(state.ego_x), float(state.ego_y), float(state.ego_heading), float(state.ego_speed)])
 
 
-def verify_action_compiled(state: RoadState, dyn: Dynamics, limits: LimitArrays, sets: CarSets, cars: CarArrays,
-                           action: np.ndarray) -> ControlPlan | None:  # fmt: skip
+def verify_action_compiled(state: RoadState, dyn: Dynamics, limits: LimitArrays, sets: CarSets,
+                           arrays: StateArrays, action: np.ndarray) -> ControlPlan | None:  # fmt: skip
     """:func:`~safelane.safety.continuous.plans.verify_action`, compiled (the same bits); ``limits``:
-    :func:`limit_arrays`; ``cars``: :func:`~safelane.safety.committed.compiled.car_arrays` of ``state``."""
+    :func:`limit_arrays`; ``arrays``: :func:`state_arrays` of ``state`` and ``sets``."""
     t = dynamics_arrays(dyn).times
     hold, gap, states, actions, ids, until, lane, onset = verify_kernel(
         _ego(state), np.asarray(action, dtype=np.float32), int(state.ego_lane), float(dyn.margin),
         dyn.horizon_decisions, dyn.frames_per_decision, float(dyn.frame_dt), float(dyn.decision_period),
         float(dyn.lane_width), int(dyn.lanes_count), limits.wide, limits.narrow, float(state.ego_length),
-        sets.x_lo, sets.x_hi, sets.entry, np.asarray(sets.now, dtype=np.bool_), *cars, t, float(dyn.follower_reaction),
+        sets.x_lo, sets.x_hi, sets.entry, np.asarray(sets.now, dtype=np.bool_), *arrays.cars, t,
+        float(dyn.follower_reaction), arrays.order, arrays.lo_min, arrays.hi_max,
     )  # fmt: skip
     if hold < 0:
         return None
@@ -295,7 +332,8 @@ def tail_gap_compiled(state: RoadState, dyn: Dynamics, limits: LimitArrays, sets
     gaps, ids, until = _trajectory_gaps(
         states, float(onset), int(held[0]), int(held[1]), int(until_frame), False, sets.x_lo, sets.x_hi, sets.entry,
         np.asarray(sets.now, dtype=np.bool_), carried_lane, carried_high, *cars, t, float(dyn.follower_reaction),
-        float(dyn.lane_width), int(dyn.lanes_count), float(state.ego_length),
+        float(dyn.lane_width), int(dyn.lanes_count), float(state.ego_length), np.arange(n), False, np.empty((0, 0)),
+        np.empty((0, 0)),
     )  # fmt: skip
     lanes = tuple((int(i), float(u)) for i, u in zip(ids, until, strict=True))
     return gaps, lanes, Trajectory(states, out)

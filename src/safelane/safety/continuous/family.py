@@ -36,7 +36,12 @@ from safelane.safety.committed.sets import (
     occupied_lanes,
     rolling_back,
 )
-from safelane.safety.continuous.compiled import limit_arrays, tail_gap_compiled, verify_action_compiled
+from safelane.safety.continuous.compiled import (
+    limit_arrays,
+    state_arrays,
+    tail_gap_compiled,
+    verify_action_compiled,
+)
 from safelane.safety.continuous.controls import ControlLimits, fail_safe_action
 from safelane.safety.continuous.plans import (
     ControlPlan,
@@ -186,9 +191,9 @@ class ControlFamily:
     def search(self, state: RoadState, dyn: Dynamics, sets: CarSets, cars: CarArrays | None = None) -> ActionSearch:
         """A memoised verifier of actions in ``state`` against ``sets`` (``cars``: the compiled engine's)."""
         if self.engine == "compiled":
-            cars = car_arrays(state, dyn) if cars is None else cars
-            arrays = self._limit_arrays
-            return ActionSearch(lambda action: verify_action_compiled(state, dyn, arrays, sets, cars, action))
+            arrays = state_arrays(state, sets, car_arrays(state, dyn) if cars is None else cars)
+            limits = self._limit_arrays
+            return ActionSearch(lambda action: verify_action_compiled(state, dyn, limits, sets, arrays, action))
         return ActionSearch(lambda action: verify_action(state, dyn, self.limits, sets, action))
 
     def judge(self, snap: RoadSnapshot, dyn: Dynamics, wanted: np.ndarray) -> ControlResult:

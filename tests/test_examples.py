@@ -13,7 +13,9 @@ import pytest
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 EXAMPLES = REPO_ROOT / "examples"
-USER_EXAMPLES = ("shield_sb3_agent", "train_robust_agent", "campaign_and_replay", "check_fast_simulator")
+USER_EXAMPLES = (
+    "shield_sb3_agent", "train_robust_agent", "campaign_and_replay", "check_fast_simulator", "continuous_shield",
+)
 
 
 def run_example(name: str, *args: str, cwd: Path) -> str:
@@ -49,6 +51,15 @@ def test_shield_sb3_agent(algo: str, tmp_path: Path) -> None:
     assert 1 <= decisions <= 10 and collisions in (0, 1)
     episodes, collisions, decisions, interventions = (int(v) for v in rows["shielded"][:4])
     assert episodes == 1 and 0 <= interventions <= decisions <= 10
+
+
+def test_continuous_shield(tmp_path: Path) -> None:
+    out = run_example("continuous_shield", "--quick", cwd=tmp_path)
+    rows = {line.split()[0]: [int(v) for v in line.split()[1:5]] for line in out.splitlines()
+            if line.startswith(("bare", "shielded"))}  # fmt: skip
+    assert set(rows) == {"bare", "shielded"}
+    assert rows["shielded"][:3] == [1, 0, 0]  # no collision and on the road under the shield
+    assert 1 <= rows["shielded"][3] <= 5
 
 
 def test_train_robust_agent(tmp_path: Path) -> None:

@@ -17,6 +17,7 @@ from safelane.config import ConfigError, SafelaneConfig, load_config
 from safelane.env.factory import make_env
 from safelane.env.registration import register_envs
 from safelane.env.vector import make_vector_env, sb3_vec_env
+from safelane.safety.control_shield import ControlShield
 from safelane.safety.shield import CannotStopWarning, SafetyShield, stoppable_action_config
 
 register_envs()  # gym.make("safelane/Highway-v0") / ("safelane/HighwayFast-v0"): safelane.env.registration
@@ -24,6 +25,7 @@ register_envs()  # gym.make("safelane/Highway-v0") / ("safelane/HighwayFast-v0")
 __all__ = [
     "CannotStopWarning",
     "ConfigError",
+    "ControlShield",
     "SafelaneConfig",
     "SafetyShield",
     "__version__",

@@ -77,7 +77,8 @@ def evaluate(
     """Evaluate a policy: collisions, speed, return, time to collision, shield activity.
 
     A fixed policy cannot read the shield's mask, so with a shield it runs with
-    shield.override=true (unsafe actions replaced by the closest safe one) unless --set says otherwise.
+    shield.override=true (unsafe actions replaced by the closest safe one) unless --set says otherwise; with
+    --actions continuous the shield always executes a verified action (shield.intervention).
     A trained RUN_DIR runs under the shield it was trained with; --shield none evaluates a masked
     method's raw Q-network (what its values learned about unsafe actions, without the mask).
     """
@@ -107,7 +108,7 @@ def evaluate(
     check_positive("--episodes", episodes)
     check_seed(seed)
     override_set = any(s.split("=", 1)[0].strip() == "shield.override" for s in sets or [])
-    if cfg.shield.mode != "none" and not override_set:
+    if cfg.shield.mode != "none" and not override_set and cfg.actions == "discrete":  # continuous: always projects
         cfg = resolve_config(preset, sets, shield, overrides={"shield.override": True})
     with episode_progress(f"evaluate {policy}", episodes) as advance:
         summary = evaluate_fixed(cfg, policy, episodes, seed, progress=advance, counterexamples=counterexamples)

@@ -8,7 +8,8 @@ package for a caller that has not, so ``gym.make("safelane:safelane/HighwayFast-
   the same episodes as highway-env, checked by ``safelane sim check``; hundreds of times faster with the shield
   on, docs/results/speed.md; no rendering);
 * ``safelane/HighwayContinuous-v0`` and ``safelane/HighwayContinuousFast-v0`` — the same road and traffic with the
-  ego driven by acceleration and steering (``actions: continuous``), without a shield.
+  ego driven by acceleration and steering (``actions: continuous``), without a shield unless ``shield="committed"``
+  (the shield for continuous actions, :class:`safelane.safety.control_shield.ControlShield`).
 
 Both take the same keywords, all optional (:func:`make_highway`): ``preset`` (``"fast"``: highway-fast-v0's
 5 Hz physics; ``"paper"``: highway-v0's 15 Hz), ``shield`` (``"robust"``, ``"nominal"``, ``"committed"`` or ``"none"``),
@@ -150,8 +151,10 @@ def make_highway_continuous(
 ) -> gym.Env:
     """``safelane/HighwayContinuous-v0``: the paper's road and traffic on highway-env, the ego driven by
     acceleration and steering (``actions: continuous``: highway-env's ContinuousAction, 28-number state,
-    :class:`safelane.env.reward.ContinuousReward`). No shield decides among continuous actions: ``shield``
-    other than ``"none"`` is a one-line error."""
+    :class:`safelane.env.reward.ContinuousReward`). ``shield``: ``"none"`` or ``"committed"``, the shield for
+    continuous actions (:class:`safelane.safety.control_shield.ControlShield`, projection by default; its other
+    settings through ``config``, e.g. ``{"shield.intervention": "replacement"}``); the one-decision modes decide
+    among meta-actions only (a one-line error)."""
     cfg = env_config("highway-env", preset, shield, False, config, actions="continuous")
     return make_env(cfg, render_mode=render_mode)
 

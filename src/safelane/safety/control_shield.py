@@ -111,7 +111,7 @@ class ControlShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
         self.family.reset()
         obs, info = self.env.reset(**kwargs)
         self.snapshot = info["snapshot"]
-        certified = any(not math.isnan(low) for low, _ in self._intervals(self._lane_keeping_steering()))
+        certified = self.family.certified(self.snapshot, self._dynamics(self.snapshot))
         info.update(certified=certified, uncertified_start=not certified, projected=False, projection_distance=0.0,
                     shield_intervened=False)  # fmt: skip
         return obs, info

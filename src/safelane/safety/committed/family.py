@@ -199,7 +199,7 @@ class CommittedFamily:
         entered = np.zeros(state.n, dtype=bool)
         if self.carried is not None:
             kept_held = self.kept.held if self.kept is not None else ()
-            entered = _entered_held_lanes(state, self.carried, sets, vehicle, self.carried_ahead, kept_held)
+            entered = entered_held_lanes(state, self.carried, sets, vehicle, self.carried_ahead, kept_held)
             occupied = occupied_lanes(state, dyn)
             unbraked = self._followers_escaped(state, dyn, vehicle, occupied)
             if compiled:  # shifted, escaped_cars, intersect and rolling_back in one kernel, the same bits
@@ -319,7 +319,7 @@ class CommittedFamily:
         return out
 
 
-def _entered_held_lanes(
+def entered_held_lanes(
     state: RoadState, older: CarSets, sets: CarSets, vehicle: np.ndarray, older_ahead: np.ndarray | None = None,
     kept_held: tuple[int, ...] = (),
 ) -> np.ndarray:  # fmt: skip

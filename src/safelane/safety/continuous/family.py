@@ -26,7 +26,7 @@ import numpy as np
 
 from safelane.core.snapshot import RoadSnapshot
 from safelane.safety.committed.compiled import CarArrays, car_arrays, car_sets_compiled, carry_compiled, prepare
-from safelane.safety.committed.family import _entered_held_lanes
+from safelane.safety.committed.family import entered_held_lanes
 from safelane.safety.committed.plans import follower_bound
 from safelane.safety.committed.sets import (
     ESCAPE_TOLERANCE,
@@ -91,8 +91,8 @@ class ControlResult:
 
     @property
     def lapse_in_model(self) -> bool:
-        """A lapse not traced to the model's exits (:attr:`CommittedResult.lapse_in_model
-        <safelane.safety.committed.family.CommittedResult.lapse_in_model>`)."""
+        """A lapse not traced to the model's exits, as
+        :attr:`safelane.safety.committed.family.CommittedResult.lapse_in_model` defines it."""
         traced = {*self.escaped, *self.entered}
         in_model = not self.lapse_cars or any(v not in traced for v in self.lapse_cars)
         return self.lapse and not self.ego_crashed and in_model
@@ -170,7 +170,7 @@ class ControlFamily:
         checked = 0
         if self.carried is not None:
             held = self.kept.held if self.kept is not None else ()
-            entered = _entered_held_lanes(state, self.carried, sets, vehicle, self.carried_ahead, held)
+            entered = entered_held_lanes(state, self.carried, sets, vehicle, self.carried_ahead, held)
             occupied = occupied_lanes(state, dyn)
             unbraked = self._followers_escaped(state, dyn, vehicle, occupied)
             if cars is not None:  # the same bits as the reference's four steps below
@@ -307,6 +307,16 @@ class ControlFamily:
             if follower is not None and occupied[i, follower[0]] and f < follower[1].size:
                 out[i] = state.x[i] > follower[1][f] + ESCAPE_TOLERANCE
         return out
+
+    def certified(self, snap: RoadSnapshot, dyn: Dynamics) -> bool:
+        """Some action has a verified plan in the state of ``snap`` (or a plan is kept): the search from the
+        fail-safe's action, which tries every steering it examines until one verifies."""
+        if self.kept is not None:
+            return True
+        state, _, sets, trace = self.state_of(snap, dyn)
+        lane_keeping = lane_keeping_action(state, dyn, self.limits)
+        return project(self.search(state, dyn, sets, trace["cars"]), lane_keeping, float(lane_keeping[1])).action \
+            is not None
 
     def safe_acceleration_interval(self, snap: RoadSnapshot, dyn: Dynamics, steering: float) -> tuple[float, float]:
         """(low, high) [normalised] the verified accelerations at ``steering`` [normalised] in the state of

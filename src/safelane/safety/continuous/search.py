@@ -37,8 +37,9 @@ Verifier = Callable[[np.ndarray], "ControlPlan | None"]
 
 @dataclass
 class ActionSearch:
-    """Memoised verification of actions in one state (``verify``: :func:`~safelane.safety.continuous.plans.
-    verify_action` bound to the state); ``evaluated`` counts the actions verified."""
+    """Memoised verification of actions in one state (``verify``:
+    :func:`~safelane.safety.continuous.plans.verify_action` bound to the state); ``evaluated`` counts the actions
+    verified."""
 
     verify: Verifier
     evaluated: int = 0

@@ -213,9 +213,9 @@ def test_evaluate_continuous_policy_from_the_cli() -> None:
     result = CliRunner().invoke(app, ["evaluate", "--actions", "continuous", "--policy", "probe"])
     assert result.exit_code == 2
     assert "--policy: unknown continuous policy 'probe'; allowed: random, faster, weave" in result.stderr
-    result = CliRunner().invoke(app, [*args, "--save-counterexamples", "runs/never-written"])
+    result = CliRunner().invoke(app, ["evaluate", "--actions", "diagonal", "--policy", "faster"])
     assert result.exit_code == 2
-    assert "--save-counterexamples: files replay meta-actions; allowed with actions continuous: none" in result.stderr
+    assert "--actions: got 'diagonal'; allowed: discrete, continuous" in result.stderr
 
 
 def test_sb3_sac_and_ppo_train_on_the_continuous_id() -> None:

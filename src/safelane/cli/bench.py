@@ -12,6 +12,7 @@ from safelane.cli.common import (
     EpisodesOpt,
     JsonOpt,
     SeedOpt,
+    check_actions,
     check_positive,
     check_seed,
     cli_errors,
@@ -54,6 +55,9 @@ BENCH_UNITS = {
     "train_steps_per_s": "decisions/s",
     "agent_ms_per_decision": "ms",
     "agent_overhead_fraction": "non-env share of training time",
+    "continuous_decisions_per_s": "decisions/s",
+    "discrete_decisions_per_s": "decisions/s",
+    "continuous_step_ratio": "continuous ÷ discrete decisions/s",
     "wall_time_s": "s",
 }
 TRAINING_FIGURES = ("train_steps_per_s", "agent_ms_per_decision", "agent_overhead_fraction")
@@ -85,14 +89,25 @@ def bench(
             metavar="FILE|none",
         ),
     ] = str(PUBLISHED_BENCH),
+    actions: Annotated[
+        str,
+        typer.Option(
+            "--actions",
+            help="discrete: the figures above, meta-actions; continuous: also the continuous step (acceleration and "
+            "steering) timed beside the discrete one on each simulator.",
+            metavar="KIND",
+        ),
+    ] = "discrete",
     as_json: JsonOpt = False,
 ) -> None:
-    """Measure decisions/s raw and shielded (interleaved episodes), mask, observation and training cost."""
+    """Measure decisions/s raw and shielded (interleaved episodes), mask, observation and training cost
+    (with --actions continuous: the continuous step beside the discrete one on each simulator)."""
     from safelane.agents.dqn import parse_methods
     from safelane.running.bench import BENCH_SHIELDS, run_bench, with_regressions
 
     check_positive("--episodes", episodes)
     check_seed(seed)
+    check_actions(actions)
     if shield not in BENCH_SHIELDS:
         raise ConfigError(f"--shield: bench measures a shield; allowed: {', '.join(BENCH_SHIELDS)}")
     train_methods = parse_methods(methods)
@@ -103,7 +118,9 @@ def bench(
         except (OSError, ValueError) as exc:
             raise ConfigError(f"--baseline: {baseline} is not a readable bench JSON ({exc}); or none") from None
     with episode_progress("bench", episodes) as advance:
-        result = run_bench(episodes, seed, shield=shield, progress=lambda i: advance(i, None), methods=train_methods)
+        result = run_bench(
+            episodes, seed, shield=shield, progress=lambda i: advance(i, None), methods=train_methods, actions=actions
+        )
     result = with_regressions(result, published, baseline if published is not None else None)
     for found in result["regressions"]:
         stderr.print(
@@ -119,4 +136,5 @@ def bench(
     for method in train_methods:
         suffix = "_fast" if method == train_methods[0] else f"_{method}_fast"
         units.update({f"{key}{suffix}": units[key] for key in TRAINING_FIGURES})
-    print_table(f"safelane bench: {result['preset']} preset, random policy, {shield} shield", result, units)
+    kind = ", continuous actions beside" if actions == "continuous" else ""
+    print_table(f"safelane bench: {result['preset']} preset, random policy, {shield} shield{kind}", result, units)

@@ -25,6 +25,8 @@ from safelane.config import ENV_PRESETS, ConfigError, SafelaneConfig, ShieldConf
 
 SHIELD_CHOICES: tuple[str, ...] = get_args(ShieldConfig.model_fields["mode"].annotation)
 """Values of ``--shield`` (``shield.mode``)."""
+ACTIONS_CHOICES: tuple[str, ...] = get_args(SafelaneConfig.model_fields["actions"].annotation)
+"""Values of ``--actions`` (``actions``)."""
 
 EXIT_USAGE = 2
 """Exit code of a bad input (same as the option parser's own usage errors)."""
@@ -142,10 +144,26 @@ def cli_errors(fn: F) -> F:
     return wrapper  # type: ignore[return-value]
 
 
+def _set_value(sets: list[str] | None, name: str) -> str | None:
+    """The value of the last ``NAME=`` among ``--set`` strings (None: none)."""
+    found = [value for key, value in map(parse_set, sets or []) if key == name]
+    return str(found[-1]) if found else None
+
+
 def _simulator_of(sets: list[str]) -> str | None:
     """The value of the last ``simulator=`` among ``--set`` strings (None: none)."""
-    found = [value for key, value in map(parse_set, sets) if key == "simulator"]
-    return str(found[-1]) if found else None
+    return _set_value(sets, "simulator")
+
+
+def actions_of(sets: list[str] | None) -> str:
+    """The action set ``--set`` strings ask for: the last ``actions=`` among them (``discrete`` without one)."""
+    return _set_value(sets, "actions") or "discrete"
+
+
+def check_actions(actions: str | None) -> None:
+    """A one-line ConfigError naming ``--actions`` and its values unless ``actions`` is None or one of them."""
+    if actions is not None and actions not in ACTIONS_CHOICES:
+        raise ConfigError(f"--actions: got {actions!r}; allowed: {', '.join(ACTIONS_CHOICES)}")
 
 
 def training_simulator(sets: list[str] | None, simulator: str | None, earlier_sets: list[str] | None) -> list[str]:
@@ -165,7 +183,8 @@ def training_simulator(sets: list[str] | None, simulator: str | None, earlier_se
 
 def with_simulator(sets: list[str] | None, simulator: str | None, actions: str | None = None) -> list[str]:
     """``sets`` with ``simulator=SIM`` and ``actions=KIND`` appended when ``--simulator`` / ``--actions`` were
-    given (validated by the config)."""
+    given (the simulator validated by the config, the action set here: :func:`check_actions`)."""
+    check_actions(actions)
     extra = [f"simulator={simulator}"] if simulator is not None else []
     extra += [f"actions={actions}"] if actions is not None else []
     return [*(sets or []), *extra]

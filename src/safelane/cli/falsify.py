@@ -13,6 +13,7 @@ from safelane.cli.common import (
     BackendOpt,
     JsonOpt,
     SetOpt,
+    check_actions,
     check_positive,
     check_seed,
     cli_errors,
@@ -51,11 +52,21 @@ def falsify(
             metavar="MODE",
         ),
     ] = None,
+    actions: Annotated[
+        str | None,
+        typer.Option(
+            "--actions",
+            help="The ego's actions (sets the spec's actions): discrete, the paper's 5 meta-actions, or continuous, "
+            "acceleration and steering (policies random, faster, weave; shield committed) (default: the spec's).",
+            metavar="KIND",
+        ),
+    ] = None,
     sets: SetOpt = None,
     as_json: JsonOpt = False,
 ) -> None:
     """Drive the shield over a grid of traffic conditions, or search them (a spec with a search section:
-    cross-entropy method toward the most invariant breaks): collisions, invariant breaks (classified), files."""
+    cross-entropy method toward the most invariant breaks): collisions, invariant breaks (classified), files.
+    With continuous actions: collisions against the shield's promise, lapses, projections, episodes off the road."""
     from safelane.running.falsify.grid import run_campaign
     from safelane.running.falsify.search import SearchSpec, load_falsify_spec, run_search
 
@@ -64,7 +75,9 @@ def falsify(
             check_positive(option, value)
     if seed is not None:
         check_seed(seed)
-    spec = load_falsify_spec(spec_file, {"episodes": episodes, "sample": sample, "seed": seed, "shield": shield})
+    check_actions(actions)
+    overrides = {"episodes": episodes, "sample": sample, "seed": seed, "shield": shield, "actions": actions}
+    spec = load_falsify_spec(spec_file, overrides)
     if sets:  # after the spec's own: a campaign's record keeps them, so a resume under others is refused
         spec = spec.model_copy(update={"sets": [*spec.sets, *sets]})
     if isinstance(spec, SearchSpec):

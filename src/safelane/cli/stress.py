@@ -10,13 +10,14 @@ from rich.table import Table
 
 from safelane.cli.common import (
     SHIELD_CHOICES,
+    ActionsOpt,
     CounterexamplesOpt,
     EpisodesOpt,
     JsonOpt,
     SetOpt,
-    ShieldOpt,
     SimulatorOpt,
     TrafficSeedOpt,
+    actions_of,
     check_positive,
     check_seed,
     cli_errors,
@@ -32,9 +33,23 @@ from safelane.config import ConfigError
 def stress(
     run_dir: Path | None = typer.Argument(None, help="A trained run, instead of --policy.", metavar="RUN_DIR"),
     policy: Annotated[
-        str | None, typer.Option("--policy", help="Fixed policy: random, idle, faster, slower, probe.")
+        str | None,
+        typer.Option(
+            "--policy",
+            help="Fixed policy: random, idle, faster, slower, probe; with --actions continuous: random, faster "
+            "(full throttle in its lane), weave.",
+        ),
     ] = None,
-    shield: ShieldOpt = None,
+    actions: ActionsOpt = None,
+    shield: Annotated[
+        str | None,
+        typer.Option(
+            "--shield",
+            help=f"Safety shield, sets shield.mode: {', '.join(SHIELD_CHOICES)} (default: robust; with --actions "
+            "continuous committed, the shield for continuous actions).",
+            metavar="MODE",
+        ),
+    ] = None,
     simulator: SimulatorOpt = None,
     episodes: EpisodesOpt = 20,
     conditions: Annotated[
@@ -46,12 +61,14 @@ def stress(
     seed: TrafficSeedOpt = 0,
     as_json: JsonOpt = False,
 ) -> None:
-    """Run the stress suite: collisions (classified), 95 % CI, speed and interventions per condition."""
+    """Run the stress suite: collisions (classified), 95 % CI, speed and interventions per condition (with continuous
+    actions: projections, episodes off the road)."""
     from safelane.running.conditions import load_conditions
-    from safelane.running.policies import FIXED_POLICIES, fixed_policy
+    from safelane.running.policies import CONTINUOUS_POLICIES, FIXED_POLICIES
     from safelane.running.stress import run_stress
 
-    sets = with_simulator(sets, simulator)
+    sets = with_simulator(sets, simulator, actions)
+    continuous = actions_of(sets) == "continuous"
     check_positive("--episodes", episodes)
     check_seed(seed)
     conds = load_conditions(conditions)
@@ -74,12 +91,15 @@ def stress(
         def factory() -> Any:
             return trained
     else:
-        if policy is None or policy not in FIXED_POLICIES:
-            raise ConfigError(f"--policy: give one of {', '.join(FIXED_POLICIES)} (or a RUN_DIR)")
-        mode, override = shield or "robust", True
+        allowed = CONTINUOUS_POLICIES if continuous else FIXED_POLICIES
+        if policy is None or policy not in allowed:
+            what = "one of the continuous policies" if continuous else "one of"
+            raise ConfigError(f"--policy: give {what} {', '.join(allowed)} (or a RUN_DIR)")
+        # The shield for continuous actions always intervenes: it has no override.
+        mode, override = shield or ("committed" if continuous else "robust"), not continuous
 
         def factory() -> Any:
-            return fixed_policy(policy, seed)
+            return policy  # a name: each condition builds it for its own action set
 
     rows: list[dict[str, Any]] = []
     with episode_progress("stress (conditions)", len(conds)) as advance:
@@ -99,11 +119,15 @@ def stress(
         print_json(result)
         return
     seeded = f", traffic seed {seed}" if seed else ""
+    kind = ", continuous actions" if continuous else ""
     table = Table(
-        title=f"stress: {run_dir or policy}, shield {result['shield']}, {episodes} episodes per condition{seeded}"
+        title=f"stress: {run_dir or policy}{kind}, shield {result['shield']}, {episodes} episodes per condition{seeded}"
     )
     committed = any("lapses" in r for r in result["conditions"])
-    columns = ["condition", "collisions", "rate [95% CI]", "speed m/s", "interventions", "invariant breaks", "kinds"]
+    # Continuous actions: the shield projects (no invariant breaks), an episode can end off the road.
+    events = "off road" if continuous else "invariant breaks"
+    columns = ["condition", "collisions", "rate [95% CI]", "speed m/s", "projected" if continuous else "interventions",
+               events, "kinds"]  # fmt: skip
     if committed:  # the committed mode's lapses (those in the model) and plan-forced share
         columns[6:6] = ["lapses (in model)", "plan-forced"]
     for col in columns:
@@ -121,7 +145,7 @@ def stress(
             f"{r['collision_rate']:.3f} [{lo:.3f}, {hi:.3f}]",
             f"{r['mean_speed']:.2f}",
             f"{r['shield_intervention_rate']:.3f}",
-            str(r["invariant_breaks"]),
+            f"{r.get('off_road_rate', 0.0):.3f}" if continuous else str(r["invariant_breaks"]),
             *([f"{r['lapses']} ({r['lapses_in_model']})", f"{100 * r['plan_forced_rate']:.2f} %"] if committed else []),
             kinds or "-",
         )

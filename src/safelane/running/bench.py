@@ -6,7 +6,9 @@ shielded env differs only by the mask computed at every reset and step, and
 ``shield_overhead_ratio`` (shielded ÷ raw decisions/s, 1.0 = free) isolates its cost. Only
 ``env.step`` calls are timed (resets are not decisions). On a busy machine the ratio can come out
 slightly above 1: that is noise, run more episodes. The agent's cost comes from a short real training
-run timed by its own clocks (:func:`measure_training`), so it too is a ratio within one run.
+run timed by its own clocks (:func:`measure_training`), so it too is a ratio within one run. With continuous
+actions (``actions="continuous"``) the continuous step is timed beside the discrete one on each simulator
+(:func:`continuous_step_figures`).
 """
 
 from __future__ import annotations
@@ -59,11 +61,16 @@ LOWER_IS_BETTER = ("shield_mask_us_mean_fast", "committed_mask_us_mean_fast")
 """… and costs [µs]. Ratios to stock highway-env are left out: they move with highway-env's own speed."""
 
 
-def _play(env: Any, seed: int, on_decision: Callable[[], None] | None = None) -> tuple[int, float]:
-    """One episode with the random policy of ``seed``: (decisions, seconds spent in ``env.step``).
+def _play(
+    env: Any, seed: int, on_decision: Callable[[], None] | None = None, policy_name: str = "random",
+    actions: str = "discrete",
+) -> tuple[int, float]:  # fmt: skip
+    """One episode with the fixed policy ``policy_name`` (of ``actions``, seeded with ``seed``): (decisions, seconds
+    spent in ``env.step``).
 
     ``on_decision`` runs before every decision, outside the timed ``env.step``."""
-    policy = fixed_policy("random", seed)
+    action_config = env.unwrapped.config["action"] if actions == "continuous" else None
+    policy = fixed_policy(policy_name, seed, actions, action_config)
     obs, info = env.reset(seed=seed)
     decisions, stepping = 0, 0.0
     done = False
@@ -149,6 +156,55 @@ def committed_mask_figures(episodes: int = COMMITTED_EPISODES, seed: int = 0) ->
     return figures
 
 
+CONTINUOUS_BENCH_POLICY = "weave"
+"""The continuous policy of :func:`continuous_step_figures`: it changes lanes and keeps its speed (the random one
+leaves the road within a decision or two, ending its episodes)."""
+SIMULATORS = ("highway-env", "fast")
+
+
+def continuous_step_figures(episodes: int, seed: int = 0) -> dict[str, Any]:
+    """The continuous step beside the discrete one, on each simulator: ``episodes`` episodes of the ``fast`` preset
+    (seeds ``seed``, ``seed + 1``, …) through safelane's gymnasium stack (paper observation and reward, no shield),
+    a continuous one (:data:`CONTINUOUS_BENCH_POLICY`) and a discrete one (the random policy) interleaved, once each
+    on highway-env and :data:`FAST_REPEATS` times each on the fast simulator; only ``env.step`` is timed. Figures,
+    each ``{"highway-env": …, "fast": …}``: ``continuous_decisions_per_s`` and ``discrete_decisions_per_s``
+    [decisions/s], ``continuous_step_ratio`` (continuous ÷ discrete decisions/s: below 1, the continuous step costs
+    more).
+
+    The shield for continuous actions is not timed here: its cost per decision belongs beside these figures once its
+    compiled engine exists (the numpy reference takes about 0.4 s a decision)."""
+    if episodes < 1:
+        raise ValueError(f"episodes: must be >= 1 (got {episodes})")
+    policies = {"discrete": "random", "continuous": CONTINUOUS_BENCH_POLICY}
+    envs = {
+        (simulator, actions): make_env(BENCH_PRESET, simulator=simulator, actions=actions)
+        for simulator in SIMULATORS
+        for actions in policies
+    }
+    played = dict.fromkeys(envs, 0)
+    seconds = dict.fromkeys(envs, 0.0)
+    try:
+        for actions, name in policies.items():  # compiles (or loads) the fast kernels outside the timed episodes
+            _play(envs["fast", actions], seed, policy_name=name, actions=actions)
+        for i in range(episodes):
+            order = list(policies) if i % 2 == 0 else list(policies)[::-1]  # alternate: drifts favour neither
+            for simulator in SIMULATORS:
+                for _ in range(1 if simulator == "highway-env" else FAST_REPEATS):
+                    for actions in order:
+                        n, s = _play(envs[simulator, actions], seed + i, policy_name=policies[actions], actions=actions)
+                        played[simulator, actions] += n
+                        seconds[simulator, actions] += s
+    finally:
+        for env in envs.values():
+            env.close()
+    rate = {key: played[key] / seconds[key] for key in envs}
+    return {
+        "continuous_decisions_per_s": {sim: rate[sim, "continuous"] for sim in SIMULATORS},
+        "discrete_decisions_per_s": {sim: rate[sim, "discrete"] for sim in SIMULATORS},
+        "continuous_step_ratio": {sim: rate[sim, "continuous"] / rate[sim, "discrete"] for sim in SIMULATORS},
+    }
+
+
 def measure_envpool(cfg: dict[str, Any], decisions: int, seed: int) -> float | None:
     """Decisions per second of EnvPool's C++ ``HighwayFast-v0`` (1 env, 1 thread, the same traffic as
     ``cfg``: lanes, vehicles, duration, frequencies, spacing, density; random actions), or None when the
@@ -231,6 +287,7 @@ def run_bench(
     shield: str = "robust",
     progress: Callable[[int], None] | None = None,
     methods: Sequence[str] = ("robust",),
+    actions: str = "discrete",
 ) -> dict[str, Any]:
     """Measure, on the ``fast`` preset with a random policy, interleaving raw and shielded episodes
     (pair ``i`` uses seed ``seed + i``; ``progress(i)`` is called after each pair):
@@ -276,12 +333,16 @@ def run_bench(
       ``env_time_s``); each further method of ``methods`` adds the same three figures with the suffix
       ``_METHOD`` (e.g. ``agent_overhead_fraction_constrained``); the same training on the fast simulator
       adds them with the suffix ``_fast`` (``_METHOD_fast`` for the further methods);
-    * ``train_batched_steps_per_s``, ``train_batched_speedup``: :func:`batched_training_figures`.
+    * ``train_batched_steps_per_s``, ``train_batched_speedup``: :func:`batched_training_figures`;
+    * with ``actions="continuous"``: ``continuous_decisions_per_s``, ``discrete_decisions_per_s`` and
+      ``continuous_step_ratio`` on each simulator (:func:`continuous_step_figures`).
     """
     if episodes < 1:
         raise ConfigError(f"--episodes: must be >= 1 (got {episodes})")
     if shield not in BENCH_SHIELDS:
         raise ConfigError(f"--shield: bench measures a shield; allowed: {', '.join(BENCH_SHIELDS)}")
+    if actions not in ("discrete", "continuous"):
+        raise ConfigError(f"--actions: got {actions!r}; allowed: discrete, continuous")
     methods = parse_methods(",".join(methods))
     start = time.perf_counter()
     raw = make_env(BENCH_PRESET)
@@ -377,6 +438,11 @@ def run_bench(
         suffix = "_fast" if method == methods[0] else f"_{method}_fast"
         training.update({f"{key}{suffix}": value for key, value in figures.items()})
     training.update(batched_training_figures(episodes, seed, shield))
+    continuous: dict[str, Any] = {}
+    if actions == "continuous":
+        continuous = continuous_step_figures(episodes, seed)
+        # The shield for continuous actions' cost per decision goes here, beside its step's, once its compiled engine
+        # exists (safelane.safety.continuous): not measured yet.
     raw_rate = raw_n / raw_s
     shield_rate = shield_n / shield_s
     noise = {
@@ -387,6 +453,7 @@ def run_bench(
     return {
         "preset": BENCH_PRESET,
         "shield": shield,
+        **({"actions": actions} if actions == "continuous" else {}),
         "policy": "random",
         "episodes": episodes,
         "seed": seed,
@@ -416,6 +483,7 @@ def run_bench(
         "fast_batched_threaded_speedup": {n: rate / (stock_n / stock_s) for n, rate in threaded.items()},
         **({"envpool_decisions_per_s": envpool_rate} if envpool_rate is not None else {}),
         **training,
+        **continuous,
         # One sample each (training, the mask's mean over every decision): the widest spread measured above.
         "noise": {
             **noise,

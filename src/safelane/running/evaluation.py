@@ -32,6 +32,7 @@ from safelane.running.collisions import (
     collision_partner,
 )
 from safelane.running.policies import Policy, fixed_policy
+from safelane.safety.control_shield import ControlShield
 from safelane.safety.shield import SafetyShield
 
 if TYPE_CHECKING:
@@ -74,7 +75,9 @@ class EpisodeRecord:
     uncertified_start: bool | None = None
     """``committed`` mode: the episode's first state had no verified plan (None: another mode)."""
     lapses: list[int] = field(default_factory=list)
-    """``committed`` mode: decisions (1-based) after which the plan kept, verified, no longer verified."""
+    """``committed`` mode: decisions (1-based) after which the plan kept, verified, no longer verified; with continuous
+    actions (:class:`~safelane.safety.control_shield.ControlShield`, which judges a state when it decides there) the
+    decision whose judgement found it, before its action ran."""
     lapses_in_model: list[int] = field(default_factory=list)
     """``committed`` mode: the lapses not traced to the model's exits (a car the kept plan fails on inside its
     set, :attr:`safelane.safety.committed.family.CommittedResult.lapse_in_model`): gaps in the construction."""
@@ -95,12 +98,20 @@ class EpisodeRecord:
     of the plan, by the crash's own decision)."""
     off_road: bool | None = None
     """Continuous actions: the episode ended with the ego off the road (None: meta-actions, which keep it on)."""
+    projection_distance: float | None = None
+    """The shield for continuous actions: the distances [normalised actions] from the policy's action to the executed
+    one, summed over the episode's decisions (``interventions`` counts the projected ones; None: another shield or
+    none)."""
+    executed_actions: list[list[float]] = field(default_factory=list, repr=False)
+    """The shield for continuous actions: the ``[acceleration, steering]`` it executed at each decision (float32
+    values), which a counterexample file records beside the chosen ones; empty otherwise. Not in :meth:`to_dict`."""
 
     def to_dict(self) -> dict[str, Any]:
         """A JSON-ready dict of the record (without ``chosen_actions``; the committed mode's fields only for
-        that mode, ``off_road`` only for continuous actions, which have no ``actions`` histogram)."""
+        that mode, ``off_road`` only for continuous actions, which have no ``actions`` histogram,
+        ``projection_distance`` only under the shield for continuous actions)."""
         data = asdict(self)
-        del data["chosen_actions"]
+        del data["chosen_actions"], data["executed_actions"]
         if self.uncertified_start is None:
             for name in COMMITTED_FIELDS:
                 del data[name]
@@ -108,6 +119,8 @@ class EpisodeRecord:
             del data["off_road"]
         else:
             del data["actions"]
+        if self.projection_distance is None:
+            del data["projection_distance"]
         return data
 
 
@@ -148,10 +161,19 @@ class EpisodeTally:
         self.time_to_collision: float | None = None
         self.collision = False
         self.steps = 0
-        # For the collision's context: whether a shield reports fallbacks, whether any state so far had
-        # a safe action, and whether the state the next action is taken in has one.
-        self.shielded = "fallback" in reset_info
-        self.safe_seen = self.state_safe = reset_info.get("fallback") is False
+        # The shield for continuous actions judges a state when it decides there: a step's verdict (certified,
+        # plan-forced, lapse, escapes) is on the state its action was taken in, where the other shields report the
+        # state the step ends in.
+        self.judged_before = "projection_distance" in reset_info
+        # For the collision's context: whether a shield reports fallbacks (or verdicts), whether any state so far had
+        # a safe action (a verified plan), and whether the state the next action is taken in has one.
+        self.shielded = "fallback" in reset_info or self.judged_before
+        if self.judged_before:
+            self.safe_seen = self.state_safe = bool(reset_info["certified"])
+        else:
+            self.safe_seen = self.state_safe = reset_info.get("fallback") is False
+        self.projection_distance = 0.0 if self.judged_before else None
+        self.executed: list[list[float]] = []
         self.context: str | None = None
         # The committed mode: lapses, plan-forced decisions, and the cars that left their sets or entered a lane
         # the ego holds, for the collision's context.
@@ -180,6 +202,8 @@ class EpisodeTally:
         else:
             self.chosen.append(int(action))
             self.actions[int(info.get("executed_action", action))] += 1
+        if self.judged_before:
+            self._count_judged(info)
         self.total_reward += float(reward)
         self.speeds.append(float(info["speed"]))
         self.interventions += bool(info.get("shield_intervened", False))
@@ -205,10 +229,23 @@ class EpisodeTally:
                     self.context = "from_safe_state"
                 else:
                     self.context = "after_fallback"
+        if self.judged_before:
+            return
         if self.committed:
             self._count_committed(info)
         self.state_safe = info.get("fallback") is False
         self.safe_seen = self.safe_seen or self.state_safe
+
+    def _count_judged(self, info: dict[str, Any]) -> None:
+        """The shield for continuous actions' verdict on the state this decision was taken in (before its action
+        ran): some action had a verified plan there (certified, not plan-forced), the action executed and how far
+        the shield moved it, and the committed figures (escapes, lapses), all before the step's own collision."""
+        self.state_safe = bool(info["certified"]) and not bool(info["plan_forced"])
+        self.safe_seen = self.safe_seen or self.state_safe
+        self.executed.append([float(a) for a in np.asarray(info["executed_action"]).ravel()])
+        self.projection_distance = (self.projection_distance or 0.0) + float(info["projection_distance"])
+        if self.committed:
+            self._count_committed(info)
 
     def _count_committed(self, info: dict[str, Any]) -> None:
         """The committed mode's figures of one step (after its collision's context: the crash step's own escapes
@@ -240,17 +277,23 @@ class EpisodeTally:
         # The crash's own decision counts its partner's exits the impact does not make: rolling back (a crashed car
         # brakes to 0 m/s, never below), a follower ahead of the bound the plan drew for it (the impact pushes the
         # bodies apart: a rear-ender back).
-        exits = self.escaped_seen | {int(v) for key in ("rolled_back", "unbraked_followers") for v in info.get(key, ())}
+        # The shield for continuous actions never judges the state the crash ends in: run_episode adds its trace
+        # (crash_state_trace) under "crash_state"; the step's own keys are the state before, counted already.
+        own = info.get("crash_state", {}) if self.judged_before else info
+        exits = self.escaped_seen | {int(v) for key in ("rolled_back", "unbraked_followers") for v in own.get(key, ())}
         named = sorted(self.lapse_named | ({partner} & exits if partner is not None else set()))
         if not self.safe_seen:
             return "uncertified_start"
-        entered = self.entered_seen | {int(v) for v in info.get("entered_cars", ())}  # a cut-in into the crash counts
+        entered = self.entered_seen | {int(v) for v in own.get("entered_cars", ())}  # a cut-in into the crash counts
         if classify_collision(snap) == "rear_ended" or partner in entered:
             return "others_at_fault"
         if named:
             self.outside_model_cars = named
             return "outside_model"
-        if (self.breaks and self.breaks[0] < self.steps) or (self.lapses and self.lapses[0] < self.steps):
+        # A lapse found by the crash's own decision (continuous actions) came before its action.
+        first = self.lapses[0] if self.lapses else None
+        lapsed = first is not None and (first <= self.steps if self.judged_before else first < self.steps)
+        if (self.breaks and self.breaks[0] < self.steps) or lapsed:
             return "after_break"
         if self.state_safe and not executed_unsafe:
             return "from_safe_state"
@@ -284,28 +327,60 @@ class EpisodeTally:
             redraws=self.redraws,
             outside_model_cars=self.outside_model_cars,
             off_road=self.off_road,
+            projection_distance=self.projection_distance,
+            executed_actions=self.executed,
         )
 
 
+def _control_shield(env: gym.Env) -> ControlShield | None:
+    """The :class:`ControlShield` among ``env``'s wrappers (None: none)."""
+    layer: Any = env
+    while isinstance(layer, gym.Wrapper):
+        if isinstance(layer, ControlShield):
+            return layer
+        layer = layer.env
+    return None
+
+
 def shield_mode(env: gym.Env) -> str:
-    """The ``shield.mode`` of the :class:`SafetyShield` among ``env``'s wrappers (``"none"``: no shield)."""
+    """The ``shield.mode`` of the :class:`SafetyShield` among ``env``'s wrappers, ``"committed"`` for the shield for
+    continuous actions (:class:`ControlShield`, the committed rule for controls), ``"none"``: no shield."""
     layer: Any = env
     while isinstance(layer, gym.Wrapper):
         if isinstance(layer, SafetyShield):
             return layer.mode
+        if isinstance(layer, ControlShield):
+            return "committed"
         layer = layer.env
     return "none"
 
 
+def crash_state_trace(env: gym.Env, info: dict[str, Any]) -> dict[str, tuple[int, ...]]:
+    """What the shield for continuous actions would report of the state a step ended in (``info["snapshot"]``),
+    which it never judges when the episode ends there: ``rolled_back``, ``unbraked_followers`` and ``entered_cars``
+    (snapshot indices), as a committed :class:`SafetyShield` reports them after a crash's step. Empty without that
+    shield or before its first decision."""
+    shield = _control_shield(env)
+    if shield is None or shield.dynamics is None:
+        return {}
+    _, vehicle, _, trace = shield.family.state_of(info["snapshot"], shield.dynamics)
+    names = {"rolled_back": "rolled", "unbraked_followers": "unbraked", "entered_cars": "entered"}
+    return {key: tuple(int(v) for v in vehicle[trace[name]]) for key, name in names.items()}
+
+
 def run_episode(env: gym.Env, policy: Policy, seed: int) -> EpisodeRecord:
-    """Play one episode reset with ``seed`` until it terminates or is truncated."""
+    """Play one episode reset with ``seed`` until it terminates or is truncated. Continuous actions are stepped as
+    float32 (the action space's type: what a counterexample file records and replays)."""
     obs, info = env.reset(seed=seed)
     tally = EpisodeTally(seed, info, committed=shield_mode(env) == "committed")
+    continuous = isinstance(env.action_space, gym.spaces.Box)
     done = False
     while not done:
         chosen = policy(obs, info)
-        action = chosen if isinstance(chosen, np.ndarray) else int(chosen)
+        action = np.asarray(chosen, dtype=np.float32) if continuous else int(chosen)
         obs, reward, terminated, truncated, info = env.step(action)
+        if tally.judged_before and tally.committed and info.get("collision", False):
+            info = {**info, "crash_state": crash_state_trace(env, info)}
         tally.add(action, float(reward), info)
         done = terminated or truncated
     return tally.record(info)
@@ -497,9 +572,30 @@ def summarize(records: list[EpisodeRecord], **meta: Any) -> dict[str, Any]:
     if continuous:  # acceleration and steering: how many episodes ended off the road, no meta-action histogram
         del summary["actions"]
         summary["off_road_rate"] = sum(bool(r.off_road) for r in continuous) / len(continuous)
+    summary.update(projection_figures(records))
     summary.update(committed_figures(records))
     summary.update(meta)
     return summary
+
+
+CONTINUOUS_FIGURES: tuple[str, ...] = ("off_road_rate", "projection_rate", "mean_projection_distance")
+"""The figures a summary adds with continuous actions (``off_road_rate``) and their shield
+(:func:`projection_figures`), as stress and falsify records carry them."""
+
+
+def projection_figures(records: list[EpisodeRecord]) -> dict[str, Any]:
+    """The shield for continuous actions' figures of ``records`` (empty without it): ``projection_rate`` (decisions
+    whose action it moved ÷ decisions) and ``mean_projection_distance`` (the mean distance [normalised actions] from
+    the policy's action to the executed one over those decisions; None when it moved none)."""
+    shielded = [r for r in records if r.projection_distance is not None]
+    if not shielded:
+        return {}
+    projected = sum(r.interventions for r in shielded)
+    distance = sum(r.projection_distance or 0.0 for r in shielded)
+    return {
+        "projection_rate": projected / max(sum(r.length for r in shielded), 1),
+        "mean_projection_distance": distance / projected if projected else None,
+    }
 
 
 COMMITTED_FIGURES: tuple[str, ...] = (
@@ -512,13 +608,14 @@ them."""
 def committed_figures(records: list[EpisodeRecord]) -> dict[str, Any]:
     """The committed shield mode's figures of ``records`` (empty for the other modes, whose summaries keep their
     keys): ``lapses`` and ``lapses_in_model`` (counts), ``plan_forced_rate`` (plan-forced decisions ÷ decisions),
-    ``courtesy_waived_rate`` (decisions with no verified action the one-decision rule calls safe ÷ decisions),
-    ``uncertified_starts`` (episodes) and ``redraws`` (spawns drawn again, ``shield.redraw_uncertified``)."""
+    ``courtesy_waived_rate`` (decisions with no verified action the one-decision rule calls safe ÷ decisions; not
+    with continuous actions, whose shield has no such rule), ``uncertified_starts`` (episodes) and ``redraws`` (spawns
+    drawn again, ``shield.redraw_uncertified``)."""
     committed = [r for r in records if r.uncertified_start is not None]
     if not committed:
         return {}
     decisions = sum(r.length for r in committed)
-    return {
+    figures = {
         "lapses": sum(len(r.lapses) for r in committed),
         "lapses_in_model": sum(len(r.lapses_in_model) for r in committed),
         "plan_forced_rate": sum(r.plan_forced for r in committed) / max(decisions, 1),
@@ -526,6 +623,9 @@ def committed_figures(records: list[EpisodeRecord]) -> dict[str, Any]:
         "uncertified_starts": sum(bool(r.uncertified_start) for r in committed),
         "redraws": sum(r.redraws for r in committed),
     }
+    if all(r.projection_distance is not None for r in committed):  # the shield for continuous actions
+        del figures["courtesy_waived_rate"]
+    return figures
 
 
 DEFAULT_BATCH_ENVS = 16
@@ -588,10 +688,6 @@ def evaluate_fixed(
         raise ConfigError(f"--episodes: must be >= 1 (got {episodes})")
     if seed < 0:
         raise ConfigError(f"--seed: must be >= 0 (got {seed})")
-    if counterexamples is not None:
-        from safelane.running.counterexamples import check_replayable
-
-        check_replayable(config)  # before the episodes: no work lost to a refusal
     act = fixed_policy(policy, seed, config.actions, config.env.get("action"))
     start = time.perf_counter()
     records = run_config(config, act, episodes, seed, progress)

@@ -3,7 +3,9 @@
 Conditions are data (``safelane/presets/stress.yaml``, or a user YAML list of
 ``{name, preset, sets, adversarial}``); each is evaluated with a policy (fixed or trained) and a
 shield mode, and reported with collisions, their classification, the collision rate with a 95 %
-Wilson interval, mean speed and the shield's intervention rate.
+Wilson interval, mean speed and the shield's intervention rate. With continuous actions (``--set actions=continuous``:
+acceleration and steering, the shield for continuous actions) also the episodes ended off the road and the
+shield's projections.
 """
 
 from __future__ import annotations
@@ -18,6 +20,7 @@ from safelane.core.errors import NotSupported
 from safelane.running.conditions import Condition, condition_config, load_conditions, traffic_seed_base
 
 if TYPE_CHECKING:
+    from safelane.running.policies import Policy
     from safelane.running.run_directory import RunConfig
 
 STRESS_SEED_BASE = 3_000_000_000
@@ -27,7 +30,7 @@ adds ``N ×`` :data:`~safelane.running.conditions.TRAFFIC_SEED_STRIDE`."""
 
 def run_condition(
     condition: Condition | str,
-    policy: Callable[..., int],
+    policy: Policy | str,
     episodes: int,
     shield: str | None = "robust",
     override: bool | None = True,
@@ -38,6 +41,9 @@ def run_condition(
     seed: int = 0,
 ) -> dict[str, Any]:
     """Evaluate ``policy`` on one condition; the per-condition JSON record of ``safelane stress``.
+
+    ``policy``: a callable, or a fixed policy's name (:func:`~safelane.running.policies.fixed_policy`, built for the
+    condition's action set: with continuous actions its acceleration and steering ranges; seeded with ``seed``).
 
     ``seed``: the traffic seed (0: the published episodes, ``STRESS_SEED_BASE + k``; another draws fresh
     traffic, :func:`~safelane.running.conditions.traffic_seed_base`).
@@ -50,7 +56,8 @@ def run_condition(
     that changes what the policy reads or how often it decides is refused with a one-line error.
     """
     from safelane.reporting import stats
-    from safelane.running.evaluation import COMMITTED_FIGURES, run_config, summarize
+    from safelane.running.evaluation import COMMITTED_FIGURES, CONTINUOUS_FIGURES, run_config, summarize
+    from safelane.running.policies import fixed_policy
 
     if isinstance(condition, str):
         matches = [c for c in load_conditions() if c.name == condition]
@@ -67,6 +74,8 @@ def run_condition(
         cfg = run_env_config(run, sets=sets, shield=shield, override=override, condition=condition)
     else:
         cfg = condition_config(condition, shield or "robust", bool(override), sets)
+    if isinstance(policy, str):
+        policy = fixed_policy(policy, seed, cfg.actions, cfg.env.get("action"))
     start = time.perf_counter()
     records = run_config(cfg, policy, episodes, first_seed, progress)
     s = summarize(records)
@@ -79,6 +88,7 @@ def run_condition(
         "name": condition.name,
         "adversarial": condition.adversarial,
         "simulator": cfg.simulator,
+        **({"actions": cfg.actions} if cfg.actions == "continuous" else {}),
         "episodes": s["episodes"],
         "collisions": s["collisions"],
         "collision_rate": s["collision_rate"],
@@ -93,13 +103,15 @@ def run_condition(
         "collision_contexts": s["collision_contexts"],
         # The committed mode's lapses (in the model), plan-forced share, uncertified starts, redraws.
         **{k: s[k] for k in COMMITTED_FIGURES if k in s},
+        # Continuous actions: episodes off the road, the shield's projections.
+        **{k: s[k] for k in CONTINUOUS_FIGURES if k in s},
         "counterexample_files": [str(f) for f in files],
         "wall_time_s": time.perf_counter() - start,
     }
 
 
 def run_stress(
-    policy_factory: Callable[[], Callable[..., int]],
+    policy_factory: Callable[[], Policy | str],
     episodes: int,
     shield: str | None = "robust",
     override: bool | None = True,
@@ -110,7 +122,8 @@ def run_stress(
     counterexamples: Path | None = None,
     seed: int = 0,
 ) -> dict[str, Any]:
-    """Run every condition; ``policy_factory`` gives a fresh policy per condition (same seeds each);
+    """Run every condition; ``policy_factory`` gives a fresh policy per condition (same seeds each), or a fixed
+    policy's name (:func:`run_condition` builds it for each condition);
     ``counterexamples``: save every crash and invariant break there; ``seed``: the traffic seed, recorded in
     the result (:func:`run_condition`).
 

@@ -5,13 +5,21 @@ A campaign spec (:class:`CampaignSpec`; the shipped one is ``configs/falsify/gri
 rate with a physics rate it divides) — the policies (``random``, ``faster``, ``idle``, ``slower``, the
 overtaking ``probe``, and trained agents as ``run:RUN_DIR``), the
 shield, the episodes per cell and the simulator. A *cell* is one combination of the axes and one policy;
-``sample`` draws that many cells (seeded) instead of the whole product.
+``sample`` draws that many cells (seeded) instead of the whole product. ``actions: continuous`` drives the ego by
+acceleration and steering (highway-env's ``ContinuousAction``) with the continuous policies (``random``, ``faster``,
+``weave``) under the shield for continuous actions (``shield: committed``:
+:class:`safelane.safety.control_shield.ControlShield`).
 
 :func:`run_campaign` plays every cell not yet done (on the task backend, as sweeps), writes each cell's record
 to ``DIR/cells/CELL.json`` and every crash and invariant break as a replayable file under
 ``DIR/counterexamples/`` (:mod:`safelane.running.counterexamples`), each break with a *class* from its
 replay (:func:`break_class`), and rebuilds ``DIR/cells.csv`` and ``DIR/summary.md`` from the cell files
 after each one (kill-safe, resumable).
+
+With continuous actions the summary reports what that shield reports instead of invariant breaks and fallbacks:
+collisions against its promise (the committed mode's contexts: uncertified starts, others at fault, outside the model,
+after a lapse, from certified states), lapses and those in the model, the share of decisions whose action it
+projected and how far, the plan-forced share, episodes ended off the road, the ego's speed.
 
 Break classes (what changed around the ego during the decision that ended in a state with no safe
 action — a description of the scene, not yet a proof of what the model missed):
@@ -36,7 +44,7 @@ from typing import Any, Literal
 
 import numpy as np
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from safelane.config import ConfigError, validation_message
 from safelane.core.files import atomic_write_text
@@ -65,10 +73,16 @@ class CampaignBase(BaseModel):
     preset: Literal["fast", "paper"] = "fast"
     simulator: Literal["fast", "highway-env"] = "fast"
     shield: Literal["nominal", "robust", "committed"] = "robust"
+    actions: Literal["discrete", "continuous"] = Field(
+        "discrete",
+        description="The ego's actions: discrete (meta-actions) or continuous (acceleration and steering; shield "
+        "committed, policies random, faster, weave).",
+    )
     sets: list[str] = Field(default_factory=list, description="--set overrides of every cell.")
     policies: list[str] = Field(
         default_factory=lambda: ["random", "faster"],
-        description="Fixed policies (random, faster, idle, slower, probe) and trained agents as 'run:RUN_DIR'.",
+        description="Fixed policies (random, faster, idle, slower, probe; with continuous actions random, faster, "
+        "weave) and trained agents as 'run:RUN_DIR'.",
     )
     seed: int = Field(
         0,
@@ -79,19 +93,36 @@ class CampaignBase(BaseModel):
     @field_validator("policies")
     @classmethod
     def _policies(cls, policies: list[str]) -> list[str]:
-        from safelane.running.policies import FIXED_POLICIES
-
         if not policies:
             raise ValueError("no policies; give at least one")
-        for policy in policies:  # a run's directory is checked when the campaign starts
-            if not policy.startswith(RUN_PREFIX) and policy not in FIXED_POLICIES:
-                raise ValueError(f"unknown policy '{policy}'; allowed: {', '.join(FIXED_POLICIES)} or run:RUN_DIR")
         return policies
 
+    @model_validator(mode="after")
+    def _fit_the_actions(self) -> CampaignBase:
+        """Every fixed policy drives the action set; continuous actions have one shield (one-line errors)."""
+        from safelane.running.policies import CONTINUOUS_POLICIES, FIXED_POLICIES
+
+        continuous = self.actions == "continuous"
+        allowed, what = (CONTINUOUS_POLICIES, "continuous policy") if continuous else (FIXED_POLICIES, "policy")
+        for policy in self.policies:  # a run's directory is checked when the campaign starts
+            if not policy.startswith(RUN_PREFIX) and policy not in allowed:
+                raise ConfigError(f"policies: unknown {what} '{policy}'; allowed: {', '.join(allowed)} or run:RUN_DIR")
+        if continuous and self.shield != "committed":
+            raise ConfigError(
+                f"shield: '{self.shield}' decides among meta-actions; allowed with actions continuous: committed"
+            )
+        return self
+
+    @property
+    def continuous(self) -> bool:
+        """The ego takes continuous actions (acceleration and steering)."""
+        return self.actions == "continuous"
+
     def record_json(self) -> str:
-        """The spec as ``campaign.json`` keeps it: ``seed`` only when it is not 0, so a folder of a seed-0
-        campaign whose record predates the field resumes."""
-        return self.model_dump_json(indent=1, exclude={"seed"} if self.seed == 0 else None)
+        """The spec as ``campaign.json`` keeps it: ``seed`` only when it is not 0 and ``actions`` only when
+        continuous, so a folder of a campaign whose record predates those fields resumes."""
+        exclude = {name for name, default in (("seed", 0), ("actions", "discrete")) if getattr(self, name) == default}
+        return self.model_dump_json(indent=1, exclude=exclude or None)
 
 
 class CampaignSpec(CampaignBase):
@@ -164,10 +195,12 @@ def load_campaign_spec(path: str | Path, overrides: dict[str, Any] | None = None
 
 
 def cell_config(spec: CampaignBase, cell: dict[str, Any]) -> Any:
-    """The environment config of a cell: the preset, the spec's sets, the cell's, the shield with override."""
+    """The environment config of a cell: the preset, the spec's sets, the cell's, the action set, the shield with
+    override (meta-actions; the shield for continuous actions always intervenes, it has no override)."""
     from safelane.config import load_config
 
-    overrides = {**cell["sets"], "simulator": spec.simulator, "shield.mode": spec.shield, "shield.override": True}
+    overrides = {**cell["sets"], "simulator": spec.simulator, "shield.mode": spec.shield, "actions": spec.actions,
+                 "shield.override": not spec.continuous}  # fmt: skip
     return load_config(spec.preset, sets=spec.sets, overrides=overrides)
 
 
@@ -193,15 +226,16 @@ def break_class(result: Any) -> str:
     return "other"
 
 
-def _cell_policy(name: str, seed: int) -> Any:
-    """A cell's policy: a fixed one (seeded) or a trained run's greedy policy (``run:RUN_DIR``)."""
+def _cell_policy(name: str, seed: int, config: Any) -> Any:
+    """A cell's policy: a fixed one (seeded, for ``config``'s action set) or a trained run's greedy policy
+    (``run:RUN_DIR``)."""
     from safelane.running.policies import fixed_policy
 
     if name.startswith(RUN_PREFIX):
         from safelane.running.run_directory import load_policy
 
         return load_policy(name[len(RUN_PREFIX) :])
-    return fixed_policy(name, seed)
+    return fixed_policy(name, seed, config.actions, config.env.get("action"))
 
 
 def _cell_path(out: Path, index: int) -> Path:
@@ -230,16 +264,17 @@ def play_cell(
     seeds ``seed, seed + 1, …``; save every crash and invariant break as ``counterexamples/PREFIX…json``
     and class the breaks from their replays. Returns the cell's statistics (episodes, decisions,
     collisions and their kinds and contexts, invariant breaks and their classes, fallback rate, mean
-    speed [m/s], file names, ``wall_time_s`` [s]), or ``{"skipped": why}`` where the simulator lacks a setting.
+    speed [m/s], file names, the committed mode's and continuous actions' figures, ``wall_time_s`` [s]), or
+    ``{"skipped": why}`` where the simulator lacks a setting.
     The one episode loop of every campaign: the grid's cells and the search's samples."""
     from safelane.core.errors import NotSupported
     from safelane.running.counterexamples import load_counterexample, replay, save_counterexamples
-    from safelane.running.evaluation import COMMITTED_FIGURES, run_config, summarize
+    from safelane.running.evaluation import COMMITTED_FIGURES, CONTINUOUS_FIGURES, run_config, summarize
 
     try:
         cfg = cell_config(spec, cell)
         start = time.perf_counter()
-        records = run_config(cfg, _cell_policy(cell["policy"], seed), episodes, seed)
+        records = run_config(cfg, _cell_policy(cell["policy"], seed, cfg), episodes, seed)
     except NotSupported as err:
         return {"skipped": str(err)}
     s = summarize(records)
@@ -263,6 +298,7 @@ def play_cell(
         "counterexample_files": [p.name for p in files],
         "break_file_classes": file_classes,
         **{k: s[k] for k in COMMITTED_FIGURES if k in s},  # the committed mode's lapses, plan-forced decisions…
+        **{k: s[k] for k in CONTINUOUS_FIGURES if k in s},  # continuous actions: off road, projections
         "wall_time_s": time.perf_counter() - start,
     }
 
@@ -337,9 +373,9 @@ def write_summary(out: Path, spec: CampaignSpec) -> dict[str, Any]:
     """Rebuild cells.csv, summary.json and summary.md from the cell files."""
     from safelane.reporting import stats
     from safelane.running.collisions import collision_contexts
-    from safelane.running.evaluation import COMMITTED_FIGURES
+    from safelane.running.evaluation import COMMITTED_FIGURES, CONTINUOUS_FIGURES
 
-    committed = spec.shield == "committed"
+    committed, continuous = spec.shield == "committed", spec.continuous
     records = [json.loads(p.read_text()) for p in sorted((out / "cells").glob("cell*.json"))]
     # The labels from the spec, not the files: a cell file may carry an ambiguous label (some recorded
     # "vehicles_density=5" for both 0.5 and 1.5).
@@ -348,9 +384,14 @@ def write_summary(out: Path, spec: CampaignSpec) -> dict[str, Any]:
         r.update({f"axis_{k}": v for k, v in labels[r["index"]].items()})
     played = [r for r in records if "skipped" not in r]
     axes = [f"axis_{a}" for a in spec.axes]
-    columns = ["index", "policy", *axes, "episodes", "decisions", "collisions", "invariant_breaks",
-               *BREAK_CLASSES, "fallback_rate", "mean_speed", *(COMMITTED_FIGURES if committed else ()),
-               "skipped"]  # fmt: skip
+    if continuous:  # the shield for continuous actions reports no invariant breaks, fallbacks or courtesy
+        figures = [k for k in COMMITTED_FIGURES if k != "courtesy_waived_rate"]
+        columns = ["index", "policy", *axes, "episodes", "decisions", "collisions", *figures, *CONTINUOUS_FIGURES,
+                   "mean_speed", "skipped"]  # fmt: skip
+    else:
+        columns = ["index", "policy", *axes, "episodes", "decisions", "collisions", "invariant_breaks",
+                   *BREAK_CLASSES, "fallback_rate", "mean_speed", *(COMMITTED_FIGURES if committed else ()),
+                   "skipped"]  # fmt: skip
     buffer = io.StringIO()
     writer = csv.DictWriter(buffer, fieldnames=columns, extrasaction="ignore", lineterminator="\n")
     writer.writeheader()
@@ -375,6 +416,7 @@ def write_summary(out: Path, spec: CampaignSpec) -> dict[str, Any]:
         "name": spec.name,
         "shield": spec.shield,
         "simulator": spec.simulator,
+        **({"actions": spec.actions} if continuous else {}),
         "cells": len(spec.cells()),
         "cells_done": len(records),
         "cells_skipped": len(records) - len(played),
@@ -393,6 +435,10 @@ def write_summary(out: Path, spec: CampaignSpec) -> dict[str, Any]:
         "fallback_rate": _per_decision(played, "fallback_rate"),
         "mean_speed": _per_decision(played, "mean_speed"),
     }
+    if continuous:  # what its shield does not report
+        for key in ("invariant_breaks", "invariant_break_rate", "break_classes", "fallback_rate"):
+            del summary[key]
+        summary.update(continuous_figures(played))
     if committed:  # cells played before the committed figures were counted lack them: left out of the totals
         counted = [r for r in played if "lapses" in r]
         summary.update(
@@ -403,7 +449,9 @@ def write_summary(out: Path, spec: CampaignSpec) -> dict[str, Any]:
                                                "courtesy_waived_rate"),
             uncertified_starts=sum(r["uncertified_starts"] for r in counted),
             redraws=sum(r["redraws"] for r in counted),
-        )
+        )  # fmt: skip
+        if continuous:
+            del summary["courtesy_waived_rate"]
     atomic_write_text(out / "summary.json", json.dumps(summary, indent=1))
     atomic_write_text(out / "summary.md", _markdown(spec, summary, played))
     return summary
@@ -416,29 +464,63 @@ def _per_decision(cells: list[dict[str, Any]], field: str) -> float | None:
     return sum(c[field] * c["decisions"] for c in cells) / decisions if decisions else None
 
 
+def continuous_figures(cells: list[dict[str, Any]]) -> dict[str, float | None]:
+    """The continuous actions' figures of ``cells`` over all their episodes and decisions: ``off_road_rate``
+    (episodes ended off the road ÷ episodes), ``projection_rate`` (decisions whose action the shield projected ÷
+    decisions) and ``mean_projection_distance`` [normalised actions] (over the projected decisions); None without
+    episodes, decisions or projections."""
+    episodes = sum(c["episodes"] for c in cells)
+    projected = sum(c.get("projection_rate", 0.0) * c["decisions"] for c in cells)
+    distance = sum((c.get("mean_projection_distance") or 0.0) * c.get("projection_rate", 0.0) * c["decisions"]
+                   for c in cells)  # fmt: skip
+    return {
+        "off_road_rate": sum(c.get("off_road_rate", 0.0) * c["episodes"] for c in cells) / episodes
+        if episodes else None,
+        "projection_rate": _per_decision([c for c in cells if "projection_rate" in c], "projection_rate"),
+        "mean_projection_distance": distance / projected if projected else None,
+    }  # fmt: skip
+
+
 COMMITTED_COLUMNS = (
     "uncertified start", "others at fault", "outside the model", "after a break or lapse", "from certified states",
 )  # fmt: skip
 """The committed mode's context columns of a summary table (:func:`_group_table`), in its contexts' order."""
+CONTINUOUS_COLUMNS = (
+    "uncertified start", "others at fault", "outside the model", "after a lapse", "from certified states",
+)  # fmt: skip
+"""The same with continuous actions, whose shield has lapses and no invariant breaks."""
 
 
-def _group_table(title: str, key: str, played: list[dict[str, Any]], committed: bool = False) -> list[str]:
+def _share(value: float | None, digits: int = 2) -> str:
+    """A share as a percentage (``–`` for None)."""
+    return "–" if value is None else f"{100 * value:.{digits}f} %"
+
+
+def _number(value: float | None, digits: int = 2) -> str:
+    return "–" if value is None else f"{value:.{digits}f}"
+
+
+def _group_table(
+    title: str, key: str, played: list[dict[str, Any]], committed: bool = False, continuous: bool = False
+) -> list[str]:
     """One table of the summary: every value of ``key`` (a cell's policy, or one axis's setting), with what
     a campaign reports per condition — episodes, collisions with their kinds and against the promise, invariant
-    breaks, fallback rate, speed; ``committed``: the committed mode's contexts, lapses and plan-forced share."""
+    breaks, fallback rate, speed; ``committed``: the committed mode's contexts, lapses and plan-forced share;
+    ``continuous``: no breaks or fallbacks, the projections and episodes off the road instead."""
     from safelane.running.collisions import COLLISION_KINDS, collision_contexts
 
     context_names = collision_contexts(committed)[:5] if committed else ("started_unsafe", "after_break",
                                                                          "from_safe_state")  # fmt: skip
-    headers = COMMITTED_COLUMNS if committed else ("started unsafe", "after a break", "from safe states")
-    extra = " lapses (in the model) | plan-forced |" if committed else ""
-    lines = [
-        f"## By {title}",
-        "",
-        f"| setting | episodes | collisions (front / rear / side) | {' | '.join(headers)} "
-        f"| invariant breaks | breaks / 1 000 decisions | fallback | speed [m/s] |{extra}",
-        "|---" * (7 + len(headers) + 2 * committed) + "|",
-    ]
+    if continuous:
+        headers: tuple[str, ...] = CONTINUOUS_COLUMNS
+        figures: tuple[str, ...] = ("lapses (in the model)", "plan-forced", "projected", "mean projection distance",
+                                    "off road", "speed [m/s]")  # fmt: skip
+    else:
+        headers = COMMITTED_COLUMNS if committed else ("started unsafe", "after a break", "from safe states")
+        figures = ("invariant breaks", "breaks / 1 000 decisions", "fallback", "speed [m/s]",
+                   *(("lapses (in the model)", "plan-forced") if committed else ()))  # fmt: skip
+    columns = ("setting", "episodes", "collisions (front / rear / side)", *headers, *figures)
+    lines = [f"## By {title}", "", "| " + " | ".join(columns) + " |", "|---" * len(columns) + "|"]
     groups: dict[str, list[dict[str, Any]]] = {}
     for r in played:
         groups.setdefault(str(r[key]), []).append(r)
@@ -449,23 +531,32 @@ def _group_table(title: str, key: str, played: list[dict[str, Any]], committed: 
         # Cells of campaigns written before the contexts were counted lack them: 0.
         contexts = [sum(r.get("collision_contexts", {}).get(c, 0) for r in rs) for c in context_names]
         fallback, speed = _per_decision(rs, "fallback_rate"), _per_decision(rs, "mean_speed")
+        counted = [r for r in rs if "lapses" in r]
+        forced = _per_decision(counted, "plan_forced_rate")
+        lapses = f"{sum(r['lapses'] for r in counted)} ({sum(r['lapses_in_model'] for r in counted)})"
         line = (
             f"| {value} | {sum(r['episodes'] for r in rs)} | {sum(r['collisions'] for r in rs)} "
-            f"({' / '.join(map(str, kinds))}) | {' | '.join(map(str, contexts))} | {b} | {1000 * b / max(d, 1):.2f} | "
-            f"{'–' if fallback is None else f'{100 * fallback:.2f} %'} | {'–' if speed is None else f'{speed:.2f}'} |"
+            f"({' / '.join(map(str, kinds))}) | {' | '.join(map(str, contexts))} |"
         )
-        if committed:
-            counted = [r for r in rs if "lapses" in r]
-            forced = _per_decision(counted, "plan_forced_rate")
+        if continuous:
+            figures = continuous_figures(rs)
             line += (
-                f" {sum(r['lapses'] for r in counted)} ({sum(r['lapses_in_model'] for r in counted)}) | "
-                f"{'–' if forced is None else f'{100 * forced:.2f} %'} |"
+                f" {lapses} | {_share(forced)} | {_share(figures['projection_rate'])} | "
+                f"{_number(figures['mean_projection_distance'], 3)} | {_share(figures['off_road_rate'])} | "
+                f"{_number(speed)} |"
+            )
+        else:
+            line += (
+                f" {b} | {1000 * b / max(d, 1):.2f} | {_share(fallback)} | {_number(speed)} |"
+                + (f" {lapses} | {_share(forced)} |" if committed else "")
             )
         lines.append(line)
     return [*lines, ""]
 
 
 def _markdown(spec: CampaignSpec, summary: dict[str, Any], played: list[dict[str, Any]]) -> str:
+    if spec.continuous:
+        return _continuous_markdown(spec, summary, played)
     fallback, speed = summary["fallback_rate"], summary["mean_speed"]
     lines = [
         f"# Falsification campaign {spec.name}: {spec.shield} shield (override on), {spec.simulator} simulator",
@@ -486,12 +577,44 @@ def _markdown(spec: CampaignSpec, summary: dict[str, Any], played: list[dict[str
         forced, waived = summary["plan_forced_rate"], summary.get("courtesy_waived_rate")
         lines += [
             f"Committed plans: **{summary['lapses']} lapses, {summary['lapses_in_model']} in the model** (every car "
-            f"inside its set); plan-forced decisions {'–' if forced is None else f'{100 * forced:.3f} %'}; "
-            f"courtesy waived at {'–' if waived is None else f'{100 * waived:.3f} %'} of decisions; "
+            f"inside its set); plan-forced decisions {_share(forced, 3)}; "
+            f"courtesy waived at {_share(waived, 3)} of decisions; "
             f"{summary['uncertified_starts']} uncertified starts, {summary['redraws']} spawns redrawn.",
             "",
         ]
     lines += _group_table("policy", "policy", played, committed)
     for axis in spec.axes:
         lines += _group_table(axis, f"axis_{axis}", played, committed)
+    return "\n".join(lines)
+
+
+def _continuous_markdown(spec: CampaignSpec, summary: dict[str, Any], played: list[dict[str, Any]]) -> str:
+    """summary.md of a campaign with continuous actions: what the shield for continuous actions reports."""
+    contexts = summary["collision_contexts"]
+    lines = [
+        f"# Falsification campaign {spec.name}: continuous actions, the shield for continuous actions "
+        f"(committed plans, projection), {spec.simulator} simulator",
+        "",
+        spec.description.strip(),
+        "",
+        f"{summary['cells_done']} / {summary['cells']} cells ({summary['cells_skipped']} skipped as not "
+        f"supported), {summary['episodes']} episodes, {summary['decisions']} decisions: "
+        f"**{summary['collisions']} collisions** {summary['collision_kinds']}: "
+        f"**{contexts['from_safe_state']} from certified states**, {contexts['uncertified_start']} from uncertified "
+        f"starts, {contexts['others_at_fault']} with others at fault, {contexts['outside_model']} outside the model, "
+        f"{contexts['after_break']} after a lapse, {contexts['after_fallback']} after a plan-forced or uncertified "
+        f"decision.",
+        "",
+        f"Committed plans: **{summary.get('lapses', 0)} lapses, {summary.get('lapses_in_model', 0)} in the model** "
+        f"(every car inside its set); plan-forced decisions {_share(summary.get('plan_forced_rate'), 3)}; "
+        f"the shield projected {_share(summary['projection_rate'], 3)} of the actions (mean distance "
+        f"{_number(summary['mean_projection_distance'], 3)}, normalised actions); "
+        f"{_share(summary['off_road_rate'], 3)} of the episodes ended off the road; "
+        f"{summary.get('uncertified_starts', 0)} uncertified starts, {summary.get('redraws', 0)} spawns redrawn; "
+        f"the ego's mean speed {_number(summary['mean_speed'])} m/s.",
+        "",
+    ]
+    lines += _group_table("policy", "policy", played, True, True)
+    for axis in spec.axes:
+        lines += _group_table(axis, f"axis_{axis}", played, True, True)
     return "\n".join(lines)

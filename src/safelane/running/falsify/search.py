@@ -17,6 +17,10 @@ distribution toward the conditions with the most invariant breaks per 1 000 deci
    ``smoothing``; σ kept above ``min_std`` × the range's width). An iteration whose samples all tie (no
    breaks anywhere) leaves the distribution as it was.
 
+With continuous actions (``actions: continuous``, whose shield reports no invariant breaks) the objective is the
+shield's lapses per 1 000 decisions (the plan kept, verified, no longer verifies: the same question, asked of the
+committed rule for controls).
+
 Only traffic inside the model is searched: ``env.*`` keys (every value checked by the config's own
 validation, so a sample is always a legal highway-env configuration) and ``traffic.vehicles_behind``;
 no adversaries, no shield settings.
@@ -51,6 +55,7 @@ from safelane.running.falsify.grid import (
     CampaignBase,
     CampaignSpec,
     cell_config,
+    continuous_figures,
     load_campaign_spec,
     open_campaign,
     play_cell,
@@ -202,7 +207,8 @@ class SearchSpec(CampaignBase):
 def load_falsify_spec(path: str | Path, overrides: dict[str, Any] | None = None) -> CampaignSpec | SearchSpec:
     """A campaign YAML: a :class:`SearchSpec` if it has a ``search`` section, else a grid
     (:func:`safelane.running.falsify.grid.load_campaign_spec`). ``overrides``: ``episodes`` (episodes per
-    cell, or per sample of a search), ``sample`` (grids only) and ``seed`` (the traffic seed); None is ignored.
+    cell, or per sample of a search), ``sample`` (grids only), ``seed`` (the traffic seed), ``shield`` and
+    ``actions``; None is ignored.
     Bad input: a one-line ConfigError."""
     path = Path(path)
     data = read_spec_yaml(path)
@@ -335,11 +341,13 @@ def _sample_path(out: Path, index: int) -> Path:
     return out / "samples" / f"sample{index:05d}.json"
 
 
-def objective(record: dict[str, Any]) -> float | None:
-    """The search's objective of a played sample: invariant breaks per 1 000 decisions (None: skipped)."""
+def objective(record: dict[str, Any], continuous: bool = False) -> float | None:
+    """The search's objective of a played sample: invariant breaks per 1 000 decisions, or with ``continuous`` actions
+    the shield's lapses per 1 000 decisions (None: skipped)."""
     if "skipped" in record:
         return None
-    return 1000 * record["invariant_breaks"] / max(record["decisions"], 1)
+    events = record.get("lapses", 0) if continuous else record["invariant_breaks"]
+    return 1000 * events / max(record["decisions"], 1)
 
 
 def _sample_task(out_dir: str, spec_json: str, cell_json: str) -> dict[str, Any]:
@@ -358,7 +366,7 @@ def _sample_task(out_dir: str, spec_json: str, cell_json: str) -> dict[str, Any]
         f"sample{index:05d}-",
     )
     record = {k: cell[k] for k in ("index", "iteration", "sample", "policy", "values", "labels")} | played
-    record["objective"] = objective(record)
+    record["objective"] = objective(record, spec.continuous)
     atomic_write_text(_sample_path(out, index), json.dumps(record))
     return record
 
@@ -424,9 +432,9 @@ def run_search(
         samples = draw_samples(settings, dist, np.random.default_rng([settings.seed, iteration]))
         cells = [sample_cell(spec, iteration, j, sample) for j, sample in enumerate(samples)]
         records = _play_samples(out, spec, cells, backend, workers, address, done, total, progress)
-        scores = [objective(r) for r in records]
+        scores = [objective(r, spec.continuous) for r in records]
         elite = select_elite(scores, settings.elites, [r.get("collisions", 0) for r in records])
-        rows.append(_iteration_row(iteration, dist, records, elite))
+        rows.append(_iteration_row(iteration, dist, records, elite, spec.continuous))
         dist = cem_update(settings, dist, [samples[i] for i in elite])
         played += records
         result = write_search_results(out, spec, rows, dist, played)
@@ -480,11 +488,11 @@ def _play_samples(
 
 
 def _iteration_row(
-    iteration: int, dist: Distribution, records: list[dict[str, Any]], elite: list[int]
+    iteration: int, dist: Distribution, records: list[dict[str, Any]], elite: list[int], continuous: bool = False
 ) -> dict[str, Any]:
-    """One iteration: its objective's mean, best and elite mean [breaks / 1 000 decisions], its totals and
+    """One iteration: its objective's mean, best and elite mean [events / 1 000 decisions], its totals and
     the distribution it was drawn from."""
-    scores = [s for s in (objective(r) for r in records) if s is not None]
+    scores = [s for s in (objective(r, continuous) for r in records) if s is not None]
     live = [r for r in records if "skipped" not in r]
     best = max(live, key=lambda r: (r["objective"], r["collisions"], -r["index"]), default=None)
     return {
@@ -499,6 +507,7 @@ def _iteration_row(
         "episodes": sum(r["episodes"] for r in live),
         "decisions": sum(r["decisions"] for r in live),
         "invariant_breaks": sum(r["invariant_breaks"] for r in live),
+        **({"lapses": sum(r.get("lapses", 0) for r in live)} if continuous else {}),
         "collisions": sum(r["collisions"] for r in live),
         "distribution": dist,
     }
@@ -510,6 +519,7 @@ def write_search_results(
     """Write search.json, samples.csv and summary.md (atomically) from the iterations so far; returns
     search.json's dict (totals, the iterations, the final distribution, the best samples)."""
     from safelane.running.collisions import collision_contexts
+    from safelane.running.evaluation import CONTINUOUS_FIGURES
 
     live = [r for r in records if "skipped" not in r]
     kinds: dict[str, int] = {}
@@ -526,6 +536,8 @@ def write_search_results(
     ranked = sorted(live, key=lambda r: (-r["objective"], -r["collisions"], r["index"]))
     keep = ("index", "iteration", "labels", "values", "objective", "invariant_breaks", "decisions", "episodes",
             "collisions", "collision_contexts", "break_classes", "mean_speed")  # fmt: skip
+    if spec.continuous:
+        keep = (*(k for k in keep if k not in ("invariant_breaks", "break_classes")), "lapses", "lapses_in_model")
     summary = {
         "name": spec.name,
         "method": spec.search.method,
@@ -559,9 +571,18 @@ def write_search_results(
             uncertified_starts=sum(r["uncertified_starts"] for r in counted),
             redraws=sum(r["redraws"] for r in counted),
         )
+    if spec.continuous:  # its shield reports lapses, projections and episodes off the road, not breaks or fallbacks
+        for key in ("invariant_breaks", "breaks_per_1000_decisions", "break_classes"):
+            del summary[key]
+        lapses = summary.get("lapses", 0)
+        summary.update(lapses_per_1000_decisions=1000 * lapses / decisions if decisions else None,
+                       actions=spec.actions, **continuous_figures(live))  # fmt: skip
     names = list(spec.search.parameters)
     columns = ["index", "iteration", "sample", *names, "episodes", "decisions", "invariant_breaks", "objective",
                *BREAK_CLASSES, "collisions", "fallback_rate", "mean_speed", "skipped"]  # fmt: skip
+    if spec.continuous:
+        columns = ["index", "iteration", "sample", *names, "episodes", "decisions", "lapses", "objective",
+                   "lapses_in_model", "collisions", *CONTINUOUS_FIGURES, "mean_speed", "skipped"]  # fmt: skip
     buffer = io.StringIO()
     writer = csv.DictWriter(buffer, fieldnames=columns, extrasaction="ignore", lineterminator="\n")
     writer.writeheader()
@@ -589,32 +610,45 @@ def _number(value: float | None, digits: int = 2) -> str:
 def _markdown(spec: SearchSpec, summary: dict[str, Any]) -> str:
     s = spec.search
     names = list(s.parameters)
+    if spec.continuous:  # the objective counts the shield's lapses
+        events, key, headline = "lapses", "lapses", (
+            f"**{summary.get('lapses', 0)} lapses** ({_number(summary['lapses_per_1000_decisions'])} per 1 000 "
+            f"decisions, {summary.get('lapses_in_model', 0)} in the model), **{summary['collisions']} collisions** "
+            f"{summary['collision_kinds']} (against the shield's promise: {summary['collision_contexts']}); the shield "
+            f"projected {_number(100 * (summary['projection_rate'] or 0.0))} % of the actions, "
+            f"{_number(100 * (summary['off_road_rate'] or 0.0))} % of the episodes ended off the road."
+        )
+        title = "continuous actions, the shield for continuous actions"
+    else:
+        events, key, headline = "invariant breaks", "invariant_breaks", (
+            f"**{summary['invariant_breaks']} invariant breaks** ({_number(summary['breaks_per_1000_decisions'])} "
+            f"per 1 000 decisions) {summary['break_classes']}, **{summary['collisions']} collisions** "
+            f"{summary['collision_kinds']} (against the rule's promise: {summary['collision_contexts']})."
+        )
+        title = f"{spec.shield} shield (override on)"
+    short = "lapses" if spec.continuous else "breaks"
     lines = [
-        f"# Falsification search {spec.name}: CEM, {spec.shield} shield (override on), {spec.simulator} simulator, "
-        f"policy {spec.policies[0]}",
+        f"# Falsification search {spec.name}: CEM, {title}, {spec.simulator} simulator, policy {spec.policies[0]}",
         "",
         spec.description.strip(),
         "",
         f"{summary['iterations_done']} / {s.iterations} iterations × {s.population} samples × "
         f"{s.episodes_per_sample} episodes (elite {s.elites}, smoothing {s.smoothing:g}, seed {s.seed}): "
-        f"{summary['episodes']} episodes, {summary['decisions']} decisions, "
-        f"**{summary['invariant_breaks']} invariant breaks** ({_number(summary['breaks_per_1000_decisions'])} per "
-        f"1 000 decisions) {summary['break_classes']}, **{summary['collisions']} collisions** "
-        f"{summary['collision_kinds']} (against the rule's promise: {summary['collision_contexts']}).",
+        f"{summary['episodes']} episodes, {summary['decisions']} decisions, " + headline,
         "",
         "## Iterations",
         "",
-        "Objective: invariant breaks per 1 000 decisions of a sample. Distribution: the one the iteration "
+        f"Objective: {events} per 1 000 decisions of a sample. Distribution: the one the iteration "
         "drew from (a range: mean ± σ; a choice: the likeliest, with its probability).",
         "",
-        "| iteration | mean | best | elite mean | breaks | collisions | " + " | ".join(names) + " |",
+        f"| iteration | mean | best | elite mean | {short} | collisions | " + " | ".join(names) + " |",
         "|---" * (6 + len(names)) + "|",
     ]
     for row in summary["iterations"]:
         cells = [_describe(s.parameters[n], row["distribution"][n]) for n in names]
         lines.append(
             f"| {row['iteration']} | {_number(row['mean_objective'])} | {_number(row['best_objective'])} | "
-            f"{_number(row['elite_mean_objective'])} | {row['invariant_breaks']} | {row['collisions']} | "
+            f"{_number(row['elite_mean_objective'])} | {row.get(key, 0)} | {row['collisions']} | "
             + " | ".join(cells)
             + " |"
         )
@@ -624,14 +658,14 @@ def _markdown(spec: SearchSpec, summary: dict[str, Any]) -> str:
         "",
         "## Best conditions found",
         "",
-        f"| sample | iteration | {' | '.join(names)} | breaks / 1 000 decisions | breaks | decisions | collisions |",
+        f"| sample | iteration | {' | '.join(names)} | {short} / 1 000 decisions | {short} | decisions | collisions |",
         "|---" * (6 + len(names)) + "|",
     ]
     for r in summary["best"]:
         lines.append(
             f"| {r['index']} | {r['iteration']} | "
             + " | ".join(r["labels"][n] for n in names)
-            + f" | {r['objective']:.2f} | {r['invariant_breaks']} | {r['decisions']} | {r['collisions']} |"
+            + f" | {r['objective']:.2f} | {r.get(key, 0)} | {r['decisions']} | {r['collisions']} |"
         )
     lines.append("")
     return "\n".join(lines)

@@ -30,9 +30,12 @@ def test_committed_mask_figures_are_the_documented_ones() -> None:
     those of the one episode played."""
     figures = committed_mask_figures(episodes=1, seed=3)
     stats = ("median", "mean", "p99")
-    timings = {f"{who}_mask_us_{stat}_fast" for who in ("committed", "committed_robust") for stat in stats}
-    assert set(figures) == timings | {"committed_mask_ratio_fast", "committed_mask_decisions", "committed_engine"}
-    assert all(isinstance(figures[k], float) for k in (*timings, "committed_mask_ratio_fast"))
+    who = ("committed", "committed_robust", "projection")
+    timings = {f"{name}_mask_us_{stat}_fast" for name in who for stat in stats}
+    ratios = {"committed_mask_ratio_fast", "projection_ratio_fast", "projection_evaluated_mean"}
+    assert set(figures) == timings | ratios | {"committed_mask_decisions", "committed_engine"}
+    assert all(isinstance(figures[k], float) for k in (*timings, *ratios))
+    assert figures["projection_evaluated_mean"] >= 1.0  # at least the agent's action is verified
     assert 1 <= figures["committed_mask_decisions"] <= 40  # one episode of the fast preset: 40 s at 1 decision/s
     assert figures["committed_engine"] in ("compiled", "numpy")
 

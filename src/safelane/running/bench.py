@@ -34,7 +34,10 @@ from safelane.reporting.metrics_file import METRICS_FILE, read_metrics
 from safelane.running.policies import fixed_policy
 from safelane.running.run_directory import make_train_config
 from safelane.running.training import train
-from safelane.safety.world import OVERRIDE_ORDER
+from safelane.safety.continuous.controls import ControlLimits
+from safelane.safety.continuous.family import ControlFamily
+from safelane.safety.control_shield import control_dynamics
+from safelane.safety.world import OVERRIDE_ORDER, Dynamics
 
 BENCH_PRESET = "fast"
 BENCH_SHIELDS = ("nominal", "robust")
@@ -110,7 +113,13 @@ def committed_mask_figures(episodes: int = COMMITTED_EPISODES, seed: int = 0) ->
     :func:`~safelane.env.factory.make_env` builds from the preset. Figures [µs]: ``committed_mask_us_median_fast``,
     ``…_mean_fast``, ``…_p99_fast`` and the robust mask's on the same states, ``committed_robust_mask_us_…_fast``;
     ``committed_mask_ratio_fast``: the committed mean ÷ the robust mean (the target: ≤ 3);
-    ``committed_mask_decisions``: the decisions timed; ``committed_engine``."""
+    ``committed_mask_decisions``: the decisions timed; ``committed_engine``.
+
+    On the same states, the shield for continuous actions judging a uniform random action
+    (:class:`~safelane.safety.continuous.family.ControlFamily`, compiled, its memory reset: the ego moved by
+    meta-actions, not by its plans): ``projection_mask_us_…_fast`` [µs], ``projection_ratio_fast`` (its mean ÷ the
+    committed decision's mean: the target ≤ 3) and ``projection_evaluated_mean`` (actions verified per
+    decision)."""
     if episodes < 1:
         raise ValueError(f"episodes: must be >= 1 (got {episodes})")
     env = make_env(BENCH_PRESET, simulator="fast")  # no shield of its own: the two below judge its states
@@ -119,6 +128,10 @@ def committed_mask_figures(episodes: int = COMMITTED_EPISODES, seed: int = 0) ->
     family = committed.family
     committed_us: list[float] = []
     robust_us: list[float] = []
+    control, limits, wanted_rng = ControlFamily(), ControlLimits(), np.random.default_rng(seed)
+    projection_us: list[float] = []
+    evaluated: list[int] = []
+    control_dyn: Dynamics | None = None
     try:
         for i in range(-1, episodes):  # episode -1: its first decisions compile (or load) the kernels, untimed
             policy = fixed_policy("random", seed + max(i, 0))
@@ -136,9 +149,17 @@ def committed_mask_figures(episodes: int = COMMITTED_EPISODES, seed: int = 0) ->
                 t3 = time.perf_counter()
                 family.commit(executed)
                 t4 = time.perf_counter()
+                control_dyn = control_dyn or control_dynamics(info["snapshot"], limits)
+                wanted = wanted_rng.uniform(-1.0, 1.0, size=2).astype(np.float32)
+                control.reset()
+                t5 = time.perf_counter()
+                judged = control.judge(info["snapshot"], control_dyn, wanted)
+                t6 = time.perf_counter()
                 if i >= 0:
                     robust_us.append((t1 - t0) * 1e6)
                     committed_us.append((t2 - t1 + t4 - t3) * 1e6)
+                    projection_us.append((t6 - t5) * 1e6)
+                    evaluated.append(judged.evaluated)
                 obs, _, terminated, truncated, info = env.step(executed)
                 done, decisions = terminated or truncated, decisions + 1
     finally:
@@ -153,6 +174,9 @@ def committed_mask_figures(episodes: int = COMMITTED_EPISODES, seed: int = 0) ->
         figures["committed_mask_us_mean_fast"] / figures["committed_robust_mask_us_mean_fast"]
     )
     figures.update(committed_mask_decisions=len(committed_us), committed_engine=committed.engine)
+    figures.update(mask_cost_figures(projection_us, "_fast", prefix="projection"))
+    figures["projection_ratio_fast"] = figures["projection_mask_us_mean_fast"] / figures["committed_mask_us_mean_fast"]
+    figures["projection_evaluated_mean"] = float(np.mean(evaluated))
     return figures
 
 
@@ -171,8 +195,8 @@ def continuous_step_figures(episodes: int, seed: int = 0) -> dict[str, Any]:
     [decisions/s], ``continuous_step_ratio`` (continuous ÷ discrete decisions/s: below 1, the continuous step costs
     more).
 
-    The shield for continuous actions is not timed here: its cost per decision belongs beside these figures once its
-    compiled engine exists (the numpy reference takes about 0.4 s a decision)."""
+    The shield for continuous actions is timed on the committed decision's states (:func:`committed_mask_figures`:
+    ``projection_…``)."""
     if episodes < 1:
         raise ValueError(f"episodes: must be >= 1 (got {episodes})")
     policies = {"discrete": "random", "continuous": CONTINUOUS_BENCH_POLICY}
@@ -316,7 +340,9 @@ def run_bench(
     * ``committed_mask_us_median_fast`` / ``_mean_fast`` / ``_p99_fast`` [µs]: the committed mode's decision
       (evaluate and commit) and ``committed_robust_mask_us_…_fast`` the robust
       mask's on the same states, ``committed_mask_ratio_fast`` committed ÷ robust (means), on the first
-      ``min(episodes, COMMITTED_EPISODES)`` seeds (:func:`committed_mask_figures`);
+      ``min(episodes, COMMITTED_EPISODES)`` seeds (:func:`committed_mask_figures`), and on the same states the
+      shield for continuous actions, ``projection_mask_us_…_fast``, ``projection_ratio_fast`` (its mean ÷ the
+      committed decision's) and ``projection_evaluated_mean``;
     * ``fast_batched_decisions_per_s``: ``{N: summed decisions/s}`` of ``make_vector_env`` with N
       shielded fast-simulator environments on one thread, N in :data:`BATCH_SIZES`
       (:func:`measure_batched`), and ``fast_batched_speedup`` each ÷ stock highway-env;

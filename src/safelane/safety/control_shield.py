@@ -58,6 +58,14 @@ def control_limits(action_config: dict[str, Any]) -> ControlLimits:
     return ControlLimits(spec.acceleration_range, spec.steering_range, low, high)
 
 
+def control_dynamics(snap: RoadSnapshot, limits: ControlLimits, margin: float = DEFAULT_MARGIN,
+                     rule: Rule | str = DEFAULT_RULE_NAME) -> Dynamics:  # fmt: skip
+    """The world's constants read from ``snap`` (:func:`~safelane.safety.shield.dynamics_of`), the horizon long
+    enough for an ego under ``limits`` to stop from its top speed at its hardest braking."""
+    dyn = dynamics_of(snap, margin, rule)
+    return dataclasses.replace(dyn, target_speeds=(), braking_decisions=limits.braking_decisions(dyn.decision_period))
+
+
 class ControlShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
     """The shield for continuous actions (module docstring). ``margin`` [m], ``rule`` and ``engine`` as for
     :class:`~safelane.safety.shield.SafetyShield` (the rule's options shape the other cars' sets; ``"compiled"``:
@@ -101,9 +109,7 @@ class ControlShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
         """The world's constants read from the episode's first snapshot, the horizon long enough to stop from
         the top speed at the hardest braking."""
         if self.dynamics is None:
-            dyn = dynamics_of(snap, self.margin, self.rule)
-            braking = self.limits.braking_decisions(dyn.decision_period)
-            self.dynamics = dataclasses.replace(dyn, target_speeds=(), braking_decisions=braking)
+            self.dynamics = control_dynamics(snap, self.limits, self.margin, self.rule)
         return self.dynamics
 
     def reset(self, **kwargs: Any) -> tuple[Any, dict[str, Any]]:

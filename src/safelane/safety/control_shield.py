@@ -38,7 +38,7 @@ from safelane.safety.continuous.search import STEERING_GRID
 from safelane.safety.road import whole_road_state
 from safelane.safety.rule import DEFAULT_RULE_NAME, Rule
 from safelane.safety.shield import DEFAULT_MARGIN, dynamics_of
-from safelane.safety.world import Dynamics, Engine
+from safelane.safety.world import BASE_DECISION_PERIOD, Dynamics, Engine
 from safelane.sim.fast.continuous import resolve_continuous
 from safelane.sim.highway import HighwayEnvAdapter
 
@@ -61,9 +61,12 @@ def control_limits(action_config: dict[str, Any]) -> ControlLimits:
 def control_dynamics(snap: RoadSnapshot, limits: ControlLimits, margin: float = DEFAULT_MARGIN,
                      rule: Rule | str = DEFAULT_RULE_NAME) -> Dynamics:  # fmt: skip
     """The world's constants read from ``snap`` (:func:`~safelane.safety.shield.dynamics_of`), the horizon long
-    enough for an ego under ``limits`` to stop from its top speed at its hardest braking."""
+    enough for an ego under ``limits`` to stop from its top speed at its hardest braking: the braking decisions
+    counted at :data:`~safelane.safety.world.BASE_DECISION_PERIOD`, as the horizon's other decisions are, when the
+    rule's ``full_horizon`` spans as many seconds at a faster rate; else at the decision period."""
     dyn = dynamics_of(snap, margin, rule)
-    return dataclasses.replace(dyn, target_speeds=(), braking_decisions=limits.braking_decisions(dyn.decision_period))
+    braking = limits.braking_decisions(BASE_DECISION_PERIOD if dyn.rule.full_horizon else dyn.decision_period)
+    return dataclasses.replace(dyn, target_speeds=(), braking_decisions=braking)
 
 
 class ControlShield(gym.Wrapper, gym.utils.RecordConstructorArgs):

@@ -90,8 +90,9 @@ class Dynamics:
     body_width: float = 2.0  # [m] the other vehicles' width (highway-env's Vehicle.WIDTH), for body_extent
     rule: Rule = DEFAULTS  # the rule's options (safelane.safety.rule)
     braking_decisions: int | None = None
-    """Decisions the ego's braking to a standstill may take: None, one per set-point (a meta-action ego steps one
-    down per decision); an ego under continuous controls, its top speed over its braking per decision."""
+    """Decisions the ego's braking to a standstill may take, counted at :data:`BASE_DECISION_PERIOD` as the rest of
+    the horizon is: None, one per set-point (a meta-action ego steps one down per decision); an ego under continuous
+    controls, its top speed over its braking per second."""
 
     def with_options(self, **changes: Any) -> Dynamics:
         """These dynamics with rule options (by name) and other fields changed: ``dyn.with_options(

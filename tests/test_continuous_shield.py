@@ -299,3 +299,19 @@ def test_an_episode_start_with_no_verified_plan_is_reported() -> None:
     search = ActionSearch(lambda a: verify_action(state, dyn, LIMITS, sets, a))
     assert project(search, np.array([0.0, 0.0], dtype=np.float32), 0.0).action is None
     assert ControlFamily().intervention == "projection"
+
+
+def test_sb3_sac_and_make_vec_take_the_shielded_id() -> None:
+    """SB3's SAC learns on the shielded id as it is; ``gym.make_vec`` batches shielded environments, each reporting
+    its projections."""
+    from stable_baselines3 import SAC
+
+    env = gym.make("safelane/HighwayContinuousFast-v0", shield="committed", config={"env.duration": 4})
+    model = SAC("MlpPolicy", env, learning_starts=8, batch_size=8, seed=0, device="cpu")
+    model.learn(total_timesteps=16)
+    vec = gym.make_vec("safelane/HighwayContinuousFast-v0", num_envs=2, shield="committed",
+                       config={"env.duration": 3})  # fmt: skip
+    obs, _ = vec.reset(seed=0)
+    assert obs.shape == (2, 28)
+    _, _, _, _, infos = vec.step(np.ones((2, 2), dtype=np.float32))
+    assert infos["projected"].shape == (2,) and infos["projection_distance"].shape == (2,)

@@ -42,6 +42,8 @@ BOOL_INFO = ("collision", "fallback", "shield_intervened", "unsafe_action", "inv
 """Per-environment flags of a step, batched as bool arrays (False where the env does not report one)."""
 COMMITTED_INFO = ("plan_forced", "lapse", "lapse_in_model")
 """The committed shield mode's flags of a step, batched like :data:`BOOL_INFO` when the environments report them."""
+PROJECTION_INFO = ("projected", "projection_distance")
+"""The shield for continuous actions' projection of a step (bool; normalised distance), batched when reported."""
 
 
 class SafelaneVectorEnv(VectorEnv):
@@ -100,6 +102,7 @@ class SafelaneVectorEnv(VectorEnv):
         committed = {key: np.zeros(n, dtype=bool) for key in COMMITTED_INFO}
         reported = False
         speeds = np.zeros(n)
+        projected, distance = np.zeros(n, dtype=bool), np.zeros(n)
         executed = actions.copy() if self.continuous else np.asarray(actions, dtype=np.int64).copy()
         final_obs = np.zeros_like(self._obs)
         final_masks = np.zeros((n, N_ACTIONS), dtype=bool)
@@ -116,6 +119,9 @@ class SafelaneVectorEnv(VectorEnv):
             speeds[i] = float(info.get("speed", 0.0))
             if not self.continuous:
                 executed[i] = int(info.get("executed_action", actions[i]))
+            elif "executed_action" in info:  # the shield for continuous actions: what it executed, and how far
+                executed[i] = info["executed_action"]
+                projected[i], distance[i] = bool(info["projected"]), float(info["projection_distance"])
             self._returns[i] += float(reward)
             self._lengths[i] += 1
             if term or trunc:
@@ -130,6 +136,7 @@ class SafelaneVectorEnv(VectorEnv):
         infos: dict[str, Any] = {
             **flags,
             **(committed if reported else {}),
+            **({"projected": projected, "projection_distance": distance} if self.continuous and reported else {}),
             "speed": speeds,
             "executed_action": executed,
             "action_mask": self._masks.copy(),

@@ -242,6 +242,7 @@ def car_gaps_kernel(
     x: np.ndarray, half: np.ndarray, ahead: np.ndarray, own_lane: np.ndarray, speed: np.ndarray,
     accel_max: np.ndarray, brake_max: np.ndarray, fv_min: np.ndarray, fv_max: np.ndarray,
     t: np.ndarray, follower_reaction: float, order: np.ndarray, least: bool, lo_min: np.ndarray, hi_max: np.ndarray,
+    floor: float,
 ) -> np.ndarray:  # fmt: skip
     """``committed.car_gaps``: (cars, holds) each car's worst bumper-to-bumper gap [m] to the plans (the
     reference documents the arguments; lanes as ``lane_ids``/``lane_until``, the carried follower bounds as
@@ -250,7 +251,9 @@ def car_gaps_kernel(
     ``order``. With ``least`` only the least gap over the cars is wanted: a car is skipped (its row left inf) when a
     bound below its gap (from ``lo_min``/``hi_max`` (cars, chunks), its lowest and highest position in each chunk
     of :data:`CHUNK` frames) is already above the least gap so far for every plan — rounding is monotone, so the
-    computed gap is at least the computed bound and the least gap is the same to the bit."""
+    computed gap is at least the computed bound and the least gap is the same to the bit. With ``least`` and a
+    ``floor`` above −inf the kernel returns as soon as every plan's least gap so far is below ``floor`` (a verdict
+    below a margin needs no more: the rows are then only a witness)."""
     n, holds, m = x.shape[0], ego_x.shape[0], t.shape[0]
     worst = np.full((n, holds), np.inf)
     running = np.full(holds, np.inf)
@@ -307,6 +310,12 @@ def car_gaps_kernel(
                 worst[i, h] = nmin(worst[i, h], low)
                 if least:
                     running[h] = nmin(running[h], low)
+            if least and floor > -np.inf:
+                settled = True
+                for h in range(holds):
+                    settled = settled and running[h] < floor
+                if settled:
+                    return worst
     return worst
 
 
@@ -426,7 +435,7 @@ def plans_kernel(
         gaps = car_gaps_kernel(x_lo, x_hi, entry, now, xs[a], onsets[a], lane_ids[first:stop],
                                lane_until[first:stop], held_a, held_b, t.shape[0] - 1, no_carried, empty, x, half,
                                ahead, own_lane, speed, accel_max, brake_max, fv_min, fv_max, t, follower_reaction,
-                               order, True, lo_min, hi_max)  # fmt: skip
+                               order, True, lo_min, hi_max, -np.inf)  # fmt: skip
         for h in range(N_FALLBACKS):
             low = np.inf
             for i in range(gaps.shape[0]):
@@ -652,7 +661,7 @@ def car_gaps_compiled(
         sets.x_lo, sets.x_hi, sets.entry, np.asarray(sets.now, dtype=np.bool_), np.ascontiguousarray(ego_x),
         _f(onset), lane_ids, lane_until, *_held_pair(state, held),
         t.size - 1 if until_frame is None else int(until_frame), carried_lane, carried_high, *cars, t,
-        float(dyn.follower_reaction), np.arange(n, dtype=np.int64), False, np.empty((0, 0)), np.empty((0, 0)),
+        float(dyn.follower_reaction), np.arange(n, dtype=np.int64), False, np.empty((0, 0)), np.empty((0, 0)), -np.inf,
     )  # fmt: skip
 
 

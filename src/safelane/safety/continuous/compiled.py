@@ -198,11 +198,12 @@ def _trajectory_gaps(states: np.ndarray, onset: float, held_a: int, held_b: int,
                      ahead: np.ndarray, own_lane: np.ndarray, speed: np.ndarray, accel_max: np.ndarray,
                      brake_max: np.ndarray, fv_min: np.ndarray, fv_max: np.ndarray, t: np.ndarray,
                      follower_reaction: float, lane_width: float, lanes_count: int, length: float,
-                     order: np.ndarray, least: bool, lo_min: np.ndarray, hi_max: np.ndarray,
+                     order: np.ndarray, least: bool, lo_min: np.ndarray, hi_max: np.ndarray, floor: float,
                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # fmt: skip
     """(gaps (cars,) or (1,) −inf, lane ids, until) of :func:`~safelane.safety.continuous.plans.trajectory_gap`;
     with ``least`` only their least is the reference's (``car_gaps_kernel`` skips the cars that cannot lower it,
-    visiting them in ``order``; ``lo_min``/``hi_max``: :func:`chunk_bounds`)."""
+    visiting them in ``order``; ``lo_min``/``hi_max``: :func:`chunk_bounds`), and only whether it is below
+    ``floor`` once it is (the kernel stops there)."""
     ids, until, excess = lanes_kernel(states, lane_width, lanes_count, length, t)
     n = x.shape[0]
     ego_x = np.empty((1, states.shape[0]))
@@ -211,7 +212,7 @@ def _trajectory_gaps(states: np.ndarray, onset: float, held_a: int, held_b: int,
     onsets = np.full(1, onset)
     worst = car_gaps_kernel(x_lo, x_hi, entry, now, ego_x, onsets, ids, until, held_a, held_b, last_frame,
                             carried_lane, carried_high, x, half, ahead, own_lane, speed, accel_max, brake_max, fv_min,
-                            fv_max, t, follower_reaction, order, least, lo_min, hi_max)
+                            fv_max, t, follower_reaction, order, least, lo_min, hi_max, floor)
     gaps = np.empty(n)
     for i in range(n):
         gaps[i] = worst[i, 0] - excess
@@ -250,7 +251,7 @@ def verify_kernel(ego0: np.ndarray, action: np.ndarray, ego_lane: int, margin: f
         gaps, ids, until = _trajectory_gaps(states, onset, ego_lane, lane, t.shape[0] - 1, True, x_lo, x_hi, entry,
                                             now, no_lane, no_high, x, half, ahead, own_lane, speed, accel_max,
                                             brake_max, fv_min, fv_max, t, follower_reaction, lane_width,
-                                            lanes_count, length, order, True, lo_min, hi_max)  # fmt: skip
+                                            lanes_count, length, order, True, lo_min, hi_max, margin)  # fmt: skip
         gap = np.inf if gaps.shape[0] == 0 else gaps.min()
         if gap >= margin:
             return hold, gap, states, actions, ids, until, lane, onset
@@ -333,7 +334,7 @@ def tail_gap_compiled(state: RoadState, dyn: Dynamics, limits: LimitArrays, sets
         states, float(onset), int(held[0]), int(held[1]), int(until_frame), False, sets.x_lo, sets.x_hi, sets.entry,
         np.asarray(sets.now, dtype=np.bool_), carried_lane, carried_high, *cars, t, float(dyn.follower_reaction),
         float(dyn.lane_width), int(dyn.lanes_count), float(state.ego_length), np.arange(n), False, np.empty((0, 0)),
-        np.empty((0, 0)),
+        np.empty((0, 0)), -np.inf,
     )  # fmt: skip
     lanes = tuple((int(i), float(u)) for i, u in zip(ids, until, strict=True))
     return gaps, lanes, Trajectory(states, out)

@@ -54,37 +54,36 @@ class ActionSearch:
             self._seen[key] = self.verify(action)
         return self._seen[key]
 
-    def interval(self, steering: float, wanted: float | None = None, radius: float = np.inf
-                 ) -> tuple[float, float, ControlPlan | None]:  # fmt: skip
+    def interval(self, steering: float) -> tuple[float, float, ControlPlan | None]:
         """(low, high, plan) the verified accelerations at ``steering`` (normalised; nan, nan, None: none found on
-        :data:`ACCELERATION_GRID`), both ends found by bisection; with ``wanted`` only the end nearest it is sought
-        (the other is nan) and ``plan`` is the nearest verified acceleration's; ``radius``: only an end within
-        this of ``wanted`` is of use (the grid is tried there and one spacing beyond, which still meets an interval
-        a spacing wide that reaches within it)."""
-        if wanted is not None:
-            plan = self.plan(wanted, steering)
-            if plan is not None:
-                return wanted, wanted, plan
-        grid = ACCELERATION_GRID
-        if wanted is not None and np.isfinite(radius):
-            grid = grid[np.abs(grid - wanted) <= radius + GRID_SPACING]
-        inside = [float(a) for a in grid if self.plan(float(a), steering) is not None]
+        :data:`ACCELERATION_GRID`), both ends found by bisection; ``plan``: the low end's."""
+        grid = [float(a) for a in ACCELERATION_GRID]
+        inside = [a for a in grid if self.plan(a, steering) is not None]
         if not inside:
             return np.nan, np.nan, None
         low_in, high_in = min(inside), max(inside)
-        if wanted is not None and low_in < wanted < high_in:  # not one interval: the nearest verified end found
-            nearest = min(inside, key=lambda a: (abs(a - wanted), a))
-            end, plan = self._bisect(steering, wanted, nearest)
-            return (end, np.nan, plan) if end < wanted else (np.nan, end, plan)
-        low = high = np.nan
-        plan_low = plan_high = None
-        if wanted is None or wanted < low_in:
-            outside = max((float(a) for a in grid if a < low_in), default=low_in)
-            low, plan_low = self._bisect(steering, outside if wanted is None else max(outside, wanted), low_in)
-        if wanted is None or wanted > high_in:
-            outside = min((float(a) for a in grid if a > high_in), default=high_in)
-            high, plan_high = self._bisect(steering, outside if wanted is None else min(outside, wanted), high_in)
-        return low, high, plan_low if plan_low is not None else plan_high
+        low, plan = self._bisect(steering, max((a for a in grid if a < low_in), default=low_in), low_in)
+        high, _ = self._bisect(steering, min((a for a in grid if a > high_in), default=high_in), high_in)
+        return low, high, plan
+
+    def nearest(self, steering: float, wanted: float, radius: float = np.inf) -> tuple[float, ControlPlan | None]:
+        """(acceleration, plan) the verified acceleration at ``steering`` nearest ``wanted`` (normalised; nan, None:
+        none found). ``wanted`` itself, else the grid's accelerations from the nearest, up to the first verified
+        one, then bisection between it and the unverified point before it: under the interval structure the end
+        found is the nearest. ``radius``: only an acceleration within this of ``wanted`` is of use (the grid is
+        tried there and one spacing beyond, which still meets an interval a spacing wide that reaches within
+        it)."""
+        plan = self.plan(wanted, steering)
+        if plan is not None:
+            return wanted, plan
+        grid = sorted((float(a) for a in ACCELERATION_GRID if abs(a - wanted) <= radius + GRID_SPACING),
+                      key=lambda a: (abs(a - wanted), a))  # fmt: skip
+        for point in grid:
+            if self.plan(point, steering) is not None:
+                toward = [a for a in grid if abs(a - wanted) < abs(point - wanted) and (a < point) == (wanted < point)]
+                outside = min(toward, key=lambda a: abs(a - point)) if toward else wanted
+                return self._bisect(steering, outside, point)
+        return np.nan, None
 
     def _bisect(self, steering: float, outside: float, inside: float) -> tuple[float, ControlPlan | None]:
         """The verified end between ``outside`` (not verified, or the range's end) and ``inside`` (verified)."""
@@ -128,10 +127,9 @@ def project(search: ActionSearch, wanted: np.ndarray, lane_keeping_steering: flo
         if best is not None and abs(steering - float(wanted[1])) >= best[0]:
             break  # no acceleration at this steering or beyond can be nearer
         radius = np.sqrt(max(best[0] ** 2 - (steering - float(wanted[1])) ** 2, 0.0)) if best else np.inf
-        low, high, plan = search.interval(steering, float(wanted[0]), radius)
+        acceleration, plan = search.nearest(steering, float(wanted[0]), radius)
         if plan is None:
             continue
-        acceleration = low if not np.isnan(low) else high
         action = np.array([acceleration, steering], dtype=np.float32)
         distance = float(np.hypot(*(action.astype(np.float64) - wanted)))
         if best is None or distance < best[0]:

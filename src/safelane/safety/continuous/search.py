@@ -9,7 +9,9 @@ and closer to those ahead) and the interval is at least :data:`ACCELERATION_GRID
 turns further under the same steering, which can change the lanes. Under it the search is exact in acceleration,
 to :data:`ACCELERATION_TOLERANCE`, at each steering it examines: the agent's, the fail-safe's lane-keeping steering
 and :data:`STEERING_GRID` (in order of distance from the agent's, stopping once a steering cannot beat the best
-found). ``tests/test_continuous_shield.py`` checks it against a dense grid on recorded states.
+found); at each, :data:`ACCELERATION_GRID` from the agent's acceleration outward up to the first verified point,
+then bisection between it and the last unverified one (:meth:`ActionSearch.nearest`).
+``tests/test_continuous_shield.py`` checks it against a dense grid on recorded states.
 
 Pure maths: no simulator.
 """

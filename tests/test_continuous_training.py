@@ -41,7 +41,7 @@ AGENT = {
     "sac": ["agent.learning_starts=20", "agent.batch_size=16", "agent.net_arch=[32, 32]", "agent.buffer_size=150"],
     "ppo": ["agent.n_steps=48", "agent.batch_size=16", "agent.n_epochs=2", "agent.net_arch=[32, 32]"],
 }
-AGENT["sac-lagrangian"] = AGENT["sac"]
+AGENT["sac-lagrangian"] = [*AGENT["sac"], "agent.lambda_update_interval=10"]
 VALUE_COLUMNS = [c for c in CONTINUOUS_METRIC_COLUMNS if c not in TIMING_COLUMNS]
 
 
@@ -178,27 +178,40 @@ def test_resume_refuses_another_configuration(tmp_path: Path) -> None:
 
 
 # --- the Lagrangian multiplier ------------------------------------------------------------------------------------
+def expected_lambdas(rows: dict[str, np.ndarray], lr: float, budget: float, interval: int, starts: int) -> list[float]:
+    """λ after each episode, worked by hand: every ``interval`` decisions, on the mean cost of the episodes that
+    ended since (after the warm-up of ``starts`` decisions), λ ← max(0, λ + lr·(mean − budget))."""
+    lam, window, updated_at, out = 0.0, [], starts, []
+    for cost, step in zip(rows["cost"], rows["env_steps"], strict=True):
+        if step > starts:
+            window.append(cost)
+            if step - updated_at >= interval:
+                lam, window, updated_at = max(0.0, lam + lr * (float(np.mean(window)) - budget)), [], step
+        out.append(lam)
+    return out
+
+
 def test_lambda_rises_by_dual_ascent_while_episodes_cost_more_than_the_budget(tmp_path: Path) -> None:
-    budget, step = 0.05, 0.1
-    extra = [f"agent.cost_budget={budget}", f"agent.lambda_lr={step}"]
+    budget, lr, interval = 0.05, 0.1, 10
+    extra = [f"agent.cost_budget={budget}", f"agent.lambda_lr={lr}", f"agent.lambda_update_interval={interval}"]
     rows = metrics(train_continuous(small("sac-lagrangian", steps=120, extra=extra), tmp_path / "tight"))
     assert rows["cost"].mean() > budget  # an untrained driver leaves the road
-    lam = np.concatenate([[0.0], rows["lambda"]])
-    expected = np.maximum(0.0, lam[:-1] + step * (rows["cost"] - budget))  # λ ← max(0, λ + lr·(cost − C))
-    np.testing.assert_allclose(rows["lambda"], expected, rtol=0, atol=1e-9)
-    assert rows["lambda"][-1] > 0
+    np.testing.assert_allclose(rows["lambda"], expected_lambdas(rows, lr, budget, interval, 20), rtol=0, atol=1e-9)
+    assert np.all(np.diff(rows["lambda"]) >= 0) and rows["lambda"][-1] > 0
+    assert np.all(rows["lambda"][rows["env_steps"] <= 20] == 0)  # the warm-up's random episodes do not count
 
-    loose = metrics(train_continuous(small("sac-lagrangian", steps=120, extra=["agent.cost_budget=1"]), tmp_path / "l"))
+    extra = ["agent.cost_budget=1", f"agent.lambda_update_interval={interval}"]
+    loose = metrics(train_continuous(small("sac-lagrangian", steps=120, extra=extra), tmp_path / "loose"))
     assert np.all(loose["lambda"] == 0.0)  # an episode costs at most 1: never over this budget
 
 
 def test_lambda_falls_to_zero_under_the_budget(tmp_path: Path) -> None:
     model = load_continuous_model(train_continuous(small("sac-lagrangian", steps=30), tmp_path / "run"))
     model.lam, model.lambda_lr, model.cost_budget = 0.3, 0.1, 0.5
-    model.end_episode(0.0)
+    model.update_lambda(0.0)
     assert model.lam == pytest.approx(0.25)
     for _ in range(10):
-        model.end_episode(0.0)
+        model.update_lambda(0.0)
     assert model.lam == 0.0
 
 

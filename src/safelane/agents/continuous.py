@@ -53,7 +53,13 @@ ALGO_DEFAULTS: dict[str, dict[str, Any]] = {
 """Each algorithm's settings where the configuration leaves them out: SB3's defaults, but a replay buffer of 10⁵
 transitions (a run's 2·10⁴ decisions fit five times) and PPO rollouts of 1 024 decisions (a 2·10⁴-decision run
 updates 19 times, not 9)."""
-ALGO_DEFAULTS["sac-lagrangian"] = {**ALGO_DEFAULTS["sac"], "cost_budget": 0.05, "lambda_lr": 0.05, "lambda_init": 0.0}
+ALGO_DEFAULTS["sac-lagrangian"] = {
+    **ALGO_DEFAULTS["sac"],
+    "cost_budget": 0.05,
+    "lambda_lr": 1.0,
+    "lambda_init": 0.0,
+    "lambda_update_interval": 1000,
+}
 
 ALGO_FIELDS: dict[str, tuple[str, ...]] = {algo: tuple(defaults) for algo, defaults in ALGO_DEFAULTS.items()}
 """The fields each algorithm reads (beside ``algo`` and ``gamma``); another algorithm's field is an error."""
@@ -93,8 +99,14 @@ class ContinuousAgentConfig(BaseModel):
     lambda_lr: float | None = Field(
         None,
         ge=0,
-        description="sac-lagrangian: dual-ascent step of λ per episode, per unit of episode cost over "
-        "the budget: λ ← max(0, λ + lambda_lr·(episode cost − cost_budget)).",
+        description="sac-lagrangian: dual-ascent step of λ per update, per unit of mean episode cost over the "
+        "budget: λ ← max(0, λ + lambda_lr·(mean episode cost − cost_budget)).",
+    )
+    lambda_update_interval: int | None = Field(
+        None,
+        ge=1,
+        description="sac-lagrangian: [decisions] between λ's updates, each on the episodes finished since the last "
+        "(1: after every episode).",
     )
     lambda_init: float | None = Field(None, ge=0, description="sac-lagrangian: initial Lagrange multiplier λ.")
 
@@ -198,7 +210,12 @@ def make_model(cfg: ContinuousAgentConfig, env: Any, seed: int) -> Any:
         "tau": cfg.tau,
     }
     if cfg.algo == "sac-lagrangian":
-        sac.update(cost_budget=cfg.cost_budget, lambda_lr=cfg.lambda_lr, lambda_init=cfg.lambda_init)
+        sac.update(
+            cost_budget=cfg.cost_budget,
+            lambda_lr=cfg.lambda_lr,
+            lambda_init=cfg.lambda_init,
+            lambda_update_interval=cfg.lambda_update_interval,
+        )
     else:
         sac["replay_buffer_class"] = executed_action_buffer_class()
     return cls("MlpPolicy", env, **sac, **common)

@@ -8,7 +8,12 @@ constrained Q-learning does it for the DQN (eq. 7, :class:`safelane.agents.dqn.C
   ``c + γ·(1 − done)·max_j Q_c,target_j(s', a' ~ π)`` — twin heads like the reward critic, the max of the two
   (pessimistic for a cost, as the min is for a reward);
 * the **actor** minimises ``α·log π(a|s) − min_j Q_j(s, a) + λ·max_j Q_c,j(s, a)``;
-* **λ** follows dual ascent once per finished episode: ``λ ← max(0, λ + lambda_lr·(episode cost − cost_budget))``.
+* **λ** follows dual ascent every ``lambda_update_interval`` decisions, on the mean cost of the episodes finished
+  since the last update: ``λ ← max(0, λ + lambda_lr·(mean episode cost − cost_budget))``. Episodes that end during
+  SAC's warm-up (``learning_starts``: uniform random actions, not the policy's) do not count. An update per
+  episode (``lambda_update_interval = 1``, the constrained DQN's rule) lets the hundreds of one-decision episodes of
+  an untrained driver push λ to 60 within 5 000 decisions, after which a constraint met lowers it by
+  ``lambda_lr·cost_budget`` an episode: the multiplier never comes back.
 
 Everything else (collection, entropy tuning, target updates, saving) is SB3's SAC. The replay buffers here store
 the action the environment executed (``info["executed_action"]``, a shield's projection or replacement, when it
@@ -98,19 +103,24 @@ class CostReplayBuffer(ExecutedActionReplayBuffer):
 
 class SACLagrangian(SAC):
     """SAC with a cost critic and a Lagrange multiplier λ (module docstring). ``cost_budget`` [cost per episode],
-    ``lambda_lr`` [λ per episode per unit of excess cost], ``lambda_init`` λ's start; the rest is SAC's."""
+    ``lambda_lr`` [λ per update per unit of excess mean episode cost], ``lambda_init`` λ's start,
+    ``lambda_update_interval`` [decisions] between λ's updates; the rest is SAC's."""
 
     def __init__(
         self,
         policy: Any,
         env: Any,
         cost_budget: float = 0.05,
-        lambda_lr: float = 0.05,
+        lambda_lr: float = 1.0,
         lambda_init: float = 0.0,
+        lambda_update_interval: int = 1000,
         **kwargs: Any,
     ) -> None:
         self.cost_budget, self.lambda_lr, self.lam = float(cost_budget), float(lambda_lr), float(lambda_init)
+        self.lambda_update_interval = int(lambda_update_interval)
         self.episode_costs: list[float] = []  # of the episodes in progress, one per environment
+        self.finished_costs: list[float] = []  # of the episodes finished since λ's last update
+        self.lambda_updated_at = 0  # the decision count at λ's last update
         kwargs.setdefault("replay_buffer_class", CostReplayBuffer)
         super().__init__(policy, env, **kwargs)
 
@@ -124,15 +134,26 @@ class SACLagrangian(SAC):
             self.cost_critic.parameters(), lr=self.lr_schedule(1), **self.policy.optimizer_kwargs
         )
         self.episode_costs = [0.0] * self.n_envs
+        self.lambda_updated_at = max(self.lambda_updated_at, self.learning_starts)
 
     def _get_torch_save_params(self) -> tuple[list[str], list[str]]:
         state_dicts, variables = super()._get_torch_save_params()
         return [*state_dicts, "cost_critic", "cost_critic_target", "cost_critic.optimizer"], variables
 
     # --- the multiplier -------------------------------------------------------------------------------
+    def update_lambda(self, mean_episode_cost: float) -> None:
+        """One dual-ascent step: λ rises while the mean episode cost is over the budget, falls (to 0) under it."""
+        self.lam = max(0.0, self.lam + self.lambda_lr * (float(mean_episode_cost) - self.cost_budget))
+
     def end_episode(self, episode_cost: float) -> None:
-        """Dual ascent after a finished episode of cost ``episode_cost``: λ rises while it is over the budget."""
-        self.lam = max(0.0, self.lam + self.lambda_lr * (float(episode_cost) - self.cost_budget))
+        """Count a finished episode of cost ``episode_cost``; update λ once ``lambda_update_interval`` decisions
+        have passed since its last update (episodes of the warm-up do not count)."""
+        if self.num_timesteps <= self.learning_starts:
+            return
+        self.finished_costs.append(float(episode_cost))
+        if self.num_timesteps - self.lambda_updated_at >= self.lambda_update_interval:
+            self.update_lambda(float(np.mean(self.finished_costs)))
+            self.finished_costs, self.lambda_updated_at = [], self.num_timesteps
 
     def _store_transition(
         self,

@@ -282,11 +282,16 @@ def run_config_dict(run: RunConfig) -> dict[str, Any]:
     }
 
 
+LENGTH_KEYS = ("episodes", "steps", "checkpoint_every", "checkpoint_steps", "sets")
+"""Train keys a resume may change: how long a run trains and how often it checkpoints (and the raw sets, whose
+effect the resolved sections hold)."""
+
+
 def _comparable(data: dict[str, Any]) -> dict[str, Any]:
     """The parts of a run config that change results (episodes, checkpointing and raw sets do not),
     re-validated: a key added to safelane since the run was written compares equal at its default."""
     data = yaml.safe_load(yaml.safe_dump(data))
-    train = {k: v for k, v in data["train"].items() if k not in ("episodes", "steps", "checkpoint_every", "checkpoint_steps", "sets")}
+    train = {k: v for k, v in data["train"].items() if k not in LENGTH_KEYS}
     agent = build_run_agent_config(data["train"], data["agent"]).model_dump(mode="json")
     env = config_to_dict(build_config(data["env"]))
     return yaml.safe_load(yaml.safe_dump({"train": train, "agent": agent, "env": env}))

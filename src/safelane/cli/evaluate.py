@@ -149,7 +149,7 @@ def evaluate_run(
     return summarize(
         records,
         counterexample_files=[str(f) for f in files],
-        method=run.train.method,
+        method=run.train.learner,
         run_dir=str(run_dir),
         shield=cfg.shield.mode,
         override=cfg.shield.override,

@@ -38,16 +38,32 @@ METRIC_COLUMNS: tuple[str, ...] = (
     "env_time_s",  # [s] of it spent inside env.reset / env.step (simulator + shield); the rest is the agent's
     "env_steps",  # cumulative environment decisions
 )
+CONTINUOUS_METRIC_COLUMNS: tuple[str, ...] = (
+    "episode",  # 1-based episode number
+    "return",  # sum of the continuous reward (safelane.env.reward.ContinuousReward), less any adaptation penalty
+    "length",  # decisions in the episode
+    "collision",  # 1 if the episode ended in a crash
+    "off_road",  # 1 if the episode ended with the ego off the road
+    "mean_speed",  # [m/s] mean ego speed after each decision
+    "cost",  # decisions that ended in a crash or off the road (the Lagrangian SAC's cost)
+    "lambda",  # sac-lagrangian: λ after the episode's dual update (empty for the other algorithms)
+    "shield_interventions",  # decisions whose action the shield projected or replaced
+    "mean_projection_distance",  # mean distance (normalised actions) from the proposed to the executed action
+    "wall_time_s",  # [s] cumulative training wall time at the end of the episode
+    "env_time_s",  # [s] of it spent inside env.reset / env.step (simulator + shield); the rest is the agent's
+    "env_steps",  # cumulative environment decisions
+)
+"""The columns of a continuous run's ``metrics.csv`` (``safelane train --algo``)."""
 TIMING_COLUMNS = ("wall_time_s", "env_time_s")
 """Columns that measure time: they vary between identical runs."""
 
 _BOOLEANS = {"true": 1.0, "false": 0.0}
 
 
-def format_metrics_row(row: dict[str, Any]) -> dict[str, str]:
+def format_metrics_row(row: dict[str, Any], columns: Sequence[str] = METRIC_COLUMNS) -> dict[str, str]:
     """One row as written: ``None`` → empty cell, times to the µs, other floats in full (``repr``)."""
     out: dict[str, str] = {}
-    for key in METRIC_COLUMNS:
+    for key in columns:
         value = row.get(key)
         if value is None:
             out[key] = ""
@@ -58,14 +74,15 @@ def format_metrics_row(row: dict[str, Any]) -> dict[str, str]:
     return out
 
 
-def write_metrics(path: Path, rows: Iterable[dict[str, Any]]) -> None:
-    """Write ``path`` anew, atomically: the header and ``rows`` (a resume truncates rows past its checkpoint)."""
+def write_metrics(path: Path, rows: Iterable[dict[str, Any]], columns: Sequence[str] = METRIC_COLUMNS) -> None:
+    """Write ``path`` anew, atomically: the header of ``columns`` and ``rows`` (a resume truncates rows past its
+    checkpoint)."""
 
     def write(f: io.BufferedWriter) -> None:
         text = io.StringIO()
-        writer = csv.DictWriter(text, fieldnames=METRIC_COLUMNS, lineterminator="\n")
+        writer = csv.DictWriter(text, fieldnames=columns, lineterminator="\n")
         writer.writeheader()
-        writer.writerows(format_metrics_row(r) for r in rows)
+        writer.writerows(format_metrics_row(r, columns) for r in rows)
         f.write(text.getvalue().encode())
 
     atomic_write(path, write)
@@ -75,13 +92,14 @@ class MetricsAppender:
     """Appends rows to a ``metrics.csv`` that :func:`write_metrics` started, each flushed at once, so a run
     killed mid-episode keeps every finished episode's row."""
 
-    def __init__(self, path: Path) -> None:
+    def __init__(self, path: Path, columns: Sequence[str] = METRIC_COLUMNS) -> None:
         self._file = open(path, "a", newline="")  # noqa: SIM115 - closed in close()
-        self._writer = csv.DictWriter(self._file, fieldnames=METRIC_COLUMNS, lineterminator="\n")
+        self._columns = tuple(columns)
+        self._writer = csv.DictWriter(self._file, fieldnames=self._columns, lineterminator="\n")
 
     def append(self, row: dict[str, Any]) -> None:
         """Write one episode's row and flush it."""
-        self._writer.writerow(format_metrics_row(row))
+        self._writer.writerow(format_metrics_row(row, self._columns))
         self._file.flush()
 
     def close(self) -> None:

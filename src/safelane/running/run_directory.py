@@ -24,8 +24,16 @@ from typing import Any, Literal, NamedTuple
 import numpy as np
 import torch
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
+from safelane.agents.continuous import (
+    ALGOS,
+    Algo,
+    ContinuousAgentConfig,
+    build_continuous_agent_config,
+    load_model,
+    predict,
+)
 from safelane.agents.dqn import (
     AGENT_CLASSES,
     AGENT_PRESETS,
@@ -56,6 +64,11 @@ CONFIG_FILE = "config.yaml"
 CHECKPOINT_FILE = "checkpoint.pt"
 CHECKPOINT_FORMAT = 1
 TENSORBOARD_DIR = "tensorboard"
+DEFAULT_CONTINUOUS_STEPS = 20_000
+"""Training decisions of a continuous run when ``steps`` is left out."""
+DEFAULT_CHECKPOINT_STEPS = 5_000
+"""Decisions between a continuous run's checkpoints when ``checkpoint_steps`` is left out (each holds the replay
+buffer: ≈ 30 MB at 10⁵ transitions)."""
 
 TRAIN_SHIELD_MODE: dict[str, str] = {method: cls.train_shield for method, cls in AGENT_CLASSES.items()}
 """Shield mode of the training env per method (``train_shield`` of its agent class; masks are recorded for
@@ -69,25 +82,89 @@ class TrainConfig(BaseModel):
 
     model_config = ConfigDict(extra="forbid", validate_assignment=True)
 
-    method: Literal["dqn", "constrained", "qmask", "robust"] = Field(
-        "robust", description="dqn, constrained, qmask or robust (paper Section IV.1–4)."
+    method: Literal["dqn", "constrained", "qmask", "robust"] | None = Field(
+        "robust", description="dqn, constrained, qmask or robust (paper Section IV.1–4); none with algo."
     )
-    agent_preset: str = Field(
-        "tuned", description=f"Agent preset: {', '.join(AGENT_PRESETS)}, or a YAML file of agent fields."
+    algo: Algo | None = Field(
+        None,
+        description=f"Continuous actions: the SB3 algorithm, {', '.join(ALGOS)} (safelane.agents.continuous); "
+        "none for the DQN methods.",
+    )
+    agent_preset: str | None = Field(
+        "tuned",
+        description=f"Agent preset: {', '.join(AGENT_PRESETS)}, or a YAML file of agent fields (with algo: a YAML "
+        "file of its fields, or none for its defaults).",
     )
     env_preset: str = Field("fast", description=f"Environment preset: {', '.join(ENV_PRESETS)}.")
-    episodes: int = Field(200, ge=1, description="Training episodes (the paper trains 200 of 40 s).")
+    episodes: int | None = Field(
+        200, ge=1, description="Training episodes (the paper trains 200 of 40 s); none with algo, which counts steps."
+    )
+    steps: int | None = Field(
+        None, ge=1, description="With algo: training decisions (SB3's total_timesteps); none for the DQN methods."
+    )
     seed: int = Field(0, ge=0, description="Seed of network init, exploration, replay and episodes.")
-    checkpoint_every: int = Field(10, ge=1, description="Episodes between checkpoints (and one at the end).")
+    checkpoint_every: int | None = Field(
+        10, ge=1, description="Episodes between checkpoints (and one at the end); none with algo."
+    )
+    checkpoint_steps: int | None = Field(
+        None,
+        ge=1,
+        description="With algo: decisions between checkpoints (and one at the end), each taken at the next episode "
+        "boundary (SAC) or update (PPO); none for the DQN methods.",
+    )
     sets: list[str] = Field(
         default_factory=list,
         description="KEY=VALUE overrides: env.*, reward.*, traffic.*, shield.*, env_id go to the "
         "environment config, agent.* to the agent config (e.g. agent.lr=1e-3).",
     )
 
+    @model_validator(mode="before")
+    @classmethod
+    def _continuous_defaults(cls, data: Any) -> Any:
+        """With ``algo``, the DQN-only fields default to none and ``steps`` to :data:`DEFAULT_CONTINUOUS_STEPS`."""
+        if isinstance(data, dict) and data.get("algo") is not None:
+            defaults = {"method": None, "episodes": None, "agent_preset": None, "steps": DEFAULT_CONTINUOUS_STEPS,
+                        "checkpoint_every": None, "checkpoint_steps": DEFAULT_CHECKPOINT_STEPS}  # fmt: skip
+            data = {**defaults, **data}
+        return data
+
+    @model_validator(mode="after")
+    def _one_learner(self) -> TrainConfig:
+        """A DQN method (discrete actions, episodes) or an SB3 algorithm (continuous actions, steps), not both."""
+        if self.algo is None:
+            if self.method is None or self.episodes is None:
+                raise ConfigError("train.method: a DQN run needs a method and episodes (or give algo)")
+            for name in ("steps", "checkpoint_steps"):
+                if getattr(self, name) is not None:
+                    raise ConfigError(f"train.{name}: only with algo; the DQN methods count episodes")
+            if self.checkpoint_every is None:
+                raise ConfigError("train.checkpoint_every: a DQN run needs it >= 1")
+            return self
+        if self.method is not None:
+            raise ConfigError(f"train.method: the DQN methods take discrete actions; with algo {self.algo!r} "
+                              "leave it out")  # fmt: skip
+        if self.episodes is not None:
+            raise ConfigError(f"train.episodes: algo {self.algo!r} trains for steps (decisions); leave it out")
+        if self.steps is None or self.checkpoint_steps is None:
+            raise ConfigError(f"train.steps, train.checkpoint_steps: algo {self.algo!r} needs both >= 1")
+        if self.checkpoint_every is not None:
+            raise ConfigError("train.checkpoint_every: counts episodes, for the DQN methods; with algo use "
+                              "checkpoint_steps (decisions)")  # fmt: skip
+        if self.agent_preset is not None and Path(self.agent_preset).suffix not in (".yaml", ".yml"):
+            raise ConfigError(f"train.agent_preset: with algo, a .yaml file of agent fields or none (got "
+                              f"{self.agent_preset!r})")  # fmt: skip
+        return self
+
+    @property
+    def learner(self) -> str:
+        """What the run trains: its algo, else its DQN method."""
+        return str(self.algo or self.method)
+
     @field_validator("agent_preset")
     @classmethod
-    def _agent_preset(cls, name: str) -> str:
+    def _agent_preset(cls, name: str | None) -> str | None:
+        if name is None:
+            return None
         if name not in AGENT_PRESETS and Path(name).suffix not in (".yaml", ".yml"):
             raise ValueError(f"unknown agent preset '{name}'; allowed: {', '.join(AGENT_PRESETS)} or a .yaml file")
         return name
@@ -109,10 +186,10 @@ def make_train_config(**fields: Any) -> TrainConfig:
 
 
 class RunConfig(NamedTuple):
-    """A run's fully resolved configuration."""
+    """A run's fully resolved configuration (a continuous run's agent: a :class:`ContinuousAgentConfig`)."""
 
     train: TrainConfig
-    agent: AgentConfig
+    agent: AgentConfig | ContinuousAgentConfig
     env: SafelaneConfig
 
 
@@ -122,24 +199,17 @@ def resolve(cfg: TrainConfig) -> RunConfig:
 
     The training env's shield mode defaults per method (:data:`TRAIN_SHIELD_MODE`); an explicit
     ``shield.mode`` in ``sets`` wins, but qmask and robust need a mask (not ``none``) and the
-    shield's override must stay off (the agent must learn from the action it chose).
+    shield's override must stay off (the agent must learn from the action it chose). A continuous run
+    (``cfg.algo``) trains without a shield unless ``shield.mode`` says otherwise (:func:`resolve_continuous`).
     """
-    env_sets: list[str] = [f"shield.mode={TRAIN_SHIELD_MODE[cfg.method]}"]
-    agent_overrides: dict[str, Any] = {}
-    for assignment in cfg.sets:
-        key, value = parse_set(assignment)
-        head, _, rest = key.partition(".")
-        if head == "agent":
-            if not rest or "." in rest:
-                raise ConfigError(f"--set {key}: expected agent.FIELD=VALUE")
-            if rest == "method":
-                raise ConfigError("--set agent.method: choose the method with --method")
-            agent_overrides[rest] = value
-        elif head in ENV_SECTIONS:
-            env_sets.append(assignment)
-        else:
-            allowed = ", ".join(("agent", *ENV_SECTIONS))
-            raise ConfigError(f"--set {key}: unknown section '{head}'; allowed: {allowed}")
+    if cfg.algo is not None:
+        return resolve_continuous(cfg)
+    assert cfg.method is not None
+    env_sets, agent_overrides = _split_sets(cfg.sets)
+    if any(parse_set(a) == ("actions", "continuous") for a in env_sets):
+        raise ConfigError(f"actions: continuous is trained by --algo ({', '.join(ALGOS)}), not by the DQN method "
+                          f"{cfg.method!r}")  # fmt: skip
+    env_sets = [f"shield.mode={TRAIN_SHIELD_MODE[cfg.method]}", *env_sets]
     env_cfg = load_config(cfg.env_preset, sets=env_sets)
     agent_class = AGENT_CLASSES[cfg.method]
     if agent_class.uses_mask and env_cfg.shield.mode == "none":
@@ -157,6 +227,52 @@ def resolve(cfg: TrainConfig) -> RunConfig:
     return RunConfig(cfg, agent_cfg, env_cfg)
 
 
+def _split_sets(sets: list[str]) -> tuple[list[str], dict[str, Any]]:
+    """``--set`` strings split into environment assignments and agent overrides (keys without ``agent.``)."""
+    env_sets: list[str] = []
+    agent_overrides: dict[str, Any] = {}
+    for assignment in sets:
+        key, value = parse_set(assignment)
+        head, _, rest = key.partition(".")
+        if head == "agent":
+            if not rest or "." in rest:
+                raise ConfigError(f"--set {key}: expected agent.FIELD=VALUE")
+            if rest in ("method", "algo"):
+                raise ConfigError(f"--set agent.{rest}: choose the {rest} with --{rest}")
+            agent_overrides[rest] = value
+        elif head in ENV_SECTIONS:
+            env_sets.append(assignment)
+        else:
+            allowed = ", ".join(("agent", *ENV_SECTIONS))
+            raise ConfigError(f"--set {key}: unknown section '{head}'; allowed: {allowed}")
+    return env_sets, agent_overrides
+
+
+def resolve_continuous(cfg: TrainConfig) -> RunConfig:
+    """The :class:`RunConfig` of a continuous run: the environment needs ``actions: continuous``; the agent's
+    fields come from ``cfg.agent_preset`` (a YAML file, or none) and ``agent.*`` sets over the algo's defaults."""
+    env_sets, agent_overrides = _split_sets(cfg.sets)
+    env_cfg = load_config(cfg.env_preset, sets=env_sets)
+    if env_cfg.actions != "continuous":
+        raise ConfigError(f"--algo: {cfg.algo} trains continuous actions; add --actions continuous (the discrete "
+                          "actions train with --method)")  # fmt: skip
+    data: dict[str, Any] = {}
+    if cfg.agent_preset is not None:
+        path = Path(cfg.agent_preset)
+        if not path.is_file():
+            raise ConfigError(f"agent preset: no such file {cfg.agent_preset}")
+        data = yaml.safe_load(path.read_text()) or {}
+    agent_cfg = build_continuous_agent_config({**data, **agent_overrides, "algo": cfg.algo})
+    return RunConfig(cfg, agent_cfg, env_cfg)
+
+
+def build_run_agent_config(train: dict[str, Any], agent: dict[str, Any]) -> AgentConfig | ContinuousAgentConfig:
+    """A recorded agent config, validated as the run's kind: continuous when ``train`` names an algo."""
+    if train.get("algo") is not None:
+        return build_continuous_agent_config(agent)
+    return build_agent_config(agent)
+
+
 def run_config_dict(run: RunConfig) -> dict[str, Any]:
     """The YAML-serialisable form of a run configuration (what ``config.yaml`` holds)."""
     return {
@@ -166,12 +282,17 @@ def run_config_dict(run: RunConfig) -> dict[str, Any]:
     }
 
 
+LENGTH_KEYS = ("episodes", "steps", "checkpoint_every", "checkpoint_steps", "sets")
+"""Train keys a resume may change: how long a run trains and how often it checkpoints (and the raw sets, whose
+effect the resolved sections hold)."""
+
+
 def _comparable(data: dict[str, Any]) -> dict[str, Any]:
     """The parts of a run config that change results (episodes, checkpointing and raw sets do not),
     re-validated: a key added to safelane since the run was written compares equal at its default."""
     data = yaml.safe_load(yaml.safe_dump(data))
-    train = {k: v for k, v in data["train"].items() if k not in ("episodes", "checkpoint_every", "sets")}
-    agent = build_agent_config(data["agent"]).model_dump(mode="json")
+    train = {k: v for k, v in data["train"].items() if k not in LENGTH_KEYS}
+    agent = build_run_agent_config(data["train"], data["agent"]).model_dump(mode="json")
     env = config_to_dict(build_config(data["env"]))
     return yaml.safe_load(yaml.safe_dump({"train": train, "agent": agent, "env": env}))
 
@@ -192,7 +313,7 @@ def load_run_config(run_dir: str | Path) -> RunConfig:
     try:
         data = yaml.safe_load(path.read_text())
         train = TrainConfig.model_validate(data["train"])
-        agent = build_agent_config(data["agent"])
+        agent = build_run_agent_config(data["train"], data["agent"])
         env = recorded_config(data["env"])
     except ConfigError as err:
         raise ConfigError(f"{path}: incompatible run config ({err})") from None
@@ -281,8 +402,10 @@ def prepare_run_dir(out: Path, run: RunConfig, resume: bool) -> dict[str, Any] |
             state = load_checkpoint(out)
             if _comparable(state["config"]) != _comparable(wanted):
                 raise ConfigError(f"--resume: {out / CHECKPOINT_FILE} belongs to another config")
-            if state["config"]["agent"]["method"] != run.agent.method:
-                raise ConfigError(f"--resume: checkpoint method differs from {run.agent.method}")
+            if state["config"]["train"].get("algo") != run.train.algo or (
+                state["config"]["agent"].get("method") != getattr(run.agent, "method", None)
+            ):
+                raise ConfigError(f"--resume: checkpoint method differs from {run.train.learner}")
     elif (out / CHECKPOINT_FILE).exists() or (out / METRICS_FILE).exists():
         raise ConfigError(f"{out}: already holds a training run; pass --resume to continue it or choose another --out")
     atomic_write(config_path, lambda f: f.write(yaml.safe_dump(wanted, sort_keys=False).encode()))
@@ -332,6 +455,8 @@ class GreedyPolicy:
 def load_agent(run_dir: str | Path) -> DQNAgent:
     """The trained agent of a run directory, networks restored from its checkpoint."""
     run = load_run_config(run_dir)
+    if not isinstance(run.agent, AgentConfig):
+        raise ConfigError(f"{run_dir}: a continuous run ({run.train.algo}) has no DQN agent; use load_policy")
     state = load_checkpoint(run_dir)
     agent = make_agent(run.agent, seed=run.train.seed)
     try:
@@ -342,6 +467,41 @@ def load_agent(run_dir: str | Path) -> DQNAgent:
     return agent
 
 
-def load_policy(run_dir: str | Path) -> Callable[[np.ndarray, dict[str, Any]], int]:
-    """The greedy policy of a trained run (see :class:`GreedyPolicy`)."""
-    return GreedyPolicy(load_agent(run_dir), load_run_config(run_dir), f"run {run_dir}")
+class ContinuousPolicy:
+    """The deterministic policy of a trained continuous run (SAC's mean action, PPO's mean):
+    ``policy(obs, info) -> [acceleration, steering]``; refuses another interface as :class:`GreedyPolicy` does."""
+
+    def __init__(self, model: Any, run: RunConfig, name: str = "the run") -> None:
+        self.model = model
+        self.run = run
+        self.method = run.train.learner
+        self.name = name
+        self.interface = env_interface(run.env)
+
+    def __call__(self, obs: np.ndarray, info: dict[str, Any] | None = None) -> np.ndarray:
+        """The action (2,) float32 in [-1, 1] for one observation (28,)."""
+        if info is not None:
+            actual = interface_of(info)
+            if actual is not None and actual != self.interface:
+                check_same_interface(self.interface, actual, self.name)
+        return predict(self.model, obs)
+
+
+def load_continuous_model(run_dir: str | Path) -> Any:
+    """The trained SB3 model of a continuous run directory, from its checkpoint."""
+    run = load_run_config(run_dir)
+    state = load_checkpoint(run_dir)
+    if run.train.algo is None or "model" not in state:
+        raise ConfigError(f"{run_dir}: not a continuous run (no algo in {CONFIG_FILE}, or no model in the checkpoint)")
+    try:
+        return load_model(run.train.algo, state["model"])
+    except (KeyError, ValueError, RuntimeError) as err:
+        raise ConfigError(f"{run_dir}: checkpoint does not match config.yaml ({type(err).__name__})") from None
+
+
+def load_policy(run_dir: str | Path) -> Callable[[np.ndarray, dict[str, Any]], Any]:
+    """The greedy policy of a trained run (see :class:`GreedyPolicy`; a continuous run's: :class:`ContinuousPolicy`)."""
+    run = load_run_config(run_dir)
+    if run.train.algo is not None:
+        return ContinuousPolicy(load_continuous_model(run_dir), run, f"run {run_dir}")
+    return GreedyPolicy(load_agent(run_dir), run, f"run {run_dir}")

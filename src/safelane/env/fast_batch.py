@@ -14,8 +14,8 @@ It is the same environment, not an approximation: row ``i`` after any sequence o
 the observation, reward, flags, mask and fallback of ``make_env(config)`` driven the same way
 (``tests/test_vector_env.py``, ``tests/test_evaluation.py``). Supported: the fast simulator with
 ``state`` ``paper`` or ``lanes``, any ``traffic.vehicles_behind`` and ``traffic.driver_mix``, no
-``traffic.adversary``, and any shield mode on the compiled engine except nominal with the ``paper`` formula, the committed mode without
-``shield.redraw_uncertified`` (:func:`supports`);
+``traffic.adversary``, and any shield mode on the compiled engine except nominal with the ``paper`` formula, the
+committed mode without ``shield.redraw_uncertified`` (:func:`supports`);
 :func:`safelane.env.vector.make_vector_env` falls back to a loop over ``make_env`` environments otherwise.
 
 Used by :class:`safelane.env.vector.FastVectorEnv` (gymnasium's autoreset) and by the evaluation

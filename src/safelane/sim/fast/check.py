@@ -24,7 +24,7 @@ from typing import Any
 
 import numpy as np
 
-from safelane.core.drivers import DriverMix
+from safelane.core.drivers import ASSUMED_DRIVER, NO_MIX, DriverMix, parse_driver_mix
 from safelane.core.snapshot import RoadSnapshot
 from safelane.sim.fast import layout as L
 from safelane.sim.fast.env import FastHighwayEnv
@@ -261,7 +261,8 @@ __all__ = [
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """``python -m safelane.sim.fast.check [--preset fast|paper|all] [--seeds 0:10] [--policies ...] [--continuous]``
+    """``python -m safelane.sim.fast.check [--preset fast|paper|hidden-types|all] [--seeds 0:10] [--policies ...]
+    [--continuous]``
 
     Compares whole episodes against stock highway-env and prints one line per episode and a summary;
     exit status 1 if any episode diverged. ``--continuous``: the ego under ``ContinuousAction`` instead,
@@ -275,7 +276,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     import yaml
 
     ap = argparse.ArgumentParser(prog="python -m safelane.sim.fast.check")
-    ap.add_argument("--preset", default="all", help="fast, paper or all")
+    ap.add_argument("--preset", default="all", help="fast, paper, hidden-types or all")
     ap.add_argument("--seeds", default="0:5", help="start:stop")
     ap.add_argument("--policies", default=None, help="default: every policy of the action kind")
     ap.add_argument("--continuous", action="store_true", help="a ContinuousAction ego (default: meta-actions)")
@@ -283,17 +284,20 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--tol", type=float, default=1e-6)
     ap.add_argument("--stop-at-end", action="store_true", help="stop at termination (default: play on)")
     args = ap.parse_args(argv)
-    presets = ("fast", "paper") if args.preset == "all" else (args.preset,)
+    presets = ("fast", "paper", "hidden-types") if args.preset == "all" else (args.preset,)
     a, b = (int(v) for v in args.seeds.split(":"))
     total = matched = bitwise = 0
     policies = args.policies.split(",") if args.policies else (CONTINUOUS_POLICIES if args.continuous else POLICIES)
     for name in presets:
         data = yaml.safe_load((Path(str(resources.files("safelane"))) / "presets" / f"{name}.yaml").read_text())
         cfg, env_id = data["env"], data["env_id"]
+        traffic = data.get("traffic", {})
+        hidden = traffic.get("assumed_driver", ASSUMED_DRIVER) if not traffic.get("shield_sees_types") else None
+        mix = parse_driver_mix(traffic.get("driver_mix", NO_MIX), assumed=hidden)
         if args.continuous:
             cfg = {**cfg, "action": {"type": "ContinuousAction"}}
-        oracle = make_oracle(cfg, env_id, snapshots=args.continuous)
-        fast = FastHighwayEnv(cfg, env_id)
+        oracle = make_oracle(cfg, env_id, snapshots=args.continuous, driver_mix=mix)
+        fast = FastHighwayEnv(cfg, env_id, driver_mix=mix)
         for seed in range(a, b):
             for policy in policies:
                 actions = (continuous_actions if args.continuous else policy_actions)(policy, seed, args.decisions)

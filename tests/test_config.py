@@ -137,7 +137,7 @@ def test_negative_reward_weight_is_rejected() -> None:
 
 
 def test_unknown_preset_lists_the_presets() -> None:
-    assert error_of(preset="fastest") == "preset: unknown preset 'fastest'; allowed: fast, paper"
+    assert error_of(preset="fastest") == "preset: unknown preset 'fastest'; allowed: fast, paper, hidden-types"
 
 
 def test_config_error_is_a_value_error() -> None:

@@ -21,11 +21,15 @@ from safelane.env.vector import FastVectorEnv, SafelaneVectorEnv
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 FAST_ID, HIGHWAY_ID = "safelane/HighwayFast-v0", "safelane/Highway-v0"
+HIDDEN_FAST_ID, HIDDEN_ID = "safelane/HighwayHiddenTypesFast-v0", "safelane/HighwayHiddenTypes-v0"
 SHORT = {"env.duration": 4}  # [s] four decisions an episode at the presets' 1 decision/s
 
 
 def test_ids_registered_on_import_and_registration_idempotent() -> None:
-    assert set(ENV_IDS) == {FAST_ID, HIGHWAY_ID, "safelane/HighwayContinuous-v0", "safelane/HighwayContinuousFast-v0"}
+    assert set(ENV_IDS) == {
+        FAST_ID, HIGHWAY_ID, "safelane/HighwayContinuous-v0", "safelane/HighwayContinuousFast-v0", HIDDEN_ID,
+        HIDDEN_FAST_ID,
+    }  # fmt: skip
     assert all(env_id in gym.registry for env_id in ENV_IDS)
     entry = gym.spec(FAST_ID).entry_point
     with warnings.catch_warnings():
@@ -96,6 +100,34 @@ def test_highway_id_runs_highway_env_and_plays_the_fast_ids_episode() -> None:
     finally:
         for env in envs:
             env.close()
+
+
+def test_hidden_types_ids_are_the_preset_on_both_simulators() -> None:
+    """The two ids play one episode of the hidden-types preset from the same seed; the matched arm through config."""
+    actions = [3, 1, 0, 4]
+    envs = [gym.make(env_id, config=SHORT) for env_id in (HIDDEN_ID, HIDDEN_FAST_ID)]
+    try:
+        for env, simulator in zip(envs, ("highway-env", "fast"), strict=True):
+            cfg = env.get_wrapper_attr("safelane_config")
+            assert (cfg.preset, cfg.simulator, cfg.traffic.driver_mix) == ("hidden-types", simulator,
+                                                                           "timid-normal-aggressive")  # fmt: skip
+            assert not cfg.traffic.shield_sees_types and cfg.state == "paper"
+        _same(_play(envs[0], 4, actions), _play(envs[1], 4, actions))
+    finally:
+        for env in envs:
+            env.close()
+    seen = gym.make(HIDDEN_FAST_ID, config={"state": "paper-types", "traffic.shield_sees_types": True, **SHORT})
+    try:
+        obs, info = seen.reset(seed=4)
+        assert obs.shape == (26 + 4 * 3,) and info["snapshot"].driver_type is not None
+    finally:
+        seen.close()
+    vec = gym.make_vec(HIDDEN_FAST_ID, num_envs=2, config=SHORT)
+    try:
+        obs, _ = vec.reset(seed=0)
+        assert isinstance(vec, FastVectorEnv) and obs.shape == (2, 26)
+    finally:
+        vec.close()
 
 
 def test_keywords_reach_the_config() -> None:

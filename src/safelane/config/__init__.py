@@ -25,6 +25,15 @@ import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from safelane.config.highway_keys import highway_env_defaults, validate_env_keys
+from safelane.core.drivers import (
+    ASSUMED_DRIVER,
+    DRIVER_TYPES,
+    NAMED_MIXES,
+    NO_MIX,
+    DriverMix,
+    check_driver_type,
+    parse_driver_mix,
+)
 from safelane.core.errors import ConfigError
 from safelane.safety.rule import (
     DEFAULT_RULE_NAME,
@@ -98,6 +107,52 @@ class TrafficConfig(_Section):
         "that brakes at full ACC_MAX at a random time, a car that cuts in ignoring MOBIL, a stopped car, a car "
         "that cuts in as soon as MOBIL's safety criterion allows.",
     )
+    driver_mix: str | list[dict[str, Any]] = Field(
+        NO_MIX,
+        description="Each other car's driver type drawn independently at spawn (safelane.sim.drivers): a named "
+        f"mixture ({', '.join(NAMED_MIXES)}) or a list of {{type, weight}} with types among "
+        f"{', '.join(DRIVER_TYPES)} (probability weight / sum of weights). 'none': every car is "
+        "env.other_vehicles_type.",
+    )
+    shield_sees_types: bool = Field(
+        False,
+        strict=True,
+        description="With driver_mix: the snapshot (what the shield reads) gives each car its own type's driver "
+        "parameters; false: every drawn car reports assumed_driver's (the types are hidden from the shield).",
+    )
+    assumed_driver: str = Field(
+        ASSUMED_DRIVER,
+        description="With driver_mix and shield_sees_types false: the driver type the shield is told every drawn car "
+        "is (its parameters in the snapshot; each car keeps its own IDM exponent).",
+    )
+
+    @field_validator("driver_mix", mode="before")
+    @classmethod
+    def _known_mix(cls, value: Any) -> Any:
+        parse_driver_mix(value)
+        return value
+
+    @field_validator("assumed_driver")
+    @classmethod
+    def _known_assumed(cls, name: str) -> str:
+        return check_driver_type(name, "traffic.assumed_driver")
+
+    @model_validator(mode="after")
+    def _mix_only_fields(self) -> TrafficConfig:
+        """``shield_sees_types`` and ``assumed_driver`` only mean something with a ``driver_mix``."""
+        if self.driver_mix == NO_MIX:
+            if self.shield_sees_types:
+                raise ConfigError("traffic.shield_sees_types: only with traffic.driver_mix; allowed otherwise: false")
+            if self.assumed_driver != ASSUMED_DRIVER:
+                raise ConfigError(
+                    f"traffic.assumed_driver: only with traffic.driver_mix; allowed otherwise: {ASSUMED_DRIVER}"
+                )
+        return self
+
+    def driver_mixture(self) -> DriverMix | None:
+        """The :class:`~safelane.core.drivers.DriverMix` this section draws the other cars' types from (None: no
+        mixture), with the type the shield is told of each drawn car (None: its own)."""
+        return parse_driver_mix(self.driver_mix, assumed=None if self.shield_sees_types else self.assumed_driver)
 
 
 MODE_ONLY_FIELDS: dict[str, tuple[str, ...]] = {
@@ -253,11 +308,13 @@ class SafelaneConfig(_Section):
         "env.offroad_terminal defaults to true; the state gains the lane offset and lane index, the reward "
         "its lane-centring term, safelane.env.reward.ContinuousReward).",
     )
-    state: Literal["paper", "lanes"] = Field(
+    state: Literal["paper", "lanes", "paper-types"] = Field(
         "paper",
         description="The agent's 26-number state: 'paper' (eq. 3: the 4 nearest vehicles, ego speed and "
         "heading) or 'lanes' (left, own and right lane: two leaders and the follower each, plus the ego's "
-        "lane, offset and set-point; safelane.env.factory.lane_state). Beyond the paper: for overtaking.",
+        "lane, offset and set-point; safelane.env.factory.lane_state). Beyond the paper: for overtaking. "
+        "'paper-types' (with traffic.driver_mix): eq. 3, then each of the 4 vehicles' driver type one-hot "
+        "(26 + 4·types numbers; safelane.env.observations.paper_types_state).",
     )
     env: dict[str, Any] = Field(default_factory=dict)
     reward: RewardConfig = Field(default_factory=RewardConfig)
@@ -300,6 +357,11 @@ class SafelaneConfig(_Section):
                 f"traffic.vehicles_behind: must be at most env.vehicles_count ({env['vehicles_count']}), "
                 f"got {self.traffic.vehicles_behind}"
             )
+        if self.state == "paper-types" and self.traffic.driver_mix == NO_MIX:
+            raise ConfigError("state: 'paper-types' shows each car's driver type and needs traffic.driver_mix; "
+                              "allowed without one: paper, lanes")
+        if self.traffic.driver_mix != NO_MIX and "other_vehicles_type" in self.env:
+            raise ConfigError("env.other_vehicles_type: traffic.driver_mix draws every car's type; remove one of them")
         if self.traffic.adversary in ("cut_in", "cut_in_mobil") and env["lanes_count"] < 2:
             raise ConfigError(
                 f"traffic.adversary: '{self.traffic.adversary}' needs env.lanes_count >= 2 (a lane to cut in from), "
@@ -337,7 +399,7 @@ class SafelaneConfig(_Section):
             )
 
 
-ENV_PRESETS = ("fast", "paper")
+ENV_PRESETS = ("fast", "paper", "hidden-types")
 
 
 def preset_path(name: str) -> Path:

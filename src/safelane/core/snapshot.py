@@ -10,7 +10,9 @@ lane ``i``'s centre at ``y = i·lane_width``), speeds in m/s, angles in radians,
 entry per *body* — the vehicles in the simulator's order, then the collidable static objects
 (``is_vehicle`` False) — and ``ego`` is the ego's index. Driver-model parameters describe each body's
 limits and rules (IDM / MOBIL); bodies that are not IDM drivers carry IDM's defaults and
-``can_change_lane`` False.
+``can_change_lane`` False. In traffic drawn from a mixture of driver types (``traffic.driver_mix``) whose types
+the shield does not see, each drawn car's driver parameters are those of the assumed type
+(``traffic.assumed_driver``), all but its own IDM exponent; ``driver_type`` says which type it really is.
 
 Snapshots are read-only: consumers never modify the arrays.
 """
@@ -152,6 +154,11 @@ class RoadSnapshot:
     crash yet, or the simulator did not record it)."""
     impact_after: np.ndarray | None = None
     """(N, 2) [m] positions at the end of that frame, bodies still overlapping."""
+
+    # --- driver types --------------------------------------------------------------------------------
+    driver_type: np.ndarray | None = None
+    """(N,) int: each body's type, its index in the traffic's driver mixture (``traffic.driver_mix``); -1 for the
+    ego and the bodies not drawn from it. None: the traffic has no mixture. The safety model does not read it."""
 
     def __eq__(self, other: object) -> bool:
         """Field-by-field equality, arrays and numbers compared exactly (NaN equal to NaN): same scene, same

@@ -2,14 +2,15 @@
 
 ``make_env`` builds ``gym.make(env_id, config=cfg.env)`` and layers, from the inside out:
 
-1. :class:`safelane.sim.traffic.TrafficLayout` — safelane's traffic options (``traffic.*``) and the
-   neighbour-search patch (``neighbour_search``);
+1. :class:`safelane.sim.traffic.TrafficLayout` — safelane's traffic options (``traffic.*``: a mixture of
+   driver types, vehicles behind the ego, an adversary) and the neighbour-search patch (``neighbour_search``);
 2. :class:`safelane.sim.highway.HighwayEnvAdapter` — the road snapshot in ``info["snapshot"]``: every
    layer above reads the scene from it, never from highway-env's objects;
 3. :class:`safelane.env.reward.PaperReward` — eq. 6 and the ``collision`` / ``speed`` info fields (with
    ``actions: continuous``, :class:`safelane.env.reward.ContinuousReward`);
 4. :class:`safelane.env.observations.PaperObservation` — the paper's 26-number state (eq. 3), or the
-   ``lanes`` state (with continuous actions eq. 3 and the ego's place in its lane: 28 numbers);
+   ``lanes`` state (with continuous actions eq. 3 and the ego's place in its lane: 28 numbers), or eq. 3 with the
+   observed cars' driver types (``paper-types``);
 5. :class:`safelane.safety.shield.SafetyShield` — only when ``shield.mode`` is not ``none``;
 6. :class:`safelane.env.redraw.RedrawUncertified` — the ``committed`` mode only: each reset reports the
    spawns drawn again (``shield.redraw_uncertified``).
@@ -118,6 +119,7 @@ def _highway_env(cfg: SafelaneConfig, render_mode: str | None) -> gym.Env:
         cfg.traffic.vehicles_behind,
         vectorized=cfg.neighbour_search == "numpy",
         adversary=cfg.traffic.adversary,
+        driver_mix=cfg.traffic.driver_mixture(),
     )
     return HighwayEnvAdapter(env)
 
@@ -135,7 +137,10 @@ def _fast_simulator(cfg: SafelaneConfig, render_mode: str | None) -> gym.Env:
     from safelane.sim.fast.env import FastHighwayEnv
 
     try:
-        return FastHighwayEnv(dict(cfg.env), cfg.env_id, vehicles_behind=cfg.traffic.vehicles_behind)
+        return FastHighwayEnv(
+            dict(cfg.env), cfg.env_id, vehicles_behind=cfg.traffic.vehicles_behind,
+            driver_mix=cfg.traffic.driver_mixture(),
+        )  # fmt: skip
     except ValueError as err:  # a highway-env option the fast simulator does not model
         raise NotSupported(str(err)) from None
 
@@ -171,7 +176,9 @@ def make_env(
         env = ContinuousReward(env, reward.b, reward.c, reward.v_min, reward.v_max, reward.lane_centring)
     else:
         env = PaperReward(env, reward.b, reward.c, reward.v_min, reward.v_max)
-    env = PaperObservation(env, cfg.state, continuous=cfg.actions == "continuous")
+    mix = cfg.traffic.driver_mixture()
+    env = PaperObservation(env, cfg.state, continuous=cfg.actions == "continuous",
+                           driver_types=len(mix.types) if mix is not None else 0)  # fmt: skip
     if cfg.shield.mode != "none" and cfg.actions == "continuous":
         shield = cfg.shield
         env = ControlShield(env, shield.intervention, shield.margin, shield.resolved_rule(), shield.adaptation_penalty,

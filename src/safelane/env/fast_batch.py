@@ -13,9 +13,9 @@ Python per environment and decision.
 It is the same environment, not an approximation: row ``i`` after any sequence of resets and steps has
 the observation, reward, flags, mask and fallback of ``make_env(config)`` driven the same way
 (``tests/test_vector_env.py``, ``tests/test_evaluation.py``). Supported: the fast simulator with
-``state`` ``paper`` or ``lanes``, any ``traffic.vehicles_behind``, no ``traffic.adversary``, and any
-shield mode on the compiled engine except nominal with the ``paper`` formula, the committed mode without
-``shield.redraw_uncertified`` (:func:`supports`);
+``state`` ``paper`` or ``lanes``, any ``traffic.vehicles_behind`` and ``traffic.driver_mix``, no
+``traffic.adversary``, and any shield mode on the compiled engine except nominal with the ``paper`` formula, the
+committed mode without ``shield.redraw_uncertified`` (:func:`supports`);
 :func:`safelane.env.vector.make_vector_env` falls back to a loop over ``make_env`` environments otherwise.
 
 Used by :class:`safelane.env.vector.FastVectorEnv` (gymnasium's autoreset) and by the evaluation
@@ -274,7 +274,8 @@ class FastBatch:
     def _make_env(self, storage: Any) -> FastHighwayEnv:
         try:
             return FastHighwayEnv(
-                dict(self.cfg.env), self.cfg.env_id, storage=storage, vehicles_behind=self.cfg.traffic.vehicles_behind
+                dict(self.cfg.env), self.cfg.env_id, storage=storage, vehicles_behind=self.cfg.traffic.vehicles_behind,
+                driver_mix=self.cfg.traffic.driver_mixture(),
             )
         except ValueError as err:  # a highway-env option the fast simulator does not model
             raise NotSupported(str(err)) from None

@@ -1,12 +1,14 @@
 """The agent's state, computed from a :class:`~safelane.core.snapshot.RoadSnapshot`: eq. 3 or the lanes state.
 
 Both are 26 numbers in [-1, 1] (:data:`safelane.core.spaces.OBS_SIZE`); with continuous actions eq. 3 gains the
-ego's lane offset and lane index (28, :data:`safelane.core.spaces.CONTINUOUS_OBS_SIZE`). :class:`PaperObservation`
-replaces the simulator's own observation by one of them, reading ``info["snapshot"]``.
+ego's lane offset and lane index (28, :data:`safelane.core.spaces.CONTINUOUS_OBS_SIZE`); in traffic with a mixture
+of driver types, ``paper-types`` is eq. 3 followed by the observed cars' types (:func:`paper_types_state`).
+:class:`PaperObservation` replaces the simulator's own observation by one of them, reading ``info["snapshot"]``.
 """
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Callable
 from typing import Any
@@ -49,9 +51,7 @@ def paper_state(snap: RoadSnapshot) -> np.ndarray:
         heading = snap.heading[others]
         speed = snap.speed[others]
         rel = pos - snap.position[e]
-        dist = np.hypot(rel[:, 0], rel[:, 1])
-        near = np.argsort(dist, kind="stable")[:OBSERVED_VEHICLES]
-        near = near[dist[near] < PERCEPTION_DISTANCE]
+        near = _nearest(rel)
         # The ego's velocity as highway-env computes it (speed · [cos ψ, sin ψ] through numpy).
         ego_vel = ego_speed * np.array([np.cos(ego_heading), np.sin(ego_heading)])
         for slot, i in enumerate(near):
@@ -68,6 +68,42 @@ def paper_state(snap: RoadSnapshot) -> np.ndarray:
     obs[-2] = ego_speed / EGO_SPEED_SCALE
     obs[-1] = wrap_to_pi(ego_heading) / HEADING_SCALE
     np.clip(obs, -1.0, 1.0, out=obs)
+    return obs
+
+
+def _nearest(rel: np.ndarray) -> np.ndarray:
+    """Rows of ``rel`` (the other vehicles' positions from the ego [m]) that eq. 3 observes, nearest first: the
+    :data:`OBSERVED_VEHICLES` nearest (Euclidean; the first of equals first) within :data:`PERCEPTION_DISTANCE`."""
+    dist = np.hypot(rel[:, 0], rel[:, 1])
+    near = np.argsort(dist, kind="stable")[:OBSERVED_VEHICLES]
+    return near[dist[near] < PERCEPTION_DISTANCE]
+
+
+def observed_vehicles(snap: RoadSnapshot) -> np.ndarray:
+    """The snapshot indices of the vehicles eq. 3 observes, in its slots' order (nearest first)."""
+    others = snap.others()
+    if not others.size:
+        return others
+    return others[_nearest(snap.position[others] - snap.position[snap.ego])]
+
+
+def paper_types_state(snap: RoadSnapshot, types: int) -> np.ndarray:
+    """Eq. 3 (:func:`paper_state`, 26 numbers) followed by the driver type of each of its 4 observed vehicles, one-hot:
+    ``26 + 4·types`` float32 numbers in [0, 1] after eq. 3's.
+
+    Layout after eq. 3: slot ``s`` (0..3, eq. 3's order, nearest first) holds ``types`` numbers at
+    ``26 + s·types + t``: 1.0 where ``t`` is the vehicle's ``driver_type`` (its index in ``traffic.driver_mix``),
+    else 0.0; an empty slot, or a body of no type (-1), is all zeros.
+    """
+    obs = np.zeros(OBS_SIZE + OBSERVED_VEHICLES * types, dtype=np.float32)
+    obs[:OBS_SIZE] = paper_state_compiled(snap)
+    driver_type = snap.driver_type
+    if driver_type is None:
+        raise ConfigError("state: 'paper-types' reads each car's driver type; this traffic has no traffic.driver_mix")
+    for slot, i in enumerate(observed_vehicles(snap)):
+        t = int(driver_type[i])
+        if 0 <= t < types:
+            obs[OBS_SIZE + slot * types + t] = 1.0
     return obs
 
 
@@ -270,7 +306,10 @@ STATE_FUNCTIONS: dict[str, Callable[[RoadSnapshot], np.ndarray]] = {
     "paper": paper_state_compiled,
     "lanes": lane_state_compiled,
 }
-"""The agent's state by ``SafelaneConfig.state`` name (the compiled form where one exists)."""
+"""The agent's state by ``SafelaneConfig.state`` name (the compiled form where one exists), but for
+:data:`TYPED_STATE`, which also needs the number of driver types."""
+TYPED_STATE = "paper-types"
+"""Eq. 3 and each observed car's driver type (:func:`paper_types_state`): the matched arm of hidden driver types."""
 
 
 def lane_position(snap: RoadSnapshot) -> np.ndarray:
@@ -292,17 +331,26 @@ class PaperObservation(gym.Wrapper, gym.utils.RecordConstructorArgs):
     """Replace the simulator's observation by the paper's 26-number state (eq. 3), or with
     ``state="lanes"`` by :func:`lane_state` (same size), computed from ``info["snapshot"]``; ``info``
     gains ``state`` (the state's name), so a trained policy can check it reads what it learned on.
-    ``continuous``: eq. 3 followed by :func:`lane_position` (28 numbers, for acceleration and steering)."""
+    ``continuous``: eq. 3 followed by :func:`lane_position` (28 numbers, for acceleration and steering).
+    ``state="paper-types"``: :func:`paper_types_state` with ``driver_types`` types (``traffic.driver_mix``'s)."""
 
-    def __init__(self, env: gym.Env, state: str = "paper", continuous: bool = False) -> None:
-        gym.utils.RecordConstructorArgs.__init__(self, state=state, continuous=continuous)
+    def __init__(self, env: gym.Env, state: str = "paper", continuous: bool = False, driver_types: int = 0) -> None:
+        gym.utils.RecordConstructorArgs.__init__(self, state=state, continuous=continuous, driver_types=driver_types)
         super().__init__(env)
-        if state not in STATE_FUNCTIONS:
-            raise ConfigError(f"state: got {state!r}; allowed: {', '.join(STATE_FUNCTIONS)}")
+        allowed = (*STATE_FUNCTIONS, TYPED_STATE)
+        if state not in allowed:
+            raise ConfigError(f"state: got {state!r}; allowed: {', '.join(allowed)}")
         if continuous and state != "paper":
             raise ConfigError(f"state: got {state!r} with continuous actions; allowed: paper")
-        self.state_of = _with_lane_position(STATE_FUNCTIONS[state]) if continuous else STATE_FUNCTIONS[state]
+        if state == TYPED_STATE:
+            if driver_types < 1:
+                raise ConfigError(f"state: {TYPED_STATE!r} needs traffic.driver_mix (got {driver_types} driver types)")
+            self.state_of = functools.partial(paper_types_state, types=driver_types)
+        else:
+            self.state_of = _with_lane_position(STATE_FUNCTIONS[state]) if continuous else STATE_FUNCTIONS[state]
         size = CONTINUOUS_OBS_SIZE if continuous else OBS_SIZE
+        if state == TYPED_STATE:
+            size = OBS_SIZE + OBSERVED_VEHICLES * driver_types
         self.observation_space = gym.spaces.Box(-1.0, 1.0, shape=(size,), dtype=np.float32)
         self.state = state
 

@@ -9,7 +9,11 @@ package for a caller that has not, so ``gym.make("safelane:safelane/HighwayFast-
   on, docs/results/speed.md; no rendering);
 * ``safelane/HighwayContinuous-v0`` and ``safelane/HighwayContinuousFast-v0`` — the same road and traffic with the
   ego driven by acceleration and steering (``actions: continuous``), without a shield unless ``shield="committed"``
-  (the shield for continuous actions, :class:`safelane.safety.control_shield.ControlShield`).
+  (the shield for continuous actions, :class:`safelane.safety.control_shield.ControlShield`);
+* ``safelane/HighwayHiddenTypes-v0`` and ``safelane/HighwayHiddenTypesFast-v0`` — the ``hidden-types`` preset: each
+  other car's driver type drawn from timid, normal and aggressive IDM + MOBIL sets, hidden from the agent and the
+  shield (the matched arm through ``config``: ``{"state": "paper-types"}``, ``{"traffic.shield_sees_types": True}``).
+  Their keywords are the first two ids' but ``preset``.
 
 Both take the same keywords, all optional (:func:`make_highway`): ``preset`` (``"fast"``: highway-fast-v0's
 5 Hz physics; ``"paper"``: highway-v0's 15 Hz), ``shield`` (``"robust"``, ``"nominal"``, ``"committed"`` or ``"none"``),
@@ -38,6 +42,8 @@ ENV_IDS: dict[str, str] = {
     "safelane/HighwayFast-v0": "fast",
     "safelane/HighwayContinuous-v0": "highway-env",
     "safelane/HighwayContinuousFast-v0": "fast",
+    "safelane/HighwayHiddenTypes-v0": "highway-env",
+    "safelane/HighwayHiddenTypesFast-v0": "fast",
 }
 """Each registered id and the simulator it runs on (the ``Continuous`` ids: acceleration and steering)."""
 SHIELD_MODES: tuple[str, ...] = get_args(ShieldConfig.model_fields["mode"].annotation)
@@ -202,11 +208,68 @@ def make_highway_continuous_fast_vector(
     return make_vector_env(cfg, num_envs=num_envs)
 
 
+HIDDEN_TYPES_PRESET = "hidden-types"
+"""The preset of the ``HiddenTypes`` ids (docs/guides/hidden-types.md)."""
+
+
+def make_highway_hidden_types(
+    *,
+    shield: str = "robust",
+    override: bool = False,
+    config: dict[str, Any] | None = None,
+    render_mode: str | None = None,
+) -> gym.Env:
+    """``safelane/HighwayHiddenTypes-v0``: :func:`make_highway` on the ``hidden-types`` preset (highway-env)."""
+    return make_highway(preset=HIDDEN_TYPES_PRESET, shield=shield, override=override, config=config,
+                        render_mode=render_mode)  # fmt: skip
+
+
+def make_highway_hidden_types_fast(
+    *,
+    shield: str = "robust",
+    override: bool = False,
+    config: dict[str, Any] | None = None,
+    render_mode: str | None = None,
+) -> gym.Env:
+    """``safelane/HighwayHiddenTypesFast-v0``: :func:`make_highway_fast` on the ``hidden-types`` preset."""
+    return make_highway_fast(preset=HIDDEN_TYPES_PRESET, shield=shield, override=override, config=config,
+                             render_mode=render_mode)  # fmt: skip
+
+
+def make_highway_hidden_types_vector(
+    num_envs: int = 1,
+    *,
+    shield: str = "robust",
+    override: bool = False,
+    config: dict[str, Any] | None = None,
+    render_mode: str | None = None,
+) -> SafelaneVectorEnv:
+    """``gym.make_vec("safelane/HighwayHiddenTypes-v0", num_envs=N)``: :func:`make_highway_vector` on the preset."""
+    return make_highway_vector(num_envs, preset=HIDDEN_TYPES_PRESET, shield=shield, override=override, config=config,
+                               render_mode=render_mode)  # fmt: skip
+
+
+def make_highway_hidden_types_fast_vector(
+    num_envs: int = 1,
+    *,
+    shield: str = "robust",
+    override: bool = False,
+    config: dict[str, Any] | None = None,
+    render_mode: str | None = None,
+) -> FastVectorEnv | SafelaneVectorEnv:
+    """``gym.make_vec("safelane/HighwayHiddenTypesFast-v0", num_envs=N)``: :func:`make_highway_fast_vector` on the
+    preset (the batched fast simulator for the hidden arm; a loop over environments for ``state: paper-types``)."""
+    return make_highway_fast_vector(num_envs, preset=HIDDEN_TYPES_PRESET, shield=shield, override=override,
+                                    config=config, render_mode=render_mode)  # fmt: skip
+
+
 _ENTRY_POINTS = {
     "safelane/Highway-v0": ("make_highway", "make_highway_vector"),
     "safelane/HighwayFast-v0": ("make_highway_fast", "make_highway_fast_vector"),
     "safelane/HighwayContinuous-v0": ("make_highway_continuous", "make_highway_continuous_vector"),
     "safelane/HighwayContinuousFast-v0": ("make_highway_continuous_fast", "make_highway_continuous_fast_vector"),
+    "safelane/HighwayHiddenTypes-v0": ("make_highway_hidden_types", "make_highway_hidden_types_vector"),
+    "safelane/HighwayHiddenTypesFast-v0": ("make_highway_hidden_types_fast", "make_highway_hidden_types_fast_vector"),
 }
 
 

@@ -5,9 +5,9 @@ Two checks, both on the whole safelane environment (simulator, snapshot, observa
 * **Trajectories** (:func:`compare_episode`): the same configuration is built on both simulators, reset
   with the same seed and driven by the same policy (random, always-FASTER, and random under the robust
   shield with override, so the shield's masks must agree too); after every decision every vehicle's
-  position, speed and heading must agree within ``tol`` (m, m/s, rad) and its lane, crash flag, the
-  mask, the observation and the reward must be equal. An episode that diverges reports its first
-  divergent decision and what differed first.
+  position, speed and heading must agree within ``tol`` (m, m/s, rad) and its lane, crash flag, driver type
+  (``traffic.driver_mix``), the mask, the observation and the reward must be equal. An episode that diverges
+  reports its first divergent decision and what differed first.
 * **Statistics** (:func:`stat_episodes_of`, :func:`statistical_tests`): each policy of
   :data:`STAT_POLICIES` plays independent episodes on each simulator (disjoint seed ranges); Fisher's
   exact test compares the collision rates and a permutation test the per-episode mean speeds. A
@@ -114,6 +114,11 @@ def _difference(a: RoadSnapshot, b: RoadSnapshot, tol: float) -> str | None:
         if not np.array_equal(x, y):
             i = int(np.flatnonzero(x != y)[0])
             return f"vehicle {i} {name}: {x[i]} on highway-env, {y[i]} on fast"
+    if (a.driver_type is None) != (b.driver_type is None):
+        return f"driver types {'none' if a.driver_type is None else 'drawn'} on highway-env, not on fast"
+    if a.driver_type is not None and not np.array_equal(a.driver_type, b.driver_type):
+        i = int(np.flatnonzero(a.driver_type != b.driver_type)[0])
+        return f"vehicle {i} driver_type: {a.driver_type[i]} on highway-env, {b.driver_type[i]} on fast"
     return None
 
 

@@ -50,15 +50,19 @@ class _DriverRecord(NamedTuple):
 _FLOAT_FIELDS = tuple(f for f in _DriverRecord._fields if f != "is_vehicle")
 
 
-def _driver_record(o: Any, is_vehicle: bool) -> _DriverRecord:
-    """Read one body's static attributes (instance first, then class; IDM's values as defaults)."""
-    idm_formula = getattr(type(o), "acceleration", None) is IDMVehicle.acceleration
+def _driver_record(o: Any, is_vehicle: bool, assumed: type | None = None) -> _DriverRecord:
+    """Read one body's static attributes (instance first, then class; IDM's values as defaults). ``assumed``: a
+    drawn car whose type the shield does not see (``o.driver_type`` >= 0) reports that class's parameters (its
+    nominal linear gains, if linear), all but its own IDM exponent."""
+    model = assumed if assumed is not None and getattr(o, "driver_type", -1) >= 0 else o
+    model_class = model if isinstance(model, type) else type(model)
+    idm_formula = getattr(model_class, "acceleration", None) is IDMVehicle.acceleration
     # The linear model's gains (LinearVehicle and its subclasses): MOBIL's criterion uses that formula.
-    linear = getattr(o, "ACCELERATION_PARAMETERS", None) if not idm_formula and is_vehicle else None
+    linear = getattr(model, "ACCELERATION_PARAMETERS", None) if not idm_formula and is_vehicle else None
     gains = [float(g) for g in linear] if linear is not None and len(linear) == 3 else [np.nan] * 3
     mobil = linear is not None or idm_formula
-    comfort_acc = float(getattr(o, "COMFORT_ACC_MAX", IDMVehicle.COMFORT_ACC_MAX))
-    acc_max = float(getattr(o, "ACC_MAX", IDMVehicle.ACC_MAX))
+    comfort_acc = float(getattr(model, "COMFORT_ACC_MAX", IDMVehicle.COMFORT_ACC_MAX))
+    acc_max = float(getattr(model, "ACC_MAX", IDMVehicle.ACC_MAX))
     return _DriverRecord(
         length=float(getattr(o, "LENGTH", 5.0)),
         width=float(getattr(o, "WIDTH", 2.0)),
@@ -67,10 +71,10 @@ def _driver_record(o: Any, is_vehicle: bool) -> _DriverRecord:
         accel_max=comfort_acc if idm_formula else acc_max,
         idm_delta=float(getattr(o, "DELTA", IDMVehicle.DELTA)),
         idm_comfort_acc=comfort_acc,
-        idm_comfort_dec=float(getattr(o, "COMFORT_ACC_MIN", IDMVehicle.COMFORT_ACC_MIN)),
-        idm_distance_wanted=float(getattr(o, "DISTANCE_WANTED", IDMVehicle.DISTANCE_WANTED)),
-        idm_time_wanted=float(getattr(o, "TIME_WANTED", IDMVehicle.TIME_WANTED)),
-        max_braking_imposed=float(getattr(o, "LANE_CHANGE_MAX_BRAKING_IMPOSED", 2.0)) if mobil else np.inf,
+        idm_comfort_dec=float(getattr(model, "COMFORT_ACC_MIN", IDMVehicle.COMFORT_ACC_MIN)),
+        idm_distance_wanted=float(getattr(model, "DISTANCE_WANTED", IDMVehicle.DISTANCE_WANTED)),
+        idm_time_wanted=float(getattr(model, "TIME_WANTED", IDMVehicle.TIME_WANTED)),
+        max_braking_imposed=float(getattr(model, "LANE_CHANGE_MAX_BRAKING_IMPOSED", 2.0)) if mobil else np.inf,
         linear_speed_gain=gains[0],
         linear_speed_difference_gain=gains[1],
         linear_distance_gain=gains[2],
@@ -136,18 +140,22 @@ def snapshot_of(base: Any, cache: dict[int, _DriverRecord] | None = None) -> Roa
     """The :class:`RoadSnapshot` of a highway-env environment (``env.unwrapped``) now.
 
     ``cache`` keeps each body's static record between calls of one episode (keyed by ``id``; the
-    caller clears it at reset).
+    caller clears it at reset). An environment with a driver mixture (:func:`safelane.sim.drivers.install_driver_mix`)
+    gives each body's ``driver_type``, and the assumed type's parameters for drawn cars when the shield does not see
+    the types.
     """
     road, ego = base.road, base.vehicle
     lane0, lanes_count = _lane_frame(road)
     found = bodies(road)
     n_vehicles = len(road.vehicles)
     cache = {} if cache is None else cache
+    mixture = getattr(base, "safelane_driver_mix", None)  # safelane.sim.drivers.install_driver_mix
+    assumed = mixture.assumed if mixture is not None else None
     records = []
     for k, o in enumerate(found):
         rec = cache.get(id(o))
         if rec is None:
-            rec = cache[id(o)] = _driver_record(o, k < n_vehicles)
+            rec = cache[id(o)] = _driver_record(o, k < n_vehicles, assumed)
         records.append(rec)
     n = len(found)
     columns = {
@@ -195,6 +203,9 @@ def snapshot_of(base: Any, cache: dict[int, _DriverRecord] | None = None) -> Roa
         ),
         impact_before=watch.before if crashed_frame else None,
         impact_after=watch.after if crashed_frame else None,
+        driver_type=None
+        if mixture is None
+        else np.array([int(getattr(o, "driver_type", -1)) for o in found], dtype=np.int64),
         **columns,
     )
 

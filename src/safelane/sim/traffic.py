@@ -1,6 +1,7 @@
-"""safelane's traffic options, applied to highway-env's scene right after it is built.
+"""safelane's traffic options, applied to highway-env's scene as it is built.
 
-:class:`TrafficLayout` spawns some vehicles behind the ego (``traffic.vehicles_behind``), places a
+:class:`TrafficLayout` draws each other car's driver type from a mixture (``traffic.driver_mix``,
+:mod:`safelane.sim.drivers`), spawns some vehicles behind the ego (``traffic.vehicles_behind``), places a
 scripted adversary (``traffic.adversary``, :mod:`safelane.sim.adversaries`) and switches the road to
 the numpy neighbour search (:mod:`safelane.sim.neighbours`, config ``neighbour_search``).
 """
@@ -12,8 +13,10 @@ from typing import Any
 
 import gymnasium as gym
 
+from safelane.core.drivers import DriverMix
 from safelane.sim import neighbours
 from safelane.sim.adversaries import add_adversary
+from safelane.sim.drivers import DriverDraw, install_driver_mix
 
 
 class TrafficLayout(gym.Wrapper, gym.utils.RecordConstructorArgs):
@@ -27,18 +30,30 @@ class TrafficLayout(gym.Wrapper, gym.utils.RecordConstructorArgs):
     ``road.np_random`` (same spacing law as ``Vehicle.create_random``), speeds uniform in
     [0.7, 1.0]·speed limit so that some are faster than the ego. highway-env alone spawns the ego
     behind every other vehicle, so followers and cut-ins from behind never happen in the stock scene.
+
+    ``driver_mix``: each other car's class is drawn from the mixture at spawn, highway-env's scene and the
+    vehicles behind alike (:func:`safelane.sim.drivers.install_driver_mix`; behind the ego the type is drawn
+    first, then lane, speed and gap, as ``create_random`` does it).
     """
 
     def __init__(
-        self, env: gym.Env, vehicles_behind: int = 0, vectorized: bool = True, adversary: str = "none"
+        self,
+        env: gym.Env,
+        vehicles_behind: int = 0,
+        vectorized: bool = True,
+        adversary: str = "none",
+        driver_mix: DriverMix | None = None,
     ) -> None:
         gym.utils.RecordConstructorArgs.__init__(
-            self, vehicles_behind=vehicles_behind, vectorized=vectorized, adversary=adversary
+            self, vehicles_behind=vehicles_behind, vectorized=vectorized, adversary=adversary, driver_mix=driver_mix
         )
         super().__init__(env)
         self.vehicles_behind = vehicles_behind
         self.vectorized = vectorized
         self.adversary = adversary
+        self.drivers: DriverDraw | None = None
+        if driver_mix is not None:
+            self.drivers = install_driver_mix(self.env.unwrapped, driver_mix)
 
     def reset(self, **kwargs: Any) -> tuple[Any, dict[str, Any]]:
         obs, info = self.env.reset(**kwargs)
@@ -68,6 +83,10 @@ class TrafficLayout(gym.Wrapper, gym.utils.RecordConstructorArgs):
         n_lanes = len(lanes[_from][_to])
         x = ego.lane.local_coordinates(ego.position)[0]
         for _ in range(n):
+            driver_type = -1
+            if self.drivers is not None:
+                driver_type = self.drivers.draw(road.np_random)
+                vehicle_cls = self.drivers.classes[driver_type]
             lane_id = int(road.np_random.integers(n_lanes))
             lane = road.network.get_lane((_from, _to, lane_id))
             limit = lane.speed_limit or 30.0
@@ -78,4 +97,6 @@ class TrafficLayout(gym.Wrapper, gym.utils.RecordConstructorArgs):
             if hasattr(v, "randomize_behavior"):
                 v.randomize_behavior()
             v.check_collisions = check_collisions
+            if driver_type >= 0:
+                v.driver_type = driver_type
             road.vehicles.append(v)

@@ -24,6 +24,7 @@ from typing import Any
 
 import numpy as np
 
+from safelane.core.drivers import ASSUMED_DRIVER, NO_MIX, DriverMix, parse_driver_mix
 from safelane.core.snapshot import RoadSnapshot
 from safelane.sim.fast import layout as L
 from safelane.sim.fast.env import FastHighwayEnv
@@ -47,19 +48,26 @@ class Alignment:
         return self.divergent_step is None
 
 
-def make_oracle(config: dict[str, Any], env_id: str, vehicles_behind: int = 0, snapshots: bool = False) -> Any:
+def make_oracle(
+    config: dict[str, Any],
+    env_id: str,
+    vehicles_behind: int = 0,
+    snapshots: bool = False,
+    driver_mix: DriverMix | None = None,
+) -> Any:
     """Stock highway-env, as the project makes it: ``gym.make(env_id, config=config)``; with
-    ``vehicles_behind`` > 0 wrapped in :class:`safelane.sim.traffic.TrafficLayout` (highway-env's own
-    neighbour search kept), which moves that many vehicles behind the ego at reset; with ``snapshots`` in
+    ``vehicles_behind`` > 0 or a ``driver_mix`` wrapped in :class:`safelane.sim.traffic.TrafficLayout`
+    (highway-env's own neighbour search kept), which moves that many vehicles behind the ego at reset and draws
+    each other car's driver type from the mixture; with ``snapshots`` in
     :class:`safelane.sim.highway.HighwayEnvAdapter` (``info["snapshot"]``, read from highway-env's objects)."""
     import gymnasium as gym
     import highway_env  # noqa: F401  (registers the envs)
 
     env = gym.make(env_id, config=config)
-    if vehicles_behind:
+    if vehicles_behind or driver_mix is not None:
         from safelane.sim.traffic import TrafficLayout
 
-        env = TrafficLayout(env, vehicles_behind, vectorized=False)
+        env = TrafficLayout(env, vehicles_behind, vectorized=False, driver_mix=driver_mix)
     if snapshots:
         from safelane.sim.highway import HighwayEnvAdapter
 
@@ -86,11 +94,12 @@ def oracle_state(env: Any) -> dict[str, np.ndarray]:
         "is_ego_first": np.array([vs[0] is ego]),
         "delta": np.array([float(getattr(v, "DELTA", np.nan)) for v in vs[1:]]),
         "timer": np.array([float(getattr(v, "timer", np.nan)) for v in vs[1:]]),
+        "driver_type": np.array([int(getattr(v, "driver_type", -1)) for v in vs]),
     }
 
 
 _CONT = ("x", "y", "heading", "speed", "target_speed")
-_DISC = ("lane", "target_lane", "crashed", "speed_index")
+_DISC = ("lane", "target_lane", "crashed", "speed_index", "driver_type")
 
 
 def compare_states(fast: dict[str, np.ndarray], ref: dict[str, np.ndarray], tol: float, full: bool = False):
@@ -137,6 +146,7 @@ def compare_episode(
     stop_at_end: bool = True,
     vehicles_behind: int = 0,
     snapshots: bool = False,
+    driver_mix: DriverMix | None = None,
 ) -> Alignment:
     """Run ``actions`` from ``reset(seed=seed)`` in both simulators and report the first divergence.
 
@@ -145,12 +155,14 @@ def compare_episode(
     ``snapshots``: also require the two ``info["snapshot"]`` to be equal (``RoadSnapshot.__eq__``: every
     field, to the bit) after the reset and every decision (the oracle is then made with ``snapshots``).
     ``oracle`` / ``fast``: envs to reuse (made from ``config`` / ``env_id`` / ``vehicles_behind`` when None).
-    ``vehicles_behind``: safelane's ``traffic.vehicles_behind`` (see :func:`make_oracle`).
+    ``vehicles_behind``, ``driver_mix``: safelane's ``traffic.vehicles_behind`` and ``traffic.driver_mix`` (see
+    :func:`make_oracle`).
     ``stop_at_end``: stop at the oracle's termination / truncation (False: play every action, which
     also checks the crashed ego and the traffic after the episode would have ended).
     """
-    oracle = oracle if oracle is not None else make_oracle(config, env_id, vehicles_behind, snapshots)
-    fast = fast if fast is not None else FastHighwayEnv(config, env_id, vehicles_behind=vehicles_behind)
+    oracle = oracle if oracle is not None else make_oracle(config, env_id, vehicles_behind, snapshots, driver_mix)
+    fast = fast if fast is not None else FastHighwayEnv(config, env_id, vehicles_behind=vehicles_behind,
+                                                        driver_mix=driver_mix)  # fmt: skip
     _, info_o = oracle.reset(seed=seed)
     _, info_f = fast.reset(seed=seed)
     cause, err, bitwise = compare_states(fast.state(), oracle_state(oracle), tol, full=True)
@@ -249,7 +261,8 @@ __all__ = [
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """``python -m safelane.sim.fast.check [--preset fast|paper|all] [--seeds 0:10] [--policies ...] [--continuous]``
+    """``python -m safelane.sim.fast.check [--preset fast|paper|hidden-types|all] [--seeds 0:10] [--policies ...]
+    [--continuous]``
 
     Compares whole episodes against stock highway-env and prints one line per episode and a summary;
     exit status 1 if any episode diverged. ``--continuous``: the ego under ``ContinuousAction`` instead,
@@ -263,7 +276,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     import yaml
 
     ap = argparse.ArgumentParser(prog="python -m safelane.sim.fast.check")
-    ap.add_argument("--preset", default="all", help="fast, paper or all")
+    ap.add_argument("--preset", default="all", help="fast, paper, hidden-types or all")
     ap.add_argument("--seeds", default="0:5", help="start:stop")
     ap.add_argument("--policies", default=None, help="default: every policy of the action kind")
     ap.add_argument("--continuous", action="store_true", help="a ContinuousAction ego (default: meta-actions)")
@@ -271,17 +284,20 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--tol", type=float, default=1e-6)
     ap.add_argument("--stop-at-end", action="store_true", help="stop at termination (default: play on)")
     args = ap.parse_args(argv)
-    presets = ("fast", "paper") if args.preset == "all" else (args.preset,)
+    presets = ("fast", "paper", "hidden-types") if args.preset == "all" else (args.preset,)
     a, b = (int(v) for v in args.seeds.split(":"))
     total = matched = bitwise = 0
     policies = args.policies.split(",") if args.policies else (CONTINUOUS_POLICIES if args.continuous else POLICIES)
     for name in presets:
         data = yaml.safe_load((Path(str(resources.files("safelane"))) / "presets" / f"{name}.yaml").read_text())
         cfg, env_id = data["env"], data["env_id"]
+        traffic = data.get("traffic", {})
+        hidden = traffic.get("assumed_driver", ASSUMED_DRIVER) if not traffic.get("shield_sees_types") else None
+        mix = parse_driver_mix(traffic.get("driver_mix", NO_MIX), assumed=hidden)
         if args.continuous:
             cfg = {**cfg, "action": {"type": "ContinuousAction"}}
-        oracle = make_oracle(cfg, env_id, snapshots=args.continuous)
-        fast = FastHighwayEnv(cfg, env_id)
+        oracle = make_oracle(cfg, env_id, snapshots=args.continuous, driver_mix=mix)
+        fast = FastHighwayEnv(cfg, env_id, driver_mix=mix)
         for seed in range(a, b):
             for policy in policies:
                 actions = (continuous_actions if args.continuous else policy_actions)(policy, seed, args.decisions)

@@ -23,7 +23,10 @@ DefensiveVehicle). Any other setting that changes the dynamics raises ValueError
 (:func:`safelane.sim.fast.scene.resolve_config`); rendering, reward and observation settings are accepted
 and have no effect. ``vehicles_behind`` (safelane's ``traffic.vehicles_behind``, not a highway-env
 setting) moves that many vehicles behind the ego at reset as :class:`safelane.sim.traffic.TrafficLayout`
-does on highway-env (:func:`safelane.sim.fast.scene.spawn_behind`).
+does on highway-env (:func:`safelane.sim.fast.scene.spawn_behind`). ``driver_mix`` (``traffic.driver_mix``) draws
+each other car's driver type at spawn as :func:`safelane.sim.drivers.install_driver_mix` does on highway-env, and its
+snapshot reports each car's ``driver_type`` and (unless the mixture lets the shield see the types) the assumed
+type's driver parameters, as :func:`safelane.sim.highway.snapshot_of` does.
 """
 
 from __future__ import annotations
@@ -37,7 +40,9 @@ from gymnasium import spaces
 from highway_env.vehicle.behavior import IDMVehicle
 from highway_env.vehicle.controller import ControlledVehicle
 
+from safelane.core.drivers import DriverMix
 from safelane.core.snapshot import RoadSnapshot
+from safelane.sim.drivers import assumed_class
 from safelane.sim.fast import continuous as C
 from safelane.sim.fast import kernels as K
 from safelane.sim.fast import layout as L
@@ -53,7 +58,33 @@ _SNAPSHOT_FIELDS = (
     "length", "width", "crashed", "is_vehicle", "brake_max", "accel_max", "can_change_lane", "idm_delta",
     "idm_comfort_acc", "idm_comfort_dec", "idm_distance_wanted", "idm_time_wanted", "max_braking_imposed",
     "impact_before", "impact_after", "linear_speed_gain", "linear_speed_difference_gain", "linear_distance_gain",
+    "driver_type",
 )  # fmt: skip
+_MODEL_FIELDS = (
+    "brake_max", "accel_max", "idm_comfort_acc", "idm_comfort_dec", "idm_distance_wanted", "idm_time_wanted",
+    "max_braking_imposed",
+)  # fmt: skip
+"""The snapshot's driver fields that are a driver class's constants (:func:`_model_row`)."""
+
+
+def _model_row(cls: type) -> np.ndarray:
+    """An other vehicle of class ``cls``: its :data:`_MODEL_FIELDS`, then 1.0 for the linear model (else 0.0), as
+    :func:`safelane.sim.highway.snapshot_of` reads them (IDM's ``COMFORT_ACC_MAX`` as the highest acceleration of an
+    IDM driver, ``ACC_MAX`` of a linear one; MOBIL's braking criterion with either model)."""
+    idm_formula = cls.acceleration is IDMVehicle.acceleration
+    acc_max = float(getattr(cls, "ACC_MAX", IDMVehicle.ACC_MAX))
+    return np.array([
+        acc_max, float(cls.COMFORT_ACC_MAX) if idm_formula else acc_max, float(cls.COMFORT_ACC_MAX),
+        float(cls.COMFORT_ACC_MIN), float(cls.DISTANCE_WANTED), float(cls.TIME_WANTED),
+        float(cls.LANE_CHANGE_MAX_BRAKING_IMPOSED), 0.0 if idm_formula else 1.0,
+    ])  # fmt: skip
+
+
+_EGO_ROW = np.array([
+    float(IDMVehicle.ACC_MAX), float(IDMVehicle.ACC_MAX), float(IDMVehicle.COMFORT_ACC_MAX),
+    float(IDMVehicle.COMFORT_ACC_MIN), float(IDMVehicle.DISTANCE_WANTED), float(IDMVehicle.TIME_WANTED), np.inf, 0.0,
+])  # fmt: skip
+"""The ego's :func:`_model_row` (an MDPVehicle or a Vehicle: IDM's defaults, no MOBIL)."""
 
 
 class SimState(NamedTuple):
@@ -115,6 +146,7 @@ class FastHighwayEnv(gym.Env):
     ``storage``: the arrays to live in (default: its own; :class:`SceneStorage`).
     ``vehicles_behind``: how many vehicles (at most ``vehicles_count``) each reset moves from the front
     of the scene to behind the ego, as safelane's ``traffic.vehicles_behind`` on highway-env.
+    ``driver_mix``: each other car's driver type drawn from it at spawn (``traffic.driver_mix``).
     Seeding is gymnasium's (``Env.reset(seed=...)`` -> ``self.np_random``), as in highway-env.
     """
 
@@ -126,9 +158,10 @@ class FastHighwayEnv(gym.Env):
         env_id: str = "highway-fast-v0",
         storage: SceneStorage | None = None,
         vehicles_behind: int = 0,
+        driver_mix: DriverMix | None = None,
     ) -> None:
         self.env_id = env_id
-        self.sim = resolve_config(config, env_id)
+        self.sim = resolve_config(config, env_id, driver_mix)
         whole = isinstance(vehicles_behind, int | np.integer) and not isinstance(vehicles_behind, bool)
         if not whole or vehicles_behind < 0:
             raise ValueError(f"vehicles_behind: {vehicles_behind!r} is not supported; allowed: an integer >= 0")
@@ -167,38 +200,23 @@ class FastHighwayEnv(gym.Env):
         self._is_vehicle = np.ones(n, dtype=bool)
         idm = np.ones(n, dtype=bool)
         idm[0] = False
-        cls = self.sim.other_class
-        # IDMVehicle.acceleration (IDM formula) or LinearVehicle's model, as safelane's shield reads them
-        idm_formula = cls.acceleration is IDMVehicle.acceleration
         self._can_change_lane = idm.copy()
-        acc_max = float(getattr(cls, "ACC_MAX", IDMVehicle.ACC_MAX))
-        self._brake_max = np.full(n, acc_max)
-        self._brake_max[0] = float(IDMVehicle.ACC_MAX)
-        others_accel = float(cls.COMFORT_ACC_MAX) if idm_formula else acc_max
-        self._accel_max = np.where(idm, others_accel, float(IDMVehicle.ACC_MAX))
-        self._comfort_acc = np.where(idm, float(cls.COMFORT_ACC_MAX), float(IDMVehicle.COMFORT_ACC_MAX))
-        self._comfort_dec = np.where(idm, float(cls.COMFORT_ACC_MIN), float(IDMVehicle.COMFORT_ACC_MIN))
-        self._distance_wanted = np.where(idm, float(cls.DISTANCE_WANTED), float(IDMVehicle.DISTANCE_WANTED))
-        self._time_wanted = np.where(idm, float(cls.TIME_WANTED), float(IDMVehicle.TIME_WANTED))
-        # MOBIL's criterion with the driver's own formula: IDM's, or the linear model's gains.
-        self._max_braking = np.where(idm, float(cls.LANE_CHANGE_MAX_BRAKING_IMPOSED), np.inf)
-        # Linear-model drivers draw their gains per vehicle at spawn (randomize_behavior): read at reset.
-        self._linear_model = not idm_formula
+        # The snapshot's class constants per row, looked up in one table: each type's row, the assumed type's,
+        # the ego's (:func:`_model_row`).
+        mix = self.sim.driver_mix
+        assumed = assumed_class(mix) if mix is not None else None
+        models = [_model_row(c) for c in self.sim.other_classes]
+        self._model_table = np.stack([*models, _model_row(assumed) if assumed else models[0], _EGO_ROW])
+        self._assumed_gains = np.asarray(getattr(assumed, "ACCELERATION_PARAMETERS", [np.nan] * 3), dtype=np.float64)
+        self._conceal = assumed is not None
         self._no_gains = np.full(n, np.nan)
-        for a in (
-            self._length,
-            self._width,
-            self._is_vehicle,
-            self._can_change_lane,
-            self._brake_max,
-            self._accel_max,
-            self._comfort_acc,
-            self._comfort_dec,
-            self._distance_wanted,
-            self._time_wanted,
-            self._max_braking,
-            self._no_gains,
-        ):
+        self._no_gains.flags.writeable = False
+        # Linear-model drivers draw their gains per vehicle at spawn (randomize_behavior): read at reset.
+        self._linear_model = bool(self.sim.drivers[0, L.D_LIN])
+        rows = np.zeros(n, dtype=np.int64)
+        rows[0] = -1  # the ego's row of the table
+        self._set_model_fields(rows)
+        for a in (self._length, self._width, self._is_vehicle, self._can_change_lane):
             a.flags.writeable = False
         self._origin = np.zeros(2)
         self._direction = np.array([1.0, 0.0])
@@ -206,11 +224,44 @@ class FastHighwayEnv(gym.Env):
         # a continuous ego (a plain Vehicle) has no set-points and no speed controller
         self._ts_tuple = () if self.continuous else tuple(float(s) for s in self.sim.target_speeds)
         self._delta: np.ndarray | None = None
+        self._driver_type: np.ndarray | None = None
         self._lane_w = float(self.P[L.P_LANE_WIDTH])
         self._pol_f = float(self.sim.policy_frequency)
         self._sim_f = float(self.sim.simulation_frequency)
         self._kp = math.nan if self.continuous else float(ControlledVehicle.KP_A)
         assert set(RoadSnapshot.__dataclass_fields__) == set(_SNAPSHOT_FIELDS), "RoadSnapshot changed"
+
+    def _set_model_fields(self, rows: np.ndarray) -> None:
+        """The snapshot's class-constant driver fields, each body's from row ``rows[k]`` of the model table."""
+        table = self._model_table[rows]
+        for column, name in enumerate(_MODEL_FIELDS):
+            values = table[:, column].copy()
+            values.flags.writeable = False
+            setattr(self, f"_{name}", values)
+        self._linear_rows = table[:, len(_MODEL_FIELDS)] != 0.0
+
+    def _driver_fields_at_reset(self) -> None:
+        """The per-episode driver fields: each body's IDM exponent and linear gains (drawn at spawn); with a driver
+        mixture also each body's type and its class constants (the assumed type's for a drawn car, unless the
+        shield sees the types)."""
+        self._delta = self.F[:, L.DELTA].copy()
+        self._delta.flags.writeable = False
+        types = self.G[:, L.DTYPE]
+        if self.sim.driver_mix is not None:
+            self._driver_type = types.copy()
+            self._driver_type.flags.writeable = False
+            n_types = len(self.sim.other_classes)
+            rows = np.where(types < 0, n_types + 1, n_types if self._conceal else types)
+            self._set_model_fields(rows)
+        self._linear_gains = [self._no_gains] * 3
+        if self.sim.driver_mix is not None and self._conceal:
+            if self._linear_rows[1:].any():  # the assumed type is linear: its nominal gains
+                self._linear_gains = [np.where(types >= 0, g, np.nan) for g in self._assumed_gains]
+        elif self.G[:, L.LIN].any():
+            linear = self.G[:, L.LIN] != 0  # the ego is not a linear-model driver
+            self._linear_gains = [np.where(linear, self.F[:, c], np.nan) for c in (L.AP0, L.AP1, L.AP2)]
+        for gains in self._linear_gains:
+            gains.flags.writeable = False
 
     # --- gymnasium API -----------------------------------------------------------------------------
     def reset(self, *, seed: int | None = None, options: dict | None = None) -> tuple[np.ndarray, dict]:
@@ -230,16 +281,7 @@ class FastHighwayEnv(gym.Env):
         self.time = 0.0
         self.steps = 0
         self._rec[0] = 0
-        self._delta = self.F[:, L.DELTA].copy()
-        self._delta.flags.writeable = False
-        self._linear_gains = [self._no_gains] * 3
-        if self._linear_model:
-            self._linear_gains = []
-            for column in (L.AP0, L.AP1, L.AP2):
-                gains = self.F[:, column].copy()
-                gains[0] = np.nan  # the ego is not a linear-model driver
-                gains.flags.writeable = False
-                self._linear_gains.append(gains)
+        self._driver_fields_at_reset()
         self._episode_fields = self._constant_fields()
         return self._obs.copy(), self._info()
 
@@ -290,6 +332,7 @@ class FastHighwayEnv(gym.Env):
             "target_speed": target_speed,
             "delta": F[:, L.DELTA].copy(),
             "timer": F[:, L.TIMER].copy(),
+            "driver_type": G[:, L.DTYPE].copy(),
             "lane": G[:, L.LANE].copy(),
             "target_lane": G[:, L.TLANE].copy(),
             "crashed": G[:, L.CRASHED].astype(bool),
@@ -345,18 +388,13 @@ class FastHighwayEnv(gym.Env):
             "length": self._length,
             "width": self._width,
             "is_vehicle": self._is_vehicle,
-            "brake_max": self._brake_max,
-            "accel_max": self._accel_max,
             "can_change_lane": self._can_change_lane,
             "idm_delta": self._delta,
-            "idm_comfort_acc": self._comfort_acc,
-            "idm_comfort_dec": self._comfort_dec,
-            "idm_distance_wanted": self._distance_wanted,
-            "idm_time_wanted": self._time_wanted,
-            "max_braking_imposed": self._max_braking,
+            **{name: getattr(self, f"_{name}") for name in _MODEL_FIELDS},
             "linear_speed_gain": self._linear_gains[0],
             "linear_speed_difference_gain": self._linear_gains[1],
             "linear_distance_gain": self._linear_gains[2],
+            "driver_type": self._driver_type if self.sim.driver_mix is not None else None,
         }
 
     def snapshot(self) -> RoadSnapshot:

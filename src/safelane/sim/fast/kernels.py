@@ -39,9 +39,26 @@ from safelane.sim.fast.layout import (
     AP1,
     AP2,
     CHECK,
+    CMAX,
+    CMIN,
     COSH,
     CRASHED,
+    D_AR,
+    D_CMAX,
+    D_CMIN,
+    D_DELAY,
+    D_DHI,
+    D_DLO,
+    D_DW,
+    D_GAIN,
+    D_LIN,
+    D_MBI,
+    D_POL,
+    D_SR,
+    D_TW,
     DELTA,
+    DTYPE,
+    DW,
     ELC,
     FASTER,
     GAIN,
@@ -53,25 +70,22 @@ from safelane.sim.fast.layout import (
     LANE_LEFT,
     LANE_RIGHT,
     LIN,
+    MBI,
     P_ACC_MAX,
-    P_COMFORT_ACC_MAX,
-    P_COMFORT_ACC_MIN,
     P_DIAGONAL,
-    P_DISTANCE_WANTED,
     P_KP_A,
     P_KP_HEADING,
     P_KP_LATERAL,
     P_LANE_CHANGE_DELAY,
     P_LANE_WIDTH,
     P_LENGTH,
-    P_MAX_BRAKING_IMPOSED,
     P_MAX_SPEED,
     P_MAX_STEERING,
     P_MIN_SPEED,
-    P_POLITENESS,
     P_SPEED_LIMIT,
     P_SQUARE,
     P_WIDTH,
+    POL,
     SINH,
     SLOWER,
     SP0,
@@ -95,10 +109,11 @@ drop_stale_kernel_cache(__file__, (layout.__file__, numerics.__file__, lanes.__f
 
 @njit(cache=True, error_model="numpy", inline="always")
 def _desired_gap(F, c, j, k, P):
-    """``c.desired_gap(ego_vehicle=j, front_vehicle=k)``, projected (c's TIME_WANTED)."""
-    d0 = P[P_DISTANCE_WANTED]
+    """``c.desired_gap(ego_vehicle=j, front_vehicle=k)``, projected (c's DISTANCE_WANTED, TIME_WANTED, comfort
+    accelerations)."""
+    d0 = F[c, DW]
     tau = F[c, TW]
-    ab = -P[P_COMFORT_ACC_MAX] * P[P_COMFORT_ACC_MIN]
+    ab = -F[c, CMAX] * F[c, CMIN]
     cj = F[j, COSH]
     sj = F[j, SINH]
     ck = F[k, COSH]
@@ -112,13 +127,14 @@ def _desired_gap(F, c, j, k, P):
 
 
 @njit(cache=True, error_model="numpy", inline="always")
-def _free_road(F, j, delta, P):
-    """IDM's free-road term ``COMFORT_ACC_MAX * (1 - (v / v0)**delta)`` of vehicle j with exponent delta."""
+def _free_road(F, j, delta, acc, P):
+    """IDM's free-road term ``acc * (1 - (v / v0)**delta)`` of vehicle j with exponent delta and comfort
+    acceleration ``acc`` [m/s²] (the caller's COMFORT_ACC_MAX)."""
     tgt = clip(F[j, TSPD], 0.0, P[P_SPEED_LIMIT])
     sp = F[j, V]
     if not (sp > 0.0):
         sp = 0.0
-    return P[P_COMFORT_ACC_MAX] * (1 - math.pow(sp / abs(not_zero(tgt)), delta))
+    return acc * (1 - math.pow(sp / abs(not_zero(tgt)), delta))
 
 
 @njit(cache=True, error_model="numpy", inline="always")
@@ -127,7 +143,7 @@ def _linear_acceleration(F, c, j, k, P):
     vt = F[j, TSPD] - F[j, V]
     sp = F[j, V]
     m = sp if sp >= 0.0 else 0.0
-    d_safe = P[P_DISTANCE_WANTED] + m * F[c, TW]
+    d_safe = F[c, DW] + m * F[c, TW]
     dv = 0.0
     dp = 0.0
     if k >= 0:
@@ -146,16 +162,16 @@ def _acceleration(F, G, c, j, k, P):
         return 0.0
     if G[c, LIN]:
         return _linear_acceleration(F, c, j, k, P)
-    return _acceleration_free(F, c, j, k, _free_road(F, j, F[c, DELTA], P), P)
+    return _acceleration_free(F, c, j, k, _free_road(F, j, F[c, DELTA], F[c, CMAX], P), P)
 
 
 @njit(cache=True, error_model="numpy", inline="always")
 def _acceleration_free(F, c, j, k, free, P):
-    """IDM acceleration of caller c for j given j's free-road term with c's DELTA."""
+    """IDM acceleration of caller c for j given j's free-road term with c's DELTA and COMFORT_ACC_MAX."""
     acc = free
     if k >= 0:
         d = F[k, X] - F[j, X]
-        acc -= P[P_COMFORT_ACC_MAX] * math.pow(_desired_gap(F, c, j, k, P) / not_zero(d), 2.0)
+        acc -= F[c, CMAX] * math.pow(_desired_gap(F, c, j, k, P) / not_zero(d), 2.0)
     return acc
 
 
@@ -232,10 +248,10 @@ def _act_ego(F, G, E, ts, action, n_lanes, P):
 
 @njit(cache=True, error_model="numpy", inline="always")
 def _free_c(F, G, c, j, P):
-    """j's IDM free-road term with caller c's DELTA (0.0 when unused: no j, or c is linear)."""
+    """j's IDM free-road term with caller c's DELTA and COMFORT_ACC_MAX (0.0 when unused: no j, or c is linear)."""
     if j < 0 or G[c, LIN]:
         return 0.0
-    return _free_road(F, j, F[c, DELTA], P)
+    return _free_road(F, j, F[c, DELTA], F[c, CMAX], P)
 
 
 @njit(cache=True, error_model="numpy", inline="always")
@@ -288,7 +304,7 @@ def _change_lane_policy(F, G, n, j, n_lanes, P, members, mx, cnt, free_j):
         free_nf = _free_c(F, G, j, new_following, P)
         new_following_a = _acc_c(F, G, j, new_following, new_preceding, free_nf, P)
         new_following_pred_a = _acc_c(F, G, j, new_following, j, free_nf, P)
-        if new_following_pred_a < -P[P_MAX_BRAKING_IMPOSED]:
+        if new_following_pred_a < -F[j, MBI]:
             continue
         if not old_done:
             old_preceding, old_following = neighbours(F, j, lane, members, mx, cnt)
@@ -301,7 +317,7 @@ def _change_lane_policy(F, G, n, j, n_lanes, P, members, mx, cnt, free_j):
         jerk = (
             self_pred_a
             - self_a
-            + P[P_POLITENESS] * (new_following_pred_a - new_following_a + old_following_pred_a - old_following_a)
+            + F[j, POL] * (new_following_pred_a - new_following_a + old_following_pred_a - old_following_a)
         )
         if not jerk < F[j, GAIN]:
             G[j, TLANE] = cand
@@ -313,7 +329,7 @@ def act_idm(F, G, n, j, n_lanes, P, members, mx, cnt):
     if G[j, CRASHED]:
         return
     # j's IDM free-road term: speed and target speed do not change during act
-    free_j = 0.0 if G[j, LIN] else _free_road(F, j, F[j, DELTA], P)
+    free_j = 0.0 if G[j, LIN] else _free_road(F, j, F[j, DELTA], F[j, CMAX], P)
     if G[j, ELC]:
         _change_lane_policy(F, G, n, j, n_lanes, P, members, mx, cnt, free_j)
     lin = G[j, LIN]
@@ -588,49 +604,72 @@ def simulate(F, G, E, ts, P, action, frames, dt, n_lanes, before, after, rec):
 
 
 @njit(cache=True, error_model="numpy", inline="always")
-def _place_vehicle(raws, st, k, x, y, speed, delay, drv, lin, d_lo, d_hi, check_others, n_lanes, P, F, G):
-    """Row ``k``: an ``IDMVehicle`` (or a linear-model driver, ``lin``) created at (x, y) [m] going ``speed``
-    [m/s] — its constructor's fields (target speed = speed, the lane-change timer from its position) —
-    then ``randomize_behavior()``'s draws (a linear driver's gains first, then DELTA in [d_lo, d_hi]).
-    Shared by :func:`spawn` and :func:`spawn_behind`."""
+def _driver_type(raws, st, cdf):
+    """The next car's driver type: ``choice(cdf.size, p)`` (numpy's: one double, then the number of entries of the
+    normalised cumulative ``cdf`` at or below it, ``searchsorted(side="right")``); -1 when ``cdf`` is empty (no
+    mixture, no draw)."""
+    if cdf.size == 0:
+        return -1
+    u = uniform(raws, st, 0.0, 1.0)  # Generator.random(): 0 + 1 * next_double, exactly next_double
+    t = 0
+    while t < cdf.size and cdf[t] <= u:
+        t += 1
+    return t
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _place_vehicle(raws, st, k, x, y, speed, drivers, t, check_others, n_lanes, P, F, G):
+    """Row ``k``: a driver of type ``t`` (row ``max(t, 0)`` of the driver table ``drivers``, see
+    scene.driver_constants) created at (x, y) [m] going ``speed`` [m/s] — its constructor's fields (target speed =
+    speed, the lane-change timer from its position, its class's constants) — then ``randomize_behavior()``'s draws
+    (a linear driver's gains first, then DELTA in its DELTA_RANGE). Shared by :func:`spawn` and
+    :func:`spawn_behind`."""
+    drv = drivers[max(t, 0)]
     F[k, :] = 0.0
     G[k, :] = 0
     F[k, X] = x
     F[k, Y] = y
     F[k, V] = speed
     F[k, TSPD] = speed
-    F[k, TIMER] = ((x + y) * np.pi) % delay
-    F[k, TW] = drv[1]
-    F[k, GAIN] = drv[2]
-    if lin:
+    F[k, TIMER] = ((x + y) * np.pi) % drv[D_DELAY]
+    F[k, TW] = drv[D_TW]
+    F[k, GAIN] = drv[D_GAIN]
+    F[k, CMAX] = drv[D_CMAX]
+    F[k, CMIN] = drv[D_CMIN]
+    F[k, DW] = drv[D_DW]
+    F[k, POL] = drv[D_POL]
+    F[k, MBI] = drv[D_MBI]
+    if drv[D_LIN] != 0.0:
         u0 = uniform(raws, st, 0.0, 1.0)
         u1 = uniform(raws, st, 0.0, 1.0)
         u2 = uniform(raws, st, 0.0, 1.0)
-        F[k, AP0] = drv[3] + u0 * (drv[6] - drv[3])
-        F[k, AP1] = drv[4] + u1 * (drv[7] - drv[4])
-        F[k, AP2] = drv[5] + u2 * (drv[8] - drv[5])
+        F[k, AP0] = drv[D_AR] + u0 * (drv[D_AR + 3] - drv[D_AR])
+        F[k, AP1] = drv[D_AR + 1] + u1 * (drv[D_AR + 4] - drv[D_AR + 1])
+        F[k, AP2] = drv[D_AR + 2] + u2 * (drv[D_AR + 5] - drv[D_AR + 2])
         v0 = uniform(raws, st, 0.0, 1.0)
         v1 = uniform(raws, st, 0.0, 1.0)
-        F[k, SP0] = drv[9] + v0 * (drv[11] - drv[9])
-        F[k, SP1] = drv[10] + v1 * (drv[12] - drv[10])
+        F[k, SP0] = drv[D_SR] + v0 * (drv[D_SR + 2] - drv[D_SR])
+        F[k, SP1] = drv[D_SR + 1] + v1 * (drv[D_SR + 3] - drv[D_SR + 1])
         G[k, LIN] = 1
-    F[k, DELTA] = uniform(raws, st, d_lo, d_hi)
+    F[k, DELTA] = uniform(raws, st, drv[D_DLO], drv[D_DHI])
     lane = closest_lane(x, y, 0.0, n_lanes, P)
     G[k, LANE] = lane
     G[k, TLANE] = lane
     G[k, CHECK] = check_others
     G[k, ELC] = 1
     G[k, IDM] = 1
+    G[k, DTYPE] = t
 
 
 @njit(cache=True, error_model="numpy")
-def spawn(raws, st, ego_lane, ego_spacing, spacing, lanes_factor, lo, hi, d_lo, d_hi, delay, ego_delta,
-          drv, check_others, ts, n_lanes, P, F, G, E):  # fmt: skip
+def spawn(raws, st, ego_lane, ego_spacing, spacing, lanes_factor, lo, hi, ego_delta, ego_time_wanted,
+          drivers, cdf, check_others, ts, n_lanes, P, F, G, E):  # fmt: skip
     """The scene of HighwayEnv._create_vehicles (see scene.build_scene_python, its line-by-line twin).
 
-    ``drv`` (see scene.driver_constants): [linear?, TIME_WANTED, LANE_CHANGE_MIN_ACC_GAIN,
-    ACCELERATION_RANGE (2 x 3), STEERING_RANGE (2 x 2), the ego's TIME_WANTED] of the other vehicles' class;
-    a LinearVehicle's randomize_behavior draws uniform(size=3), uniform(size=2) before DELTA.
+    ``drivers``: the driver table (one row per type, scene.driver_constants); ``cdf``: the mixture's normalised
+    cumulative probabilities (empty: no mixture, every car of type row 0). Each other car: its type (with a
+    mixture), lane, speed, gap, then ``randomize_behavior()`` (a LinearVehicle's draws uniform(size=3),
+    uniform(size=2) before DELTA). ``ego_time_wanted`` [s]: the ego row's TIME_WANTED (IDM's).
 
     Returns False when ``raws`` ran out (``st[0] == -1``)."""
     n = F.shape[0]
@@ -652,14 +691,15 @@ def spawn(raws, st, ego_lane, ego_spacing, spacing, lanes_factor, lo, hi, d_lo, 
     G[0, LANE] = lane
     G[0, TLANE] = lane
     G[0, CHECK] = 1
+    G[0, DTYPE] = -1
     si = speed_to_index(speed, ts)
     E[0] = si
     F[0, TSPD] = ts[si]
     F[0, DELTA] = ego_delta
-    F[0, TW] = drv[13]
-    lin = drv[0] != 0.0
+    F[0, TW] = ego_time_wanted
     x_max = x
     for k in range(1, n):
+        t = _driver_type(raws, st, cdf)
         lane_id = integers(raws, st, n_lanes)
         speed = uniform(raws, st, lo, hi)
         default_spacing = 12 + 1.0 * speed
@@ -668,28 +708,28 @@ def spawn(raws, st, ego_lane, ego_spacing, spacing, lanes_factor, lo, hi, d_lo, 
         x0 += offset * uniform(raws, st, 0.9, 1.1)
         x = x0
         y = lane_id * width
-        _place_vehicle(raws, st, k, x, y, speed, delay, drv, lin, d_lo, d_hi, check_others, n_lanes, P, F, G)
+        _place_vehicle(raws, st, k, x, y, speed, drivers, t, check_others, n_lanes, P, F, G)
         if x > x_max:
             x_max = x
     return st[0] >= 0
 
 
 @njit(cache=True, error_model="numpy")
-def spawn_behind(raws, st, first, count, x, lo, hi, lanes_factor, density, d_lo, d_hi, delay, drv, check_others,
+def spawn_behind(raws, st, first, count, x, lo, hi, lanes_factor, density, drivers, cdf, check_others,
                  n_lanes, P, F, G):  # fmt: skip
     """safelane's ``TrafficLayout._spawn_behind``: ``count`` vehicles behind the ego at x [m], in rows
     ``first`` .. ``first + count - 1`` (see scene.spawn_behind_python, its line-by-line twin).
 
-    Each: lane ``integers(n_lanes)``, speed ``uniform(lo, hi)`` [m/s], gap ``(12 + speed) * lanes_factor /
-    density * uniform(0.9, 1.1)`` [m] back from the previous one, then ``randomize_behavior()`` (``drv`` as
-    in :func:`spawn`). Returns False when ``raws`` ran out (``st[0] == -1``)."""
+    Each: its type (with a mixture: ``drivers`` and ``cdf`` as in :func:`spawn`), lane ``integers(n_lanes)``,
+    speed ``uniform(lo, hi)`` [m/s], gap ``(12 + speed) * lanes_factor / density * uniform(0.9, 1.1)`` [m] back
+    from the previous one, then ``randomize_behavior()``. Returns False when ``raws`` ran out (``st[0] == -1``)."""
     width = P[P_LANE_WIDTH]
-    lin = drv[0] != 0.0
     for k in range(first, first + count):
+        t = _driver_type(raws, st, cdf)
         lane_id = integers(raws, st, n_lanes)
         speed = uniform(raws, st, lo, hi)
         offset = (12 + speed) * lanes_factor / density
         x -= offset * uniform(raws, st, 0.9, 1.1)
         y = lane_id * width
-        _place_vehicle(raws, st, k, x, y, speed, delay, drv, lin, d_lo, d_hi, check_others, n_lanes, P, F, G)
+        _place_vehicle(raws, st, k, x, y, speed, drivers, t, check_others, n_lanes, P, F, G)
     return st[0] >= 0

@@ -9,7 +9,8 @@ hands to the ``Road``), making the same calls in the same order with the same ar
   ``choice(lanes_count)`` unless ``initial_lane_id`` is set, ``uniform(0.9, 1.1)``;
   then ``MDPVehicle(road, position, heading, speed)`` (``Vehicle`` under ``ContinuousAction``: no draws either);
 * each other vehicle: ``<other_vehicles_type>.create_random(road, spacing=1/vehicles_density)`` ->
-  ``choice(lanes_count)``, ``uniform(0.7·30, 0.8·30)``, ``uniform(0.9, 1.1)``; then
+  (with a driver mixture, ``traffic.driver_mix``: its type first, ``choice(K, p=probabilities)``, one double,
+  :mod:`safelane.sim.drivers`) ``choice(lanes_count)``, ``uniform(0.7·30, 0.8·30)``, ``uniform(0.9, 1.1)``; then
   ``randomize_behavior()`` -> (LinearVehicle and subclasses: ``uniform(size=3)``, ``uniform(size=2)``
   for ACCELERATION_ / STEERING_PARAMETERS, then) ``uniform(3.5, 4.5)`` (DELTA).
 
@@ -18,8 +19,9 @@ bit-identical to highway-env's.
 
 ``traffic.vehicles_behind = N`` (safelane's :class:`safelane.sim.traffic.TrafficLayout`, applied right
 after highway-env's scene) is :func:`spawn_behind`: the N vehicles farthest ahead leave, N new ones are
-drawn behind the ego from the same generator (``integers(lanes_count)``, ``uniform(0.7·30, 1.0·30)``,
-``uniform(0.9, 1.1)``, then ``randomize_behavior()``), with the same rows order as ``road.vehicles``.
+drawn behind the ego from the same generator (with a mixture the type first, then ``integers(lanes_count)``,
+``uniform(0.7·30, 1.0·30)``, ``uniform(0.9, 1.1)``, then ``randomize_behavior()``), with the same rows order as
+``road.vehicles``.
 """
 
 from __future__ import annotations
@@ -37,6 +39,8 @@ from highway_env.vehicle.behavior import IDMVehicle, LinearVehicle
 from highway_env.vehicle.controller import ControlledVehicle, MDPVehicle
 from highway_env.vehicle.kinematics import Vehicle
 
+from safelane.core.drivers import DriverMix
+from safelane.sim.drivers import driver_classes
 from safelane.sim.fast import kernels as K
 from safelane.sim.fast import layout as L
 from safelane.sim.fast.continuous import ContinuousSpec, resolve_continuous
@@ -130,21 +134,26 @@ class SimConfig:
     continuous: ContinuousSpec | None
     """The ego's ``ContinuousAction`` (None: ``DiscreteMetaAction``, an ``MDPVehicle`` ego)."""
     config: dict[str, Any]
-    other_class: type
-    driver: np.ndarray
-    """scene.driver_constants(other_class)"""
+    other_classes: tuple[type, ...]
+    """The other vehicles' classes: ``other_vehicles_type``'s alone, or the driver mixture's types."""
+    drivers: np.ndarray
+    """(types, layout.ND): :func:`driver_constants` of each class of ``other_classes``."""
+    type_cdf: np.ndarray
+    """The mixture's normalised cumulative probabilities, numpy ``choice``'s (empty: no mixture, no type draw)."""
+    driver_mix: DriverMix | None = None
 
 
-def resolve_config(config: dict[str, Any] | None, env_id: str) -> SimConfig:
+def resolve_config(config: dict[str, Any] | None, env_id: str, driver_mix: DriverMix | None = None) -> SimConfig:
     """Merge ``config`` into highway-env's defaults as ``AbstractEnv.configure`` does (a shallow update)
-    and check that every setting is one this simulator reproduces; anything else raises ValueError."""
+    and check that every setting is one this simulator reproduces; anything else raises ValueError.
+    ``driver_mix``: each other car's type drawn from it (``other_vehicles_type`` then unused)."""
     cfg = default_config(env_id)
     if config:
         cfg.update(config)
     unknown = sorted(set(cfg) - _NO_DYNAMICS_KEYS - _DYNAMICS_KEYS)
     if unknown:
         raise ValueError(f"config keys not supported by the fast simulator: {unknown}")
-    if cfg["other_vehicles_type"] not in OTHER_VEHICLE_TYPES:
+    if driver_mix is None and cfg["other_vehicles_type"] not in OTHER_VEHICLE_TYPES:
         raise ValueError(
             f"other_vehicles_type: {cfg['other_vehicles_type']!r} is not supported; allowed: "
             + ", ".join(OTHER_VEHICLE_TYPES)
@@ -171,6 +180,18 @@ def resolve_config(config: dict[str, Any] | None, env_id: str) -> SimConfig:
     init_lane = cfg["initial_lane_id"]
     if init_lane is not None and not 0 <= int(init_lane) < lanes:
         raise ValueError(f"initial_lane_id: {init_lane!r} is not supported; allowed: None or 0..{lanes - 1}")
+    if driver_mix is None:
+        classes: tuple[type, ...] = (class_from_path(cfg["other_vehicles_type"]),)
+        type_cdf = np.zeros(0)
+    else:
+        classes = driver_classes(driver_mix)
+        type_cdf = mixture_cdf(driver_mix.probabilities)
+        models = {issubclass(c, LinearVehicle) for c in classes}
+        if continuous is not None and len(models) > 1:
+            raise ValueError(
+                "traffic.driver_mix: IDM and linear-model drivers together with a ContinuousAction ego are not "
+                "supported by the fast simulator; allowed there: IDM types only or linear types only"
+            )
     return SimConfig(
         env_id=env_id,
         lanes_count=lanes,
@@ -188,9 +209,19 @@ def resolve_config(config: dict[str, Any] | None, env_id: str) -> SimConfig:
         target_speeds=target_speeds,
         continuous=continuous,
         config=cfg,
-        other_class=class_from_path(cfg["other_vehicles_type"]),
-        driver=driver_constants(class_from_path(cfg["other_vehicles_type"])),
+        other_classes=classes,
+        drivers=np.stack([driver_constants(c) for c in classes]),
+        type_cdf=type_cdf,
+        driver_mix=driver_mix,
     )
+
+
+def mixture_cdf(probabilities: np.ndarray) -> np.ndarray:
+    """numpy ``Generator.choice(K, p=probabilities)``'s cumulative probabilities: ``cumsum``, then divided by its
+    last entry (the draw is the number of entries at or below one ``random()`` double)."""
+    cdf = np.asarray(probabilities, dtype=np.float64).cumsum()
+    cdf /= cdf[-1]
+    return cdf
 
 
 def _meta_action_speeds(action: dict[str, Any]) -> np.ndarray:
@@ -209,18 +240,35 @@ def _meta_action_speeds(action: dict[str, Any]) -> np.ndarray:
 
 
 def driver_constants(cls: type) -> np.ndarray:
-    """[linear?, TIME_WANTED, LANE_CHANGE_MIN_ACC_GAIN, ACCELERATION_RANGE (2x3), STEERING_RANGE (2x2),
-    the ego's TIME_WANTED (IDM's, for the snapshot)] of the other vehicles' class."""
-    d = np.zeros(14)
+    """A driver class's constants, one row of the spawn kernels' driver table (``layout.D_*``): [linear?,
+    TIME_WANTED [s], LANE_CHANGE_MIN_ACC_GAIN [m/s²], ACCELERATION_RANGE (2x3), STEERING_RANGE (2x2),
+    COMFORT_ACC_MAX, COMFORT_ACC_MIN [m/s²], DISTANCE_WANTED [m], POLITENESS, LANE_CHANGE_MAX_BRAKING_IMPOSED [m/s²],
+    DELTA_RANGE (2), LANE_CHANGE_DELAY [s]]. Every class must share IDMVehicle's ACC_MAX (the kernels' one clip)."""
+    if cls.ACC_MAX != IDMVehicle.ACC_MAX or cls.LANE_CHANGE_DELAY != IDMVehicle.LANE_CHANGE_DELAY:
+        raise ValueError(f"{cls.__name__}: ACC_MAX and LANE_CHANGE_DELAY must be IDMVehicle's for the fast simulator")
+    d = np.zeros(L.ND)
     lin = issubclass(cls, LinearVehicle)
-    d[0] = 1.0 if lin else 0.0
-    d[1] = cls.TIME_WANTED
-    d[2] = cls.LANE_CHANGE_MIN_ACC_GAIN
+    d[L.D_LIN] = 1.0 if lin else 0.0
+    d[L.D_TW] = cls.TIME_WANTED
+    d[L.D_GAIN] = cls.LANE_CHANGE_MIN_ACC_GAIN
     if lin:
-        d[3:9] = np.asarray(cls.ACCELERATION_RANGE, dtype=np.float64).reshape(6)
-        d[9:13] = np.asarray(cls.STEERING_RANGE, dtype=np.float64).reshape(4)
-    d[13] = IDMVehicle.TIME_WANTED
+        d[L.D_AR : L.D_AR + 6] = np.asarray(cls.ACCELERATION_RANGE, dtype=np.float64).reshape(6)
+        d[L.D_SR : L.D_SR + 4] = np.asarray(cls.STEERING_RANGE, dtype=np.float64).reshape(4)
+    d[L.D_CMAX] = cls.COMFORT_ACC_MAX
+    d[L.D_CMIN] = cls.COMFORT_ACC_MIN
+    d[L.D_DW] = cls.DISTANCE_WANTED
+    d[L.D_POL] = cls.POLITENESS
+    d[L.D_MBI] = cls.LANE_CHANGE_MAX_BRAKING_IMPOSED
+    d[L.D_DLO], d[L.D_DHI] = cls.DELTA_RANGE
+    d[L.D_DELAY] = cls.LANE_CHANGE_DELAY
     return d
+
+
+def _draws_per_car(sc: SimConfig) -> int:
+    """The fewest doubles one other car's spawn takes: its type (with a mixture), speed, gap, DELTA, and a linear
+    driver's five gains when every type is one (a mixed table's extra draws are found by the replay's retries)."""
+    linear = bool(sc.drivers[:, L.D_LIN].all())
+    return (1 if sc.type_cdf.size else 0) + 3 + (5 if linear else 0)
 
 
 def params() -> np.ndarray:
@@ -286,17 +334,15 @@ def build_scene(
         out = (np.zeros((n, L.NF)), np.zeros((n, L.NI), dtype=np.int64), np.zeros(1, dtype=np.int64))
     F, G, E = out
     n_int = sc.vehicles_count + (1 if sc.initial_lane_id is None else 0) if sc.lanes_count > 1 else 0
-    n_dbl = 1 + (8 if sc.driver[0] else 3) * sc.vehicles_count
+    n_dbl = 1 + _draws_per_car(sc) * sc.vehicles_count
     ego_lane = -1 if sc.initial_lane_id is None else sc.initial_lane_id
     lanes_factor = float(np.exp(-5 / 40 * sc.lanes_count))
-    d_lo, d_hi = sc.other_class.DELTA_RANGE
 
     def draw(raws: np.ndarray, st: np.ndarray) -> bool:
         return K.spawn(
             raws, st, ego_lane, float(sc.ego_spacing), float(1 / sc.vehicles_density), lanes_factor,
-            0.7 * SPEED_LIMIT, 0.8 * SPEED_LIMIT, float(d_lo), float(d_hi), float(sc.other_class.LANE_CHANGE_DELAY),
-            float(IDMVehicle.DELTA), sc.driver, 1 if sc.others_check_collisions else 0, sc.target_speeds,
-            sc.lanes_count,
+            0.7 * SPEED_LIMIT, 0.8 * SPEED_LIMIT, float(IDMVehicle.DELTA), float(IDMVehicle.TIME_WANTED), sc.drivers,
+            sc.type_cdf, 1 if sc.others_check_collisions else 0, sc.target_speeds, sc.lanes_count,
             P, F, G, E,
         )  # fmt: skip
 
@@ -330,15 +376,24 @@ def _replay(bg: np.random.PCG64, n_int: int, n_dbl: int, draw: Callable[[np.ndar
         bg.state = state
 
 
+def _driver_type_python(rng: np.random.Generator, sc: SimConfig) -> int:
+    """The next car's type with the generator's own call, ``choice(K, p=probabilities)`` (-1: no mixture, no
+    draw): the reference twin of ``kernels._driver_type``."""
+    if sc.driver_mix is None:
+        return -1
+    return int(rng.choice(len(sc.other_classes), p=sc.driver_mix.probabilities))
+
+
 def _place_python(
-    rng: np.random.Generator, cls: type, k: int, x: float, y: float, speed: float, check: int, n_lanes: int,
-    P: np.ndarray, F: np.ndarray, G: np.ndarray,
+    rng: np.random.Generator, sc: SimConfig, t: int, k: int, x: float, y: float, speed: float, check: int,
+    n_lanes: int, P: np.ndarray, F: np.ndarray, G: np.ndarray,
 ) -> None:  # fmt: skip
-    """Row ``k`` (zeros): ``cls(road, (x, y) [m], heading 0, speed [m/s])`` — target speed = speed, the
-    lane-change timer ``(np.sum(position) · π) % LANE_CHANGE_DELAY`` (a sum of two: ``x + y``), the closest
-    lane — then ``randomize_behavior()`` with the generator's own calls (a linear driver's gains first).
-    The reference twin of ``kernels._place_vehicle``, shared by :func:`build_scene_python` and
-    :func:`spawn_behind_python`."""
+    """Row ``k`` (zeros): a driver of type ``t`` (``sc.other_classes[max(t, 0)]``) created as ``cls(road, (x, y)
+    [m], heading 0, speed [m/s])`` — target speed = speed, the lane-change timer ``(np.sum(position) · π) %
+    LANE_CHANGE_DELAY`` (a sum of two: ``x + y``), the closest lane, its class's constants — then
+    ``randomize_behavior()`` with the generator's own calls (a linear driver's gains first). The reference twin of
+    ``kernels._place_vehicle``, shared by :func:`build_scene_python` and :func:`spawn_behind_python`."""
+    cls = sc.other_classes[max(t, 0)]
     uniform = rng.uniform
     F[k, L.X] = x
     F[k, L.Y] = y
@@ -348,6 +403,11 @@ def _place_python(
     F[k, L.TIMER] = ((x + y) * np.pi) % cls.LANE_CHANGE_DELAY
     F[k, L.TW] = cls.TIME_WANTED
     F[k, L.GAIN] = cls.LANE_CHANGE_MIN_ACC_GAIN
+    F[k, L.CMAX] = cls.COMFORT_ACC_MAX
+    F[k, L.CMIN] = cls.COMFORT_ACC_MIN
+    F[k, L.DW] = cls.DISTANCE_WANTED
+    F[k, L.POL] = cls.POLITENESS
+    F[k, L.MBI] = cls.LANE_CHANGE_MAX_BRAKING_IMPOSED
     if issubclass(cls, LinearVehicle):  # LinearVehicle.randomize_behavior, then IDMVehicle's
         ar, sr = cls.ACCELERATION_RANGE, cls.STEERING_RANGE
         ua = uniform(size=np.shape(cls.ACCELERATION_PARAMETERS))
@@ -363,6 +423,7 @@ def _place_python(
     G[k, L.CHECK] = check
     G[k, L.ELC] = 1
     G[k, L.IDM] = 1
+    G[k, L.DTYPE] = t
 
 
 def build_scene_python(
@@ -400,6 +461,7 @@ def build_scene_python(
     G[0, L.TLANE] = lane
     G[0, L.CHECK] = 1
     G[0, L.IDM] = 0
+    G[0, L.DTYPE] = -1
     ts = sc.target_speeds
     si = K.speed_to_index(speed, ts)
     E[0] = si
@@ -409,11 +471,11 @@ def build_scene_python(
     x_max = x
 
     # --- the others: IDMVehicle.create_random(road, spacing=1 / vehicles_density); randomize_behavior()
-    cls = sc.other_class
     spacing = 1 / sc.vehicles_density
     lo, hi = 0.7 * SPEED_LIMIT, 0.8 * SPEED_LIMIT
     check = 1 if sc.others_check_collisions else 0
     for k in range(1, n):
+        t = _driver_type_python(rng, sc)  # MixedDriverVehicle.create_random: the type, then create_random
         if not _SKIP_NODE_CHOICES:
             choice(["0"])
             choice(["1"])
@@ -424,7 +486,7 @@ def build_scene_python(
         x0 = x_max
         x0 += offset * uniform(0.9, 1.1)
         x, y = float(x0), float(lane_id * width)
-        _place_python(rng, cls, k, x, y, speed, check, n_lanes, P, F, G)
+        _place_python(rng, sc, t, k, x, y, speed, check, n_lanes, P, F, G)
         if x > x_max:
             x_max = x
     return F, G, E
@@ -466,20 +528,18 @@ def spawn_behind(
     first, count = _make_room(F, G, count)
     if count == 0:
         return 0
-    cls = sc.other_class
-    d_lo, d_hi = cls.DELTA_RANGE
     limit = SPEED_LIMIT or 30.0  # lane.speed_limit or 30.0
     x = float(F[0, L.X])  # ego.lane.local_coordinates(ego.position)[0]
 
     def draw(raws: np.ndarray, st: np.ndarray) -> bool:
         return K.spawn_behind(
             raws, st, first, count, x, 0.7 * limit, 1.0 * limit, math.exp(-5 / 40 * sc.lanes_count),
-            float(sc.vehicles_density), float(d_lo), float(d_hi), float(cls.LANE_CHANGE_DELAY), sc.driver,
-            1 if sc.others_check_collisions else 0, sc.lanes_count, P, F, G,
+            float(sc.vehicles_density), sc.drivers, sc.type_cdf, 1 if sc.others_check_collisions else 0,
+            sc.lanes_count, P, F, G,
         )  # fmt: skip
 
     n_int = count if sc.lanes_count > 1 else 0
-    _replay(bg, n_int, (8 if sc.driver[0] else 3) * count, draw)
+    _replay(bg, n_int, _draws_per_car(sc) * count, draw)
     return count
 
 
@@ -492,15 +552,15 @@ def spawn_behind_python(
     ``count`` vehicles (at most ``vehicles_count``) leave: the ones farthest ahead (largest x [m], a
     stable sort as Python's ``list.sort``); the others keep their rows and order (``road.vehicles.remove``),
     and the new vehicles take the last rows (``road.vehicles.append``). Going backwards from the ego's x
-    [m], each draws its lane (``integers(lanes_count)``), its speed [m/s] (``uniform(0.7·limit, 1.0·limit)``,
-    limit 30 m/s) and its gap [m] (``(12 + speed)·exp(-5/40·lanes_count) / vehicles_density`` times
-    ``uniform(0.9, 1.1)``), then its driver parameters (``randomize_behavior()``), from ``rng`` with the
-    generator's own calls in TrafficLayout's order, so the draws and the arithmetic are highway-env's.
+    [m], each draws its type (with a mixture), its lane (``integers(lanes_count)``), its speed [m/s]
+    (``uniform(0.7·limit, 1.0·limit)``, limit 30 m/s) and its gap [m]
+    (``(12 + speed)·exp(-5/40·lanes_count) / vehicles_density`` times ``uniform(0.9, 1.1)``), then its driver
+    parameters (``randomize_behavior()``), from ``rng`` with the generator's own calls in TrafficLayout's order,
+    so the draws and the arithmetic are highway-env's.
     """
     first, count = _make_room(F, G, count)
     if count == 0:
         return 0
-    cls = sc.other_class
     n_lanes = sc.lanes_count
     width = float(P[L.P_LANE_WIDTH])
     limit = SPEED_LIMIT or 30.0  # lane.speed_limit or 30.0
@@ -511,6 +571,7 @@ def spawn_behind_python(
     # ego.lane.local_coordinates(ego.position)[0]: lane i starts at (0, i·w) with direction (1, 0)
     x = float(F[0, L.X])
     for k in range(first, first + count):
+        t = _driver_type_python(rng, sc)
         lane_id = int(rng.integers(n_lanes))
         speed = float(uniform(0.7 * limit, 1.0 * limit))
         offset = (12 + speed) * lanes_factor / density
@@ -518,5 +579,5 @@ def spawn_behind_python(
         y = float(lane_id * width)  # lane.position(x, 0) on lane lane_id
         # IDMVehicle(road, position, heading=lane.heading_at(x) = 0, speed): target speed = speed,
         # timer = (np.sum(position) * pi) % LANE_CHANGE_DELAY, lane = the closest lane
-        _place_python(rng, cls, k, x, y, speed, check, n_lanes, P, F, G)
+        _place_python(rng, sc, t, k, x, y, speed, check, n_lanes, P, F, G)
     return count

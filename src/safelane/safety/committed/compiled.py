@@ -397,6 +397,22 @@ def prepare_kernel(
 
 
 @njit(cache=True, error_model="numpy")
+def chunk_bounds(x: np.ndarray, ego_x: float, x_lo: np.ndarray, x_hi: np.ndarray
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # fmt: skip
+    """(order, lo_min, hi_max): the cars (at ``x`` [m]) nearest the ego first, and each car's lowest and highest
+    position [m] in each chunk of :data:`CHUNK` frames of its set (``car_gaps_kernel``'s ``least``)."""
+    n = x.shape[0]
+    order = np.argsort(np.abs(x - ego_x), kind="mergesort")
+    chunks = -(-x_lo.shape[1] // CHUNK)
+    lo_min, hi_max = np.full((n, chunks), np.inf), np.full((n, chunks), -np.inf)
+    for i in range(n):
+        for j in range(x_lo.shape[1]):
+            c = j // CHUNK
+            lo_min[i, c], hi_max[i, c] = nmin(lo_min[i, c], x_lo[i, j]), nmax(hi_max[i, c], x_hi[i, j])
+    return order, lo_min, hi_max
+
+
+@njit(cache=True, error_model="numpy")
 def plans_kernel(
     available: np.ndarray, lane_ids: np.ndarray, lane_until: np.ndarray, lane_counts: np.ndarray, onsets: np.ndarray,
     targets: np.ndarray, ego_x0: float, ego_speed: float, ts: np.ndarray, powers: np.ndarray, frames: int,
@@ -416,13 +432,7 @@ def plans_kernel(
     no_carried = np.full(n, -1, dtype=np.int64)
     empty = np.empty((0, 0))
     # The nearest cars first, so that the far ones are skipped (car_gaps_kernel's ``least``).
-    order = np.argsort(np.abs(x - ego_x0), kind="mergesort")
-    chunks = -(-x_lo.shape[1] // CHUNK)
-    lo_min, hi_max = np.full((n, chunks), np.inf), np.full((n, chunks), -np.inf)
-    for i in range(n):
-        for j in range(x_lo.shape[1]):
-            c = j // CHUNK
-            lo_min[i, c], hi_max[i, c] = nmin(lo_min[i, c], x_lo[i, j]), nmax(hi_max[i, c], x_hi[i, j])
+    order, lo_min, hi_max = chunk_bounds(x, ego_x0, x_lo, x_hi)
     start = 0
     for a in range(N_ACTIONS):
         stop = start + lane_counts[a]

@@ -201,16 +201,9 @@ class CommittedFamily:
             kept_held = self.kept.held if self.kept is not None else ()
             entered = entered_held_lanes(state, self.carried, sets, vehicle, self.carried_ahead, kept_held)
             occupied = occupied_lanes(state, dyn)
-            unbraked = self._followers_escaped(state, dyn, vehicle, occupied)
-            if compiled:  # shifted, escaped_cars, intersect and rolling_back in one kernel, the same bits
-                sets, escaped, rolled, checked = carry_compiled(state, dyn, sets, self.carried, vehicle, unbraked,
-                                                                occupied)  # fmt: skip
-            else:
-                older = self.carried.shifted(dyn.frames_per_decision, dyn.decision_period)
-                escaped = escaped_cars(state, dyn, older, vehicle) | unbraked
-                checked = int(np.isin(vehicle, older.vehicle).sum())
-                sets = sets.intersect(older, ~escaped)
-                rolled = rolling_back(state, escaped, older, vehicle)
+            unbraked = followers_escaped(self.followers, state, dyn, vehicle, occupied)
+            sets, escaped, rolled, checked = carry_sets(state, dyn, sets, self.carried, vehicle, unbraked, occupied,
+                                                        compiled)  # fmt: skip
         if compiled:
             worst, ego_x, _, set_points = verify_plans_compiled(state, dyn, sets, cars)
         else:
@@ -305,18 +298,36 @@ class CommittedFamily:
             self.followers = fresh
         self._pending = None
 
-    def _followers_escaped(
-        self, state: RoadState, dyn: Dynamics, vehicle: np.ndarray, occupied: np.ndarray
-    ) -> np.ndarray:  # fmt: skip
-        """(cars,) the followers of the kept plan (a car behind the ego in a lane it held) still in that lane and
-        ahead of the bound their reaction to the plan allowed; ``occupied``: :func:`occupied_lanes` of ``state``."""
-        out = np.zeros(state.n, dtype=bool)
-        f = dyn.frames_per_decision
-        for i, v in enumerate(vehicle):
-            follower = self.followers.get(int(v))
-            if follower is not None and occupied[i, follower[0]] and f < follower[1].size:
-                out[i] = state.x[i] > follower[1][f] + ESCAPE_TOLERANCE
-        return out
+
+def followers_escaped(
+    followers: dict[int, tuple[int, np.ndarray]], state: RoadState, dyn: Dynamics, vehicle: np.ndarray,
+    occupied: np.ndarray,
+) -> np.ndarray:  # fmt: skip
+    """(cars,) the followers of the kept plan (``followers``: {snapshot index: (lane, highest position [m] per
+    frame)}, a car behind the ego in a lane it held) still in that lane and ahead of the bound their reaction to the
+    plan allowed; ``occupied``: :func:`occupied_lanes` of ``state``."""
+    out = np.zeros(state.n, dtype=bool)
+    f = dyn.frames_per_decision
+    for i, v in enumerate(vehicle):
+        follower = followers.get(int(v))
+        if follower is not None and occupied[i, follower[0]] and f < follower[1].size:
+            out[i] = state.x[i] > follower[1][f] + ESCAPE_TOLERANCE
+    return out
+
+
+def carry_sets(
+    state: RoadState, dyn: Dynamics, sets: CarSets, carried: CarSets, vehicle: np.ndarray, unbraked: np.ndarray,
+    occupied: np.ndarray, compiled: bool,
+) -> tuple[CarSets, np.ndarray, np.ndarray, int]:  # fmt: skip
+    """The fresh ``sets`` against those ``carried`` from the last decision: (the sets intersected with the carried
+    ones for the cars still inside them, escaped (``unbraked`` followers included), rolled back, the cars checked
+    against a carried set); ``compiled``: in one kernel (the same bits as the numpy steps)."""
+    if compiled:
+        return carry_compiled(state, dyn, sets, carried, vehicle, unbraked, occupied)
+    older = carried.shifted(dyn.frames_per_decision, dyn.decision_period)
+    escaped = escaped_cars(state, dyn, older, vehicle) | unbraked
+    checked = int(np.isin(vehicle, older.vehicle).sum())
+    return sets.intersect(older, ~escaped), escaped, rolling_back(state, escaped, older, vehicle), checked
 
 
 def entered_held_lanes(

@@ -20,11 +20,10 @@ from numba import njit
 
 from safelane.core.kernel_cache import drop_stale_kernel_cache
 from safelane.safety.committed import compiled as committed_compiled
-from safelane.safety.committed.compiled import CHUNK, CarArrays, car_gaps_kernel, dynamics_arrays
+from safelane.safety.committed.compiled import CarArrays, car_gaps_kernel, chunk_bounds, dynamics_arrays
 from safelane.safety.committed.sets import CarSets
 from safelane.safety.continuous.controls import HEADING_WEIGHT, STOPPED_SPEED, ControlLimits
 from safelane.safety.continuous.plans import EGO_WIDTH, ControlPlan, Trajectory
-from safelane.safety.one_decision.compiled_parts import nmax, nmin
 from safelane.safety.world import MAX_HOLD_DECISIONS, Dynamics, RoadState
 
 drop_stale_kernel_cache(__file__, (committed_compiled.__file__,))
@@ -256,22 +255,6 @@ def verify_kernel(ego0: np.ndarray, action: np.ndarray, ego_lane: int, margin: f
         if gap >= margin:
             return hold, gap, states, actions, ids, until, lane, onset
     return -1, -np.inf, np.empty((0, 4)), empty, np.empty(0, dtype=np.int64), np.empty(0), -1, 0.0
-
-
-@njit(cache=True, error_model="numpy")
-def chunk_bounds(x: np.ndarray, ego_x: float, x_lo: np.ndarray, x_hi: np.ndarray
-                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # fmt: skip
-    """(order, lo_min, hi_max): the cars nearest the ego first, and each car's lowest and highest position in each
-    chunk of ``committed.compiled.CHUNK`` frames (``car_gaps_kernel``'s ``least``)."""
-    n = x.shape[0]
-    order = np.argsort(np.abs(x - ego_x), kind="mergesort")
-    chunks = -(-x_lo.shape[1] // CHUNK)
-    lo_min, hi_max = np.full((n, chunks), np.inf), np.full((n, chunks), -np.inf)
-    for i in range(n):
-        for j in range(x_lo.shape[1]):
-            c = j // CHUNK
-            lo_min[i, c], hi_max[i, c] = nmin(lo_min[i, c], x_lo[i, j]), nmax(hi_max[i, c], x_hi[i, j])
-    return order, lo_min, hi_max
 
 
 class StateArrays(NamedTuple):

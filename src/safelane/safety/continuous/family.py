@@ -25,14 +25,12 @@ from typing import Any, Literal
 import numpy as np
 
 from safelane.core.snapshot import RoadSnapshot
-from safelane.safety.committed.compiled import CarArrays, car_arrays, car_sets_compiled, carry_compiled, prepare
-from safelane.safety.committed.family import entered_held_lanes
+from safelane.safety.committed.compiled import CarArrays, car_arrays, car_sets_compiled, prepare
+from safelane.safety.committed.family import carry_sets, entered_held_lanes, followers_escaped
 from safelane.safety.committed.plans import follower_bound
 from safelane.safety.committed.sets import (
-    ESCAPE_TOLERANCE,
     CarSets,
     car_sets,
-    escaped_cars,
     occupied_lanes,
     rolling_back,
 )
@@ -172,16 +170,9 @@ class ControlFamily:
             held = self.kept.held if self.kept is not None else ()
             entered = entered_held_lanes(state, self.carried, sets, vehicle, self.carried_ahead, held)
             occupied = occupied_lanes(state, dyn)
-            unbraked = self._followers_escaped(state, dyn, vehicle, occupied)
-            if cars is not None:  # the same bits as the reference's four steps below
-                sets, escaped, rolled, checked = carry_compiled(state, dyn, sets, self.carried, vehicle, unbraked,
-                                                                occupied)  # fmt: skip
-            else:
-                older = self.carried.shifted(dyn.frames_per_decision, dyn.decision_period)
-                escaped = escaped_cars(state, dyn, older, vehicle) | unbraked
-                checked = int(np.isin(vehicle, older.vehicle).sum())
-                sets = sets.intersect(older, ~escaped)
-                rolled = rolling_back(state, escaped, older, vehicle)
+            unbraked = followers_escaped(self.followers, state, dyn, vehicle, occupied)
+            sets, escaped, rolled, checked = carry_sets(state, dyn, sets, self.carried, vehicle, unbraked, occupied,
+                                                        cars is not None)  # fmt: skip
         if rolled is None:
             rolled = rolling_back(state, escaped)
         trace = {"escaped": escaped, "entered": entered, "unbraked": unbraked, "rolled": rolled, "checked": checked,
@@ -296,17 +287,6 @@ class ControlFamily:
                 fresh[v] = (lane, shifted if now is None or now[0] != lane else np.minimum(now[1], shifted))
             self.followers = fresh
         self._judged = None
-
-    def _followers_escaped(self, state: RoadState, dyn: Dynamics, vehicle: np.ndarray, occupied: np.ndarray
-                           ) -> np.ndarray:  # fmt: skip
-        """(cars,) the kept plan's followers still in their lane and ahead of the bound their reaction allowed."""
-        out = np.zeros(state.n, dtype=bool)
-        f = dyn.frames_per_decision
-        for i, v in enumerate(vehicle):
-            follower = self.followers.get(int(v))
-            if follower is not None and occupied[i, follower[0]] and f < follower[1].size:
-                out[i] = state.x[i] > follower[1][f] + ESCAPE_TOLERANCE
-        return out
 
     def certified(self, snap: RoadSnapshot, dyn: Dynamics) -> bool:
         """Some action has a verified plan in the state of ``snap`` (or a plan is kept): the search from the

@@ -212,7 +212,7 @@ class ShieldConfig(_Section):
     adaptation_penalty: float = Field(
         0.0,
         ge=0,
-        strict=False,
+        strict=True,
         allow_inf_nan=False,
         description="Continuous actions only: the reward loses this weight times the distance (normalised "
         "actions) from the agent's action to the executed one.",

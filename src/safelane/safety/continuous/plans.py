@@ -23,6 +23,7 @@ Pure maths: no simulator, no highway-env, no torch.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -89,44 +90,45 @@ def plan_lane(y: float, dyn: Dynamics) -> int:
     return int(min(max(math.floor(y / dyn.lane_width + 0.5), 0), dyn.lanes_count - 1))
 
 
-def plan_trajectory(state: RoadState, dyn: Dynamics, limits: ControlLimits, action: np.ndarray, hold: int
-                    ) -> tuple[Trajectory, int]:  # fmt: skip
-    """(trajectory, the plan's lane) of the plan that applies ``action`` (2,) for one decision, holds its speed
-    ``hold`` decisions and then brakes to a standstill, steering for the plan's lane (module docstring)."""
+def _drive(state: RoadState, dyn: Dynamics, limits: ControlLimits,
+           action_at: Callable[[int, EgoState], np.ndarray]) -> Trajectory:  # fmt: skip
+    """The ego's trajectory over the horizon from ``state``, decision ``d`` holding ``action_at(d, ego)`` (``ego``:
+    its state at the decision's start)."""
     f, dt = dyn.frames_per_decision, dyn.frame_dt
     decisions = dyn.horizon_decisions
     states = np.empty((decisions * f + 1, 4))
     ego = ego_state(state)
     states[0] = (ego.x, ego.y, ego.heading, ego.speed)
     actions = np.empty((decisions, 2), dtype=np.float32)
-    actions[0] = np.asarray(action, dtype=np.float32)
-    lane = -1
     for d in range(decisions):
-        if d >= 1:
-            if lane < 0:
-                lane = plan_lane(ego.y, dyn)
-            actions[d] = fail_safe_action(ego, lane * dyn.lane_width, d > hold, dyn, limits, state.ego_length)
+        actions[d] = action_at(d, ego)
         acceleration, steering = physical(actions[d], limits)
         frames = states[1 + d * f : 1 + (d + 1) * f]
         ego = roll_out(ego, acceleration, steering, f, dt, limits, state.ego_length, frames)
-    return Trajectory(states, actions), lane
+    return Trajectory(states, actions)
+
+
+def plan_trajectory(state: RoadState, dyn: Dynamics, limits: ControlLimits, action: np.ndarray, hold: int
+                    ) -> tuple[Trajectory, int]:  # fmt: skip
+    """(trajectory, the plan's lane) of the plan that applies ``action`` (2,) for one decision, holds its speed
+    ``hold`` decisions and then brakes to a standstill, steering for the plan's lane (module docstring)."""
+    lane = -1
+
+    def action_at(d: int, ego: EgoState) -> np.ndarray:
+        nonlocal lane
+        if d == 0:
+            return np.asarray(action, dtype=np.float32)
+        if lane < 0:  # the lane nearest the ego after the first decision
+            lane = plan_lane(ego.y, dyn)
+        return fail_safe_action(ego, lane * dyn.lane_width, d > hold, dyn, limits, state.ego_length)
+
+    return _drive(state, dyn, limits, action_at), lane
 
 
 def replay_trajectory(state: RoadState, dyn: Dynamics, limits: ControlLimits, actions: np.ndarray) -> Trajectory:
     """The ego's trajectory over the horizon under ``actions`` (decisions, 2) from now, the last one held for
     the decisions after them (a kept plan's tail: it ends stopped, and its last braking action keeps it there)."""
-    f, dt = dyn.frames_per_decision, dyn.frame_dt
-    decisions = dyn.horizon_decisions
-    states = np.empty((decisions * f + 1, 4))
-    ego = ego_state(state)
-    states[0] = (ego.x, ego.y, ego.heading, ego.speed)
-    out = np.empty((decisions, 2), dtype=np.float32)
-    for d in range(decisions):
-        out[d] = actions[min(d, len(actions) - 1)]
-        acceleration, steering = physical(out[d], limits)
-        frames = states[1 + d * f : 1 + (d + 1) * f]
-        ego = roll_out(ego, acceleration, steering, f, dt, limits, state.ego_length, frames)
-    return Trajectory(states, out)
+    return _drive(state, dyn, limits, lambda d, _: actions[min(d, len(actions) - 1)])
 
 
 def occupied_lanes(trajectory: Trajectory, dyn: Dynamics, length: float) -> tuple[tuple[int, float], ...]:

@@ -110,6 +110,63 @@ def test_a_car_behind_in_the_egos_lane_is_its_drivers_but_one_in_a_lane_the_ego_
     assert math.isnan(interval(beside, toward)[0])
 
 
+def _body(x: float, y: float, heading: float, length: float = 5.0, width: float = 2.0) -> np.ndarray:
+    """highway-env's ``RoadObject.polygon()`` (closed: 5 points) of a body at (x, y) turned by ``heading``."""
+    points = np.array([[-length / 2, -width / 2], [-length / 2, +width / 2], [+length / 2, +width / 2],
+                       [+length / 2, -width / 2]]).T  # fmt: skip
+    c, s = np.cos(heading), np.sin(heading)
+    rotated = (np.array([[c, -s], [s, c]]) @ points).T + np.array([x, y])
+    return np.vstack([rotated, rotated[0:1]])
+
+
+@settings(max_examples=400, deadline=None)
+@given(st.floats(-1.2, 1.2), st.floats(0.0, 40.0), st.floats(-6.0, 6.0), st.floats(15.0, 30.0),
+       st.sampled_from([1 / 5, 1 / 10, 1 / 15]), st.booleans())  # fmt: skip
+def test_a_lane_the_swept_body_misses_is_one_highway_env_finds_no_collision_in(
+    heading: float, speed: float, car_x: float, car_speed: float, dt: float, left: bool
+) -> None:
+    """highway-env's collision test at a frame (``are_polygons_intersecting`` with each body's velocity × dt) finds
+    neither a contact nor an impact with a lane-keeping car in a lane that the ego's body, swept one frame on at its
+    velocity, does not reach (the plans' lanes); the body at the frame alone may miss a lane the test reaches."""
+    from highway_env.utils import are_polygons_intersecting
+
+    from safelane.safety.continuous.plans import _swept_across
+
+    low, high = _swept_across(6.0, heading, speed, dt, 5.0)  # the ego in lane 1 (4 m lanes), 2 m off its centre
+    lane_y = 8.0 if left else 0.0  # the car keeps the centre of lane 2 or 0
+    misses = high <= lane_y - 2.0 if left else low >= lane_y + 2.0
+    if misses:
+        ego_velocity = speed * np.array([math.cos(heading), math.sin(heading)])
+        car_velocity = np.array([car_speed, 0.0])
+        touching, impact, _ = are_polygons_intersecting(_body(0.0, 6.0, heading), _body(car_x, lane_y, 0.0),
+                                                        ego_velocity * dt, car_velocity * dt)  # fmt: skip
+        assert not touching and not impact
+
+
+def test_a_hard_turn_back_beside_a_car_is_not_verified_when_its_look_ahead_reaches_the_cars_lane() -> None:
+    """The ego 1.5 m right of its lane's centre at 25 m/s, heading 1 rad to the left, toward the lane beyond which a
+    car drives beside it, steering hard back: its body at every frame stays out of that car's lane, but highway-env's
+    collision test, moving it one frame on along its heading, puts it there (a crash on both simulators in the
+    claim campaign's grid, before the plans swept the body): not verified; the same turn on an empty road is."""
+    # 5 decisions a second, 15 frames (highway-fast's rate and the grid's fastest decisions)
+    dyn = dataclasses.replace(CONTINUOUS_DYN, lanes_count=4, decision_period=0.2, frame_dt=1 / 15,
+                              frames_per_decision=3, braking_decisions=LIMITS.braking_decisions(1.0))  # fmt: skip
+    action = np.array([0.0, -1.0], dtype=np.float32)
+
+    def verdict(cars: list[dict]) -> bool:
+        state = dataclasses.replace(scene(cars, ego_speed=25.0, ego_lane=2, dyn=dyn), ego_y=6.5, ego_heading=1.0)
+        sets = car_sets(state, dyn, np.arange(1, state.n + 1))
+        return verify_action(state, dyn, LIMITS, sets, action) is not None
+
+    for hold in range(4):
+        trajectory, _ = plan_trajectory(dataclasses.replace(scene([], ego_speed=25.0, ego_lane=2, dyn=dyn),
+                                                            ego_y=6.5, ego_heading=1.0), dyn, LIMITS, action, hold)
+        y, h = trajectory.states[:, 1], trajectory.states[:, 2]
+        assert (y + 2.5 * np.abs(np.sin(h)) + np.abs(np.cos(h)) < 10.0).all()  # the body at the frames: not in lane 3
+    assert not verdict([{"x": 0.0, "lane": 3, "vx": 25.0}])
+    assert verdict([])
+
+
 @settings(max_examples=60, deadline=None)
 @given(st.floats(-1.0, 1.0), st.floats(-0.1, 0.1), st.floats(10.0, 40.0))
 def test_the_fail_safe_stops_inside_one_lane(offset: float, heading: float, speed: float) -> None:

@@ -159,22 +159,29 @@ def trajectory_kernel(ego0: np.ndarray, first: np.ndarray, hold: int, replay: np
 
 
 @njit(cache=True, error_model="numpy")
-def lanes_kernel(states: np.ndarray, lane_width: float, lanes_count: int, length: float, t: np.ndarray
+def lanes_kernel(states: np.ndarray, lane_width: float, lanes_count: int, length: float, t: np.ndarray, dt: float
                  ) -> tuple[np.ndarray, np.ndarray, float]:  # fmt: skip
     """(lane ids, until [s], excess reach [m]) of :func:`~safelane.safety.continuous.plans.occupied_lanes` and
-    :func:`~safelane.safety.continuous.plans.reach_excess`."""
+    :func:`~safelane.safety.continuous.plans.reach_excess` (``dt`` [s]: a frame)."""
     half = 0.5 * lane_width
     last = np.full(lanes_count, -1, dtype=np.int64)
-    reach_along = 0.0
-    for j in range(states.shape[0]):
-        y, heading = states[j, 1], states[j, 2]
+    final = t.shape[0] - 1
+    along = 0.0
+    drift = 0.0
+    n = states.shape[0]
+    for j in range(n):
+        x, y, heading, speed = states[j, 0], states[j, 1], states[j, 2], states[j, 3]
         reach = abs(0.5 * length * math.sin(heading)) + abs(0.5 * EGO_WIDTH * math.cos(heading))
+        sweep = speed * math.sin(heading) * dt
+        low = y - reach + min(sweep, 0.0)
+        high = y + reach + max(sweep, 0.0)
         for lane in range(lanes_count):
             centre = lane * lane_width
-            if y + reach > centre - half and y - reach < centre + half:
-                last[lane] = j
-        along = abs(0.5 * length * math.cos(heading)) + abs(0.5 * EGO_WIDTH * math.sin(heading))
-        reach_along = along if j == 0 else max(reach_along, along)
+            if high > centre - half and low < centre + half:
+                last[lane] = min(j + 1, final)
+        along = max(along, abs(0.5 * length * math.cos(heading)) + abs(0.5 * EGO_WIDTH * math.sin(heading)))
+        if j + 1 < n:
+            drift = max(drift, abs(x + speed * math.cos(heading) * dt - states[j + 1, 0]))
     count = 0
     for lane in range(lanes_count):
         if last[lane] >= 0:
@@ -185,9 +192,9 @@ def lanes_kernel(states: np.ndarray, lane_width: float, lanes_count: int, length
     for lane in range(lanes_count):
         if last[lane] >= 0:
             ids[k] = lane
-            until[k] = np.inf if last[lane] == t.shape[0] - 1 else t[last[lane]]
+            until[k] = np.inf if last[lane] == final else t[last[lane]]
             k += 1
-    return ids, until, max(reach_along - 0.5 * length, 0.0)
+    return ids, until, max(along - 0.5 * length, 0.0) + drift
 
 
 @njit(cache=True, error_model="numpy")
@@ -198,12 +205,12 @@ def _trajectory_gaps(states: np.ndarray, onset: float, held_a: int, held_b: int,
                      brake_max: np.ndarray, fv_min: np.ndarray, fv_max: np.ndarray, t: np.ndarray,
                      follower_reaction: float, lane_width: float, lanes_count: int, length: float,
                      order: np.ndarray, least: bool, lo_min: np.ndarray, hi_max: np.ndarray, floor: float,
-                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # fmt: skip
+                     dt: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # fmt: skip
     """(gaps (cars,) or (1,) −inf, lane ids, until) of :func:`~safelane.safety.continuous.plans.trajectory_gap`;
     with ``least`` only their least is the reference's (``car_gaps_kernel`` skips the cars that cannot lower it,
     visiting them in ``order``; ``lo_min``/``hi_max``: :func:`chunk_bounds`), and only whether it is below
     ``floor`` once it is (the kernel stops there)."""
-    ids, until, excess = lanes_kernel(states, lane_width, lanes_count, length, t)
+    ids, until, excess = lanes_kernel(states, lane_width, lanes_count, length, t, dt)
     n = x.shape[0]
     ego_x = np.empty((1, states.shape[0]))
     for j in range(states.shape[0]):
@@ -250,7 +257,7 @@ def verify_kernel(ego0: np.ndarray, action: np.ndarray, ego_lane: int, margin: f
         gaps, ids, until = _trajectory_gaps(states, onset, ego_lane, lane, t.shape[0] - 1, True, x_lo, x_hi, entry,
                                             now, no_lane, no_high, x, half, ahead, own_lane, speed, accel_max,
                                             brake_max, fv_min, fv_max, t, follower_reaction, lane_width,
-                                            lanes_count, length, order, True, lo_min, hi_max, margin)  # fmt: skip
+                                            lanes_count, length, order, True, lo_min, hi_max, margin, dt)  # fmt: skip
         gap = np.inf if gaps.shape[0] == 0 else gaps.min()
         if gap >= margin:
             return hold, gap, states, actions, ids, until, lane, onset
@@ -317,7 +324,7 @@ def tail_gap_compiled(state: RoadState, dyn: Dynamics, limits: LimitArrays, sets
         states, float(onset), int(held[0]), int(held[1]), int(until_frame), False, sets.x_lo, sets.x_hi, sets.entry,
         np.asarray(sets.now, dtype=np.bool_), carried_lane, carried_high, *cars, t, float(dyn.follower_reaction),
         float(dyn.lane_width), int(dyn.lanes_count), float(state.ego_length), np.arange(n), False, np.empty((0, 0)),
-        np.empty((0, 0)), -np.inf,
+        np.empty((0, 0)), -np.inf, float(dyn.frame_dt),
     )  # fmt: skip
     lanes = tuple((int(i), float(u)) for i, u in zip(ids, until, strict=True))
     return gaps, lanes, Trajectory(states, out)

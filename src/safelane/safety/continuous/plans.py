@@ -9,12 +9,15 @@ the ego's exact one (:func:`~safelane.safety.continuous.controls.roll_out`).
 A plan is **verified** against the other cars' reachable sets of the committed rule
 (:mod:`safelane.safety.committed.sets`) as a meta-action plan is (:func:`safelane.safety.committed.plans.car_gaps`):
 
-* the lanes it occupies are those its body, turned by its heading, overlaps at some frame of the horizon, each
-  until the last such frame, counted from now (as a lane change's target lane is);
+* the lanes it occupies are those its body, turned by its heading, overlaps at some frame of the horizon or one
+  frame later at that frame's velocity (highway-env's collision test also moves both bodies one frame on at
+  their velocity, along their heading: a hard turn's next frame is not where that puts the body), each until the
+  frame after the last such frame, counted from now (as a lane change's target lane is);
 * the lanes it holds are the ego's lane now (a car behind it there is that driver's to avoid) and the plan's lane
   (whose followers react to its braking, the follower law); every other lane it overlaps is one it enters;
-* the ego's body turned by its heading reaches further along the road than half its length: the excess is taken
-  off each gap; the ego's centre stays on the road at every frame (highway-env's ``on_road``), and it stands still
+* the ego's body turned by its heading reaches further along the road than half its length, and the collision
+  test's one frame on at the velocity puts it elsewhere along the road than the next frame: both excesses are
+  taken off each gap; the ego's centre stays on the road at every frame (highway-env's ``on_road``), and it stands still
   by the horizon's end.
 
 Pure maths: no simulator, no highway-env, no torch.
@@ -131,27 +134,47 @@ def replay_trajectory(state: RoadState, dyn: Dynamics, limits: ControlLimits, ac
     return _drive(state, dyn, limits, lambda d, _: actions[min(d, len(actions) - 1)])
 
 
+def _swept_across(y: float, heading: float, speed: float, dt: float, length: float) -> tuple[float, float]:
+    """(low, high) [m] across the road of the ego's body at a frame, turned by ``heading``, and of the same body
+    moved on by its velocity (``speed`` along the heading) for ``dt`` [s]: where highway-env's collision test looks
+    for it (``are_polygons_intersecting`` with each body's displacement over the frame)."""
+    reach = abs(0.5 * length * math.sin(heading)) + abs(0.5 * EGO_WIDTH * math.cos(heading))
+    sweep = speed * math.sin(heading) * dt
+    return y - reach + min(sweep, 0.0), y + reach + max(sweep, 0.0)
+
+
 def occupied_lanes(trajectory: Trajectory, dyn: Dynamics, length: float) -> tuple[tuple[int, float], ...]:
-    """The lanes the ego's body, turned by its heading, overlaps at some frame of ``trajectory``, each with the time
-    [s] of the last such frame (a lane overlapped at the horizon's end: inf). Frame by frame with libm's functions,
-    as the compiled engine computes it."""
+    """The lanes the ego's body, turned by its heading and swept one frame on at its velocity
+    (:func:`_swept_across`), overlaps at some frame of ``trajectory``, each with the time [s] of the frame after the
+    last such frame (the swept body is checked against that frame's sets; at the horizon's end: inf). Frame by
+    frame with libm's functions, as the compiled engine computes it."""
     t = dyn.times
     half = 0.5 * dyn.lane_width
     last = [-1] * dyn.lanes_count
-    for j, (_, y, heading, _) in enumerate(trajectory.states.tolist()):
-        reach = abs(0.5 * length * math.sin(heading)) + abs(0.5 * EGO_WIDTH * math.cos(heading))
+    final = t.size - 1
+    for j, (_, y, heading, speed) in enumerate(trajectory.states.tolist()):
+        low, high = _swept_across(y, heading, speed, dyn.frame_dt, length)
         for lane in range(dyn.lanes_count):
             centre = lane * dyn.lane_width
-            if y + reach > centre - half and y - reach < centre + half:
-                last[lane] = j
-    return tuple((lane, math.inf if j == t.size - 1 else float(t[j])) for lane, j in enumerate(last) if j >= 0)
+            if high > centre - half and low < centre + half:
+                last[lane] = min(j + 1, final)
+    return tuple((lane, math.inf if j == final else float(t[j])) for lane, j in enumerate(last) if j >= 0)
 
 
-def reach_excess(trajectory: Trajectory, length: float) -> float:
-    """[m] How far the ego's body, turned by its heading, reaches along the road beyond half its length, at worst
-    over ``trajectory``."""
-    reach = max(abs(0.5 * length * math.cos(h)) + abs(0.5 * EGO_WIDTH * math.sin(h)) for h in trajectory.states[:, 2])
-    return max(reach - 0.5 * length, 0.0)
+def reach_excess(trajectory: Trajectory, dyn: Dynamics, length: float) -> float:
+    """[m] How far the ego's body reaches along the road beyond where the gaps put it, at worst over
+    ``trajectory``: turned by its heading, beyond half its length; and moved one frame on at its velocity (the
+    collision test's look ahead, along its heading), away from the next frame's position (the gaps are checked
+    at both frames; the relative motion between them is linear, so its worst is at one end)."""
+    states = trajectory.states.tolist()
+    dt = dyn.frame_dt
+    along = 0.0
+    drift = 0.0
+    for j, (x, _, heading, speed) in enumerate(states):
+        along = max(along, abs(0.5 * length * math.cos(heading)) + abs(0.5 * EGO_WIDTH * math.sin(heading)))
+        if j + 1 < len(states):
+            drift = max(drift, abs(x + speed * math.cos(heading) * dt - states[j + 1][0]))
+    return max(along - 0.5 * length, 0.0) + drift
 
 
 def on_road(trajectory: Trajectory, dyn: Dynamics) -> bool:
@@ -178,7 +201,7 @@ def trajectory_gap(
     lanes = occupied_lanes(trajectory, dyn, state.ego_length)
     ego_x = trajectory.states[None, :, 0]
     gaps = car_gaps(state, dyn, sets, ego_x, np.array([onset]), list(lanes), until_frame, carried_followers,
-                    held)[:, 0] - reach_excess(trajectory, state.ego_length)  # fmt: skip
+                    held)[:, 0] - reach_excess(trajectory, dyn, state.ego_length)  # fmt: skip
     moving = abs(trajectory.states[-1, 3]) > STOPPED_SPEED and until_frame is None
     if not on_road(trajectory, dyn) or moving:
         gaps = np.full(max(gaps.size, 1), -np.inf)

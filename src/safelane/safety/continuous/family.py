@@ -280,12 +280,8 @@ class ControlFamily:
             self.followers = {}
         else:
             fresh = _followers_of(state, dyn, judged.sets, judged.vehicle, plan)
-            f = dyn.frames_per_decision
-            for v, (lane, high) in self.followers.items() if same_plan else ():
-                shifted = np.concatenate([high[f:], np.full(f, np.inf)])
-                now = fresh.get(v)
-                fresh[v] = (lane, shifted if now is None or now[0] != lane else np.minimum(now[1], shifted))
-            self.followers = fresh
+            self.followers = carried_follower_bounds(self.followers if same_plan else {}, fresh,
+                                                     dyn.frames_per_decision)  # fmt: skip
         self._judged = None
 
     def certified(self, snap: RoadSnapshot, dyn: Dynamics) -> bool:
@@ -304,6 +300,26 @@ class ControlFamily:
         state, _, sets, trace = self.state_of(snap, dyn)
         low, high, _ = self.search(state, dyn, sets, trace["cars"]).interval(float(np.float32(steering)))
         return low, high
+
+
+def carried_follower_bounds(kept: dict[int, tuple[int, np.ndarray]], fresh: dict[int, tuple[int, np.ndarray]],
+                            frames: int) -> dict[int, tuple[int, np.ndarray]]:  # fmt: skip
+    """{car: (lane, highest position [m] per frame)} the follower bounds a plan kept for one more decision carries:
+    ``fresh``, those drawn now (:func:`_followers_of`), with the ``kept`` ones moved on by one decision (``frames``
+    frames). A car in both in the same lane keeps the lower bound; a car no longer following keeps its kept bound (it
+    may come back, and its body may still overlap the lane: IDM stops seeing the ego as soon as the car's centre
+    has left the lane, not its body); a car now following in another lane the plan holds is bounded there, by the
+    fresh bound (a kept bound in the lane it left would leave its body in the new lane unbounded once it moves on
+    again)."""
+    out = dict(fresh)
+    for v, (lane, high) in kept.items():
+        shifted = np.concatenate([high[frames:], np.full(frames, np.inf)])
+        now = fresh.get(v)
+        if now is None:
+            out[v] = (lane, shifted)
+        elif now[0] == lane:
+            out[v] = (lane, np.minimum(now[1], shifted))
+    return out
 
 
 def _followers_of(state: RoadState, dyn: Dynamics, sets: CarSets, vehicle: np.ndarray, plan: ControlPlan) -> dict:

@@ -9,18 +9,21 @@ from typing import Annotated, Any
 import typer
 
 from safelane.cli.common import (
+    ActionsOpt,
     AddressOpt,
     BackendOpt,
     PresetOpt,
     SetOpt,
     TrainSimulatorOpt,
+    actions_of,
+    check_actions,
     check_positive,
     cli_errors,
     episode_progress,
     training_simulator,
     warn_if_numpy_is_not_libm,
 )
-from safelane.config import ConfigError
+from safelane.config import ConfigError, parse_set
 
 
 @cli_errors
@@ -45,8 +48,15 @@ def reproduce(
         list[str] | None, typer.Option("--stress-only", help="Stress conditions to use (default: all).")
     ] = None,
     methods: Annotated[
-        str, typer.Option("--methods", help="Methods to run, comma-separated, or all.", metavar="LIST")
-    ] = "all",
+        str | None,
+        typer.Option(
+            "--methods",
+            help="Methods to run, comma-separated, or all (default). With --actions continuous the arms: sac, ppo, "
+            "sac-lagrangian bare, ALGO-projection, ALGO-replacement, ALGO-penalty under the shield (default: the "
+            "three bare and sac's three shielded).",
+            metavar="LIST",
+        ),
+    ] = None,
     confirm_on: Annotated[
         str | None,
         typer.Option(
@@ -73,8 +83,39 @@ def reproduce(
             "bit, several times faster); per-run: one run per task (highway-env runs always are).",
         ),
     ] = "batched",
+    actions: ActionsOpt = None,
+    decisions: Annotated[
+        int | None,
+        typer.Option(
+            "--decisions",
+            help="With --actions continuous: training decisions per run (default 50 000: past SAC's plateau at "
+            "about 10 000 on one seed, 50 updates of the Lagrangian SAC's λ; --quick: 600).",
+            metavar="N",
+        ),
+    ] = None,
 ) -> None:
-    """Train every method × seed, evaluate on held-out episodes, write Table 4 / Fig. 6 / Fig. 7 and claims."""
+    """Train every method × seed, evaluate on held-out episodes, write Table 4 / Fig. 6 / Fig. 7 and claims
+    (with --actions continuous: SB3 agents bare and under the shield, their table and learning curves)."""
+    check_actions(actions)
+    if actions == "continuous" or (actions is None and actions_of(sets) == "continuous"):
+        refused = {
+            "--episodes": episodes != 200,
+            "--agent-preset": agent_preset != "tuned",
+            "--stress-episodes": stress_episodes > 0,
+            "--stress-only": bool(stress_only),
+            "--confirm-on": confirm_on is not None,
+            "--confirm-episodes": confirm_episodes is not None,
+            "--simulator": simulator not in (None, "fast"),
+        }
+        for option, given in refused.items():
+            if given:
+                raise ConfigError(f"{option}: not with --actions continuous (its runs train for --decisions on the "
+                                  "fast simulator)")  # fmt: skip
+        _reproduce_continuous(out, preset, seeds, decisions, test_episodes, quick, workers, sets, methods, backend,
+                              address)  # fmt: skip
+        return
+    if decisions is not None:
+        raise ConfigError("--decisions: only with --actions continuous (the DQN methods train for --episodes)")
     from safelane.agents.dqn import parse_methods
     from safelane.running.experiments import make_spec, run_experiment
     from safelane.running.reproduction_report import render_gifs, write_report
@@ -103,7 +144,7 @@ def reproduce(
             raise ConfigError(f"--stress-only: unknown condition '{unknown[0]}'; allowed: {', '.join(names)}")
         stress_names = list(stress_only or names)
     spec = make_spec(
-        methods=list(parse_methods(methods)),
+        methods=list(parse_methods("all" if methods is None else methods)),
         stress_conditions=stress_names,
         stress_episodes=max(stress_episodes, 1),
         seeds=list(range(seeds)),
@@ -130,3 +171,49 @@ def reproduce(
     gif_paths = render_gifs(out, max_steps=20 if quick else 40) if gifs else None
     report = write_report(out, gif_paths)
     typer.echo(f"report: {report}")
+
+
+def _reproduce_continuous(
+    out: Path, preset: str, seeds: int, decisions: int | None, test_episodes: int, quick: bool,
+    workers: int | None, sets: list[str] | None, methods: str | None, backend: str, address: str | None,
+) -> None:  # fmt: skip
+    """``reproduce --actions continuous``: every arm × seed trained, tested and reported
+    (:mod:`safelane.running.continuous_reproduction`)."""
+    from safelane.running.continuous_reproduction import (
+        DEFAULT_DECISIONS,
+        QUICK_DECISIONS,
+        QUICK_SEEDS,
+        QUICK_TEST_EPISODES,
+        make_continuous_spec,
+        parse_arms,
+        run_comparison,
+        write_comparison_report,
+    )
+
+    decisions = DEFAULT_DECISIONS if decisions is None else decisions
+    if quick:
+        seeds, decisions = min(seeds, QUICK_SEEDS), min(decisions, QUICK_DECISIONS)
+        test_episodes = min(test_episodes, QUICK_TEST_EPISODES)
+    check_positive("--seeds", seeds)
+    check_positive("--decisions", decisions)
+    check_positive("--test-episodes", test_episodes)
+    if workers is not None:
+        check_positive("--workers", workers)
+    spec = make_continuous_spec(
+        arms=parse_arms(methods),
+        seeds=list(range(seeds)),
+        decisions=decisions,
+        test_episodes=test_episodes,
+        env_preset=preset,
+        sets=[s for s in sets or [] if parse_set(s)[0] != "actions"],  # every arm's runs are continuous
+        quick=quick,
+    )
+    with episode_progress("reproduce (runs)", len(spec.arms) * len(spec.seeds)) as advance:
+        done = [0]
+
+        def tick(_: Any) -> None:
+            advance(done[0], None)
+            done[0] += 1
+
+        run_comparison(spec, out, workers=workers, progress=tick, backend=backend, address=address)
+    typer.echo(f"report: {write_comparison_report(out)}")

@@ -102,11 +102,13 @@ def plot_curve_bands(
     labels: Mapping[str, str] | None = None,
     xlabel: str = "training episode",
     title: str = "Learning curves",
+    x: Sequence[float] | None = None,
 ) -> Figure:
     """One panel per quantity: each method's curve over runs (e.g. the IQM over seeds) with its shaded band.
 
     ``panels`` are ``(y-axis label, {method: Band})`` pairs (:func:`safelane.reporting.stats.curve_band`);
-    point ``j`` is drawn at x = ``j + 1`` (training episodes count from 1). ``labels`` rename methods in the legend.
+    point ``j`` is drawn at ``x[j]``, by default at ``j + 1`` (training episodes count from 1). ``labels`` rename
+    methods in the legend.
     """
     if not panels:
         raise ValueError("panels: no curves given")
@@ -116,9 +118,9 @@ def plot_curve_bands(
     for ax, (ylabel, bands) in zip(axes, panels, strict=True):
         for i, (method, band) in enumerate(bands.items()):
             colour = f"C{i % 10}"
-            x = np.arange(1, band.point.size + 1)
-            ax.plot(x, band.point, color=colour, label=names.get(method, method))
-            ax.fill_between(x, band.low, band.high, color=colour, alpha=0.2, lw=0)
+            xs = np.arange(1, band.point.size + 1) if x is None else np.asarray(x, dtype=float)
+            ax.plot(xs, band.point, color=colour, label=names.get(method, method))
+            ax.fill_between(xs, band.low, band.high, color=colour, alpha=0.2, lw=0)
         ax.set_xlabel(xlabel)
         ax.set_ylabel(ylabel)
         ax.grid(alpha=0.3)

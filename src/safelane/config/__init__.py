@@ -32,6 +32,7 @@ from safelane.core.drivers import (
     NO_MIX,
     DriverMix,
     check_driver_type,
+    idm_parameters,
     parse_driver_mix,
 )
 from safelane.core.errors import ConfigError
@@ -159,6 +160,8 @@ MODE_ONLY_FIELDS: dict[str, tuple[str, ...]] = {
     "redraw_uncertified": ("committed",),
     "redraw_tries": ("committed",),
     "formula": ("nominal",),
+    "belief_epsilon": ("belief",),
+    "belief_sigma": ("belief",),
 }
 """The shield's fields that only some modes read (``shield.reading`` too: the committed mode's,
 :func:`drop_removed_reading`); every other field is read by each mode with a shield."""
@@ -171,7 +174,7 @@ CONTINUOUS_SHIELD_FIELDS = ("intervention", "adaptation_penalty")
 class ShieldConfig(_Section):
     """Which safety model masks the actions (``none`` = no shield)."""
 
-    mode: Literal["none", "nominal", "robust", "committed"] = "none"
+    mode: Literal["none", "nominal", "robust", "committed", "omniscient", "belief"] = "none"
     redraw_uncertified: bool = Field(
         False,
         strict=True,
@@ -195,6 +198,23 @@ class ShieldConfig(_Section):
         False,
         strict=True,
         description="Replace an unsafe chosen action by the closest safe action (any agent becomes safe).",
+    )
+    belief_epsilon: float = Field(
+        0.01,
+        ge=0,
+        lt=1,
+        strict=True,
+        allow_inf_nan=False,
+        description="The belief mode only: each car may be every driver type whose posterior exceeds this; the "
+        "robust rule's worst case over those (a crash with a car whose true type was ruled out is counted).",
+    )
+    belief_sigma: float = Field(
+        0.2,
+        gt=0,
+        strict=True,
+        allow_inf_nan=False,
+        description="The belief mode only: [m/s²] the standard deviation of a car's observed mean acceleration "
+        "over a decision about its type's IDM prediction (safelane.safety.belief).",
     )
     engine: Literal["compiled", "numpy"] = Field(
         "compiled",
@@ -360,6 +380,13 @@ class SafelaneConfig(_Section):
         if self.state == "paper-types" and self.traffic.driver_mix == NO_MIX:
             raise ConfigError("state: 'paper-types' shows each car's driver type and needs traffic.driver_mix; "
                               "allowed without one: paper, lanes")
+        if self.shield.mode in ("omniscient", "belief"):
+            if self.traffic.driver_mix == NO_MIX:
+                raise ConfigError(
+                    f"shield.mode: {self.shield.mode!r} reads the driver types of traffic.driver_mix, which is none; "
+                    "allowed without a mixture: none, nominal, robust, committed"
+                )
+            idm_parameters(parse_driver_mix(self.traffic.driver_mix))
         if self.traffic.driver_mix != NO_MIX and "other_vehicles_type" in self.env:
             raise ConfigError("env.other_vehicles_type: traffic.driver_mix draws every car's type; remove one of them")
         if self.traffic.adversary in ("cut_in", "cut_in_mobil") and env["lanes_count"] < 2:

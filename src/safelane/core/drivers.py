@@ -66,6 +66,56 @@ class DriverMix:
         return tuple(DRIVER_TYPES[t] for t in self.types)
 
 
+@dataclass(frozen=True)
+class IdmParameters:
+    """One IDM + MOBIL driver type's constants, highway-env's names (its ``IDMVehicle`` class attributes): what a
+    belief over the type and the shields that read one need without importing a simulator. IDM's exponent δ is no
+    type's: highway-env draws it per car (the snapshot's ``idm_delta``)."""
+
+    comfort_acc_max: float
+    """[m/s²] ``COMFORT_ACC_MAX``: IDM's a (the snapshot's ``accel_max`` and ``idm_comfort_acc``)."""
+    comfort_acc_min: float
+    """[m/s²] < 0, ``COMFORT_ACC_MIN``: IDM's −b (``idm_comfort_dec``)."""
+    distance_wanted: float
+    """[m] ``DISTANCE_WANTED``, centre to centre: s₀ + a car's length (``idm_distance_wanted``)."""
+    time_wanted: float
+    """[s] ``TIME_WANTED``: IDM's T (``idm_time_wanted``)."""
+    politeness: float
+    """MOBIL's p (``POLITENESS``; not in the snapshot)."""
+    max_braking_imposed: float
+    """[m/s²] > 0, ``LANE_CHANGE_MAX_BRAKING_IMPOSED``: MOBIL's b_safe (``max_braking_imposed``)."""
+    min_acc_gain: float
+    """[m/s²] ``LANE_CHANGE_MIN_ACC_GAIN``: MOBIL's a_thr (not in the snapshot)."""
+    acc_max: float = 6.0
+    """[m/s²] ``ACC_MAX``: the hardest the car brakes or speeds up (``brake_max``)."""
+
+
+_CAR_LENGTH = 5.0
+"""[m] highway-env's ``Vehicle.LENGTH``: its ``DISTANCE_WANTED`` is a jam distance plus it."""
+
+IDM_PARAMETERS: dict[str, IdmParameters] = {
+    "timid": IdmParameters(0.8, -1.0, 4.0 + _CAR_LENGTH, 2.0, 1.0, 1.0, math.nextafter(0.2, math.inf)),
+    "normal": IdmParameters(1.4, -2.0, 2.0 + _CAR_LENGTH, 1.5, 0.5, 2.0, math.nextafter(0.1, math.inf)),
+    "aggressive": IdmParameters(2.0, -3.0, 0.0 + _CAR_LENGTH, 1.0, 0.0, 3.0, math.nextafter(0.0, math.inf)),
+    "IDMVehicle": IdmParameters(3.0, -5.0, 5.0 + _CAR_LENGTH, 1.5, 0.0, 2.0, 0.2),
+}
+"""The IDM + MOBIL driver types of :data:`DRIVER_TYPES` and their constants, the same numbers as their highway-env
+classes (:mod:`safelane.sim.drivers`, highway-env's ``IDMVehicle``; a test compares them). The linear-model drivers
+have none: their gains are drawn per car."""
+
+
+def idm_parameters(mix: DriverMix, key: str = "traffic.driver_mix") -> tuple[IdmParameters, ...]:
+    """Each type's :class:`IdmParameters`, in the mixture's order; a type without them (a linear-model driver) is a
+    one-line :class:`ConfigError` naming ``key`` and the allowed types."""
+    for name in mix.types:
+        if name not in IDM_PARAMETERS:
+            raise ConfigError(
+                f"{key}: type {name!r} has no fixed IDM constants (a linear-model driver draws its gains per car) "
+                f"for a belief or the types' worst case; allowed: {', '.join(IDM_PARAMETERS)}"
+            )
+    return tuple(IDM_PARAMETERS[name] for name in mix.types)
+
+
 def _allowed_types() -> str:
     return ", ".join(DRIVER_TYPES)
 

@@ -194,6 +194,9 @@ def make_env(
             rule=shield.resolved_rule(),
             engine=shield.engine,
             formula=shield.formula,
+            driver_mix=mix,
+            belief_epsilon=shield.belief_epsilon,
+            belief_sigma=shield.belief_sigma,
         )
         if shield.mode == "committed":  # its starts reported (redraws), redrawn if asked
             env = RedrawUncertified(env, shield.redraw_tries if shield.redraw_uncertified else 0)

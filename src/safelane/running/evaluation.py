@@ -98,6 +98,9 @@ class EpisodeRecord:
     of the plan, by the crash's own decision)."""
     off_road: bool | None = None
     """Continuous actions: the episode ended with the ego off the road (None: meta-actions, which keep it on)."""
+    type_ruled_out_crash: bool | None = None
+    """``belief`` mode: the ego crashed with a car whose true driver type the belief had ruled out at the decision
+    (``info["type_ruled_out_crash"]``: outside the belief's sets; None: another mode)."""
     projection_distance: float | None = None
     """The shield for continuous actions: the distances [normalised actions] from the policy's action to the executed
     one, summed over the episode's decisions (``interventions`` counts the projected ones; None: another shield or
@@ -121,6 +124,8 @@ class EpisodeRecord:
             del data["actions"]
         if self.projection_distance is None:
             del data["projection_distance"]
+        if self.type_ruled_out_crash is None:
+            del data["type_ruled_out_crash"]
         return data
 
 
@@ -192,6 +197,8 @@ class EpisodeTally:
         # Continuous actions (the reward reports ``off_road``): the chosen controls, no meta-action histogram.
         self.continuous = "off_road" in reset_info
         self.off_road = bool(reset_info["off_road"]) if self.continuous else None
+        # The belief shield: whether a crash came with a car whose true type it had ruled out.
+        self.type_ruled_out_crash = False if "type_ruled_out_crash" in reset_info else None
 
     def add(self, action: Action, reward: float, info: dict[str, Any]) -> None:
         """Count one decision: the ``action`` chosen, the ``reward`` and ``info`` its step returned."""
@@ -211,6 +218,8 @@ class EpisodeTally:
         self.unsafe_actions += bool(info.get("unsafe_action", False))
         if info.get("invariant_break", False):
             self.breaks.append(self.steps)
+        if info.get("type_ruled_out_crash", False):
+            self.type_ruled_out_crash = True
         if info.get("collision", False) and not self.collision:
             self.collision = True
             self.time_to_collision = info["snapshot"].time
@@ -327,6 +336,7 @@ class EpisodeTally:
             redraws=self.redraws,
             outside_model_cars=self.outside_model_cars,
             off_road=self.off_road,
+            type_ruled_out_crash=self.type_ruled_out_crash,
             projection_distance=self.projection_distance,
             executed_actions=self.executed,
         )
@@ -574,6 +584,9 @@ def summarize(records: list[EpisodeRecord], **meta: Any) -> dict[str, Any]:
         summary["off_road_rate"] = sum(bool(r.off_road) for r in continuous) / len(continuous)
     summary.update(projection_figures(records))
     summary.update(committed_figures(records))
+    believed = [r for r in records if r.type_ruled_out_crash is not None]
+    if believed:  # the belief shield: the crashes outside its sets (a true type ruled out), beside the others
+        summary["collisions_type_ruled_out"] = sum(bool(r.type_ruled_out_crash) for r in believed)
     summary.update(meta)
     return summary
 

@@ -32,7 +32,10 @@ from typing import Any, Literal
 import gymnasium as gym
 import numpy as np
 
+from safelane.core.drivers import IDM_PARAMETERS, DriverMix, IdmParameters, idm_parameters
 from safelane.core.snapshot import RoadSnapshot
+from safelane.safety.belief import SIGMA, BeliefFilter
+from safelane.safety.driver_sets import TYPE_MODES, drawn_cars, every_type, true_type, worst_case_drivers
 from safelane.safety.family import RuleFamily, family_for
 from safelane.safety.road import road_state, road_state_bodies
 from safelane.safety.rule import DEFAULT_RULE_NAME, Rule, as_rule
@@ -49,6 +52,9 @@ from safelane.safety.world import (
     check_choices,
 )
 from safelane.sim.highway import HighwayEnvAdapter, lane_change_timing
+
+DEFAULT_BELIEF_EPSILON = 0.01
+"""The belief shield's ε: a car may be every type whose posterior exceeds it (``shield.belief_epsilon``)."""
 
 DEFAULT_MARGIN = Dynamics.__dataclass_fields__["margin"].default
 """[m] The safety model's default bumper-to-bumper margin (``shield.margin``)."""
@@ -158,6 +164,17 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
     one was allowed) (and ``uncertified_start`` after a reset); cars by their snapshot index.
     ``mode`` may also be a :class:`~safelane.safety.family.RuleFamily` of the caller's (its memory the caller's
     to read; its ``engine`` then overrides ``engine``).
+
+    ``driver_mix``: the traffic's mixture of driver types (``traffic.driver_mix``; its ``assumed`` None when the
+    snapshot shows each car's own constants). With the types hidden, ``mode="robust"`` reads each drawn car as the
+    worst case over every type of the mixture (:func:`~safelane.safety.driver_sets.worst_case_drivers`; a mixture
+    with a linear-model driver keeps the snapshot's assumed constants). ``mode="omniscient"``: the robust rule on
+    each car's true type (the snapshot's ``driver_type``); ``mode="belief"``: the robust rule on the types whose
+    posterior (:class:`~safelane.safety.belief.BeliefFilter`, residual deviation ``belief_sigma`` [m/s²]) exceeds
+    ``belief_epsilon``. The belief's promise is probabilistic: a car whose true type was ruled out is outside the
+    sets, and ``info`` counts it: ``types_ruled_out`` (the drawn cars whose true type is at or below ε at this
+    decision) and ``type_ruled_out_crash`` (the ego crashed in this step with a car whose true type was ruled out
+    at the decision).
     """
 
     def __init__(
@@ -169,17 +186,28 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
         rule: Rule | str = DEFAULT_RULE_NAME,
         engine: Engine = "compiled",
         formula: Formula = "kinematic",
+        driver_mix: DriverMix | None = None,
+        belief_epsilon: float = DEFAULT_BELIEF_EPSILON,
+        belief_sigma: float = SIGMA,
     ) -> None:
         if not (isinstance(margin, int | float) and math.isfinite(margin) and margin >= 0):
             raise ValueError(f"shield.margin: must be a finite number >= 0 [m] (got {margin!r})")
+        if not (isinstance(belief_epsilon, int | float) and 0 <= belief_epsilon < 1):
+            raise ValueError(f"shield.belief_epsilon: must be a number in [0, 1) (got {belief_epsilon!r})")
         family: RuleFamily | None = None
         if isinstance(mode, RuleFamily):  # a family of the caller's (the committed mode's memory, say)
             family, mode, engine = mode, mode.mode, mode.engine  # type: ignore[assignment]
-        check_choices(mode, engine, formula, modes=SHIELD_MODES)
+        check_choices(mode, engine, formula, modes=(*SHIELD_MODES, *TYPE_MODES))
+        if mode in TYPE_MODES and driver_mix is None:
+            raise ValueError(
+                f"shield.mode: {mode!r} reads the types of a driver mixture and needs traffic.driver_mix; allowed "
+                f"without one: {', '.join(SHIELD_MODES)}"
+            )
         resolved = as_rule(rule)
         gym.utils.RecordConstructorArgs.__init__(
-            self, mode=family or mode, override=override, margin=margin, rule=rule, engine=engine, formula=formula
-        )
+            self, mode=family or mode, override=override, margin=margin, rule=rule, engine=engine, formula=formula,
+            driver_mix=driver_mix, belief_epsilon=belief_epsilon, belief_sigma=belief_sigma,
+        )  # fmt: skip
         try:
             env.get_wrapper_attr("road_snapshot")
         except AttributeError:  # a plain highway-env environment: read its scene through the adapter
@@ -198,12 +226,58 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
         self.result: SafetyResult | None = None
         self.snapshot: RoadSnapshot | None = None
         self._warned_cannot_stop = False
+        # The driver types the rule reads each car as (None: the snapshot's constants as they are).
+        self.driver_mix = driver_mix
+        self.belief_epsilon = float(belief_epsilon)
+        self.types: tuple[IdmParameters, ...] | None = None
+        hidden_idm = (
+            driver_mix is not None and driver_mix.assumed is not None
+            and all(t in IDM_PARAMETERS for t in driver_mix.types)
+        )  # fmt: skip
+        if mode in TYPE_MODES or (mode == "robust" and hidden_idm):
+            assert driver_mix is not None
+            self.types = idm_parameters(driver_mix)
+        self.belief: BeliefFilter | None = None
+        if mode == "belief":
+            assert driver_mix is not None
+            self.belief = BeliefFilter(driver_mix, belief_sigma)
+        self._ruled_out = np.zeros(0, dtype=bool)  # drawn cars whose true type the last decision ruled out
+
+    def driver_view(self, snap: RoadSnapshot) -> RoadSnapshot:
+        """The snapshot the rule reads: ``snap`` with each drawn car's driver arrays the worst case over the types it
+        may be (the mode's sets; class docstring), or ``snap`` itself when the rule reads the constants as they are."""
+        if self.types is None or self.driver_mix is None:
+            return snap
+        if self.mode == "omniscient":
+            allowed, cars = true_type(snap, len(self.types))
+        else:
+            allowed, cars = self.allowed_types(snap), drawn_cars(snap)
+        return worst_case_drivers(snap, self.types, allowed, cars)
+
+    def allowed_types(self, snap: RoadSnapshot) -> np.ndarray:
+        """(n, K) bool: the types each car of ``snap`` may be — the belief's above ε (a car it has no row for: the
+        prior's), else every type of positive weight."""
+        assert self.driver_mix is not None
+        allowed = every_type(snap, self.driver_mix.probabilities)
+        if self.belief is not None:
+            allowed &= self.driver_mix.probabilities[None, :] > self.belief_epsilon  # the prior's, for new rows
+            rows = min(snap.n, self.belief.log_post.shape[0])
+            allowed[:rows] = self.belief.allowed(self.belief_epsilon)[:rows]
+        return allowed
+
+    def _true_type_ruled_out(self, snap: RoadSnapshot) -> np.ndarray:
+        """(n,) bool: the drawn cars of ``snap`` whose true type the belief's sets leave out."""
+        truth = snap.driver_type if snap.driver_type is not None else np.full(snap.n, -1)
+        out = np.zeros(snap.n, dtype=bool)
+        cars = np.flatnonzero(truth >= 0)
+        out[cars] = ~self.allowed_types(snap)[cars, truth[cars]]
+        return out
 
     @property
     def family(self) -> RuleFamily:
         """The rule family that judges the states (:mod:`safelane.safety.family`), for the shield's ``mode``,
-        ``engine`` and ``formula`` as they are now."""
-        key = (self.mode, self.engine, self.formula)
+        ``engine`` and ``formula`` as they are now (the types' modes: the robust rule's)."""
+        key = ("robust" if self.mode in TYPE_MODES else self.mode, self.engine, self.formula)
         if self._family is None or self._family[0] != key:  # one family per shield: it keeps the episode's memory
             self._family = (key, family_for(*key))
         return self._family[1]
@@ -215,7 +289,7 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
             raise RuntimeError("SafetyShield: reset the environment first")
         leave = self._ego_leave_time(snap)
         assert self.dynamics is not None
-        return self.family.evaluate(snap, self.dynamics, leave)
+        return self.family.evaluate(self.driver_view(snap), self.dynamics, leave)
 
     def state_and_dynamics(self, snap: RoadSnapshot) -> tuple[RoadState, Dynamics]:
         """The (RoadState, Dynamics) that :meth:`compute_result` evaluates for ``snap`` (the numpy engine's
@@ -223,7 +297,7 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
         leave = self._ego_leave_time(snap)
         assert self.dynamics is not None
         dyn = self.dynamics
-        state = road_state(snap, dyn.rule.ego_speed_magnitude)
+        state = road_state(self.driver_view(snap), dyn.rule.ego_speed_magnitude)
         return state, dataclasses.replace(dyn, ego_leave_time=leave)
 
     def ego_leave_time(self, snap: RoadSnapshot) -> float:
@@ -259,18 +333,36 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
         self.snapshot = info["snapshot"]
         self.result = self.compute_result()
         info.update(self.result.info())
+        if self.belief is not None:
+            self._ruled_out = self._true_type_ruled_out(self.snapshot)
+            info["types_ruled_out"] = int(np.count_nonzero(self._ruled_out))
 
     def reset(self, **kwargs: Any) -> tuple[Any, dict[str, Any]]:
         self.dynamics = None
         self.result = None
         self.family.reset()  # a family with memory (committed plans) starts each episode afresh
         obs, info = self.env.reset(**kwargs)
+        if self.belief is not None:
+            self.belief.reset(info["snapshot"])
         self._annotate(info)
+        if self.belief is not None:
+            info["type_ruled_out_crash"] = False
         if self.mode == "committed":
             info["uncertified_start"] = not info["certified"]
         info["shield_intervened"] = False
         self._warn_if_the_ego_cannot_stop()
         return obs, info
+
+    def _crash_with_ruled_out(self, before: RoadSnapshot, after: RoadSnapshot) -> bool:
+        """Whether the ego crashed in the step from ``before`` to ``after`` together with a car (crashed in the same
+        step) whose true type the decision's sets had ruled out."""
+        ego = after.ego
+        if not after.crashed[ego] or before.crashed[ego]:
+            return False
+        rows = min(before.n, after.n, self._ruled_out.shape[0])
+        partners = after.crashed[:rows] & ~before.crashed[:rows]
+        partners[ego] = False
+        return bool((partners & self._ruled_out[:rows]).any())
 
     def _warn_if_the_ego_cannot_stop(self) -> None:
         """One warning per shield when the lowest set-point is above 0 m/s (highway-env's default [20, 25, 30]):
@@ -299,10 +391,15 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
         if self.override and not mask[chosen]:
             executed = next(a for a in OVERRIDE_ORDER[chosen] if mask[a])
         self.family.commit(executed)  # a family with memory keeps the plan of the action executed
+        before = self.snapshot
         obs, reward, terminated, truncated, info = self.env.step(executed)
         info["shield_intervened"] = executed != chosen
         info["unsafe_action"] = not bool(mask[chosen])
         info["executed_action"] = executed
+        if self.belief is not None:
+            assert before is not None
+            info["type_ruled_out_crash"] = self._crash_with_ruled_out(before, info["snapshot"])
+            self.belief.update(info["snapshot"])
         self._annotate(info)
         info["invariant_break"] = bool(promised and mask[executed] and info["fallback"])
         return obs, reward, terminated, truncated, info

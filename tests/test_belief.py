@@ -1,0 +1,356 @@
+"""The belief over each car's hidden driver type (:mod:`safelane.safety.belief`): the exact posterior of hand-built
+steps, the compiled kernel against the numpy reference, the filter's bookkeeping, and a real episode."""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+import pytest
+from highway_env.vehicle.behavior import IDMVehicle
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from safelane.core.drivers import IDM_PARAMETERS, DriverMix, parse_driver_mix
+from safelane.core.errors import ConfigError
+from safelane.core.snapshot import RoadSnapshot
+from safelane.safety.belief import BeliefFilter
+from safelane.sim.drivers import AggressiveDriver, NormalDriver, TimidDriver
+
+MIX = parse_driver_mix("timid-normal-aggressive")
+LANE_W = 4.0
+FRAMES, SIM_F = 5, 5.0  # highway-fast-v0: 5 frames of 0.2 s per decision
+
+
+def snapshot(x: list[float], v: list[float], lane: list[int], **over: Any) -> RoadSnapshot:
+    """A straight 4-lane road, body 0 the ego; ``x`` [m], ``v`` [m/s], ``lane`` per body (others via ``over``)."""
+    n = len(x)
+    pos = np.column_stack([np.asarray(x, float), np.asarray(lane, float) * LANE_W])
+    idm = IDMVehicle
+    fields: dict[str, Any] = dict(
+        time=0.0, policy_frequency=1.0, simulation_frequency=SIM_F, lanes_count=4, lane_width=LANE_W,
+        lane_origin=np.zeros(2), lane_direction=np.array([1.0, 0.0]), lane_lateral=np.array([0.0, 1.0]),
+        speed_limit=30.0, ego=0, ego_target_speed=25.0, ego_speed_index=5, ego_target_speeds=(0.0, 5.0, 25.0),
+        ego_kp=0.6, ego_lane_offset=0.0, position=pos, speed=np.asarray(v, float), heading=np.zeros(n),
+        target_speed=np.full(n, 25.0), lane=np.asarray(lane), target_lane=np.asarray(lane), length=np.full(n, 5.0),
+        width=np.full(n, 2.0), crashed=np.zeros(n, bool), is_vehicle=np.ones(n, bool), brake_max=np.full(n, 6.0),
+        accel_max=np.full(n, idm.COMFORT_ACC_MAX), can_change_lane=np.ones(n, bool), idm_delta=np.full(n, 4.0),
+        idm_comfort_acc=np.full(n, idm.COMFORT_ACC_MAX), idm_comfort_dec=np.full(n, idm.COMFORT_ACC_MIN),
+        idm_distance_wanted=np.full(n, idm.DISTANCE_WANTED), idm_time_wanted=np.full(n, idm.TIME_WANTED),
+        max_braking_imposed=np.full(n, 2.0), linear_speed_gain=np.full(n, np.nan),
+        linear_speed_difference_gain=np.full(n, np.nan), linear_distance_gain=np.full(n, np.nan),
+        driver_type=np.array([-1] + [0] * (n - 1)),
+    )  # fmt: skip
+    fields.update(over)
+    return RoadSnapshot(**fields)
+
+
+def idm_speed_after(v: float, v0: float, delta: float, t: str, lead: tuple[float, float, float] | None) -> float:
+    """The speed [m/s] after one decision of a car of type ``t`` at ``v`` [m/s] (set-point ``v0``), frame by frame as
+    highway-env integrates it; ``lead``: (gap [m] centre to centre, leader's speed [m/s], its acceleration)."""
+    p = IDM_PARAMETERS[t]
+    a, b = p.comfort_acc_max, -p.comfort_acc_min
+    dt = 1.0 / SIM_F
+    gap, vl, al = lead if lead is not None else (0.0, 0.0, 0.0)
+    for _ in range(FRAMES):
+        acc = a * (1 - (max(v, 0.0) / v0) ** delta)
+        if lead is not None:
+            d_star = p.distance_wanted + v * p.time_wanted + v * (v - vl) / (2 * math.sqrt(a * b))
+            acc -= a * (d_star / gap) ** 2
+        acc = min(max(acc, -p.acc_max), p.acc_max)
+        gap += (vl - v) * dt
+        v += acc * dt
+        vl += al * dt
+    return v
+
+
+def test_the_constants_are_the_highway_env_classes() -> None:
+    """The pure table the filter and the shields read holds the sim classes' numbers."""
+    for name, cls in (("timid", TimidDriver), ("normal", NormalDriver), ("aggressive", AggressiveDriver),
+                      ("IDMVehicle", IDMVehicle)):  # fmt: skip
+        p = IDM_PARAMETERS[name]
+        assert (p.comfort_acc_max, p.comfort_acc_min, p.distance_wanted, p.time_wanted, p.politeness) == (
+            cls.COMFORT_ACC_MAX,
+            cls.COMFORT_ACC_MIN,
+            cls.DISTANCE_WANTED,
+            cls.TIME_WANTED,
+            cls.POLITENESS,
+        )
+        assert (p.max_braking_imposed, p.min_acc_gain, p.acc_max) == (
+            cls.LANE_CHANGE_MAX_BRAKING_IMPOSED,
+            cls.LANE_CHANGE_MIN_ACC_GAIN,
+            cls.ACC_MAX,
+        )
+
+
+@pytest.mark.parametrize("engine", ["compiled", "numpy"])
+@pytest.mark.parametrize("truth", ["timid", "normal", "aggressive"])
+def test_exact_posterior_after_one_known_step(engine: str, truth: str) -> None:
+    """A follower 30 m behind a leader braking at 1 m/s²: the posterior is prior × exp(−r²/2σ²), normalised, with
+    r each type's residual [m/s²]; the true type's is 0."""
+    sigma = 0.2
+    x0, v0, lead_v0 = 100.0, 24.0, 20.0
+    before = snapshot([0.0, x0, x0 + 30.0], [25.0, v0, lead_v0], [3, 1, 1])
+    v_true = idm_speed_after(v0, 25.0, 4.0, truth, (30.0, lead_v0, -1.0))
+    x_lead = x0 + 30.0 + sum((lead_v0 - 1.0 * 0.2 * f) * 0.2 for f in range(FRAMES))
+    after = snapshot([25.0, x0 + 20.0, x_lead], [25.0, v_true, lead_v0 - 1.0], [3, 1, 1])
+    belief = BeliefFilter(MIX, sigma, engine=engine)  # type: ignore[arg-type]
+    np.testing.assert_allclose(belief.reset(before)[1], [1 / 3] * 3, rtol=0, atol=1e-15)
+    post = belief.update(after)
+    r = np.array([v_true - idm_speed_after(v0, 25.0, 4.0, t, (30.0, lead_v0, -1.0)) for t in MIX.types])
+    expected = np.exp(-(r**2) / (2 * sigma**2))
+    expected /= expected.sum()
+    np.testing.assert_allclose(post[1], expected, rtol=1e-9, atol=1e-12)
+    assert MIX.types[int(np.argmax(post[1]))] == truth
+    assert belief.informative.tolist() == [0, 1, 1]
+
+
+def test_free_road_at_the_set_point_leaves_the_prior() -> None:
+    """Every type predicts 0 m/s² for a car alone at its set-point: the step says nothing."""
+    uneven = parse_driver_mix([{"type": "timid", "weight": 0.2}, {"type": "aggressive", "weight": 0.8}])
+    belief = BeliefFilter(uneven, 0.05)
+    belief.reset(snapshot([0.0, 200.0], [25.0, 25.0], [3, 0]))
+    post = belief.update(snapshot([25.0, 225.0], [25.0, 25.0], [3, 0]))
+    np.testing.assert_allclose(post[1], [0.2, 0.8], rtol=1e-15)
+    assert belief.informative[1] == 1
+
+
+def test_uninformative_steps_keep_the_posterior() -> None:
+    """A lane change, a crash or a leader that changed: the likelihood is flat."""
+    belief = BeliefFilter(MIX, 0.05)
+    belief.reset(snapshot([0.0, 100.0, 130.0], [25.0, 22.0, 20.0], [3, 1, 1]))
+    changing = snapshot([25.0, 120.0, 150.0], [25.0, 23.0, 20.0], [3, 1, 1], target_lane=np.array([3, 2, 1]))
+    np.testing.assert_array_equal(belief.update(changing)[1], np.full(3, 1 / 3))
+    crashed = snapshot([50.0, 140.0, 170.0], [25.0, 10.0, 20.0], [3, 1, 1], crashed=np.array([0, 1, 0], bool))
+    np.testing.assert_array_equal(belief.update(crashed)[1], np.full(3, 1 / 3))
+    assert belief.informative[1] == 0
+
+
+def test_new_cars_start_at_the_prior_and_gone_ones_are_dropped() -> None:
+    uneven = parse_driver_mix([{"type": "timid", "weight": 1}, {"type": "normal", "weight": 3}])
+    belief = BeliefFilter(uneven, 0.1)
+    belief.reset(snapshot([0.0, 100.0], [25.0, 20.0], [3, 1]))
+    post = belief.update(snapshot([25.0, 121.0, 300.0], [25.0, 22.0, 25.0], [3, 1, 2]))
+    assert post.shape == (3, 2)
+    np.testing.assert_allclose(post[2], [0.25, 0.75], rtol=1e-15)
+    assert not np.allclose(post[1], [0.25, 0.75])
+    assert belief.update(snapshot([50.0], [25.0], [3])).shape == (1, 2)
+
+
+def test_linear_drivers_have_no_belief() -> None:
+    with pytest.raises(ConfigError, match=r"^traffic\.driver_mix: type 'LinearVehicle'.*allowed: timid, normal"):
+        BeliefFilter(parse_driver_mix([{"type": "LinearVehicle", "weight": 1}]))
+
+
+_speeds = st.floats(0.0, 32.0, allow_nan=False)
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    x=st.lists(st.floats(0.0, 300.0), min_size=6, max_size=6),
+    lanes=st.lists(st.integers(0, 3), min_size=6, max_size=6),
+    v=st.lists(_speeds, min_size=6, max_size=6),
+    dv=st.lists(st.floats(-6.0, 3.0), min_size=6, max_size=6),
+    weights=st.lists(st.floats(0.0, 1.0), min_size=3, max_size=3).filter(lambda w: sum(w) > 0.01),
+    sigma=st.floats(0.01, 2.0),
+    steps=st.integers(1, 3),
+)
+def test_compiled_is_the_reference_and_rows_sum_to_one(
+    x: list[float], lanes: list[int], v: list[float], dv: list[float], weights: list[float], sigma: float,
+    steps: int,
+) -> None:  # fmt: skip
+    """Random scenes, several steps: the compiled kernel's posteriors are the reference's bits; every row is a
+    distribution; a type of weight 0 stays at 0."""
+    mix = DriverMix(("timid", "normal", "aggressive"), tuple(weights))
+    filters = [BeliefFilter(mix, sigma, engine=e) for e in ("compiled", "numpy")]  # type: ignore[arg-type]
+    snap = snapshot(x, v, lanes)
+    for f in filters:
+        f.reset(snap)
+    for s in range(1, steps + 1):
+        new_v = [max(a + b * s / steps, 0.0) for a, b in zip(v, dv, strict=True)]
+        snap = snapshot([a + b for a, b in zip(x, new_v, strict=True)], new_v, lanes)
+        compiled, reference = (f.update(snap) for f in filters)
+        np.testing.assert_array_equal(compiled, reference)
+        np.testing.assert_allclose(compiled.sum(axis=1), 1.0, rtol=1e-12)
+        assert np.all(compiled[:, np.asarray(weights) == 0] == 0)
+
+
+def test_on_real_traffic_the_true_type_wins() -> None:
+    """One hidden-types episode on the fast simulator: after 5 informative steps the most probable type is the true
+    one for nearly every car (the residual model's σ small)."""
+    from safelane.env.factory import make_env
+
+    env = make_env("hidden-types", simulator="fast")
+    _, info = env.reset(seed=3)
+    belief = BeliefFilter(MIX, 0.1)
+    belief.reset(info["snapshot"])
+    for _ in range(15):
+        _, _, term, trunc, info = env.step(3)  # FASTER
+        post = belief.update(info["snapshot"])
+        if term or trunc:
+            break
+    snap = info["snapshot"]
+    seen = [i for i in snap.others() if belief.informative[i] >= 5]
+    right = [int(np.argmax(post[i])) == snap.driver_type[i] for i in seen]
+    assert len(seen) >= 20 and np.mean(right) >= 0.9
+    env.close()
+
+
+# --- the shields on the types' sets ------------------------------------------------------------------------------
+
+TYPES = tuple(IDM_PARAMETERS[t] for t in MIX.types)
+
+
+def test_worst_case_arrays_field_by_field() -> None:
+    """Car 1 may be timid only (its own constants, bit for bit), car 2 timid or aggressive, car 3 any type; the ego
+    (row 0) is not among the cars and keeps its arrays."""
+    from safelane.safety.driver_sets import worst_case_drivers
+
+    snap = snapshot([0.0, 30.0, 60.0, 90.0], [25.0] * 4, [1] * 4, idm_delta=np.array([4.0, 3.6, 3.9, 4.4]))
+    allowed = np.array([[1, 1, 1], [1, 0, 0], [1, 0, 1], [1, 1, 1]], bool)
+    view = worst_case_drivers(snap, TYPES, allowed, np.array([1, 2, 3]))
+    timid, aggressive = IDM_PARAMETERS["timid"], IDM_PARAMETERS["aggressive"]
+    expect = {  # field: (car 1, car 2, car 3)
+        "brake_max": (6.0, 6.0, 6.0),
+        "accel_max": (0.8, 2.0, 2.0),  # the largest a: the fastest a car speeds up
+        "idm_comfort_acc": (0.8, 0.8, 0.8),  # the least a: MOBIL's room largest, a braking follower softest
+        "idm_comfort_dec": (-1.0, -(2.0 * 3.0) / 0.8, -(2.0 * 3.0) / 0.8),  # -a·dec = the largest a·b
+        "idm_distance_wanted": (9.0, 5.0, 5.0),
+        "idm_time_wanted": (2.0, 1.0, 1.0),
+        "max_braking_imposed": (1.0, 3.0, 3.0),
+    }
+    for name, values in expect.items():
+        got = getattr(view, name)
+        assert got[0] == getattr(snap, name)[0], name
+        assert tuple(got[1:]) == values, name
+    assert view.can_change_lane.all() and np.array_equal(view.idm_delta, snap.idm_delta)
+    assert np.isnan(view.linear_speed_gain[1:]).all()
+    assert (timid.comfort_acc_max, aggressive.comfort_acc_max) == (0.8, 2.0)
+    assert view.position is snap.position  # every other field as it is
+
+
+def test_omniscient_reads_what_the_seen_snapshot_reports() -> None:
+    """The true type's worst case is the type's own constants: the seen arm's snapshot arrays, bit for bit."""
+    from safelane.core.snapshot import DRIVER_FIELDS
+    from safelane.env.factory import make_env
+    from safelane.safety.shield import SafetyShield
+
+    shield = make_env("hidden-types", simulator="fast", **{"shield.mode": "omniscient"})
+    seen = make_env("hidden-types", simulator="fast", **{"traffic.shield_sees_types": True})
+    snap = shield.reset(seed=5)[1]["snapshot"]
+    seen_snap = seen.reset(seed=5)[1]["snapshot"]
+    view = shield.get_wrapper_attr("driver_view")(snap)
+    assert isinstance(shield.unwrapped, object) and isinstance(shield, SafetyShield)
+    for name in DRIVER_FIELDS:
+        np.testing.assert_array_equal(getattr(view, name), getattr(seen_snap, name), err_msg=name)
+    shield.close()
+    seen.close()
+
+
+def test_robust_reads_every_type_under_a_hidden_mixture_and_nothing_else_changes() -> None:
+    """Hidden types: each car the worst case over the three sets; seen types and traffic without a mixture: the
+    snapshot as it is (the same object)."""
+    from safelane.env.factory import make_env
+
+    hidden = make_env("hidden-types", simulator="fast", **{"shield.mode": "robust"})
+    snap = hidden.reset(seed=2)[1]["snapshot"]
+    view = hidden.get_wrapper_attr("driver_view")(snap)
+    cars = snap.others()
+    assert (view.accel_max[cars] == 2.0).all() and (view.idm_comfort_acc[cars] == 0.8).all()
+    assert (view.max_braking_imposed[cars] == 3.0).all() and (view.idm_distance_wanted[cars] == 5.0).all()
+    for preset, sets in (("hidden-types", {"traffic.shield_sees_types": True}), ("fast", {})):
+        env = make_env(preset, simulator="fast", **{"shield.mode": "robust", **sets})
+        snap = env.reset(seed=2)[1]["snapshot"]
+        assert env.get_wrapper_attr("driver_view")(snap) is snap
+        env.close()
+    hidden.close()
+
+
+@pytest.mark.parametrize(
+    ("sets", "says"),
+    [
+        (["shield.mode=belief"], r"^shield\.mode: 'belief' reads the driver types of traffic\.driver_mix, which is "
+         r"none; allowed without a mixture: none, nominal, robust, committed$"),
+        (["shield.mode=omniscient"], r"^shield\.mode: 'omniscient' reads"),
+        (["shield.mode=robust", "shield.belief_epsilon=0.1"], r"^shield\.belief_epsilon: only for shield\.mode "
+         r"belief"),
+        (["shield.mode=belief", "traffic.driver_mix=[{type: LinearVehicle, weight: 1}]"],
+         r"^traffic\.driver_mix: type 'LinearVehicle' .*; allowed: timid, normal, aggressive, IDMVehicle$"),
+    ],
+)  # fmt: skip
+def test_type_modes_config_errors_are_one_line(sets: list[str], says: str) -> None:
+    from safelane.config import load_config
+
+    with pytest.raises(ConfigError, match=says) as err:
+        load_config("fast", sets=sets)
+    assert "\n" not in str(err.value)
+
+
+def test_belief_sigma_default_is_the_filter_s() -> None:
+    from safelane.config import ShieldConfig
+    from safelane.safety.belief import SIGMA
+
+    assert ShieldConfig().belief_sigma == SIGMA
+
+
+class _Scripted:
+    """A minimal environment replaying hand-built snapshots (the shield reads nothing else)."""
+
+    def __init__(self, snaps: list[RoadSnapshot]) -> None:
+        import gymnasium as gym
+
+        self.snaps = snaps
+        self.observation_space = gym.spaces.Box(-1.0, 1.0, (1,))
+        self.action_space = gym.spaces.Discrete(5)
+        self.metadata: dict[str, Any] = {}
+        self.render_mode = None
+        self.spec = None
+        self.np_random = np.random.default_rng(0)
+        self.t = 0
+
+    def road_snapshot(self, refresh: bool = False) -> RoadSnapshot:
+        return self.snaps[self.t]
+
+    def reset(self, **kwargs: Any) -> tuple[np.ndarray, dict[str, Any]]:
+        self.t = 0
+        return np.zeros(1), {"snapshot": self.snaps[0]}
+
+    def step(self, action: int) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
+        self.t += 1
+        snap = self.snaps[self.t]
+        return np.zeros(1), 0.0, bool(snap.ego_crashed), False, {"snapshot": snap, "collision": snap.ego_crashed,
+                                                                  "speed": snap.ego_speed}  # fmt: skip
+
+    def close(self) -> None:
+        pass
+
+
+@pytest.mark.parametrize(("truth", "ruled_out"), [(1, True), (0, False)])
+def test_a_crash_with_a_car_whose_true_type_was_ruled_out_is_counted(truth: int, ruled_out: bool) -> None:
+    """Prior 0.995 timid / 0.005 aggressive and ε = 0.01: aggressive is ruled out from the start. The ego runs into
+    car 1: counted as outside the belief's sets when car 1 is aggressive, not when it is timid."""
+    import gymnasium as gym
+
+    from safelane.running.evaluation import EpisodeTally, summarize
+    from safelane.safety.shield import SafetyShield
+
+    mix = parse_driver_mix([{"type": "timid", "weight": 0.995}, {"type": "aggressive", "weight": 0.005}])
+    types = np.array([-1, truth, 0])
+    start = snapshot([0.0, 20.0, 200.0], [25.0, 10.0, 25.0], [1, 1, 2], driver_type=types)
+    crash = snapshot([14.0, 19.0, 225.0], [20.0, 10.0, 25.0], [1, 1, 2], driver_type=types,
+                     crashed=np.array([True, True, False]))  # fmt: skip
+
+    class Env(_Scripted, gym.Env):  # type: ignore[misc]
+        pass
+
+    shield = SafetyShield(Env([start, crash]), mode="belief", override=True, driver_mix=mix, belief_epsilon=0.01)
+    _, info = shield.reset(seed=0)
+    assert info["types_ruled_out"] == int(truth == 1) and info["type_ruled_out_crash"] is False
+    tally = EpisodeTally(0, info)
+    _, reward, _, _, info = shield.step(0)
+    tally.add(0, reward, info)
+    assert info["type_ruled_out_crash"] is ruled_out
+    record = tally.record(info)
+    assert record.type_ruled_out_crash is ruled_out and record.to_dict()["type_ruled_out_crash"] is ruled_out
+    assert summarize([record])["collisions_type_ruled_out"] == int(ruled_out)

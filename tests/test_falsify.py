@@ -289,3 +289,60 @@ def test_the_cli_plays_a_spec_under_another_shield(tmp_path: Path) -> None:
         result = CliRunner().invoke(app, ["falsify", str(spec), "--out", str(tmp_path / "o2"), *bad])
         assert result.exit_code == 2 and word in result.output and "Traceback" not in result.output
         assert len(result.output.strip().splitlines()) == 1
+
+
+def test_shards_split_the_grid_and_merge_to_the_whole_campaigns_totals(tmp_path: Path) -> None:
+    """``--shard K/N`` plays the cells K-1, K-1+N, … with their grid indices (so their seeds): the shards partition
+    the grid; ``--merge`` over every shard gives the whole campaign's totals, with the shards named and the merge
+    complete; one shard alone merges incomplete; a shard twice, another campaign's shard, a folder that is no
+    shard, or a bad K/N is one line."""
+    from typer.testing import CliRunner
+
+    from safelane.cli import app
+
+    spec_path = write_spec(tmp_path / "s.yaml", policies=["random", "faster"], episodes=2)
+    whole = load_campaign_spec(spec_path)
+    shards = [load_campaign_spec(spec_path, {"shard": f"{k}/3"}) for k in (1, 2, 3)]
+    indices = [[c["index"] for c in s.cells()] for s in shards]
+    assert sorted(i for shard in indices for i in shard) == [c["index"] for c in whole.cells()] == list(range(8))
+    assert indices[1] == [1, 4, 7]
+    assert [c["sets"] for c in shards[1].cells()] == [whole.cells()[i]["sets"] for i in (1, 4, 7)]
+
+    runner = CliRunner()
+    small = write_spec(tmp_path / "small.yaml", axes={"lanes": [{"env.lanes_count": 3}, {"env.lanes_count": 4}]},
+                       policies=["random", "faster"], episodes=1)  # fmt: skip
+    base = ["falsify", str(small), "--workers", "1", "--json"]
+    totals = json.loads(runner.invoke(app, [*base, "--out", str(tmp_path / "whole")]).output)
+    for k in (1, 2):
+        result = runner.invoke(app, [*base, "--shard", f"{k}/2", "--out", str(tmp_path / f"shard{k}")])
+        assert result.exit_code == 0, result.output
+        assert json.loads(result.output)["shard"] == f"{k}/2"
+    folders = [str(tmp_path / f"shard{k}") for k in (2, 1)]
+    result = runner.invoke(app, [*base, *(x for f in folders for x in ("--merge", f)), "--out", str(tmp_path / "m")])
+    assert result.exit_code == 0, result.output
+    merged = json.loads(result.output)
+    assert merged["shards"] == ["1/2", "2/2"] and merged["complete"]
+    for key in ("cells", "cells_done", "episodes", "decisions", "collisions", "collision_kinds", "collision_contexts",
+                "invariant_breaks", "break_classes"):
+        assert merged[key] == totals[key], key
+    for key in ("mean_speed", "fallback_rate", "invariant_break_rate"):
+        assert merged[key] == pytest.approx(totals[key], rel=1e-12), key
+    assert "2/2" in (tmp_path / "m" / "summary.md").read_text()
+
+    one = runner.invoke(app, [*base, "--merge", folders[0], "--out", str(tmp_path / "m1")])
+    assert one.exit_code == 0 and not json.loads(one.output)["complete"]
+    other = write_spec(tmp_path / "o.yaml", axes={"lanes": [{"env.lanes_count": 3}, {"env.lanes_count": 4}]},
+                       policies=["random", "faster"], episodes=2)  # fmt: skip
+    for args, word in (
+        (["--merge", folders[0], "--merge", folders[0]], "twice"),
+        (["--merge", str(tmp_path / "whole")], "not a shard"),
+        (["--merge", str(tmp_path / "nothing")], "campaign.json"),
+        (["--shard", "0/2"], "shard"),
+        (["--shard", "3/2"], "shard"),
+        (["--shard", "1/2", "--merge", folders[0]], "--merge"),
+    ):
+        result = runner.invoke(app, [*base, *args, "--out", str(tmp_path / "bad")])
+        assert result.exit_code == 2 and word in result.output and "Traceback" not in result.output, result.output
+        assert len(result.output.strip().splitlines()) == 1
+    result = runner.invoke(app, ["falsify", str(other), "--merge", folders[0], "--out", str(tmp_path / "bad2")])
+    assert result.exit_code == 2 and "another campaign" in result.output

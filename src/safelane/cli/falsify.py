@@ -36,6 +36,24 @@ def falsify(
         int | None, typer.Option("--episodes", help="Episodes per cell or search sample (overrides the spec).")
     ] = None,
     sample: Annotated[int | None, typer.Option("--sample", help="Play this many cells drawn at random.")] = None,
+    shard: Annotated[
+        str | None,
+        typer.Option(
+            "--shard",
+            help="Play one shard of the grid, K/N: the cells K-1, K-1+N, … (their seeds as in the whole grid), for a "
+            "campaign split over machines or days.",
+            metavar="K/N",
+        ),
+    ] = None,
+    merge: Annotated[
+        list[Path] | None,
+        typer.Option(
+            "--merge",
+            help="Play nothing: merge these shards' folders (each with campaign.json and summary.json, as --shard "
+            "writes them) into --out's summary (repeatable).",
+            metavar="DIR",
+        ),
+    ] = None,
     seed: Annotated[
         int | None,
         typer.Option(
@@ -67,7 +85,8 @@ def falsify(
     """Drive the shield over a grid of traffic conditions, or search them (a spec with a search section:
     cross-entropy method toward the most invariant breaks): collisions, invariant breaks (classified), files.
     With continuous actions: collisions against the shield's promise, lapses, projections, episodes off the road."""
-    from safelane.running.falsify.grid import run_campaign
+    from safelane.config import ConfigError
+    from safelane.running.falsify.grid import merge_shards, run_campaign
     from safelane.running.falsify.search import SearchSpec, load_falsify_spec, run_search
 
     for option, value in (("--episodes", episodes), ("--sample", sample), ("--workers", workers)):
@@ -76,11 +95,18 @@ def falsify(
     if seed is not None:
         check_seed(seed)
     check_actions(actions)
-    overrides = {"episodes": episodes, "sample": sample, "seed": seed, "shield": shield, "actions": actions}
+    if merge and shard is not None:
+        raise ConfigError("--merge: merges shards into the whole campaign's summary; allowed: without --shard")
+    overrides = {"episodes": episodes, "sample": sample, "seed": seed, "shield": shield, "actions": actions,
+                 "shard": shard}  # fmt: skip
     spec = load_falsify_spec(spec_file, overrides)
     if sets:  # after the spec's own: a campaign's record keeps them, so a resume under others is refused
         spec = spec.model_copy(update={"sets": [*spec.sets, *sets]})
-    if isinstance(spec, SearchSpec):
+    if merge:
+        if isinstance(spec, SearchSpec):
+            raise ConfigError(f"--merge: {spec_file} is a search; allowed: a grid's shards")
+        summary = merge_shards(spec, merge, out)
+    elif isinstance(spec, SearchSpec):
         with units_progress(f"falsify search {spec.name} (samples)") as tick:
             summary = run_search(spec, out, backend=backend, workers=workers, address=address, progress=tick)
     else:
@@ -90,4 +116,5 @@ def falsify(
         typer.echo(json.dumps(summary))
         return
     typer.echo((out / "summary.md").read_text())
-    typer.echo(f"counterexamples: {out / 'counterexamples'} (safelane replay FILE)")
+    if not merge:
+        typer.echo(f"counterexamples: {out / 'counterexamples'} (safelane replay FILE)")

@@ -119,9 +119,12 @@ class CampaignBase(BaseModel):
         return self.actions == "continuous"
 
     def record_json(self) -> str:
-        """The spec as ``campaign.json`` keeps it: ``seed`` only when it is not 0 and ``actions`` only when
-        continuous, so a folder of a campaign whose record predates those fields resumes."""
+        """The spec as ``campaign.json`` keeps it: ``seed`` only when it is not 0, ``actions`` only when
+        continuous and a grid's ``shard`` only when it has one, so a folder of a campaign whose record predates those
+        fields resumes."""
         exclude = {name for name, default in (("seed", 0), ("actions", "discrete")) if getattr(self, name) == default}
+        if getattr(self, "shard", "") is None:
+            exclude.add("shard")
         return self.model_dump_json(indent=1, exclude=exclude or None)
 
 
@@ -132,6 +135,29 @@ class CampaignSpec(CampaignBase):
     episodes: int = Field(20, ge=1, description="Episodes per cell.")
     sample: int | None = Field(None, ge=1, description="Play this many cells drawn at random (default: all).")
     sample_seed: int = Field(0, ge=0)
+    shard: str | None = Field(
+        None,
+        description="'K/N' (1 <= K <= N): play only the cells K-1, K-1+N, K-1+2N, … of the grid, each with the seeds "
+        "it has in the whole grid — a campaign split over machines or days; merge the shards' summaries with "
+        "--merge.",
+    )
+
+    @field_validator("shard")
+    @classmethod
+    def _shard(cls, shard: str | None) -> str | None:
+        if shard is None:
+            return None
+        k, _, n = shard.partition("/")
+        if not (k.isdigit() and n.isdigit() and 1 <= int(k) <= int(n)):
+            raise ValueError(f"got {shard!r}; allowed: 'K/N' with whole numbers 1 <= K <= N, e.g. 1/5")
+        return f"{int(k)}/{int(n)}"
+
+    def shard_of(self) -> tuple[int, int] | None:
+        """(K, N) of :attr:`shard`, or None for the whole grid."""
+        if self.shard is None:
+            return None
+        k, n = self.shard.split("/")
+        return int(k), int(n)
 
     @field_validator("axes")
     @classmethod
@@ -161,6 +187,9 @@ class CampaignSpec(CampaignBase):
             cells = [cells[i] for i in keep]
         for i, cell in enumerate(cells):
             cell["index"] = i
+        if (shard := self.shard_of()) is not None:
+            k, n = shard
+            cells = [c for c in cells if c["index"] % n == k - 1]
         return cells
 
 
@@ -245,7 +274,7 @@ def _cell_path(out: Path, index: int) -> Path:
 def _cell_task(out_dir: str, spec_json: str, index: int) -> dict[str, Any]:
     """Play one cell; write its record (and its counterexample files); return the record."""
     spec = CampaignSpec.model_validate_json(spec_json)
-    cell = spec.cells()[index]
+    cell = next(c for c in spec.cells() if c["index"] == index)  # a shard's cells keep their grid indices
     out = Path(out_dir)
     base = {"index": index, "policy": cell["policy"], **{f"axis_{k}": v for k, v in cell["labels"].items()}}
     seed = traffic_seed_base(FALSIFY_SEED_BASE, spec.seed) + CELL_SEED_STRIDE * index
@@ -371,8 +400,6 @@ def run_campaign(
 
 def write_summary(out: Path, spec: CampaignSpec) -> dict[str, Any]:
     """Rebuild cells.csv, summary.json and summary.md from the cell files."""
-    from safelane.reporting import stats
-    from safelane.running.collisions import collision_contexts
     from safelane.running.evaluation import COMMITTED_FIGURES, CONTINUOUS_FIGURES
 
     committed, continuous = spec.shield == "committed", spec.continuous
@@ -398,10 +425,25 @@ def write_summary(out: Path, spec: CampaignSpec) -> dict[str, Any]:
     for r in records:
         writer.writerow({**r, **r.get("break_classes", {})})
     atomic_write_text(out / "cells.csv", buffer.getvalue())
+    summary = campaign_totals(spec, played, len(spec.cells()), len(records), len(records) - len(played))
+    atomic_write_text(out / "summary.json", json.dumps(summary, indent=1))
+    atomic_write_text(out / "summary.md", _markdown(spec, summary, played))
+    return summary
+
+
+def campaign_totals(spec: CampaignSpec, played: list[dict[str, Any]], cells: int, cells_done: int,
+                    cells_skipped: int) -> dict[str, Any]:  # fmt: skip
+    """summary.json's totals over ``played``: the records of the cells played, or the summaries of a campaign's
+    shards (the same counts and per-decision figures, each weighted by its decisions or episodes); ``cells``,
+    ``cells_done``, ``cells_skipped``: the counts it reports."""
+    from safelane.reporting import stats
+    from safelane.running.collisions import collision_contexts
+
+    committed, continuous = spec.shield == "committed", spec.continuous
     episodes = sum(r["episodes"] for r in played)
     decisions = sum(r["decisions"] for r in played)
     collisions = sum(r["collisions"] for r in played)
-    breaks = sum(r["invariant_breaks"] for r in played)
+    breaks = sum(r.get("invariant_breaks", 0) for r in played)
     kinds: dict[str, int] = {}
     contexts = dict.fromkeys(collision_contexts(committed), 0)
     classes = dict.fromkeys(BREAK_CLASSES, 0)
@@ -410,16 +452,17 @@ def write_summary(out: Path, spec: CampaignSpec) -> dict[str, Any]:
             kinds[k] = kinds.get(k, 0) + v
         for k, v in r.get("collision_contexts", {}).items():  # cells of campaigns before contexts lack it
             contexts[k] = contexts.get(k, 0) + v
-        for k, v in r["break_classes"].items():
+        for k, v in r.get("break_classes", {}).items():
             classes[k] += v
     summary = {
         "name": spec.name,
         "shield": spec.shield,
         "simulator": spec.simulator,
         **({"actions": spec.actions} if continuous else {}),
-        "cells": len(spec.cells()),
-        "cells_done": len(records),
-        "cells_skipped": len(records) - len(played),
+        "cells": cells,
+        "cells_done": cells_done,
+        "cells_skipped": cells_skipped,
+        **({"shard": spec.shard} if spec.shard else {}),
         **({"traffic_seed": spec.seed} if spec.seed else {}),  # absent: 0, the published episodes
         "episodes": episodes,
         "decisions": decisions,
@@ -432,7 +475,7 @@ def write_summary(out: Path, spec: CampaignSpec) -> dict[str, Any]:
         "break_classes": classes,
         # Per decision, as each cell reports them: the share of decisions the shield fell back at and the
         # ego's mean speed [m/s] — what a condition costs, beside what it breaks.
-        "fallback_rate": _per_decision(played, "fallback_rate"),
+        "fallback_rate": _per_decision([r for r in played if "fallback_rate" in r], "fallback_rate"),
         "mean_speed": _per_decision(played, "mean_speed"),
     }
     if continuous:  # what its shield does not report
@@ -452,8 +495,6 @@ def write_summary(out: Path, spec: CampaignSpec) -> dict[str, Any]:
         )  # fmt: skip
         if continuous:
             del summary["courtesy_waived_rate"]
-    atomic_write_text(out / "summary.json", json.dumps(summary, indent=1))
-    atomic_write_text(out / "summary.md", _markdown(spec, summary, played))
     return summary
 
 
@@ -555,6 +596,7 @@ def _group_table(
 
 
 def _markdown(spec: CampaignSpec, summary: dict[str, Any], played: list[dict[str, Any]]) -> str:
+    """summary.md: the totals, then a table per policy and per axis over the cells ``played`` (none: no tables)."""
     if spec.continuous:
         return _continuous_markdown(spec, summary, played)
     fallback, speed = summary["fallback_rate"], summary["mean_speed"]
@@ -582,9 +624,8 @@ def _markdown(spec: CampaignSpec, summary: dict[str, Any], played: list[dict[str
             f"{summary['uncertified_starts']} uncertified starts, {summary['redraws']} spawns redrawn.",
             "",
         ]
-    lines += _group_table("policy", "policy", played, committed)
-    for axis in spec.axes:
-        lines += _group_table(axis, f"axis_{axis}", played, committed)
+    for axis, field in (("policy", "policy"), *((a, f"axis_{a}") for a in spec.axes)) if played else ():
+        lines += _group_table(axis, field, played, committed)
     return "\n".join(lines)
 
 
@@ -614,7 +655,52 @@ def _continuous_markdown(spec: CampaignSpec, summary: dict[str, Any], played: li
         f"the ego's mean speed {_number(summary['mean_speed'])} m/s.",
         "",
     ]
-    lines += _group_table("policy", "policy", played, True, True)
-    for axis in spec.axes:
-        lines += _group_table(axis, f"axis_{axis}", played, True, True)
+    for axis, field in (("policy", "policy"), *((a, f"axis_{a}") for a in spec.axes)) if played else ():
+        lines += _group_table(axis, field, played, True, True)
     return "\n".join(lines)
+
+
+def merge_shards(spec: CampaignSpec, dirs: list[Path], out_dir: str | Path) -> dict[str, Any]:
+    """Merge the summaries of a campaign's shards into ``out_dir``'s summary.json and summary.md: the totals over
+    them (:func:`campaign_totals`), the ``shards`` merged and whether they make the whole grid (``complete``: every
+    shard of N, each with all its cells done). Each of ``dirs`` holds a shard's campaign.json and summary.json, as
+    ``falsify --shard K/N`` writes them and a published result folder keeps them; a folder of another campaign
+    than ``spec`` (its shard aside), not a shard, or a shard twice is a one-line ConfigError."""
+    whole = spec.model_copy(update={"shard": None})
+    found: dict[int, tuple[int, dict[str, Any]]] = {}
+    for folder in map(Path, dirs):
+        try:
+            record = CampaignSpec.model_validate_json((folder / "campaign.json").read_text())
+            summary = json.loads((folder / "summary.json").read_text())
+        except (OSError, ValueError) as err:
+            raise ConfigError(f"--merge {folder}: no campaign.json and summary.json of a campaign there ({err})") \
+                from None  # fmt: skip
+        shard = record.shard_of()
+        if shard is None:
+            raise ConfigError(f"--merge {folder}: not a shard (its campaign.json has no shard); allowed: the folders "
+                              "of falsify --shard K/N")  # fmt: skip
+        if record.model_copy(update={"shard": None}) != whole:
+            raise ConfigError(f"--merge {folder}: a shard of another campaign than {spec.name!r} as given")
+        k, n = shard
+        if k in found or any(m != n for m, _ in found.values()):
+            raise ConfigError(f"--merge {folder}: shard {k}/{n} twice, or beside shards of another N")
+        found[k] = (n, summary)
+    if not found:
+        raise ConfigError("--merge: no folder given; allowed: the folders of falsify --shard K/N")
+    summaries = [summary for _, (_, summary) in sorted(found.items())]
+    n = next(iter(found.values()))[0]
+    merged = campaign_totals(whole, summaries, len(whole.cells()), sum(s["cells_done"] for s in summaries),
+                             sum(s["cells_skipped"] for s in summaries))  # fmt: skip
+    merged["shards"] = [f"{k}/{n}" for k in sorted(found)]
+    merged["complete"] = len(found) == n and all(s["cells_done"] == s["cells"] for s in summaries)
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    atomic_write_text(out / "summary.json", json.dumps(merged, indent=1))
+    rows = [f"| {k}/{n} | {s['cells_done']} / {s['cells']} | {s['episodes']} | {s['collisions']} | "
+            f"{s['collision_contexts'].get('from_safe_state', 0)} | {s.get('lapses_in_model', '–')} |"
+            for k, (_, s) in sorted(found.items())]  # fmt: skip
+    shards = ["", f"Merged from {len(found)} of {n} shards ({'the whole grid' if merged['complete'] else 'not all'}):",
+              "", "| shard | cells | episodes | collisions | from safe or certified states | lapses in the model |",
+              "|---|---|---|---|---|---|", *rows, ""]  # fmt: skip
+    atomic_write_text(out / "summary.md", _markdown(whole, merged, []) + "\n".join(shards))
+    return merged

@@ -215,8 +215,10 @@ def load_falsify_spec(path: str | Path, overrides: dict[str, Any] | None = None)
     if "search" not in data:
         return load_campaign_spec(path, overrides)
     overrides = {k: v for k, v in (overrides or {}).items() if v is not None}
-    if "sample" in overrides:
-        raise ConfigError(f"--sample: {path} is a search (it has a search section); --sample samples a grid's cells")
+    for option in ("sample", "shard"):
+        if option in overrides:
+            raise ConfigError(f"--{option}: {path} is a search (it has a search section); --{option} takes a grid's "
+                              "cells")  # fmt: skip
     if "episodes" in overrides and isinstance(data["search"], dict):
         data["search"] = {**data["search"], "episodes_per_sample": overrides.pop("episodes")}
     data.update(overrides)

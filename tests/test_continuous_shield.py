@@ -182,24 +182,28 @@ def test_the_fail_safe_stops_inside_one_lane(offset: float, heading: float, spee
     assert abs(y - 4.0 * lane) + reach < 2.0
 
 
-def test_a_follower_that_moves_to_another_held_lane_is_bounded_there() -> None:
-    """The follower bounds a kept plan carries (3 frames a decision): a car following in the same lane keeps the lower
-    of its kept and fresh bounds; one that left the lanes the plan holds keeps its kept bound, moved on a decision;
-    one now following in the other held lane takes its fresh bound there (the claim sample's 3 lapses in the model:
-    a follower that changed lanes inside the held lanes kept the bound of the lane it left, and when it moved on
-    again its body, still in the held lane, had none)."""
+def test_a_follower_keeps_its_bound_in_every_lane_it_followed_in() -> None:
+    """The follower bounds a kept plan carries (3 frames a decision; lanes as bitmasks): a car following in the same
+    lane keeps the lower of its kept and fresh bounds; one that left the lanes the plan holds keeps its kept bound,
+    moved on a decision, in the lanes it had; one now following in the other held lane keeps the lower bound in both
+    lanes (the claim sample's lapses in the model: a follower that changed lanes inside the held lanes kept the
+    bound of only one of them, and its body, still in the other after its centre had left, had none there)."""
+    from safelane.safety.committed.family import lanes_of
+    from safelane.safety.committed.plans import lane_bit
     from safelane.safety.continuous.family import carried_follower_bounds
 
     kept_high = np.arange(10.0)
     fresh_high = np.full(10, 5.0)
-    kept = {1: (2, kept_high), 2: (2, kept_high), 3: (2, kept_high)}
-    fresh = {1: (2, fresh_high), 3: (3, fresh_high), 4: (3, fresh_high)}
+    two, three = lane_bit(2), lane_bit(3)
+    kept = {1: (two, kept_high), 2: (two, kept_high), 3: (two, kept_high)}
+    fresh = {1: (two, fresh_high), 3: (three, fresh_high), 4: (three, fresh_high)}
     out = carried_follower_bounds(kept, fresh, 3)
     moved_on = np.array([3.0, 4, 5, 6, 7, 8, 9, np.inf, np.inf, np.inf])
-    assert out[1][0] == 2 and np.array_equal(out[1][1], np.minimum(moved_on, 5.0))
-    assert out[2][0] == 2 and np.array_equal(out[2][1], moved_on)
-    assert out[3][0] == 3 and np.array_equal(out[3][1], fresh_high)
-    assert out[4][0] == 3 and np.array_equal(out[4][1], fresh_high)
+    assert out[1][0] == two and np.array_equal(out[1][1], np.minimum(moved_on, 5.0))
+    assert out[2][0] == two and np.array_equal(out[2][1], moved_on)
+    assert out[3][0] == two | three and np.array_equal(out[3][1], np.minimum(moved_on, 5.0))
+    assert list(np.flatnonzero(lanes_of(out[3][0], 5))) == [2, 3]
+    assert out[4][0] == three and np.array_equal(out[4][1], fresh_high)
     assert carried_follower_bounds({}, fresh, 3) == fresh
 
 

@@ -244,16 +244,16 @@ def car_gaps_kernel(
     t: np.ndarray, follower_reaction: float, order: np.ndarray, least: bool, lo_min: np.ndarray, hi_max: np.ndarray,
     floor: float,
 ) -> np.ndarray:  # fmt: skip
-    """``committed.car_gaps``: (cars, holds) each car's worst bumper-to-bumper gap [m] to the plans (the
-    reference documents the arguments; lanes as ``lane_ids``/``lane_until``, the carried follower bounds as
-    ``carried_lane`` (−1: none) and ``carried_high``; per car: ``half`` the half-lengths' sum, ``own_lane`` its
-    lane, ``speed`` along its path, ``fv_min``/``fv_max`` its follower speed bounds). Cars are visited in
-    ``order``. With ``least`` only the least gap over the cars is wanted: a car is skipped (its row left inf) when a
-    bound below its gap (from ``lo_min``/``hi_max`` (cars, chunks), its lowest and highest position in each chunk
-    of :data:`CHUNK` frames) is already above the least gap so far for every plan — rounding is monotone, so the
-    computed gap is at least the computed bound and the least gap is the same to the bit. With ``least`` and a
-    ``floor`` above −inf the kernel returns as soon as every plan's least gap so far is below ``floor`` (a verdict
-    below a margin needs no more: the rows are then only a witness)."""
+    """``committed.car_gaps``: (cars, holds) each car's worst bumper-to-bumper gap [m] to the plans (the reference
+    documents the arguments; lanes as ``lane_ids``/``lane_until``, the carried follower bounds as ``carried_lane`` (a
+    bitmask of the lanes each applies in, 0: none) and ``carried_high``; per car: ``half`` the half-lengths' sum,
+    ``own_lane`` its lane, ``speed`` along its path, ``fv_min``/``fv_max`` its follower speed bounds). Cars are visited
+    in ``order``. With ``least`` only the least gap over the cars is wanted: a car is skipped (its row left inf) when a
+    bound below its gap (from ``lo_min``/``hi_max`` (cars, chunks), its lowest and highest position in each chunk of
+    :data:`CHUNK` frames) is already above the least gap so far for every plan — rounding is monotone, so the computed
+    gap is at least the computed bound and the least gap is the same to the bit. With ``least`` and a ``floor`` above
+    −inf the kernel returns as soon as every plan's least gap so far is below ``floor`` (a verdict below a margin needs
+    no more: the rows are then only a witness)."""
     n, holds, m = x.shape[0], ego_x.shape[0], t.shape[0]
     worst = np.full((n, holds), np.inf)
     running = np.full(holds, np.inf)
@@ -291,7 +291,7 @@ def car_gaps_kernel(
             if not count:
                 continue
             following = held_lane and not ahead[i] and own_lane[i] == lane
-            carried = carried_lane[i] == lane
+            carried = (carried_lane[i] >> lane) & 1 == 1
             for h in range(holds):
                 if least and skip[h]:  # this plan's least gap is already below the car's bound
                     continue
@@ -429,7 +429,7 @@ def plans_kernel(
     set_points = np.full(vs.shape, np.nan)
     worst = np.full((N_ACTIONS, N_FALLBACKS), -np.inf)
     n = x.shape[0]
-    no_carried = np.full(n, -1, dtype=np.int64)
+    no_carried = np.zeros(n, dtype=np.int64)  # no carried bound in any lane
     empty = np.empty((0, 0))
     # The nearest cars first, so that the far ones are skipped (car_gaps_kernel's ``least``).
     order, lo_min, hi_max = chunk_bounds(x, ego_x0, x_lo, x_hi)
@@ -661,10 +661,7 @@ def car_gaps_compiled(
     cars = car_arrays(state, dyn) if cars is None else cars
     t = dynamics_arrays(dyn).times
     n = state.n
-    carried_lane = np.full(n, -1, dtype=np.int64)
-    carried_high = np.empty((n if carried_followers else 0, t.size))
-    for row, (lane, high) in (carried_followers or {}).items():
-        carried_lane[row], carried_high[row] = lane, high
+    carried_lane, carried_high = carried_arrays(carried_followers or {}, n, t.size)
     lane_ids = np.array([lane for lane, _ in lanes], dtype=np.int64)
     lane_until = np.array([until for _, until in lanes], dtype=float)
     return car_gaps_kernel(
@@ -673,6 +670,17 @@ def car_gaps_compiled(
         t.size - 1 if until_frame is None else int(until_frame), carried_lane, carried_high, *cars, t,
         float(dyn.follower_reaction), np.arange(n, dtype=np.int64), False, np.empty((0, 0)), np.empty((0, 0)), -np.inf,
     )  # fmt: skip
+
+
+def carried_arrays(carried_followers: dict[int, tuple[int, np.ndarray]], n: int, frames: int
+                   ) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
+    """(lanes bitmask (n,), highest positions (n or 0, frames)) of the follower bounds ``carried_followers``
+    ({row: (lanes bitmask, highest position [m] per frame)}) as :func:`car_gaps_kernel` reads them."""
+    carried_lane = np.zeros(n, dtype=np.int64)
+    carried_high = np.empty((n if carried_followers else 0, frames))
+    for row, (lanes, high) in carried_followers.items():
+        carried_lane[row], carried_high[row] = lanes, high
+    return carried_lane, carried_high
 
 
 def follower_bound_compiled(state: RoadState, i: int, react: np.ndarray, t: np.ndarray) -> np.ndarray:

@@ -34,7 +34,7 @@ from safelane.safety.committed.compiled import (
     verify_plans_compiled,
 )
 from safelane.safety.committed.plan_family import held_lanes
-from safelane.safety.committed.plans import Plan, car_gaps, follower_bound, plan_of, verify_plans
+from safelane.safety.committed.plans import Plan, car_gaps, follower_bound, lane_bit, plan_of, verify_plans
 from safelane.safety.committed.sets import (
     ESCAPE_TOLERANCE,
     CarSets,
@@ -303,14 +303,16 @@ def followers_escaped(
     followers: dict[int, tuple[int, np.ndarray]], state: RoadState, dyn: Dynamics, vehicle: np.ndarray,
     occupied: np.ndarray,
 ) -> np.ndarray:  # fmt: skip
-    """(cars,) the followers of the kept plan (``followers``: {snapshot index: (lane, highest position [m] per
-    frame)}, a car behind the ego in a lane it held) still in that lane and ahead of the bound their reaction to the
-    plan allowed; ``occupied``: :func:`occupied_lanes` of ``state``."""
+    """(cars,) the followers of the kept plan (``followers``: {snapshot index: (lanes, highest position [m] per
+    frame)}, a car behind the ego in a lane it held, ``lanes`` the bitmask of those it followed in) still in one of
+    those lanes and ahead of the bound their reaction to the plan allowed; ``occupied``: :func:`occupied_lanes` of
+    ``state``."""
     out = np.zeros(state.n, dtype=bool)
     f = dyn.frames_per_decision
     for i, v in enumerate(vehicle):
         follower = followers.get(int(v))
-        if follower is not None and occupied[i, follower[0]] and f < follower[1].size:
+        if follower is not None and occupied[i][lanes_of(follower[0], occupied.shape[1])].any() \
+                and f < follower[1].size:  # fmt: skip
             out[i] = state.x[i] > follower[1][f] + ESCAPE_TOLERANCE
     return out
 
@@ -355,7 +357,7 @@ def entered_held_lanes(
 def _followers_of(
     state: RoadState, dyn: Dynamics, sets: CarSets, vehicle: np.ndarray, plan: Plan, engine: Engine = "numpy"
 ) -> dict:
-    """{snapshot index: (lane, highest position [m] per frame)} of the cars that follow the ego under ``plan``
+    """{snapshot index: (lane bitmask, highest position [m] per frame)} of the cars that follow the ego under ``plan``
     (:func:`plan_gaps`' follower law): the bound a lapse is traced against."""
     held = {state.ego_lane, state.ego_target_lane}
     lanes = [lane for lane, _ in plan.occupied if lane in held]
@@ -373,5 +375,10 @@ def _followers_of(
         else:
             bounds = [follower_bound(state, int(i), react, t)[0] for i in rows]
         for i, bound in zip(rows, bounds, strict=True):
-            out[int(vehicle[i])] = (lane, np.minimum(bound, sets.x_hi[i]))
+            out[int(vehicle[i])] = (lane_bit(lane), np.minimum(bound, sets.x_hi[i]))
     return out
+
+
+def lanes_of(lanes: int, count: int) -> np.ndarray:
+    """(count,) bool: the lanes of the bitmask ``lanes`` (:func:`~safelane.safety.committed.plans.lane_bit`)."""
+    return (lanes >> np.arange(count)) & 1 == 1

@@ -157,9 +157,10 @@ def car_gaps(
     responsible for the gap it makes; a car in a lane the ego is entering is the ego's to keep clear of, ahead or
     behind. Law: a car in a lane the ego holds behind the ego now follows it: accelerates at most until
     ``follower_reaction`` after the plan's braking onset, then brakes (:func:`follower_bound`).
-    ``carried_followers``: {row: (lane, highest position [m] per frame)}, the follower bounds a kept plan drew, kept
-    in that lane; ``held``: the lanes the ego holds (default: its lane and target lane now; a kept plan's tail
-    passes those it held when verified, :attr:`Plan.held`)."""
+    ``carried_followers``: {row: (lanes, highest position [m] per frame)}, the follower bounds a kept plan drew,
+    applied in the lanes of the bitmask ``lanes`` (:func:`lane_bit`: those the car followed the ego in); ``held``:
+    the lanes the ego holds (default: its lane and target lane now; a kept plan's tail passes those it held when
+    verified, :attr:`Plan.held`)."""
     t = dyn.times
     half = 0.5 * (state.length + state.ego_length)
     ahead = state.x >= state.ego_x
@@ -186,11 +187,16 @@ def car_gaps(
                 react = np.maximum(onset + dyn.follower_reaction, 0.0)  # a past reaction: braking from now
                 high = np.minimum(high, follower_bound(state, i, react, t))
             carried = (carried_followers or {}).get(int(i))
-            if carried is not None and carried[0] == lane:
+            if carried is not None and carried[0] >> lane & 1:
                 high = np.minimum(high, carried[1][None, :])
             gap = np.maximum(sets.x_lo[i][None, :] - ego_x - half[i], ego_x - high - half[i])
             worst[i] = np.minimum(worst[i], np.where(window, gap, np.inf).min(axis=1))
     return worst
+
+
+def lane_bit(lane: int) -> int:
+    """The bitmask of one lane, as the carried follower bounds name the lanes they apply in."""
+    return 1 << int(lane)
 
 
 def follower_bound(state: RoadState, i: int, react: np.ndarray, t: np.ndarray) -> np.ndarray:

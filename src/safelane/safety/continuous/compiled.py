@@ -20,7 +20,13 @@ from numba import njit
 
 from safelane.core.kernel_cache import drop_stale_kernel_cache
 from safelane.safety.committed import compiled as committed_compiled
-from safelane.safety.committed.compiled import CarArrays, car_gaps_kernel, chunk_bounds, dynamics_arrays
+from safelane.safety.committed.compiled import (
+    CarArrays,
+    car_gaps_kernel,
+    carried_arrays,
+    chunk_bounds,
+    dynamics_arrays,
+)
 from safelane.safety.committed.sets import CarSets
 from safelane.safety.continuous.controls import HEADING_WEIGHT, STOPPED_SPEED, ControlLimits
 from safelane.safety.continuous.plans import EGO_WIDTH, ControlPlan, Trajectory
@@ -247,7 +253,7 @@ def verify_kernel(ego0: np.ndarray, action: np.ndarray, ego_lane: int, margin: f
     plan lane, onset) of the first plan that keeps ``margin``; hold −1: none. The cars in ``order`` (nearest
     first), with their :func:`chunk_bounds`, so that the far ones are skipped."""
     empty = np.empty((0, 2), dtype=np.float32)
-    no_lane = np.full(x.shape[0], -1, dtype=np.int64)
+    no_lane = np.zeros(x.shape[0], dtype=np.int64)
     no_high = np.empty((0, t.shape[0]))
     for hold in range(MAX_HOLD_DECISIONS + 1):
         states, actions, lane = trajectory_kernel(ego0, action, hold, empty, decisions, frames, dt, period,
@@ -316,10 +322,7 @@ def tail_gap_compiled(state: RoadState, dyn: Dynamics, limits: LimitArrays, sets
         float(dyn.lane_width), int(dyn.lanes_count), limits.wide, limits.narrow, float(state.ego_length),
     )  # fmt: skip
     n = state.n
-    carried_lane = np.full(n, -1, dtype=np.int64)
-    carried_high = np.empty((n if carried_followers else 0, t.size))
-    for row, (lane, high) in carried_followers.items():
-        carried_lane[row], carried_high[row] = lane, high
+    carried_lane, carried_high = carried_arrays(carried_followers, n, t.size)
     gaps, ids, until = _trajectory_gaps(
         states, float(onset), int(held[0]), int(held[1]), int(until_frame), False, sets.x_lo, sets.x_hi, sets.entry,
         np.asarray(sets.now, dtype=np.bool_), carried_lane, carried_high, *cars, t, float(dyn.follower_reaction),

@@ -27,7 +27,7 @@ import numpy as np
 from safelane.core.snapshot import RoadSnapshot
 from safelane.safety.committed.compiled import CarArrays, car_arrays, car_sets_compiled, prepare
 from safelane.safety.committed.family import carry_sets, entered_held_lanes, followers_escaped
-from safelane.safety.committed.plans import follower_bound
+from safelane.safety.committed.plans import follower_bound, lane_bit
 from safelane.safety.committed.sets import (
     CarSets,
     car_sets,
@@ -304,27 +304,25 @@ class ControlFamily:
 
 def carried_follower_bounds(kept: dict[int, tuple[int, np.ndarray]], fresh: dict[int, tuple[int, np.ndarray]],
                             frames: int) -> dict[int, tuple[int, np.ndarray]]:  # fmt: skip
-    """{car: (lane, highest position [m] per frame)} the follower bounds a plan kept for one more decision carries:
-    ``fresh``, those drawn now (:func:`_followers_of`), with the ``kept`` ones moved on by one decision (``frames``
-    frames). A car in both in the same lane keeps the lower bound; a car no longer following keeps its kept bound (it
-    may come back, and its body may still overlap the lane: IDM stops seeing the ego as soon as the car's centre
-    has left the lane, not its body); a car now following in another lane the plan holds is bounded there, by the
-    fresh bound (a kept bound in the lane it left would leave its body in the new lane unbounded once it moves on
-    again)."""
+    """{car: (lanes bitmask, highest position [m] per frame)} the follower bounds a plan kept for one more decision
+    carries: ``fresh``, those drawn now (:func:`_followers_of`), with the ``kept`` ones moved on by one decision
+    (``frames`` frames). Each is a bound on the car's position, drawn in a lane where it followed the ego; a car
+    keeps the lower of its bounds and every lane it followed in while the plan was kept: a car no longer following
+    may come back, and one that moves from lane to lane (into the other lane the plan holds, then out of it) still
+    overlaps a lane it followed in with its body after IDM has stopped seeing the ego there (its centre has left):
+    the bound must apply in each such lane (a car that kept only the lane it left, or only the new one, was the
+    claim sample's lapses in the model)."""
     out = dict(fresh)
-    for v, (lane, high) in kept.items():
+    for v, (lanes, high) in kept.items():
         shifted = np.concatenate([high[frames:], np.full(frames, np.inf)])
         now = fresh.get(v)
-        if now is None:
-            out[v] = (lane, shifted)
-        elif now[0] == lane:
-            out[v] = (lane, np.minimum(now[1], shifted))
+        out[v] = (lanes, shifted) if now is None else (lanes | now[0], np.minimum(now[1], shifted))
     return out
 
 
 def _followers_of(state: RoadState, dyn: Dynamics, sets: CarSets, vehicle: np.ndarray, plan: ControlPlan) -> dict:
-    """{snapshot index: (lane, highest position [m] per frame)} of the cars that follow the ego under ``plan`` in the
-    lanes it holds (the follower law): the bound a lapse is traced against."""
+    """{snapshot index: (lane bitmask, highest position [m] per frame)} of the cars that follow the ego under
+    ``plan`` in the lanes it holds (the follower law): the bound a lapse is traced against."""
     held = set(plan.held)
     lanes = [lane for lane, _ in plan.lanes if lane in held]
     out: dict[int, tuple[int, np.ndarray]] = {}
@@ -334,5 +332,6 @@ def _followers_of(state: RoadState, dyn: Dynamics, sets: CarSets, vehicle: np.nd
     behind = state.x < state.ego_x
     for lane in lanes:
         for i in np.flatnonzero(behind & (own == lane)):
-            out[int(vehicle[i])] = (lane, np.minimum(follower_bound(state, int(i), react, t)[0], sets.x_hi[i]))
+            out[int(vehicle[i])] = (lane_bit(lane), np.minimum(follower_bound(state, int(i), react, t)[0],
+                                                               sets.x_hi[i]))  # fmt: skip
     return out

@@ -3,7 +3,8 @@
 The agents see observation arrays, safe-action masks and rewards only; they import nothing from
 highway-env or the safety model. The pieces, from the bottom up:
 
-* :class:`QNetwork` — the paper's network (Table 3): 26 → 100 → 100 → 5, ELU, densely connected.
+* :class:`QNetwork` — the paper's network (Table 3): 26 → 100 → 100 → 5, ELU, densely connected (the input is
+  the state's size, ``obs_size``: 26 for the paper's state, more for the states beyond it).
 * :class:`ReplayBuffer` / :class:`Batch` — experience replay; every transition keeps the safe-action
   mask of ``s`` and of ``s'`` so that every method can use them.
 * :class:`DQNAgent` — traditional Q-learning (Section IV.1): ε-greedy acting, TD target
@@ -188,7 +189,8 @@ def linear_epsilon(step: int, cfg: AgentConfig, episode: int = 0) -> float:
 
 # --- network and replay -------------------------------------------------------------------------
 class QNetwork(nn.Module):
-    """The paper's DQN (Table 3): 26 inputs, two dense hidden layers of 100 ELU units, 5 Q-values."""
+    """The paper's DQN (Table 3): ``obs_size`` inputs (26, eq. 3), two dense hidden layers of 100 ELU units, 5
+    Q-values."""
 
     def __init__(self, obs_size: int = OBS_SIZE, n_actions: int = N_ACTIONS) -> None:
         super().__init__()

@@ -328,13 +328,17 @@ class SafelaneConfig(_Section):
         "env.offroad_terminal defaults to true; the state gains the lane offset and lane index, the reward "
         "its lane-centring term, safelane.env.reward.ContinuousReward).",
     )
-    state: Literal["paper", "lanes", "paper-types"] = Field(
+    state: Literal["paper", "lanes", "paper-types", "paper-stack", "paper-belief"] = Field(
         "paper",
-        description="The agent's 26-number state: 'paper' (eq. 3: the 4 nearest vehicles, ego speed and "
-        "heading) or 'lanes' (left, own and right lane: two leaders and the follower each, plus the ego's "
-        "lane, offset and set-point; safelane.env.factory.lane_state). Beyond the paper: for overtaking. "
+        description="The agent's state: 'paper' (eq. 3, 26 numbers: the 4 nearest vehicles, ego speed and "
+        "heading) or 'lanes' (26 numbers: left, own and right lane: two leaders and the follower each, plus the "
+        "ego's lane, offset and set-point; safelane.env.factory.lane_state). Beyond the paper: for overtaking. "
         "'paper-types' (with traffic.driver_mix): eq. 3, then each of the 4 vehicles' driver type one-hot "
-        "(26 + 4·types numbers; safelane.env.observations.paper_types_state).",
+        "(26 + 4·types numbers; safelane.env.observations.paper_types_state). 'paper-stack': eq. 3 of the last "
+        "4 decisions, oldest first, zeros before the episode's first (104 numbers; "
+        "safelane.env.observations.StackedState). 'paper-belief' (with a traffic.driver_mix of IDM types): eq. 3, "
+        "then each of the 4 vehicles' posterior over the types from safelane.safety.belief.BeliefFilter (26 + "
+        "4·types numbers; safelane.env.observations.paper_belief_state).",
     )
     env: dict[str, Any] = Field(default_factory=dict)
     reward: RewardConfig = Field(default_factory=RewardConfig)
@@ -377,9 +381,14 @@ class SafelaneConfig(_Section):
                 f"traffic.vehicles_behind: must be at most env.vehicles_count ({env['vehicles_count']}), "
                 f"got {self.traffic.vehicles_behind}"
             )
-        if self.state == "paper-types" and self.traffic.driver_mix == NO_MIX:
-            raise ConfigError("state: 'paper-types' shows each car's driver type and needs traffic.driver_mix; "
-                              "allowed without one: paper, lanes")
+        if self.state in ("paper-types", "paper-belief"):
+            if self.traffic.driver_mix == NO_MIX:
+                raise ConfigError(
+                    f"state: {self.state!r} shows each car's driver type and needs traffic.driver_mix; "
+                    "allowed without one: paper, lanes, paper-stack"
+                )
+            if self.state == "paper-belief":
+                idm_parameters(parse_driver_mix(self.traffic.driver_mix))
         if self.shield.mode in ("omniscient", "belief"):
             if self.traffic.driver_mix == NO_MIX:
                 raise ConfigError(

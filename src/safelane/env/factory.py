@@ -10,7 +10,8 @@
    ``actions: continuous``, :class:`safelane.env.reward.ContinuousReward`);
 4. :class:`safelane.env.observations.PaperObservation` — the paper's 26-number state (eq. 3), or the
    ``lanes`` state (with continuous actions eq. 3 and the ego's place in its lane: 28 numbers), or eq. 3 with the
-   observed cars' driver types (``paper-types``);
+   observed cars' driver types (``paper-types``) or posteriors over them (``paper-belief``), or eq. 3 of the last
+   decisions (``paper-stack``); :func:`observation_size` says how many numbers without building the environment;
 5. :class:`safelane.safety.shield.SafetyShield` — only when ``shield.mode`` is not ``none``;
 6. :class:`safelane.env.redraw.RedrawUncertified` — the ``committed`` mode only: each reset reports the
    spawns drawn again (``shield.redraw_uncertified``).
@@ -34,7 +35,7 @@ from safelane.config import (
 )
 from safelane.core.errors import NotSupported
 from safelane.core.snapshot import RoadSnapshot
-from safelane.env.observations import PaperObservation
+from safelane.env.observations import PaperObservation, state_size
 from safelane.env.redraw import RedrawUncertified
 from safelane.env.reward import ContinuousReward, PaperReward
 from safelane.safety.control_shield import ControlShield
@@ -47,7 +48,7 @@ class EnvInterface(NamedTuple):
     """What a trained policy depends on: the state it reads, how often it decides, what its actions mean."""
 
     state: str
-    """``paper`` (eq. 3) or ``lanes``."""
+    """``paper`` (eq. 3), ``lanes``, or another ``SafelaneConfig.state``."""
     policy_frequency: float
     """[Hz] decisions per second."""
     target_speeds: tuple[float, ...]
@@ -76,6 +77,13 @@ def env_interface(cfg: SafelaneConfig) -> EnvInterface:
         target_speeds=tuple(float(s) for s in speeds),
         actions=cfg.actions,
     )
+
+
+def observation_size(cfg: SafelaneConfig) -> int:
+    """Numbers in the observation of an environment built from ``cfg`` (what an agent's network reads): 26 for
+    the paper's state (:func:`safelane.env.observations.state_size`)."""
+    mix = cfg.traffic.driver_mixture()
+    return state_size(cfg.state, cfg.actions == "continuous", len(mix.types) if mix is not None else 0)
 
 
 def interface_of(info: dict[str, Any]) -> EnvInterface | None:
@@ -178,7 +186,7 @@ def make_env(
         env = PaperReward(env, reward.b, reward.c, reward.v_min, reward.v_max)
     mix = cfg.traffic.driver_mixture()
     env = PaperObservation(env, cfg.state, continuous=cfg.actions == "continuous",
-                           driver_types=len(mix.types) if mix is not None else 0)  # fmt: skip
+                           driver_types=len(mix.types) if mix is not None else 0, driver_mix=mix)  # fmt: skip
     if cfg.shield.mode != "none" and cfg.actions == "continuous":
         shield = cfg.shield
         env = ControlShield(env, shield.intervention, shield.margin, shield.resolved_rule(), shield.adaptation_penalty,

@@ -2,7 +2,9 @@
 
 Both are 26 numbers in [-1, 1] (:data:`safelane.core.spaces.OBS_SIZE`); with continuous actions eq. 3 gains the
 ego's lane offset and lane index (28, :data:`safelane.core.spaces.CONTINUOUS_OBS_SIZE`); in traffic with a mixture
-of driver types, ``paper-types`` is eq. 3 followed by the observed cars' types (:func:`paper_types_state`).
+of driver types, ``paper-types`` is eq. 3 followed by the observed cars' types (:func:`paper_types_state`) and
+``paper-belief`` eq. 3 followed by their posteriors over the types (:func:`paper_belief_state`); ``paper-stack`` is
+eq. 3 of the last :data:`STACK_DEPTH` decisions (:class:`StackedState`). :func:`state_size` gives each one's size.
 :class:`PaperObservation` replaces the simulator's own observation by one of them, reading ``info["snapshot"]``.
 """
 
@@ -17,10 +19,12 @@ import gymnasium as gym
 import numba
 import numpy as np
 
+from safelane.core.drivers import DriverMix
 from safelane.core.errors import ConfigError
 from safelane.core.geometry import wrap_to_pi
 from safelane.core.snapshot import RoadSnapshot
 from safelane.core.spaces import CONTINUOUS_OBS_SIZE, FEATURES_PER_VEHICLE, OBS_SIZE, OBSERVED_VEHICLES
+from safelane.safety.belief import SIGMA, BeliefFilter
 
 # --- observation normalisation: every scale in one place, with units --------------------------
 X_SCALE = 100.0  # [m] longitudinal offset mapped to ±1
@@ -307,9 +311,96 @@ STATE_FUNCTIONS: dict[str, Callable[[RoadSnapshot], np.ndarray]] = {
     "lanes": lane_state_compiled,
 }
 """The agent's state by ``SafelaneConfig.state`` name (the compiled form where one exists), but for
-:data:`TYPED_STATE`, which also needs the number of driver types."""
+:data:`TYPED_STATE`, which also needs the number of driver types, and the states with a memory
+(:data:`STACKED_STATE`, :data:`BELIEF_STATE`)."""
 TYPED_STATE = "paper-types"
 """Eq. 3 and each observed car's driver type (:func:`paper_types_state`): the matched arm of hidden driver types."""
+STACKED_STATE = "paper-stack"
+"""Eq. 3 of the last :data:`STACK_DEPTH` decisions (:class:`StackedState`): a frame-stacked agent's state."""
+BELIEF_STATE = "paper-belief"
+"""Eq. 3 and each observed car's posterior over the driver types (:func:`paper_belief_state`)."""
+MIXTURE_STATES = (TYPED_STATE, BELIEF_STATE)
+"""The states that read ``traffic.driver_mix`` (a number per type and observed car)."""
+STATES: tuple[str, ...] = (*STATE_FUNCTIONS, TYPED_STATE, STACKED_STATE, BELIEF_STATE)
+"""Every ``state`` name :class:`PaperObservation` builds."""
+STACK_DEPTH = 4
+"""Decisions eq. 3 is stacked over in :data:`STACKED_STATE` (4 × 26 = 104 numbers): at one decision a second, 4 s
+of motion, 3 speed changes of each car seen throughout; after 3 informative steps the belief filter's most probable
+type is the true one for 94 % of cars (docs/research/belief-calibration.md), so the motion to tell types apart is
+there."""
+
+
+def state_size(state: str, continuous: bool = False, driver_types: int = 0) -> int:
+    """Numbers in the state ``state`` (:data:`STATES`): 26 for ``paper`` and ``lanes`` (28 with ``continuous``
+    actions), ``26 + 4·driver_types`` for :data:`MIXTURE_STATES`, ``26·STACK_DEPTH`` for :data:`STACKED_STATE`."""
+    if state in MIXTURE_STATES:
+        return OBS_SIZE + OBSERVED_VEHICLES * driver_types
+    if state == STACKED_STATE:
+        return OBS_SIZE * STACK_DEPTH
+    return CONTINUOUS_OBS_SIZE if continuous else OBS_SIZE
+
+
+def paper_belief_state(snap: RoadSnapshot, posterior: np.ndarray) -> np.ndarray:
+    """Eq. 3 (:func:`paper_state`, 26 numbers) followed by the posterior over the K driver types of each of its 4
+    observed vehicles: ``26 + 4·K`` float32 numbers, those after eq. 3 in [0, 1].
+
+    ``posterior``: (n, K), a row per snapshot body (:attr:`safelane.safety.belief.BeliefFilter.posterior`). Layout
+    after eq. 3 as :func:`paper_types_state`'s: slot ``s`` (nearest first) holds its car's row at
+    ``26 + s·K … 26 + s·K + K − 1`` (it sums to 1); an empty slot is all zeros.
+    """
+    types = int(posterior.shape[1])
+    obs = np.zeros(OBS_SIZE + OBSERVED_VEHICLES * types, dtype=np.float32)
+    obs[:OBS_SIZE] = paper_state_compiled(snap)
+    for slot, i in enumerate(observed_vehicles(snap)):
+        start = OBS_SIZE + slot * types
+        obs[start : start + types] = posterior[i]
+    return obs
+
+
+class StackedState:
+    """:data:`STACKED_STATE`: eq. 3 (:func:`paper_state_compiled`) of the last ``depth`` decisions, oldest first,
+    ``26·depth`` float32 numbers; the last 26 are the current decision's eq. 3. Blocks before the episode's first
+    decision are all zeros (a real block is all zeros only for a stopped ego, heading straight, alone on the road)."""
+
+    def __init__(self, depth: int = STACK_DEPTH) -> None:
+        self.frames = np.zeros((depth, OBS_SIZE), dtype=np.float32)
+
+    def reset(self, snap: RoadSnapshot) -> np.ndarray:
+        """The state at an episode's first decision: ``depth − 1`` zero blocks, then eq. 3 of ``snap``."""
+        self.frames[:] = 0.0
+        self.frames[-1] = paper_state_compiled(snap)
+        return self.frames.ravel().copy()
+
+    def update(self, snap: RoadSnapshot) -> np.ndarray:
+        """The state one decision on: the oldest block dropped, eq. 3 of ``snap`` appended."""
+        self.frames[:-1] = self.frames[1:]
+        self.frames[-1] = paper_state_compiled(snap)
+        return self.frames.ravel().copy()
+
+
+class BeliefState:
+    """:data:`BELIEF_STATE`: :func:`paper_belief_state` with the posterior of a
+    :class:`~safelane.safety.belief.BeliefFilter` over ``mix``'s types (residual deviation ``sigma`` [m/s²]),
+    started at each reset and updated at each decision; it reads no car's ``driver_type``."""
+
+    def __init__(self, mix: DriverMix, sigma: float = SIGMA) -> None:
+        self.filter = BeliefFilter(mix, sigma)
+
+    def reset(self, snap: RoadSnapshot) -> np.ndarray:
+        """Every car at the mixture's weights."""
+        return paper_belief_state(snap, self.filter.reset(snap))
+
+    def update(self, snap: RoadSnapshot) -> np.ndarray:
+        """One decision observed."""
+        return paper_belief_state(snap, self.filter.update(snap))
+
+
+class _StatelessState:
+    """A state computed from the current snapshot alone, with the reset/update interface of the states with a
+    memory."""
+
+    def __init__(self, state_of: Callable[[RoadSnapshot], np.ndarray]) -> None:
+        self.reset = self.update = state_of
 
 
 def lane_position(snap: RoadSnapshot) -> np.ndarray:
@@ -332,34 +423,48 @@ class PaperObservation(gym.Wrapper, gym.utils.RecordConstructorArgs):
     ``state="lanes"`` by :func:`lane_state` (same size), computed from ``info["snapshot"]``; ``info``
     gains ``state`` (the state's name), so a trained policy can check it reads what it learned on.
     ``continuous``: eq. 3 followed by :func:`lane_position` (28 numbers, for acceleration and steering).
-    ``state="paper-types"``: :func:`paper_types_state` with ``driver_types`` types (``traffic.driver_mix``'s)."""
+    ``state="paper-types"``: :func:`paper_types_state` with ``driver_types`` types (``traffic.driver_mix``'s);
+    ``"paper-belief"``: :class:`BeliefState` over ``driver_mix``; ``"paper-stack"``: :class:`StackedState`."""
 
-    def __init__(self, env: gym.Env, state: str = "paper", continuous: bool = False, driver_types: int = 0) -> None:
-        gym.utils.RecordConstructorArgs.__init__(self, state=state, continuous=continuous, driver_types=driver_types)
+    def __init__(
+        self, env: gym.Env, state: str = "paper", continuous: bool = False, driver_types: int = 0,
+        driver_mix: DriverMix | None = None,
+    ) -> None:  # fmt: skip
+        gym.utils.RecordConstructorArgs.__init__(
+            self, state=state, continuous=continuous, driver_types=driver_types, driver_mix=driver_mix
+        )
         super().__init__(env)
-        allowed = (*STATE_FUNCTIONS, TYPED_STATE)
-        if state not in allowed:
-            raise ConfigError(f"state: got {state!r}; allowed: {', '.join(allowed)}")
+        if state not in STATES:
+            raise ConfigError(f"state: got {state!r}; allowed: {', '.join(STATES)}")
         if continuous and state != "paper":
             raise ConfigError(f"state: got {state!r} with continuous actions; allowed: paper")
+        if state == BELIEF_STATE:
+            if driver_mix is None:
+                raise ConfigError(f"state: {BELIEF_STATE!r} needs traffic.driver_mix (got none)")
+            driver_types = len(driver_mix.types)
+        if state in MIXTURE_STATES and driver_types < 1:
+            raise ConfigError(f"state: {state!r} needs traffic.driver_mix (got {driver_types} driver types)")
+        self.memory: Any
         if state == TYPED_STATE:
-            if driver_types < 1:
-                raise ConfigError(f"state: {TYPED_STATE!r} needs traffic.driver_mix (got {driver_types} driver types)")
-            self.state_of = functools.partial(paper_types_state, types=driver_types)
+            self.memory = _StatelessState(functools.partial(paper_types_state, types=driver_types))
+        elif state == BELIEF_STATE:
+            assert driver_mix is not None
+            self.memory = BeliefState(driver_mix)
+        elif state == STACKED_STATE:
+            self.memory = StackedState()
         else:
-            self.state_of = _with_lane_position(STATE_FUNCTIONS[state]) if continuous else STATE_FUNCTIONS[state]
-        size = CONTINUOUS_OBS_SIZE if continuous else OBS_SIZE
-        if state == TYPED_STATE:
-            size = OBS_SIZE + OBSERVED_VEHICLES * driver_types
+            state_of = STATE_FUNCTIONS[state]
+            self.memory = _StatelessState(_with_lane_position(state_of) if continuous else state_of)
+        size = state_size(state, continuous, driver_types)
         self.observation_space = gym.spaces.Box(-1.0, 1.0, shape=(size,), dtype=np.float32)
         self.state = state
 
     def reset(self, **kwargs: Any) -> tuple[np.ndarray, dict[str, Any]]:
         _, info = self.env.reset(**kwargs)
         info["state"] = self.state
-        return self.state_of(info["snapshot"]), info
+        return self.memory.reset(info["snapshot"]), info
 
     def step(self, action: Any) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
         _, reward, terminated, truncated, info = self.env.step(action)
         info["state"] = self.state
-        return self.state_of(info["snapshot"]), reward, terminated, truncated, info
+        return self.memory.update(info["snapshot"]), reward, terminated, truncated, info

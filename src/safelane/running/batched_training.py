@@ -36,6 +36,7 @@ from safelane.agents.batched import BatchedLearner
 from safelane.agents.dqn import ConstrainedAgent, linear_epsilon, load_agent_config
 from safelane.config import ConfigError, config_to_dict
 from safelane.core.spaces import N_ACTIONS, OBS_SIZE
+from safelane.env.factory import observation_size
 from safelane.env.fast_batch import FastBatch, supports
 from safelane.reporting.metrics_file import METRICS_FILE, MetricsAppender, write_metrics
 from safelane.running.run_directory import (
@@ -94,7 +95,10 @@ def train_batched(
         if why is not None:
             raise ConfigError(f"{why}: batched training runs the fast batch; train this run alone")
     n = len(runs)
-    learner = BatchedLearner([r.agent for r in runs], [c.seed for c in cfgs])
+    sizes = sorted({observation_size(r.env) for r in runs})
+    if len(sizes) > 1:
+        raise ConfigError(f"state: runs trained together share the observation size (got {sizes} numbers)")
+    learner = BatchedLearner([r.agent for r in runs], [c.seed for c in cfgs], sizes[0])
     states = [prepare_run_dir(o, r, resume) for o, r in zip(outs, runs, strict=True)]
     episode = np.zeros(n, dtype=np.int64)
     global_step = np.zeros(n, dtype=np.int64)

@@ -57,7 +57,7 @@ from safelane.config import (
     validation_message,
 )
 from safelane.core.files import atomic_write
-from safelane.env.factory import check_same_interface, env_interface, interface_of
+from safelane.env.factory import check_same_interface, env_interface, interface_of, observation_size
 from safelane.reporting.metrics_file import METRICS_FILE
 
 CONFIG_FILE = "config.yaml"
@@ -428,24 +428,36 @@ class GreedyPolicy:
         self.method = agent.method
         self.name = name
         self.interface = env_interface(run.env)
+        self.obs_size = observation_size(run.env)
 
     def _check(self, info: dict[str, Any]) -> None:
         actual = interface_of(info)
         if actual is not None and actual != self.interface:
             check_same_interface(self.interface, actual, self.name)
 
+    def _check_size(self, obs: np.ndarray) -> None:
+        # The state's name can agree while its size does not: paper-types on a mixture of another number of types.
+        if np.shape(obs)[-1] != self.obs_size:
+            raise ConfigError(
+                f"state: {self.name} reads {self.obs_size} numbers ({self.interface.state!r}), the environment gives "
+                f"{np.shape(obs)[-1]}; allowed: the traffic.driver_mix types it was trained on"
+            )
+
     def __call__(self, obs: np.ndarray, info: dict[str, Any] | None = None) -> int:
-        """The greedy action for one observation (26,) (its mask read from ``info`` for mask users)."""
+        """The greedy action for one observation (26 numbers, or the run's state's size; its mask read from
+        ``info`` for mask users)."""
         if info is not None:
             self._check(info)
+        self._check_size(obs)
         mask = info.get("action_mask") if (info is not None and self.agent.uses_mask) else None
         return self.agent.greedy(obs, mask)
 
     def batch(self, obs: np.ndarray, infos: list[dict[str, Any]]) -> np.ndarray:
-        """Greedy actions (N,) for observations (N, 26) of N environments, one forward pass; row ``k``
+        """Greedy actions (N,) for observations (N, state size) of N environments, one forward pass; row ``k``
         gets the action ``self(obs[k], infos[k])`` gives (:meth:`DQNAgent.greedy_batch`)."""
         for info in infos:
             self._check(info)
+        self._check_size(obs)
         masks = None
         if self.agent.uses_mask:
             masks = np.stack([sanitize_mask(info.get("action_mask")) for info in infos])
@@ -458,7 +470,7 @@ def load_agent(run_dir: str | Path) -> DQNAgent:
     if not isinstance(run.agent, AgentConfig):
         raise ConfigError(f"{run_dir}: a continuous run ({run.train.algo}) has no DQN agent; use load_policy")
     state = load_checkpoint(run_dir)
-    agent = make_agent(run.agent, seed=run.train.seed)
+    agent = make_agent(run.agent, seed=run.train.seed, obs_size=observation_size(run.env))
     try:
         agent.load_state_dict(state["agent"])
     except (KeyError, ValueError, RuntimeError) as err:

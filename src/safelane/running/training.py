@@ -25,7 +25,7 @@ import torch
 
 from safelane.agents.dqn import ConstrainedAgent, ReplayBuffer, linear_epsilon, make_agent, sanitize_mask
 from safelane.config import ConfigError
-from safelane.env.factory import make_env
+from safelane.env.factory import make_env, observation_size
 from safelane.reporting.metrics_file import METRIC_COLUMNS, METRICS_FILE, TIMING_COLUMNS, MetricsAppender, write_metrics
 from safelane.running.run_directory import (
     CHECKPOINT_FILE,
@@ -128,8 +128,9 @@ def train(
     state = prepare_run_dir(out, run, resume)
     checkpoint_path, metrics_path = out / CHECKPOINT_FILE, out / METRICS_FILE
 
-    agent = make_agent(acfg, seed=cfg.seed)
-    buffer = ReplayBuffer(acfg.buffer_size)
+    obs_size = observation_size(run.env)  # 26 for the paper's state; the network's input follows the state
+    agent = make_agent(acfg, seed=cfg.seed, obs_size=obs_size)
+    buffer = ReplayBuffer(acfg.buffer_size, obs_size)
     rows: list[dict[str, Any]] = []
     episode, global_step, wall_before, env_time = 0, 0, 0.0, 0.0
     if state is not None:

@@ -15,7 +15,7 @@ from hypothesis import strategies as st
 from safelane.core.drivers import IDM_PARAMETERS, DriverMix, parse_driver_mix
 from safelane.core.errors import ConfigError
 from safelane.core.snapshot import RoadSnapshot
-from safelane.safety.belief import BeliefFilter
+from safelane.safety.belief import BeliefFilter, DriverTypes
 from safelane.sim.drivers import AggressiveDriver, NormalDriver, TimidDriver
 
 MIX = parse_driver_mix("timid-normal-aggressive")
@@ -202,20 +202,22 @@ def test_on_real_traffic_the_true_type_wins() -> None:
 TYPES = tuple(IDM_PARAMETERS[t] for t in MIX.types)
 
 
-def test_worst_case_arrays_field_by_field() -> None:
-    """Car 1 may be timid only (its own constants, bit for bit), car 2 timid or aggressive, car 3 any type; the ego
-    (row 0) is not among the cars and keeps its arrays."""
-    from safelane.safety.driver_sets import worst_case_drivers
+def test_type_readings_field_by_field() -> None:
+    """Car 1 may be timid only (its own constants, bit for bit), car 2 timid or aggressive, car 3 any type: in the
+    aggressive reading car 1 is timid, cars 2 and 3 aggressive, each with its type's own constants but ``accel_max``,
+    the largest a over its allowed types; the ego (row 0) keeps its arrays."""
+    from safelane.safety.driver_sets import type_readings
 
     snap = snapshot([0.0, 30.0, 60.0, 90.0], [25.0] * 4, [1] * 4, idm_delta=np.array([4.0, 3.6, 3.9, 4.4]))
     allowed = np.array([[1, 1, 1], [1, 0, 0], [1, 0, 1], [1, 1, 1]], bool)
-    view = worst_case_drivers(snap, TYPES, allowed, np.array([1, 2, 3]))
+    readings, _ = type_readings(snap, TYPES, allowed, np.array([1, 2, 3]), np.full((4, 3), 1 / 3))
+    view = readings[2]
     timid, aggressive = IDM_PARAMETERS["timid"], IDM_PARAMETERS["aggressive"]
     expect = {  # field: (car 1, car 2, car 3)
         "brake_max": (6.0, 6.0, 6.0),
-        "accel_max": (0.8, 2.0, 2.0),  # the largest a: the fastest a car speeds up
-        "idm_comfort_acc": (0.8, 0.8, 0.8),  # the least a: MOBIL's room largest, a braking follower softest
-        "idm_comfort_dec": (-1.0, -(2.0 * 3.0) / 0.8, -(2.0 * 3.0) / 0.8),  # -a·dec = the largest a·b
+        "accel_max": (0.8, 2.0, 2.0),  # the largest a of its types: the fastest a car speeds up, in every role
+        "idm_comfort_acc": (0.8, 2.0, 2.0),
+        "idm_comfort_dec": (-1.0, -3.0, -3.0),
         "idm_distance_wanted": (9.0, 5.0, 5.0),
         "idm_time_wanted": (2.0, 1.0, 1.0),
         "max_braking_imposed": (1.0, 3.0, 3.0),
@@ -249,20 +251,24 @@ def test_omniscient_reads_what_the_seen_snapshot_reports() -> None:
 
 
 def test_robust_reads_every_type_under_a_hidden_mixture_and_nothing_else_changes() -> None:
-    """Hidden types: each car the worst case over the three sets; seen types and traffic without a mixture: the
+    """Hidden types: one reading per type, every car read as it; seen types and traffic without a mixture: the
     snapshot as it is (the same object)."""
     from safelane.env.factory import make_env
 
     hidden = make_env("hidden-types", simulator="fast", **{"shield.mode": "robust"})
     snap = hidden.reset(seed=2)[1]["snapshot"]
-    view = hidden.get_wrapper_attr("driver_view")(snap)
+    readings, _ = hidden.get_wrapper_attr("driver_readings")(snap)
     cars = snap.others()
-    assert (view.accel_max[cars] == 2.0).all() and (view.idm_comfort_acc[cars] == 0.8).all()
-    assert (view.max_braking_imposed[cars] == 3.0).all() and (view.idm_distance_wanted[cars] == 5.0).all()
+    assert len(readings) == 3
+    for t, view in zip(TYPES, readings, strict=True):
+        assert (view.accel_max[cars] == 2.0).all() and (view.idm_comfort_acc[cars] == t.comfort_acc_max).all()
+        assert (view.max_braking_imposed[cars] == t.max_braking_imposed).all()
+        assert (view.idm_distance_wanted[cars] == t.distance_wanted).all()
     for preset, sets in (("hidden-types", {"traffic.shield_sees_types": True}), ("fast", {})):
         env = make_env(preset, simulator="fast", **{"shield.mode": "robust", **sets})
         snap = env.reset(seed=2)[1]["snapshot"]
         assert env.get_wrapper_attr("driver_view")(snap) is snap
+        assert env.get_wrapper_attr("driver_readings")(snap) == ([snap], snap)
         env.close()
     hidden.close()
 
@@ -344,7 +350,7 @@ def test_a_crash_with_a_car_whose_true_type_was_ruled_out_is_counted(truth: int,
     class Env(_Scripted, gym.Env):  # type: ignore[misc]
         pass
 
-    shield = SafetyShield(Env([start, crash]), mode="belief", override=True, driver_mix=mix, belief_epsilon=0.01)
+    shield = SafetyShield(Env([start, crash]), mode="belief", override=True, driver_types=DriverTypes(mix, 0.01))
     _, info = shield.reset(seed=0)
     assert info["types_ruled_out"] == int(truth == 1) and info["type_ruled_out_crash"] is False
     tally = EpisodeTally(0, info)

@@ -197,7 +197,7 @@ def test_sim_check_on_the_preset_compares_the_types() -> None:
 def test_batch_equals_the_single_environments() -> None:
     """FastBatch plays the hidden-types preset with the types seen by the robust shield: row i is
     make_env(simulator=fast, seed=S+i) driven by the same actions (observations, rewards, flags, masks), autoresets
-    included. With the types hidden the robust shield reads the worst case over the types, which the batch's kernel
+    included. With the types hidden the robust shield judges one reading per type at once, which the batch's kernel
     does not: it leaves those to the environments one by one."""
     hidden = resolve_env_config("hidden-types", simulator="fast", **{"shield.mode": "robust"})
     assert "hidden driver types" in str(supports(hidden))

@@ -79,13 +79,14 @@ def test_the_config_selects_a_rule_by_name_and_switches_options() -> None:
 
 
 def test_shield_takes_a_rule_or_its_name() -> None:
-    """``SafetyShield(env, rule=...)``: a name or a Rule; at most 8 parameters."""
+    """``SafetyShield(env, rule=...)``: a name or a Rule; at most 9 parameters (a driver mixture and the belief's
+    settings come as one, :class:`~safelane.safety.belief.DriverTypes`)."""
     import inspect
 
     from safelane.env.factory import make_env
     from safelane.safety.shield import SafetyShield
 
-    assert len(inspect.signature(SafetyShield.__init__).parameters) <= 8
+    assert len(inspect.signature(SafetyShield.__init__).parameters) <= 9
     base = make_env("fast", simulator="fast", **{"env.vehicles_count": 3})
     by_name = SafetyShield(base, rule="basic")
     by_rule = SafetyShield(base, rule=RULES["basic"].with_options(body_extent=True))

@@ -38,6 +38,7 @@ from safelane.core.snapshot import RoadSnapshot
 from safelane.env.observations import PaperObservation, state_size
 from safelane.env.redraw import RedrawUncertified
 from safelane.env.reward import ContinuousReward, PaperReward
+from safelane.safety.belief import DriverTypes
 from safelane.safety.control_shield import ControlShield
 from safelane.safety.shield import SafetyShield
 from safelane.sim.highway import HighwayEnvAdapter
@@ -202,9 +203,7 @@ def make_env(
             rule=shield.resolved_rule(),
             engine=shield.engine,
             formula=shield.formula,
-            driver_mix=mix,
-            belief_epsilon=shield.belief_epsilon,
-            belief_sigma=shield.belief_sigma,
+            driver_types=None if mix is None else DriverTypes(mix, shield.belief_epsilon, shield.belief_sigma),
         )
         if shield.mode == "committed":  # its starts reported (redraws), redrawn if asked
             env = RedrawUncertified(env, shield.redraw_tries if shield.redraw_uncertified else 0)

@@ -86,7 +86,7 @@ def supports(cfg: SafelaneConfig) -> str | None:
         return f"shield.mode: {shield.mode} (the driver types' sets are read per environment)"
     mix = cfg.traffic.driver_mixture()
     if shield.mode == "robust" and mix is not None and mix.assumed is not None:
-        return "shield.mode: robust with hidden driver types (the worst case over the types is read per environment)"
+        return "shield.mode: robust with hidden driver types (the readings of the types are judged per environment)"
     if shield.mode in ("nominal", "robust") and shield.engine != "compiled":
         return f"shield.engine: {shield.engine} (the batch runs the compiled kernel)"
     if shield.mode == "nominal" and shield.formula == "paper":

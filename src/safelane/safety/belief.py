@@ -25,6 +25,7 @@ Two engines give the same bits (a test checks it): :func:`update_reference`, Pyt
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from typing import Literal
 
@@ -375,3 +376,23 @@ __all__ = [
     "SIGMA", "BeliefEngine", "BeliefFilter", "Observation", "leader_reference", "step_log_likelihood_reference",
     "type_table", "update_compiled", "update_reference",
 ]  # fmt: skip
+
+
+DEFAULT_BELIEF_EPSILON = 0.01
+"""The belief shield's ε: a car may be every type whose posterior exceeds it (``shield.belief_epsilon``)."""
+
+
+@dataclasses.dataclass(frozen=True)
+class DriverTypes:
+    """What a shield knows of the traffic's driver types: the ``mix`` (``traffic.driver_mix``; its ``assumed`` None
+    when the snapshot shows each car's own constants), and for ``mode="belief"`` the posterior threshold ``epsilon``
+    (``shield.belief_epsilon``: a car may be every type above it) and the filter's residual deviation ``sigma``
+    [m/s²] (``shield.belief_sigma``)."""
+
+    mix: DriverMix
+    epsilon: float = DEFAULT_BELIEF_EPSILON
+    sigma: float = SIGMA
+
+    def __post_init__(self) -> None:
+        if not (isinstance(self.epsilon, int | float) and 0 <= self.epsilon < 1):
+            raise ValueError(f"shield.belief_epsilon: must be a number in [0, 1) (got {self.epsilon!r})")

@@ -32,11 +32,12 @@ from typing import Any, Literal
 import gymnasium as gym
 import numpy as np
 
-from safelane.core.drivers import IDM_PARAMETERS, DriverMix, IdmParameters, idm_parameters
+from safelane.core.drivers import IDM_PARAMETERS, IdmParameters, idm_parameters
 from safelane.core.snapshot import RoadSnapshot
-from safelane.safety.belief import SIGMA, BeliefFilter
-from safelane.safety.driver_sets import TYPE_MODES, drawn_cars, every_type, true_type, worst_case_drivers
+from safelane.safety.belief import DEFAULT_BELIEF_EPSILON, BeliefFilter, DriverTypes
+from safelane.safety.driver_sets import TYPE_MODES, drawn_cars, every_type, true_type, type_readings
 from safelane.safety.family import RuleFamily, family_for
+from safelane.safety.one_decision.over_types import evaluate_readings
 from safelane.safety.road import road_state, road_state_bodies
 from safelane.safety.rule import DEFAULT_RULE_NAME, Rule, as_rule
 from safelane.safety.world import (
@@ -52,9 +53,6 @@ from safelane.safety.world import (
     check_choices,
 )
 from safelane.sim.highway import HighwayEnvAdapter, lane_change_timing
-
-DEFAULT_BELIEF_EPSILON = 0.01
-"""The belief shield's ε: a car may be every type whose posterior exceeds it (``shield.belief_epsilon``)."""
 
 DEFAULT_MARGIN = Dynamics.__dataclass_fields__["margin"].default
 """[m] The safety model's default bumper-to-bumper margin (``shield.margin``)."""
@@ -165,16 +163,19 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
     ``mode`` may also be a :class:`~safelane.safety.family.RuleFamily` of the caller's (its memory the caller's
     to read; its ``engine`` then overrides ``engine``).
 
-    ``driver_mix``: the traffic's mixture of driver types (``traffic.driver_mix``; its ``assumed`` None when the
-    snapshot shows each car's own constants). With the types hidden, ``mode="robust"`` reads each drawn car as the
-    worst case over every type of the mixture (:func:`~safelane.safety.driver_sets.worst_case_drivers`; a mixture
-    with a linear-model driver keeps the snapshot's assumed constants). ``mode="omniscient"``: the robust rule on
-    each car's true type (the snapshot's ``driver_type``); ``mode="belief"``: the robust rule on the types whose
-    posterior (:class:`~safelane.safety.belief.BeliefFilter`, residual deviation ``belief_sigma`` [m/s²]) exceeds
-    ``belief_epsilon``. The belief's promise is probabilistic: a car whose true type was ruled out is outside the
-    sets, and ``info`` counts it: ``types_ruled_out`` (the drawn cars whose true type is at or below ε at this
-    decision) and ``type_ruled_out_crash`` (the ego crashed in this step with a car whose true type was ruled out
-    at the decision).
+    ``driver_types``: the traffic's mixture of driver types and the belief's settings
+    (:class:`~safelane.safety.belief.DriverTypes`; the mixture's ``assumed`` None when the snapshot shows each
+    car's own constants). With the types hidden, ``mode="robust"`` judges each action against
+    every type of the mixture for every drawn car, mixed assignments included: one reading of the scene per type
+    (:func:`~safelane.safety.driver_sets.type_readings`), their worst gaps combined before the fallback is chosen
+    (:func:`~safelane.safety.one_decision.over_types.evaluate_readings`, with the ``engine``'s gaps; a mixture with a
+    linear-model driver keeps the snapshot's assumed constants). ``mode="omniscient"``:
+    the robust rule on each car's true type (the snapshot's ``driver_type``; one reading, the ``engine``'s);
+    ``mode="belief"``: on the types whose posterior (:class:`~safelane.safety.belief.BeliefFilter`, residual deviation
+    ``sigma`` [m/s²]) exceeds ``epsilon``, the same way. The belief's promise is probabilistic: a car
+    whose true type was ruled out is outside the sets, and ``info`` counts it: ``types_ruled_out`` (the drawn cars
+    whose true type is at or below ε at this decision) and ``type_ruled_out_crash`` (the ego crashed in this step
+    with a car whose true type was ruled out at the decision).
     """
 
     def __init__(
@@ -186,14 +187,11 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
         rule: Rule | str = DEFAULT_RULE_NAME,
         engine: Engine = "compiled",
         formula: Formula = "kinematic",
-        driver_mix: DriverMix | None = None,
-        belief_epsilon: float = DEFAULT_BELIEF_EPSILON,
-        belief_sigma: float = SIGMA,
+        driver_types: DriverTypes | None = None,
     ) -> None:
         if not (isinstance(margin, int | float) and math.isfinite(margin) and margin >= 0):
             raise ValueError(f"shield.margin: must be a finite number >= 0 [m] (got {margin!r})")
-        if not (isinstance(belief_epsilon, int | float) and 0 <= belief_epsilon < 1):
-            raise ValueError(f"shield.belief_epsilon: must be a number in [0, 1) (got {belief_epsilon!r})")
+        driver_mix = driver_types.mix if driver_types is not None else None
         family: RuleFamily | None = None
         if isinstance(mode, RuleFamily):  # a family of the caller's (the committed mode's memory, say)
             family, mode, engine = mode, mode.mode, mode.engine  # type: ignore[assignment]
@@ -206,7 +204,7 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
         resolved = as_rule(rule)
         gym.utils.RecordConstructorArgs.__init__(
             self, mode=family or mode, override=override, margin=margin, rule=rule, engine=engine, formula=formula,
-            driver_mix=driver_mix, belief_epsilon=belief_epsilon, belief_sigma=belief_sigma,
+            driver_types=driver_types,
         )  # fmt: skip
         try:
             env.get_wrapper_attr("road_snapshot")
@@ -228,7 +226,7 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
         self._warned_cannot_stop = False
         # The driver types the rule reads each car as (None: the snapshot's constants as they are).
         self.driver_mix = driver_mix
-        self.belief_epsilon = float(belief_epsilon)
+        self.belief_epsilon = float(driver_types.epsilon) if driver_types is not None else DEFAULT_BELIEF_EPSILON
         self.types: tuple[IdmParameters, ...] | None = None
         hidden_idm = (
             driver_mix is not None and driver_mix.assumed is not None
@@ -240,19 +238,33 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
         self.belief: BeliefFilter | None = None
         if mode == "belief":
             assert driver_mix is not None
-            self.belief = BeliefFilter(driver_mix, belief_sigma)
+            assert driver_types is not None
+            self.belief = BeliefFilter(driver_mix, driver_types.sigma)
         self._ruled_out = np.zeros(0, dtype=bool)  # drawn cars whose true type the last decision ruled out
 
     def driver_view(self, snap: RoadSnapshot) -> RoadSnapshot:
-        """The snapshot the rule reads: ``snap`` with each drawn car's driver arrays the worst case over the types it
-        may be (the mode's sets; class docstring), or ``snap`` itself when the rule reads the constants as they are."""
+        """The snapshot the rule reads when it reads one: ``snap`` itself when the rule reads the constants as they
+        are; under the types' sets, each drawn car as its most likely allowed type (the fallback's forecast reads it;
+        the omniscient shield's only reading)."""
+        return self.driver_readings(snap)[1]
+
+    def driver_readings(self, snap: RoadSnapshot) -> tuple[list[RoadSnapshot], RoadSnapshot]:
+        """The readings of ``snap`` the rule judges at once (one per type some car may be among others: the mode's
+        sets, class docstring) and the most likely one; ``([snap], snap)`` when the rule reads the constants as
+        they are."""
         if self.types is None or self.driver_mix is None:
-            return snap
+            return [snap], snap
         if self.mode == "omniscient":
             allowed, cars = true_type(snap, len(self.types))
+            weight = allowed.astype(float)
         else:
             allowed, cars = self.allowed_types(snap), drawn_cars(snap)
-        return worst_case_drivers(snap, self.types, allowed, cars)
+            weight = np.broadcast_to(self.driver_mix.probabilities, allowed.shape)
+            if self.belief is not None:  # the posterior's most likely type (the prior's for a car it has no row for)
+                weight = np.array(weight, copy=True)
+                rows = min(snap.n, self.belief.log_post.shape[0])
+                weight[:rows] = self.belief.log_post[:rows]
+        return type_readings(snap, self.types, allowed, cars, weight)
 
     def allowed_types(self, snap: RoadSnapshot) -> np.ndarray:
         """(n, K) bool: the types each car of ``snap`` may be — the belief's above ε (a car it has no row for: the
@@ -289,11 +301,18 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
             raise RuntimeError("SafetyShield: reset the environment first")
         leave = self._ego_leave_time(snap)
         assert self.dynamics is not None
-        return self.family.evaluate(self.driver_view(snap), self.dynamics, leave)
+        readings, likely = self.driver_readings(snap)
+        if len(readings) == 1:
+            return self.family.evaluate(readings[0], self.dynamics, leave)
+        dyn = dataclasses.replace(self.dynamics, ego_leave_time=leave)
+        speed = dyn.rule.ego_speed_magnitude
+        states = [road_state(reading, speed) for reading in readings]
+        return evaluate_readings(states, road_state(likely, speed), dyn, self.engine)
 
     def state_and_dynamics(self, snap: RoadSnapshot) -> tuple[RoadState, Dynamics]:
         """The (RoadState, Dynamics) that :meth:`compute_result` evaluates for ``snap`` (the numpy engine's
-        inputs; the compiled engine builds the same state inside its kernel)."""
+        inputs; the compiled engine builds the same state inside its kernel; under the types' sets with several
+        readings, the most likely one's)."""
         leave = self._ego_leave_time(snap)
         assert self.dynamics is not None
         dyn = self.dynamics

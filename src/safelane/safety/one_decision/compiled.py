@@ -55,6 +55,7 @@ from safelane.safety.one_decision.compiled_rule import (
     C_TURNING_ALLOWANCE,
     N_CONSTS,
     evaluate_rule,
+    rule_gaps_kernel,
 )
 from safelane.safety.rule import (
     FLAG_EGO_SPEED_MAGNITUDE,
@@ -83,8 +84,8 @@ _MIN_ACC_GAIN = float(reference.MOBIL_MIN_ACC_GAIN)
 __all__ = [
     "C_BODY_WIDTH", "C_CUT_IN_TIME", "C_DECISION_PERIOD", "C_EGO_KP", "C_FOLLOWER_REACTION", "C_FRAMES",
     "C_FRAME_DT", "C_HORIZON", "C_LANES_COUNT", "C_LANE_WIDTH", "C_LATERAL_THRESHOLD", "C_MARGIN", "C_MIN_ACC_GAIN",
-    "C_RELEVANCE", "C_TURNING_ALLOWANCE", "N_CONSTS", "KernelConstants", "axis_aligned", "dynamics_consts",
-    "evaluate_compiled", "evaluate_snapshot", "kernel_constants", "snapshot_kernel",
+    "C_RELEVANCE", "C_TURNING_ALLOWANCE", "N_CONSTS", "KernelConstants", "axis_aligned", "compiled_gaps",
+    "dynamics_consts", "evaluate_compiled", "evaluate_snapshot", "kernel_constants", "snapshot_kernel",
 ]  # fmt: skip
 
 
@@ -334,3 +335,25 @@ def evaluate_snapshot(
         *kernel_constants(dyn), mode == "robust", ego_leave_time,
     )  # fmt: skip
     return _result(out)
+
+
+def compiled_gaps(state: RoadState, dyn: Dynamics, nominal_leaders: bool = False) -> reference.RuleGaps:
+    """:func:`safelane.safety.one_decision.reference.rule_gaps` of the robust rule, compiled (the same bits): the
+    worst-case gaps [m] before the verdict; ``nominal_leaders``: the straight fallback's pass (the leaders bounded as
+    nominal mode bounds them). The deciding conflicts are not reported (``conflicts`` None)."""
+    s = state
+    constants = kernel_constants(dyn)
+    turning = float(constants.consts[C_TURNING_ALLOWANCE])
+    allowance = 0.0 if nominal_leaders else turning
+    # The nominal leaders' looser bound (turning_in_nominal) in the straight pass; the main robust pass has none.
+    nominal = turning if nominal_leaders and constants.flags & FLAG_TURNING_IN_NOMINAL else 0.0
+    out = rule_gaps_kernel(
+        s.ego_x, s.ego_speed, s.ego_lane, s.ego_target_lane, s.ego_target_speed, s.ego_speed_index,
+        s.ego_length, s.speed_limit, s.x, s.y, s.vx, s.vy, s.heading, s.length, s.crashed, s.brake_max,
+        s.accel_max, s.can_change_lane, s.idm_delta, s.idm_comfort_acc, s.idm_comfort_dec,
+        s.idm_distance_wanted, s.idm_time_wanted, s.max_braking_imposed, s.linear_speed_gain,
+        s.linear_speed_difference_gain, s.linear_distance_gain, reference.set_points(s),
+        *constants, True, dyn.ego_leave_time, allowance, nominal,
+    )  # fmt: skip
+    available, joint, ahead, nominal_joint, nominal_ahead, nominal_ok = out[:6]
+    return reference.RuleGaps(available, joint, ahead, nominal_joint, nominal_ahead, nominal_ok, allowance, None)

@@ -1,7 +1,8 @@
 """The compiled rule's kernel: :func:`evaluate_rule`, ``safelane.safety.one_decision.reference._evaluate`` (formula
 ``kinematic``) for one state, operation by operation and in the same order (bit-identical; metres, m/s,
-seconds). The rule's options arrive as one integer (:attr:`safelane.safety.rule.Rule.flags`), tested bit by bit;
-the dynamics' numbers as one float64 array at the ``C_*`` indices below.
+seconds): :func:`rule_gaps_kernel` (``reference.rule_gaps``), then the verdict. The rule's options arrive as one
+integer (:attr:`safelane.safety.rule.Rule.flags`), tested bit by bit; the dynamics' numbers as one float64 array at
+the ``C_*`` indices below.
 """
 
 from __future__ import annotations
@@ -72,7 +73,7 @@ N_CONSTS = 15
 
 
 @njit(cache=True, error_model="numpy")
-def evaluate_rule(
+def rule_gaps_kernel(
     ego_x: float, ego_speed: float, ego_lane: int, ego_target_lane: int, ego_target_speed: float,
     ego_speed_index: int, ego_length: float, speed_limit: float,
     x: np.ndarray, y: np.ndarray, vx: np.ndarray, vy: np.ndarray, heading: np.ndarray, length: np.ndarray,
@@ -81,13 +82,11 @@ def evaluate_rule(
     idm_distance_wanted: np.ndarray, idm_time_wanted: np.ndarray, max_braking_imposed: np.ndarray,
     lin_k0: np.ndarray, lin_k1: np.ndarray, lin_k2: np.ndarray, target_speed: np.ndarray,
     ts: np.ndarray, t: np.ndarray, powers: np.ndarray, tie_break: np.ndarray, consts: np.ndarray, flags: int,
-    robust: bool, ego_leave_time: float, turning_allowance: float, nominal_allowance: float, forecast_on: bool,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, bool]:  # fmt: skip
-    """``model.evaluate`` (formula ``kinematic``) of one state: (mask, safe, available, min_gap, fallback).
-
-    ``consts``: the dynamics' numbers (:func:`dynamics_consts`); ``flags``: the rule's options
-    (:attr:`safelane.safety.rule.Rule.flags`); ``turning_allowance``, ``nominal_allowance`` [m] and
-    ``forecast_on``: what this pass of :func:`_evaluate` bounds the leaders and ranks the fallback with."""
+    robust: bool, ego_leave_time: float, turning_allowance: float, nominal_allowance: float,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:  # fmt: skip
+    """``model.rule_gaps`` of one state, the worst-case gaps [m] before the verdict: (available, joint, ahead,
+    nominal_joint, nominal_ahead (each (5, fallbacks)), nominal_ok, the ego's positions ``xs`` [m] (actions, frames,
+    fallbacks) and the last frame it occupies each lane per action); the arguments as :func:`evaluate_rule`'s."""
     decision_period, frame_dt = consts[C_DECISION_PERIOD], consts[C_FRAME_DT]
     frames, horizon, lanes_count = int(consts[C_FRAMES]), int(consts[C_HORIZON]), int(consts[C_LANES_COUNT])
     ego_kp, lane_width, follower_reaction = consts[C_EGO_KP], consts[C_LANE_WIDTH], consts[C_FOLLOWER_REACTION]
@@ -626,6 +625,35 @@ def evaluate_rule(
                 if nominal and not (best_f >= margin):
                     nominal_ok[a] = False
 
+    return available, joint_gap, ahead_gap, nominal_joint, nominal_ahead, nominal_ok, xs, ego_last
+
+
+@njit(cache=True, error_model="numpy")
+def evaluate_rule(
+    ego_x: float, ego_speed: float, ego_lane: int, ego_target_lane: int, ego_target_speed: float,
+    ego_speed_index: int, ego_length: float, speed_limit: float,
+    x: np.ndarray, y: np.ndarray, vx: np.ndarray, vy: np.ndarray, heading: np.ndarray, length: np.ndarray,
+    crashed: np.ndarray, brake_max: np.ndarray, accel_max: np.ndarray, can_change_lane: np.ndarray,
+    idm_delta: np.ndarray, idm_comfort_acc: np.ndarray, idm_comfort_dec: np.ndarray,
+    idm_distance_wanted: np.ndarray, idm_time_wanted: np.ndarray, max_braking_imposed: np.ndarray,
+    lin_k0: np.ndarray, lin_k1: np.ndarray, lin_k2: np.ndarray, target_speed: np.ndarray,
+    ts: np.ndarray, t: np.ndarray, powers: np.ndarray, tie_break: np.ndarray, consts: np.ndarray, flags: int,
+    robust: bool, ego_leave_time: float, turning_allowance: float, nominal_allowance: float, forecast_on: bool,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, bool]:  # fmt: skip
+    """``model.evaluate`` (formula ``kinematic``) of one state: (mask, safe, available, min_gap, fallback).
+
+    ``consts``: the dynamics' numbers (:func:`dynamics_consts`); ``flags``: the rule's options
+    (:attr:`safelane.safety.rule.Rule.flags`); ``turning_allowance``, ``nominal_allowance`` [m] and
+    ``forecast_on``: what this pass of :func:`_evaluate` bounds the leaders and ranks the fallback with."""
+    available, joint_gap, ahead_gap, nominal_joint, nominal_ahead, nominal_ok, xs, ego_last = rule_gaps_kernel(
+        ego_x, ego_speed, ego_lane, ego_target_lane, ego_target_speed, ego_speed_index, ego_length, speed_limit,
+        x, y, vx, vy, heading, length, crashed, brake_max, accel_max, can_change_lane, idm_delta,
+        idm_comfort_acc, idm_comfort_dec, idm_distance_wanted, idm_time_wanted, max_braking_imposed,
+        lin_k0, lin_k1, lin_k2, target_speed, ts, t, powers, tie_break, consts, flags, robust, ego_leave_time,
+        turning_allowance, nominal_allowance,
+    )  # fmt: skip
+    frame_dt, margin, inf = consts[C_FRAME_DT], consts[C_MARGIN], math.inf
+    lanes_count, lane_width = int(consts[C_LANES_COUNT]), consts[C_LANE_WIDTH]
     # --- the verdict ----------------------------------------------------------------------------
     best_gap = np.empty(N_ACTIONS)
     safe = np.empty(N_ACTIONS, dtype=np.bool_)

@@ -48,6 +48,7 @@ The rule's options (:mod:`safelane.safety.rule`) travel in ``Dynamics.rule`` and
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -111,14 +112,14 @@ from safelane.safety.world import (
 __all__ = [
     "BASE_DECISION_PERIOD", "IDM_LANE_MARGIN", "LATERAL_MOTION_THRESHOLD", "MAX_HOLD_DECISIONS", "MOBIL_MIN_ACC_GAIN",
     "NOT_ZERO", "OVERRIDE_ORDER", "RELEVANCE_RANGE", "TAIL_DECISIONS", "TIE_BREAK_ORDER", "CarriedFollowers",
-    "Conflict", "Dynamics", "Formula", "Mode", "RoadState", "SafetyResult", "action_lanes", "action_targets",
-    "available_actions", "braking_positions", "cut_in_candidates", "ego_last_frames", "ego_trajectories",
-    "evaluate", "final_lane", "finishing_change", "follower_positions", "forecast_of", "forecast_ranking",
-    "idm_acceleration_behind", "idm_acceleration_behind_gap", "idm_follower_positions", "idm_followers",
-    "incentive_times", "incentive_times_any_speed", "least_bad_action", "least_desired_gap",
+    "Conflict", "Dynamics", "Formula", "Mode", "RoadState", "RuleGaps", "SafetyResult", "action_lanes",
+    "action_targets", "available_actions", "braking_positions", "cut_in_candidates", "ego_last_frames",
+    "ego_trajectories", "evaluate", "final_lane", "finishing_change", "follower_positions", "forecast_of",
+    "forecast_ranking", "idm_acceleration_behind", "idm_acceleration_behind_gap", "idm_follower_positions",
+    "idm_followers", "incentive_times", "incentive_times_any_speed", "least_bad_action", "least_desired_gap",
     "linear_acceleration_behind", "linear_turn_in_incentive", "linear_turn_in_incentive_braking", "occupancy",
-    "passing_positions", "permit_times", "required_gap", "set_points", "speed_to_index", "turn_in_incentive",
-    "turning_allowance",
+    "passing_positions", "permit_times", "required_gap", "rule_gaps", "rule_verdict", "set_points", "speed_to_index",
+    "turn_in_incentive", "turning_allowance",
 ]  # fmt: skip
 
 
@@ -148,6 +149,23 @@ def evaluate(
     return _evaluate(state, dyn, mode, formula, nominal_leaders=mode == "nominal", carried=carried)
 
 
+@dataclass(frozen=True)
+class RuleGaps:
+    """The rule's worst-case gaps [m] in one state, before its verdict: per action and fallback ((5, fallbacks)
+    arrays; inf: no conflict), over every conflict of the mode (``joint``), those with vehicles ahead (``ahead``),
+    and the same two over the nominal conflicts alone; ``nominal_ok`` (5,): every nominal conflict has some
+    fallback that keeps the margin; ``allowance`` [m]: the leaders' turning allowance this pass used."""
+
+    available: np.ndarray
+    joint: np.ndarray
+    ahead: np.ndarray
+    nominal_joint: np.ndarray
+    nominal_ahead: np.ndarray
+    nominal_ok: np.ndarray
+    allowance: float
+    conflicts: tuple[Conflict, ...] | None
+
+
 def _evaluate(
     state: RoadState,
     dyn: Dynamics,
@@ -163,7 +181,19 @@ def _evaluate(
     if mode == "nominal" and formula == "paper":
         safe, gaps = _paper_eq12(state, dyn)
         return _finish(safe & available, available, gaps, gaps)
+    gaps = rule_gaps(state, dyn, mode, nominal_leaders, carried)
+    return rule_verdict(
+        gaps, state, dyn, mode, lambda: _evaluate(state, dyn, mode, formula, nominal_leaders=True, carried=carried)
+    )
 
+
+def rule_gaps(
+    state: RoadState, dyn: Dynamics, mode: Mode, nominal_leaders: bool, carried: CarriedFollowers | None = None
+) -> RuleGaps:
+    """The worst-case gaps [m] of :func:`evaluate`'s kinematic rule in ``state`` (``nominal_leaders``: the leaders
+    bounded as nominal mode bounds them, as in robust's straight fallback), before its verdict
+    (:func:`rule_verdict`)."""
+    available = available_actions(state, dyn)
     t = dyn.times
     rule = dyn.rule
     ego_x, ego_v = ego_trajectories(state, dyn)  # (5, F, T)
@@ -333,6 +363,20 @@ def _evaluate(
             if (is_nominal & is_ahead).any():
                 nominal_ahead[a] = worst[is_nominal & is_ahead].min(axis=0)
             nominal_ok[a] = bool((worst[is_nominal].max(axis=1) >= dyn.margin).all())
+    return RuleGaps(
+        available, joint_gap, ahead_gap, nominal_joint, nominal_ahead, nominal_ok, allowance, tuple(deciding)
+    )
+
+
+def rule_verdict(
+    gaps: RuleGaps, state: RoadState, dyn: Dynamics, mode: Mode, straight: Callable[[], SafetyResult]
+) -> SafetyResult:
+    """:func:`evaluate`'s verdict from the worst-case gaps [m] of :func:`rule_gaps`: the safe actions, else the
+    mask of ``straight`` (robust's straight fallback: the rule with nominal's leader bound, called only then), else
+    the least-bad action, its forecast run on ``state``."""
+    available, joint_gap, ahead_gap = gaps.available, gaps.joint, gaps.ahead
+    nominal_joint, nominal_ahead, nominal_ok = gaps.nominal_joint, gaps.nominal_ahead, gaps.nominal_ok.copy()
+    deciding, allowance = gaps.conflicts, gaps.allowance
     best_gap = np.where(available, joint_gap.max(axis=1), -np.inf)
     safe = ((best_gap >= dyn.margin) if mode == "robust" else nominal_ok) & available
     if not math.isfinite(dyn.ego_leave_time):
@@ -341,14 +385,13 @@ def _evaluate(
         safe[[LANE_LEFT, LANE_RIGHT]] = False
         nominal_ok[[LANE_LEFT, LANE_RIGHT]] = False
     if safe.any():
-        return SafetyResult(safe.copy(), safe, available, False, best_gap, tuple(deciding))
+        return SafetyResult(safe.copy(), safe, available, False, best_gap, deciding)
     if mode == "robust" and dyn.rule.straight_fallback and allowance > 0.0:
         # The stricter leader bound narrows what the rule promises, not what it falls back to: a spawned
         # scene the turning allowance leaves without a safe action is driven as the rule with nominal's leader
         # bound drives it — without turning_in_nominal, the rule without the allowance (with
         # turning_leaders alone its least-bad choice crashed more of those scenes).
-        straight = _evaluate(state, dyn, mode, formula, nominal_leaders=True, carried=carried)
-        return SafetyResult(straight.mask.copy(), safe, available, True, best_gap, tuple(deciding))
+        return SafetyResult(straight().mask.copy(), safe, available, True, best_gap, deciding)
     # Least-bad choice. Robust picks among the nominally safe actions when there are some (so that
     # robust ⊆ nominal holds for the final masks too), else exactly what nominal would pick.
     nominal_safe = nominal_ok & available
@@ -356,9 +399,11 @@ def _evaluate(
         first, second, pool = ahead_gap, joint_gap, nominal_safe
     else:
         first, second, pool = nominal_ahead, nominal_joint, available
-    forecast = forecast_ranking(state, dyn, ego_x, available) if dyn.rule.forecast_fallback else None
+    forecast = None
+    if dyn.rule.forecast_fallback:
+        forecast = forecast_ranking(state, dyn, ego_trajectories(state, dyn)[0], available)
     choice = least_bad_action(first.max(axis=1), second.max(axis=1), pool, forecast)
-    return replace(_fallback(choice, safe, available, best_gap), conflicts=tuple(deciding))
+    return replace(_fallback(choice, safe, available, best_gap), conflicts=deciding)
 
 
 def forecast_ranking(state: RoadState, dyn: Dynamics, ego_x: np.ndarray, available: np.ndarray) -> np.ndarray:

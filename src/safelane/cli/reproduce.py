@@ -53,7 +53,17 @@ def reproduce(
             "--methods",
             help="Methods to run, comma-separated, or all (default). With --actions continuous the arms: sac, ppo, "
             "sac-lagrangian bare, ALGO-projection, ALGO-replacement, ALGO-penalty under the shield (default: the "
-            "three bare and sac's three shielded).",
+            "three bare and sac's three shielded). With --preset hidden-types the agents: paper, paper-stack, "
+            "paper-belief, paper-types (robust Q-masking on that state), faster, random (default: all).",
+            metavar="LIST",
+        ),
+    ] = None,
+    shields: Annotated[
+        str | None,
+        typer.Option(
+            "--shields",
+            help="With --preset hidden-types: the shields each agent trains and is tested under, comma-separated: "
+            "robust, belief, omniscient (default: all).",
             metavar="LIST",
         ),
     ] = None,
@@ -95,8 +105,27 @@ def reproduce(
     ] = None,
 ) -> None:
     """Train every method × seed, evaluate on held-out episodes, write Table 4 / Fig. 6 / Fig. 7 and claims
-    (with --actions continuous: SB3 agents bare and under the shield, their table and learning curves)."""
+    (with --actions continuous: SB3 agents bare and under the shield, their table and learning curves;
+    with --preset hidden-types: agents × shields against hidden driver types, the expense of robustness)."""
     check_actions(actions)
+    if preset == "hidden-types":
+        refused = {
+            "--actions": actions is not None,
+            "--decisions": decisions is not None,
+            "--stress-episodes": stress_episodes > 0,
+            "--stress-only": bool(stress_only),
+            "--confirm-on": confirm_on is not None,
+            "--confirm-episodes": confirm_episodes is not None,
+        }
+        for option, given in refused.items():
+            if given:
+                raise ConfigError(f"{option}: not with --preset hidden-types (its runs train for --episodes and "
+                                  "are tested under their own shield)")  # fmt: skip
+        _reproduce_types(out, seeds, episodes, test_episodes, quick, workers, agent_preset,
+                         training_simulator(sets, simulator, None), methods, shields, backend, address)  # fmt: skip
+        return
+    if shields is not None:
+        raise ConfigError("--shields: only with --preset hidden-types (the other presets' methods have their shield)")
     if actions == "continuous" or (actions is None and actions_of(sets) == "continuous"):
         refused = {
             "--episodes": episodes != 200,
@@ -217,3 +246,50 @@ def _reproduce_continuous(
 
         run_comparison(spec, out, workers=workers, progress=tick, backend=backend, address=address)
     typer.echo(f"report: {write_comparison_report(out)}")
+
+
+def _reproduce_types(
+    out: Path, seeds: int, episodes: int, test_episodes: int, quick: bool, workers: int | None, agent_preset: str,
+    sets: list[str], agents: str | None, shields: str | None, backend: str, address: str | None,
+) -> None:  # fmt: skip
+    """``reproduce --preset hidden-types``: every agent × shield × seed trained, tested and reported
+    (:mod:`safelane.running.types_reproduction`)."""
+    from safelane.running.types_reproduction import (
+        AGENTS,
+        QUICK_EPISODES,
+        QUICK_SEEDS,
+        QUICK_TEST_EPISODES,
+        SHIELDS,
+        make_types_spec,
+        parse_names,
+        run_table,
+        write_types_report,
+    )
+
+    if quick:
+        seeds, episodes = min(seeds, QUICK_SEEDS), min(episodes, QUICK_EPISODES)
+        test_episodes = min(test_episodes, QUICK_TEST_EPISODES)
+    check_positive("--seeds", seeds)
+    check_positive("--episodes", episodes)
+    check_positive("--test-episodes", test_episodes)
+    if workers is not None:
+        check_positive("--workers", workers)
+    spec = make_types_spec(
+        agents=parse_names(agents, AGENTS, "--methods"),
+        shields=parse_names(shields, SHIELDS, "--shields"),
+        seeds=list(range(seeds)),
+        episodes=episodes,
+        test_episodes=test_episodes,
+        agent_preset=agent_preset,
+        sets=sets,
+        quick=quick,
+    )
+    with episode_progress("reproduce (runs)", len(spec.tasks())) as advance:
+        done = [0]
+
+        def tick(_: Any) -> None:
+            advance(done[0], None)
+            done[0] += 1
+
+        run_table(spec, out, workers=workers, progress=tick, backend=backend, address=address)
+    typer.echo(f"report: {write_types_report(out)}")

@@ -122,12 +122,14 @@ def test_hidden_types_ids_are_the_preset_on_both_simulators() -> None:
         assert obs.shape == (26 + 4 * 3,) and info["snapshot"].driver_type is not None
     finally:
         seen.close()
-    vec = gym.make_vec(HIDDEN_FAST_ID, num_envs=2, config=SHORT)
-    try:
-        obs, _ = vec.reset(seed=0)
-        assert isinstance(vec, FastVectorEnv) and obs.shape == (2, 26)
-    finally:
-        vec.close()
+    # Unshielded, the fast batch plays the mixture; the robust shield judges one reading per type, per environment.
+    for shield, kind in (("none", FastVectorEnv), ("robust", SafelaneVectorEnv)):
+        vec = gym.make_vec(HIDDEN_FAST_ID, num_envs=2, shield=shield, config=SHORT)
+        try:
+            obs, _ = vec.reset(seed=0)
+            assert isinstance(vec, kind) and obs.shape == (2, 26)
+        finally:
+            vec.close()
 
 
 def test_keywords_reach_the_config() -> None:

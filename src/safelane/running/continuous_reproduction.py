@@ -29,8 +29,8 @@ from safelane.config import ConfigError, validation_message
 from safelane.core.files import atomic_write_text
 from safelane.reporting import stats
 from safelane.reporting.plots import plot_curve_bands
-from safelane.running.backend import TaskFailure, check_backend, claim_out_dir, format_failure, run_tasks
-from safelane.running.experiments import TEST_SEED_BASE, run_dir_of
+from safelane.running.backend import check_backend, claim_out_dir
+from safelane.running.experiments import TEST_SEED_BASE, run_dir_of, run_then_collect
 from safelane.running.reproduction_report import BOOTSTRAP_REPS
 
 
@@ -245,32 +245,11 @@ def run_comparison(
     for arm in spec.arms:  # a bad --set fails here in one line, not once per task
         resolve(train_config_of(spec, arm, spec.seeds[0]))
     tasks = [(a, s) for s in spec.seeds for a in spec.arms]
-    start = time.perf_counter()
-    failures: list[str] = []
-
-    def finished(i: int, result: dict[str, Any] | TaskFailure) -> None:
-        if isinstance(result, TaskFailure):
-            failures.append(f"{tasks[i][0]} seed {tasks[i][1]}: {format_failure(result)}")
-        elif progress:
-            progress(result)
-
-    spec_json = spec.model_dump_json()
-    run_tasks(
-        run_arm_task,
-        [(str(out.resolve()), spec_json, a, s) for a, s in tasks],
-        backend=backend,
-        workers=workers,
-        address=address,
-        on_result=finished,
-        name="reproduce-continuous",
-        storage=out.resolve() / "ray",
-    )
-    if failures:
-        raise ConfigError(f"reproduce: {len(failures)} run(s) failed; first: {failures[0]}")
-    results = collect(out, spec)
-    results["wall_time_s"] = time.perf_counter() - start
-    atomic_write_text(out / "results.json", json.dumps(results, indent=1))
-    return results
+    return run_then_collect(
+        run_arm_task, tasks, out, spec.model_dump_json(), lambda t: f"{t[0]} seed {t[1]}",
+        lambda: collect(out, spec), "reproduce-continuous", time.perf_counter(), backend=backend, workers=workers,
+        address=address, progress=progress,
+    )  # fmt: skip
 
 
 SCORES: tuple[str, ...] = ("collision_rate", "off_road_rate", "mean_speed", "intervention_rate", "mean_return")

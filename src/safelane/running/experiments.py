@@ -273,31 +273,45 @@ def run_experiment(
     _validate_runs(spec)  # a bad --set fails here in one line, not once per task
     tasks = [(m, s) for s in spec.seeds for m in spec.methods]
     start = time.perf_counter()
-    spec_json = spec.model_dump_json()
+    if learner == "batched":
+        _batched_training(spec, out, tasks, workers, backend, address)
+    return run_then_collect(
+        run_task, tasks, out, spec.model_dump_json(), lambda t: f"{t[0]} seed {t[1]}", lambda: collect(out, spec),
+        "reproduce", start, backend=backend, workers=workers, address=address, progress=progress,
+    )  # fmt: skip
+
+
+def run_then_collect(
+    task: Callable[..., dict[str, Any]], tasks: list[tuple[Any, ...]], out: Path, spec_json: str,
+    label: Callable[[tuple[Any, ...]], str], collect_results: Callable[[], dict[str, Any]], name: str, start: float,
+    backend: str = "local", workers: int | None = None, address: str | None = None,
+    progress: Callable[[dict[str, Any]], None] | None = None,
+) -> dict[str, Any]:
+    """The step every reproduction ends with: ``task(out_dir, spec_json, *args)`` for each of ``tasks`` on
+    ``backend`` (``progress`` called with each run's record), a one-line ConfigError naming the first failed run
+    (``label`` of its args), then ``collect_results()`` with ``wall_time_s`` [s] since ``start`` written atomically
+    to ``out/results.json`` and returned."""
     failures: list[str] = []
 
     def finished(i: int, result: dict[str, Any] | TaskFailure) -> None:
         if isinstance(result, TaskFailure):
-            failures.append(f"{tasks[i][0]} seed {tasks[i][1]}: {format_failure(result)}")
+            failures.append(f"{label(tasks[i])}: {format_failure(result)}")
         elif progress:
             progress(result)
 
-    if learner == "batched":
-        _batched_training(spec, out, tasks, workers, backend, address)
-    # Absolute: a Ray worker does not run in this directory.
     run_tasks(
-        run_task,
-        [(str(out.resolve()), spec_json, m, s) for m, s in tasks],
+        task,
+        [(str(out.resolve()), spec_json, *args) for args in tasks],  # absolute: a Ray worker runs elsewhere
         backend=backend,
         workers=workers,
         address=address,
         on_result=finished,
-        name="reproduce",
+        name=name,
         storage=out.resolve() / "ray",
     )
     if failures:
         raise ConfigError(f"reproduce: {len(failures)} run(s) failed; first: {failures[0]}")
-    results = collect(out, spec)
+    results = collect_results()
     results["wall_time_s"] = time.perf_counter() - start
     atomic_write_text(out / "results.json", json.dumps(results, indent=1))
     return results

@@ -29,8 +29,8 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 from safelane.config import ConfigError, validation_message
 from safelane.core.files import atomic_write_text
 from safelane.reporting import stats
-from safelane.running.backend import TaskFailure, check_backend, claim_out_dir, format_failure, run_tasks
-from safelane.running.experiments import TEST_SEED_BASE, run_dir_of
+from safelane.running.backend import check_backend, claim_out_dir
+from safelane.running.experiments import TEST_SEED_BASE, run_dir_of, run_then_collect
 from safelane.running.reproduction_report import BOOTSTRAP_REPS
 
 PRESET = "hidden-types"
@@ -222,33 +222,11 @@ def run_table(
     _validate(spec)
     claim_out_dir(out, spec.model_dump_json(indent=2), "spec.json", "reproduction")
     tasks = spec.tasks()
-    start = time.perf_counter()
-    failures: list[str] = []
-
-    def finished(i: int, result: dict[str, Any] | TaskFailure) -> None:
-        if isinstance(result, TaskFailure):
-            agent, shield, seed = tasks[i]
-            failures.append(f"{arm_name(agent, shield)} seed {seed}: {format_failure(result)}")
-        elif progress:
-            progress(result)
-
-    spec_json = spec.model_dump_json()
-    run_tasks(
-        run_arm_task,
-        [(str(out.resolve()), spec_json, *task) for task in tasks],
-        backend=backend,
-        workers=workers,
-        address=address,
-        on_result=finished,
-        name="reproduce-hidden-types",
-        storage=out.resolve() / "ray",
-    )
-    if failures:
-        raise ConfigError(f"reproduce: {len(failures)} run(s) failed; first: {failures[0]}")
-    results = collect(out, spec)
-    results["wall_time_s"] = time.perf_counter() - start
-    atomic_write_text(out / "results.json", json.dumps(results, indent=1))
-    return results
+    return run_then_collect(
+        run_arm_task, tasks, out, spec.model_dump_json(), lambda t: f"{arm_name(t[0], t[1])} seed {t[2]}",
+        lambda: collect(out, spec), "reproduce-hidden-types", time.perf_counter(), backend=backend, workers=workers,
+        address=address, progress=progress,
+    )  # fmt: skip
 
 
 SCORES: tuple[str, ...] = ("mean_speed", "collision_rate", "fallback_rate", "shield_intervention_rate")

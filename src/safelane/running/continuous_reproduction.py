@@ -30,7 +30,7 @@ from safelane.core.files import atomic_write_text
 from safelane.reporting import stats
 from safelane.reporting.plots import plot_curve_bands
 from safelane.running.backend import check_backend, claim_out_dir
-from safelane.running.experiments import TEST_SEED_BASE, run_dir_of, run_then_collect
+from safelane.running.experiments import TEST_SEED_BASE, known_names, run_dir_of, run_then_collect
 from safelane.running.reproduction_report import BOOTSTRAP_REPS
 
 
@@ -116,10 +116,7 @@ class ContinuousSpec(BaseModel):
     @field_validator("arms")
     @classmethod
     def _known_arms(cls, arms: list[str]) -> list[str]:
-        unknown = [a for a in arms if a not in ARMS]
-        if unknown:
-            raise ValueError(f"unknown arm {unknown[0]!r}; allowed: {', '.join(ARMS)}")
-        return arms
+        return known_names(arms, ARMS, "arm")
 
 
 def make_continuous_spec(**fields: Any) -> ContinuousSpec:

@@ -281,6 +281,15 @@ def run_experiment(
     )  # fmt: skip
 
 
+def known_names(names: list[str], allowed: Any, what: str) -> list[str]:
+    """``names`` if each is one of ``allowed``; else a ValueError naming the first unknown one and the allowed ones
+    (a spec's field validator: pydantic turns it into the field's one-line error)."""
+    unknown = [n for n in names if n not in allowed]
+    if unknown:
+        raise ValueError(f"unknown {what} {unknown[0]!r}; allowed: {', '.join(allowed)}")
+    return names
+
+
 def run_then_collect(
     task: Callable[..., dict[str, Any]], tasks: list[tuple[Any, ...]], out: Path, spec_json: str,
     label: Callable[[tuple[Any, ...]], str], collect_results: Callable[[], dict[str, Any]], name: str, start: float,

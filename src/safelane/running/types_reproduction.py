@@ -30,7 +30,7 @@ from safelane.config import ConfigError, validation_message
 from safelane.core.files import atomic_write_text
 from safelane.reporting import stats
 from safelane.running.backend import check_backend, claim_out_dir
-from safelane.running.experiments import TEST_SEED_BASE, run_dir_of, run_then_collect
+from safelane.running.experiments import TEST_SEED_BASE, known_names, run_dir_of, run_then_collect
 from safelane.running.reproduction_report import BOOTSTRAP_REPS
 
 PRESET = "hidden-types"
@@ -89,18 +89,12 @@ class TypesSpec(BaseModel):
     @field_validator("agents")
     @classmethod
     def _known_agents(cls, agents: list[str]) -> list[str]:
-        unknown = [a for a in agents if a not in AGENTS]
-        if unknown:
-            raise ValueError(f"unknown agent {unknown[0]!r}; allowed: {', '.join(AGENTS)}")
-        return agents
+        return known_names(agents, AGENTS, "agent")
 
     @field_validator("shields")
     @classmethod
     def _known_shields(cls, shields: list[str]) -> list[str]:
-        unknown = [s for s in shields if s not in SHIELDS]
-        if unknown:
-            raise ValueError(f"unknown shield {unknown[0]!r}; allowed: {', '.join(SHIELDS)}")
-        return shields
+        return known_names(shields, SHIELDS, "shield")
 
     def tasks(self) -> list[tuple[str, str, int]]:
         """Every (agent, shield, seed) run; always-FASTER is deterministic, so it runs on the first seed only."""

@@ -171,7 +171,11 @@ def test_evaluate_prints_a_table_without_json() -> None:
 # --- bench ----------------------------------------------------------------------------------------------------
 
 
-def test_bench_json(tmp_path: Path) -> None:
+def test_bench_json(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    # The report's figures, noise and regressions, not the rates: two batch sizes, short batched samples.
+    monkeypatch.setattr("safelane.running.bench.BATCH_SIZES", (1, 64))
+    monkeypatch.setattr("safelane.running.bench.BATCH_DECISIONS", 2_000)
+    monkeypatch.setattr("safelane.running.bench.SHARE_DECISIONS", 2_000)
     # A published run far faster than any machine (and one figure it lacks): bench lists the regression.
     published = tmp_path / "published.json"
     published.write_text(json.dumps({"fast_decisions_per_s": 1e12, "shield_mask_us_mean_fast": 1e-6}))
@@ -223,12 +227,12 @@ def test_bench_json(tmp_path: Path) -> None:
         out["committed_mask_us_mean_fast"] / out["committed_robust_mask_us_mean_fast"]
     )
     assert out["committed_mask_decisions"] >= 1
-    assert set(out["fast_batched_decisions_per_s"]) == {"1", "16", "64", "256"}
+    assert set(out["fast_batched_decisions_per_s"]) == {"1", "64"}
     assert all(rate > 0 for rate in out["fast_batched_decisions_per_s"].values())
     for n, rate in out["fast_batched_decisions_per_s"].items():
         assert out["fast_batched_speedup"][n] == pytest.approx(rate / out["highway_env_decisions_per_s"])
-    assert set(out["fast_batched_threaded_decisions_per_s"]) == {"1", "16", "64", "256"}
-    assert out["fast_batched_threads"] >= 1 and set(out["fast_batched_threaded_speedup"]) == {"1", "16", "64", "256"}
+    assert set(out["fast_batched_threaded_decisions_per_s"]) == {"1", "64"}
+    assert out["fast_batched_threads"] >= 1 and set(out["fast_batched_threaded_speedup"]) == {"1", "64"}
     assert 0 < out["shield_mask_share_fast"] < 1 and out["batched_shield_share"] < 1
     for key in ("train_steps_per_s_fast", "agent_ms_per_decision_fast", "train_steps_per_s_constrained_fast"):
         assert out[key] > 0

@@ -84,6 +84,8 @@ def test_comparison_writes_results_table_and_curves_and_resumes(tmp_path: Path) 
     [
         (["--actions", "continuous", "--methods", "sac,sack"], "--methods: unknown arm 'sack'; allowed"),
         (["--actions", "continuous", "--episodes", "5"], "--episodes: not with --actions continuous"),
+        (["--actions", "continuous", "--learner", "batched"], "--learner: not with --actions continuous"),
+        (["--actions", "continuous", "--gifs"], "--gifs: not with --actions continuous"),
         (["--actions", "continuous", "--decisions", "0"], "--decisions: must be >= 1"),
         (["--decisions", "100"], "--decisions: only with --actions continuous"),
         (["--actions", "sideways"], "--actions: got 'sideways'; allowed"),

@@ -193,16 +193,21 @@ def test_a_killed_sweep_resumes_without_repeating_or_losing_rows(tmp_path: Path)
 # --- the Ray backend ----------------------------------------------------------------------------------
 
 
-def test_ray_backend_gives_the_local_rows_and_reproduce_results(tmp_path: Path) -> None:
-    """The same 2×2 sweep on a local Ray instance (2 CPUs) gives the local backend's rows; reproduce on
-    Ray gives the local runner's results."""
+def test_ray_backend_gives_the_local_rows(tmp_path: Path) -> None:
+    """The same 2×2 sweep on a local Ray instance (2 CPUs) gives the local backend's rows."""
     pytest.importorskip("ray.tune")
-    from safelane.running.experiments import make_spec, run_experiment
-
     spec = load_sweep_spec(write_spec(tmp_path / "s.yaml"))
     run_sweep(spec, tmp_path / "local", workers=2)
     run_sweep(spec, tmp_path / "ray", backend="ray", workers=2)
     assert rows_of(tmp_path / "ray") == rows_of(tmp_path / "local")
+
+
+@pytest.mark.slow  # a second Ray instance (≈ 25 s); the tasks go through the same backend as the sweep's above
+def test_reproduce_on_ray_gives_the_local_results(tmp_path: Path) -> None:
+    """reproduce on Ray gives the local runner's results."""
+    pytest.importorskip("ray.tune")
+    from safelane.running.experiments import make_spec, run_experiment
+
     small = make_spec(methods=["dqn", "robust"], seeds=[0], episodes=1, test_episodes=2, sets=TINY, quick=True)
     local = run_experiment(small, tmp_path / "rep-local", workers=2)
     remote = run_experiment(small, tmp_path / "rep-ray", workers=2, backend="ray")

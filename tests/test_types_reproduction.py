@@ -83,6 +83,8 @@ def test_table_writes_results_and_report_and_resumes(tmp_path: Path) -> None:
         (["--preset", "hidden-types", "--decisions", "5"], "--decisions: not with --preset hidden-types"),
         (["--preset", "hidden-types", "--confirm-on", "highway-env"], "--confirm-on: not with --preset hidden-types"),
         (["--preset", "hidden-types", "--episodes", "0"], "--episodes: must be >= 1"),
+        (["--preset", "hidden-types", "--learner", "per-run"], "--learner: not with --preset hidden-types"),
+        (["--preset", "hidden-types", "--gifs"], "--gifs: not with --preset hidden-types"),
         (["--shields", "robust"], "--shields: only with --preset hidden-types"),
     ],
 )

@@ -40,7 +40,10 @@ def reproduce(
     agent_preset: Annotated[str, typer.Option("--agent-preset", help="paper or tuned.")] = "tuned",
     sets: SetOpt = None,
     simulator: TrainSimulatorOpt = None,
-    gifs: Annotated[bool, typer.Option("--gifs/--no-gifs", help="Render one episode GIF per method.")] = True,
+    gifs: Annotated[
+        bool | None,
+        typer.Option("--gifs/--no-gifs", help="Render one episode GIF per method (default: on; DQN methods only)."),
+    ] = None,
     stress_episodes: Annotated[
         int, typer.Option("--stress-episodes", help="Also evaluate every run on the stress conditions (0: skip).")
     ] = 0,
@@ -86,13 +89,14 @@ def reproduce(
     backend: BackendOpt = "local",
     address: AddressOpt = None,
     learner: Annotated[
-        str,
+        str | None,
         typer.Option(
             "--learner",
             help="batched: the fast simulator's runs trained as one batch per worker (the same runs, bit for "
-            "bit, several times faster); per-run: one run per task (highway-env runs always are).",
+            "bit, several times faster); per-run: one run per task (highway-env runs always are). Default: "
+            "batched (DQN methods only).",
         ),
-    ] = "batched",
+    ] = None,
     actions: ActionsOpt = None,
     decisions: Annotated[
         int | None,
@@ -116,6 +120,8 @@ def reproduce(
             "--stress-only": bool(stress_only),
             "--confirm-on": confirm_on is not None,
             "--confirm-episodes": confirm_episodes is not None,
+            "--learner": learner is not None,
+            "--gifs": bool(gifs),
         }
         for option, given in refused.items():
             if given:
@@ -135,6 +141,8 @@ def reproduce(
             "--confirm-on": confirm_on is not None,
             "--confirm-episodes": confirm_episodes is not None,
             "--simulator": simulator not in (None, "fast"),
+            "--learner": learner is not None,
+            "--gifs": bool(gifs),
         }
         for option, given in refused.items():
             if given:
@@ -196,8 +204,10 @@ def reproduce(
             advance(done[0], None)
             done[0] += 1
 
-        run_experiment(spec, out, workers=workers, progress=tick, backend=backend, address=address, learner=learner)
-    gif_paths = render_gifs(out, max_steps=20 if quick else 40) if gifs else None
+        run_experiment(
+            spec, out, workers=workers, progress=tick, backend=backend, address=address, learner=learner or "batched"
+        )
+    gif_paths = render_gifs(out, max_steps=20 if quick else 40) if gifs is not False else None
     report = write_report(out, gif_paths)
     typer.echo(f"report: {report}")
 

@@ -43,6 +43,8 @@ BENCH_PRESET = "fast"
 BENCH_SHIELDS = ("nominal", "robust")
 BATCH_SIZES = (1, 16, 64, 256)
 """Batch sizes of ``fast_batched_decisions_per_s``."""
+BATCH_DECISIONS = 12_000
+"""Decisions per sample of ``fast_batched_decisions_per_s`` (about a second of each batch size)."""
 SHARE_BATCH = 64
 """The batch size at which ``batched_shield_share`` is measured."""
 SHARE_DECISIONS = 20_000
@@ -444,7 +446,7 @@ def run_bench(
         fast_shielded.close()
     committed = committed_mask_figures(min(episodes, COMMITTED_EPISODES), seed)
     envpool_rate = measure_envpool(dict(preset_cfg.env), max(fast_n, 1000), seed)
-    batch_decisions = max(fast_n, 12_000)  # about a second of each batch size
+    batch_decisions = max(fast_n, BATCH_DECISIONS)
     batched = {str(n): measure_batched(n, batch_decisions, seed, shield) for n in BATCH_SIZES}
     # The shield's share of a batched decision: N = 64 with and without it, alternating, one thread.
     with_shield = without_shield = 0.0

@@ -359,4 +359,8 @@ def test_a_crash_with_a_car_whose_true_type_was_ruled_out_is_counted(truth: int,
     assert info["type_ruled_out_crash"] is ruled_out
     record = tally.record(info)
     assert record.type_ruled_out_crash is ruled_out and record.to_dict()["type_ruled_out_crash"] is ruled_out
-    assert summarize([record])["collisions_type_ruled_out"] == int(ruled_out)
+    summary = summarize([record])
+    assert summary["collisions_type_ruled_out"] == int(ruled_out)
+    # the crash stands against the promise only where the true type was kept: its context, else none
+    kept = summary["collision_contexts_types_kept"]
+    assert sum(kept.values()) == 1 - int(ruled_out) and kept[record.collision_context] == 1 - int(ruled_out)

@@ -291,6 +291,34 @@ def test_the_cli_plays_a_spec_under_another_shield(tmp_path: Path) -> None:
         assert len(result.output.strip().splitlines()) == 1
 
 
+def test_a_campaign_under_the_belief_shield_splits_its_crashes_by_the_true_type(tmp_path: Path) -> None:
+    """Hidden driver types under the belief shield: each cell and the totals count the crashes with a car whose
+    true type had been ruled out apart from the others' contexts (together every crash); a mixture's label is
+    short; the spec's three shields are one flag apart."""
+    spec = load_campaign_spec(
+        write_spec(
+            tmp_path / "b.yaml", preset="hidden-types", shield="belief", episodes=10,
+            sets=["env.duration=20", "env.vehicles_density=3.0"], policies=["random", "faster"],
+            axes={"mix": [{"traffic.driver_mix": [{"type": "timid", "weight": 1},
+                                                  {"type": "aggressive", "weight": 3}]}]},
+        )
+    )  # fmt: skip
+    assert spec.cells()[0]["labels"]["mix"] == "driver_mix=timid:1+aggressive:3"
+    summary = run_campaign(spec, tmp_path / "out", workers=1)
+    kept = summary["collision_contexts_types_kept"]  # this dense traffic spawns the ego into two crashes
+    assert summary["collisions"] >= 1
+    assert summary["collisions_type_ruled_out"] + sum(kept.values()) == summary["collisions"]
+    cells = [json.loads(p.read_text()) for p in sorted((tmp_path / "out" / "cells").glob("*.json"))]
+    assert sum(c["collisions_type_ruled_out"] for c in cells) == summary["collisions_type_ruled_out"]
+    assert "collisions_type_ruled_out" in (tmp_path / "out" / "cells.csv").read_text().splitlines()[0]
+    assert "ruled out" in (tmp_path / "out" / "summary.md").read_text()
+    shipped = load_campaign_spec(GRID.parent / "claim-hidden-types.yaml")
+    assert shipped.shield == "belief" and len(shipped.cells()) * shipped.episodes >= 100_000
+    assert load_campaign_spec(GRID.parent / "claim-hidden-types.yaml", {"shield": "robust"}).shield == "robust"
+    with pytest.raises(ConfigError, match=r"shield\.mode: 'belief' reads the driver types"):
+        run_campaign(load_campaign_spec(write_spec(tmp_path / "n.yaml", shield="belief")), tmp_path / "o2")
+
+
 def test_shards_split_the_grid_and_merge_to_the_whole_campaigns_totals(tmp_path: Path) -> None:
     """``--shard K/N`` plays the cells K-1, K-1+N, … with their grid indices (so their seeds): the shards partition
     the grid; ``--merge`` over every shard gives the whole campaign's totals, with the shards named and the merge

@@ -587,6 +587,11 @@ def summarize(records: list[EpisodeRecord], **meta: Any) -> dict[str, Any]:
     believed = [r for r in records if r.type_ruled_out_crash is not None]
     if believed:  # the belief shield: the crashes outside its sets (a true type ruled out), beside the others
         summary["collisions_type_ruled_out"] = sum(bool(r.type_ruled_out_crash) for r in believed)
+        # The promise's contexts of the crashes inside the belief's sets (a true type kept), the robust rule's
+        # promise over the types kept: a hole of the rule is a "from_safe_state" here.
+        summary["collision_contexts_types_kept"] = {
+            c: sum(r.collision_context == c and not r.type_ruled_out_crash for r in believed) for c in contexts
+        }
     summary.update(meta)
     return summary
 

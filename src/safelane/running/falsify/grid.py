@@ -57,6 +57,9 @@ CELL_SEED_STRIDE = 10_000
 RUN_PREFIX = "run:"
 """A campaign policy ``run:RUN_DIR`` is the greedy policy of that trained run (its cells at another
 decision rate, state or action set are recorded as skipped)."""
+BELIEF_FIGURES: tuple[str, ...] = ("collisions_type_ruled_out", "collision_contexts_types_kept")
+"""What a cell under the belief shield adds: its crashes with a car whose true driver type the belief had ruled out
+(outside its sets), and the promise's contexts of the others."""
 BREAK_CLASSES: tuple[str, ...] = ("second_lane_cut_in", "adjacent_lane_change", "ego_lane_change", "other")
 NEAR_CHANGE = 60.0
 """[m] How close along the road a lane-changing vehicle must be to count in :func:`break_class`."""
@@ -70,9 +73,13 @@ class CampaignBase(BaseModel):
 
     name: str = "campaign"
     description: str = ""
-    preset: Literal["fast", "paper"] = "fast"
+    preset: Literal["fast", "paper", "hidden-types"] = "fast"
     simulator: Literal["fast", "highway-env"] = "fast"
-    shield: Literal["nominal", "robust", "committed"] = "robust"
+    shield: Literal["nominal", "robust", "committed", "omniscient", "belief"] = Field(
+        "robust",
+        description="The shield's mode; omniscient and belief read the driver types of a traffic.driver_mix (preset "
+        "hidden-types).",
+    )
     actions: Literal["discrete", "continuous"] = Field(
         "discrete",
         description="The ego's actions: discrete (meta-actions) or continuous (acceleration and steering; shield "
@@ -196,7 +203,17 @@ class CampaignSpec(CampaignBase):
 def _label(setting: dict[str, Any]) -> str:
     """A short text for a setting: last key part = value, a dotted class path by its last part
     (``other_vehicles_type=AggressiveVehicle``, ``vehicles_density=0.5``)."""
-    return ",".join(f"{k.split('.')[-1]}={v.split('.')[-1] if isinstance(v, str) else v}" for k, v in setting.items())
+    return ",".join(f"{k.split('.')[-1]}={_value_label(v)}" for k, v in setting.items())
+
+
+def _value_label(value: Any) -> str:
+    """A setting's value as a label: a dotted path by its last part, a driver mixture's list as
+    ``type:weight+…`` (``timid:3+normal:1+aggressive:1``)."""
+    if isinstance(value, str):
+        return value.split(".")[-1]
+    if isinstance(value, list) and all(isinstance(v, dict) and set(v) == {"type", "weight"} for v in value):
+        return "+".join(f"{v['type']}:{v['weight']:g}" for v in value)
+    return str(value)
 
 
 def read_spec_yaml(path: Path) -> dict[str, Any]:
@@ -328,6 +345,7 @@ def play_cell(
         "break_file_classes": file_classes,
         **{k: s[k] for k in COMMITTED_FIGURES if k in s},  # the committed mode's lapses, plan-forced decisions…
         **{k: s[k] for k in CONTINUOUS_FIGURES if k in s},  # continuous actions: off road, projections
+        **{k: s[k] for k in BELIEF_FIGURES if k in s},  # the belief shield: crashes with a true type ruled out
         "wall_time_s": time.perf_counter() - start,
     }
 
@@ -418,7 +436,7 @@ def write_summary(out: Path, spec: CampaignSpec) -> dict[str, Any]:
     else:
         columns = ["index", "policy", *axes, "episodes", "decisions", "collisions", "invariant_breaks",
                    *BREAK_CLASSES, "fallback_rate", "mean_speed", *(COMMITTED_FIGURES if committed else ()),
-                   "skipped"]  # fmt: skip
+                   *(("collisions_type_ruled_out",) if spec.shield == "belief" else ()), "skipped"]  # fmt: skip
     buffer = io.StringIO()
     writer = csv.DictWriter(buffer, fieldnames=columns, extrasaction="ignore", lineterminator="\n")
     writer.writeheader()
@@ -482,6 +500,15 @@ def campaign_totals(spec: CampaignSpec, played: list[dict[str, Any]], cells: int
         for key in ("invariant_breaks", "invariant_break_rate", "break_classes", "fallback_rate"):
             del summary[key]
         summary.update(continuous_figures(played))
+    if spec.shield == "belief":
+        kept = dict.fromkeys(collision_contexts(False), 0)
+        for r in played:
+            for k, v in r.get("collision_contexts_types_kept", {}).items():
+                kept[k] = kept.get(k, 0) + v
+        summary.update(
+            collisions_type_ruled_out=sum(r.get("collisions_type_ruled_out", 0) for r in played),
+            collision_contexts_types_kept=kept,
+        )
     if committed:  # cells played before the committed figures were counted lack them: left out of the totals
         counted = [r for r in played if "lapses" in r]
         summary.update(
@@ -614,6 +641,15 @@ def _markdown(spec: CampaignSpec, summary: dict[str, Any], played: list[dict[str
         + (f", the ego's mean speed {speed:.2f} m/s." if speed is not None else "."),
         "",
     ]
+    if "collisions_type_ruled_out" in summary:
+        kept, ruled_out = summary["collision_contexts_types_kept"], summary["collisions_type_ruled_out"]
+        lines += [
+            f"The belief's sets (each car every type whose posterior exceeds ε): **{ruled_out} collisions with a "
+            f"car whose true type had been ruled out** (outside the sets: the belief's promise is "
+            f"probabilistic); the {summary['collisions'] - ruled_out} others against the "
+            f"rule's promise: {kept} (**{kept.get('from_safe_state', 0)} from safe states**).",
+            "",
+        ]
     committed = spec.shield == "committed"
     if committed and "lapses" in summary:
         forced, waived = summary["plan_forced_rate"], summary.get("courtesy_waived_rate")

@@ -414,7 +414,9 @@ class FastHighwayEnv(gym.Env):
         fields["ego_target_speed"] = float(kin[L.TSPD, 0])
         fields["ego_speed_index"] = int(self.E[0])
         fields["ego_lane_offset"] = float(kin[1, 0] - int(ints[0, 0]) * self._lane_w)
-        fields["position"] = kin[: L.Y + 1].T
+        # (n, 2) C-ordered like highway-env's, not the F-ordered view kin[:2].T: numba compiles a kernel once per
+        # array layout, and every kernel that reads positions would compile twice in a process that runs both.
+        fields["position"] = F[:, : L.Y + 1].copy()
         fields["speed"] = kin[L.V]
         fields["heading"] = kin[L.H]
         fields["target_speed"] = kin[L.TSPD]

@@ -70,6 +70,34 @@ def reproduce(
             metavar="LIST",
         ),
     ] = None,
+    scenarios: Annotated[
+        str | None,
+        typer.Option(
+            "--scenarios",
+            help="With --preset hidden-types: the scenarios, comma-separated: paper (the preset as it is), dense "
+            "(density 2), aggressive (timid/normal/aggressive weighted 1/1/3), rate3 (3 decisions/s), or all "
+            "(default: paper). paper runs --seeds × --test-episodes, every other one --scenario-seeds × "
+            "--scenario-test-episodes.",
+            metavar="LIST",
+        ),
+    ] = None,
+    scenario_seeds: Annotated[
+        int | None,
+        typer.Option(
+            "--scenario-seeds",
+            help="With --preset hidden-types: seeds (0..K-1) of every scenario but paper (default 3).",
+            metavar="K",
+        ),
+    ] = None,
+    scenario_test_episodes: Annotated[
+        int | None,
+        typer.Option(
+            "--scenario-test-episodes",
+            help="With --preset hidden-types: held-out test episodes per run of every scenario but paper "
+            "(default 200).",
+            metavar="N",
+        ),
+    ] = None,
     confirm_on: Annotated[
         str | None,
         typer.Option(
@@ -110,7 +138,8 @@ def reproduce(
 ) -> None:
     """Train every method × seed, evaluate on held-out episodes, write Table 4 / Fig. 6 / Fig. 7 and claims
     (with --actions continuous: SB3 agents bare and under the shield, their table and learning curves;
-    with --preset hidden-types: agents × shields against hidden driver types, the expense of robustness)."""
+    with --preset hidden-types: agents × shields against hidden driver types, per scenario, the expense of
+    robustness and the learning curves)."""
     check_actions(actions)
     if preset == "hidden-types":
         refused = {
@@ -128,10 +157,19 @@ def reproduce(
                 raise ConfigError(f"{option}: not with --preset hidden-types (its runs train for --episodes and "
                                   "are tested under their own shield)")  # fmt: skip
         _reproduce_types(out, seeds, episodes, test_episodes, quick, workers, agent_preset,
-                         training_simulator(sets, simulator, None), methods, shields, backend, address)  # fmt: skip
+                         training_simulator(sets, simulator, None), methods, shields, backend, address,
+                         scenarios, scenario_seeds, scenario_test_episodes)  # fmt: skip
         return
     if shields is not None:
         raise ConfigError("--shields: only with --preset hidden-types (the other presets' methods have their shield)")
+    only_types = {
+        "--scenarios": scenarios is not None,
+        "--scenario-seeds": scenario_seeds is not None,
+        "--scenario-test-episodes": scenario_test_episodes is not None,
+    }
+    for option, given in only_types.items():
+        if given:
+            raise ConfigError(f"{option}: only with --preset hidden-types (the other presets' traffic is --set's)")
     if actions == "continuous" or (actions is None and actions_of(sets) == "continuous"):
         refused = {
             "--episodes": episodes != 200,
@@ -261,24 +299,34 @@ def _reproduce_continuous(
 def _reproduce_types(
     out: Path, seeds: int, episodes: int, test_episodes: int, quick: bool, workers: int | None, agent_preset: str,
     sets: list[str], agents: str | None, shields: str | None, backend: str, address: str | None,
+    scenarios: str | None, scenario_seeds: int | None, scenario_test_episodes: int | None,
 ) -> None:  # fmt: skip
     """``reproduce --preset hidden-types``: every agent × shield × seed trained, tested and reported
     (:mod:`safelane.running.types_reproduction`)."""
+    from safelane.running.types_report import write_types_report
     from safelane.running.types_reproduction import (
         AGENTS,
         QUICK_EPISODES,
         QUICK_SEEDS,
         QUICK_TEST_EPISODES,
+        SCENARIO_SEEDS,
+        SCENARIO_TEST_EPISODES,
+        SCENARIOS,
         SHIELDS,
         make_types_spec,
         parse_names,
         run_table,
-        write_types_report,
     )
 
+    scenario_seeds = SCENARIO_SEEDS if scenario_seeds is None else scenario_seeds
+    scenario_test_episodes = SCENARIO_TEST_EPISODES if scenario_test_episodes is None else scenario_test_episodes
+    check_positive("--scenario-seeds", scenario_seeds)
+    check_positive("--scenario-test-episodes", scenario_test_episodes)
     if quick:
         seeds, episodes = min(seeds, QUICK_SEEDS), min(episodes, QUICK_EPISODES)
         test_episodes = min(test_episodes, QUICK_TEST_EPISODES)
+        scenario_seeds = min(scenario_seeds, QUICK_SEEDS)
+        scenario_test_episodes = min(scenario_test_episodes, QUICK_TEST_EPISODES)
     check_positive("--seeds", seeds)
     check_positive("--episodes", episodes)
     check_positive("--test-episodes", test_episodes)
@@ -287,9 +335,12 @@ def _reproduce_types(
     spec = make_types_spec(
         agents=parse_names(agents, AGENTS, "--methods"),
         shields=parse_names(shields, SHIELDS, "--shields"),
+        scenarios=parse_names("paper" if scenarios is None else scenarios, SCENARIOS, "--scenarios"),
         seeds=list(range(seeds)),
         episodes=episodes,
         test_episodes=test_episodes,
+        scenario_seeds=list(range(scenario_seeds)),
+        scenario_test_episodes=scenario_test_episodes,
         agent_preset=agent_preset,
         sets=sets,
         quick=quick,

@@ -1,17 +1,23 @@
-"""The price of robustness against hidden driver types, as one table (``safelane reproduce --preset hidden-types``).
+"""The price of robustness against hidden driver types, as one table per scenario (``safelane reproduce --preset
+hidden-types``).
 
 Each **arm** is an agent and the shield it trains and is tested under. The agents: robust Q-masking
 (``--method robust``) on each state of :data:`LEARNED` (``paper``: no types; ``paper-stack``; ``paper-belief``;
 ``paper-types``: the true types, the upper bound), and the fixed policies of :data:`FIXED` (always FASTER, random),
 which the shield overrides. The shields: :data:`SHIELDS` (``robust``: the worst case over every type;
-``belief``: the types above ε; ``omniscient``: the true types). ``run_table(spec, out_dir)`` trains every learned
-(arm, seed) for ``spec.episodes`` episodes into ``out_dir/runs/AGENT.SHIELD-sSEED`` (resuming from the run's
-checkpoint), drives its greedy policy on ``spec.test_episodes`` held-out episodes (seeds ``TEST_SEED_BASE + k``,
-the discrete reproduction's) under its shield, and writes the run's ``eval.json``; a fixed policy is only tested.
-Then ``results.json`` (atomically): per arm the IQM over seeds with its 95 % bootstrap interval of speed, crash
-rate and fallback rate, the crashes with a car whose true type the belief had ruled out, and per agent the expense
-of robustness (omniscient − robust speed) and the share of it the belief shield recovers; ``report.md`` from it
-(:func:`write_types_report`). A run whose ``eval.json`` exists is not run again, so a killed table resumes.
+``belief``: the types above ε; ``omniscient``: the true types). The **scenarios** (:data:`SCENARIOS`) are the
+traffic the arms drive in: ``paper`` (the preset as it is) on ``spec.seeds`` with ``spec.test_episodes`` test
+episodes per run, each other one (:data:`SCENARIO_SETS`: denser, more aggressive, three decisions a second) on
+``spec.scenario_seeds`` with ``spec.scenario_test_episodes``. ``run_table(spec, out_dir)`` trains every learned
+(scenario, arm, seed) for ``spec.episodes`` episodes into :func:`types_run_dir` (``runs/AGENT.SHIELD-sSEED`` for
+``paper``, ``runs/SCENARIO/AGENT.SHIELD-sSEED`` for another; resuming from the run's checkpoint), drives its greedy
+policy on the held-out test episodes (seeds ``TEST_SEED_BASE + k``, the discrete reproduction's) under its shield,
+and writes the run's ``eval.json``; a fixed policy is only tested. Then ``results.json`` (atomically): per scenario
+and arm the IQM over seeds with its 95 % bootstrap interval of speed, crash rate and fallback rate, the crashes
+with a car whose true type the belief had ruled out, and per agent the expense of robustness (omniscient − robust
+speed) and the share of it the belief shield recovers; ``report.md`` and the learning curves from it
+(:func:`safelane.running.types_report.write_types_report`). A run whose ``eval.json`` exists is not run again, so
+a killed table resumes; so does a folder of a table from before the scenarios (its runs are the ``paper`` ones).
 """
 
 from __future__ import annotations
@@ -47,7 +53,27 @@ AGENTS: dict[str, str] = {**LEARNED, **FIXED}
 SHIELDS: tuple[str, ...] = ("robust", "belief", "omniscient")
 """The shields (``shield.mode``), each agent's in training and in its test."""
 QUICK_SEEDS, QUICK_EPISODES, QUICK_TEST_EPISODES = 2, 5, 3
-"""``--quick``: at most these many seeds, training episodes and test episodes per run."""
+"""``--quick``: at most these many seeds, training episodes and test episodes per run (in every scenario)."""
+PAPER_SCENARIO = "paper"
+SCENARIOS: dict[str, str] = {
+    PAPER_SCENARIO: "the preset as it is: 4 lanes, density 1, timid, normal and aggressive drivers 1/3 each, "
+    "1 decision/s",
+    "dense": "twice the traffic density (env.vehicles_density=2)",
+    "aggressive": "timid, normal and aggressive drivers weighted 1/1/3 (traffic.driver_mix)",
+    "rate3": "3 decisions/s on 15 Hz physics (env.policy_frequency=3, env.simulation_frequency=15)",
+}
+"""The scenarios of the table, each a name and what its traffic is."""
+SCENARIO_SETS: dict[str, tuple[str, ...]] = {
+    PAPER_SCENARIO: (),
+    "dense": ("env.vehicles_density=2",),
+    "aggressive": (
+        "traffic.driver_mix=[{type: timid, weight: 1}, {type: normal, weight: 1}, {type: aggressive, weight: 3}]",
+    ),
+    "rate3": ("env.policy_frequency=3", "env.simulation_frequency=15"),
+}
+"""Each scenario's ``--set`` strings on the preset (applied before ``--set`` and the arm's own)."""
+SCENARIO_SEEDS, SCENARIO_TEST_EPISODES = 3, 200
+"""The default budget of a scenario other than ``paper``: seeds and test episodes per run."""
 
 
 def parse_names(text: str | None, allowed: dict[str, str] | tuple[str, ...], option: str) -> list[str]:
@@ -71,8 +97,18 @@ def arm_name(agent: str, shield: str) -> str:
     return f"{agent}.{shield}"
 
 
+def types_run_dir(out_dir: Path, scenario: str, agent: str, shield: str, seed: int) -> Path:
+    """The directory of a (scenario, agent, shield, seed) run: ``runs/AGENT.SHIELD-sSEED`` for ``paper`` (where a
+    table from before the scenarios has its runs, so it resumes), ``runs/SCENARIO/AGENT.SHIELD-sSEED`` else."""
+    if scenario == PAPER_SCENARIO:
+        return run_dir_of(out_dir, arm_name(agent, shield), seed)
+    return out_dir / "runs" / scenario / f"{arm_name(agent, shield)}-s{seed}"
+
+
 class TypesSpec(BaseModel):
-    """What to run: agents × shields × seeds, training and test episodes (recorded as ``spec.json``)."""
+    """What to run: scenarios × agents × shields × seeds, training and test episodes (recorded as ``spec.json``).
+    ``seeds`` and ``test_episodes`` are the ``paper`` scenario's, ``scenario_seeds`` and ``scenario_test_episodes``
+    every other one's; every learned run trains for ``episodes``."""
 
     model_config = ConfigDict(extra="forbid")
 
@@ -81,7 +117,12 @@ class TypesSpec(BaseModel):
     shields: list[str] = Field(default_factory=lambda: list(SHIELDS))
     seeds: list[int] = Field(default_factory=lambda: [0, 1, 2, 3, 4])
     episodes: int = Field(200, ge=1, description="Training episodes per learned run (paper: 200).")
-    test_episodes: int = Field(20, ge=1, description="Held-out test episodes per run.")
+    test_episodes: int = Field(20, ge=1, description="Held-out test episodes per run of the paper scenario.")
+    scenarios: list[str] = Field(default_factory=lambda: [PAPER_SCENARIO], min_length=1)
+    scenario_seeds: list[int] = Field(default_factory=lambda: list(range(SCENARIO_SEEDS)), min_length=1)
+    scenario_test_episodes: int = Field(
+        SCENARIO_TEST_EPISODES, ge=1, description="Held-out test episodes per run of every other scenario."
+    )
     agent_preset: str = "tuned"
     sets: list[str] = Field(default_factory=list, description="--set overrides for every run (before the arm's).")
     quick: bool = False
@@ -96,10 +137,24 @@ class TypesSpec(BaseModel):
     def _known_shields(cls, shields: list[str]) -> list[str]:
         return known_names(shields, SHIELDS, "shield")
 
-    def tasks(self) -> list[tuple[str, str, int]]:
-        """Every (agent, shield, seed) run; always-FASTER is deterministic, so it runs on the first seed only."""
-        return [(a, s, seed) for seed in self.seeds for a in self.agents for s in self.shields
-                if a != "faster" or seed == self.seeds[0]]  # fmt: skip
+    @field_validator("scenarios")
+    @classmethod
+    def _known_scenarios(cls, scenarios: list[str]) -> list[str]:
+        return known_names(scenarios, SCENARIOS, "scenario")
+
+    def seeds_of(self, scenario: str) -> list[int]:
+        """The seeds of ``scenario``'s runs."""
+        return self.seeds if scenario == PAPER_SCENARIO else self.scenario_seeds
+
+    def test_episodes_of(self, scenario: str) -> int:
+        """The held-out test episodes of each of ``scenario``'s runs."""
+        return self.test_episodes if scenario == PAPER_SCENARIO else self.scenario_test_episodes
+
+    def tasks(self) -> list[tuple[str, str, str, int]]:
+        """Every (scenario, agent, shield, seed) run, scenario by scenario; always-FASTER is deterministic, so it
+        runs on a scenario's first seed only."""
+        return [(sc, a, s, seed) for sc in self.scenarios for seed in self.seeds_of(sc) for a in self.agents
+                for s in self.shields if a != "faster" or seed == self.seeds_of(sc)[0]]  # fmt: skip
 
 
 def make_types_spec(**fields: Any) -> TypesSpec:
@@ -110,17 +165,19 @@ def make_types_spec(**fields: Any) -> TypesSpec:
         raise ConfigError(validation_message(err, TypesSpec, "reproduce.")) from None
 
 
-def arm_sets(spec: TypesSpec, agent: str, shield: str) -> list[str]:
-    """The ``--set`` strings of an arm's runs: the spec's, then the arm's state and shield (last: an arm is what
-    its name says whatever ``--set`` asks); a fixed policy has the shield override its action."""
-    sets = [*spec.sets, f"shield.mode={shield}"]
+def arm_sets(spec: TypesSpec, scenario: str, agent: str, shield: str) -> list[str]:
+    """The ``--set`` strings of an arm's runs in ``scenario``: the scenario's, the spec's, then the arm's state and
+    shield (last: an arm is what its name says whatever ``--set`` asks); a fixed policy has the shield override its
+    action."""
+    sets = [*SCENARIO_SETS[scenario], *spec.sets, f"shield.mode={shield}"]
     if agent in LEARNED:
         return [*sets, f"state={agent}"]
     return [*sets, "shield.override=true"]
 
 
-def train_config_of(spec: TypesSpec, agent: str, shield: str, seed: int) -> Any:
-    """The :class:`~safelane.running.run_directory.TrainConfig` of a learned (``agent``, ``shield``, ``seed``) run."""
+def train_config_of(spec: TypesSpec, scenario: str, agent: str, shield: str, seed: int) -> Any:
+    """The :class:`~safelane.running.run_directory.TrainConfig` of a learned (``scenario``, ``agent``, ``shield``,
+    ``seed``) run."""
     from safelane.running.run_directory import make_train_config
 
     return make_train_config(
@@ -129,25 +186,26 @@ def train_config_of(spec: TypesSpec, agent: str, shield: str, seed: int) -> Any:
         env_preset=PRESET,
         episodes=spec.episodes,
         seed=seed,
-        sets=arm_sets(spec, agent, shield),
+        sets=arm_sets(spec, scenario, agent, shield),
         checkpoint_every=max(1, min(25, spec.episodes // 4)),
     )
 
 
-def run_arm_task(out_dir: str, spec_json: str, agent: str, shield: str, seed: int) -> dict[str, Any]:
-    """The backend's task: train (or resume) and test the (``agent``, ``shield``, ``seed``) run of ``spec_json``
-    under ``out_dir``; returns its evaluation record (also ``eval.json`` in the run directory)."""
+def run_arm_task(out_dir: str, spec_json: str, scenario: str, agent: str, shield: str, seed: int) -> dict[str, Any]:
+    """The backend's task: train (or resume) and test the (``scenario``, ``agent``, ``shield``, ``seed``) run of
+    ``spec_json`` under ``out_dir``; returns its evaluation record (also ``eval.json`` in the run directory)."""
     import torch
 
     threads = torch.get_num_threads()
     torch.set_num_threads(1)  # one run per core: the workers share the machine
     try:
-        return _train_and_test(Path(out_dir), TypesSpec.model_validate_json(spec_json), agent, shield, seed)
+        spec = TypesSpec.model_validate_json(spec_json)
+        return _train_and_test(Path(out_dir), spec, scenario, agent, shield, seed)
     finally:
         torch.set_num_threads(threads)
 
 
-def _train_and_test(out: Path, spec: TypesSpec, agent: str, shield: str, seed: int) -> dict[str, Any]:
+def _train_and_test(out: Path, spec: TypesSpec, scenario: str, agent: str, shield: str, seed: int) -> dict[str, Any]:
     from safelane.config import load_config
     from safelane.reporting.metrics_file import METRICS_FILE, read_metrics
     from safelane.running.evaluation import run_config, summarize
@@ -156,7 +214,7 @@ def _train_and_test(out: Path, spec: TypesSpec, agent: str, shield: str, seed: i
     from safelane.running.runs import run_env_config
     from safelane.running.training import train
 
-    run_dir = run_dir_of(out, arm_name(agent, shield), seed)
+    run_dir = types_run_dir(out, scenario, agent, shield, seed)
     eval_path = run_dir / "eval.json"
     if eval_path.exists():
         return dict(json.loads(eval_path.read_text()))
@@ -165,18 +223,19 @@ def _train_and_test(out: Path, spec: TypesSpec, agent: str, shield: str, seed: i
         resume = (run_dir / "checkpoint.pt").exists()
         if not resume and run_dir.exists():  # killed before its first checkpoint: nothing to resume
             shutil.rmtree(run_dir)
-        train(train_config_of(spec, agent, shield, seed), run_dir, resume=resume)
+        train(train_config_of(spec, scenario, agent, shield, seed), run_dir, resume=resume)
         # The run's own clock: cumulative over resumes (a perf_counter here would count only the last part).
         train_time = float(read_metrics(run_dir / METRICS_FILE, ["wall_time_s"])["wall_time_s"][-1])
         config = run_env_config(load_run_config(run_dir))
         policy = load_policy(run_dir)
     else:
         run_dir.mkdir(parents=True, exist_ok=True)
-        config = load_config(PRESET, sets=arm_sets(spec, agent, shield))
+        config = load_config(PRESET, sets=arm_sets(spec, scenario, agent, shield))
         policy = fixed_policy(agent, seed)
     start = time.perf_counter()
-    records = run_config(config, policy, spec.test_episodes, TEST_SEED_BASE)
+    records = run_config(config, policy, spec.test_episodes_of(scenario), TEST_SEED_BASE)
     record = {
+        "scenario": scenario,
         "agent": agent,
         "shield": shield,
         "seed": seed,
@@ -193,12 +252,31 @@ def _validate(spec: TypesSpec) -> None:
     from safelane.config import load_config
     from safelane.running.run_directory import resolve
 
-    for agent in spec.agents:
-        for shield in spec.shields:
-            if agent in LEARNED:
-                resolve(train_config_of(spec, agent, shield, spec.seeds[0]))
-            else:
-                load_config(PRESET, sets=arm_sets(spec, agent, shield))
+    for scenario in spec.scenarios:
+        for agent in spec.agents:
+            for shield in spec.shields:
+                if agent in LEARNED:
+                    resolve(train_config_of(spec, scenario, agent, shield, spec.seeds_of(scenario)[0]))
+                else:
+                    load_config(PRESET, sets=arm_sets(spec, scenario, agent, shield))
+
+
+def _keep_earlier_spec_file(out: Path, spec: TypesSpec) -> None:
+    """Rewrite ``out/spec.json`` in today's form where it holds a table from before the scenarios (no
+    ``scenarios`` field: its runs are the ``paper`` ones) that ``spec``, of the ``paper`` scenario only, continues,
+    so that :func:`claim_out_dir` lets it resume."""
+    path = out / "spec.json"
+    if spec.scenarios != [PAPER_SCENARIO] or not path.is_file():
+        return
+    try:
+        earlier = json.loads(path.read_text())
+    except (OSError, ValueError):
+        return  # not a spec: claim_out_dir refuses the folder
+    scenario_fields = {"scenarios", "scenario_seeds", "scenario_test_episodes"}
+    if not isinstance(earlier, dict) or scenario_fields & set(earlier):
+        return
+    if earlier == json.loads(spec.model_dump_json(exclude=scenario_fields)):
+        atomic_write_text(path, spec.model_dump_json(indent=2))
 
 
 def run_table(
@@ -214,10 +292,11 @@ def run_table(
     check_backend(backend)
     out = Path(out_dir)
     _validate(spec)
+    _keep_earlier_spec_file(out, spec)
     claim_out_dir(out, spec.model_dump_json(indent=2), "spec.json", "reproduction")
     tasks = spec.tasks()
     return run_then_collect(
-        run_arm_task, tasks, out, spec.model_dump_json(), lambda t: f"{arm_name(t[0], t[1])} seed {t[2]}",
+        run_arm_task, tasks, out, spec.model_dump_json(), lambda t: f"{t[0]}: {arm_name(t[1], t[2])} seed {t[3]}",
         lambda: collect(out, spec), "reproduce-hidden-types", time.perf_counter(), backend=backend, workers=workers,
         address=address, progress=progress,
     )  # fmt: skip
@@ -291,8 +370,8 @@ def expense_of_robustness(speeds: dict[str, dict[str, float]], reps: int = BOOTS
     return result
 
 
-def collect(out_dir: Path, spec: TypesSpec) -> dict[str, Any]:
-    """Every run's evaluation gathered into one dict: per-run rows, per-arm aggregates over seeds and, per agent,
+def collect_scenario(out_dir: Path, spec: TypesSpec, scenario: str) -> dict[str, Any]:
+    """One scenario's evaluations gathered: what it is, per-run rows, per-arm aggregates over seeds and, per agent,
     the expense of robustness (:func:`expense_of_robustness`)."""
     arms: dict[str, Any] = {}
     expense: dict[str, Any] = {}
@@ -300,8 +379,8 @@ def collect(out_dir: Path, spec: TypesSpec) -> dict[str, Any]:
         speeds: dict[str, dict[str, float]] = {}
         for shield in spec.shields:
             per_seed: dict[str, Any] = {}
-            for seed in spec.seeds:
-                path = run_dir_of(out_dir, arm_name(agent, shield), seed) / "eval.json"
+            for seed in spec.seeds_of(scenario):
+                path = types_run_dir(out_dir, scenario, agent, shield, seed) / "eval.json"
                 if path.exists():
                     per_seed[str(seed)] = _run_scores(json.loads(path.read_text()))
             if not per_seed:
@@ -312,100 +391,16 @@ def collect(out_dir: Path, spec: TypesSpec) -> dict[str, Any]:
         figures = expense_of_robustness(speeds)
         if figures is not None:
             expense[agent] = figures
-    return {"spec": spec.model_dump(), "arms": arms, "expense_of_robustness": expense}
+    return {
+        "description": SCENARIOS[scenario],
+        "sets": list(SCENARIO_SETS[scenario]),
+        "seeds": spec.seeds_of(scenario),
+        "test_episodes": spec.test_episodes_of(scenario),
+        "arms": arms,
+        "expense_of_robustness": expense,
+    }
 
 
-# --- the report -------------------------------------------------------------------------------------------------
-def _est(agg: dict[str, Any], key: str, digits: int, scale: float = 1.0) -> str:
-    a = agg[key]
-    lo, hi = a["ci95"]
-    return f"{a['iqm'] * scale:.{digits}f} [{lo * scale:.{digits}f}, {hi * scale:.{digits}f}]"
-
-
-def arms_table(arms: dict[str, Any], spec: TypesSpec) -> list[str]:
-    """Markdown rows, grouped by shield: per agent the runs, crashes / test episodes (those with a ruled-out true
-    type), the IQM over seeds with its 95 % interval of speed, crash rate and fallback rate, and the time per run."""
-    lines = [
-        "| shield | agent | runs | crashes / test episodes | crashes, true type ruled out | test speed [m/s] "
-        "| crash rate [%] | fallback rate [% of decisions] | training / test time per run [s] |",
-        "|---|---|---|---|---|---|---|---|---|",
-    ]
-    for shield in spec.shields:
-        for agent in spec.agents:
-            data = arms.get(arm_name(agent, shield))
-            if data is None:
-                continue
-            a = data["aggregate"]
-            ruled_out = "–" if a["collisions_type_ruled_out"] is None else str(a["collisions_type_ruled_out"])
-            train = f"{a['train_wall_time_s']:.1f}" if agent in LEARNED else "–"
-            lines.append(
-                f"| `{shield}` | `{agent}` | {len(data['per_seed'])} | {a['collisions']} / {a['test_episodes']} | "
-                f"{ruled_out} | {_est(a, 'mean_speed', 2)} | {_est(a, 'collision_rate', 2, 100)} | "
-                f"{_est(a, 'fallback_rate', 2, 100)} | {train} / {a['eval_wall_time_s']:.1f} |"
-            )
-    return lines
-
-
-def expense_table(expense: dict[str, Any]) -> list[str]:
-    """Markdown rows: per agent the expense of robustness and what the belief shield recovers of it."""
-    lines = [
-        "| agent | seeds | omniscient − robust speed [m/s] | belief − robust [m/s] | share belief recovers |",
-        "|---|---|---|---|---|",
-    ]
-    for agent, e in expense.items():
-        lo, hi = e["expense"]["ci95"]
-        b = e.get("belief_recovers")
-        speed = f"{b['speed']:+.2f}" if b else "–"
-        share = "–"
-        if b and np.isfinite(b["share"]):
-            share = f"{b['share']:.0%} [{b['share_ci95'][0]:.0%}, {b['share_ci95'][1]:.0%}]"
-        lines.append(f"| `{agent}` | {e['seeds']} | {e['expense']['point']:+.2f} [{lo:+.2f}, {hi:+.2f}] | {speed} "
-                     f"| {share} |")  # fmt: skip
-    return lines
-
-
-def write_types_report(out_dir: str | Path) -> Path:
-    """Write ``report.md`` from ``out_dir/results.json`` (atomically); returns its path."""
-    out = Path(out_dir)
-    results = json.loads((out / "results.json").read_text())
-    spec = TypesSpec.model_validate(results["spec"])
-    arms = results["arms"]
-    train_total = sum(p["train_wall_time_s"] for d in arms.values() for p in d["per_seed"].values())
-    lines = [
-        "# safelane reproduction report: the price of robustness against hidden driver types",
-        "",
-        f"Preset `{PRESET}`{' with ' + ', '.join(f'`{s}`' for s in spec.sets) if spec.sets else ''}; agents "
-        f"{', '.join(spec.agents)}; shields {', '.join(spec.shields)}; seeds {spec.seeds}; {spec.episodes} training "
-        f"episodes per learned run (robust Q-masking, agent preset `{spec.agent_preset}`, trained under the shield "
-        f"it is tested under); {spec.test_episodes} held-out test episodes per run (seeds {TEST_SEED_BASE} + k); "
-        "always-FASTER on the first seed only (it is deterministic)"
-        + (" — **quick mode: too few seeds and episodes for conclusions**" if spec.quick else "")
-        + f". Training time summed over runs: {train_total:.0f} s; this invocation: "
-        f"{results.get('wall_time_s', float('nan')):.0f} s.",
-        "",
-        "## Test episodes",
-        "",
-        "Each run contributes one score per column (its mean over its test episodes); the table gives the "
-        f"interquartile mean (IQM) over runs with its 95 % stratified bootstrap interval ({BOOTSTRAP_REPS} samples, "
-        "seed 0; with fewer than 4 runs the IQM is the mean), after Agarwal et al. (2021). Fallback rate: decisions "
-        "without a safe action ÷ decisions. The `belief` shield's promise is probabilistic: its crashes with a car "
-        "whose true type had been ruled out (posterior ≤ ε) are counted apart (– under the other shields).",
-        "",
-        *arms_table(arms, spec),
-        "",
-        "## The expense of robustness",
-        "",
-        "Per agent, the IQM test speed under the `omniscient` shield (each car's true type) minus under the "
-        "`robust` one (every type), and how much of it the `belief` shield recovers: (belief − robust) ÷ "
-        "(omniscient − robust). Intervals: 95 % percentiles over resamples of the seeds, the shields' drawn "
-        "together (a resample with no positive expense has no share).",
-        "",
-        *expense_table(results["expense_of_robustness"]),
-        "",
-        "## Agents",
-        "",
-        *[f"- `{agent}`: {AGENTS[agent]}" for agent in spec.agents],
-    ]
-    report = out / "report.md"
-    atomic_write_text(report, "\n".join(lines) + "\n")
-    return report
+def collect(out_dir: Path, spec: TypesSpec) -> dict[str, Any]:
+    """Every run's evaluation gathered into one dict: the spec and, per scenario, :func:`collect_scenario`."""
+    return {"spec": spec.model_dump(), "scenarios": {sc: collect_scenario(out_dir, spec, sc) for sc in spec.scenarios}}

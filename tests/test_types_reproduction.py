@@ -159,6 +159,34 @@ def test_names() -> None:
     assert (spec.test_episodes_of("dense"), spec.test_episodes_of("paper")) == (9, 20)
     with pytest.raises(ConfigError, match=r"reproduce\.scenarios: .*unknown scenario 'city'"):
         make_types_spec(scenarios=["city"])
+    # The planner: the first seed only (it is deterministic), under the robust and the omniscient mask only.
+    assert make_types_spec(seeds=[0, 1], agents=["foresight"]).tasks() == [
+        ("paper", "foresight", "robust", 0), ("paper", "foresight", "omniscient", 0)]  # fmt: skip
+
+
+def test_the_foresight_ceiling_searches_under_the_types_masks(tmp_path: Path) -> None:
+    """The planner under the robust mask reads every type, under the omniscient one the true types (the shields'
+    readings), and stays inside the mask it searches under; it is refused the omniscient mask without a mixture."""
+    import safelane
+    from safelane.running.foresight import ForesightPlanner, planner_policy
+
+    for mask, readings in (("robust", 3), ("omniscient", 1)):
+        env = safelane.make_env("hidden-types", simulator="fast", **{"shield.mode": mask, "shield.override": True})
+        planner = ForesightPlanner(env, mask=mask, horizon=2.0, beam=4)
+        assert planner.shield is not None and planner.shield.types is not None and len(planner.shield.types) == 3
+        policy = planner_policy(planner)
+        obs, info = env.reset(seed=5)
+        assert len(planner.shield.driver_readings(info["snapshot"])[0]) == readings
+        for _ in range(4):
+            action = policy(obs, info)
+            assert info["action_mask"][action] or info.get("fallback", False)
+            obs, _, done, cut, info = env.step(action)
+            assert not info["shield_intervened"]
+            if done or cut:
+                break
+        env.close()
+    with pytest.raises(ConfigError, match="omniscient.*traffic.driver_mix"):
+        ForesightPlanner(safelane.make_env("fast", simulator="fast"), mask="omniscient")
 
 
 def test_expense_of_robustness() -> None:

@@ -57,7 +57,8 @@ def reproduce(
             help="Methods to run, comma-separated, or all (default). With --actions continuous the arms: sac, ppo, "
             "sac-lagrangian bare, ALGO-projection, ALGO-replacement, ALGO-penalty under the shield (default: the "
             "three bare and sac's three shielded). With --preset hidden-types the agents: paper, paper-stack, "
-            "paper-belief, paper-types (robust Q-masking on that state), faster, random (default: all).",
+            "paper-belief, paper-types (robust Q-masking on that state), faster, random, foresight (the "
+            "perfect-foresight planner under the robust and omniscient masks: the ceiling) (default: all).",
             metavar="LIST",
         ),
     ] = None,

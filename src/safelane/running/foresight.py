@@ -30,13 +30,14 @@ from safelane.core.snapshot import RoadSnapshot
 from safelane.core.spaces import ACTION_NAMES, N_ACTIONS
 from safelane.env.factory import make_env
 from safelane.running.policies import overtaking_probe, snap_of
+from safelane.safety.belief import DriverTypes
 from safelane.safety.committed.family import CommittedFamily
 from safelane.safety.shield import SafetyShield
 from safelane.safety.world import Engine
 from safelane.sim.fast.env import FastHighwayEnv, SimState
 
-PlannerMask = Literal["none", "nominal", "robust", "committed"]
-PLANNER_MASKS: tuple[str, ...] = ("none", "nominal", "robust", "committed")
+PlannerMask = Literal["none", "nominal", "robust", "committed", "omniscient"]
+PLANNER_MASKS: tuple[str, ...] = ("none", "nominal", "robust", "committed", "omniscient")
 
 
 def clone_memory(family: CommittedFamily) -> CommittedFamily:
@@ -59,10 +60,13 @@ class ForesightPlanner:
     """A policy with perfect foresight: a beam search over the fast simulator's exact future.
 
     ``env``: the safelane environment it acts in (built with ``simulator: fast``). ``mask``: ``none``
-    (any action), ``nominal``, ``robust`` or ``committed`` (only actions that shield allows, at every node of the
-    search; in a fallback state, the shield's least-bad action; ``committed``: the committed mask with
+    (any action), ``nominal``, ``robust``, ``omniscient`` or ``committed`` (only actions that shield allows, at every
+    node of the search; in a fallback state, the shield's least-bad action; ``committed``: the committed mask with
     ``engine``, its memory carried by every node and, between searches, by :attr:`memory`, which
-    records the actions played: the environment must play them). ``horizon`` [s]: how far each search
+    records the actions played: the environment must play them). Under a ``traffic.driver_mix`` of the environment's
+    configuration (hidden driver types) ``robust`` is the worst case over the types and ``omniscient`` reads each car's
+    true type, as the shields of those modes do; ``belief`` is not a planner mask: its filter would have to follow
+    every branch of the search. ``horizon`` [s]: how far each search
     looks; ``beam``: sequences kept per depth; ``replan`` [s]: how often it searches again (the plan is
     exact, so replaying it between searches loses nothing but horizon). Call it like any policy:
     ``planner(obs, info) -> action``; it restores the simulator's state after each search.
@@ -92,7 +96,12 @@ class ForesightPlanner:
         self.every = max(1, round(replan * rate))  # decisions between searches
         self.beam = beam
         self.mask_mode: PlannerMask = mask
-        kwargs = {} if margin is None else {"margin": margin}
+        kwargs: dict[str, Any] = {} if margin is None else {"margin": margin}
+        mix = _driver_mixture(env)
+        if mix is not None:  # the shields' types: robust over every type, omniscient on the true ones
+            kwargs["driver_types"] = DriverTypes(mix)
+        elif mask == "omniscient":
+            raise ConfigError("mask: 'omniscient' reads the driver types of a traffic.driver_mix, which is none")
         # A shield over the bare simulator, only to evaluate masks of predicted states (never stepped).
         self.memory: CommittedFamily | None = None
         if mask == "committed":
@@ -199,6 +208,12 @@ class ForesightPlanner:
             self.memory.reset()
 
 
+def _driver_mixture(env: Any) -> Any:
+    """The driver mixture of the environment's configuration (``env.safelane_config``, set by ``make_env``), or None."""
+    cfg = getattr(env, "safelane_config", None)
+    return cfg.traffic.driver_mixture() if cfg is not None else None
+
+
 class Node(NamedTuple):
     """A sequence in the search: its rank (minus the fallback states it passed), the ego's position [m]
     along the road and speed [m/s] at its end, the simulator state there, its snapshot, its actions, and the
@@ -275,6 +290,11 @@ def play(
         "actions": {name: int(sum(r.actions[i] for r in records)) for i, name in enumerate(ACTION_NAMES)},
         **committed,
     }
+
+
+def planner_policy(planner: ForesightPlanner) -> Callable[[np.ndarray, dict[str, Any]], int]:
+    """``planner`` as a policy of several episodes: it forgets its plan when a new one starts."""
+    return _resetting(planner)
 
 
 def _resetting(policy: Callable[[np.ndarray, dict[str, Any]], int]) -> Callable[[np.ndarray, dict[str, Any]], int]:

@@ -47,9 +47,19 @@ LEARNED: dict[str, str] = {
     "paper-types": "robust Q-masking, eq. 3 and the true types (the upper bound)",
 }
 """The learned agents: the ``state:`` the DQN reads, and what it is."""
-FIXED: dict[str, str] = {"faster": "always FASTER, the shield overriding", "random": "random, the shield overriding"}
-"""The fixed policies (:func:`~safelane.running.policies.fixed_policy`), tested only."""
+FIXED: dict[str, str] = {
+    "faster": "always FASTER, the shield overriding",
+    "random": "random, the shield overriding",
+    "foresight": "perfect foresight under the shield's mask: its ceiling (robust and omniscient only)",
+}
+"""The policies tested only: the fixed ones (:func:`~safelane.running.policies.fixed_policy`) and the perfect-foresight
+planner (:class:`~safelane.running.foresight.ForesightPlanner`, searching under the arm's mask; the ``belief`` mask
+would need its filter along every branch of the search, so that arm is not played)."""
 AGENTS: dict[str, str] = {**LEARNED, **FIXED}
+DETERMINISTIC: tuple[str, ...] = ("faster", "foresight")
+"""The agents played on a scenario's first seed only: the same episodes give the same actions."""
+PLANNER_SHIELDS: tuple[str, ...] = ("robust", "omniscient")
+"""The shields whose masks the planner searches under."""
 SHIELDS: tuple[str, ...] = ("robust", "belief", "omniscient")
 """The shields (``shield.mode``), each agent's in training and in its test."""
 QUICK_SEEDS, QUICK_EPISODES, QUICK_TEST_EPISODES = 2, 5, 3
@@ -154,7 +164,9 @@ class TypesSpec(BaseModel):
         """Every (scenario, agent, shield, seed) run, scenario by scenario; always-FASTER is deterministic, so it
         runs on a scenario's first seed only."""
         return [(sc, a, s, seed) for sc in self.scenarios for seed in self.seeds_of(sc) for a in self.agents
-                for s in self.shields if a != "faster" or seed == self.seeds_of(sc)[0]]  # fmt: skip
+                for s in self.shields
+                if (a not in DETERMINISTIC or seed == self.seeds_of(sc)[0])
+                and (a != "foresight" or s in PLANNER_SHIELDS)]  # fmt: skip
 
 
 def make_types_spec(**fields: Any) -> TypesSpec:
@@ -231,9 +243,12 @@ def _train_and_test(out: Path, spec: TypesSpec, scenario: str, agent: str, shiel
     else:
         run_dir.mkdir(parents=True, exist_ok=True)
         config = load_config(PRESET, sets=arm_sets(spec, scenario, agent, shield))
-        policy = fixed_policy(agent, seed)
+        policy = None if agent == "foresight" else fixed_policy(agent, seed)
     start = time.perf_counter()
-    records = run_config(config, policy, spec.test_episodes_of(scenario), TEST_SEED_BASE)
+    if policy is None:
+        records = _foresight_records(config, shield, spec.test_episodes_of(scenario))
+    else:
+        records = run_config(config, policy, spec.test_episodes_of(scenario), TEST_SEED_BASE)
     record = {
         "scenario": scenario,
         "agent": agent,
@@ -245,6 +260,21 @@ def _train_and_test(out: Path, spec: TypesSpec, scenario: str, agent: str, shiel
     }
     atomic_write_text(eval_path, json.dumps(record))
     return record
+
+
+def _foresight_records(config: Any, shield: str, episodes: int) -> list[Any]:
+    """The perfect-foresight planner's held-out episodes under the ``shield``'s mask (its default search, on the
+    fast simulator: it copies the simulator's state), the shield overriding nothing it allows."""
+    from safelane.env.factory import make_env
+    from safelane.running.evaluation import run_episodes
+    from safelane.running.foresight import ForesightPlanner, planner_policy
+
+    env = make_env(config)
+    try:
+        planner = ForesightPlanner(env, mask=shield)  # type: ignore[arg-type]
+        return run_episodes(env, planner_policy(planner), episodes, TEST_SEED_BASE)
+    finally:
+        env.close()
 
 
 def _validate(spec: TypesSpec) -> None:

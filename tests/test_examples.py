@@ -15,6 +15,7 @@ REPO_ROOT = Path(__file__).resolve().parents[1]
 EXAMPLES = REPO_ROOT / "examples"
 USER_EXAMPLES = (
     "shield_sb3_agent", "train_robust_agent", "campaign_and_replay", "check_fast_simulator", "continuous_shield",
+    "hidden_types",
 )
 
 
@@ -60,6 +61,17 @@ def test_continuous_shield(tmp_path: Path) -> None:
     assert set(rows) == {"bare", "shielded"}
     assert rows["shielded"][:3] == [1, 0, 0]  # no collision and on the road under the shield
     assert 1 <= rows["shielded"][3] <= 5
+
+
+def test_hidden_types(tmp_path: Path) -> None:
+    out = run_example("hidden_types", "--quick", cwd=tmp_path)
+    rows = {line.split()[0]: line.split()[1:] for line in out.splitlines()
+            if line.startswith(("robust ", "belief ", "omniscient ")) and len(line.split()) == 5}  # fmt: skip
+    assert list(rows) == ["robust", "belief", "omniscient"]
+    for collisions, ruled_out, fallback, speed in rows.values():
+        assert 0 <= int(ruled_out) <= int(collisions) <= 1 and fallback.endswith("%") and 0 < float(speed) <= 40
+    accuracy = re.search(r"(\d+) cars, the most probable type is the true one for (\d+) %", out)
+    assert accuracy is not None and int(accuracy.group(1)) > 0 and 0 <= int(accuracy.group(2)) <= 100
 
 
 def test_train_robust_agent(tmp_path: Path) -> None:

@@ -185,7 +185,7 @@ def test_the_foresight_ceiling_searches_under_the_types_masks(tmp_path: Path) ->
             if done or cut:
                 break
         env.close()
-    with pytest.raises(ConfigError, match="omniscient.*traffic.driver_mix"):
+    with pytest.raises(ConfigError, match=r"omniscient.*traffic\.driver_mix"):
         ForesightPlanner(safelane.make_env("fast", simulator="fast"), mask="omniscient")
 
 

@@ -15,6 +15,7 @@ from safelane.agents.dqn import (
     AGENT_CLASSES,
     AGENT_PRESETS,
     METHODS,
+    RECURRENT_METHODS,
     Batch,
     ConstrainedAgent,
     DQNAgent,
@@ -31,6 +32,7 @@ from safelane.agents.dqn import (
     shaped_q,
     shaping_target,
 )
+from safelane.agents.registry import agent_class
 from safelane.config import ConfigError
 
 T, F_ = True, False
@@ -459,10 +461,12 @@ def test_robust_acts_and_bootstraps_exactly_like_qmask(
 def test_method_properties_live_on_the_agent_classes() -> None:
     from safelane.running.run_directory import TRAIN_SHIELD_MODE
 
-    assert {m: (c.uses_mask, c.needs_cost, c.train_shield) for m, c in AGENT_CLASSES.items()} == {
+    classes = {m: agent_class(m) for m in (*AGENT_CLASSES, *RECURRENT_METHODS)}
+    assert {m: (c.uses_mask, c.needs_cost, c.train_shield) for m, c in classes.items()} == {
         "dqn": (False, False, "nominal"),
         "constrained": (False, True, "nominal"),
         "qmask": (True, False, "nominal"),
         "robust": (True, False, "robust"),
+        "robust-recurrent": (True, False, "robust"),
     }
-    assert {m: c.train_shield for m, c in AGENT_CLASSES.items()} == TRAIN_SHIELD_MODE
+    assert {m: c.train_shield for m, c in classes.items()} == TRAIN_SHIELD_MODE

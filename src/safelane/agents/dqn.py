@@ -12,6 +12,8 @@ highway-env or the safety model. The pieces, from the bottom up:
 * :class:`ConstrainedAgent` — Lagrangian constrained Q-learning (eq. 7).
 * :class:`QMaskAgent` — Q-masking (Fig. 3): unsafe actions removed from acting and bootstrapping.
 * :class:`RobustAgent` — robust Q-masking with Q-shaping (eqs. 13–14).
+* ``robust-recurrent`` — the same robust Q-masking on a recurrent Q-network over the decisions of an episode
+  (:mod:`safelane.agents.recurrent`, built on this module; :mod:`safelane.agents.registry` makes every method).
 
 The subclasses override only ``action_values`` (what acting maximises), ``allowed`` (which actions
 may be taken), ``td_target`` and ``loss``; the training loop (:mod:`safelane.running.training`) is shared.
@@ -40,14 +42,21 @@ HIDDEN_SIZES = (100, 100)
 SHAPING_MARGIN = 1.0
 """The "− 1" of eq. 14: an unsafe pair is shaped to ``min_a Q_θ(s, a) − SHAPING_MARGIN``."""
 
-Method = Literal["dqn", "constrained", "qmask", "robust"]
+Method = Literal["dqn", "constrained", "qmask", "robust", "robust-recurrent"]
 METHODS: tuple[str, ...] = ("dqn", "constrained", "qmask", "robust")
+"""The paper's four methods: what ``all`` means and what ``reproduce`` and ``bench`` compare."""
+RECURRENT_METHODS: tuple[str, ...] = ("robust-recurrent",)
+"""Methods on a recurrent Q-network (:mod:`safelane.agents.recurrent`): trained by ``safelane train`` alone."""
 AGENT_PRESETS: tuple[str, ...] = ("paper", "tuned")
 
 
 def parse_methods(text: str) -> tuple[str, ...]:
     """``all`` or a comma-separated list of methods → the methods (a one-line ConfigError otherwise)."""
     methods = METHODS if text.strip() == "all" else tuple(dict.fromkeys(m.strip() for m in text.split(",")))
+    recurrent = [m for m in methods if m in RECURRENT_METHODS]
+    if recurrent:
+        raise ConfigError(f"--methods: {recurrent[0]} trains with safelane train --method {recurrent[0]}; allowed "
+                          f"here: {', '.join(METHODS)} (comma-separated) or all")  # fmt: skip
     if any(m not in METHODS for m in methods):
         raise ConfigError(f"--methods: got {text!r}; allowed: {', '.join(METHODS)} (comma-separated) or all")
     return methods
@@ -62,11 +71,14 @@ class AgentConfig(BaseModel):
     method: Method = Field(
         "dqn",
         description="dqn (traditional, IV.1), constrained (Lagrangian, eq. 7), qmask (Q-masking, IV.3) "
-        "or robust (robust Q-masking with Q-shaping, eqs. 13–14).",
+        "or robust (robust Q-masking with Q-shaping, eqs. 13–14); robust-recurrent: robust on a recurrent "
+        "Q-network (safelane.agents.recurrent).",
     )
     lr: float = Field(5e-4, gt=0, description="Adam learning rate (the paper's α).")
     gamma: float = Field(0.9, ge=0, lt=1, description="Discount factor γ per decision.")
-    batch_size: int = Field(64, ge=1, description="Transitions per gradient step (mini-batch).")
+    batch_size: int = Field(
+        64, ge=1, description="Transitions per gradient step (mini-batch); robust-recurrent: sequences per step."
+    )
     buffer_size: int = Field(15000, ge=1, description="Replay buffer capacity [transitions].")
     learning_starts: int = Field(200, ge=0, description="Environment steps collected before the first update.")
     train_freq: int = Field(1, ge=1, description="Environment steps between updates.")
@@ -134,6 +146,22 @@ class AgentConfig(BaseModel):
         "pushes an unsafe pair down while it is above its target — the inequality the paper asks for "
         "(unsafe below the safe values) without dragging already-low values, so less of the 'unsafe is "
         "bad' signal leaks into neighbouring states where the action is safe.",
+    )
+    sequence_length: int = Field(
+        8,
+        ge=1,
+        description="robust-recurrent: decisions of a replayed sequence that enter the loss (after its burn-in).",
+    )
+    burn_in: int = Field(
+        4,
+        ge=0,
+        description="robust-recurrent: decisions before them that only warm up the hidden state from zero (no "
+        "loss); a sequence cut by its episode's start needs none, its hidden state starts as acting's does.",
+    )
+    recurrent_hidden: int = Field(
+        64,
+        ge=1,
+        description="robust-recurrent: units of the GRU's hidden state (the memory carried between decisions).",
     )
 
 
@@ -281,6 +309,9 @@ class ReplayBuffer:
         self.pos = (i + 1) % self.capacity
         self.size = min(self.size + 1, self.capacity)
 
+    def begin_episode(self) -> None:
+        """A new episode starts: nothing to note for single transitions (a sequence replay notes it)."""
+
     def sample(self, batch_size: int, rng: np.random.Generator) -> Batch:
         """``batch_size`` transitions drawn uniformly with replacement using ``rng``."""
         idx = rng.integers(0, self.size, size=batch_size)
@@ -411,6 +442,8 @@ class DQNAgent:
     them; constrained counts their violations as cost)."""
     needs_cost: ClassVar[bool] = False
     """True when the agent learns from a per-step cost (constrained's eq. 7)."""
+    recurrent: ClassVar[bool] = False
+    """True when acting carries a hidden state across an episode's decisions (reset by :meth:`begin_episode`)."""
 
     def __init__(self, cfg: AgentConfig, seed: int = 0, obs_size: int = OBS_SIZE) -> None:
         self.cfg = cfg
@@ -468,6 +501,13 @@ class DQNAgent:
 
     def end_episode(self, episode_cost: float) -> None:
         """Per-episode hook (constrained updates λ here)."""
+
+    def begin_episode(self) -> None:
+        """Hook at each reset, before the episode's first decision (a recurrent agent forgets its hidden state)."""
+
+    def new_replay(self, obs_size: int) -> ReplayBuffer:
+        """The agent's empty replay buffer of ``buffer_size`` transitions (a recurrent agent's keeps episodes)."""
+        return ReplayBuffer(self.cfg.buffer_size, obs_size)
 
     # -- shared machinery -------------------------------------------------------------------------
     def greedy(self, obs: np.ndarray, mask: np.ndarray | None = None) -> int:
@@ -710,5 +750,8 @@ AGENT_CLASSES: dict[str, type[DQNAgent]] = {
 
 
 def make_agent(cfg: AgentConfig, seed: int = 0, obs_size: int = OBS_SIZE) -> DQNAgent:
-    """The agent for ``cfg.method``, networks initialised from ``seed``."""
+    """The agent for ``cfg.method`` (one of :data:`METHODS`), networks initialised from ``seed``; a recurrent method's
+    agent: :func:`safelane.agents.registry.make_agent`."""
+    if cfg.method not in AGENT_CLASSES:
+        raise ValueError(f"make_agent: {cfg.method} is made by safelane.agents.registry.make_agent")
     return AGENT_CLASSES[cfg.method](cfg, seed, obs_size)

@@ -25,7 +25,12 @@ from safelane.config import ConfigError, parse_set
 
 MethodOpt = Annotated[
     str | None,
-    typer.Option("--method", "-m", help="dqn, constrained, qmask or robust (default robust).", metavar="METHOD"),
+    typer.Option(
+        "--method",
+        "-m",
+        help="dqn, constrained, qmask or robust (default robust), or robust-recurrent (robust on a GRU).",
+        metavar="METHOD",
+    ),
 ]
 ALGOS = ("sac", "ppo", "sac-lagrangian")  # safelane.agents.continuous.ALGOS, without importing torch for --help
 AlgoOpt = Annotated[

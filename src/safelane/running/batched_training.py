@@ -33,7 +33,7 @@ import numpy as np
 import yaml
 
 from safelane.agents.batched import BatchedLearner
-from safelane.agents.dqn import ConstrainedAgent, linear_epsilon, load_agent_config
+from safelane.agents.dqn import RECURRENT_METHODS, ConstrainedAgent, linear_epsilon, load_agent_config
 from safelane.config import ConfigError, config_to_dict
 from safelane.core.spaces import N_ACTIONS, OBS_SIZE
 from safelane.env.factory import observation_size
@@ -71,7 +71,16 @@ def _sanitized(masks: np.ndarray) -> np.ndarray:
 
 def batchable(cfg: TrainConfig) -> str | None:
     """None when :func:`train_batched` trains ``cfg`` (its environment runs in a fast batch), else why not."""
-    return supports(resolve(cfg).env)
+    return refusal(resolve(cfg))
+
+
+def refusal(run: RunConfig) -> str | None:
+    """Why :func:`train_batched` cannot train ``run`` (a recurrent agent, or an environment the fast batch does not
+    play), or None."""
+    method = getattr(run.agent, "method", None)
+    if method in RECURRENT_METHODS:
+        return f"method: {method} (the batched learner's agents are feed-forward)"
+    return supports(run.env)
 
 
 def train_batched(
@@ -91,7 +100,7 @@ def train_batched(
         raise ConfigError("out_dirs: each run needs its own directory")
     runs: list[RunConfig] = [resolve(c) for c in cfgs]
     for run in runs:
-        why = supports(run.env)
+        why = refusal(run)
         if why is not None:
             raise ConfigError(f"{why}: batched training runs the fast batch; train this run alone")
     n = len(runs)
@@ -350,7 +359,7 @@ def batches_of(jobs: Sequence[tuple[TrainConfig, Path]], workers: int) -> list[t
             run = resolve(cfg)
         except ConfigError:
             continue
-        if supports(run.env) is None:
+        if refusal(run) is None:  # the others are trained one by one by their own task
             groups.setdefault(run.agent.batch_size, []).append((cfg, run_dir))
     out = []
     for members in groups.values():

@@ -382,6 +382,9 @@ def run_episode(env: gym.Env, policy: Policy, seed: int) -> EpisodeRecord:
     """Play one episode reset with ``seed`` until it terminates or is truncated. Continuous actions are stepped as
     float32 (the action space's type: what a counterexample file records and replays)."""
     obs, info = env.reset(seed=seed)
+    begin = getattr(policy, "begin_episode", None)
+    if begin is not None:  # a stateful policy (a recurrent agent's) forgets the previous episode
+        begin()
     tally = EpisodeTally(seed, info, committed=shield_mode(env) == "committed")
     continuous = isinstance(env.action_space, gym.spaces.Box)
     done = False

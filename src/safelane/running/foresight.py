@@ -341,7 +341,7 @@ def play_row(
     """One cell of the table (a task of :func:`safelane.running.backend.run_tasks`: plain arguments)."""
     cfg = row_config(build_config(cfg_data), row)
     if row in ("agent_robust", "agent_committed"):
-        from safelane.running.run_directory import GreedyPolicy, load_agent, load_run_config
+        from safelane.running.run_directory import greedy_policy, load_agent, load_run_config
         from safelane.running.runs import run_env_config
 
         if agent_dir is None:
@@ -352,7 +352,7 @@ def play_row(
         sets = [f"shield.engine={cfg.shield.engine}"]
         shield = cfg.shield.mode
         env_cfg = run_env_config(run, sets=sets if shield == "committed" else None, shield=shield, override=True)
-        return {"row": row, "agent": agent_dir, **play(env_cfg, lambda env: GreedyPolicy(agent, run), episodes, seed)}
+        return {"row": row, "agent": agent_dir, **play(env_cfg, lambda env: greedy_policy(agent, run), episodes, seed)}
     if row == "probe_robust":
         return {"row": row, **play(cfg, lambda env: overtaking_probe, episodes, seed)}
     mask: PlannerMask = cfg.shield.mode if row in ROW_SHIELDS else "robust"  # type: ignore[assignment]

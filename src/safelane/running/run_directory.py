@@ -35,16 +35,16 @@ from safelane.agents.continuous import (
     predict,
 )
 from safelane.agents.dqn import (
-    AGENT_CLASSES,
     AGENT_PRESETS,
     AgentConfig,
     DQNAgent,
     ReplayBuffer,
     build_agent_config,
     load_agent_config,
-    make_agent,
     sanitize_mask,
 )
+from safelane.agents.recurrent import SequenceReplay
+from safelane.agents.registry import ALL_AGENT_CLASSES, agent_class, make_agent
 from safelane.config import (
     ENV_PRESETS,
     ConfigError,
@@ -70,7 +70,7 @@ DEFAULT_CHECKPOINT_STEPS = 5_000
 """Decisions between a continuous run's checkpoints when ``checkpoint_steps`` is left out (each holds the replay
 buffer: ≈ 30 MB at 10⁵ transitions)."""
 
-TRAIN_SHIELD_MODE: dict[str, str] = {method: cls.train_shield for method, cls in AGENT_CLASSES.items()}
+TRAIN_SHIELD_MODE: dict[str, str] = {method: cls.train_shield for method, cls in ALL_AGENT_CLASSES.items()}
 """Shield mode of the training env per method (``train_shield`` of its agent class; masks are recorded for
 all methods, only mask users act on them)."""
 ENV_SECTIONS: tuple[str, ...] = tuple(key for key in SafelaneConfig.model_fields if key != "preset")
@@ -82,8 +82,10 @@ class TrainConfig(BaseModel):
 
     model_config = ConfigDict(extra="forbid", validate_assignment=True)
 
-    method: Literal["dqn", "constrained", "qmask", "robust"] | None = Field(
-        "robust", description="dqn, constrained, qmask or robust (paper Section IV.1–4); none with algo."
+    method: Literal["dqn", "constrained", "qmask", "robust", "robust-recurrent"] | None = Field(
+        "robust",
+        description="dqn, constrained, qmask or robust (paper Section IV.1–4), or robust-recurrent (robust on a "
+        "recurrent Q-network, safelane.agents.recurrent); none with algo.",
     )
     algo: Algo | None = Field(
         None,
@@ -211,12 +213,12 @@ def resolve(cfg: TrainConfig) -> RunConfig:
                           f"{cfg.method!r}")  # fmt: skip
     env_sets = [f"shield.mode={TRAIN_SHIELD_MODE[cfg.method]}", *env_sets]
     env_cfg = load_config(cfg.env_preset, sets=env_sets)
-    agent_class = AGENT_CLASSES[cfg.method]
-    if agent_class.uses_mask and env_cfg.shield.mode == "none":
+    learner_class = agent_class(cfg.method)
+    if learner_class.uses_mask and env_cfg.shield.mode == "none":
         raise ConfigError(
             f"shield.mode: {cfg.method} acts on the shield's mask; use nominal, robust or committed, not none"
         )
-    if agent_class.needs_cost and env_cfg.shield.mode == "none":
+    if learner_class.needs_cost and env_cfg.shield.mode == "none":
         raise ConfigError(
             f"shield.mode: {cfg.method}'s cost counts actions outside the shield's mask; "
             "use nominal, robust or committed, not none"
@@ -344,7 +346,7 @@ def restore_rng_states(state: dict[str, Any]) -> None:
 def training_snapshot(
     run: RunConfig,
     agent: DQNAgent,
-    buffer: ReplayBuffer,
+    buffer: ReplayBuffer | SequenceReplay,
     episode: int,
     global_step: int,
     rows: list[dict[str, Any]],
@@ -464,6 +466,42 @@ class GreedyPolicy:
         return self.agent.greedy_batch(obs, masks)
 
 
+class RecurrentGreedyPolicy(GreedyPolicy):
+    """The greedy policy of a recurrent run: stateful, its hidden state carried from one decision to the next.
+
+    The hidden state restarts at :meth:`begin_episode` (the evaluation loop calls it after each reset) and, for a
+    loop that does not, whenever the snapshot's clock in ``info`` is not later than at the previous call (a reset).
+    It plays one environment at a time: :meth:`batch` is refused, so evaluation plays the episodes one by one.
+    """
+
+    def __init__(self, agent: DQNAgent, run: RunConfig, name: str = "the run") -> None:
+        super().__init__(agent, run, name)
+        self._clock: float | None = None  # [s] the snapshot's time at the previous decision
+
+    def begin_episode(self) -> None:
+        """A new episode: forget the previous one."""
+        self.agent.begin_episode()
+        self._clock = None
+
+    def __call__(self, obs: np.ndarray, info: dict[str, Any] | None = None) -> int:
+        """The greedy action for the episode's next observation (advances the hidden state)."""
+        snap = info.get("snapshot") if info is not None else None
+        if snap is not None:
+            if self._clock is not None and snap.time <= self._clock:
+                self.agent.begin_episode()
+            self._clock = float(snap.time)
+        return super().__call__(obs, info)
+
+    batch = None  # type: ignore[assignment]
+    """No batch: each environment would need its own hidden state."""
+
+
+def greedy_policy(agent: DQNAgent, run: RunConfig, name: str = "the run") -> GreedyPolicy:
+    """The greedy policy of a trained agent: :class:`RecurrentGreedyPolicy` for a recurrent one, else
+    :class:`GreedyPolicy`."""
+    return (RecurrentGreedyPolicy if agent.recurrent else GreedyPolicy)(agent, run, name)
+
+
 def load_agent(run_dir: str | Path) -> DQNAgent:
     """The trained agent of a run directory, networks restored from its checkpoint."""
     run = load_run_config(run_dir)
@@ -516,4 +554,4 @@ def load_policy(run_dir: str | Path) -> Callable[[np.ndarray, dict[str, Any]], A
     run = load_run_config(run_dir)
     if run.train.algo is not None:
         return ContinuousPolicy(load_continuous_model(run_dir), run, f"run {run_dir}")
-    return GreedyPolicy(load_agent(run_dir), run, f"run {run_dir}")
+    return greedy_policy(load_agent(run_dir), run, f"run {run_dir}")

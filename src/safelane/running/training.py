@@ -23,7 +23,8 @@ from typing import Any
 import numpy as np
 import torch
 
-from safelane.agents.dqn import ConstrainedAgent, ReplayBuffer, linear_epsilon, make_agent, sanitize_mask
+from safelane.agents.dqn import ConstrainedAgent, linear_epsilon, sanitize_mask
+from safelane.agents.registry import make_agent
 from safelane.config import ConfigError
 from safelane.env.factory import make_env, observation_size
 from safelane.reporting.metrics_file import METRIC_COLUMNS, METRICS_FILE, TIMING_COLUMNS, MetricsAppender, write_metrics
@@ -130,7 +131,7 @@ def train(
 
     obs_size = observation_size(run.env)  # 26 for the paper's state; the network's input follows the state
     agent = make_agent(acfg, seed=cfg.seed, obs_size=obs_size)
-    buffer = ReplayBuffer(acfg.buffer_size, obs_size)
+    buffer = agent.new_replay(obs_size)  # transitions; a recurrent agent's keeps whole episodes
     rows: list[dict[str, Any]] = []
     episode, global_step, wall_before, env_time = 0, 0, 0.0, 0.0
     if state is not None:
@@ -158,6 +159,8 @@ def train(
                 t_env = time.perf_counter()
                 obs, info = env.reset(seed=episode_seed(cfg.seed, episode))
                 env_time += time.perf_counter() - t_env
+                agent.begin_episode()  # a recurrent agent's hidden state restarts with the episode
+                buffer.begin_episode()
                 mask = _mask_of(info)
                 ep_return, length, speed_sum, ep_cost = 0.0, 0, 0.0, 0.0
                 interventions, fallbacks, loss_sum, n_losses = 0, 0, 0.0, 0

@@ -45,8 +45,11 @@ LEARNED: dict[str, str] = {
     "paper-stack": "robust Q-masking, eq. 3 of the last 4 decisions",
     "paper-belief": "robust Q-masking, eq. 3 and each observed car's posterior over the types",
     "paper-types": "robust Q-masking, eq. 3 and the true types (the upper bound)",
+    "paper-recurrent": "robust Q-masking on a GRU over eq. 3's decisions (--method robust-recurrent)",
 }
-"""The learned agents: the ``state:`` the DQN reads, and what it is."""
+"""The learned agents: the ``state:`` the DQN reads (a recurrent one's: :data:`RECURRENT`), and what it is."""
+RECURRENT: dict[str, str] = {"paper-recurrent": "paper"}
+"""The learned agents on a recurrent Q-network (``--method robust-recurrent``), and the ``state:`` each reads."""
 FIXED: dict[str, str] = {
     "faster": "always FASTER, the shield overriding",
     "random": "random, the shield overriding",
@@ -183,7 +186,7 @@ def arm_sets(spec: TypesSpec, scenario: str, agent: str, shield: str) -> list[st
     action."""
     sets = [*SCENARIO_SETS[scenario], *spec.sets, f"shield.mode={shield}"]
     if agent in LEARNED:
-        return [*sets, f"state={agent}"]
+        return [*sets, f"state={RECURRENT.get(agent, agent)}"]
     return [*sets, "shield.override=true"]
 
 
@@ -193,7 +196,7 @@ def train_config_of(spec: TypesSpec, scenario: str, agent: str, shield: str, see
     from safelane.running.run_directory import make_train_config
 
     return make_train_config(
-        method="robust",
+        method="robust-recurrent" if agent in RECURRENT else "robust",
         agent_preset=spec.agent_preset,
         env_preset=PRESET,
         episodes=spec.episodes,

@@ -326,3 +326,32 @@ def test_linear_steering_squares_the_speed_with_pow_as_highway_env() -> None:
         f1_product = -v.lane.local_coordinates(v.position)[1] * v.LENGTH / (s * s)
         product_differs += float(np.dot(v.STEERING_PARAMETERS, [f0, f1_product])) != ref
     assert product_differs > 0
+
+
+@pytest.mark.parametrize("preset", ["fast", "hidden-types"])
+def test_snapshot_arrays_are_typed_alike_on_both_simulators(preset: str) -> None:
+    """Every array of a snapshot has the same layout and the same read-only flag on both simulators (and in the
+    robust shield's readings of the types), so each compiled kernel of the shield compiles once, not once per
+    simulator: numba types an argument by its dtype, layout and writeability."""
+    from dataclasses import fields as dataclass_fields
+
+    from safelane.core.snapshot import READ_ONLY_FIELDS
+
+    def typing(snap: RoadSnapshot) -> dict[str, tuple[str, bool, bool]]:
+        return {f.name: (str(a.dtype), a.flags.c_contiguous, a.flags.writeable) for f in dataclass_fields(snap)
+                if isinstance(a := getattr(snap, f.name), np.ndarray)}  # fmt: skip
+
+    seen = {}
+    for simulator in ("fast", "highway-env"):
+        env = safelane.make_env(preset, simulator=simulator, **{"shield.mode": "robust"})
+        _, info = env.reset(seed=3)
+        _, _, _, _, info = env.step(1)
+        snap = info["snapshot"]
+        seen[simulator] = typing(snap)
+        assert all(not seen[simulator][n][2] for n in READ_ONLY_FIELDS if n in seen[simulator])
+        assert all(c for _, c, _ in seen[simulator].values())  # C-ordered, positions included
+        shield = env.get_wrapper_attr("driver_readings")
+        for reading in shield(snap)[0]:
+            assert typing(reading) == seen[simulator]
+        env.close()
+    assert seen["fast"] == seen["highway-env"]

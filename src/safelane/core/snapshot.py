@@ -39,6 +39,17 @@ DRIVER_FIELDS: tuple[str, ...] = (
     "linear_distance_gain",
 )
 """The per-body driver-model arrays of a snapshot, in the order the safety model's ``RoadState`` uses."""
+READ_ONLY_FIELDS: tuple[str, ...] = ("length", "width", "is_vehicle", "driver_type", *DRIVER_FIELDS)
+"""The arrays of a snapshot that hold for the whole episode: every simulator hands them out read-only (the fast one
+shares them between snapshots). numba compiles a kernel once per argument type, read-only included, so arrays typed
+alike on both simulators (and in the shield's readings) compile each kernel once."""
+
+
+def freeze(arrays: object) -> None:
+    """Mark each numpy array in ``arrays`` (an iterable; None entries skipped) read-only."""
+    for a in arrays:  # type: ignore[attr-defined]
+        if isinstance(a, np.ndarray):
+            a.flags.writeable = False
 
 
 def _same(a: object, b: object) -> bool:

@@ -34,7 +34,7 @@ import dataclasses
 import numpy as np
 
 from safelane.core.drivers import IdmParameters
-from safelane.core.snapshot import RoadSnapshot
+from safelane.core.snapshot import RoadSnapshot, freeze
 
 _FIELDS = ("brake_max", "accel_max", "can_change_lane", "idm_comfort_acc", "idm_comfort_dec", "idm_distance_wanted",
            "idm_time_wanted", "max_braking_imposed", "linear_speed_gain", "linear_speed_difference_gain",
@@ -63,6 +63,7 @@ def type_reading(
     arrays["max_braking_imposed"][cars] = np.array([t.max_braking_imposed for t in types])[kinds]
     for name in ("linear_speed_gain", "linear_speed_difference_gain", "linear_distance_gain"):
         arrays[name][cars] = np.nan
+    freeze(arrays.values())  # read-only as the snapshot's own: the rule's kernels compile once for both
     return dataclasses.replace(snap, **arrays)
 
 

@@ -25,7 +25,7 @@ from highway_env.road.road import Road, RoadNetwork
 from highway_env.vehicle.behavior import IDMVehicle
 from highway_env.vehicle.controller import ControlledVehicle
 
-from safelane.core.snapshot import RoadSnapshot
+from safelane.core.snapshot import READ_ONLY_FIELDS, RoadSnapshot, freeze
 
 
 class _DriverRecord(NamedTuple):
@@ -168,7 +168,7 @@ def snapshot_of(base: Any, cache: dict[int, _DriverRecord] | None = None) -> Roa
     watch = road.__dict__.get("step")
     crashed_frame = isinstance(watch, _CrashWatch) and watch.before is not None
     ego_lane = getattr(ego, "lane", None)
-    return RoadSnapshot(
+    snap = RoadSnapshot(
         time=float(base.time),
         policy_frequency=float(base.config["policy_frequency"]),
         simulation_frequency=float(base.config["simulation_frequency"]),
@@ -208,6 +208,8 @@ def snapshot_of(base: Any, cache: dict[int, _DriverRecord] | None = None) -> Roa
         else np.array([int(getattr(o, "driver_type", -1)) for o in found], dtype=np.int64),
         **columns,
     )
+    freeze(getattr(snap, name) for name in READ_ONLY_FIELDS)  # typed as the fast simulator's
+    return snap
 
 
 class DiscardedObservation(ObservationType):

@@ -374,3 +374,28 @@ def test_shards_split_the_grid_and_merge_to_the_whole_campaigns_totals(tmp_path:
         assert len(result.output.strip().splitlines()) == 1
     result = runner.invoke(app, ["falsify", str(other), "--merge", folders[0], "--out", str(tmp_path / "bad2")])
     assert result.exit_code == 2 and "another campaign" in result.output
+
+
+def test_breaks_classed_as_they_happen_are_classed_as_their_replays(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Where the episode loop sees every snapshot, a cell classes its invariant breaks as they happen (no replay):
+    the class each file's replay gives is the same (hidden types, where breaks are frequent)."""
+    import safelane.running.counterexamples as counterexamples
+    from safelane.running.falsify.grid import play_cell
+
+    def no_replay(*_: object, **__: object) -> None:
+        raise AssertionError("a break was replayed to be classed")
+
+    spec = load_campaign_spec(write_spec(
+        tmp_path / "t.yaml", preset="hidden-types", episodes=3, policies=["random"],
+        sets=["env.duration=20", "env.vehicles_density=2.0", "traffic.vehicles_behind=12"],
+        axes={"rate": [{"env.policy_frequency": 3, "env.simulation_frequency": 15}]},
+    ))  # fmt: skip
+    with monkeypatch.context() as patch:
+        patch.setattr(counterexamples, "replay", no_replay)
+        played = play_cell(spec, spec.cells()[0], 7, 3, tmp_path / "cx", "test", "c-")
+    assert played["invariant_breaks"] >= 2
+    assert len(played["break_file_classes"]) == played["invariant_breaks"]
+    for name, kind in played["break_file_classes"].items():
+        assert break_class(replay(load_counterexample(tmp_path / "cx" / name))) == kind

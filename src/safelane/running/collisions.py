@@ -12,6 +12,7 @@ rule's promise (the evaluation's tally decides it, step by step).
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import numpy as np
 
@@ -142,3 +143,57 @@ def classify_collision(snap: RoadSnapshot) -> str | None:
     ego_long, ego_lat = _extents(snap.length[e], snap.width[e], float(snap.heading[e]) - lane_heading)
     other_long, other_lat = _extents(snap.length[other], snap.width[other], float(snap.heading[other]) - lane_heading)
     return collision_kind(offset(before), offset(after), ego_long + other_long, ego_lat + other_lat)
+
+
+SCENE_RANGE = 80.0
+"""[m] The vehicles a scene lists (:func:`scene_near_ego`): within this distance of the ego along the road."""
+BREAK_CLASSES: tuple[str, ...] = ("second_lane_cut_in", "adjacent_lane_change", "ego_lane_change", "other")
+"""Every value :func:`break_class_of` returns."""
+NEAR_CHANGE = 60.0
+"""[m] How close along the road a lane-changing vehicle must be to count in :func:`break_class_of`."""
+
+
+def scene_near_ego(snap: RoadSnapshot) -> tuple[dict[str, float], list[dict[str, float]]]:
+    """The ego (lane, x [m], speed [m/s]) and the vehicles within :data:`SCENE_RANGE` of it (vehicle index, lane,
+    x offset [m], speed [m/s]), sorted by lane then offset: what a counterexample's replay logs per decision."""
+    e = snap.ego
+    x0 = float(snap.position[e, 0])
+    ego = {"lane": int(snap.lane[e]), "x": x0, "speed": float(snap.speed[e])}
+    nearby = []
+    for i in range(snap.n):
+        dx = float(snap.position[i, 0]) - x0
+        if i != e and abs(dx) <= SCENE_RANGE:
+            nearby.append(
+                {"vehicle": i, "lane": int(snap.lane[i]), "dx": round(dx, 2), "speed": round(float(snap.speed[i]), 2)}
+            )
+    nearby.sort(key=lambda v: (v["lane"], v["dx"]))
+    return ego, nearby
+
+
+def break_class_of(ego_lane_before: int, before: list[dict[str, Any]], ego_lane_after: int,
+                   after: list[dict[str, Any]]) -> str:  # fmt: skip
+    """The class of an invariant break from the scenes (:func:`scene_near_ego`) before and after its decision: a
+    vehicle within :data:`NEAR_CHANGE` that came from two lanes away into the lane next to the ego
+    (``second_lane_cut_in``); else one that changed lanes next to the ego (``adjacent_lane_change``); else the ego's
+    own lane change (``ego_lane_change``); else ``other``."""
+    lanes_before = {v["vehicle"]: v["lane"] for v in before}
+    for v in after:
+        was = lanes_before.get(v["vehicle"])
+        if was is None or abs(v["dx"]) > NEAR_CHANGE:
+            continue
+        if abs(v["lane"] - ego_lane_after) == 1 and abs(was - ego_lane_before) >= 2:
+            return "second_lane_cut_in"
+    for v in after:
+        was = lanes_before.get(v["vehicle"])
+        if was is not None and was != v["lane"] and abs(v["dx"]) <= NEAR_CHANGE and abs(was - ego_lane_before) <= 1:
+            return "adjacent_lane_change"
+    if ego_lane_after != ego_lane_before:
+        return "ego_lane_change"
+    return "other"
+
+
+def break_class_of_snapshots(before: RoadSnapshot, after: RoadSnapshot) -> str:
+    """:func:`break_class_of` of the snapshots before and after a break's decision."""
+    ego_before, near_before = scene_near_ego(before)
+    ego_after, near_after = scene_near_ego(after)
+    return break_class_of(int(ego_before["lane"]), near_before, int(ego_after["lane"]), near_after)

@@ -30,8 +30,9 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_valida
 
 from safelane.config import ConfigError, SafelaneConfig, build_config, config_to_dict, recorded_config
 from safelane.core.files import atomic_write_text
+from safelane.running.collisions import SCENE_RANGE, scene_near_ego
 
-NEAR = 80.0
+NEAR = SCENE_RANGE
 """[m] Vehicles within this distance of the ego, along the road, are logged."""
 
 EventKind = Literal["collision", "invariant_break", "lapse", "lapse_in_model"]
@@ -252,22 +253,6 @@ class ReplayResult:
         }
 
 
-def _scene(snap: Any) -> tuple[dict[str, float], list[dict[str, float]]]:
-    """The ego and the vehicles within :data:`NEAR` of it: lane, x offset [m], speed [m/s]."""
-    e = snap.ego
-    x0 = float(snap.position[e, 0])
-    ego = {"lane": int(snap.lane[e]), "x": x0, "speed": float(snap.speed[e])}
-    nearby = []
-    for i in range(snap.n):
-        dx = float(snap.position[i, 0]) - x0
-        if i != e and abs(dx) <= NEAR:
-            nearby.append(
-                {"vehicle": i, "lane": int(snap.lane[i]), "dx": round(dx, 2), "speed": round(float(snap.speed[i]), 2)}
-            )
-    nearby.sort(key=lambda v: (v["lane"], v["dx"]))
-    return ego, nearby
-
-
 def replay(cx: Counterexample, simulator: str | None = None) -> ReplayResult:
     """Play ``cx`` again (on ``simulator`` if given) and log every decision up to its event.
 
@@ -294,7 +279,7 @@ def replay(cx: Counterexample, simulator: str | None = None) -> ReplayResult:
             if done:
                 break
             result = env.get_wrapper_attr("result")
-            ego, nearby = _scene(info["snapshot"])
+            ego, nearby = scene_near_ego(info["snapshot"])
             _, _, terminated, truncated, info = env.step(int(action))
             decisions.append(
                 Decision(
@@ -317,7 +302,7 @@ def replay(cx: Counterexample, simulator: str | None = None) -> ReplayResult:
         if decisions and decisions[-1].collision:
             kind = classify_collision(info["snapshot"])
         result = env.get_wrapper_attr("result")
-        ego, nearby = _scene(info["snapshot"])
+        ego, nearby = scene_near_ego(info["snapshot"])
         final = {
             "time": float(info["snapshot"].time),
             "mask": [bool(m) for m in result.mask],
@@ -346,7 +331,7 @@ def _replay_controls(cx: Counterexample, cfg: SafelaneConfig) -> ReplayResult:
         for k, action in enumerate(cx.actions[: cx.step], start=1):
             if done:
                 break
-            ego, nearby = _scene(info["snapshot"])
+            ego, nearby = scene_near_ego(info["snapshot"])
             chosen = np.asarray(action, dtype=np.float32)
             _, _, terminated, truncated, info = env.step(chosen)
             decisions.append(
@@ -370,7 +355,7 @@ def _replay_controls(cx: Counterexample, cfg: SafelaneConfig) -> ReplayResult:
             done = bool(terminated or truncated)
         if decisions and decisions[-1].collision:
             kind = classify_collision(info["snapshot"])
-        ego, nearby = _scene(info["snapshot"])
+        ego, nearby = scene_near_ego(info["snapshot"])
         final = {"time": float(info["snapshot"].time), "ego": ego, "nearby": nearby, "off_road": bool(info["off_road"])}
     finally:
         env.close()

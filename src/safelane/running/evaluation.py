@@ -27,6 +27,7 @@ from safelane.core.snapshot import RoadSnapshot
 from safelane.core.spaces import ACTION_NAMES, N_ACTIONS
 from safelane.running.collisions import (
     COLLISION_KINDS,
+    break_class_of_snapshots,
     classify_collision,
     collision_contexts,
     collision_partner,
@@ -105,6 +106,9 @@ class EpisodeRecord:
     """The shield for continuous actions: the distances [normalised actions] from the policy's action to the executed
     one, summed over the episode's decisions (``interventions`` counts the projected ones; None: another shield or
     none)."""
+    break_classes: dict[int, str] = field(default_factory=dict, repr=False)
+    """Each invariant break's class (:func:`~safelane.running.collisions.break_class_of`) by its decision, where the
+    episode loop saw the snapshots before and after it (every loop but the fast batch's). Not in :meth:`to_dict`."""
     executed_actions: list[list[float]] = field(default_factory=list, repr=False)
     """The shield for continuous actions: the ``[acceleration, steering]`` it executed at each decision (float32
     values), which a counterexample file records beside the chosen ones; empty otherwise. Not in :meth:`to_dict`."""
@@ -114,7 +118,7 @@ class EpisodeRecord:
         that mode, ``off_road`` only for continuous actions, which have no ``actions`` histogram,
         ``projection_distance`` only under the shield for continuous actions)."""
         data = asdict(self)
-        del data["chosen_actions"], data["executed_actions"]
+        del data["chosen_actions"], data["executed_actions"], data["break_classes"]
         if self.uncertified_start is None:
             for name in COMMITTED_FIELDS:
                 del data[name]
@@ -199,6 +203,8 @@ class EpisodeTally:
         self.off_road = bool(reset_info["off_road"]) if self.continuous else None
         # The belief shield: whether a crash came with a car whose true type it had ruled out.
         self.type_ruled_out_crash = False if "type_ruled_out_crash" in reset_info else None
+        self.snapshot_before = reset_info.get("snapshot")
+        self.break_classes: dict[int, str] = {}
 
     def add(self, action: Action, reward: float, info: dict[str, Any]) -> None:
         """Count one decision: the ``action`` chosen, the ``reward`` and ``info`` its step returned."""
@@ -218,6 +224,9 @@ class EpisodeTally:
         self.unsafe_actions += bool(info.get("unsafe_action", False))
         if info.get("invariant_break", False):
             self.breaks.append(self.steps)
+            if self.snapshot_before is not None and "snapshot" in info:
+                self.break_classes[self.steps] = break_class_of_snapshots(self.snapshot_before, info["snapshot"])
+        self.snapshot_before = info.get("snapshot")
         if info.get("type_ruled_out_crash", False):
             self.type_ruled_out_crash = True
         if info.get("collision", False) and not self.collision:
@@ -339,6 +348,7 @@ class EpisodeTally:
             type_ruled_out_crash=self.type_ruled_out_crash,
             projection_distance=self.projection_distance,
             executed_actions=self.executed,
+            break_classes=self.break_classes,
         )
 
 

@@ -37,6 +37,7 @@ import csv
 import io
 import itertools
 import json
+import re
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -48,6 +49,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 
 from safelane.config import ConfigError, validation_message
 from safelane.core.files import atomic_write_text
+from safelane.running.collisions import BREAK_CLASSES, break_class_of
 from safelane.running.conditions import traffic_seed_base
 
 FALSIFY_SEED_BASE = 4_000_000_000
@@ -60,9 +62,6 @@ decision rate, state or action set are recorded as skipped)."""
 BELIEF_FIGURES: tuple[str, ...] = ("collisions_type_ruled_out", "collision_contexts_types_kept")
 """What a cell under the belief shield adds: its crashes with a car whose true driver type the belief had ruled out
 (outside its sets), and the promise's contexts of the others."""
-BREAK_CLASSES: tuple[str, ...] = ("second_lane_cut_in", "adjacent_lane_change", "ego_lane_change", "other")
-NEAR_CHANGE = 60.0
-"""[m] How close along the road a lane-changing vehicle must be to count in :func:`break_class`."""
 
 
 class CampaignBase(BaseModel):
@@ -250,26 +249,15 @@ def cell_config(spec: CampaignBase, cell: dict[str, Any]) -> Any:
     return load_config(spec.preset, sets=spec.sets, overrides=overrides)
 
 
+BREAK_FILE = re.compile(r"seed(\d+)-invariant_break-step(\d+)\.json$")
+"""A break file's name: its episode's seed and its decision."""
+
+
 def break_class(result: Any) -> str:
-    """The class of an invariant break from its replay (see the module docstring)."""
-    decisions = result.decisions
-    last = decisions[-1]
-    before, after = last.nearby, result.final["nearby"]
-    ego_before, ego_after = last.ego["lane"], result.final["ego"]["lane"]
-    lanes_before = {v["vehicle"]: v["lane"] for v in before}
-    for v in after:
-        was = lanes_before.get(v["vehicle"])
-        if was is None or abs(v["dx"]) > NEAR_CHANGE:
-            continue
-        if abs(v["lane"] - ego_after) == 1 and abs(was - ego_before) >= 2:
-            return "second_lane_cut_in"
-    for v in after:
-        was = lanes_before.get(v["vehicle"])
-        if was is not None and was != v["lane"] and abs(v["dx"]) <= NEAR_CHANGE and abs(was - ego_before) <= 1:
-            return "adjacent_lane_change"
-    if ego_after != ego_before:
-        return "ego_lane_change"
-    return "other"
+    """The class of an invariant break from its replay (:func:`~safelane.running.collisions.break_class_of` of the
+    scenes before and after its decision)."""
+    last = result.decisions[-1]
+    return break_class_of(last.ego["lane"], last.nearby, result.final["ego"]["lane"], result.final["nearby"])
 
 
 def _cell_policy(name: str, seed: int, config: Any) -> Any:
@@ -308,7 +296,7 @@ def play_cell(
 ) -> dict[str, Any]:
     """Play ``episodes`` episodes of one cell (``cell["sets"]`` on the spec's config, ``cell["policy"]``),
     seeds ``seed, seed + 1, …``; save every crash and invariant break as ``counterexamples/PREFIX…json``
-    and class the breaks from their replays. Returns the cell's statistics (episodes, decisions,
+    and class the breaks (as they happened, or from their replays). Returns the cell's statistics (episodes, decisions,
     collisions and their kinds and contexts, invariant breaks and their classes, fallback rate, mean
     speed [m/s], file names, the committed mode's and continuous actions' figures, ``wall_time_s`` [s]), or
     ``{"skipped": why}`` where the simulator lacks a setting.
@@ -327,9 +315,15 @@ def play_cell(
     files = save_counterexamples(records, cfg, counterexamples, source, prefix)
     classes = dict.fromkeys(BREAK_CLASSES, 0)
     file_classes: dict[str, str] = {}
+    # Classed as they happened where the episode loop saw every snapshot, else from the file's replay (the same
+    # scenes, so the same class: the fast batch shows the loop only the snapshots it needs).
+    seen = {(r.seed, step): kind for r in records for step, kind in r.break_classes.items()}
     for path in files:
         if "invariant_break" in path.name:
-            file_classes[path.name] = break_class(replay(load_counterexample(path)))
+            match = BREAK_FILE.search(path.name)
+            key = (int(match.group(1)), int(match.group(2))) if match else None
+            kind = seen.get(key) if key is not None else None
+            file_classes[path.name] = kind if kind is not None else break_class(replay(load_counterexample(path)))
             classes[file_classes[path.name]] += 1
     return {
         "episodes": s["episodes"],

@@ -3,7 +3,9 @@ steps, the compiled kernel against the numpy reference, the filter's bookkeeping
 
 from __future__ import annotations
 
+import copy
 import math
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -364,3 +366,28 @@ def test_a_crash_with_a_car_whose_true_type_was_ruled_out_is_counted(truth: int,
     # the crash stands against the promise only where the true type was kept: its context, else none
     kept = summary["collision_contexts_types_kept"]
     assert sum(kept.values()) == 1 - int(ruled_out) and kept[record.collision_context] == 1 - int(ruled_out)
+
+
+@pytest.mark.parametrize("mode", ["belief", "omniscient", "robust"])
+def test_an_aggressive_turn_in_for_a_small_gain_is_in_the_types_sets(mode: str) -> None:
+    """An aggressive car (MOBIL's threshold 0) turns in beside the ego for a gain below IDMVehicle's 0.2 m/s². With
+    the rule's threshold at 0.2 for every car the belief and omniscient shields allowed IDLE into it (a side crash
+    from a safe state, pinned); under a mixture the rule takes the least threshold of its types, and every type
+    shield allows only SLOWER there, the numpy reference and the compiled engine alike."""
+    from safelane.config import build_config
+    from safelane.env.factory import make_env
+    from safelane.running.counterexamples import load_counterexample
+
+    cx = load_counterexample(Path(__file__).parent / "fixtures" / "hidden-types" / "aggressive-turn-in-collision.json")
+    masks = {}
+    for engine in ("numpy", "compiled"):
+        data = copy.deepcopy(cx.config)
+        data["shield"] = {**data["shield"], "mode": mode, "override": False, "engine": engine}
+        env = make_env(build_config(data))
+        _, info = env.reset(seed=cx.seed)
+        for action in cx.actions[:-1]:
+            _, _, _, _, info = env.step(int(action))
+        masks[engine] = info["action_mask"].tolist()
+        env.close()
+    assert masks["numpy"] == masks["compiled"]
+    assert masks["compiled"][:4] == [False, False, False, False]  # IDLE no longer: the aggressive car may turn in

@@ -116,6 +116,14 @@ def idm_parameters(mix: DriverMix, key: str = "traffic.driver_mix") -> tuple[Idm
     return tuple(IDM_PARAMETERS[name] for name in mix.types)
 
 
+def least_min_acc_gain(mix: DriverMix | None, default: float) -> float:
+    """[m/s²] The least MOBIL incentive threshold (``LANE_CHANGE_MIN_ACC_GAIN``) among ``default`` and the mixture's
+    types with fixed constants: the threshold a rule must assume when it does not know which car is which type."""
+    if mix is None:
+        return default
+    return min([default, *(IDM_PARAMETERS[name].min_acc_gain for name in mix.types if name in IDM_PARAMETERS)])
+
+
 def _allowed_types() -> str:
     return ", ".join(DRIVER_TYPES)
 

@@ -40,7 +40,7 @@ from safelane.env.observations import OBS_SIZE, lane_state_kernel, paper_state_k
 from safelane.safety.committed.family import CommittedFamily, CommittedResult
 from safelane.safety.one_decision.compiled import N_CONSTS, kernel_constants, snapshot_kernel
 from safelane.safety.one_decision.reference import OVERRIDE_ORDER
-from safelane.safety.shield import FALLBACK_SLOWDOWN, dynamics_of, ego_leave_time_of, ego_leave_times
+from safelane.safety.shield import FALLBACK_SLOWDOWN, dynamics_of, ego_leave_time_of, ego_leave_times, with_mixture
 from safelane.sim.fast import kernels as K
 from safelane.sim.fast import layout as L
 from safelane.sim.fast.env import FastHighwayEnv, stacked_storage
@@ -317,7 +317,7 @@ class FastBatch:
     def _shield_constants(self, snap: RoadSnapshot) -> tuple:
         """The safety kernel's arguments that stay the same for the batch (SafetyShield's dynamics)."""
         shield = self.cfg.shield
-        dyn = dynamics_of(snap, shield.margin, shield.resolved_rule())
+        dyn = with_mixture(dynamics_of(snap, shield.margin, shield.resolved_rule()), self.cfg.traffic.driver_mixture())
         return (
             ego_leave_times(dyn), FALLBACK_SLOWDOWN, float(snap.speed_limit),
             *(_readonly(np.array(a, dtype=float)) for a in (snap.lane_origin, snap.lane_direction, snap.lane_lateral)),

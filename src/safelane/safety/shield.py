@@ -32,7 +32,7 @@ from typing import Any, Literal
 import gymnasium as gym
 import numpy as np
 
-from safelane.core.drivers import IDM_PARAMETERS, IdmParameters, idm_parameters
+from safelane.core.drivers import IDM_PARAMETERS, DriverMix, IdmParameters, idm_parameters, least_min_acc_gain
 from safelane.core.snapshot import RoadSnapshot
 from safelane.safety.belief import DEFAULT_BELIEF_EPSILON, BeliefFilter, DriverTypes
 from safelane.safety.driver_sets import TYPE_MODES, drawn_cars, every_type, true_type, type_readings
@@ -101,6 +101,13 @@ def dynamics_of(snap: RoadSnapshot, margin: float = DEFAULT_MARGIN, rule: Rule |
         # The widest other body (every highway-env vehicle has Vehicle.WIDTH): the occupancy bound.
         body_width=float(np.max(snap.width)) if len(snap.width) else 2.0,
     )
+
+
+def with_mixture(dyn: Dynamics, mix: DriverMix | None) -> Dynamics:
+    """``dyn`` for traffic drawn from the driver mixture ``mix`` (None: ``dyn``): MOBIL's incentive threshold the
+    least of its types' (:func:`~safelane.core.drivers.least_min_acc_gain`), which the snapshot does not carry."""
+    gain = least_min_acc_gain(mix, dyn.mobil_min_gain)
+    return dyn if gain == dyn.mobil_min_gain else dataclasses.replace(dyn, mobil_min_gain=gain)
 
 
 FALLBACK_SLOWDOWN = 4.5
@@ -327,7 +334,7 @@ class SafetyShield(gym.Wrapper, gym.utils.RecordConstructorArgs):
     def _ego_leave_time(self, snap: RoadSnapshot) -> float:
         """The time [s] the ego takes to leave its lane in the state of ``snap``."""
         if self.dynamics is None:
-            self.dynamics = dynamics_of(snap, self.margin, self.rule)
+            self.dynamics = with_mixture(dynamics_of(snap, self.margin, self.rule), self.driver_mix)
         return ego_leave_time_of(snap, self.dynamics)
 
     def refresh(self) -> SafetyResult:

@@ -88,6 +88,10 @@ class Dynamics:
     cut_in_time: float = 0.4  # [s] fastest time for another vehicle to reach the ego's lane
     margin: float = 1.0  # [m] minimum bumper-to-bumper gap kept under the worst case
     body_width: float = 2.0  # [m] the other vehicles' width (highway-env's Vehicle.WIDTH), for body_extent
+    mobil_min_gain: float = MOBIL_MIN_ACC_GAIN
+    """[m/s²] MOBIL's incentive threshold in the rule's turn-in filter: highway-env's ``IDMVehicle``'s; under a driver
+    mixture the least of its types' (:func:`~safelane.safety.driver_sets.least_min_acc_gain`), since an aggressive
+    driver changes lanes for any gain and the snapshot does not say which car is one."""
     rule: Rule = DEFAULTS  # the rule's options (safelane.safety.rule)
     braking_decisions: int | None = None
     """Decisions the ego's braking to a standstill may take, counted at :data:`BASE_DECISION_PERIOD` as the rest of

@@ -79,7 +79,6 @@ assert (reference.IDM_LANE_MARGIN, reference.NOT_ZERO) == (IDM_LANE_MARGIN, NOT_
 _TIE_BREAK = np.array(reference.TIE_BREAK_ORDER, dtype=np.int64)
 _RELEVANCE = float(reference.RELEVANCE_RANGE)
 _LATERAL = float(reference.LATERAL_MOTION_THRESHOLD)
-_MIN_ACC_GAIN = float(reference.MOBIL_MIN_ACC_GAIN)
 
 __all__ = [
     "C_BODY_WIDTH", "C_CUT_IN_TIME", "C_DECISION_PERIOD", "C_EGO_KP", "C_FOLLOWER_REACTION", "C_FRAMES",
@@ -243,7 +242,7 @@ def dynamics_consts(dyn: Dynamics) -> np.ndarray:
     consts[C_LATERAL_THRESHOLD] = _LATERAL
     consts[C_BODY_WIDTH] = dyn.body_width
     consts[C_TURNING_ALLOWANCE] = reference.turning_allowance(dyn)
-    consts[C_MIN_ACC_GAIN] = _MIN_ACC_GAIN
+    consts[C_MIN_ACC_GAIN] = dyn.mobil_min_gain
     consts.flags.writeable = False
     return consts
 

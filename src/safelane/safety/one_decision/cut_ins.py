@@ -15,7 +15,7 @@ from safelane.safety.others import (
     least_desired_gap,
     linear_acceleration_behind,
 )
-from safelane.safety.world import LATERAL_MOTION_THRESHOLD, MOBIL_MIN_ACC_GAIN, Dynamics, Mode, RoadState
+from safelane.safety.world import LATERAL_MOTION_THRESHOLD, Dynamics, Mode, RoadState
 
 
 @dataclass
@@ -297,15 +297,16 @@ def _gap_ratio(state: RoadState, who: np.ndarray, front_speed: np.ndarray, gap: 
 def turn_in_incentive(
     state: RoadState, dyn: Dynamics, near: np.ndarray, d_now: np.ndarray, d_end: np.ndarray, ego_v_end: float
 ) -> np.ndarray:
-    """Whether each vehicle of ``near``, with its centre behind the ego's (``d_now`` / ``d_end`` [m]: its
-    offset ahead of the ego now / at the end of the decision, others at constant speed), may gain by moving behind the
-    ego: MOBIL's incentive with politeness 0 (highway-env's ``IDMVehicle``), ``a(behind the ego) − a(behind its leader)
-    ≥`` :data:`MOBIL_MIN_ACC_GAIN`. The free-road terms cancel, leaving ``acc·(d*/d)²_leader − acc·(d*/d)²_ego``. Its
-    leader's term is taken as the largest over every vehicle ahead of it in its lane (IDM sees the nearest; the largest
-    can only overstate the gain, and it keeps the rule monotone: adding a vehicle never removes a conflict); none: 0.
-    Checked now and at the end of the decision, as the cut-in criterion is (an approximation within the decision, not a
-    bound): a car in free flow loses by tucking in behind the ego at a short gap; one stuck in a slow queue gains (the
-    car just overtaken that turned into the ego's rear flank)."""
+    """Whether each vehicle of ``near``, with its centre behind the ego's (``d_now`` / ``d_end`` [m]: its offset
+    ahead of the ego now / at the end of the decision, others at constant speed), may gain by moving behind the ego:
+    MOBIL's incentive with politeness 0 (highway-env's ``IDMVehicle``), ``a(behind the ego) − a(behind its leader)
+    ≥`` ``dyn.mobil_min_gain`` (0.2 m/s², highway-env's, unless a driver mixture's types go lower). The free-road
+    terms cancel, leaving ``acc·(d*/d)²_leader − acc·(d*/d)²_ego``. Its leader's term is taken as the largest over
+    every vehicle ahead of it in its lane (IDM sees the nearest; the largest can only overstate the gain, and it
+    keeps the rule monotone: adding a vehicle never removes a conflict); none: 0. Checked now and at the end of the
+    decision, as the cut-in criterion is (an approximation within the decision, not a bound): a car in free flow
+    loses by tucking in behind the ego at a short gap; one stuck in a slow queue gains (the car just overtaken that
+    turned into the ego's rear flank)."""
     x, v, t = state.x[near], state.vx[near], dyn.decision_period
     lanes = state.lane_of(state.y[near], dyn.lanes_count, dyn.lane_width)
     acc = state.idm_comfort_acc[near]
@@ -323,7 +324,7 @@ def turn_in_incentive(
     q_ego_end = _gap_ratio(state, near, np.full(near.size, ego_v_end), -d_end)
     gain_now = acc * lead_now - acc * (q_ego_now * q_ego_now)
     gain_end = acc * lead_end - acc * (q_ego_end * q_ego_end)
-    return ((d_now <= 0) & (gain_now >= MOBIL_MIN_ACC_GAIN)) | ((d_end <= 0) & (gain_end >= MOBIL_MIN_ACC_GAIN))
+    return ((d_now <= 0) & (gain_now >= dyn.mobil_min_gain)) | ((d_end <= 0) & (gain_end >= dyn.mobil_min_gain))
 
 
 def linear_turn_in_incentive(
@@ -336,7 +337,7 @@ def linear_turn_in_incentive(
     ``k₁·min(v_front − v, 0) + k₂·min(d − d_safe, 0)`` per front vehicle, ``d_safe = DISTANCE_WANTED +
     max(v, 0)·TIME_WANTED`` [m], ``d`` [m] centre to centre. No leader: its term is 0, so a car on a free lane
     never gains by moving behind the ego. The leader's term is the most negative over every vehicle ahead of
-    it in its lane (monotone, as for IDM). The threshold is :data:`MOBIL_MIN_ACC_GAIN` (0.2 m/s², Linear's);
+    it in its lane (monotone, as for IDM). The threshold is ``dyn.mobil_min_gain`` (0.2 m/s², Linear's);
     Aggressive and Defensive drivers need 1.0, so the rule assumes more turn-ins than they make."""
     x, v, t = state.x[near], state.vx[near], dyn.decision_period
     lanes = state.lane_of(state.y[near], dyn.lanes_count, dyn.lane_width)
@@ -357,7 +358,7 @@ def linear_turn_in_incentive(
     ego_end = k1 * np.minimum(ego_v_end - v, 0.0) + k2 * np.minimum(-d_end - d_safe, 0.0)
     gain_now = ego_now - lead_now
     gain_end = ego_end - lead_end
-    return ((d_now <= 0) & (gain_now >= MOBIL_MIN_ACC_GAIN)) | ((d_end <= 0) & (gain_end >= MOBIL_MIN_ACC_GAIN))
+    return ((d_now <= 0) & (gain_now >= dyn.mobil_min_gain)) | ((d_end <= 0) & (gain_end >= dyn.mobil_min_gain))
 
 
 def linear_turn_in_incentive_braking(
@@ -398,7 +399,7 @@ def linear_turn_in_incentive_braking(
                 lv = lead_v0[r] - lead_b[r] * tt
                 term = k1[j] * np.minimum(lv - v[j], 0.0) + k2[j] * np.minimum((lx - own_x) - d_safe[j], 0.0)
                 lead_term = term if q == 0 else np.minimum(lead_term, term)
-            if ego_term - lead_term >= MOBIL_MIN_ACC_GAIN:
+            if ego_term - lead_term >= dyn.mobil_min_gain:
                 out[j] = True
                 break
     return out
@@ -462,7 +463,7 @@ def incentive_times_any_speed(
                     closing = k1 * np.minimum(v_lo[rows] - v_hi[j], 0.0)  # leaders slowest, the car fastest
                     gap = x_lo[rows] - x_hi[j]
                     lead = float((closing + k2 * np.minimum(gap - (dw + v_hi[j] * tw), 0.0)).min())
-                if ego_term - lead >= MOBIL_MIN_ACC_GAIN:
+                if ego_term - lead >= dyn.mobil_min_gain:
                     out[j] = tau
             elif not linear:
                 acc, dw, tw = state.idm_comfort_acc[i], state.idm_distance_wanted[i], state.idm_time_wanted[i]
@@ -480,7 +481,7 @@ def incentive_times_any_speed(
                     lo, hi = _desired_gap_range(dw, tw, root_ab, v_lo[j], v_hi[j], v_lo[r], v_hi[r])
                     q = max(hi, -lo) / gap
                     lead = max(lead, q * q)
-                if acc * lead - acc * ego_term >= MOBIL_MIN_ACC_GAIN:
+                if acc * lead - acc * ego_term >= dyn.mobil_min_gain:
                     out[j] = tau
     return out
 
@@ -526,9 +527,9 @@ def incentive_times(
                     braking = (
                         k1[j] * np.minimum(lv - v[j], 0.0) + k2[j] * np.minimum((lx - own_x) - d_safe[j], 0.0)
                     ).min()
-                gains = ego_term - lead >= MOBIL_MIN_ACC_GAIN
+                gains = ego_term - lead >= dyn.mobil_min_gain
                 if dyn.rule.linear_incentive_braking:
-                    gains = gains or ego_term - braking >= MOBIL_MIN_ACC_GAIN
+                    gains = gains or ego_term - braking >= dyn.mobil_min_gain
                 if gains:
                     out[j] = tau
                     break
@@ -538,7 +539,7 @@ def incentive_times(
                     q = _gap_ratio(state, who, v[rows], (x[rows] + v[rows] * tau) - own_x)
                     lead = float((q * q).max())
                 q_ego = float(_gap_ratio(state, near[j : j + 1], np.array([ego_vs[f]]), np.array([-d]))[0])
-                if acc[j] * lead - acc[j] * (q_ego * q_ego) >= MOBIL_MIN_ACC_GAIN:
+                if acc[j] * lead - acc[j] * (q_ego * q_ego) >= dyn.mobil_min_gain:
                     out[j] = tau
                     break
     return out

@@ -468,9 +468,7 @@ def run_bench(
     training.update(batched_training_figures(episodes, seed, shield))
     continuous: dict[str, Any] = {}
     if actions == "continuous":
-        continuous = continuous_step_figures(episodes, seed)
-        # The shield for continuous actions' cost per decision goes here, beside its step's, once its compiled engine
-        # exists (safelane.safety.continuous): not measured yet.
+        continuous = continuous_step_figures(episodes, seed)  # the projection's cost: committed_mask_figures
     raw_rate = raw_n / raw_s
     shield_rate = shield_n / shield_s
     noise = {

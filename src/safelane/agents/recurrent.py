@@ -32,6 +32,7 @@ from torch import nn
 from safelane.agents.dqn import (
     HIDDEN_SIZES,
     AgentConfig,
+    ReplayBuffer,
     RobustAgent,
     masked_max,
     q_shaping_loss,
@@ -76,42 +77,31 @@ class SequenceBatch(NamedTuple):
     trained: torch.Tensor  # (B, T) bool, a decision in the loss
 
 
-class SequenceReplay:
+class SequenceReplay(ReplayBuffer):
     """Fixed-capacity circular replay of whole episodes; samples sub-sequences that stay inside one episode.
 
-    Each stored transition keeps its decision index in its episode (``steps``, 0 at the reset) and its write
-    count (``stamps``): a transition's predecessors in its episode are the slots before it whose stamps count
-    down by one, so an episode whose start was overwritten still yields its stored part, and nothing else.
+    The transitions are :class:`~safelane.agents.dqn.ReplayBuffer`'s; each also keeps its decision index in its
+    episode (``steps``, 0 at the reset) and its write count (``stamps``): a transition's predecessors in its episode
+    are the slots before it whose stamps count down by one, so an episode whose start was overwritten still yields
+    its stored part, and nothing else.
     """
 
-    FIELDS: ClassVar[tuple[str, ...]] = (
-        "obs", "actions", "rewards", "costs", "next_obs", "dones", "masks", "next_masks", "steps", "stamps",
-    )  # fmt: skip
+    FIELDS: ClassVar[tuple[str, ...]] = (*ReplayBuffer.FIELDS, "steps", "stamps")
 
     def __init__(
         self, capacity: int, obs_size: int = OBS_SIZE, burn_in: int = 4, length: int = 8, n_actions: int = N_ACTIONS
     ) -> None:
-        self.capacity, self.burn_in, self.length = capacity, burn_in, length
-        self.obs = np.zeros((capacity, obs_size), dtype=np.float32)
-        self.actions = np.zeros(capacity, dtype=np.int64)
-        self.rewards = np.zeros(capacity, dtype=np.float32)
-        self.costs = np.zeros(capacity, dtype=np.float32)
-        self.next_obs = np.zeros((capacity, obs_size), dtype=np.float32)
-        self.dones = np.zeros(capacity, dtype=np.float32)
-        self.masks = np.ones((capacity, n_actions), dtype=bool)
-        self.next_masks = np.ones((capacity, n_actions), dtype=bool)
+        super().__init__(capacity, obs_size, n_actions)
+        self.burn_in, self.length = burn_in, length
         self.steps = np.zeros(capacity, dtype=np.int64)
         self.stamps = np.zeros(capacity, dtype=np.int64)
-        self.pos = self.size = self.written = 0
+        self.written = 0
         self._step = 0  # decision index of the next transition in the current episode
 
     @property
     def window(self) -> int:
         """Decisions of a sampled sequence: ``burn_in + length``."""
         return self.burn_in + self.length
-
-    def __len__(self) -> int:
-        return self.size
 
     def begin_episode(self) -> None:
         """The next transition is the first of a new episode."""
@@ -129,15 +119,10 @@ class SequenceReplay:
         next_mask: np.ndarray,
     ) -> None:
         """Store the current episode's next transition, overwriting the oldest once full."""
-        i = self.pos
-        self.obs[i], self.actions[i], self.rewards[i], self.costs[i] = obs, action, reward, cost
-        self.next_obs[i], self.dones[i] = next_obs, float(terminated)
-        self.masks[i], self.next_masks[i] = mask, next_mask
-        self.steps[i], self.stamps[i] = self._step, self.written
+        self.steps[self.pos], self.stamps[self.pos] = self._step, self.written
+        super().add(obs, action, reward, cost, next_obs, terminated, mask, next_mask)
         self._step += 1
         self.written += 1
-        self.pos = (i + 1) % self.capacity
-        self.size = min(self.size + 1, self.capacity)
 
     def windows(self, ends: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """For sequences ending at slots ``ends`` (B,): the slots (B, T) from each sequence's first decision on,
@@ -175,26 +160,19 @@ class SequenceReplay:
             pad = valid.reshape(valid.shape + (1,) * (values.ndim - 2))
             return torch.from_numpy(np.where(pad, values, np.zeros((), dtype=values.dtype)))
 
-        fields = [take(name) for name in self.FIELDS[:8]]
+        fields = [take(name) for name in ReplayBuffer.FIELDS]
         return SequenceBatch(*fields, torch.from_numpy(valid), torch.from_numpy(trained))
 
     def state_dict(self) -> dict[str, Any]:
-        """The filled part of the buffer as tensors, plus the positions (for checkpoints)."""
-        state: dict[str, Any] = {
-            name: torch.from_numpy(getattr(self, name)[: self.size].copy()) for name in self.FIELDS
-        }
-        state.update(pos=self.pos, size=self.size, capacity=self.capacity, written=self.written)
-        return state
+        """:meth:`ReplayBuffer.state_dict` with the episodes' indices and the write count (for checkpoints)."""
+        return {**super().state_dict(), "written": self.written}
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
         """Restore a buffer saved by :meth:`state_dict` (same capacity); checkpoints are taken between episodes."""
-        if int(state["capacity"]) != self.capacity:
-            raise ValueError(f"replay buffer capacity {state['capacity']} != {self.capacity}")
         if "steps" not in state:
             raise ValueError("replay buffer: a feed-forward agent's transitions, not a recurrent agent's episodes")
-        self.size, self.pos, self.written = int(state["size"]), int(state["pos"]), int(state["written"])
-        for name in self.FIELDS:
-            getattr(self, name)[: self.size] = state[name].numpy()
+        super().load_state_dict(state)
+        self.written = int(state["written"])
         self._step = 0
 
 

@@ -30,7 +30,13 @@ from safelane.core.files import atomic_write_text
 from safelane.reporting import stats
 from safelane.reporting.plots import plot_curve_bands
 from safelane.running.backend import check_backend, claim_out_dir
-from safelane.running.experiments import TEST_SEED_BASE, known_names, run_dir_of, run_then_collect
+from safelane.running.experiments import (
+    TEST_SEED_BASE,
+    known_names,
+    parse_name_list,
+    run_dir_of,
+    run_then_collect,
+)
 from safelane.running.reproduction_report import BOOTSTRAP_REPS
 
 
@@ -86,16 +92,7 @@ def parse_arms(text: str | None) -> list[str]:
     an unknown name is a one-line :class:`ConfigError` naming the allowed values."""
     if text is None:
         return list(DEFAULT_ARMS)
-    if text.strip() == "all":
-        return list(ARMS)
-    names = [name.strip() for name in text.split(",") if name.strip()]
-    for name in names:
-        if name not in ARMS:
-            raise ConfigError(f"--methods: unknown arm {name!r}; allowed with --actions continuous: "
-                              f"{', '.join(ARMS)} or all")  # fmt: skip
-    if not names:
-        raise ConfigError(f"--methods: no arm given; allowed with --actions continuous: {', '.join(ARMS)} or all")
-    return list(dict.fromkeys(names))
+    return parse_name_list(text, ARMS, "--methods", "arm", "--actions continuous")
 
 
 class ContinuousSpec(BaseModel):

@@ -290,6 +290,22 @@ def known_names(names: list[str], allowed: Any, what: str) -> list[str]:
     return names
 
 
+def parse_name_list(text: str, allowed: Any, option: str, noun: str, where: str) -> list[str]:
+    """The names of a comma-separated ``option`` (``all``: every allowed one, in order), each once, in the order
+    given; an unknown or missing name is a one-line :class:`ConfigError` naming the ``noun``, the allowed values and
+    ``where`` they are allowed (``--preset hidden-types``)."""
+    allowed = list(allowed)
+    if text.strip() == "all":
+        return allowed
+    given = [name.strip() for name in text.split(",") if name.strip()]
+    for name in given:
+        if name not in allowed:
+            raise ConfigError(f"{option}: unknown {noun} {name!r}; allowed with {where}: {', '.join(allowed)} or all")
+    if not given:
+        raise ConfigError(f"{option}: no {noun} given; allowed with {where}: {', '.join(allowed)} or all")
+    return list(dict.fromkeys(given))
+
+
 def run_then_collect(
     task: Callable[..., dict[str, Any]], tasks: list[tuple[Any, ...]], out: Path, spec_json: str,
     label: Callable[[tuple[Any, ...]], str], collect_results: Callable[[], dict[str, Any]], name: str, start: float,

@@ -36,7 +36,13 @@ from safelane.config import ConfigError, validation_message
 from safelane.core.files import atomic_write_text
 from safelane.reporting import stats
 from safelane.running.backend import check_backend, claim_out_dir
-from safelane.running.experiments import TEST_SEED_BASE, known_names, run_dir_of, run_then_collect
+from safelane.running.experiments import (
+    TEST_SEED_BASE,
+    known_names,
+    parse_name_list,
+    run_dir_of,
+    run_then_collect,
+)
 from safelane.running.reproduction_report import BOOTSTRAP_REPS
 
 PRESET = "hidden-types"
@@ -92,17 +98,7 @@ SCENARIO_SEEDS, SCENARIO_TEST_EPISODES = 3, 200
 def parse_names(text: str | None, allowed: dict[str, str] | tuple[str, ...], option: str) -> list[str]:
     """The names of a comma-separated ``option`` (``all`` or None: every allowed name, in order); an unknown or
     missing name is a one-line :class:`ConfigError` naming the allowed values."""
-    names = list(allowed)
-    if text is None or text.strip() == "all":
-        return names
-    given = [name.strip() for name in text.split(",") if name.strip()]
-    for name in given:
-        if name not in names:
-            raise ConfigError(f"{option}: unknown name {name!r}; allowed with --preset {PRESET}: "
-                              f"{', '.join(names)} or all")  # fmt: skip
-    if not given:
-        raise ConfigError(f"{option}: none given; allowed with --preset {PRESET}: {', '.join(names)} or all")
-    return list(dict.fromkeys(given))
+    return parse_name_list("all" if text is None else text, allowed, option, "name", f"--preset {PRESET}")
 
 
 def arm_name(agent: str, shield: str) -> str:

@@ -391,3 +391,36 @@ def test_an_aggressive_turn_in_for_a_small_gain_is_in_the_types_sets(mode: str) 
         env.close()
     assert masks["numpy"] == masks["compiled"]
     assert masks["compiled"][:4] == [False, False, False, False]  # IDLE no longer: the aggressive car may turn in
+
+
+@pytest.mark.parametrize("mode", ["omniscient", "robust", "belief"])
+@pytest.mark.parametrize("fixture", ["slow-aggressive-turn-in-collision", "slow-timid-turn-in-collision"])
+def test_a_level_car_whose_incentive_holds_within_the_decision_turns_in(fixture: str, mode: str) -> None:
+    """A car level with the ego in the next lane and much slower than it: IDM's desired gap behind the ego
+    ``d* = s₀ + vT + v·Δv/(2√(ab))`` passes through zero while the ego accelerates, so MOBIL's incentive holds at a
+    frame within the decision though not now nor at its end. The omniscient shield allowed FASTER and the car
+    (aggressive 7 m/s slower; timid 3 m/s slower) turned into the ego's flank (pinned, 2 and 10 decisions per second).
+    With ``level_incentive_frames`` the incentive's first frame decides which level cars turn in: FASTER is out on
+    both engines, and without the option it is allowed again."""
+    from safelane.config import build_config
+    from safelane.env.factory import make_env
+    from safelane.running.counterexamples import load_counterexample
+
+    cx = load_counterexample(Path(__file__).parent / "fixtures" / "hidden-types" / f"{fixture}.json")
+    masks = {}
+    for engine, frames in (("numpy", True), ("compiled", True), ("compiled", False)):
+        data = copy.deepcopy(cx.config)
+        data["shield"] = {
+            **data["shield"], "mode": mode, "override": False, "engine": engine, "level_incentive_frames": frames
+        }
+        env = make_env(build_config(data))
+        _, info = env.reset(seed=cx.seed)
+        for action in cx.actions[:-1]:
+            _, _, _, _, info = env.step(int(action))
+        masks[engine, frames] = info["action_mask"].tolist()
+        env.close()
+    assert masks["numpy", True] == masks["compiled", True]
+    assert not masks["compiled", True][3]  # FASTER: the level car may turn in within the decision
+    assert masks["compiled", True][4]  # SLOWER stays
+    if mode == "omniscient":
+        assert masks["compiled", False][3]  # the now-and-end incentive alone let FASTER through

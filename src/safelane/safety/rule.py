@@ -78,6 +78,8 @@ OPTIONS: tuple[RuleOption, ...] = (
                "the road and along its path, so robust ⊆ nominal holds.", True),
     RuleOption("forecast_fallback", "When no action is safe, rank the least-bad choice first by a nominal forecast "
                "of the others (never makes an action safe; else by the worst-case gaps only).", True),
+    RuleOption("level_incentive_frames", "With level_when_incentive: a level car also turns in when MOBIL's incentive "
+               "allows it at some frame of the decision (else only when it does now or at the end).", True),
 )  # fmt: skip
 """Every option of the rule, in the order of :attr:`Rule.flags`' bits (bit ``i``: ``OPTIONS[i]``)."""
 
@@ -111,6 +113,7 @@ FLAG_LEVEL_WHEN_INCENTIVE = _BIT["level_when_incentive"]
 FLAG_INCENTIVE_ANY_SPEED = _BIT["incentive_any_speed"]
 FLAG_TURNING_IN_NOMINAL = _BIT["turning_in_nominal"]
 FLAG_FORECAST_FALLBACK = _BIT["forecast_fallback"]
+FLAG_LEVEL_INCENTIVE_FRAMES = _BIT["level_incentive_frames"]
 
 
 def unknown_option_error(name: str, key: str | None = None) -> ConfigError:

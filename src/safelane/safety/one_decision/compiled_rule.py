@@ -51,6 +51,7 @@ from safelane.safety.rule import (
     FLAG_LEVEL_CUT_INS,
     FLAG_LEVEL_ENTERING,
     FLAG_LEVEL_INCENTIVE,
+    FLAG_LEVEL_INCENTIVE_FRAMES,
     FLAG_LEVEL_WHEN_INCENTIVE,
     FLAG_LINEAR_INCENTIVE,
     FLAG_LINEAR_INCENTIVE_BRAKING,
@@ -111,6 +112,7 @@ def rule_gaps_kernel(
     passing_cut_ins = (flags & FLAG_PASSING_CUT_INS) != 0
     level_when_incentive = (flags & FLAG_LEVEL_WHEN_INCENTIVE) != 0
     incentive_any_speed = (flags & FLAG_INCENTIVE_ANY_SPEED) != 0
+    level_incentive_frames = (flags & FLAG_LEVEL_INCENTIVE_FRAMES) != 0
     n_ts = ts.shape[0]
     n_t = t.shape[0]  # frames of the horizon + 1
     total = n_t - 1
@@ -533,12 +535,23 @@ def rule_gaps_kernel(
                 # model.cut_in_candidates: MOBIL's incentive is judged with the ego in the lane, which a
                 # lane it is only entering does not hold (level_entering: any level car there).
                 turning = level[slot, r] if occupied or not level_entering else level_any[slot, r]
-                if not (turning and abs(lanes_near[r] - lane_c) == 1):
+                adjacent = abs(lanes_near[r] - lane_c) == 1
+                timed = level_when_incentive and level_incentive and occupied
+                if adjacent and not turning and timed and level_incentive_frames and level_any[slot, r]:
+                    # model: a level car the now-and-end incentive filtered out turns in if the incentive holds at
+                    # a frame of the decision, the others at constant speed (model.incentive_times).
+                    turning = incentive_first(
+                        near[r], r, m, near, lanes_near, x, vx, crashed, brake_max, lin_k0, lin_k1, lin_k2,
+                        idm_distance_wanted, idm_time_wanted, idm_comfort_acc, idm_comfort_dec, linear_incentive,
+                        linear_incentive_braking, xs[a], ego_speed, v_key[a], targets[a], powers, frames, t,
+                        min_acc_gain,
+                    ) < inf  # fmt: skip
+                if not (turning and adjacent):
                     continue
                 nominal = False
                 follows = True
                 lo = lo_cut
-                if level_when_incentive and level_incentive and occupied:  # model.incentive_times(_any_speed)
+                if timed:  # model.incentive_times(_any_speed)
                     if incentive_any_speed:
                         t_inc = incentive_first_any_speed(
                             near[r], r, m, near, lanes_near, x, vx, vy, crashed, brake_max, accel_max, lin_k0,

@@ -219,10 +219,11 @@ def cut_in_candidates(
     ego_v_end: float,
     ego_target: float,
     ego_path: tuple[np.ndarray, np.ndarray],
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Vehicles that may change into a lane the ego uses: (ahead, into a lane the ego is in; ahead, into a
     lane the ego is entering; level with or behind the ego, into a lane the ego is in; level with or behind
-    the ego, into a lane it is entering — the last two for ``level_cut_ins``).
+    the ego, into a lane it is entering — the last two for ``level_cut_ins``; level with or behind the ego,
+    unfiltered by MOBIL's incentive — the cars ``level_incentive_frames`` times frame by frame).
 
     Into a lane the ego already occupies, a vehicle changes lane only if its own rule allows it:
     MOBIL's safety criterion (highway-env) requires the acceleration its own model predicts for its new
@@ -247,7 +248,7 @@ def cut_in_candidates(
     positions [m] and speeds [m/s] at the decision's frames (0 … frames), for ``linear_incentive_braking``.
     """
     if near.size == 0:
-        return (np.zeros(0, dtype=bool),) * 4
+        return (np.zeros(0, dtype=bool),) * 5
     can = state.can_change_lane[near] & (np.abs(state.vx[near]) >= 1.0)
     target = np.clip(ego_target, 0.0, state.speed_limit)
     d_now = state.x[near] - state.ego_x
@@ -281,7 +282,7 @@ def cut_in_candidates(
         reversing = state.vx[near] < 0.0
         permitted, level = permitted | reversing, level | (reversing & level_any)
     level_entering = level_any if dyn.rule.level_entering else level
-    return can & ahead & permitted, can & ahead, can & level, can & level_entering
+    return can & ahead & permitted, can & ahead, can & level, can & level_entering, can & level_any
 
 
 def _gap_ratio(state: RoadState, who: np.ndarray, front_speed: np.ndarray, gap: np.ndarray) -> np.ndarray:

@@ -268,7 +268,7 @@ def rule_gaps(
                 cut_ins[key] = cut_in_candidates(state, dyn, near, *key, path)
                 if dyn.rule.cut_in_when_permitted:  # MOBIL at every frame of the decision: who, and from when
                     permits[key] = permit_times(state, dyn, near, *path, float(targets[a]))
-            permitted, unfiltered, level, level_entering = cut_ins[key]
+            permitted, unfiltered, level, level_entering, level_any = cut_ins[key]
             permit_time = permits.get(key)
             if permit_time is not None:
                 permitted = unfiltered & np.isfinite(permit_time)
@@ -292,7 +292,7 @@ def rule_gaps(
                     else:
                         extra_p.append(None)
             behind_v, behind_l, behind_s = [], [], []
-            turn_time = None
+            turn_time = frame_turns = None
             if rule.level_cut_ins and rule.level_incentive and rule.level_when_incentive:  # timing by the incentive
                 path = (ego_x[a, 0, : frames + 1], ego_v[a, 0, : frames + 1])
                 times_of = incentive_times_any_speed if dyn.rule.incentive_any_speed else incentive_times
@@ -302,6 +302,13 @@ def rule_gaps(
                 # time and then follow it (accelerate for the reaction time, then brake): a follower.
                 for lane, _ in ego_lanes:
                     turning = level if lane in occupied else level_entering
+                    if turn_time is not None and lane in occupied and rule.level_incentive_frames:
+                        # MOBIL's incentive now and at the end misses a car whose desired gap behind the ego passes
+                        # through zero within the decision (much slower than the ego, level with it): the incentive
+                        # at every frame, the others at constant speed, decides too.
+                        if frame_turns is None:
+                            frame_turns = np.isfinite(incentive_times(state, dyn, near, *path))
+                        turning = turning | (level_any & frame_turns)
                     for j in np.flatnonzero(turning & (np.abs(lanes_near - lane) == 1)):
                         behind_v.append(int(near[j]))
                         behind_l.append(lane)

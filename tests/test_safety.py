@@ -266,6 +266,37 @@ def test_level_cut_ins_see_the_car_being_overtaken_turn_in(engine: str) -> None:
 
 
 @pytest.mark.parametrize("engine", ["numpy", "compiled"])
+def test_level_incentive_frames_sees_a_slow_car_turn_in_mid_decision(engine: str) -> None:
+    """shield.level_incentive_frames (default): an aggressive driver (a = 2, b = 3 m/s², T = 1 s, s₀ = 0) 0.7 m
+    behind the ego's centre in the next lane at 13.4 m/s, behind a timid car 16 m ahead; the ego at 17.9 m/s, 2
+    decisions and 10 frames per second. Under FASTER the ego passes 20 m/s two frames in, where the car's desired gap
+    behind it, 5 + 13.4 − 13.4·6.6/4.9 m, is about zero: MOBIL's incentive holds there (behind the ego it would
+    accelerate freely) though not now (d* ≈ 6 m at 0.7 m) nor at the end (d* ≈ −5.6 m at 4 m). Judged now and at the
+    end only (false), FASTER had no conflict with it and was allowed — the omniscient shield's side crash of the
+    claim grid with hidden types; judged at every frame it turns in 0.1 s + the cut-in time in, and FASTER's worst
+    gap is −2.03 m. IDLE's (−2.47 m) is the same under both."""
+    from safelane.sim.drivers import AggressiveDriver, TimidDriver
+
+    cars = [
+        scenarios.VehicleSpec(1, -0.7, 13.4, vehicle_class=AggressiveDriver),
+        scenarios.VehicleSpec(1, 15.5, 13.9, vehicle_class=TimidDriver),
+    ]
+    rate = {"env.policy_frequency": 2, "env.simulation_frequency": 10}
+    scenes = {
+        on: scenarios.build_scene(
+            0, 17.9, cars, mode="robust", lanes_count=2, ego_target_speed=20.0, **rate,
+            **{"shield.engine": engine, "shield.level_incentive_frames": on},
+        )  # fmt: skip
+        for on in (True, False)
+    }
+    assert scenes[True].result.safe.tolist() == mask_of(S)
+    assert scenes[True].result.min_gap[[I, R, F]] == pytest.approx([-2.47, -15.8, -2.03], abs=0.01)
+    assert scenes[False].result.safe.tolist() == mask_of(F, S)
+    assert scenes[False].result.min_gap[[I, R]] == pytest.approx([-2.47, -15.8], abs=0.01)
+    assert scenes[False].result.min_gap[F] == np.inf
+
+
+@pytest.mark.parametrize("engine", ["numpy", "compiled"])
 def test_level_entering_sees_a_car_two_lanes_over_change_into_the_ego_s_new_lane(engine: str) -> None:
     """shield.level_entering (default): the car two lanes over, 2 m behind the ego's centre, may turn into
     lane 1 while the ego changes into it: LANE_RIGHT's worst gap is −4.07 m (it ends up a follower 2 m behind
@@ -1244,6 +1275,19 @@ def test_masks_are_never_empty_and_nested(evaluate: Evaluator, case: tuple[RoadS
         assert not np.isnan(result.min_gap).any()
     assert not (robust.safe & ~nominal.safe).any()
     assert not (robust.mask & ~nominal.mask).any()
+
+
+@EVALUATORS
+@settings(max_examples=80, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(road(rates=True))
+def test_level_incentive_frames_only_adds_conflicts(evaluate: Evaluator, case: tuple) -> None:
+    """shield.level_incentive_frames judges more level cars as turning in, never fewer: with it every safe action
+    was safe without it, and no worst gap is larger."""
+    state, dyn, _ = case
+    without = dataclasses.replace(dyn, rule=dyn.rule.with_options(level_incentive_frames=False))
+    on, off = evaluate(state, dyn, "robust"), evaluate(state, without, "robust")
+    assert not (on.safe & ~off.safe).any()
+    assert (on.min_gap <= off.min_gap).all()
 
 
 @EVALUATORS

@@ -66,7 +66,8 @@ def falsify(
         str | None,
         typer.Option(
             "--shield",
-            help="Play the spec under this shield: nominal, robust, committed (default: the spec's).",
+            help="Play the spec under this shield: nominal, robust, committed, or with a driver mixture (preset "
+            "hidden-types) omniscient, belief (default: the spec's).",
             metavar="MODE",
         ),
     ] = None,

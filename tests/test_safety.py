@@ -282,13 +282,12 @@ def test_level_incentive_frames_sees_a_slow_car_turn_in_mid_decision(engine: str
         scenarios.VehicleSpec(1, 15.5, 13.9, vehicle_class=TimidDriver),
     ]
     rate = {"env.policy_frequency": 2, "env.simulation_frequency": 10}
-    scenes = {
-        on: scenarios.build_scene(
-            0, 17.9, cars, mode="robust", lanes_count=2, ego_target_speed=20.0, **rate,
-            **{"shield.engine": engine, "shield.level_incentive_frames": on},
-        )  # fmt: skip
-        for on in (True, False)
-    }
+    scenes = {}
+    for on in (True, False):
+        options = {"shield.engine": engine, "shield.level_incentive_frames": on}
+        scenes[on] = scenarios.build_scene(
+            0, 17.9, cars, mode="robust", lanes_count=2, ego_target_speed=20.0, **rate, **options
+        )
     assert scenes[True].result.safe.tolist() == mask_of(S)
     assert scenes[True].result.min_gap[[I, R, F]] == pytest.approx([-2.47, -15.8, -2.03], abs=0.01)
     assert scenes[False].result.safe.tolist() == mask_of(F, S)

@@ -411,7 +411,11 @@ def test_a_level_car_whose_incentive_holds_within_the_decision_turns_in(fixture:
     for engine, frames in (("numpy", True), ("compiled", True), ("compiled", False)):
         data = copy.deepcopy(cx.config)
         data["shield"] = {
-            **data["shield"], "mode": mode, "override": False, "engine": engine, "level_incentive_frames": frames
+            **data["shield"],
+            "mode": mode,
+            "override": False,
+            "engine": engine,
+            "level_incentive_frames": frames,
         }
         env = make_env(build_config(data))
         _, info = env.reset(seed=cx.seed)
@@ -424,3 +428,33 @@ def test_a_level_car_whose_incentive_holds_within_the_decision_turns_in(fixture:
     assert masks["compiled", True][4]  # SLOWER stays
     if mode == "omniscient":
         assert masks["compiled", False][3]  # the now-and-end incentive alone let FASTER through
+
+
+def test_a_car_changing_in_ahead_of_a_level_car_is_its_leader_for_mobil() -> None:
+    """A timid car level with the ego in the next lane, 2.9 m behind the ego's centre and 4.4 m/s slower; ahead of it
+    a car changing into its lane, its centre 2.7 m off the lane's, still nearer the lane it leaves, 34 m ahead at
+    8.8 m/s. highway-env's IDM sees that car as the timid car's leader (half a lane + 1 m): behind it the timid car
+    brakes, behind the ego it would not, so MOBIL lets it turn in — it did, into the ego braking under SLOWER (the
+    belief shield's side crash from a safe state, its type kept; 5 decisions per second). Reading the leaders by
+    lane alone, the rule gave SLOWER a 2.68 m worst gap; with ``incentive_leaders_band`` nothing is safe there, on
+    both engines."""
+    from safelane.config import build_config
+    from safelane.env.factory import make_env
+    from safelane.running.counterexamples import load_counterexample
+
+    cx = load_counterexample(
+        Path(__file__).parent / "fixtures" / "hidden-types" / "leader-changing-in-turn-in-collision.json"
+    )
+    fallback = {}
+    for engine, band in (("numpy", True), ("compiled", True), ("compiled", False)):
+        data = copy.deepcopy(cx.config)
+        data["shield"] = {**data["shield"], "engine": engine, "incentive_leaders_band": band}  # as recorded: override on
+        env = make_env(build_config(data))
+        _, info = env.reset(seed=cx.seed)
+        for action in cx.actions[:-1]:
+            _, _, _, _, info = env.step(int(action))
+        fallback[engine, band] = (bool(info["fallback"]), info["action_mask"].tolist())
+        env.close()
+    assert fallback["numpy", True] == fallback["compiled", True]
+    assert fallback["compiled", True][0]  # no safe action: the shield promises nothing here, and says so
+    assert fallback["compiled", False] == (False, [False, False, False, False, True])

@@ -80,6 +80,8 @@ OPTIONS: tuple[RuleOption, ...] = (
                "of the others (never makes an action safe; else by the worst-case gaps only).", True),
     RuleOption("level_incentive_frames", "With level_when_incentive: a level car also turns in when MOBIL's incentive "
                "allows it at some frame of the decision (else only when it does now or at the end).", True),
+    RuleOption("incentive_leaders_band", "MOBIL's incentive counts as a driver's leaders the vehicles ahead within "
+               "half a lane + 1 m of its lane's centre, as highway-env's IDM does (else those in its lane).", True),
 )  # fmt: skip
 """Every option of the rule, in the order of :attr:`Rule.flags`' bits (bit ``i``: ``OPTIONS[i]``)."""
 
@@ -114,6 +116,7 @@ FLAG_INCENTIVE_ANY_SPEED = _BIT["incentive_any_speed"]
 FLAG_TURNING_IN_NOMINAL = _BIT["turning_in_nominal"]
 FLAG_FORECAST_FALLBACK = _BIT["forecast_fallback"]
 FLAG_LEVEL_INCENTIVE_FRAMES = _BIT["level_incentive_frames"]
+FLAG_INCENTIVE_LEADERS_BAND = _BIT["incentive_leaders_band"]
 
 
 def unknown_option_error(name: str, key: str | None = None) -> ConfigError:

@@ -175,7 +175,8 @@ def braking_from_now(x0: float, v: float, crashed: bool, brake: float, tau: floa
 
 @njit(cache=True, error_model="numpy")
 def incentive_first(
-    i: int, r: int, m: int, near: np.ndarray, lanes_near: np.ndarray, x: np.ndarray, vx: np.ndarray,
+    i: int, r: int, m: int, near: np.ndarray, lanes_near: np.ndarray, band_near: np.ndarray, x: np.ndarray,
+    vx: np.ndarray,
     crashed: np.ndarray, brake_max: np.ndarray, lin_k0: np.ndarray, lin_k1: np.ndarray, lin_k2: np.ndarray,
     dw_all: np.ndarray, tw_all: np.ndarray, acc_all: np.ndarray, dec_all: np.ndarray, linear_incentive: bool,
     linear_incentive_braking: bool, ego_xs: np.ndarray, ego_speed: float, kv: float, kt: float,
@@ -203,7 +204,7 @@ def incentive_first(
             found = False
             for k in range(m):
                 ii = near[k]
-                if lanes_near[k] == lanes_near[r] and x[ii] > x[i]:
+                if (lanes_near[k] == lanes_near[r] or band_near[k] == lanes_near[r]) and x[ii] > x[i]:
                     lv = vx[ii]
                     term = k1 * nmin(lv - v, 0.0) + k2 * nmin(((x[ii] + lv * tau) - own_x) - d_safe, 0.0)
                     lx, lvb = braking_from_now(x[ii], vx[ii], crashed[ii], brake_max[ii], tau)
@@ -222,7 +223,7 @@ def incentive_first(
             found = False
             for k in range(m):
                 ii = near[k]
-                if lanes_near[k] == lanes_near[r] and x[ii] > x[i]:
+                if (lanes_near[k] == lanes_near[r] or band_near[k] == lanes_near[r]) and x[ii] > x[i]:
                     lv = vx[ii]
                     q = gap_ratio(dw, tw, acc, dec, v, lv, (x[ii] + lv * tau) - own_x)
                     lead = nmax(lead, q * q) if found else q * q
@@ -249,7 +250,8 @@ def desired_gap_range(
 
 @njit(cache=True, error_model="numpy")
 def incentive_first_any_speed(
-    i: int, r: int, m: int, near: np.ndarray, lanes_near: np.ndarray, x: np.ndarray, vx: np.ndarray,
+    i: int, r: int, m: int, near: np.ndarray, lanes_near: np.ndarray, band_near: np.ndarray, x: np.ndarray,
+    vx: np.ndarray,
     vy: np.ndarray, crashed: np.ndarray, brake_max: np.ndarray, accel_max: np.ndarray, lin_k0: np.ndarray,
     lin_k1: np.ndarray, lin_k2: np.ndarray, dw_all: np.ndarray, tw_all: np.ndarray, acc_all: np.ndarray,
     dec_all: np.ndarray, linear_incentive: bool, ego_xs: np.ndarray, ego_speed: float, kv: float, kt: float,
@@ -281,7 +283,7 @@ def incentive_first_any_speed(
             found = False
             for k in range(m):
                 ii = near[k]
-                if lanes_near[k] == lanes_near[r] and x[ii] > x[i]:
+                if (lanes_near[k] == lanes_near[r] or band_near[k] == lanes_near[r]) and x[ii] > x[i]:
                     lx_lo, lv_lo = braking_from_now(x[ii], vx[ii], crashed[ii], brake_max[ii], tau)
                     term = k1 * nmin(lv_lo - v_hi, 0.0) + k2 * nmin((lx_lo - x_hi) - (dw + v_hi * tw), 0.0)
                     lead = nmin(lead, term) if found else term
@@ -296,7 +298,7 @@ def incentive_first_any_speed(
             lead = 0.0
             for k in range(m):
                 ii = near[k]
-                if lanes_near[k] == lanes_near[r] and x[ii] > x[i]:
+                if (lanes_near[k] == lanes_near[r] or band_near[k] == lanes_near[r]) and x[ii] > x[i]:
                     lx_lo, lv_lo = braking_from_now(x[ii], vx[ii], crashed[ii], brake_max[ii], tau)
                     la = 0.0 if crashed[ii] else nmax(accel_max[ii], 0.0)
                     lv_hi = (0.0 if crashed[ii] else math.hypot(vx[ii], vy[ii])) + la * tau

@@ -48,6 +48,7 @@ from safelane.safety.rule import (
     FLAG_FINISHING_CHANGES,
     FLAG_FOLLOWER_IDM,
     FLAG_INCENTIVE_ANY_SPEED,
+    FLAG_INCENTIVE_LEADERS_BAND,
     FLAG_LEVEL_CUT_INS,
     FLAG_LEVEL_ENTERING,
     FLAG_LEVEL_INCENTIVE,
@@ -113,6 +114,7 @@ def rule_gaps_kernel(
     level_when_incentive = (flags & FLAG_LEVEL_WHEN_INCENTIVE) != 0
     incentive_any_speed = (flags & FLAG_INCENTIVE_ANY_SPEED) != 0
     level_incentive_frames = (flags & FLAG_LEVEL_INCENTIVE_FRAMES) != 0
+    incentive_leaders_band = (flags & FLAG_INCENTIVE_LEADERS_BAND) != 0
     n_ts = ts.shape[0]
     n_t = t.shape[0]  # frames of the horizon + 1
     total = n_t - 1
@@ -202,12 +204,19 @@ def rule_gaps_kernel(
     is_ahead = np.empty(m, dtype=np.bool_)
     half = np.empty(m)
     lanes_near = np.empty(m, dtype=np.int64)
+    band_near = np.full(m, -10, dtype=np.int64)  # model.band_lanes: the next lane whose IDM band holds it
     t_last = t[n_t - 1]
     t_r = follower_reaction if not (t_last < follower_reaction) else t_last  # Python's min()
     for r in range(m):
         i = near[r]
         half[r] = 0.5 * (length[i] + ego_length)
         lanes_near[r] = lane_index(y[i], lane_width, lanes_count)
+        if incentive_leaders_band:
+            for side in (-1, 1):
+                other = lanes_near[r] + side
+                inside = abs(y[i] - other * lane_width) <= 0.5 * lane_width + IDM_LANE_MARGIN
+                if inside and other >= 0 and other < lanes_count:
+                    band_near[r] = other
         is_ahead[r] = x[i] - ego_x >= 0
         if is_ahead[r]:  # braking_positions; a crashed vehicle is a wall where it stands
             v_signed = 0.0 if crashed[i] else vx[i]
@@ -397,7 +406,7 @@ def rule_gaps_kernel(
                         found = False
                         for k in range(m):
                             lx = x[near[k]]
-                            if lanes_near[k] == lanes_near[r] and lx > x[i]:
+                            if (lanes_near[k] == lanes_near[r] or band_near[k] == lanes_near[r]) and lx > x[i]:
                                 lv = vx[near[k]]
                                 q = gap_ratio(dw, tw, acc, dec, v, lv, lx - x[i])
                                 gap_end = (lx + lv * decision_period) - (x[i] + v * decision_period)
@@ -421,7 +430,7 @@ def rule_gaps_kernel(
                         found = False
                         for k in range(m):
                             lx = x[near[k]]
-                            if lanes_near[k] == lanes_near[r] and lx > x[i]:
+                            if (lanes_near[k] == lanes_near[r] or band_near[k] == lanes_near[r]) and lx > x[i]:
                                 lv = vx[near[k]]
                                 closing = k1 * nmin(lv - v, 0.0)
                                 gap_end = (lx + lv * decision_period) - (x[i] + v * decision_period)
@@ -453,7 +462,8 @@ def rule_gaps_kernel(
                                 found = False
                                 for k in range(m):
                                     ii = near[k]
-                                    if lanes_near[k] == lanes_near[r] and x[ii] > x[i]:
+                                    leads = lanes_near[k] == lanes_near[r] or band_near[k] == lanes_near[r]
+                                    if leads and x[ii] > x[i]:
                                         lx, lv = braking_from_now(x[ii], vx[ii], crashed[ii], brake_max[ii], tau)
                                         term = k1 * nmin(lv - v, 0.0) + k2 * nmin((lx - own_x) - d_safe, 0.0)
                                         lead_term = nmin(lead_term, term) if found else term
@@ -541,7 +551,7 @@ def rule_gaps_kernel(
                     # model: a level car the now-and-end incentive filtered out turns in if the incentive holds at
                     # a frame of the decision, the others at constant speed (model.incentive_times).
                     turning = incentive_first(
-                        near[r], r, m, near, lanes_near, x, vx, crashed, brake_max, lin_k0, lin_k1, lin_k2,
+                        near[r], r, m, near, lanes_near, band_near, x, vx, crashed, brake_max, lin_k0, lin_k1, lin_k2,
                         idm_distance_wanted, idm_time_wanted, idm_comfort_acc, idm_comfort_dec, linear_incentive,
                         linear_incentive_braking, xs[a], ego_speed, v_key[a], targets[a], powers, frames, t,
                         min_acc_gain,
@@ -554,16 +564,17 @@ def rule_gaps_kernel(
                 if timed:  # model.incentive_times(_any_speed)
                     if incentive_any_speed:
                         t_inc = incentive_first_any_speed(
-                            near[r], r, m, near, lanes_near, x, vx, vy, crashed, brake_max, accel_max, lin_k0,
-                            lin_k1, lin_k2, idm_distance_wanted, idm_time_wanted, idm_comfort_acc, idm_comfort_dec,
-                            linear_incentive, xs[a], ego_speed, v_key[a], targets[a], powers, frames, t, min_acc_gain,
+                            near[r], r, m, near, lanes_near, band_near, x, vx, vy, crashed, brake_max, accel_max,
+                            lin_k0, lin_k1, lin_k2, idm_distance_wanted, idm_time_wanted, idm_comfort_acc,
+                            idm_comfort_dec, linear_incentive, xs[a], ego_speed, v_key[a], targets[a], powers, frames,
+                            t, min_acc_gain,
                         )  # fmt: skip
                     else:
                         t_inc = incentive_first(
-                            near[r], r, m, near, lanes_near, x, vx, crashed, brake_max, lin_k0, lin_k1, lin_k2,
-                            idm_distance_wanted, idm_time_wanted, idm_comfort_acc, idm_comfort_dec, linear_incentive,
-                            linear_incentive_braking, xs[a], ego_speed, v_key[a], targets[a], powers, frames, t,
-                            min_acc_gain,
+                            near[r], r, m, near, lanes_near, band_near, x, vx, crashed, brake_max, lin_k0, lin_k1,
+                            lin_k2, idm_distance_wanted, idm_time_wanted, idm_comfort_acc, idm_comfort_dec,
+                            linear_incentive, linear_incentive_braking, xs[a], ego_speed, v_key[a], targets[a], powers,
+                            frames, t, min_acc_gain,
                         )  # fmt: skip
                     if t_inc < inf:
                         start = cut_in_time + t_inc

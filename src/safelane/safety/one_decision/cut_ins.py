@@ -15,7 +15,7 @@ from safelane.safety.others import (
     least_desired_gap,
     linear_acceleration_behind,
 )
-from safelane.safety.world import LATERAL_MOTION_THRESHOLD, Dynamics, Mode, RoadState
+from safelane.safety.world import IDM_LANE_MARGIN, LATERAL_MOTION_THRESHOLD, Dynamics, Mode, RoadState
 
 
 @dataclass
@@ -193,6 +193,25 @@ def passing_positions(
     return out
 
 
+def band_lanes(state: RoadState, dyn: Dynamics, near: np.ndarray) -> np.ndarray:
+    """For each vehicle of ``near``, the lane next to its own whose IDM band — half a lane + ``IDM_LANE_MARGIN`` (1 m)
+    of the lane's centre, where highway-env's IDM (``Road.neighbour_vehicles``, ``Lane.on_lane(margin=1)``) sees a
+    leader — also holds its centre; −10: none, or without ``incentive_leaders_band``. MOBIL's incentive reads a
+    driver's leader by that band: a car changing into the driver's lane, its centre still nearer the lane it leaves,
+    is already the driver's leader (a timid car turned in behind the ego to escape one, found by the claim grid
+    with hidden types)."""
+    out = np.full(near.size, -10, dtype=np.int64)
+    if not dyn.rule.incentive_leaders_band:
+        return out
+    y = state.y[near]
+    lanes = state.lane_of(y, dyn.lanes_count, dyn.lane_width)
+    for side in (-1, 1):
+        other = lanes + side
+        inside = np.abs(y - other * dyn.lane_width) <= 0.5 * dyn.lane_width + IDM_LANE_MARGIN
+        out = np.where(inside & (other >= 0) & (other < dyn.lanes_count), other, out)
+    return out
+
+
 def finishing_change(state: RoadState, dyn: Dynamics, i: int, own: int, direction: int) -> bool:
     """Whether vehicle ``i``, in lane ``own`` and moving sideways in ``direction`` (±1 lane), is finishing a
     lane change *into* that lane (the rule's ``finishing_changes``): moving forward, its centre short of the
@@ -310,11 +329,12 @@ def turn_in_incentive(
     turned into the ego's rear flank)."""
     x, v, t = state.x[near], state.vx[near], dyn.decision_period
     lanes = state.lane_of(state.y[near], dyn.lanes_count, dyn.lane_width)
+    band = band_lanes(state, dyn, near)
     acc = state.idm_comfort_acc[near]
     lead_now = np.zeros(near.size)
     lead_end = np.zeros(near.size)
     for j in range(near.size):
-        rows = np.flatnonzero((lanes == lanes[j]) & (x > x[j]))  # every vehicle ahead of it in its lane
+        rows = np.flatnonzero(((lanes == lanes[j]) | (band == lanes[j])) & (x > x[j]))  # its leaders: IDM's band
         if rows.size:
             who = np.full(rows.size, near[j])
             q_now = _gap_ratio(state, who, v[rows], x[rows] - x[j])
@@ -342,6 +362,7 @@ def linear_turn_in_incentive(
     Aggressive and Defensive drivers need 1.0, so the rule assumes more turn-ins than they make."""
     x, v, t = state.x[near], state.vx[near], dyn.decision_period
     lanes = state.lane_of(state.y[near], dyn.lanes_count, dyn.lane_width)
+    band = band_lanes(state, dyn, near)
     k1, k2 = state.linear_speed_difference_gain[near], state.linear_distance_gain[near]
     d_safe = state.idm_distance_wanted[near] + np.maximum(v, 0.0) * state.idm_time_wanted[near]
     lead_now = np.zeros(near.size)
@@ -349,7 +370,7 @@ def linear_turn_in_incentive(
     for j in range(near.size):
         if not np.isfinite(state.linear_speed_gain[near[j]]):
             continue
-        rows = np.flatnonzero((lanes == lanes[j]) & (x > x[j]))  # every vehicle ahead of it in its lane
+        rows = np.flatnonzero(((lanes == lanes[j]) | (band == lanes[j])) & (x > x[j]))  # its leaders: IDM's band
         if rows.size:
             closing = k1[j] * np.minimum(v[rows] - v[j], 0.0)
             gap_end = (x[rows] + v[rows] * t) - (x[j] + v[j] * t)
@@ -375,6 +396,7 @@ def linear_turn_in_incentive_braking(
     as its leader braked."""
     x, v = state.x[near], state.vx[near]
     lanes = state.lane_of(state.y[near], dyn.lanes_count, dyn.lane_width)
+    band = band_lanes(state, dyn, near)
     k1, k2 = state.linear_speed_difference_gain[near], state.linear_distance_gain[near]
     d_safe = state.idm_distance_wanted[near] + np.maximum(v, 0.0) * state.idm_time_wanted[near]
     lead_v0 = np.where(state.crashed[near], 0.0, np.maximum(v, 0.0))
@@ -384,7 +406,7 @@ def linear_turn_in_incentive_braking(
     for j in range(near.size):
         if not np.isfinite(state.linear_speed_gain[near[j]]):
             continue
-        rows = np.flatnonzero((lanes == lanes[j]) & (x > x[j]))
+        rows = np.flatnonzero(((lanes == lanes[j]) | (band == lanes[j])) & (x > x[j]))
         for f in range(times.size):
             tau = times[f]
             own_x = x[j] + v[j] * tau
@@ -436,6 +458,7 @@ def incentive_times_any_speed(
     out = np.full(near.size, np.inf)
     x, v = state.x[near], state.vx[near]
     lanes = state.lane_of(state.y[near], dyn.lanes_count, dyn.lane_width)
+    band = band_lanes(state, dyn, near)
     v0 = np.where(state.crashed[near], 0.0, np.maximum(v, 0.0))
     brake = np.maximum(np.where(state.crashed[near], 1e9, state.brake_max[near]), 1e-6)
     accel = np.where(state.crashed[near], 0.0, np.maximum(state.accel_max[near], 0.0))
@@ -453,7 +476,7 @@ def incentive_times_any_speed(
                 continue
             i = near[j]
             linear = bool(np.isfinite(state.linear_speed_gain[i]))
-            rows = np.flatnonzero((lanes == lanes[j]) & (x > x[j]))  # every vehicle ahead of it in its lane
+            rows = np.flatnonzero(((lanes == lanes[j]) | (band == lanes[j])) & (x > x[j]))  # its leaders: IDM's band
             gap_ego = ego_xs[f] - x_lo[j]  # [m] centre to centre, the car farthest back
             if linear and dyn.rule.linear_incentive:
                 k1, k2 = state.linear_speed_difference_gain[i], state.linear_distance_gain[i]
@@ -500,6 +523,7 @@ def incentive_times(
     out = np.full(near.size, np.inf)
     x, v = state.x[near], state.vx[near]
     lanes = state.lane_of(state.y[near], dyn.lanes_count, dyn.lane_width)
+    band = band_lanes(state, dyn, near)
     acc = state.idm_comfort_acc[near]
     k1, k2 = state.linear_speed_difference_gain[near], state.linear_distance_gain[near]
     d_safe = state.idm_distance_wanted[near] + np.maximum(v, 0.0) * state.idm_time_wanted[near]
@@ -508,7 +532,7 @@ def incentive_times(
     times = np.arange(ego_xs.shape[0]) * dyn.frame_dt
     for j in range(near.size):
         linear = bool(np.isfinite(state.linear_speed_gain[near[j]]))
-        rows = np.flatnonzero((lanes == lanes[j]) & (x > x[j]))
+        rows = np.flatnonzero(((lanes == lanes[j]) | (band == lanes[j])) & (x > x[j]))
         who = np.full(rows.size, near[j])
         for f in range(times.size):
             tau = times[f]

@@ -81,3 +81,20 @@ def test_certified_starts_sets_the_two_rules_side_by_side_on_the_grid_s_spawns()
     assert "one-decision rule safe 1 (50.0 %), committed rule certified 1 (50.0 %)" in text
     assert "safe by the one-decision rule but uncertified: 0" in text
     assert position_class(-1, -12.0) == "next_behind" and position_class(0, 4.0) == "same_beside"
+
+
+def test_type_break_causes_names_what_decides_a_break_under_hidden_types() -> None:
+    """research/type_break_causes.py on three breaks of the omniscient shield on the claim grid with hidden types
+    (tests/fixtures/hidden-types-breaks): the least-bad action is decided by an aggressive follower (IDM's desired
+    distance 5 m centre to centre, a jam distance of 0) whose own IDM path ends inside the ego stopped by the fallback,
+    by a leader, and by nothing below 0 m (only the 1 m margin eaten). With the follower's own set-point instead of
+    the bound v0 = ∞ all three stay breaks."""
+    script = ROOT / "research" / "type_break_causes.py"
+    folder = ROOT / "tests" / "fixtures" / "hidden-types-breaks"
+    runs = {}
+    for extra in ([], ["--own-set-point"]):
+        out = subprocess.run([sys.executable, str(script), str(folder), "--files", "3", *extra], check=True,
+                             capture_output=True, text=True).stdout  # fmt: skip
+        runs[bool(extra)] = json.loads(out)["counts"]
+    assert runs[False] == {"follower into the stopped ego, d0=5 m": 1, "leader": 1, "only the margin eaten": 1}
+    assert runs[True] == {"still a break": 3}

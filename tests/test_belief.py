@@ -393,6 +393,38 @@ def test_an_aggressive_turn_in_for_a_small_gain_is_in_the_types_sets(mode: str) 
     assert masks["compiled"][:4] == [False, False, False, False]  # IDLE no longer: the aggressive car may turn in
 
 
+def _verdicts_at_the_end(
+    name: str, mode: str, variants: dict[str, dict[str, Any]], override: bool = True
+) -> dict[str, tuple[bool, list]]:
+    """Replay the fixture ``name`` (tests/fixtures/hidden-types) under ``mode`` with the rule it was recorded with
+    (the options ``variants`` name off), the shield overriding the recorded choices or not (``override``: off plays
+    them as they are, the same scene under every mode where the policy chose only allowed actions), then judge its
+    last state again under each variant — ``{"engine": …, option: value, …}``: ``{variant: (fallback, mask)}``."""
+    from safelane.config import build_config
+    from safelane.env.factory import make_env
+    from safelane.env.scenarios import find_shield
+    from safelane.running.counterexamples import load_counterexample
+
+    cx = load_counterexample(Path(__file__).parent / "fixtures" / "hidden-types" / f"{name}.json")
+    options = {k for v in variants.values() for k in v if k != "engine"}
+    data = copy.deepcopy(cx.config)
+    data["shield"] = {**data["shield"], "mode": mode, "override": override, **dict.fromkeys(options, False)}
+    env = make_env(build_config(data))
+    env.reset(seed=cx.seed)
+    for action in cx.actions[:-1]:
+        env.step(int(action))
+    shield, recorded = find_shield(env), (find_shield(env).engine, find_shield(env).rule)
+    out = {}
+    for label, variant in variants.items():
+        shield.engine = variant.get("engine", recorded[0])
+        shield.rule = recorded[1].with_options(**{k: v for k, v in variant.items() if k != "engine"})
+        shield.dynamics, shield._family = None, None
+        result = shield.compute_result()
+        out[label] = (bool(result.fallback), result.mask.tolist())
+    env.close()
+    return out
+
+
 @pytest.mark.parametrize("mode", ["omniscient", "robust", "belief"])
 @pytest.mark.parametrize("fixture", ["slow-aggressive-turn-in-collision", "slow-timid-turn-in-collision"])
 def test_a_level_car_whose_incentive_holds_within_the_decision_turns_in(fixture: str, mode: str) -> None:
@@ -401,33 +433,15 @@ def test_a_level_car_whose_incentive_holds_within_the_decision_turns_in(fixture:
     frame within the decision though not now nor at its end. The omniscient shield allowed FASTER and the car
     (aggressive 7 m/s slower; timid 3 m/s slower) turned into the ego's flank (pinned, 2 and 10 decisions per second).
     With ``level_incentive_frames`` the incentive's first frame decides which level cars turn in: FASTER is out on
-    both engines, and without the option it is allowed again."""
-    from safelane.config import build_config
-    from safelane.env.factory import make_env
-    from safelane.running.counterexamples import load_counterexample
-
-    cx = load_counterexample(Path(__file__).parent / "fixtures" / "hidden-types" / f"{fixture}.json")
-    masks = {}
-    for engine, frames in (("numpy", True), ("compiled", True), ("compiled", False)):
-        data = copy.deepcopy(cx.config)
-        data["shield"] = {
-            **data["shield"],
-            "mode": mode,
-            "override": False,
-            "engine": engine,
-            "level_incentive_frames": frames,
-        }
-        env = make_env(build_config(data))
-        _, info = env.reset(seed=cx.seed)
-        for action in cx.actions[:-1]:
-            _, _, _, _, info = env.step(int(action))
-        masks[engine, frames] = info["action_mask"].tolist()
-        env.close()
-    assert masks["numpy", True] == masks["compiled", True]
-    assert not masks["compiled", True][3]  # FASTER: the level car may turn in within the decision
-    assert masks["compiled", True][4]  # SLOWER stays
+    both engines; without the option it was allowed under the omniscient shield."""
+    on = {"level_incentive_frames": True}
+    variants = {"numpy": {**on, "engine": "numpy"}, "compiled": {**on, "engine": "compiled"}, "off": {}}
+    verdicts = _verdicts_at_the_end(fixture, mode, variants, override=False)  # the probe chose allowed actions
+    assert verdicts["numpy"] == verdicts["compiled"]
+    assert not verdicts["compiled"][1][3]  # FASTER: the level car may turn in within the decision
+    assert verdicts["compiled"][1][4]  # SLOWER stays
     if mode == "omniscient":
-        assert masks["compiled", False][3]  # the now-and-end incentive alone let FASTER through
+        assert verdicts["off"][1][3]  # the now-and-end incentive alone let FASTER through
 
 
 def test_a_car_changing_in_ahead_of_a_level_car_is_its_leader_for_mobil() -> None:
@@ -436,25 +450,13 @@ def test_a_car_changing_in_ahead_of_a_level_car_is_its_leader_for_mobil() -> Non
     8.8 m/s. highway-env's IDM sees that car as the timid car's leader (half a lane + 1 m): behind it the timid car
     brakes, behind the ego it would not, so MOBIL lets it turn in — it did, into the ego braking under SLOWER (the
     belief shield's side crash from a safe state, its type kept; 5 decisions per second). Reading the leaders by
-    lane alone, the rule gave SLOWER a 2.68 m worst gap; with ``incentive_leaders_band`` nothing is safe there, on
-    both engines."""
-    from safelane.config import build_config
-    from safelane.env.factory import make_env
-    from safelane.running.counterexamples import load_counterexample
-
-    cx = load_counterexample(
-        Path(__file__).parent / "fixtures" / "hidden-types" / "leader-changing-in-turn-in-collision.json"
+    lane alone, the rule allowed SLOWER as safe; with ``incentive_leaders_band`` nothing is safe there (the shield
+    promises nothing, and says so), on both engines."""
+    on = {"incentive_leaders_band": True}
+    verdicts = _verdicts_at_the_end(
+        "leader-changing-in-turn-in-collision",
+        "belief",
+        {"numpy": {**on, "engine": "numpy"}, "compiled": {**on, "engine": "compiled"}, "off": {}},
     )
-    fallback = {}
-    for engine, band in (("numpy", True), ("compiled", True), ("compiled", False)):
-        data = copy.deepcopy(cx.config)
-        data["shield"] = {**data["shield"], "engine": engine, "incentive_leaders_band": band}  # as recorded: override on
-        env = make_env(build_config(data))
-        _, info = env.reset(seed=cx.seed)
-        for action in cx.actions[:-1]:
-            _, _, _, _, info = env.step(int(action))
-        fallback[engine, band] = (bool(info["fallback"]), info["action_mask"].tolist())
-        env.close()
-    assert fallback["numpy", True] == fallback["compiled", True]
-    assert fallback["compiled", True][0]  # no safe action: the shield promises nothing here, and says so
-    assert fallback["compiled", False] == (False, [False, False, False, False, True])
+    assert verdicts["numpy"] == verdicts["compiled"] and verdicts["compiled"][0]
+    assert verdicts["off"] == (False, [False, False, False, False, True])

@@ -726,11 +726,15 @@ def merge_shards(spec: CampaignSpec, dirs: list[Path], out_dir: str | Path) -> d
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     atomic_write_text(out / "summary.json", json.dumps(merged, indent=1))
+    kept = all("collision_contexts_types_kept" in s for s in summaries)  # the belief shield: its types kept apart
     rows = [f"| {k}/{n} | {s['cells_done']} / {s['cells']} | {s['episodes']} | {s['collisions']} | "
-            f"{s['collision_contexts'].get('from_safe_state', 0)} | {s.get('lapses_in_model', '–')} |"
+            f"{s['collision_contexts'].get('from_safe_state', 0)} | "
+            + (f"{s['collision_contexts_types_kept'].get('from_safe_state', 0)} | " if kept else "")
+            + f"{s.get('lapses_in_model', '–')} |"
             for k, (_, s) in sorted(found.items())]  # fmt: skip
+    head = "| shard | cells | episodes | collisions | from safe or certified states | " + (
+        "… the true types kept | " if kept else "") + "lapses in the model |"
     shards = ["", f"Merged from {len(found)} of {n} shards ({'the whole grid' if merged['complete'] else 'not all'}):",
-              "", "| shard | cells | episodes | collisions | from safe or certified states | lapses in the model |",
-              "|---|---|---|---|---|---|", *rows, ""]  # fmt: skip
+              "", head, "|---" * head.count(" | ") + "|---|", *rows, ""]  # fmt: skip
     atomic_write_text(out / "summary.md", _markdown(whole, merged, []) + "\n".join(shards))
     return merged

@@ -547,34 +547,32 @@ def rule_gaps_kernel(
                 turning = level[slot, r] if occupied or not level_entering else level_any[slot, r]
                 adjacent = abs(lanes_near[r] - lane_c) == 1
                 timed = level_when_incentive and level_incentive and occupied
-                if adjacent and not turning and timed and level_incentive_frames and level_any[slot, r]:
-                    # model: a level car the now-and-end incentive filtered out turns in if the incentive holds at
-                    # a frame of the decision, the others at constant speed (model.incentive_times).
-                    turning = incentive_first(
+                # model.incentive_times, the others at constant speed, at one call site: it times the turn-in without
+                # incentive_any_speed, and (level_incentive_frames) admits a level car the now-and-end check left out.
+                t_const = inf
+                frames_check = not turning and level_incentive_frames and level_any[slot, r]
+                if adjacent and timed and (frames_check or (turning and not incentive_any_speed)):
+                    t_const = incentive_first(
                         near[r], r, m, near, lanes_near, band_near, x, vx, crashed, brake_max, lin_k0, lin_k1, lin_k2,
                         idm_distance_wanted, idm_time_wanted, idm_comfort_acc, idm_comfort_dec, linear_incentive,
                         linear_incentive_braking, xs[a], ego_speed, v_key[a], targets[a], powers, frames, t,
                         min_acc_gain,
-                    ) < inf  # fmt: skip
+                    )  # fmt: skip
+                    if frames_check:
+                        turning = t_const < inf
                 if not (turning and adjacent):
                     continue
                 nominal = False
                 follows = True
                 lo = lo_cut
                 if timed:  # model.incentive_times(_any_speed)
+                    t_inc = t_const
                     if incentive_any_speed:
                         t_inc = incentive_first_any_speed(
                             near[r], r, m, near, lanes_near, band_near, x, vx, vy, crashed, brake_max, accel_max,
                             lin_k0, lin_k1, lin_k2, idm_distance_wanted, idm_time_wanted, idm_comfort_acc,
                             idm_comfort_dec, linear_incentive, xs[a], ego_speed, v_key[a], targets[a], powers, frames,
                             t, min_acc_gain,
-                        )  # fmt: skip
-                    else:
-                        t_inc = incentive_first(
-                            near[r], r, m, near, lanes_near, band_near, x, vx, crashed, brake_max, lin_k0, lin_k1,
-                            lin_k2, idm_distance_wanted, idm_time_wanted, idm_comfort_acc, idm_comfort_dec,
-                            linear_incentive, linear_incentive_braking, xs[a], ego_speed, v_key[a], targets[a], powers,
-                            frames, t, min_acc_gain,
                         )  # fmt: skip
                     if t_inc < inf:
                         start = cut_in_time + t_inc

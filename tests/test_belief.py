@@ -418,7 +418,7 @@ def _verdicts_at_the_end(
     for label, variant in variants.items():
         shield.engine = variant.get("engine", recorded[0])
         shield.rule = recorded[1].with_options(**{k: v for k, v in variant.items() if k != "engine"})
-        shield.dynamics, shield._family = None, None
+        shield.dynamics = None  # rebuilt from the rule at the next verdict; the family follows the engine
         result = shield.compute_result()
         out[label] = (bool(result.fallback), result.mask.tolist())
     env.close()

@@ -23,6 +23,37 @@ import pytest
 REPO_ROOT = Path(__file__).resolve().parents[1]
 
 
+def _step_once(**overrides: Any) -> None:
+    from safelane.env.factory import make_env
+
+    env = make_env("fast", seed=0, **overrides)
+    env.step(env.action_space.sample())
+    env.close()
+
+
+def _warm_simulators() -> None:
+    _step_once(simulator="fast")
+    _step_once(simulator="fast", actions="continuous")
+
+
+def _warm_rules() -> None:
+    _step_once(simulator="highway-env", **{"env.vehicles_count": 10, "shield.mode": "robust"})
+    _step_once(simulator="highway-env", **{"env.vehicles_count": 10, "shield.mode": "committed"})
+
+
+_WARM_UPS = {"gw0": _warm_simulators, "gw1": _warm_rules}
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    """Under pytest-xdist, each of the first two workers starts by compiling one half of the kernels most tests
+    need (numba caches them on disk), so that the other worker loads them instead of compiling them a second time
+    when both need them at once: from a cold cache, about 90 s of CPU (the simulator's decision kernel alone takes
+    45 s to compile). With warm caches this costs a few seconds."""
+    warm_up = _WARM_UPS.get(os.environ.get("PYTEST_XDIST_WORKER", ""))
+    if warm_up is not None:
+        warm_up()
+
+
 @pytest.fixture
 def make_fast_env() -> Iterator[Callable[..., gym.Env]]:
     """Factory of ``fast``-preset environments (``make_env`` keyword overrides); all closed after the test."""

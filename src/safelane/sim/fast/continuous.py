@@ -34,7 +34,7 @@ from numba import njit
 
 from safelane.core.kernel_cache import drop_stale_kernel_cache
 from safelane.sim.fast import kernels, lanes, layout, numerics
-from safelane.sim.fast.kernels import act_idm, collisions, step_vehicle
+from safelane.sim.fast.kernels import act_traffic, step_traffic, step_vehicle
 from safelane.sim.fast.lanes import build_lane_index
 from safelane.sim.fast.layout import (
     ACC,
@@ -204,14 +204,11 @@ def simulate(F, G, P, P_ego, acceleration, steering, linear_others, frames, dt, 
         # getattr(ego, "target_speed", default) in the others' models: the linear one's default is the
         # ego's speed (no speed-tracking term), IDM's is 0
         F[0, TSPD] = F[0, V] if linear_others else 0.0
-        for k in range(1, n):
-            act_idm(F, G, n, k, n_lanes, P, members, mx, cnt)
+        act_traffic(F, G, 1, n_lanes, P, members, mx, cnt)
         # Road.step
         step_vehicle(F, G, 0, dt, n_lanes, P_ego)
         G[0, TLANE] = G[0, LANE]
-        for k in range(1, n):
-            step_vehicle(F, G, k, dt, n_lanes, P)
-        collisions(F, G, dt, P, pa, pb, res, reach, cand, order)
+        step_traffic(F, G, 1, dt, n_lanes, P, pa, pb, res, reach, cand, order)
         if rec[0] == 0 and not was_crashed and G[0, CRASHED]:
             rec[0] = 1
             for k in range(n):

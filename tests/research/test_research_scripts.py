@@ -98,3 +98,24 @@ def test_type_break_causes_names_what_decides_a_break_under_hidden_types() -> No
         runs[bool(extra)] = json.loads(out)["counts"]
     assert runs[False] == {"follower into the stopped ego, d0=5 m": 1, "leader": 1, "only the margin eaten": 1}
     assert runs[True] == {"still a break": 3}
+
+
+def test_mobil_terms_names_what_turned_a_car_in_at_the_ego() -> None:
+    """research/mobil_terms.py on the two turn-ins the rule's incentive misses (tests/fixtures/hidden-types-turn-ins):
+    the timid car turned in for its old follower's sake (politeness 1: its own gain below its 0.2 m/s² threshold,
+    the jerk above it), the aggressive one for its own gain, small and positive, behind the ego."""
+    script = ROOT / "research" / "mobil_terms.py"
+    folder = ROOT / "tests" / "fixtures" / "hidden-types-turn-ins"
+    found = {}
+    for name in ("polite-timid", "knife-edge-aggressive"):
+        out = subprocess.run([sys.executable, str(script), str(folder / f"{name}-turn-in-collision.json")],
+                             check=True, capture_output=True, text=True).stdout  # fmt: skip
+        found[name] = json.loads(out)
+    timid, aggressive = found["polite-timid"], found["knife-edge-aggressive"]
+    assert timid["driven_by"] == "politeness" and aggressive["driven_by"] == "own gain"
+    turn = timid["turn_in"]
+    assert turn["type"] == "TimidDriver" and turn["politeness"] == 1.0 and turn["new_leader_is_ego"]
+    assert turn["own_gain"] < turn["threshold"] <= turn["jerk"] and turn["old_follower_change"] > 0.0
+    turn = aggressive["turn_in"]
+    assert turn["type"] == "AggressiveDriver" and turn["politeness"] == 0.0 and turn["new_leader_is_ego"]
+    assert 0.0 < turn["own_gain"] < 0.2 and turn["offset"] < 0.0

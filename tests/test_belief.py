@@ -129,6 +129,27 @@ def test_uninformative_steps_keep_the_posterior() -> None:
     assert belief.informative[1] == 0
 
 
+def test_a_car_or_leader_not_yet_straight_is_no_evidence() -> None:
+    """A car heading across its lane by more than HEADING_STRAIGHT at either end of the step (finishing a lane
+    change), or whose leader does: the step says nothing; within it, the same braking behind the same leader is
+    evidence."""
+    from safelane.safety.belief import HEADING_STRAIGHT
+
+    def step(heading_before: list[float], heading_after: list[float]) -> BeliefFilter:
+        belief = BeliefFilter(MIX, 0.2)
+        belief.reset(snapshot([0.0, 100.0, 115.0], [25.0, 22.0, 20.0], [3, 1, 1], heading=np.array(heading_before)))
+        belief.update(snapshot([25.0, 120.0, 135.0], [25.0, 19.0, 20.0], [3, 1, 1], heading=np.array(heading_after)))
+        return belief
+
+    turning = 1.01 * HEADING_STRAIGHT
+    for before, after in (([0, turning, 0], [0, 0, 0]), ([0, 0, 0], [0, -turning, 0]), ([0, 0, turning], [0, 0, 0])):
+        belief = step(before, after)
+        assert belief.informative[1] == 0
+        np.testing.assert_array_equal(belief.posterior[1], np.full(3, 1 / 3))
+    straight = step([0, HEADING_STRAIGHT, -HEADING_STRAIGHT], [0, -HEADING_STRAIGHT, 0])
+    assert straight.informative[1] == 1 and not np.allclose(straight.posterior[1], 1 / 3)
+
+
 def test_new_cars_start_at_the_prior_and_gone_ones_are_dropped() -> None:
     uneven = parse_driver_mix([{"type": "timid", "weight": 1}, {"type": "normal", "weight": 3}])
     belief = BeliefFilter(uneven, 0.1)
@@ -157,10 +178,11 @@ _speeds = st.floats(0.0, 32.0, allow_nan=False)
     weights=st.lists(st.floats(0.0, 1.0), min_size=3, max_size=3).filter(lambda w: sum(w) > 0.01),
     sigma=st.floats(0.01, 2.0),
     steps=st.integers(1, 3),
+    heading=st.lists(st.sampled_from([0.0, 0.01, -0.05, 0.051, -0.2]), min_size=6, max_size=6),
 )
 def test_compiled_is_the_reference_and_rows_sum_to_one(
     x: list[float], lanes: list[int], v: list[float], dv: list[float], weights: list[float], sigma: float,
-    steps: int,
+    steps: int, heading: list[float],
 ) -> None:  # fmt: skip
     """Random scenes, several steps: the compiled kernel's posteriors are the reference's bits; every row is a
     distribution; a type of weight 0 stays at 0."""
@@ -171,7 +193,8 @@ def test_compiled_is_the_reference_and_rows_sum_to_one(
         f.reset(snap)
     for s in range(1, steps + 1):
         new_v = [max(a + b * s / steps, 0.0) for a, b in zip(v, dv, strict=True)]
-        snap = snapshot([a + b for a, b in zip(x, new_v, strict=True)], new_v, lanes)
+        turned = np.array(heading) * (s % 2)  # cars turning at every other snapshot: some steps are no evidence
+        snap = snapshot([a + b for a, b in zip(x, new_v, strict=True)], new_v, lanes, heading=turned)
         compiled, reference = (f.update(snap) for f in filters)
         np.testing.assert_array_equal(compiled, reference)
         np.testing.assert_allclose(compiled.sum(axis=1), 1.0, rtol=1e-12)

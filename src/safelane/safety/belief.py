@@ -16,8 +16,10 @@ posterior probability of each type given the motion observed so far:
   ``log L_k = −½ (r_k / σ)²``. σ stands for what the model leaves out (the leader's acceleration is not constant
   within the step, the projected speeds of a car that turns), and sets how fast the posterior concentrates;
 * **uninformative steps** (the likelihood is flat, the posterior kept): the car crashed, is changing lanes (its lane
-  and target lane differ, or its lane changed), its leader changed between the two snapshots or crashed — where
-  the frame-by-frame model above is not the car's (MOBIL's lane changes are not used as evidence).
+  and target lane differ, or its lane changed), it or its leader heads across the lane by more than
+  :data:`HEADING_STRAIGHT` at either end of the step (IDM's approach rate is projected on the car's own direction),
+  its leader changed between the two snapshots or crashed — where the frame-by-frame model above is not the car's
+  (MOBIL's lane changes are not used as evidence).
 
 Two engines give the same bits (a test checks it): :func:`update_reference`, Python over numpy arrays with
 ``math``'s libm calls, and :func:`update_compiled`, the same arithmetic in numba. Pure maths: no simulator.
@@ -40,6 +42,14 @@ SIGMA = 0.2
 (observed minus the type's prediction). Measured on the ``hidden-types`` preset (docs/research/belief-calibration.md):
 0.1 is the best calibrated but rules a car's true type out (posterior ≤ 0.01) in 0.3 % of car-decisions; 0.2 errs
 on the cautious side (above 0.4 the true type is more frequent than predicted) and rules it out 6 times less often."""
+
+HEADING_STRAIGHT = 0.05
+"""[rad] A step is evidence only if the car and its leader head along their lanes within this at both of its ends.
+IDM's desired gap reads the approach rate projected on the car's own direction (``Δv = v − v_leader·cos(h_leader −
+h)``), which the filter's model along the lane leaves out: a car that has just crossed into a lane still turns back
+for about a second (0.2 rad two frames after its lane switched) and, behind a close leader, brakes up to 2 m/s²
+harder than the model of its own type predicts, enough at σ = 0.2 to rule its true type out for good. Measured in
+docs/research/belief-calibration.md."""
 
 LANE_MARGIN = 1.0
 """[m] highway-env's ``neighbour_vehicles``: a body is on a lane within half its width plus this of its centre."""
@@ -64,7 +74,8 @@ def type_table(types: tuple[IdmParameters, ...]) -> np.ndarray:
 class Observation:
     """What the filter reads of one snapshot, as arrays over its bodies: ``x`` [m] along the road, ``y`` [m] across
     it, ``v`` [m/s] speed, ``lane``, ``target_lane``, ``crashed``, ``tracked`` (the other vehicles), ``target``
-    [m/s] the set-point clipped to [0, the speed limit], ``delta`` (IDM's δ)."""
+    [m/s] the set-point clipped to [0, the speed limit], ``delta`` (IDM's δ), ``heading`` [rad] relative to the
+    lane's."""
 
     def __init__(self, snap: RoadSnapshot) -> None:
         rel = snap.position - snap.lane_origin
@@ -80,6 +91,7 @@ class Observation:
         target = np.where(np.isfinite(snap.target_speed), snap.target_speed, 0.0)
         self.target = np.ascontiguousarray(np.clip(target, 0.0, snap.speed_limit), dtype=np.float64)
         self.delta = np.ascontiguousarray(snap.idm_delta, dtype=np.float64)
+        self.heading = np.ascontiguousarray(snap.heading - snap.lane_heading, dtype=np.float64)
         self.lane_width = float(snap.lane_width)
         self.frames = int(snap.simulation_frequency // snap.policy_frequency)
         self.dt = 1.0 / float(snap.simulation_frequency)
@@ -113,10 +125,11 @@ def leader_reference(x: np.ndarray, y: np.ndarray, i: int, lane: int, lane_width
 
 
 def step_log_likelihood_reference(
-    before: Observation, after: Observation, i: int, table: np.ndarray, inv_two_sigma2: float
-) -> np.ndarray | None:
+    before: Observation, after: Observation, i: int, table: np.ndarray, inv_two_sigma2: float,
+    straight: float = HEADING_STRAIGHT,
+) -> np.ndarray | None:  # fmt: skip
     """(K,) ``log L_k`` of car ``i``'s step from ``before`` to ``after`` under each type (module docstring); None
-    when the step is uninformative."""
+    when the step is uninformative (``straight`` [rad]: :data:`HEADING_STRAIGHT`)."""
     if before.crashed[i] or after.crashed[i]:
         return None
     lane = int(before.lane[i])
@@ -127,6 +140,9 @@ def step_log_likelihood_reference(
         return None
     if lead >= 0 and (before.crashed[lead] or after.crashed[lead]):
         return None
+    for j in (i, lead) if lead >= 0 else (i,):
+        if not (abs(before.heading[j]) <= straight and abs(after.heading[j]) <= straight):
+            return None
     frames, dt = before.frames, before.dt
     period = frames * dt
     lead_acc = (after.v[lead] - before.v[lead]) / period if lead >= 0 else 0.0
@@ -170,7 +186,7 @@ def _normalise_reference(row: np.ndarray) -> None:
 
 def update_reference(
     log_post: np.ndarray, informative: np.ndarray, before: Observation, after: Observation, table: np.ndarray,
-    inv_two_sigma2: float,
+    inv_two_sigma2: float, straight: float = HEADING_STRAIGHT,
 ) -> None:  # fmt: skip
     """One Bayes step for every car tracked in both observations (rows ``< min(n_before, n_after)``), in place on
     ``log_post`` (n, K) and on ``informative`` (n,): the count of informative steps per car."""
@@ -178,7 +194,7 @@ def update_reference(
     for i in range(n):
         if not (before.tracked[i] and after.tracked[i]):
             continue
-        ll = step_log_likelihood_reference(before, after, i, table, inv_two_sigma2)
+        ll = step_log_likelihood_reference(before, after, i, table, inv_two_sigma2, straight)
         if ll is None:
             continue
         best = -math.inf
@@ -216,8 +232,8 @@ def _leader(x, y, i, lane, lane_width):
 
 @njit(cache=True, error_model="numpy")
 def _update_kernel(
-    log_post, informative, x0, y0, v0, lane0, tl0, crashed0, tracked0, target0, delta0,
-    x1, y1, v1, lane1, tl1, crashed1, tracked1, lane_width, frames, dt, table, inv_two_sigma2,
+    log_post, informative, x0, y0, v0, lane0, tl0, crashed0, tracked0, target0, delta0, h0,
+    x1, y1, v1, lane1, tl1, crashed1, tracked1, h1, lane_width, frames, dt, table, inv_two_sigma2, straight,
 ):  # fmt: skip
     n = min(x0.shape[0], x1.shape[0], log_post.shape[0])
     n_types = table.shape[0]
@@ -233,6 +249,10 @@ def _update_kernel(
         if lead != _leader(x1, y1, i, lane, lane_width):
             continue
         if lead >= 0 and (crashed0[lead] or crashed1[lead]):
+            continue
+        if not (abs(h0[i]) <= straight and abs(h1[i]) <= straight):
+            continue
+        if lead >= 0 and not (abs(h0[lead]) <= straight and abs(h1[lead]) <= straight):
             continue
         lead_acc = (v1[lead] - v0[lead]) / period if lead >= 0 else 0.0
         target = abs(_nz(target0[i]))
@@ -279,13 +299,13 @@ def _update_kernel(
 
 def update_compiled(
     log_post: np.ndarray, informative: np.ndarray, before: Observation, after: Observation, table: np.ndarray,
-    inv_two_sigma2: float,
+    inv_two_sigma2: float, straight: float = HEADING_STRAIGHT,
 ) -> None:  # fmt: skip
     """:func:`update_reference` in numba: the same bits."""
     b, a = before, after
     _update_kernel(log_post, informative, b.x, b.y, b.v, b.lane, b.target_lane, b.crashed, b.tracked, b.target,
-                   b.delta, a.x, a.y, a.v, a.lane, a.target_lane, a.crashed, a.tracked, b.lane_width, b.frames, b.dt,
-                   table, inv_two_sigma2)  # fmt: skip
+                   b.delta, b.heading, a.x, a.y, a.v, a.lane, a.target_lane, a.crashed, a.tracked, a.heading,
+                   b.lane_width, b.frames, b.dt, table, inv_two_sigma2, float(straight))  # fmt: skip
 
 
 # --- the filter ----------------------------------------------------------------------------------------------
@@ -350,7 +370,8 @@ class BeliefFilter:
         n = min(self._last.n, after.n)
         self._resize(max(self.log_post.shape[0], after.n))
         update = update_compiled if self.engine == "compiled" else update_reference
-        update(self.log_post, self.informative, self._last, after, self.table, 0.5 / (self.sigma * self.sigma))
+        update(self.log_post, self.informative, self._last, after, self.table, 0.5 / (self.sigma * self.sigma),
+               HEADING_STRAIGHT)  # fmt: skip
         self.steps[:n] += (self._last.tracked[:n] & after.tracked[:n]).astype(np.int64)
         self._resize(after.n)
         self._last = after
@@ -373,8 +394,8 @@ class BeliefFilter:
 
 
 __all__ = [
-    "SIGMA", "BeliefEngine", "BeliefFilter", "Observation", "leader_reference", "step_log_likelihood_reference",
-    "type_table", "update_compiled", "update_reference",
+    "HEADING_STRAIGHT", "SIGMA", "BeliefEngine", "BeliefFilter", "Observation", "leader_reference",
+    "step_log_likelihood_reference", "type_table", "update_compiled", "update_reference",
 ]  # fmt: skip
 
 

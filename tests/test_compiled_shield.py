@@ -225,12 +225,18 @@ def test_engine_is_configurable() -> None:
 # the same in both engines, and only stricter.
 # --------------------------------------------------------------------------------------------
 
+OPTION_SETTINGS = settings(PROPERTY_SETTINGS, max_examples=100)
+"""The properties below each check one rule option on both engines, several variants per drawn state: 100 fresh
+states a run each (150 made this file a fifth of the suite's time on two cores, against its 8-minute budget); the
+plain random and extreme states above keep 150."""
+
+
 ROBUST_OPTIONS = pytest.mark.parametrize("option", ["body_extent", "level_cut_ins", "level_entering"])
 """The options that only add conflicts (linear_mobil removes some: tested on its own below)."""
 
 
 @ROBUST_OPTIONS
-@PROPERTY_SETTINGS
+@OPTION_SETTINGS
 @given(case=road())
 def test_robust_options_bit_identical_and_only_stricter(option: str, case: tuple) -> None:
     state, dyn, _ = case
@@ -244,7 +250,7 @@ def test_robust_options_bit_identical_and_only_stricter(option: str, case: tuple
             assert_same(base, more)  # the options belong to the robust rule only
 
 
-@PROPERTY_SETTINGS
+@OPTION_SETTINGS
 @given(case=road(extreme=True))
 def test_reversing_leaders_bit_identical_and_only_stricter(case: tuple) -> None:
     """shield.reversing_leaders (on by default): a leader rolling backwards keeps its reverse speed. Both
@@ -260,7 +266,7 @@ def test_reversing_leaders_bit_identical_and_only_stricter(case: tuple) -> None:
             assert_same(before, after)
 
 
-@PROPERTY_SETTINGS
+@OPTION_SETTINGS
 @given(case=road())
 def test_level_incentive_bit_identical_and_between_the_rules(case: tuple) -> None:
     """shield.level_cut_ins with MOBIL's incentive (the default) only keeps the level cars
@@ -286,7 +292,7 @@ def test_level_incentive_bit_identical_and_between_the_rules(case: tuple) -> Non
         assert np.array_equal(gaining.min_gap[keep], filtered.min_gap[keep], equal_nan=True)
 
 
-@PROPERTY_SETTINGS
+@OPTION_SETTINGS
 @given(case=road(rates=True, follower=True))
 def test_forecast_fallback_bit_identical_and_only_the_fallback_choice(case: tuple) -> None:
     """shield.forecast_fallback ranks the least-bad choice by a nominal forecast first (its collisions alike, its
@@ -309,7 +315,7 @@ def test_forecast_fallback_bit_identical_and_only_the_fallback_choice(case: tupl
         assert_nested(state, on)
 
 
-@PROPERTY_SETTINGS
+@OPTION_SETTINGS
 @given(case=road())
 def test_linear_incentive_bit_identical_and_only_removes_linear_turn_ins(case: tuple) -> None:
     """shield.linear_incentive: the same in both engines; it only filters Linear-model drivers' turn-ins behind
@@ -332,7 +338,7 @@ def test_linear_incentive_bit_identical_and_only_removes_linear_turn_ins(case: t
         assert_same(b, mid)
 
 
-@PROPERTY_SETTINGS
+@OPTION_SETTINGS
 @given(case=road(rates=True))
 def test_full_horizon_bit_identical_at_every_rate_and_unchanged_at_one_per_second(case: tuple) -> None:
     """shield.full_horizon (default): at 1 decision per second the horizon is the one it always was (13 s),
@@ -348,7 +354,7 @@ def test_full_horizon_bit_identical_at_every_rate_and_unchanged_at_one_per_secon
             assert_same(reference(state, short, mode), reference(state, full, mode))
 
 
-@PROPERTY_SETTINGS
+@OPTION_SETTINGS
 @given(case=road(rates=True))
 def test_turning_leaders_bit_identical(case: tuple) -> None:
     """shield.turning_leaders (experimental): moving leaders brake from their speed along their path less
@@ -364,7 +370,7 @@ def test_turning_leaders_bit_identical(case: tuple) -> None:
             assert_same(reference(state, off, mode), reference(state, on, mode))
 
 
-@PROPERTY_SETTINGS
+@OPTION_SETTINGS
 @given(case=road(rates=True))
 def test_straight_fallback_bit_identical_and_only_the_fallback_mask(case: tuple) -> None:
     """shield.straight_fallback (with turning_leaders): the same in both engines at every rate; the safe set,
@@ -394,7 +400,7 @@ def test_straight_fallback_bit_identical_and_only_the_fallback_mask(case: tuple)
             assert b.mask.tolist() == nominal_leaders.mask.tolist()
 
 
-@PROPERTY_SETTINGS
+@OPTION_SETTINGS
 @given(case=road(rates=True))
 def test_turning_in_nominal_bit_identical_and_only_looser_nominal(case: tuple) -> None:
     """shield.turning_in_nominal (on by default): the same in both engines at every
@@ -416,7 +422,7 @@ def test_turning_in_nominal_bit_identical_and_only_looser_nominal(case: tuple) -
         assert_same(reference(state, plain_off, mode), reference(state, plain_on, mode), mode)
 
 
-@PROPERTY_SETTINGS
+@OPTION_SETTINGS
 @given(case=road())
 def test_linear_mobil_bit_identical_and_only_looser(case: tuple) -> None:
     """shield.linear_mobil judges Linear-model cut-ins by their criterion: the same in both engines either
@@ -475,7 +481,7 @@ def test_linear_drivers_mobil_on_recorded_states(simulator: str) -> None:
     assert n >= 2 * steps
 
 
-@PROPERTY_SETTINGS
+@OPTION_SETTINGS
 @given(case=road(extreme=True, rates=True))
 def test_reversing_cut_ins_bit_identical_and_only_stricter(case: tuple) -> None:
     """shield.reversing_cut_ins: the same in both engines at every rate; it only adds conflicts (a car moving
@@ -487,7 +493,7 @@ def test_reversing_cut_ins_bit_identical_and_only_stricter(case: tuple) -> None:
     assert_only_stricter(state, off, on, lambda mode: not (state.vx < 0).any())
 
 
-@PROPERTY_SETTINGS
+@OPTION_SETTINGS
 @given(case=road(extreme=True, rates=True, chained=True))
 def test_crossed_lanes_bit_identical_and_only_stricter(case: tuple) -> None:
     """shield.crossed_lanes: the same in both engines at every rate, with the ego's target up to two lanes away;
@@ -501,7 +507,7 @@ def test_crossed_lanes_bit_identical_and_only_stricter(case: tuple) -> None:
     assert_nested(state, on)
 
 
-@PROPERTY_SETTINGS
+@OPTION_SETTINGS
 @given(case=road(extreme=True, rates=True))
 def test_reversing_noses_bit_identical_and_only_stricter(case: tuple) -> None:
     """shield.reversing_noses: the same in both engines at every rate; it only adds a lane to a car
@@ -514,7 +520,7 @@ def test_reversing_noses_bit_identical_and_only_stricter(case: tuple) -> None:
     assert_only_stricter(state, off, on, lambda mode: mode == "nominal" or not turned_back)
 
 
-@PROPERTY_SETTINGS
+@OPTION_SETTINGS
 @given(case=road(extreme=True, rates=True, chained=True, follower=True))
 def test_follower_idm_bit_identical(case: tuple) -> None:
     """shield.follower_idm: the same in both engines at every rate (IDM followers of every kind, crashed cars,
@@ -530,7 +536,7 @@ def test_follower_idm_bit_identical(case: tuple) -> None:
             assert_same(reference(state, off, mode), reference(state, on, mode), mode)
 
 
-@PROPERTY_SETTINGS
+@OPTION_SETTINGS
 @given(case=road(extreme=True, rates=True))
 def test_linear_and_turning_options_leave_nominal_untouched(case: tuple) -> None:
     """The linear-driver and turning options (linear drivers' MOBIL, turning leaders, the straight fallback,
@@ -544,7 +550,7 @@ def test_linear_and_turning_options_leave_nominal_untouched(case: tuple) -> None
     assert_same(compiled.evaluate_compiled(state, on, "nominal"), compiled.evaluate_compiled(state, off, "nominal"))
 
 
-@PROPERTY_SETTINGS
+@OPTION_SETTINGS
 @given(case=road(extreme=True, rates=True, follower=True))
 def test_finishing_changes_bit_identical(case: tuple) -> None:
     """shield.finishing_changes (experimental): the same in both engines at every rate; robust ⊆ nominal still
@@ -562,7 +568,7 @@ def test_finishing_changes_bit_identical(case: tuple) -> None:
         assert_same(reference(state, off, "robust"), reference(state, on, "robust"), "robust")
 
 
-@PROPERTY_SETTINGS
+@OPTION_SETTINGS
 @given(case=road(extreme=True, rates=True, follower=True))
 def test_cut_in_when_permitted_bit_identical(case: tuple) -> None:
     """shield.cut_in_when_permitted (on by default), with and without
@@ -578,7 +584,7 @@ def test_cut_in_when_permitted_bit_identical(case: tuple) -> None:
     assert_same(reference(state, off, "nominal"), reference(state, on, "nominal"), "nominal")
 
 
-@PROPERTY_SETTINGS
+@OPTION_SETTINGS
 @given(case=road(extreme=True, rates=True, follower=True))
 def test_passing_cut_ins_bit_identical(case: tuple) -> None:
     """shield.passing_cut_ins (experimental, with cut_in_when_permitted): the same in both engines at every rate
@@ -592,7 +598,7 @@ def test_passing_cut_ins_bit_identical(case: tuple) -> None:
     assert_same(reference(state, dyn, "nominal"), reference(state, on, "nominal"), "nominal")
 
 
-@PROPERTY_SETTINGS
+@OPTION_SETTINGS
 @given(case=road(extreme=True, rates=True, follower=True))
 def test_level_when_incentive_bit_identical(case: tuple) -> None:
     """shield.level_when_incentive: the same in both engines at every rate (IDM and linear-model drivers, with

@@ -36,6 +36,7 @@ from safelane.running.policies import fixed_policy
 from safelane.safety.one_decision import reference as model
 from safelane.safety.one_decision.compiled import C_RELEVANCE, C_TURNING_ALLOWANCE, kernel_constants, snapshot_kernel
 from safelane.safety.one_decision.compiled_rule import evaluate_rule
+from safelane.safety.one_decision.cut_ins import politeness_of
 from safelane.safety.rule import FLAG_TURNING_IN_NOMINAL
 from safelane.safety.shield import SafetyShield
 
@@ -65,7 +66,7 @@ def kernel_args(snap: Any, dyn: Any, lane_heading: float, leave: float) -> tuple
         snap.position, snap.speed, snap.heading, snap.length, snap.crashed, snap.brake_max, snap.accel_max,
         snap.can_change_lane, snap.idm_delta, snap.idm_comfort_acc, snap.idm_comfort_dec,
         snap.idm_distance_wanted, snap.idm_time_wanted, snap.max_braking_imposed, snap.linear_speed_gain,
-        snap.linear_speed_difference_gain, snap.linear_distance_gain, snap.target_speed,
+        snap.linear_speed_difference_gain, snap.linear_distance_gain, snap.politeness, snap.target_speed,
         e, int(snap.lane[e]), int(snap.target_lane[e]), snap.ego_target_speed, snap.ego_speed_index,
         snap.lane_origin, snap.lane_direction, snap.lane_lateral, lane_heading, snap.speed_limit,
         *kernel_constants(dyn), True, leave,
@@ -80,7 +81,7 @@ def rule_args(state: Any, dyn: Any, robust: bool = True) -> tuple:
         s.ego_length, s.speed_limit, s.x, s.y, s.vx, s.vy, s.heading, s.length, s.crashed, s.brake_max,
         s.accel_max, s.can_change_lane, s.idm_delta, s.idm_comfort_acc, s.idm_comfort_dec,
         s.idm_distance_wanted, s.idm_time_wanted, s.max_braking_imposed, s.linear_speed_gain,
-        s.linear_speed_difference_gain, s.linear_distance_gain, model.set_points(s),
+        s.linear_speed_difference_gain, s.linear_distance_gain, politeness_of(s), model.set_points(s),
         *kernel_constants(dyn), robust, dyn.ego_leave_time,
     )  # fmt: skip
 

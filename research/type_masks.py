@@ -41,7 +41,7 @@ from safelane.safety.driver_sets import true_type
 from safelane.safety.shield import SafetyShield
 
 FIELDS = ("accel_max", "idm_comfort_acc", "idm_comfort_dec", "idm_distance_wanted", "idm_time_wanted",
-          "max_braking_imposed")  # fmt: skip
+          "max_braking_imposed", "politeness")  # fmt: skip
 """The driver arrays in which the mixture's types differ (``brake_max`` is 6 m/s² for every type)."""
 
 

@@ -42,7 +42,7 @@ def snapshot(x: list[float], v: list[float], lane: list[int], **over: Any) -> Ro
         idm_distance_wanted=np.full(n, idm.DISTANCE_WANTED), idm_time_wanted=np.full(n, idm.TIME_WANTED),
         max_braking_imposed=np.full(n, 2.0), linear_speed_gain=np.full(n, np.nan),
         linear_speed_difference_gain=np.full(n, np.nan), linear_distance_gain=np.full(n, np.nan),
-        driver_type=np.array([-1] + [0] * (n - 1)),
+        politeness=np.full(n, idm.POLITENESS), driver_type=np.array([-1] + [0] * (n - 1)),
     )  # fmt: skip
     fields.update(over)
     return RoadSnapshot(**fields)
@@ -417,9 +417,9 @@ def test_an_aggressive_turn_in_for_a_small_gain_is_in_the_types_sets(mode: str) 
 
 
 def _verdicts_at_the_end(
-    name: str, mode: str, variants: dict[str, dict[str, Any]], override: bool = True
+    name: str, mode: str, variants: dict[str, dict[str, Any]], override: bool = True, folder: str = "hidden-types"
 ) -> dict[str, tuple[bool, list]]:
-    """Replay the fixture ``name`` (tests/fixtures/hidden-types) under ``mode`` with the rule it was recorded with
+    """Replay the fixture ``name`` (tests/fixtures/``folder``) under ``mode`` with the rule it was recorded with
     (the options ``variants`` name off), the shield overriding the recorded choices or not (``override``: off plays
     them as they are, the same scene under every mode where the policy chose only allowed actions), then judge its
     last state again under each variant — ``{"engine": …, option: value, …}``: ``{variant: (fallback, mask)}``."""
@@ -428,7 +428,7 @@ def _verdicts_at_the_end(
     from safelane.env.scenarios import find_shield
     from safelane.running.counterexamples import load_counterexample
 
-    cx = load_counterexample(Path(__file__).parent / "fixtures" / "hidden-types" / f"{name}.json")
+    cx = load_counterexample(Path(__file__).parent / "fixtures" / folder / f"{name}.json")
     options = {k for v in variants.values() for k in v if k != "engine"}
     data = copy.deepcopy(cx.config)
     data["shield"] = {**data["shield"], "mode": mode, "override": override, **dict.fromkeys(options, False)}
@@ -457,7 +457,7 @@ def test_a_level_car_whose_incentive_holds_within_the_decision_turns_in(fixture:
     (aggressive 7 m/s slower; timid 3 m/s slower) turned into the ego's flank (pinned, 2 and 10 decisions per second).
     With ``level_incentive_frames`` the incentive's first frame decides which level cars turn in: FASTER is out on
     both engines; without the option it was allowed under the omniscient shield."""
-    on = {"level_incentive_frames": True}
+    on = {"level_incentive_frames": True, "incentive_politeness": False}  # as recorded, and the option
     variants = {"numpy": {**on, "engine": "numpy"}, "compiled": {**on, "engine": "compiled"}, "off": {}}
     verdicts = _verdicts_at_the_end(fixture, mode, variants, override=False)  # the probe chose allowed actions
     assert verdicts["numpy"] == verdicts["compiled"]
@@ -465,6 +465,24 @@ def test_a_level_car_whose_incentive_holds_within_the_decision_turns_in(fixture:
     assert verdicts["compiled"][1][4]  # SLOWER stays
     if mode == "omniscient":
         assert verdicts["off"][1][3]  # the now-and-end incentive alone let FASTER through
+
+
+@pytest.mark.parametrize("mode", ["omniscient", "robust", "belief"])
+def test_a_polite_car_making_room_for_its_follower_turns_in(mode: str) -> None:
+    """A timid car (politeness 1) just behind the overtaking ego in the next lane gains nothing itself by moving
+    behind it, but its old follower gains 0.94 m/s² from its leaving: MOBIL lets it change lanes, and it turned into
+    the ego's flank under the SLOWER the belief shield allowed (pinned, 5 frames per second;
+    ``research/mobil_terms.py`` prints the terms). With ``incentive_politeness`` the rule counts the followers' gain
+    and no action is safe there under every type shield (the shield promises nothing, and says so), on both engines;
+    without it SLOWER was safe under the omniscient and belief shields (the robust one, over every type, had no safe
+    action either way)."""
+    on = {"incentive_politeness": True}
+    variants = {"numpy": {**on, "engine": "numpy"}, "compiled": {**on, "engine": "compiled"}, "off": {}}
+    verdicts = _verdicts_at_the_end(
+        "polite-timid-turn-in-collision", mode, variants, override=False, folder="hidden-types-turn-ins"
+    )
+    assert verdicts["numpy"] == verdicts["compiled"] == (True, [False, False, False, False, True])
+    assert verdicts["off"] == (mode == "robust", [False, False, False, False, True])
 
 
 def test_a_car_changing_in_ahead_of_a_level_car_is_its_leader_for_mobil() -> None:
@@ -475,7 +493,7 @@ def test_a_car_changing_in_ahead_of_a_level_car_is_its_leader_for_mobil() -> Non
     belief shield's side crash from a safe state, its type kept; 5 decisions per second). Reading the leaders by
     lane alone, the rule allowed SLOWER as safe; with ``incentive_leaders_band`` nothing is safe there (the shield
     promises nothing, and says so), on both engines."""
-    on = {"incentive_leaders_band": True}
+    on = {"incentive_leaders_band": True, "incentive_politeness": False}  # the rule it was recorded with, and the band
     verdicts = _verdicts_at_the_end(
         "leader-changing-in-turn-in-collision",
         "belief",

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Callable, Iterator
 from typing import Any
@@ -9,7 +10,9 @@ from typing import Any
 import numpy as np
 import pytest
 from hypothesis import given, settings
+from hypothesis import strategies as st
 
+from safelane.core.drivers import IDM_PARAMETERS
 from safelane.core.errors import ConfigError, NotSupported
 from safelane.core.snapshot import RoadSnapshot
 from safelane.env.factory import make_env
@@ -17,7 +20,7 @@ from safelane.safety.one_decision import compiled
 from safelane.safety.one_decision import reference as model
 from safelane.safety.one_decision.reference import Dynamics, RoadState, SafetyResult
 from safelane.safety.shield import SafetyShield
-from test_safety import LINEAR_AND_TURNING_OPTIONS, PROPERTY_SETTINGS, road
+from test_safety import LINEAR_AND_TURNING_OPTIONS, PROPERTY_SETTINGS, make_state, road
 
 MODES = ("nominal", "robust")
 
@@ -612,3 +615,67 @@ def test_level_when_incentive_bit_identical(case: tuple) -> None:
     assert mismatches(state, on.with_options(linear_incentive=False, passing_cut_ins=True)) == []
     assert_nested(state, on)
     assert_same(reference(state, dyn, "nominal"), reference(state, on, "nominal"), "nominal")
+
+
+@st.composite
+def polite_road(draw: st.DrawFn) -> tuple[RoadState, Dynamics]:
+    """A random road (:func:`test_safety.road`, every rate, a follower) with a car level with the ego in a next lane,
+    a car behind that one in its lane, and a car ahead of it (some of the three), every IDM driver of a hidden type
+    (timid, normal or aggressive: their IDM constants and politeness 1, 0.5 or 0): where MOBIL's politeness term can
+    decide a turn-in (a level car a little slower than the ego, its follower a little faster)."""
+    state, dyn, cars = draw(road(rates=True, follower=True))
+    types = [IDM_PARAMETERS[name] for name in ("timid", "normal", "aggressive")]
+    sides = [lane for lane in (state.ego_lane - 1, state.ego_lane + 1) if 0 <= lane < dyn.lanes_count]
+    if sides:
+        side = draw(st.sampled_from(sides))
+
+        def car(dx: float, speed: float) -> dict[str, Any]:
+            return {"x": state.ego_x + dx, "y": side * 4.0 + draw(st.floats(-1.0, 1.0)), "speed": max(speed, 0.0),
+                    "heading": 0.0, "crashed": False, "delta": 4.0, "idm": True, "linear": False,
+                    "target": math.nan}  # fmt: skip
+
+        # Its desired gap behind the ego about zero (MOBIL's own gain about zero), as in the claim grid's cell 643.
+        level_type = types[draw(st.integers(0, 2))]
+        v = max(state.ego_speed, 1.0)
+        root = 2 * math.sqrt(-level_type.comfort_acc_max * level_type.comfort_acc_min)
+        level_speed = v - (level_type.distance_wanted + v * level_type.time_wanted) * root / v + draw(st.floats(-1, 1))
+        extra = [
+            car(-draw(st.floats(0.0, 8.0)), level_speed),
+            car(-draw(st.floats(10.0, 60.0)), level_speed + draw(st.floats(-2.0, 8.0))),
+            car(draw(st.floats(5.0, 80.0)), draw(st.floats(0.0, 30.0))),
+        ]
+        chosen = draw(st.lists(st.sampled_from([0, 1, 2]), min_size=1, max_size=3, unique=True))
+        cars = [*cars, *(extra[k] for k in chosen)]
+        state = make_state(
+            state.ego_x, state.ego_lane, state.ego_target_lane, state.ego_speed, state.ego_speed_index, cars
+        )
+    kinds = np.array(draw(st.lists(st.integers(0, 2), min_size=state.n, max_size=state.n)), dtype=int).reshape(state.n)
+    if sides and 0 in chosen:  # the level car is of the type its speed was drawn for
+        kinds[len(cars) - len(chosen)] = types.index(level_type)
+    idm = state.can_change_lane & ~np.isfinite(state.linear_speed_gain)
+
+    def of_type(name: str, current: np.ndarray) -> np.ndarray:
+        return np.where(idm, np.array([getattr(t, name) for t in types])[kinds], current)
+
+    return dataclasses.replace(
+        state,
+        accel_max=of_type("comfort_acc_max", state.accel_max),
+        idm_comfort_acc=of_type("comfort_acc_max", state.idm_comfort_acc),
+        idm_comfort_dec=of_type("comfort_acc_min", state.idm_comfort_dec),
+        idm_distance_wanted=of_type("distance_wanted", state.idm_distance_wanted),
+        idm_time_wanted=of_type("time_wanted", state.idm_time_wanted),
+        max_braking_imposed=of_type("max_braking_imposed", state.max_braking_imposed),
+        politeness=of_type("politeness", np.zeros(state.n)),
+    ), dyn
+
+
+@OPTION_SETTINGS
+@given(case=polite_road())
+def test_incentive_politeness_bit_identical_and_only_stricter(case: tuple) -> None:
+    """shield.incentive_politeness (default): the same in both engines at every rate, with and without the option;
+    it only adds turn-ins (never a new safe action, never a larger worst gap) and leaves nominal untouched; with every
+    driver's politeness 0 it changes nothing, to the bit."""
+    state, dyn = case
+    off = dyn.with_options(incentive_politeness=False)
+    assert mismatches(state, dyn) == [] and mismatches(state, off) == []
+    assert_only_stricter(state, off, dyn, lambda mode: mode == "nominal" or not (state.politeness > 0).any())

@@ -245,7 +245,8 @@ def test_hidden_types_give_the_shield_the_assumed_driver_only(sim: str) -> None:
     assumed = {"idm_comfort_acc": IDMVehicle.COMFORT_ACC_MAX, "idm_comfort_dec": IDMVehicle.COMFORT_ACC_MIN,
                "idm_distance_wanted": IDMVehicle.DISTANCE_WANTED, "idm_time_wanted": IDMVehicle.TIME_WANTED,
                "max_braking_imposed": IDMVehicle.LANE_CHANGE_MAX_BRAKING_IMPOSED,
-               "accel_max": IDMVehicle.COMFORT_ACC_MAX, "brake_max": IDMVehicle.ACC_MAX}  # fmt: skip
+               "accel_max": IDMVehicle.COMFORT_ACC_MAX, "brake_max": IDMVehicle.ACC_MAX,
+               "politeness": IDMVehicle.POLITENESS}  # fmt: skip
     classes = (TimidDriver, NormalDriver, AggressiveDriver)
     for name, value in assumed.items():
         assert (_fields(snap_h, name)[others] == value).all(), name
@@ -260,6 +261,7 @@ _CLASS_ATTR = {
     "idm_comfort_acc": "COMFORT_ACC_MAX", "idm_comfort_dec": "COMFORT_ACC_MIN",
     "idm_distance_wanted": "DISTANCE_WANTED", "idm_time_wanted": "TIME_WANTED",
     "max_braking_imposed": "LANE_CHANGE_MAX_BRAKING_IMPOSED", "accel_max": "COMFORT_ACC_MAX", "brake_max": "ACC_MAX",
+    "politeness": "POLITENESS",
 }  # fmt: skip
 
 

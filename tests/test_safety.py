@@ -296,6 +296,34 @@ def test_level_incentive_frames_sees_a_slow_car_turn_in_mid_decision(engine: str
 
 
 @pytest.mark.parametrize("engine", ["numpy", "compiled"])
+def test_incentive_politeness_sees_a_timid_car_make_room_for_its_follower(engine: str) -> None:
+    """shield.incentive_politeness (default): a timid driver (politeness 1) 2.9 m behind the ego's centre in the next
+    lane at 19.8 m/s, the ego overtaking at 24 m/s. It gains nothing itself by moving behind the ego (MOBIL's own
+    gain is negative), but a timid car 50 m behind it at 20.7 m/s gains from its leaving, and with politeness 1 that
+    decides: highway-env's own ``IDMVehicle.mobil`` lets it change lanes (the claim grid's side crash with hidden
+    types, cell 643). The rule then has it turn in from the decision's start (0.4 s, the cut-in time) and no action
+    is safe (−2.1 m); with politeness 0 in the incentive (false) it stays out and every action but the lane change
+    into it is safe. Without the car behind it, MOBIL says no and the option changes nothing."""
+    from safelane.sim.drivers import TimidDriver
+
+    car = scenarios.VehicleSpec(2, -2.9, 19.8, vehicle_class=TimidDriver)
+    follower = scenarios.VehicleSpec(2, -50.0, 20.7, vehicle_class=TimidDriver)
+    for cars, mobil, masks in (
+        ([car, follower], True, {True: mask_of(), False: mask_of(L, I, F, S)}),
+        ([car], False, {True: mask_of(L, I, F, S), False: mask_of(L, I, F, S)}),
+    ):
+        for on, safe in masks.items():
+            options = {"shield.engine": engine, "shield.incentive_politeness": on}
+            scene = scenarios.build_scene(1, 24.0, cars, mode="robust", ego_target_speed=25.0, **options)
+            ego = scene.env.unwrapped.vehicle
+            assert scene.vehicles[0].mobil(ego.lane_index) is mobil  # highway-env's own lane-change decision
+            assert scene.result.safe.tolist() == safe, (len(cars), on)
+            assert scene.result.min_gap[R] == pytest.approx(-2.1, abs=0.01)
+            if on and mobil:
+                assert scene.result.min_gap == pytest.approx([-2.1] * 5, abs=0.01)
+
+
+@pytest.mark.parametrize("engine", ["numpy", "compiled"])
 def test_level_entering_sees_a_car_two_lanes_over_change_into_the_ego_s_new_lane(engine: str) -> None:
     """shield.level_entering (default): the car two lanes over, 2 m behind the ego's centre, may turn into
     lane 1 while the ego changes into it: LANE_RIGHT's worst gap is −4.07 m (it ends up a follower 2 m behind

@@ -45,7 +45,7 @@ def scene(x: list[float], v: list[float], lane: list[int], kinds: list[int], ego
         idm_delta=np.full(n, 4.0), idm_comfort_acc=np.full(n, 3.0), idm_comfort_dec=np.full(n, -5.0),
         idm_distance_wanted=np.full(n, 10.0), idm_time_wanted=np.full(n, 1.5), max_braking_imposed=np.full(n, 2.0),
         linear_speed_gain=np.full(n, np.nan), linear_speed_difference_gain=np.full(n, np.nan),
-        linear_distance_gain=np.full(n, np.nan), driver_type=np.array([-1, *kinds]),
+        linear_distance_gain=np.full(n, np.nan), politeness=np.zeros(n), driver_type=np.array([-1, *kinds]),
     )  # fmt: skip
 
 

@@ -101,7 +101,7 @@ def test_type_break_causes_names_what_decides_a_break_under_hidden_types() -> No
 
 
 def test_mobil_terms_names_what_turned_a_car_in_at_the_ego() -> None:
-    """research/mobil_terms.py on the two turn-ins the rule's incentive misses (tests/fixtures/hidden-types-turn-ins):
+    """research/mobil_terms.py on the two turn-ins the rule's incentive missed (tests/fixtures/hidden-types-turn-ins):
     the timid car turned in for its old follower's sake (politeness 1: its own gain below its 0.2 m/s² threshold,
     the jerk above it), the aggressive one for its own gain, small and positive, behind the ego."""
     script = ROOT / "research" / "mobil_terms.py"

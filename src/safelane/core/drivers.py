@@ -81,7 +81,7 @@ class IdmParameters:
     time_wanted: float
     """[s] ``TIME_WANTED``: IDM's T (``idm_time_wanted``)."""
     politeness: float
-    """MOBIL's p (``POLITENESS``; not in the snapshot)."""
+    """MOBIL's p (``POLITENESS``: ``politeness``)."""
     max_braking_imposed: float
     """[m/s²] > 0, ``LANE_CHANGE_MAX_BRAKING_IMPOSED``: MOBIL's b_safe (``max_braking_imposed``)."""
     min_acc_gain: float

@@ -37,6 +37,7 @@ DRIVER_FIELDS: tuple[str, ...] = (
     "linear_speed_gain",
     "linear_speed_difference_gain",
     "linear_distance_gain",
+    "politeness",
 )
 """The per-body driver-model arrays of a snapshot, in the order the safety model's ``RoadState`` uses."""
 READ_ONLY_FIELDS: tuple[str, ...] = ("length", "width", "is_vehicle", "driver_type", *DRIVER_FIELDS)
@@ -158,6 +159,9 @@ class RoadSnapshot:
     """(N,) [1/s]: ``ACCELERATION_PARAMETERS[1]`` (NaN for IDM's formula)."""
     linear_distance_gain: np.ndarray
     """(N,) [1/s²]: ``ACCELERATION_PARAMETERS[2]`` (NaN for IDM's formula)."""
+    politeness: np.ndarray
+    """(N,) MOBIL's politeness p (``POLITENESS``): how much the driver weighs its followers' gain when it changes
+    lanes; 0 for a body without MOBIL."""
 
     # --- forensics ---------------------------------------------------------------------------------
     impact_before: np.ndarray | None = None

@@ -172,7 +172,7 @@ def _observe_one(
     d = drivers[i]
     out = snapshot_kernel(
         position, speed, heading, length[i], crashed, d[0], d[1], can_change_lane[i], d[2], d[3], d[4],
-        d[5], d[6], d[7], d[8], d[9], d[10], target_speed,
+        d[5], d[6], d[7], d[8], d[9], d[10], d[11], target_speed,
         0, lane[0], G[i, 0, L.TLANE], target, E[i, 0], origin, direction, lateral, lane_heading,
         speed_limit, ts, t, powers, tie_break, consts, flags, robust, leave,
     )  # fmt: skip

@@ -38,7 +38,7 @@ from safelane.core.snapshot import RoadSnapshot, freeze
 
 _FIELDS = ("brake_max", "accel_max", "can_change_lane", "idm_comfort_acc", "idm_comfort_dec", "idm_distance_wanted",
            "idm_time_wanted", "max_braking_imposed", "linear_speed_gain", "linear_speed_difference_gain",
-           "linear_distance_gain")  # fmt: skip
+           "linear_distance_gain", "politeness")  # fmt: skip
 """The driver arrays a reading writes (``idm_delta`` stays the car's own: highway-env draws δ per car)."""
 
 
@@ -47,8 +47,8 @@ def type_reading(
 ) -> RoadSnapshot:
     """``snap`` with the rows ``cars`` (snapshot indices) read as the types ``kinds`` (one index into ``types`` per
     row of ``cars``): each row gets its type's constants (``ACC_MAX`` as ``brake_max``, IDM's a, −b, s₀ + length, T,
-    MOBIL's b_safe, IDM's formula, a lane-change rule), but ``accel_max`` = ``accel`` [m/s²] (per row of ``cars``)
-    and its own δ; the other rows and fields as they are."""
+    MOBIL's b_safe and politeness, IDM's formula, a lane-change rule), but ``accel_max`` = ``accel`` [m/s²] (per
+    row of ``cars``) and its own δ; the other rows and fields as they are."""
     if cars.size == 0:
         return snap
     kinds = np.asarray(kinds, dtype=np.int64)
@@ -61,6 +61,7 @@ def type_reading(
     arrays["idm_distance_wanted"][cars] = np.array([t.distance_wanted for t in types])[kinds]
     arrays["idm_time_wanted"][cars] = np.array([t.time_wanted for t in types])[kinds]
     arrays["max_braking_imposed"][cars] = np.array([t.max_braking_imposed for t in types])[kinds]
+    arrays["politeness"][cars] = np.array([t.politeness for t in types])[kinds]
     for name in ("linear_speed_gain", "linear_speed_difference_gain", "linear_distance_gain"):
         arrays[name][cars] = np.nan
     freeze(arrays.values())  # read-only as the snapshot's own: the rule's kernels compile once for both

@@ -82,6 +82,9 @@ OPTIONS: tuple[RuleOption, ...] = (
                "allows it at some frame of the decision (else only when it does now or at the end).", True),
     RuleOption("incentive_leaders_band", "MOBIL's incentive counts as a driver's leaders the vehicles ahead within "
                "half a lane + 1 m of its lane's centre, as highway-env's IDM does (else those in its lane).", True),
+    RuleOption("incentive_politeness", "With level_incentive: a polite driver's incentive also counts its followers' "
+               "gain, MOBIL's p·(Δ new follower + Δ old follower); a car it alone lets turn in does so from the "
+               "decision's start (else politeness 0).", True),
 )  # fmt: skip
 """Every option of the rule, in the order of :attr:`Rule.flags`' bits (bit ``i``: ``OPTIONS[i]``)."""
 
@@ -117,6 +120,7 @@ FLAG_TURNING_IN_NOMINAL = _BIT["turning_in_nominal"]
 FLAG_FORECAST_FALLBACK = _BIT["forecast_fallback"]
 FLAG_LEVEL_INCENTIVE_FRAMES = _BIT["level_incentive_frames"]
 FLAG_INCENTIVE_LEADERS_BAND = _BIT["incentive_leaders_band"]
+FLAG_INCENTIVE_POLITENESS = _BIT["incentive_politeness"]
 
 
 def unknown_option_error(name: str, key: str | None = None) -> ConfigError:

@@ -53,7 +53,7 @@ RELEVANCE_RANGE = 250.0  # [m] vehicles farther than this (longitudinally) canno
 LATERAL_MOTION_THRESHOLD = 0.01  # [rad] |heading| above which a vehicle counts as changing lane (robust)
 IDM_LANE_MARGIN = 1.0  # [m] highway-env's IDM sees a body within half a lane + this of its lane's centre
 NOT_ZERO = 1e-2  # [m] highway-env's utils.not_zero: the smallest distance IDM divides by
-MOBIL_MIN_ACC_GAIN = 0.2  # [m/s²] highway-env's IDMVehicle.LANE_CHANGE_MIN_ACC_GAIN (its POLITENESS is 0)
+MOBIL_MIN_ACC_GAIN = 0.2  # [m/s²] highway-env's IDMVehicle.LANE_CHANGE_MIN_ACC_GAIN
 
 OVERRIDE_ORDER: dict[int, tuple[int, ...]] = {
     LANE_LEFT: (LANE_LEFT, IDLE, SLOWER, FASTER, LANE_RIGHT),
@@ -165,6 +165,9 @@ class RoadState:
     linear_speed_gain: np.ndarray = field(default_factory=lambda: np.zeros(0))  # [1/s]
     linear_speed_difference_gain: np.ndarray = field(default_factory=lambda: np.zeros(0))  # [1/s]
     linear_distance_gain: np.ndarray = field(default_factory=lambda: np.zeros(0))  # [1/s²]
+    # MOBIL's politeness p of each vehicle (the weight of its followers' gain in its lane-change incentive);
+    # empty: 0 for every vehicle.
+    politeness: np.ndarray = field(default_factory=lambda: np.zeros(0))
     # Each vehicle's speed set-point (the simulator's ``target_speed``: a driver parameter like the ones above);
     # empty or NaN: unknown.
     target_speed: np.ndarray = field(default_factory=lambda: np.zeros(0))  # [m/s]

@@ -45,6 +45,7 @@ class _DriverRecord(NamedTuple):
     linear_speed_gain: float
     linear_speed_difference_gain: float
     linear_distance_gain: float
+    politeness: float
 
 
 _FLOAT_FIELDS = tuple(f for f in _DriverRecord._fields if f != "is_vehicle")
@@ -78,6 +79,7 @@ def _driver_record(o: Any, is_vehicle: bool, assumed: type | None = None) -> _Dr
         linear_speed_gain=gains[0],
         linear_speed_difference_gain=gains[1],
         linear_distance_gain=gains[2],
+        politeness=float(getattr(model, "POLITENESS", IDMVehicle.POLITENESS)) if mobil else 0.0,
     )
 
 

@@ -57,6 +57,7 @@ from safelane.safety.one_decision.compiled_rule import (
     evaluate_rule,
     rule_gaps_kernel,
 )
+from safelane.safety.one_decision.cut_ins import politeness_of
 from safelane.safety.rule import (
     FLAG_EGO_SPEED_MAGNITUDE,
     FLAG_FORECAST_FALLBACK,
@@ -96,7 +97,7 @@ def _evaluate(
     crashed: np.ndarray, brake_max: np.ndarray, accel_max: np.ndarray, can_change_lane: np.ndarray,
     idm_delta: np.ndarray, idm_comfort_acc: np.ndarray, idm_comfort_dec: np.ndarray,
     idm_distance_wanted: np.ndarray, idm_time_wanted: np.ndarray, max_braking_imposed: np.ndarray,
-    lin_k0: np.ndarray, lin_k1: np.ndarray, lin_k2: np.ndarray, target_speed: np.ndarray,
+    lin_k0: np.ndarray, lin_k1: np.ndarray, lin_k2: np.ndarray, politeness: np.ndarray, target_speed: np.ndarray,
     ts: np.ndarray, t: np.ndarray, powers: np.ndarray, tie_break: np.ndarray, consts: np.ndarray, flags: int,
     robust: bool, ego_leave_time: float,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, bool]:  # fmt: skip
@@ -119,8 +120,8 @@ def _evaluate(
         ego_x, ego_speed, ego_lane, ego_target_lane, ego_target_speed, ego_speed_index, ego_length, speed_limit,
         x, y, vx, vy, heading, length, crashed, brake_max, accel_max, can_change_lane, idm_delta,
         idm_comfort_acc, idm_comfort_dec, idm_distance_wanted, idm_time_wanted, max_braking_imposed,
-        lin_k0, lin_k1, lin_k2, target_speed, ts, t, powers, tie_break, consts, flags, robust, ego_leave_time,
-        allowance, main_nominal_allowance, main_forecast,
+        lin_k0, lin_k1, lin_k2, politeness, target_speed, ts, t, powers, tie_break, consts, flags, robust,
+        ego_leave_time, allowance, main_nominal_allowance, main_forecast,
     )  # fmt: skip
     if not (out[4] and straight):
         return out
@@ -128,8 +129,8 @@ def _evaluate(
         ego_x, ego_speed, ego_lane, ego_target_lane, ego_target_speed, ego_speed_index, ego_length, speed_limit,
         x, y, vx, vy, heading, length, crashed, brake_max, accel_max, can_change_lane, idm_delta,
         idm_comfort_acc, idm_comfort_dec, idm_distance_wanted, idm_time_wanted, max_braking_imposed,
-        lin_k0, lin_k1, lin_k2, target_speed, ts, t, powers, tie_break, consts, flags, robust, ego_leave_time,
-        0.0, nominal_allowance, forecast_on,
+        lin_k0, lin_k1, lin_k2, politeness, target_speed, ts, t, powers, tie_break, consts, flags, robust,
+        ego_leave_time, 0.0, nominal_allowance, forecast_on,
     )  # fmt: skip
     return straight_out[0].copy(), out[1], out[2], out[3], True
 
@@ -140,7 +141,7 @@ def _evaluate_snapshot(
     brake_max: np.ndarray, accel_max: np.ndarray, can_change_lane: np.ndarray, idm_delta: np.ndarray,
     idm_comfort_acc: np.ndarray, idm_comfort_dec: np.ndarray, idm_distance_wanted: np.ndarray,
     idm_time_wanted: np.ndarray, max_braking_imposed: np.ndarray,
-    lin_k0: np.ndarray, lin_k1: np.ndarray, lin_k2: np.ndarray, target_speed: np.ndarray,
+    lin_k0: np.ndarray, lin_k1: np.ndarray, lin_k2: np.ndarray, politeness: np.ndarray, target_speed: np.ndarray,
     ego: int, ego_lane: int, ego_target_lane: int, ego_target_speed: float, ego_speed_index: int,
     origin: np.ndarray, direction: np.ndarray, lateral: np.ndarray, lane_heading: float, speed_limit: float,
     ts: np.ndarray, t: np.ndarray, powers: np.ndarray, tie_break: np.ndarray, consts: np.ndarray, flags: int,
@@ -189,7 +190,7 @@ def _evaluate_snapshot(
         x, y, vx, vy, rel_heading, length[keep], crashed[keep], brake_max[keep], accel_max[keep],
         can_change_lane[keep], idm_delta[keep], idm_comfort_acc[keep], idm_comfort_dec[keep],
         idm_distance_wanted[keep], idm_time_wanted[keep], max_braking_imposed[keep],
-        lin_k0[keep], lin_k1[keep], lin_k2[keep], target_speed[keep],
+        lin_k0[keep], lin_k1[keep], lin_k2[keep], politeness[keep], target_speed[keep],
         ts, t, powers, tie_break, consts, flags, robust, ego_leave_time,
     )  # fmt: skip
 
@@ -298,7 +299,7 @@ def evaluate_compiled(
         s.ego_length, s.speed_limit, s.x, s.y, s.vx, s.vy, s.heading, s.length, s.crashed, s.brake_max,
         s.accel_max, s.can_change_lane, s.idm_delta, s.idm_comfort_acc, s.idm_comfort_dec,
         s.idm_distance_wanted, s.idm_time_wanted, s.max_braking_imposed, s.linear_speed_gain,
-        s.linear_speed_difference_gain, s.linear_distance_gain, reference.set_points(s),
+        s.linear_speed_difference_gain, s.linear_distance_gain, politeness_of(s), reference.set_points(s),
         *kernel_constants(dyn), mode == "robust", dyn.ego_leave_time,
     )  # fmt: skip
     return _result(out)
@@ -328,7 +329,7 @@ def evaluate_snapshot(
         snap.position, snap.speed, snap.heading, snap.length, snap.crashed, snap.brake_max, snap.accel_max,
         snap.can_change_lane, snap.idm_delta, snap.idm_comfort_acc, snap.idm_comfort_dec,
         snap.idm_distance_wanted, snap.idm_time_wanted, snap.max_braking_imposed, snap.linear_speed_gain,
-        snap.linear_speed_difference_gain, snap.linear_distance_gain, snap.target_speed,
+        snap.linear_speed_difference_gain, snap.linear_distance_gain, snap.politeness, snap.target_speed,
         e, int(snap.lane[e]), int(snap.target_lane[e]), snap.ego_target_speed, snap.ego_speed_index,
         snap.lane_origin, snap.lane_direction, snap.lane_lateral, lane_heading, snap.speed_limit,
         *kernel_constants(dyn), mode == "robust", ego_leave_time,
@@ -351,7 +352,7 @@ def compiled_gaps(state: RoadState, dyn: Dynamics, nominal_leaders: bool = False
         s.ego_length, s.speed_limit, s.x, s.y, s.vx, s.vy, s.heading, s.length, s.crashed, s.brake_max,
         s.accel_max, s.can_change_lane, s.idm_delta, s.idm_comfort_acc, s.idm_comfort_dec,
         s.idm_distance_wanted, s.idm_time_wanted, s.max_braking_imposed, s.linear_speed_gain,
-        s.linear_speed_difference_gain, s.linear_distance_gain, reference.set_points(s),
+        s.linear_speed_difference_gain, s.linear_distance_gain, politeness_of(s), reference.set_points(s),
         *constants, True, dyn.ego_leave_time, allowance, nominal,
     )  # fmt: skip
     available, joint, ahead, nominal_joint, nominal_ahead, nominal_ok = out[:6]

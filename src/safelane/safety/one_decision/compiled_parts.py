@@ -234,6 +234,81 @@ def incentive_first(
     return np.inf
 
 
+@njit(cache=True, error_model="numpy")
+def polite_first(
+    i: int, r: int, m: int, near: np.ndarray, lanes_near: np.ndarray, band_near: np.ndarray, lane: int,
+    x: np.ndarray, vx: np.ndarray, p: float, dw: float, tw: float, acc: float, dec: float, ego_xs: np.ndarray,
+    ego_speed: float, kv: float, kt: float, powers: np.ndarray, frames: int, t: np.ndarray, min_acc_gain: float,
+) -> bool:  # fmt: skip
+    """``model.polite_turn_ins`` for vehicle ``i`` (row ``r``, politeness ``p`` > 0, its IDM constants ``dw`` [m],
+    ``tw`` [s], ``acc``, ``dec`` [m/s²]) turning into ``lane`` (same operations, same order): whether its followers'
+    gain lets it turn in behind the ego at some frame of the decision."""
+    v = vx[i]
+    old = lanes_near[r]
+    for f in range(frames + 1):
+        tau = t[f]
+        own_x = x[i] + v * tau
+        ego_x = ego_xs[f, 0]
+        d = own_x - ego_x
+        if not d <= 0:
+            continue
+        ego_vf = kv if f == frames else (ego_speed - kt) * powers[f] + kt
+        lead = 0.0
+        found = False
+        new_front = new_rear = old_front = old_rear = -2  # a row of near; -1: the ego; -2: none
+        pos_nf = pos_nr = pos_of = pos_or = 0.0
+        # The new lane's neighbours: the ego first, then the others in order (model._neighbours' ties).
+        if own_x <= ego_x:
+            new_front, pos_nf = -1, ego_x
+        else:
+            new_rear, pos_nr = -1, ego_x
+        for k in range(m):
+            ii = near[k]
+            if (lanes_near[k] == old or band_near[k] == old) and x[ii] > x[i]:  # incentive_first's leaders
+                lv = vx[ii]
+                q = gap_ratio(dw, tw, acc, dec, v, lv, (x[ii] + lv * tau) - own_x)
+                lead = nmax(lead, q * q) if found else q * q
+                found = True
+            if k == r:
+                continue
+            pos = x[ii] + vx[ii] * tau
+            if lanes_near[k] == lane or band_near[k] == lane:
+                if own_x <= pos and (new_front == -2 or pos <= pos_nf):
+                    new_front, pos_nf = k, pos
+                if pos < own_x and (new_rear == -2 or pos > pos_nr):
+                    new_rear, pos_nr = k, pos
+            if lanes_near[k] == old or band_near[k] == old:
+                if own_x <= pos and (old_front == -2 or pos <= pos_of):
+                    old_front, pos_of = k, pos
+                if pos < own_x and (old_rear == -2 or pos > pos_or):
+                    old_rear, pos_or = k, pos
+        q_ego = gap_ratio(dw, tw, acc, dec, v, ego_vf, -d)
+        own_gain = acc * lead - acc * (q_ego * q_ego)
+        new_change = 0.0
+        if new_rear != -2:
+            v_rear = ego_vf if new_rear == -1 else vx[near[new_rear]]
+            before = 0.0
+            if new_front != -2:
+                v_front = ego_vf if new_front == -1 else vx[near[new_front]]
+                q = gap_ratio(dw, tw, acc, dec, v_rear, v_front, pos_nf - pos_nr)
+                before = acc * (q * q)
+            q = gap_ratio(dw, tw, acc, dec, v_rear, v, own_x - pos_nr)
+            new_change = before - acc * (q * q)
+        old_change = 0.0
+        if old_rear != -2:
+            v_rear = vx[near[old_rear]]
+            after = 0.0
+            if old_front != -2:
+                q = gap_ratio(dw, tw, acc, dec, v_rear, vx[near[old_front]], pos_of - pos_or)
+                after = acc * (q * q)
+            q = gap_ratio(dw, tw, acc, dec, v_rear, v, own_x - pos_or)
+            old_change = acc * (q * q) - after
+        polite = p * (new_change + old_change)
+        if polite > 0.0 and own_gain + polite >= min_acc_gain:
+            return True
+    return False
+
+
 @njit(cache=True, inline="always")
 def desired_gap_range(
     dw: float, tw: float, root_ab: float, v_lo: float, v_hi: float, front_lo: float, front_hi: float

@@ -38,6 +38,7 @@ from safelane.safety.one_decision.compiled_parts import (
     nmax,
     nmin,
     passing_path,
+    polite_first,
     speed_index,
 )
 from safelane.safety.one_decision.forecast import forecast_keys_of
@@ -49,6 +50,7 @@ from safelane.safety.rule import (
     FLAG_FOLLOWER_IDM,
     FLAG_INCENTIVE_ANY_SPEED,
     FLAG_INCENTIVE_LEADERS_BAND,
+    FLAG_INCENTIVE_POLITENESS,
     FLAG_LEVEL_CUT_INS,
     FLAG_LEVEL_ENTERING,
     FLAG_LEVEL_INCENTIVE,
@@ -82,7 +84,7 @@ def rule_gaps_kernel(
     crashed: np.ndarray, brake_max: np.ndarray, accel_max: np.ndarray, can_change_lane: np.ndarray,
     idm_delta: np.ndarray, idm_comfort_acc: np.ndarray, idm_comfort_dec: np.ndarray,
     idm_distance_wanted: np.ndarray, idm_time_wanted: np.ndarray, max_braking_imposed: np.ndarray,
-    lin_k0: np.ndarray, lin_k1: np.ndarray, lin_k2: np.ndarray, target_speed: np.ndarray,
+    lin_k0: np.ndarray, lin_k1: np.ndarray, lin_k2: np.ndarray, politeness: np.ndarray, target_speed: np.ndarray,
     ts: np.ndarray, t: np.ndarray, powers: np.ndarray, tie_break: np.ndarray, consts: np.ndarray, flags: int,
     robust: bool, ego_leave_time: float, turning_allowance: float, nominal_allowance: float,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:  # fmt: skip
@@ -115,6 +117,7 @@ def rule_gaps_kernel(
     incentive_any_speed = (flags & FLAG_INCENTIVE_ANY_SPEED) != 0
     level_incentive_frames = (flags & FLAG_LEVEL_INCENTIVE_FRAMES) != 0
     incentive_leaders_band = (flags & FLAG_INCENTIVE_LEADERS_BAND) != 0
+    incentive_politeness = (flags & FLAG_INCENTIVE_POLITENESS) != 0
     n_ts = ts.shape[0]
     n_t = t.shape[0]  # frames of the horizon + 1
     total = n_t - 1
@@ -544,13 +547,24 @@ def rule_gaps_kernel(
                 occupied = (lane_c == ego_lane) | (lane_c == ego_target_lane)
                 # model.cut_in_candidates: MOBIL's incentive is judged with the ego in the lane, which a
                 # lane it is only entering does not hold (level_entering: any level car there).
-                turning = level[slot, r] if occupied or not level_entering else level_any[slot, r]
+                by_level = occupied or not level_entering
+                turning = level[slot, r] if by_level else level_any[slot, r]
                 adjacent = abs(lanes_near[r] - lane_c) == 1
                 timed = level_when_incentive and level_incentive and occupied
+                # model.polite_turn_ins: its followers' gain may let it turn in, from the decision's start.
+                i = near[r]
+                polite = False
+                polite_on = incentive_politeness and level_incentive and by_level and adjacent and level_any[slot, r]
+                if polite_on and politeness[i] > 0.0 and not np.isfinite(lin_k0[i]):
+                    polite = polite_first(
+                        i, r, m, near, lanes_near, band_near, lane_c, x, vx, politeness[i], idm_distance_wanted[i],
+                        idm_time_wanted[i], idm_comfort_acc[i], idm_comfort_dec[i], xs[a], ego_speed, v_key[a],
+                        targets[a], powers, frames, t, min_acc_gain,
+                    )  # fmt: skip
                 # model.incentive_times, the others at constant speed, at one call site: it times the turn-in without
                 # incentive_any_speed, and (level_incentive_frames) admits a level car the now-and-end check left out.
                 t_const = inf
-                frames_check = not turning and level_incentive_frames and level_any[slot, r]
+                frames_check = not turning and not polite and level_incentive_frames and level_any[slot, r]
                 if adjacent and timed and (frames_check or (turning and not incentive_any_speed)):
                     t_const = incentive_first(
                         near[r], r, m, near, lanes_near, band_near, x, vx, crashed, brake_max, lin_k0, lin_k1, lin_k2,
@@ -560,12 +574,12 @@ def rule_gaps_kernel(
                     )  # fmt: skip
                     if frames_check:
                         turning = t_const < inf
-                if not (turning and adjacent):
+                if not ((turning or polite) and adjacent):
                     continue
                 nominal = False
                 follows = True
                 lo = lo_cut
-                if timed:  # model.incentive_times(_any_speed)
+                if timed and not polite:  # model.incentive_times(_any_speed)
                     t_inc = t_const
                     if incentive_any_speed:
                         t_inc = incentive_first_any_speed(
@@ -658,7 +672,7 @@ def evaluate_rule(
     crashed: np.ndarray, brake_max: np.ndarray, accel_max: np.ndarray, can_change_lane: np.ndarray,
     idm_delta: np.ndarray, idm_comfort_acc: np.ndarray, idm_comfort_dec: np.ndarray,
     idm_distance_wanted: np.ndarray, idm_time_wanted: np.ndarray, max_braking_imposed: np.ndarray,
-    lin_k0: np.ndarray, lin_k1: np.ndarray, lin_k2: np.ndarray, target_speed: np.ndarray,
+    lin_k0: np.ndarray, lin_k1: np.ndarray, lin_k2: np.ndarray, politeness: np.ndarray, target_speed: np.ndarray,
     ts: np.ndarray, t: np.ndarray, powers: np.ndarray, tie_break: np.ndarray, consts: np.ndarray, flags: int,
     robust: bool, ego_leave_time: float, turning_allowance: float, nominal_allowance: float, forecast_on: bool,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, bool]:  # fmt: skip
@@ -671,8 +685,8 @@ def evaluate_rule(
         ego_x, ego_speed, ego_lane, ego_target_lane, ego_target_speed, ego_speed_index, ego_length, speed_limit,
         x, y, vx, vy, heading, length, crashed, brake_max, accel_max, can_change_lane, idm_delta,
         idm_comfort_acc, idm_comfort_dec, idm_distance_wanted, idm_time_wanted, max_braking_imposed,
-        lin_k0, lin_k1, lin_k2, target_speed, ts, t, powers, tie_break, consts, flags, robust, ego_leave_time,
-        turning_allowance, nominal_allowance,
+        lin_k0, lin_k1, lin_k2, politeness, target_speed, ts, t, powers, tie_break, consts, flags, robust,
+        ego_leave_time, turning_allowance, nominal_allowance,
     )  # fmt: skip
     frame_dt, margin, inf = consts[C_FRAME_DT], consts[C_MARGIN], math.inf
     lanes_count, lane_width = int(consts[C_LANES_COUNT]), consts[C_LANE_WIDTH]

@@ -568,3 +568,105 @@ def incentive_times(
                     out[j] = tau
                     break
     return out
+
+
+def politeness_of(state: RoadState) -> np.ndarray:
+    """Each vehicle's MOBIL politeness (``state.politeness``; an empty array: 0 for every vehicle)."""
+    if state.politeness.shape[0] == state.n:
+        return state.politeness
+    return np.zeros(state.n)
+
+
+def _neighbours(pos: np.ndarray, own_x: float) -> tuple[int, int]:
+    """The nearest of the bodies at ``pos`` [m] (in that order) ahead of ``own_x`` (``pos ≥ own_x``, the last on a
+    tie) and behind it (``pos < own_x``, the first on a tie), as highway-env's ``Road.neighbour_vehicles`` picks
+    them; −1: none."""
+    front = rear = -1
+    for k in range(pos.shape[0]):
+        if own_x <= pos[k] and (front < 0 or pos[k] <= pos[front]):
+            front = k
+        if pos[k] < own_x and (rear < 0 or pos[k] > pos[rear]):
+            rear = k
+    return front, rear
+
+
+def polite_turn_ins(
+    state: RoadState, dyn: Dynamics, near: np.ndarray, ego_xs: np.ndarray, ego_vs: np.ndarray, lane: int
+) -> np.ndarray:
+    """Whether each vehicle of ``near`` in a lane next to ``lane`` may turn in behind the ego into ``lane`` for its
+    followers' sake (the rule's ``incentive_politeness``): at some frame of the decision (``ego_xs`` [m], ``ego_vs``
+    [m/s]: the ego's path, frames 0 … frames; the others at constant speed), its centre behind the ego's, MOBIL's
+    politeness term ``p · (Δ new follower + Δ old follower)`` is positive and lifts the incentive of
+    :func:`incentive_times` to ``dyn.mobil_min_gain``. The followers and leaders are the nearest in each lane's IDM
+    band (:func:`band_lanes`), the ego one of ``lane``'s; their accelerations use the driver's own IDM constants, as
+    ``IDMVehicle.mobil`` computes them (the free-road terms cancel in each difference). A timing with the others at
+    constant speed, not a bound: the rule lets such a car turn in from the decision's start. IDM-formula drivers
+    with politeness > 0 only (highway-env's linear-model drivers have none)."""
+    out = np.zeros(near.size, dtype=bool)
+    pol = politeness_of(state)[near]
+    if not dyn.rule.incentive_politeness or not (pol > 0.0).any():
+        return out
+    x, v = state.x[near], state.vx[near]
+    lanes = state.lane_of(state.y[near], dyn.lanes_count, dyn.lane_width)
+    band = band_lanes(state, dyn, near)
+    times = np.arange(ego_xs.shape[0]) * dyn.frame_dt
+    for j in range(near.size):
+        i = int(near[j])
+        if not pol[j] > 0.0 or np.isfinite(state.linear_speed_gain[i]) or abs(int(lanes[j]) - lane) != 1:
+            continue
+        dw, tw = float(state.idm_distance_wanted[i]), float(state.idm_time_wanted[i])
+        acc, dec = float(state.idm_comfort_acc[i]), float(state.idm_comfort_dec[i])
+        idm = (dw, tw, acc, dec)
+        others = np.arange(near.size) != j
+        old_rows = np.flatnonzero(others & ((lanes == lanes[j]) | (band == lanes[j])))
+        new_rows = np.flatnonzero(others & ((lanes == lane) | (band == lane)))
+        leaders = np.flatnonzero(((lanes == lanes[j]) | (band == lanes[j])) & (x > x[j]))  # as incentive_times
+        for f in range(times.size):
+            tau = times[f]
+            own_x = x[j] + v[j] * tau
+            d = own_x - ego_xs[f]
+            if not d <= 0:
+                continue
+            lead = 0.0
+            if leaders.size:
+                who = np.full(leaders.size, i)
+                q = _gap_ratio(state, who, v[leaders], (x[leaders] + v[leaders] * tau) - own_x)
+                lead = float((q * q).max())
+            q_ego = float(_gap_ratio(state, near[j : j + 1], np.array([ego_vs[f]]), np.array([-d]))[0])
+            own_gain = acc * lead - acc * (q_ego * q_ego)
+
+            # The new lane: the ego first, then the others in order (highway-env lists the ego first).
+            pos_new = np.concatenate(([ego_xs[f]], x[new_rows] + v[new_rows] * tau))
+            v_new = np.concatenate(([ego_vs[f]], v[new_rows]))
+            front, rear = _neighbours(pos_new, own_x)
+            new_change = 0.0  # Δ new follower: behind the car instead of behind its leader
+            if rear >= 0:
+                before = 0.0
+                if front >= 0:
+                    before = _idm_term(*idm, v_new[rear], v_new[front], pos_new[front] - pos_new[rear])
+                new_change = before - _idm_term(*idm, v_new[rear], v[j], own_x - pos_new[rear])
+            pos_old = x[old_rows] + v[old_rows] * tau
+            v_old = v[old_rows]
+            front, rear = _neighbours(pos_old, own_x)
+            old_change = 0.0  # Δ old follower: behind the car's leader instead of behind the car
+            if rear >= 0:
+                after = 0.0
+                if front >= 0:
+                    after = _idm_term(*idm, v_old[rear], v_old[front], pos_old[front] - pos_old[rear])
+                old_change = _idm_term(*idm, v_old[rear], v[j], own_x - pos_old[rear]) - after
+            polite = pol[j] * (new_change + old_change)
+            if polite > 0.0 and own_gain + polite >= dyn.mobil_min_gain:
+                out[j] = True
+                break
+    return out
+
+
+def _idm_term(dw: float, tw: float, acc: float, dec: float, v: float, front_speed: float, gap: float) -> float:
+    """[m/s²] IDM's interaction term ``acc·(d*/d)²`` of a driver with constants ``dw`` [m], ``tw`` [s], ``acc``,
+    ``dec`` [m/s²] applied to a vehicle at ``v`` [m/s] behind one at ``front_speed`` [m/s], ``gap`` [m] centre to
+    centre (:func:`_gap_ratio` for one pair)."""
+    ab = -acc * dec
+    d_star = dw + v * tw + v * (v - front_speed) / (2 * np.sqrt(ab))
+    d = 1e-2 if abs(gap) < 1e-2 else gap
+    q = float(d_star / d)
+    return acc * (q * q)

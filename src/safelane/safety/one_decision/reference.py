@@ -73,6 +73,7 @@ from safelane.safety.one_decision.cut_ins import (
     occupancy,
     passing_positions,
     permit_times,
+    polite_turn_ins,
     required_gap,
     turn_in_incentive,
 )
@@ -118,7 +119,8 @@ __all__ = [
     "forecast_ranking", "idm_acceleration_behind", "idm_acceleration_behind_gap", "idm_follower_positions",
     "idm_followers", "incentive_times", "incentive_times_any_speed", "least_bad_action", "least_desired_gap",
     "linear_acceleration_behind", "linear_turn_in_incentive", "linear_turn_in_incentive_braking", "occupancy",
-    "passing_positions", "permit_times", "required_gap", "rule_gaps", "rule_verdict", "set_points", "speed_to_index",
+    "passing_positions", "permit_times", "polite_turn_ins",
+    "required_gap", "rule_gaps", "rule_verdict", "set_points", "speed_to_index",
     "turn_in_incentive", "turning_allowance",
 ]  # fmt: skip
 
@@ -301,7 +303,12 @@ def rule_gaps(
                 # A car level with or behind the ego in a next lane may turn in behind it after the cut-in
                 # time and then follow it (accelerate for the reaction time, then brake): a follower.
                 for lane, _ in ego_lanes:
+                    by_level = lane in occupied or not rule.level_entering  # else every level car turns in
                     turning = level if lane in occupied else level_entering
+                    polite = np.zeros(near.size, dtype=bool)
+                    if rule.incentive_politeness and rule.level_incentive and by_level:
+                        path = (ego_x[a, 0, : frames + 1], ego_v[a, 0, : frames + 1])
+                        polite = level_any & polite_turn_ins(state, dyn, near, *path, lane)
                     if turn_time is not None and lane in occupied and rule.level_incentive_frames:
                         # MOBIL's incentive now and at the end misses a car whose desired gap behind the ego passes
                         # through zero within the decision (much slower than the ego, level with it): the incentive
@@ -309,11 +316,12 @@ def rule_gaps(
                         if frame_turns is None:
                             frame_turns = np.isfinite(incentive_times(state, dyn, near, *path))
                         turning = turning | (level_any & frame_turns)
-                    for j in np.flatnonzero(turning & (np.abs(lanes_near - lane) == 1)):
+                    # A car its followers' gain lets turn in (incentive_politeness) does so from the decision's start.
+                    for j in np.flatnonzero((turning | polite) & (np.abs(lanes_near - lane) == 1)):
                         behind_v.append(int(near[j]))
                         behind_l.append(lane)
                         later = 0.0
-                        if turn_time is not None and lane in occupied and np.isfinite(turn_time[j]):
+                        if turn_time is not None and lane in occupied and np.isfinite(turn_time[j]) and not polite[j]:
                             later = float(turn_time[j])
                         behind_s.append(dyn.cut_in_time + later)
             vehicles = vehicles + extra_v + behind_v

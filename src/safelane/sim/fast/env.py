@@ -58,11 +58,11 @@ _SNAPSHOT_FIELDS = (
     "length", "width", "crashed", "is_vehicle", "brake_max", "accel_max", "can_change_lane", "idm_delta",
     "idm_comfort_acc", "idm_comfort_dec", "idm_distance_wanted", "idm_time_wanted", "max_braking_imposed",
     "impact_before", "impact_after", "linear_speed_gain", "linear_speed_difference_gain", "linear_distance_gain",
-    "driver_type",
+    "politeness", "driver_type",
 )  # fmt: skip
 _MODEL_FIELDS = (
     "brake_max", "accel_max", "idm_comfort_acc", "idm_comfort_dec", "idm_distance_wanted", "idm_time_wanted",
-    "max_braking_imposed",
+    "max_braking_imposed", "politeness",
 )  # fmt: skip
 """The snapshot's driver fields that are a driver class's constants (:func:`_model_row`)."""
 
@@ -76,13 +76,14 @@ def _model_row(cls: type) -> np.ndarray:
     return np.array([
         acc_max, float(cls.COMFORT_ACC_MAX) if idm_formula else acc_max, float(cls.COMFORT_ACC_MAX),
         float(cls.COMFORT_ACC_MIN), float(cls.DISTANCE_WANTED), float(cls.TIME_WANTED),
-        float(cls.LANE_CHANGE_MAX_BRAKING_IMPOSED), 0.0 if idm_formula else 1.0,
+        float(cls.LANE_CHANGE_MAX_BRAKING_IMPOSED), float(cls.POLITENESS), 0.0 if idm_formula else 1.0,
     ])  # fmt: skip
 
 
 _EGO_ROW = np.array([
     float(IDMVehicle.ACC_MAX), float(IDMVehicle.ACC_MAX), float(IDMVehicle.COMFORT_ACC_MAX),
-    float(IDMVehicle.COMFORT_ACC_MIN), float(IDMVehicle.DISTANCE_WANTED), float(IDMVehicle.TIME_WANTED), np.inf, 0.0,
+    float(IDMVehicle.COMFORT_ACC_MIN), float(IDMVehicle.DISTANCE_WANTED), float(IDMVehicle.TIME_WANTED), np.inf,
+    0.0, 0.0,
 ])  # fmt: skip
 """The ego's :func:`_model_row` (an MDPVehicle or a Vehicle: IDM's defaults, no MOBIL)."""
 

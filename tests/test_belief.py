@@ -485,6 +485,24 @@ def test_a_polite_car_making_room_for_its_follower_turns_in(mode: str) -> None:
     assert verdicts["off"] == (mode == "robust", [False, False, False, False, True])
 
 
+@pytest.mark.parametrize("mode", ["omniscient", "robust", "belief"])
+def test_a_braking_car_whose_incentive_holds_at_the_edge_turns_in(mode: str) -> None:
+    """An aggressive car (threshold 0) 0.9 m ahead of the ego's centre in the next lane at 10.8 m/s, braking at
+    0.54 m/s² behind a timid car 15 m ahead; the ego overtakes at 18.7 m/s under SLOWER (2 decisions and 10 frames a
+    second). IDM's desired gap behind the ego is about its distance there, so MOBIL's gain turns on tenths of a m/s:
+    with every car at constant speed the rule's gain is −1.4 m/s² at 0.2 s, with each at its acceleration now +0.16
+    (highway-env's: +0.149 a frame later), and the car turned into the ego's flank (pinned; the belief shield had
+    allowed SLOWER). With ``incentive_accelerations`` no action is safe there under every type shield, on both
+    engines; without it SLOWER was safe under the omniscient and belief shields."""
+    on = {"incentive_accelerations": True}
+    variants = {"numpy": {**on, "engine": "numpy"}, "compiled": {**on, "engine": "compiled"}, "off": {}}
+    verdicts = _verdicts_at_the_end(
+        "knife-edge-aggressive-turn-in-collision", mode, variants, override=False, folder="hidden-types-turn-ins"
+    )
+    assert verdicts["numpy"] == verdicts["compiled"] == (True, [False, False, False, False, True])
+    assert verdicts["off"] == (mode == "robust", [False, False, False, False, True])
+
+
 def test_a_car_changing_in_ahead_of_a_level_car_is_its_leader_for_mobil() -> None:
     """A timid car level with the ego in the next lane, 2.9 m behind the ego's centre and 4.4 m/s slower; ahead of it
     a car changing into its lane, its centre 2.7 m off the lane's, still nearer the lane it leaves, 34 m ahead at

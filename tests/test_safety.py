@@ -1321,6 +1321,8 @@ def test_level_incentive_frames_only_adds_conflicts(evaluate: Evaluator, case: t
 @PROPERTY_SETTINGS
 @given(road(), st.data())
 def test_adding_a_vehicle_never_makes_an_action_safer(evaluate: Evaluator, case: tuple, data: st.DataObject) -> None:
+    """Every driver's politeness 0 (the drawn roads'): with a polite driver a car behind it can lower its
+    followers' gain and take a turn-in away (``incentive_politeness``)."""
     state, dyn, cars = case
     extra = data.draw(vehicle(dyn.lanes_count))
     bigger = make_state(

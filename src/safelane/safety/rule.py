@@ -85,6 +85,9 @@ OPTIONS: tuple[RuleOption, ...] = (
     RuleOption("incentive_politeness", "With level_incentive: a polite driver's incentive also counts its followers' "
                "gain, MOBIL's p·(Δ new follower + Δ old follower); a car it alone lets turn in does so from the "
                "decision's start (else politeness 0).", True),
+    RuleOption("incentive_accelerations", "With level_incentive_frames: a level car's incentive at every frame is "
+               "also judged with every car at its acceleration now (its law behind its leader), not only at constant "
+               "speed.", True),
 )  # fmt: skip
 """Every option of the rule, in the order of :attr:`Rule.flags`' bits (bit ``i``: ``OPTIONS[i]``)."""
 
@@ -121,6 +124,7 @@ FLAG_FORECAST_FALLBACK = _BIT["forecast_fallback"]
 FLAG_LEVEL_INCENTIVE_FRAMES = _BIT["level_incentive_frames"]
 FLAG_INCENTIVE_LEADERS_BAND = _BIT["incentive_leaders_band"]
 FLAG_INCENTIVE_POLITENESS = _BIT["incentive_politeness"]
+FLAG_INCENTIVE_ACCELERATIONS = _BIT["incentive_accelerations"]
 
 
 def unknown_option_error(name: str, key: str | None = None) -> ConfigError:

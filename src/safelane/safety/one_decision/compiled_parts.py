@@ -14,6 +14,13 @@ import math
 import numpy as np
 from numba import njit
 
+from safelane.core.kernel_cache import drop_stale_kernel_cache
+from safelane.safety.one_decision import forecast
+from safelane.safety.one_decision.forecast import accelerated
+
+# incentive_first compiles forecast.accelerated in: numba's cache watches this file only.
+drop_stale_kernel_cache(__file__, (forecast.__file__,))
+
 LANE_LEFT, IDLE, LANE_RIGHT, FASTER, SLOWER = 0, 1, 2, 3, 4
 N_ACTIONS = 5
 N_FALLBACKS = 4  # fallbacks k = 0..MAX_HOLD_DECISIONS (a literal, so the loops over them unroll)
@@ -180,10 +187,11 @@ def incentive_first(
     crashed: np.ndarray, brake_max: np.ndarray, lin_k0: np.ndarray, lin_k1: np.ndarray, lin_k2: np.ndarray,
     dw_all: np.ndarray, tw_all: np.ndarray, acc_all: np.ndarray, dec_all: np.ndarray, linear_incentive: bool,
     linear_incentive_braking: bool, ego_xs: np.ndarray, ego_speed: float, kv: float, kt: float,
-    powers: np.ndarray, frames: int, t: np.ndarray, min_acc_gain: float,
+    powers: np.ndarray, frames: int, t: np.ndarray, min_acc_gain: float, now_acc: np.ndarray, accelerations: bool,
 ) -> float:  # fmt: skip
     """``model.incentive_times`` for vehicle ``i`` (row ``r``; same operations, same order): the first frame time
-    [s] at which MOBIL's incentive lets it turn in behind the ego; inf: none."""
+    [s] at which MOBIL's incentive lets it turn in behind the ego; inf: none. ``accelerations``: also with every
+    car at its acceleration now (``now_acc`` [m/s²], per state row; ``model._gains_accelerating``)."""
     v = vx[i]
     linear = np.isfinite(lin_k0[i])
     if linear and not linear_incentive:
@@ -231,6 +239,22 @@ def incentive_first(
             q_ego = gap_ratio(dw, tw, acc, dec, v, ego_vf, -d)
             if acc * lead - acc * (q_ego * q_ego) >= min_acc_gain:
                 return tau
+            if accelerations:
+                own_x, own_v = accelerated(x[i], v, now_acc[i], tau)
+                ex = ego_xs[f, 0]
+                if own_x - ex <= 0:
+                    lead = 0.0
+                    found = False
+                    for k in range(m):
+                        ii = near[k]
+                        if (lanes_near[k] == lanes_near[r] or band_near[k] == lanes_near[r]) and x[ii] > x[i]:
+                            lx, lv = accelerated(x[ii], vx[ii], now_acc[ii], tau)
+                            q = gap_ratio(dw, tw, acc, dec, own_v, lv, lx - own_x)
+                            lead = nmax(lead, q * q) if found else q * q
+                            found = True
+                    q_ego = gap_ratio(dw, tw, acc, dec, own_v, ego_vf, ex - own_x)
+                    if acc * lead - acc * (q_ego * q_ego) >= min_acc_gain:
+                        return tau
     return np.inf
 
 

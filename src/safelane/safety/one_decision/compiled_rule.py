@@ -41,13 +41,14 @@ from safelane.safety.one_decision.compiled_parts import (
     polite_first,
     speed_index,
 )
-from safelane.safety.one_decision.forecast import forecast_keys_of
+from safelane.safety.one_decision.forecast import current_accelerations, forecast_keys_of
 from safelane.safety.rule import (
     FLAG_BODY_EXTENT,
     FLAG_CROSSED_LANES,
     FLAG_CUT_IN_WHEN_PERMITTED,
     FLAG_FINISHING_CHANGES,
     FLAG_FOLLOWER_IDM,
+    FLAG_INCENTIVE_ACCELERATIONS,
     FLAG_INCENTIVE_ANY_SPEED,
     FLAG_INCENTIVE_LEADERS_BAND,
     FLAG_INCENTIVE_POLITENESS,
@@ -118,6 +119,7 @@ def rule_gaps_kernel(
     level_incentive_frames = (flags & FLAG_LEVEL_INCENTIVE_FRAMES) != 0
     incentive_leaders_band = (flags & FLAG_INCENTIVE_LEADERS_BAND) != 0
     incentive_politeness = (flags & FLAG_INCENTIVE_POLITENESS) != 0
+    incentive_accelerations = (flags & FLAG_INCENTIVE_ACCELERATIONS) != 0
     n_ts = ts.shape[0]
     n_t = t.shape[0]  # frames of the horizon + 1
     total = n_t - 1
@@ -252,6 +254,15 @@ def rule_gaps_kernel(
             follower_row(other_x[r], x[i], vx[i], accel_max[i], brake_max[i], t_r, t)
     # level_cut_ins: a car turning in behind the ego follows it, wherever it is now (ahead rows too).
     level_rows = robust and level_cut_ins
+    # model.incentive_times' accelerations now (incentive_accelerations): one kernel for both engines.
+    timed_frames = level_rows and level_incentive and level_when_incentive and incentive_accelerations
+    now_acc = np.zeros(0)
+    if timed_frames and (level_incentive_frames or not incentive_any_speed):
+        now_acc = current_accelerations(
+            ego_x, lanes_count, lane_width, speed_limit, x, y, vx, vy, length, crashed, brake_max, accel_max,
+            idm_delta, idm_comfort_acc, idm_comfort_dec, idm_distance_wanted, idm_time_wanted, lin_k0, lin_k1,
+            lin_k2, target_speed,
+        )  # fmt: skip
     foll_x = np.empty((m if level_rows else 0, n_t))
     for r in range(foll_x.shape[0]):
         if is_ahead[r]:
@@ -570,7 +581,7 @@ def rule_gaps_kernel(
                         near[r], r, m, near, lanes_near, band_near, x, vx, crashed, brake_max, lin_k0, lin_k1, lin_k2,
                         idm_distance_wanted, idm_time_wanted, idm_comfort_acc, idm_comfort_dec, linear_incentive,
                         linear_incentive_braking, xs[a], ego_speed, v_key[a], targets[a], powers, frames, t,
-                        min_acc_gain,
+                        min_acc_gain, now_acc, now_acc.shape[0] > 0,
                     )  # fmt: skip
                     if frames_check:
                         turning = t_const < inf

@@ -9,11 +9,13 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from safelane.safety.one_decision.forecast import accelerated, current_accelerations
 from safelane.safety.others import (
     idm_acceleration_behind,
     idm_acceleration_behind_gap,
     least_desired_gap,
     linear_acceleration_behind,
+    set_points,
 )
 from safelane.safety.world import IDM_LANE_MARGIN, LATERAL_MOTION_THRESHOLD, Dynamics, Mode, RoadState
 
@@ -530,6 +532,7 @@ def incentive_times(
     lead_v0 = np.where(state.crashed[near], 0.0, np.maximum(v, 0.0))
     lead_b = np.maximum(np.where(state.crashed[near], 1e9, state.brake_max[near]), 1e-6)
     times = np.arange(ego_xs.shape[0]) * dyn.frame_dt
+    now_acc = current_accelerations_of(state, dyn) if dyn.rule.incentive_accelerations else None
     for j in range(near.size):
         linear = bool(np.isfinite(state.linear_speed_gain[near[j]]))
         rows = np.flatnonzero(((lanes == lanes[j]) | (band == lanes[j])) & (x > x[j]))
@@ -567,7 +570,45 @@ def incentive_times(
                 if acc[j] * lead - acc[j] * (q_ego * q_ego) >= dyn.mobil_min_gain:
                     out[j] = tau
                     break
+                if now_acc is not None and _gains_accelerating(state, dyn, near, j, rows, now_acc, tau, ego_xs[f],
+                                                               ego_vs[f]):  # fmt: skip
+                    out[j] = tau
+                    break
     return out
+
+
+def current_accelerations_of(state: RoadState, dyn: Dynamics) -> np.ndarray:
+    """[m/s²] Each vehicle's acceleration now (:func:`~safelane.safety.one_decision.forecast.current_accelerations`,
+    the kernel the compiled engine calls too)."""
+    return current_accelerations(
+        state.ego_x, dyn.lanes_count, dyn.lane_width, state.speed_limit, state.x, state.y, state.vx, state.vy,
+        state.length, state.crashed, state.brake_max, state.accel_max, state.idm_delta, state.idm_comfort_acc,
+        state.idm_comfort_dec, state.idm_distance_wanted, state.idm_time_wanted, state.linear_speed_gain,
+        state.linear_speed_difference_gain, state.linear_distance_gain, set_points(state),
+    )  # fmt: skip
+
+
+def _gains_accelerating(
+    state: RoadState, dyn: Dynamics, near: np.ndarray, j: int, rows: np.ndarray, now_acc: np.ndarray, tau: float,
+    ego_x: float, ego_v: float,
+) -> bool:
+    """Whether MOBIL's incentive lets IDM driver ``near[j]`` turn in behind the ego (at ``ego_x`` [m], ``ego_v``
+    [m/s]) ``tau`` [s] from now, it and its leaders ``rows`` (rows of ``near``) each keeping its acceleration now
+    (``now_acc`` [m/s²], per state row; the rule's ``incentive_accelerations``): its centre behind the ego's and
+    its gain ``acc·(d*/d)²_leader − acc·(d*/d)²_ego`` at least ``dyn.mobil_min_gain``."""
+    i = int(near[j])
+    own_x, own_v = accelerated(float(state.x[i]), float(state.vx[i]), float(now_acc[i]), tau)
+    if not own_x - ego_x <= 0:
+        return False
+    dw, tw = float(state.idm_distance_wanted[i]), float(state.idm_time_wanted[i])
+    acc, dec = float(state.idm_comfort_acc[i]), float(state.idm_comfort_dec[i])
+    lead = 0.0
+    for k, r in enumerate(rows):
+        lx, lv = accelerated(float(state.x[near[r]]), float(state.vx[near[r]]), float(now_acc[near[r]]), tau)
+        q = _idm_ratio(dw, tw, acc, dec, own_v, lv, lx - own_x)
+        lead = q * q if k == 0 else float(np.maximum(lead, q * q))
+    q_ego = _idm_ratio(dw, tw, acc, dec, own_v, ego_v, ego_x - own_x)
+    return acc * lead - acc * (q_ego * q_ego) >= dyn.mobil_min_gain
 
 
 def politeness_of(state: RoadState) -> np.ndarray:
@@ -661,12 +702,18 @@ def polite_turn_ins(
     return out
 
 
+def _idm_ratio(dw: float, tw: float, acc: float, dec: float, v: float, front_speed: float, gap: float) -> float:
+    """IDM's ``d*/d`` of a driver with constants ``dw`` [m], ``tw`` [s], ``acc``, ``dec`` [m/s²] at ``v`` [m/s] behind a
+    vehicle at ``front_speed`` [m/s], ``gap`` [m] centre to centre (:func:`_gap_ratio` for one pair)."""
+    ab = -acc * dec
+    d_star = dw + v * tw + v * (v - front_speed) / (2 * np.sqrt(ab))
+    d = 1e-2 if abs(gap) < 1e-2 else gap
+    return float(d_star / d)
+
+
 def _idm_term(dw: float, tw: float, acc: float, dec: float, v: float, front_speed: float, gap: float) -> float:
     """[m/s²] IDM's interaction term ``acc·(d*/d)²`` of a driver with constants ``dw`` [m], ``tw`` [s], ``acc``,
     ``dec`` [m/s²] applied to a vehicle at ``v`` [m/s] behind one at ``front_speed`` [m/s], ``gap`` [m] centre to
     centre (:func:`_gap_ratio` for one pair)."""
-    ab = -acc * dec
-    d_star = dw + v * tw + v * (v - front_speed) / (2 * np.sqrt(ab))
-    d = 1e-2 if abs(gap) < 1e-2 else gap
-    q = float(d_star / d)
+    q = _idm_ratio(dw, tw, acc, dec, v, front_speed, gap)
     return acc * (q * q)

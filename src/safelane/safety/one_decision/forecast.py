@@ -465,3 +465,48 @@ def _law(
         d_star = idm_distance_wanted[i] + v * idm_time_wanted[i] + v * (v - v_front) / (2 * math.sqrt(ab))
         a_r -= comfort * (d_star / _not_zero(d)) ** 2
     return a_r
+
+
+@njit(cache=True, error_model="numpy")
+def current_accelerations(
+    ego_x: float, lanes_count: int, lane_width: float, speed_limit: float, x: np.ndarray, y: np.ndarray,
+    vx: np.ndarray, vy: np.ndarray, length: np.ndarray, crashed: np.ndarray, brake_max: np.ndarray,
+    accel_max: np.ndarray, idm_delta: np.ndarray, idm_comfort_acc: np.ndarray, idm_comfort_dec: np.ndarray,
+    idm_distance_wanted: np.ndarray, idm_time_wanted: np.ndarray, lin_k0: np.ndarray, lin_k1: np.ndarray,
+    lin_k2: np.ndarray, target_speed: np.ndarray,
+) -> np.ndarray:  # fmt: skip
+    """[m/s²] Each vehicle's acceleration now, as the forecast's first frame has it (its law behind its leader in the
+    lane it follows, the ego left out, clipped as highway-env clips it): 0 for a wreck, a body without a known law,
+    one beyond :data:`FORECAST_RANGE`, and every vehicle of a state without the driver models' arrays. Both engines
+    call this one kernel, so their accelerations are the same bits."""
+    n = x.shape[0]
+    out = np.zeros(n)
+    if not _complete(x, y, vx, vy, length, crashed, brake_max, accel_max, idm_delta, idm_comfort_acc,
+                     idm_comfort_dec, idm_distance_wanted, idm_time_wanted):  # fmt: skip
+        return out
+    used = np.ones(lanes_count, dtype=np.bool_)
+    pick, _, _, leader, set_point, v0 = _select(used, ego_x, lanes_count, lane_width, speed_limit, x, y, vx, vy,
+                                                target_speed)  # fmt: skip
+    linear = lin_k0.shape[0] == n and lin_k1.shape[0] == n and lin_k2.shape[0] == n
+    for r in range(pick.shape[0]):
+        i = pick[r]
+        if crashed[i] or not math.isfinite(set_point[r]):
+            continue
+        q = leader[r]
+        has_front = q >= 0
+        d = x[pick[q]] - x[i] if has_front else math.inf
+        v_front = vx[pick[q]] if has_front else 0.0
+        a_r = _law(i, vx[i], set_point[r], v0[r], has_front, d, v_front, linear, lin_k0, lin_k1, lin_k2, idm_delta,
+                   idm_comfort_acc, idm_comfort_dec, idm_distance_wanted, idm_time_wanted)  # fmt: skip
+        out[i] = min(max(a_r, -brake_max[i]), accel_max[i])
+    return out
+
+
+@njit(cache=True, inline="always")
+def accelerated(x: float, v: float, a: float, tau: float) -> tuple[float, float]:
+    """Position [m] and speed [m/s] after ``tau`` [s] of a body at ``x``, ``v`` keeping acceleration ``a`` [m/s²]; a
+    body braking forward stops (and stays) where its speed reaches 0."""
+    t = tau
+    if a < 0.0 and v > 0.0:
+        t = min(tau, v / -a)
+    return x + v * t + 0.5 * a * (t * t), v + a * t

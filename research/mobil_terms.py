@@ -5,9 +5,9 @@ highway-env; during its last ``--last`` decisions every lane-change evaluation (
 within 8 m of the ego (centre to centre, along the road) into the ego's lane is recorded with its terms: the car's
 own gain ``a(new leader) − a(old leader)`` [m/s²], the changes it imposes on its new and old followers, its
 politeness p and threshold, MOBIL's ``jerk = own + p·(new follower + old follower)`` and the verdict. The first
-evaluation that turned the car in is named as driven by its *own gain* (own ≥ threshold: the incentive the rule
-models, politeness 0) or by *politeness* (own < threshold ≤ jerk: a courtesy change for its old follower, which
-the rule's incentive does not model).
+evaluation that turned the car in is named as driven by its *own gain* (own ≥ threshold) or by *politeness*
+(own < threshold ≤ jerk: a courtesy change for its old follower, which the rule's incentive models with its
+``incentive_politeness``).
 
     .venv/bin/python research/mobil_terms.py runs/falsify/X/counterexamples/cell00643-…-collision-step17.json
 """

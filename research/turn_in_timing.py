@@ -5,10 +5,11 @@ turn-in behind the ego at the
 first frame of the decision at which MOBIL's incentive lets it, instead of from now: with
 ``shield.incentive_any_speed`` (the default) the first frame at which it *could*, over every speed the car and
 the vehicles ahead of it can reach (``model.incentive_times_any_speed``, a bound); without, with the others at
-constant speed (``model.incentive_times``). This drives the real thing: on highway-env, an IDM or Linear driver
-in the next lane that the ego overtakes, a slow leader ahead of it (so that moving behind the ego pays), random
-rates, speeds and gaps; for every such car that decides to change into the ego's lane within the decision, its
-decision frame against both times (``before_any_speed_time`` must be 0).
+constant speed or at their acceleration now (``model.incentive_times``; ``shield.incentive_accelerations``, the
+constant speed alone without it: ``before_constant_speed_time``). This drives the real thing: on highway-env, an
+IDM or Linear driver in the next lane that the ego overtakes, a slow leader ahead of it (so that moving behind the
+ego pays), random rates, speeds and gaps; for every such car that decides to change into the ego's lane within the
+decision, its decision frame against the times (``before_any_speed_time`` must be 0).
 
     .venv/bin/python research/turn_in_timing.py --cases 300 --seed 0 [--all-drivers]
 """
@@ -51,6 +52,8 @@ def one_case(rng: np.random.Generator, all_drivers: bool = False) -> dict | None
     row = int(np.argmin(np.abs(state.x[near] - (state.ego_x + dx))))
     path = (ego_x[action, 0, : frames + 1], ego_v[action, 0, : frames + 1])
     incentive = float(model.incentive_times(state, dyn, near, *path)[row])
+    constant_dyn = dyn.with_options(incentive_accelerations=False)
+    constant = float(model.incentive_times(state, constant_dyn, near, *path)[row])
     bound = float(model.incentive_times_any_speed(state, dyn, near, *path)[row])
     frames_done, decided = [0], []
     policy, step = car.change_lane_policy, car.step
@@ -71,7 +74,7 @@ def one_case(rng: np.random.Generator, all_drivers: bool = False) -> dict | None
     if not decided:
         return None
     return {"driver": driver.__name__, "rate": [pol, sim], "decided_s": decided[0] * dyn.frame_dt,
-            "incentive_s": incentive, "any_speed_s": bound}  # fmt: skip
+            "incentive_s": incentive, "constant_speed_s": constant, "any_speed_s": bound}  # fmt: skip
 
 
 def main() -> None:
@@ -86,8 +89,10 @@ def main() -> None:
     early = [r for r in rows if r["decided_s"] < r["incentive_s"] - 1e-9]
     never = [r for r in rows if not np.isfinite(r["incentive_s"])]
     early_bound = [r for r in rows if r["decided_s"] < r["any_speed_s"] - 1e-9]
+    early_constant = [r for r in rows if r["decided_s"] < r["constant_speed_s"] - 1e-9]
     summary = {"cases": args.cases, "turn_ins_within_the_decision": len(rows), "before_incentive_time": len(early),
-               "incentive_never": len(never), "before_any_speed_time": len(early_bound),
+               "before_constant_speed_time": len(early_constant), "incentive_never": len(never),
+               "before_any_speed_time": len(early_bound),
                "any_speed_never": sum(not np.isfinite(r["any_speed_s"]) for r in rows),
                "early": early, "early_any_speed": early_bound}  # fmt: skip
     print(json.dumps(summary, indent=1))

@@ -11,7 +11,7 @@ from safelane.safety.rule import OPTION_NAMES, OPTIONS, RULES, Rule
 
 
 def test_every_option_is_declared_once_with_a_one_line_meaning() -> None:
-    assert len(set(OPTION_NAMES)) == len(OPTIONS) == 27
+    assert len(set(OPTION_NAMES)) == len(OPTIONS) == 28
     for option in OPTIONS:
         assert option.meaning and "\n" not in option.meaning and option.meaning.endswith(".")
         assert isinstance(option.default, bool)

@@ -222,9 +222,9 @@ def test_level_cut_ins_see_the_car_being_overtaken_turn_in(engine: str) -> None:
     lane 1 for that long leaves a −3.24 m gap (SLOWER −3.47 m), nothing is safe. With level_when_incentive and
     incentive_any_speed (the default) it turns in from the first frame its incentive could hold, 0.2 s, plus
     the cut-in time: IDLE and LANE_RIGHT −1.69 m, SLOWER 0.38 m (under the 1 m margin), still nothing safe.
-    The incentive judged with the others at constant speed (incentive_any_speed false: 0.3 s) called IDLE and
-    LANE_RIGHT safe with 1.39 m — as the rule before level cut-ins did (cell00470's side impact), which is why
-    that timing was never adopted. Nominal ignores the options."""
+    The incentive judged with the others at constant speed (incentive_any_speed and incentive_accelerations
+    false: 0.3 s) called IDLE and LANE_RIGHT safe with 1.39 m — as the rule before level cut-ins did (cell00470's
+    side impact), which is why that timing was never adopted. Nominal ignores the options."""
     level = scenarios.SCENARIOS["car_being_overtaken"](mode="robust", **{"shield.engine": engine})
     assert level.result.fallback and not level.result.safe.any()
     assert level.result.min_gap[[I, R, S]] == pytest.approx([-1.69, -1.69, 0.38], abs=0.01)
@@ -234,7 +234,8 @@ def test_level_cut_ins_see_the_car_being_overtaken_turn_in(engine: str) -> None:
     assert from_now.result.fallback and not from_now.result.safe.any()
     assert from_now.result.min_gap[[I, R, S]] == pytest.approx([-3.24, -3.24, -3.47], abs=0.01)
     constant = scenarios.SCENARIOS["car_being_overtaken"](
-        mode="robust", **{"shield.engine": engine, "shield.incentive_any_speed": False}
+        mode="robust",
+        **{"shield.engine": engine, "shield.incentive_any_speed": False, "shield.incentive_accelerations": False},
     )
     assert constant.result.safe.tolist() == mask_of(I, R)
     assert constant.result.min_gap[[I, R]] == pytest.approx([1.39, 1.39], abs=0.01)

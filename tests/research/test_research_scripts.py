@@ -38,7 +38,8 @@ def test_turn_ins_behind_the_ego_decide_no_earlier_than_the_incentive_bound() ->
     """research/turn_in_timing.py drives IDM and Linear drivers in the next lane that the ego overtakes, a slow
     leader ahead of them, on highway-env at 1–5 decisions per second. Every turn-in behind the ego decided within
     the decision comes no earlier than model.incentive_times_any_speed (shield.incentive_any_speed, the bound);
-    with the others at constant speed (model.incentive_times) 5 of the 45 came a physics frame earlier."""
+    with the others at constant speed alone 5 of the 45 came a physics frame earlier, and none with each car also
+    at its acceleration now (model.incentive_times with shield.incentive_accelerations, a timing)."""
     import json
 
     script = ROOT / "research" / "turn_in_timing.py"
@@ -47,7 +48,7 @@ def test_turn_ins_behind_the_ego_decide_no_earlier_than_the_incentive_bound() ->
     summary = json.loads(out)
     assert summary["turn_ins_within_the_decision"] == 45
     assert summary["before_any_speed_time"] == 0 and summary["any_speed_never"] == 0
-    assert summary["before_incentive_time"] == 5
+    assert summary["before_constant_speed_time"] == 5 and summary["before_incentive_time"] == 0
 
 
 def test_the_rear_end_trace_sorts_what_the_ego_did_before_each_crash(tmp_path: Path) -> None:

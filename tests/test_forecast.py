@@ -232,3 +232,33 @@ def test_forecast_keys_of_is_forecast_keys_of_the_gaps(scene: tuple, margin: flo
     pool = ((pool_bits >> np.arange(5)) & 1).astype(bool)
     expected = forecast_keys(forecast_gaps_of(xs, last, available, pool, *tail), margin)
     assert np.array_equal(forecast_keys_of(xs, last, available, pool, *tail, margin), expected)
+
+
+def test_current_accelerations_are_highway_env_s() -> None:
+    """forecast.current_accelerations (the rule's incentive_accelerations reads it) gives each car the acceleration
+    highway-env's own ``acceleration(car, its front vehicle)`` commands, clipped to ±ACC_MAX: a timid car 11 m behind
+    a slower aggressive one brakes at the limit, the aggressive one with a free lane at its set-point holds, an IDM car
+    closing on a slower one brakes at the limit, one below its set-point with a free lane accelerates."""
+    from safelane.env import scenarios
+    from safelane.safety.one_decision.cut_ins import current_accelerations_of
+    from safelane.sim.drivers import AggressiveDriver, TimidDriver
+
+    cars = [
+        scenarios.VehicleSpec(1, -3.0, 20.0, vehicle_class=TimidDriver),
+        scenarios.VehicleSpec(1, 12.0, 15.0, vehicle_class=AggressiveDriver),
+        scenarios.VehicleSpec(2, 30.0, 22.0),
+        scenarios.VehicleSpec(2, 45.0, 18.0, target_speed=25.0),
+    ]
+    scene = scenarios.build_scene(0, 20.0, cars, mode="robust")
+    shield = scene.shield
+    state, dyn = shield.state_and_dynamics(shield.snapshot)
+    got = current_accelerations_of(state, dyn)
+    road = scene.env.unwrapped.road
+    expected = []
+    for car in scene.vehicles:
+        front, _ = road.neighbour_vehicles(car)
+        expected.append(float(np.clip(car.acceleration(car, front), -car.ACC_MAX, car.ACC_MAX)))
+    order = np.argsort(state.x)  # the state's rows and the scene's cars, both by position along the road
+    assert got[order] == pytest.approx(np.array(expected)[np.argsort([c.position[0] for c in scene.vehicles])],
+                                       abs=1e-9)  # fmt: skip
+    assert np.count_nonzero(got == -6.0) == 2 and np.count_nonzero(got == 0.0) == 1 and (got > 2.0).sum() == 1

@@ -254,10 +254,11 @@ def rule_gaps_kernel(
             follower_row(other_x[r], x[i], vx[i], accel_max[i], brake_max[i], t_r, t)
     # level_cut_ins: a car turning in behind the ego follows it, wherever it is now (ahead rows too).
     level_rows = robust and level_cut_ins
-    # model.incentive_times' accelerations now (incentive_accelerations): one kernel for both engines.
-    timed_frames = level_rows and level_incentive and level_when_incentive and incentive_accelerations
+    # model.incentive_times' accelerations now (incentive_accelerations), where incentive_first runs: one kernel for
+    # both engines.
     now_acc = np.zeros(0)
-    if timed_frames and (level_incentive_frames or not incentive_any_speed):
+    frames_timed = level_rows and level_incentive and level_when_incentive
+    if frames_timed and incentive_accelerations and (level_incentive_frames or not incentive_any_speed):
         now_acc = current_accelerations(
             ego_x, lanes_count, lane_width, speed_limit, x, y, vx, vy, length, crashed, brake_max, accel_max,
             idm_delta, idm_comfort_acc, idm_comfort_dec, idm_distance_wanted, idm_time_wanted, lin_k0, lin_k1,
@@ -572,8 +573,9 @@ def rule_gaps_kernel(
                         idm_time_wanted[i], idm_comfort_acc[i], idm_comfort_dec[i], xs[a], ego_speed, v_key[a],
                         targets[a], powers, frames, t, min_acc_gain,
                     )  # fmt: skip
-                # model.incentive_times, the others at constant speed, at one call site: it times the turn-in without
-                # incentive_any_speed, and (level_incentive_frames) admits a level car the now-and-end check left out.
+                # model.incentive_times, the others at constant speed (or, incentive_accelerations, at their
+                # accelerations now), at one call site: it times the turn-in without incentive_any_speed, and
+                # (level_incentive_frames) admits a level car the now-and-end check left out.
                 t_const = inf
                 frames_check = not turning and not polite and level_incentive_frames and level_any[slot, r]
                 if adjacent and timed and (frames_check or (turning and not incentive_any_speed)):

@@ -468,37 +468,30 @@ def test_a_level_car_whose_incentive_holds_within_the_decision_turns_in(fixture:
 
 
 @pytest.mark.parametrize("mode", ["omniscient", "robust", "belief"])
-def test_a_polite_car_making_room_for_its_follower_turns_in(mode: str) -> None:
-    """A timid car (politeness 1) just behind the overtaking ego in the next lane gains nothing itself by moving
-    behind it, but its old follower gains 0.94 m/s² from its leaving: MOBIL lets it change lanes, and it turned into
-    the ego's flank under the SLOWER the belief shield allowed (pinned, 5 frames per second;
-    ``research/mobil_terms.py`` prints the terms). With ``incentive_politeness`` the rule counts the followers' gain
-    and no action is safe there under every type shield (the shield promises nothing, and says so), on both engines;
-    without it SLOWER was safe under the omniscient and belief shields (the robust one, over every type, had no safe
-    action either way)."""
-    on = {"incentive_politeness": True}
-    variants = {"numpy": {**on, "engine": "numpy"}, "compiled": {**on, "engine": "compiled"}, "off": {}}
-    verdicts = _verdicts_at_the_end(
-        "polite-timid-turn-in-collision", mode, variants, override=False, folder="hidden-types-turn-ins"
-    )
-    assert verdicts["numpy"] == verdicts["compiled"] == (True, [False, False, False, False, True])
-    assert verdicts["off"] == (mode == "robust", [False, False, False, False, True])
+@pytest.mark.parametrize(
+    ("fixture", "option"),
+    [("polite-timid-turn-in-collision", "incentive_politeness"),
+     ("knife-edge-aggressive-turn-in-collision", "incentive_accelerations")],
+)  # fmt: skip
+def test_a_turn_in_the_incentive_missed_is_seen(fixture: str, option: str, mode: str) -> None:
+    """Two side crashes of the grid under ``belief`` (pinned, tests/fixtures/hidden-types-turn-ins;
+    ``research/mobil_terms.py`` prints the terms), both into the ego's flank under the SLOWER the shield allowed:
 
+    * a timid car (politeness 1) just behind the overtaking ego in the next lane gains nothing itself by moving
+      behind it, but its old follower gains 0.94 m/s² from its leaving, and MOBIL lets it change lanes
+      (``incentive_politeness`` counts the followers' gain; 5 frames per second);
+    * an aggressive car (threshold 0) 0.9 m ahead of the ego's centre at 10.8 m/s, braking at 0.54 m/s² behind a
+      timid car 15 m ahead, the ego overtaking at 18.7 m/s (2 decisions and 10 frames a second): IDM's desired gap
+      behind the ego is about its distance there, so MOBIL's gain turns on tenths of a m/s — −1.4 m/s² at 0.2 s
+      with every car at constant speed, +0.16 with each at its acceleration now (``incentive_accelerations``;
+      highway-env's: +0.149 a frame later).
 
-@pytest.mark.parametrize("mode", ["omniscient", "robust", "belief"])
-def test_a_braking_car_whose_incentive_holds_at_the_edge_turns_in(mode: str) -> None:
-    """An aggressive car (threshold 0) 0.9 m ahead of the ego's centre in the next lane at 10.8 m/s, braking at
-    0.54 m/s² behind a timid car 15 m ahead; the ego overtakes at 18.7 m/s under SLOWER (2 decisions and 10 frames a
-    second). IDM's desired gap behind the ego is about its distance there, so MOBIL's gain turns on tenths of a m/s:
-    with every car at constant speed the rule's gain is −1.4 m/s² at 0.2 s, with each at its acceleration now +0.16
-    (highway-env's: +0.149 a frame later), and the car turned into the ego's flank (pinned; the belief shield had
-    allowed SLOWER). With ``incentive_accelerations`` no action is safe there under every type shield, on both
-    engines; without it SLOWER was safe under the omniscient and belief shields."""
-    on = {"incentive_accelerations": True}
+    With the option no action is safe there under every type shield (the shield promises nothing, and says so), on
+    both engines; without it SLOWER was safe under the omniscient and belief shields (the robust one, over every
+    type, had no safe action either way)."""
+    on = {option: True}
     variants = {"numpy": {**on, "engine": "numpy"}, "compiled": {**on, "engine": "compiled"}, "off": {}}
-    verdicts = _verdicts_at_the_end(
-        "knife-edge-aggressive-turn-in-collision", mode, variants, override=False, folder="hidden-types-turn-ins"
-    )
+    verdicts = _verdicts_at_the_end(fixture, mode, variants, override=False, folder="hidden-types-turn-ins")
     assert verdicts["numpy"] == verdicts["compiled"] == (True, [False, False, False, False, True])
     assert verdicts["off"] == (mode == "robust", [False, False, False, False, True])
 

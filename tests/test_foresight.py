@@ -105,11 +105,14 @@ def test_ceiling_table_writes_cells_and_resumes(tmp_path: Path) -> None:
     out = tmp_path / "ceiling"
     table = ceiling_table(cfg, [1], 2, 7, out, horizon=2.0, beam=2, chunk=1, workers=1)
     rows = table["rates"]["1"]
-    assert set(rows) == {"foresight", "foresight_nominal", "foresight_robust", "probe_robust", "foresight_committed"}
+    assert set(rows) == {
+        "foresight", "foresight_nominal", "foresight_robust", "probe_robust", "foresight_committed",
+        "foresight_continuous", "foresight_continuous_committed",
+    }  # fmt: skip
     assert all(r["episodes"] == 2 for r in rows.values())
     assert rows["foresight_robust"]["shield_intervention_rate"] == 0.0  # the planner respects its mask
     cells = sorted((out / "cells").glob("*.json"))
-    assert len(cells) == 10
+    assert len(cells) == 14
     stamps = {p.name: p.stat().st_mtime_ns for p in cells}
     cells[0].unlink()  # as if killed before that chunk finished
     again = ceiling_table(cfg, [1], 2, 7, out, horizon=2.0, beam=2, chunk=1, workers=1)

@@ -35,6 +35,15 @@ def ceiling(
             "--agent", help="RATE=RUN_DIR: a trained robust agent for that rate (repeatable).", metavar="RATE=DIR"
         ),
     ] = None,
+    continuous_agent: Annotated[
+        list[str] | None,
+        typer.Option(
+            "--continuous-agent",
+            help="RATE=RUN_DIR: a trained continuous agent (safelane train --actions continuous) for that rate, "
+            "played under the shield for continuous actions (repeatable).",
+            metavar="RATE=DIR",
+        ),
+    ] = None,
     horizon: Annotated[float, typer.Option("--horizon", help="Planner look-ahead [s].")] = 4.0,
     beam: Annotated[int, typer.Option("--beam", help="Planner sequences kept per depth.")] = 16,
     out: Annotated[
@@ -61,20 +70,27 @@ def ceiling(
         rate_list = [int(r) for r in rates.split(",") if r.strip()]
     except ValueError:
         raise ConfigError(f"--rates: expected comma-separated integers, e.g. 1,2,3 (got {rates!r})") from None
-    agents: dict[int, str] = {}
-    for item in agent or []:
-        rate_text, sep, path = item.partition("=")
-        if not sep or not rate_text.strip().isdigit() or not path:
-            raise ConfigError(f"--agent: expected RATE=RUN_DIR, e.g. 1=runs/demo/runs/robust-s0 (got {item!r})")
-        agents[int(rate_text)] = path
+    agents = _rate_dirs("--agent", agent, "runs/demo/runs/robust-s0")
+    continuous_agents = _rate_dirs("--continuous-agent", continuous_agent, "runs/sac-s0")
     row_list = tuple(r.strip() for r in rows.split(",") if r.strip()) if rows is not None else ROWS
     cfg = resolve_config(preset, sets, overrides={"simulator": "fast"})
     with units_progress("ceiling (chunks)") as tick:
         table = ceiling_table(
             cfg, rate_list, episodes, seed, out, agents=agents, horizon=horizon, beam=beam, workers=workers,
-            progress=tick, rows=row_list,
+            progress=tick, rows=row_list, continuous_agents=continuous_agents,
         )  # fmt: skip
     if as_json:
         typer.echo(json.dumps(table))
         return
     typer.echo((out / "ceiling.md").read_text())
+
+
+def _rate_dirs(option: str, items: list[str] | None, example: str) -> dict[int, str]:
+    """{rate: run directory} from ``RATE=RUN_DIR`` items (a one-line error naming ``option`` otherwise)."""
+    out: dict[int, str] = {}
+    for item in items or []:
+        rate_text, sep, path = item.partition("=")
+        if not sep or not rate_text.strip().isdigit() or not path:
+            raise ConfigError(f"{option}: expected RATE=RUN_DIR, e.g. 1={example} (got {item!r})")
+        out[int(rate_text)] = path
+    return out

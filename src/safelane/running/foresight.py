@@ -266,7 +266,7 @@ def play(
 ) -> dict[str, Any]:
     """Play ``episodes`` episodes (reset seeds ``seed + i``) with the policy ``policy_of(env)`` builds;
     collisions, mean speed [m/s] over all decisions, fallback and intervention rates, wall time [s]."""
-    from safelane.running.evaluation import COMMITTED_FIGURES, run_episodes, summarize
+    from safelane.running.evaluation import COMMITTED_FIGURES, CONTINUOUS_FIGURES, run_episodes, summarize
 
     env = make_env(cfg)
     try:
@@ -279,8 +279,10 @@ def play(
         env.close()
     summary = summarize(records)
     committed = {k: summary[k] for k in COMMITTED_FIGURES if k in summary}  # the committed shield's rows only
+    continuous = {k: summary[k] for k in CONTINUOUS_FIGURES if k in summary}  # continuous actions' rows only
     return {
         "episodes": episodes,
+        "decisions": int(summary["decisions"]),
         "collisions": int(sum(r.collision for r in records)),
         "mean_speed": float(summary["mean_speed"]),
         "fallback_rate": float(summary["fallback_rate"]),
@@ -289,6 +291,7 @@ def play(
         "wall_time_s": wall,
         "actions": {name: int(sum(r.actions[i] for r in records)) for i, name in enumerate(ACTION_NAMES)},
         **committed,
+        **continuous,
     }
 
 
@@ -313,24 +316,33 @@ def _resetting(policy: Callable[[np.ndarray, dict[str, Any]], int]) -> Callable[
 
 ROWS: tuple[str, ...] = (
     "foresight", "foresight_nominal", "foresight_robust", "probe_robust", "agent_robust", "foresight_committed",
-    "agent_committed",
+    "agent_committed", "foresight_continuous", "foresight_continuous_committed", "agent_continuous",
 )  # fmt: skip
 """The table's rows per decision rate: the planner unmasked / under the nominal / under the robust mask,
 the overtaking probe under the robust shield, a trained robust agent (where one is given); the planner under the
-committed mask and the same agent under the committed shield (``shield.engine`` of the table's config)."""
+committed mask and the same agent under the committed shield (``shield.engine`` of the table's config); with
+continuous acceleration and steering, the planner over its control set unshielded and under the shield for
+continuous actions (:class:`~safelane.running.control_foresight.ControlForesightPlanner`), and a trained continuous
+agent under that shield (where one is given)."""
 ROW_SHIELDS = {
     "foresight": "none", "foresight_nominal": "nominal", "foresight_committed": "committed",
-    "agent_committed": "committed",
+    "agent_committed": "committed", "foresight_continuous": "none", "foresight_continuous_committed": "committed",
+    "agent_continuous": "committed",
 }  # fmt: skip
 """The shield of each row of :data:`ROWS` not under the robust one."""
+CONTINUOUS_ROWS = ("foresight_continuous", "foresight_continuous_committed", "agent_continuous")
+"""The rows whose ego takes continuous actions (acceleration and steering)."""
 
 
 def row_config(cfg: SafelaneConfig, row: str) -> SafelaneConfig:
     """The environment of a row: the fast simulator; the shield the row acts under, with override so a
-    mask-respecting policy is never overridden (the shield's counters then show it)."""
+    mask-respecting policy is never overridden (the shield's counters then show it); continuous actions for
+    :data:`CONTINUOUS_ROWS` (whose shield executes a verified action, no override)."""
     shield = ROW_SHIELDS.get(row, "robust")
     overrides: dict[str, Any] = {"simulator": "fast", "shield.mode": shield}
-    if shield != "none":
+    if row in CONTINUOUS_ROWS:
+        overrides["actions"] = "continuous"
+    elif shield != "none":
         overrides["shield.override"] = True
     return with_overrides(cfg, overrides)
 
@@ -340,6 +352,27 @@ def play_row(
 ) -> dict[str, Any]:
     """One cell of the table (a task of :func:`safelane.running.backend.run_tasks`: plain arguments)."""
     cfg = row_config(build_config(cfg_data), row)
+    if row == "agent_continuous":
+        from safelane.running.run_directory import load_policy, load_run_config
+        from safelane.running.runs import run_env_config
+
+        if agent_dir is None:
+            raise ConfigError("agent: no trained continuous agent given for this rate")
+        env_cfg = run_env_config(load_run_config(agent_dir), sets=[f"shield.engine={cfg.shield.engine}"],
+                                 shield="committed")  # fmt: skip
+        return {"row": row, "agent": agent_dir, **play(env_cfg, lambda env: load_policy(agent_dir), episodes, seed)}
+    if row in ("foresight_continuous", "foresight_continuous_committed"):
+        from safelane.running.control_foresight import ControlForesightPlanner
+
+        controls: list[ControlForesightPlanner] = []
+
+        def make_control(env: Any) -> ControlForesightPlanner:
+            controls.append(ControlForesightPlanner(env, horizon=horizon, beam=beam))
+            return controls[-1]
+
+        result = play(cfg, make_control, episodes, seed)
+        c = controls[0]
+        return {"row": row, "horizon_s": horizon, "beam": beam, "searches": c.searches, "nodes": c.nodes, **result}
     if row in ("agent_robust", "agent_committed"):
         from safelane.running.run_directory import greedy_policy, load_agent, load_run_config
         from safelane.running.runs import run_env_config
@@ -377,8 +410,10 @@ def _merge(parts: list[dict[str, Any]]) -> dict[str, Any]:
     merged["collisions"] = sum(p["collisions"] for p in parts)
     merged["invariant_breaks"] = sum(p["invariant_breaks"] for p in parts)
     merged["mean_speed"] = sum(p["mean_speed"] * p["episodes"] for p in parts) / n
-    decisions = [sum(p["actions"].values()) for p in parts]
+    # Continuous rows count no meta-actions: their decisions are recorded (cells from before them have only actions).
+    decisions = [p.get("decisions", sum(p["actions"].values())) for p in parts]
     total = max(sum(decisions), 1)
+    merged["decisions"] = sum(decisions)
     for key in ("fallback_rate", "shield_intervention_rate"):
         merged[key] = sum(p[key] * d for p, d in zip(parts, decisions, strict=True)) / total
     merged["actions"] = {a: sum(p["actions"][a] for p in parts) for a in ACTION_NAMES}
@@ -389,6 +424,13 @@ def _merge(parts: list[dict[str, Any]]) -> dict[str, Any]:
         )
         for key in ("lapses", "lapses_in_model", "uncertified_starts", "redraws"):
             merged[key] = sum(p[key] for p in parts)
+    if "off_road_rate" in parts[0]:  # continuous actions: episodes off the road, projections by decisions
+        merged["off_road_rate"] = sum(p["off_road_rate"] * p["episodes"] for p in parts) / n
+    if "projection_rate" in parts[0]:
+        projected = [p["projection_rate"] * d for p, d in zip(parts, decisions, strict=True)]
+        merged["projection_rate"] = sum(projected) / total
+        distance = sum((p["mean_projection_distance"] or 0.0) * k for p, k in zip(parts, projected, strict=True))
+        merged["mean_projection_distance"] = distance / sum(projected) if sum(projected) > 0 else None
     for key in ("searches", "nodes"):
         if key in parts[0]:
             merged[key] = sum(p[key] for p in parts)
@@ -408,12 +450,14 @@ def ceiling_table(
     workers: int | None = None,
     progress: Callable[[int, int], None] | None = None,
     rows: tuple[str, ...] = ROWS,
+    continuous_agents: dict[int, str] | None = None,
 ) -> dict[str, Any]:
     """The price-of-robustness table: every row of ``rows`` (default :data:`ROWS`) at every decision rate (physics
     at 5·rate Hz) on the same episodes (reset seeds ``seed + i``). Work is cut into chunks of ``chunk``
     episodes written to ``out/cells/`` as they finish, so a killed run resumes where it stopped;
     ``out/ceiling.json`` and ``out/ceiling.md`` are rebuilt from them (with every row's cells there, so rows
-    played by earlier calls stay in the table). Rows without an agent are skipped."""
+    played by earlier calls stay in the table). Rows without an agent are skipped: ``agents`` {rate: run directory}
+    the trained robust agents, ``continuous_agents`` the trained continuous ones."""
     import json
     from pathlib import Path
 
@@ -428,10 +472,11 @@ def ceiling_table(
     for rate in rates:
         if rate < 1:
             raise ConfigError(f"--rates: decision rates must be >= 1 per second (got {rate})")
-    agents = agents or {}
-    for rate in agents:
-        if rate not in rates:
-            raise ConfigError(f"--agent: rate {rate} is not in --rates ({', '.join(map(str, rates))})")
+    agents, continuous_agents = agents or {}, continuous_agents or {}
+    for option, given in (("--agent", agents), ("--continuous-agent", continuous_agents)):
+        for rate in given:
+            if rate not in rates:
+                raise ConfigError(f"{option}: rate {rate} is not in --rates ({', '.join(map(str, rates))})")
     out = Path(out)
     cells = out / "cells"
     cells.mkdir(parents=True, exist_ok=True)
@@ -440,14 +485,15 @@ def ceiling_table(
     for rate in rates:
         data = config_to_dict(at_rate(cfg, rate))
         for row in rows:
-            if row.startswith("agent_") and rate not in agents:
+            agent = (continuous_agents if row == "agent_continuous" else agents).get(rate)
+            if row.startswith("agent_") and agent is None:
                 continue
             for start in range(0, episodes, chunk):
                 path = cells / f"{rate}hz-{row}-{start:06d}.json"
                 if path.is_file():
                     continue
                 count = min(chunk, episodes - start)
-                tasks.append((data, row, count, seed + start, agents.get(rate), horizon, beam))
+                tasks.append((data, row, count, seed + start, agent, horizon, beam))
                 names.append(path)
     done = [0]
 
@@ -483,19 +529,22 @@ ROW_LABELS = {
     "agent_robust": "learned robust agent",
     "foresight_committed": "foresight under the committed mask",
     "agent_committed": "learned robust agent, committed shield",
+    "foresight_continuous": "foresight, continuous controls, unshielded",
+    "foresight_continuous_committed": "foresight, continuous controls, under the shield for continuous actions",
+    "agent_continuous": "learned continuous agent, shield for continuous actions",
 }
 
 
 def ceiling_markdown(table: dict[str, Any]) -> str:
     """The table as Markdown: one line per rate and row (speed [m/s], collisions, breaks, fallbacks; the committed
-    shield's rows: plan-forced decisions, lapses and those in the model)."""
+    shields' rows: plan-forced decisions, lapses and those in the model; continuous rows: episodes off the road)."""
     lines = [
         f"Episodes per cell: {table['episodes']} (reset seeds {table['seed']}+); planner horizon "
         f"{table['horizon_s']:g} s, beam {table['beam']}.",
         "",
         "| decisions/s | policy | mean speed [m/s] | collisions | invariant breaks | fallback rate | plan-forced "
-        "rate | lapses (in the model) |",
-        "|---|---|---|---|---|---|---|---|",
+        "rate | lapses (in the model) | off the road |",
+        "|---|---|---|---|---|---|---|---|---|",
     ]
     for rate, rows in table["rates"].items():
         for row, r in rows.items():
@@ -504,8 +553,9 @@ def ceiling_markdown(table: dict[str, Any]) -> str:
                 if "plan_forced_rate" in r
                 else "— | —"
             )
+            off_road = f"{round(r['off_road_rate'] * r['episodes'])}/{r['episodes']}" if "off_road_rate" in r else "—"
             lines.append(
                 f"| {rate} | {ROW_LABELS[row]} | {r['mean_speed']:.2f} | {r['collisions']}/{r['episodes']} | "
-                f"{r['invariant_breaks']} | {r['fallback_rate']:.4f} | {committed} |"
+                f"{r['invariant_breaks']} | {r['fallback_rate']:.4f} | {committed} | {off_road} |"
             )
     return "\n".join(lines) + "\n"

@@ -145,7 +145,7 @@ def continuous_ranges(action_config: dict[str, Any]) -> tuple[tuple[float, float
     return (float(acc[0]), float(acc[1])), (float(steer[0]), float(steer[1]))
 
 
-def _normalised(value: float, bounds: tuple[float, float]) -> float:
+def normalised_control(value: float, bounds: tuple[float, float]) -> float:
     """``value`` mapped from ``bounds`` to [-1, 1] (the inverse of highway-env's ``lmap``), clipped."""
     low, high = bounds
     return min(max(2.0 * (value - low) / (high - low) - 1.0, -1.0), 1.0)
@@ -200,8 +200,8 @@ class LaneFollower:
             acceleration = 1.0
         else:
             wanted = SPEED_GAIN * (self.target_speed - float(snap.speed[snap.ego]))
-            acceleration = _normalised(wanted, self.acceleration_range)
-        return np.array([acceleration, _normalised(steering, self.steering_range)], dtype=np.float32)
+            acceleration = normalised_control(wanted, self.acceleration_range)
+        return np.array([acceleration, normalised_control(steering, self.steering_range)], dtype=np.float32)
 
 
 def continuous_policy(name: str, seed: int, action_config: dict[str, Any]) -> Policy:

@@ -114,6 +114,26 @@ def lane_keeping_action(state: RoadState, dyn: Dynamics, limits: ControlLimits) 
     return fail_safe_action(ego, plan_lane(ego.y, dyn) * dyn.lane_width, True, dyn, limits, state.ego_length)
 
 
+@dataclass(frozen=True)
+class DecisionContext:
+    """One state as :meth:`ControlFamily.context` reads it: whether the ego has crashed, the road state, the
+    world's constants, the other cars' sets (carried), their snapshot indices, the trace of the carried sets
+    (:meth:`ControlFamily.state_of`), the kept plan's tail if it still verifies, whether it lapsed and the cars it
+    fails on, the memoised verifier of actions and the fail-safe's action (2,)."""
+
+    ego_crashed: bool
+    state: RoadState
+    dyn: Dynamics
+    sets: CarSets
+    vehicle: np.ndarray
+    trace: dict[str, Any]
+    tail: ControlPlan | None
+    lapse: bool
+    failed: np.ndarray
+    search: ActionSearch
+    lane_keeping: np.ndarray
+
+
 @dataclass
 class _Judged:
     """What :meth:`ControlFamily.commit` needs of the last judgement."""
@@ -187,14 +207,28 @@ class ControlFamily:
             return ActionSearch(lambda action: verify_action_compiled(state, dyn, limits, sets, arrays, action))
         return ActionSearch(lambda action: verify_action(state, dyn, self.limits, sets, action))
 
-    def judge(self, snap: RoadSnapshot, dyn: Dynamics, wanted: np.ndarray) -> ControlResult:
-        """The action to execute for the agent's ``wanted`` (2,) in the state of ``snap`` (``dyn``: with
-        ``braking_decisions`` for these limits)."""
+    def context(self, snap: RoadSnapshot, dyn: Dynamics) -> DecisionContext:
+        """What judging any action in the state of ``snap`` needs, computed once (``dyn``: with
+        ``braking_decisions`` for these limits): the sets, the kept plan's tail, the verifier, the fail-safe's
+        action. A planner that judges several actions in one state reads it once and decides each with
+        :meth:`decide`."""
         state, vehicle, sets, trace = self.state_of(snap, dyn)
-        wanted = np.clip(np.asarray(wanted, dtype=np.float32), -1, 1).astype(np.float32)
         tail, lapse, failed = self._kept_tail(state, dyn, sets, vehicle, trace["escaped"], trace["cars"])
         search = self.search(state, dyn, sets, trace["cars"])
         lane_keeping = lane_keeping_action(state, dyn, self.limits)
+        return DecisionContext(bool(snap.crashed[snap.ego]), state, dyn, sets, vehicle, trace, tail, lapse, failed,
+                               search, lane_keeping)  # fmt: skip
+
+    def judge(self, snap: RoadSnapshot, dyn: Dynamics, wanted: np.ndarray) -> ControlResult:
+        """The action to execute for the agent's ``wanted`` (2,) in the state of ``snap`` (``dyn``: with
+        ``braking_decisions`` for these limits)."""
+        return self.decide(self.context(snap, dyn), wanted)
+
+    def decide(self, ctx: DecisionContext, wanted: np.ndarray) -> ControlResult:
+        """The action to execute for the agent's ``wanted`` (2,) in the state ``ctx`` was read in (by this family's
+        memory, or an identical copy's); :meth:`commit` then records it."""
+        wanted = np.clip(np.asarray(wanted, dtype=np.float32), -1, 1).astype(np.float32)
+        tail, search, lane_keeping, vehicle, trace = ctx.tail, ctx.search, ctx.lane_keeping, ctx.vehicle, ctx.trace
         candidates = ((tail.actions[0], tail),) if tail is not None else ()
         executed: np.ndarray | None = None
         plan: ControlPlan | None = None
@@ -214,15 +248,15 @@ class ControlFamily:
         distance = float(np.hypot(*(executed.astype(np.float64) - wanted)))
         result = ControlResult(
             executed, wanted, distance, plan, plan_forced=forced,
-            certified=plan is not None or self.kept is not None, lapse=lapse,
-            lapse_cars=tuple(int(v) for v in vehicle[failed]),
+            certified=plan is not None or self.kept is not None, lapse=ctx.lapse,
+            lapse_cars=tuple(int(v) for v in vehicle[ctx.failed]),
             escaped=tuple(int(v) for v in vehicle[trace["escaped"]]),
             rolled_back=tuple(int(v) for v in vehicle[trace["rolled"]]),
             unbraked_followers=tuple(int(v) for v in vehicle[trace["unbraked"]]),
             entered=tuple(int(v) for v in vehicle[trace["entered"]]),
-            ego_crashed=bool(snap.crashed[snap.ego]), checked=trace["checked"], evaluated=search.evaluated,
+            ego_crashed=ctx.ego_crashed, checked=trace["checked"], evaluated=search.evaluated,
         )  # fmt: skip
-        self._judged = _Judged(result, state, dyn, sets, vehicle, tail)
+        self._judged = _Judged(result, ctx.state, ctx.dyn, ctx.sets, vehicle, tail)
         return result
 
     def _kept_tail(self, state: RoadState, dyn: Dynamics, sets: CarSets, vehicle: np.ndarray, escaped: np.ndarray,

@@ -90,8 +90,9 @@ def test_planner_needs_continuous_actions_on_the_fast_simulator() -> None:
 
 
 def test_ceiling_table_has_the_continuous_rows(tmp_path: Path) -> None:
-    sets = ["simulator=fast", "actions=continuous", "env.duration=3", "env.vehicles_count=8",
-            "agent.learning_starts=10", "agent.batch_size=16", "agent.net_arch=[32, 32]", "agent.buffer_size=100"]  # fmt: skip
+    road = ["simulator=fast", "actions=continuous", "env.duration=3", "env.vehicles_count=8"]
+    agent = ["agent.learning_starts=10", "agent.batch_size=16", "agent.net_arch=[32, 32]", "agent.buffer_size=100"]
+    sets = [*road, *agent]
     run = train_continuous(make_train_config(algo="sac", steps=30, seed=0, sets=sets), tmp_path / "sac")
     cfg = load_config("fast", sets=["env.duration=3"], overrides={"simulator": "fast"})
     rows = ("foresight_continuous", "foresight_continuous_committed", "agent_continuous")

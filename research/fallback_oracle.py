@@ -33,8 +33,8 @@ import numpy as np
 from safelane.core.files import atomic_write_text
 from safelane.core.spaces import FASTER, IDLE, LANE_LEFT, LANE_RIGHT, SLOWER
 from safelane.env.factory import make_env
+from safelane.running.control_foresight import fast_simulator_of
 from safelane.running.counterexamples import load_counterexample
-from safelane.running.foresight import fast_simulator_of
 from safelane.safety.one_decision.reference import evaluate
 from safelane.safety.shield import SafetyShield
 from safelane.sim.fast import layout

@@ -22,11 +22,10 @@ import numpy as np
 
 from safelane.config import ConfigError
 from safelane.core.snapshot import RoadSnapshot
-from safelane.running.foresight import fast_simulator_of
 from safelane.running.policies import continuous_ranges, lane_steering, normalised_control, snap_of
 from safelane.safety.continuous.family import ControlFamily
 from safelane.safety.control_shield import ControlShield
-from safelane.sim.fast.env import SimState
+from safelane.sim.fast.env import FastHighwayEnv, SimState
 
 CONTROL_ACCELERATIONS: tuple[float, ...] = (-1.0, -0.5, 0.0, 0.5, 1.0)
 """[normalised] The accelerations the planner tries: with highway-env's default range (±5 m/s²) hard braking,
@@ -50,6 +49,14 @@ class ControlNode(NamedTuple):
     snap: RoadSnapshot
     actions: list[np.ndarray]
     memory: ControlFamily | None
+
+
+def fast_simulator_of(env: Any) -> FastHighwayEnv:
+    """The :class:`FastHighwayEnv` inside a safelane environment (ConfigError if it runs on another simulator)."""
+    base = env.unwrapped
+    if not isinstance(base, FastHighwayEnv):
+        raise ConfigError("simulator: the foresight planner needs 'fast' (it copies the simulator's state)")
+    return base
 
 
 def shield_of(env: Any) -> ControlShield | None:
@@ -219,4 +226,7 @@ class ControlForesightPlanner:
         self.plan = []
 
 
-__all__ = ["CONTROL_ACCELERATIONS", "ControlForesightPlanner", "control_set", "diverse_controls", "shield_of"]
+__all__ = [
+    "CONTROL_ACCELERATIONS", "ControlForesightPlanner", "control_set", "diverse_controls", "fast_simulator_of",
+    "shield_of",
+]  # fmt: skip

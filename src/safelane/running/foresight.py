@@ -29,12 +29,13 @@ from safelane.config import ConfigError, SafelaneConfig, apply_overrides, build_
 from safelane.core.snapshot import RoadSnapshot
 from safelane.core.spaces import ACTION_NAMES, N_ACTIONS
 from safelane.env.factory import make_env
+from safelane.running.control_foresight import ControlForesightPlanner, fast_simulator_of
 from safelane.running.policies import overtaking_probe, snap_of
 from safelane.safety.belief import DriverTypes
 from safelane.safety.committed.family import CommittedFamily
 from safelane.safety.shield import SafetyShield
 from safelane.safety.world import Engine
-from safelane.sim.fast.env import FastHighwayEnv, SimState
+from safelane.sim.fast.env import SimState
 
 PlannerMask = Literal["none", "nominal", "robust", "committed", "omniscient"]
 PLANNER_MASKS: tuple[str, ...] = ("none", "nominal", "robust", "committed", "omniscient")
@@ -46,14 +47,6 @@ def clone_memory(family: CommittedFamily) -> CommittedFamily:
     copy can commit another action in that state."""
     pending = getattr(family, "_pending", None)
     return copy.deepcopy(family, memo={id(pending): pending} if pending is not None else None)
-
-
-def fast_simulator_of(env: Any) -> FastHighwayEnv:
-    """The :class:`FastHighwayEnv` inside a safelane environment (ConfigError if it runs on another simulator)."""
-    base = env.unwrapped
-    if not isinstance(base, FastHighwayEnv):
-        raise ConfigError("simulator: the foresight planner needs 'fast' (it copies the simulator's state)")
-    return base
 
 
 class ForesightPlanner:
@@ -362,8 +355,6 @@ def play_row(
                                  shield="committed")  # fmt: skip
         return {"row": row, "agent": agent_dir, **play(env_cfg, lambda env: load_policy(agent_dir), episodes, seed)}
     if row in ("foresight_continuous", "foresight_continuous_committed"):
-        from safelane.running.control_foresight import ControlForesightPlanner
-
         controls: list[ControlForesightPlanner] = []
 
         def make_control(env: Any) -> ControlForesightPlanner:

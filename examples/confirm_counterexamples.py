@@ -33,7 +33,8 @@ def confirm(path: str, simulator: str) -> dict:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("folder", type=Path)
-    parser.add_argument("--kind", choices=["collision", "invariant_break"], default="collision")
+    kinds = ["collision", "invariant_break", "lapse", "lapse_in_model"]
+    parser.add_argument("--kind", choices=kinds, default="collision")
     parser.add_argument("--simulator", default="highway-env")
     parser.add_argument("--limit", type=int, default=None, help="At most this many files (sorted by name).")
     parser.add_argument("--sample", type=int, default=None, help="At most this many files, drawn at random.")

@@ -59,6 +59,21 @@ def fast_simulator_of(env: Any) -> FastHighwayEnv:
     return base
 
 
+def search_shape(env: Any, horizon: float, beam: int, replan: float) -> tuple[FastHighwayEnv, int, int]:
+    """(the fast simulator inside ``env``, decisions per search, decisions between searches) of a foresight
+    planner looking ``horizon`` [s] ahead and searching again every ``replan`` [s]; a bad ``horizon``, ``beam`` or
+    ``replan`` is a one-line :class:`ConfigError`."""
+    if not horizon > 0:
+        raise ConfigError(f"horizon: must be > 0 s (got {horizon})")
+    if beam < 1:
+        raise ConfigError(f"beam: must be >= 1 (got {beam})")
+    if not replan > 0:
+        raise ConfigError(f"replan: must be > 0 s (got {replan})")
+    sim = fast_simulator_of(env)
+    rate = float(sim.sim.policy_frequency)
+    return sim, max(1, round(horizon * rate)), max(1, round(replan * rate))
+
+
 def shield_of(env: Any) -> ControlShield | None:
     """The :class:`ControlShield` among ``env``'s wrappers, or None."""
     inner = env
@@ -109,18 +124,9 @@ class ControlForesightPlanner:
         replan: float = 1.0,
         accelerations: tuple[float, ...] = CONTROL_ACCELERATIONS,
     ) -> None:
-        if not horizon > 0:
-            raise ConfigError(f"horizon: must be > 0 s (got {horizon})")
-        if beam < 1:
-            raise ConfigError(f"beam: must be >= 1 (got {beam})")
-        if not replan > 0:
-            raise ConfigError(f"replan: must be > 0 s (got {replan})")
-        self.sim = fast_simulator_of(env)
+        self.sim, self.depth, self.every = search_shape(env, horizon, beam, replan)
         if self.sim.continuous is None:
             raise ConfigError("actions: the continuous foresight planner needs 'continuous'")
-        rate = float(self.sim.sim.policy_frequency)
-        self.depth = max(1, round(horizon * rate))
-        self.every = max(1, round(replan * rate))
         self.beam = beam
         self.accelerations = tuple(float(a) for a in accelerations)
         self.shield = shield_of(env)
@@ -228,5 +234,5 @@ class ControlForesightPlanner:
 
 __all__ = [
     "CONTROL_ACCELERATIONS", "ControlForesightPlanner", "control_set", "diverse_controls", "fast_simulator_of",
-    "shield_of",
+    "search_shape", "shield_of",
 ]  # fmt: skip

@@ -29,7 +29,7 @@ from safelane.config import ConfigError, SafelaneConfig, apply_overrides, build_
 from safelane.core.snapshot import RoadSnapshot
 from safelane.core.spaces import ACTION_NAMES, N_ACTIONS
 from safelane.env.factory import make_env
-from safelane.running.control_foresight import ControlForesightPlanner, fast_simulator_of
+from safelane.running.control_foresight import ControlForesightPlanner, search_shape
 from safelane.running.policies import overtaking_probe, snap_of
 from safelane.safety.belief import DriverTypes
 from safelane.safety.committed.family import CommittedFamily
@@ -77,16 +77,7 @@ class ForesightPlanner:
     ) -> None:
         if mask not in PLANNER_MASKS:
             raise ConfigError(f"mask: got {mask!r}; allowed: {', '.join(PLANNER_MASKS)}")
-        if not horizon > 0:
-            raise ConfigError(f"horizon: must be > 0 s (got {horizon})")
-        if beam < 1:
-            raise ConfigError(f"beam: must be >= 1 (got {beam})")
-        if not replan > 0:
-            raise ConfigError(f"replan: must be > 0 s (got {replan})")
-        self.sim = fast_simulator_of(env)
-        rate = float(self.sim.sim.policy_frequency)
-        self.depth = max(1, round(horizon * rate))  # decisions per search
-        self.every = max(1, round(replan * rate))  # decisions between searches
+        self.sim, self.depth, self.every = search_shape(env, horizon, beam, replan)  # decisions per search, between
         self.beam = beam
         self.mask_mode: PlannerMask = mask
         kwargs: dict[str, Any] = {} if margin is None else {"margin": margin}

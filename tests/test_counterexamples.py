@@ -120,3 +120,32 @@ def test_confirm_script_replays_a_random_sample_of_a_folder(tmp_path: Path) -> N
     bad = subprocess.run([*script, *common, "--sample", "0"], capture_output=True, text=True)
     assert bad.returncode == 2 and len(bad.stderr.strip().splitlines()) == 1, bad.stderr
     assert "--sample" in bad.stderr
+
+
+def test_counterexample_files_are_flushed_together_not_one_fsync_each(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The scene above's break files are written atomically without an fsync each, then flushed once; every file
+    is whole and no temporary file is left (a hidden-types campaign writes tens of thousands)."""
+    import os
+
+    calls = {"fsync": 0, "sync": 0}
+    real_fsync, real_sync = os.fsync, os.sync
+
+    def fsync(fd: int) -> None:
+        calls["fsync"] += 1
+        real_fsync(fd)
+
+    def sync() -> None:
+        calls["sync"] += 1
+        real_sync()
+
+    monkeypatch.setattr(os, "fsync", fsync)
+    monkeypatch.setattr(os, "sync", sync)
+    overrides = {**FAST, "env": {"lanes_count": 3, "vehicles_density": 2.0}}
+    cfg = load_config("fast", overrides={**overrides, "shield": {"mode": "robust", "override": True}})
+    summary = evaluate_fixed(cfg, "random", 4, 0, counterexamples=tmp_path)
+    files = summary["counterexample_files"]
+    assert files and calls == {"fsync": 0, "sync": 1}
+    assert all(load_counterexample(f).kind == "invariant_break" for f in files)
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(Path(f).name for f in files)  # no .tmp left

@@ -21,6 +21,7 @@ event happens at the same decision; ``simulator=`` replays a fast-simulator find
 from __future__ import annotations
 
 import json
+import os
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
@@ -187,13 +188,16 @@ def save_counterexamples(
     records: list[Any], config: SafelaneConfig, out_dir: str | Path, source: str = "", prefix: str = ""
 ) -> list[Path]:
     """Write :func:`counterexamples_of` as ``out_dir/PREFIXseedSEED-KIND-stepSTEP.json`` (atomically,
-    :func:`counterexample_json`)."""
+    :func:`counterexample_json`), on the disk when it returns: flushed together, not one ``fsync`` each (a
+    campaign under hidden types writes tens of thousands, at about 4 ms an ``fsync`` on this project's machine)."""
     out = Path(out_dir)
     paths = []
     for cx in counterexamples_of(records, config, source):
         path = out / f"{prefix}seed{cx.seed}-{cx.kind}-step{cx.step}.json"
-        atomic_write_text(path, counterexample_json(cx))
+        atomic_write_text(path, counterexample_json(cx), durable=False)
         paths.append(path)
+    if paths:
+        os.sync()
     return paths
 
 

@@ -3,8 +3,9 @@
 :class:`ControlForesightPlanner` is :class:`~safelane.running.foresight.ForesightPlanner` for an ego under
 highway-env's ``ContinuousAction``: the same beam search over the fast simulator's exact future, over a discretised
 control set — :data:`CONTROL_ACCELERATIONS` × the ego's lane and its neighbours, each steered there by the lane
-follower of the ``faster`` policy (:func:`~safelane.running.policies.lane_steering`). Unmasked, it bounds from
-below how fast a collision-free continuous policy drives in this traffic; under the shield for continuous actions
+follower of the ``faster`` policy (:func:`~safelane.running.policies.lane_steering`). Unmasked (preferring the
+sequences from whose end the ego can brake to a standstill, :meth:`ControlForesightPlanner.can_stop`), it bounds
+from below how fast a collision-free continuous policy drives in this traffic; under the shield for continuous actions
 (``committed``, :class:`~safelane.safety.control_shield.ControlShield`) it takes at every node of the search only
 the controls whose plan verifies there, each node carrying its own copy of the shield's memory (the kept plan, the
 carried sets), committed along the node's actions. Where none of its controls verifies, it plays what the shield
@@ -136,7 +137,9 @@ class ControlForesightPlanner:
         self.nodes = 0
         self.search_time = 0.0
 
-    def options(self, snap: RoadSnapshot, memory: ControlFamily | None) -> tuple[list[tuple[np.ndarray, Any]], bool]:
+    def options(
+        self, snap: RoadSnapshot, memory: ControlFamily | None
+    ) -> tuple[list[tuple[np.ndarray, ControlFamily | None]], bool]:
         """([(action, its memory after it)], whether none of the control set verified) in ``snap`` with the
         shield's ``memory`` there (None unshielded: the whole control set, no memory)."""
         actions = control_set(snap, *self.ranges, self.accelerations)
@@ -147,7 +150,7 @@ class ControlForesightPlanner:
         verified = [a for a in actions if ctx.search.plan(float(a[0]), float(a[1])) is not None]
         # None verified: what the shield executes for its fail-safe action (the nearest verified, else the kept plan).
         wanted = verified or [ctx.lane_keeping]
-        out: list[tuple[np.ndarray, Any]] = []
+        out: list[tuple[np.ndarray, ControlFamily | None]] = []
         for action in wanted:
             child = copy.deepcopy(memory)
             executed = child.decide(ctx, action).executed

@@ -110,3 +110,5 @@ def test_ceiling_table_has_the_continuous_rows(tmp_path: Path) -> None:
     assert "foresight, continuous controls, under the shield for continuous actions" in text
     with pytest.raises(ConfigError, match="--continuous-agent"):
         ceiling_table(cfg, [1], 1, 7, tmp_path / "c2", rows=rows, continuous_agents={2: str(run)})
+    with pytest.raises(ConfigError, match="takes continuous actions; give it with --continuous-agent"):
+        ceiling_table(cfg, [1], 1, 7, tmp_path / "c3", rows=("agent_robust",), agents={1: str(run)}, workers=1)

@@ -342,8 +342,10 @@ def play_row(
 
         if agent_dir is None:
             raise ConfigError("agent: no trained continuous agent given for this rate")
-        env_cfg = run_env_config(load_run_config(agent_dir), sets=[f"shield.engine={cfg.shield.engine}"],
-                                 shield="committed")  # fmt: skip
+        run = load_run_config(agent_dir)
+        if run.env.actions != "continuous":
+            raise ConfigError(f"--continuous-agent: {agent_dir} takes meta-actions; give it with --agent")
+        env_cfg = run_env_config(run, sets=[f"shield.engine={cfg.shield.engine}"], shield="committed")
         return {"row": row, "agent": agent_dir, **play(env_cfg, lambda env: load_policy(agent_dir), episodes, seed)}
     if row in ("foresight_continuous", "foresight_continuous_committed"):
         controls: list[ControlForesightPlanner] = []
@@ -362,6 +364,8 @@ def play_row(
         if agent_dir is None:
             raise ConfigError("agent: no trained agent given for this rate")
         run = load_run_config(agent_dir)
+        if run.env.actions == "continuous":
+            raise ConfigError(f"--agent: {agent_dir} takes continuous actions; give it with --continuous-agent")
         agent = load_agent(agent_dir)
         # The committed shield with the table's engine (the run's own config may have none).
         sets = [f"shield.engine={cfg.shield.engine}"]

@@ -222,6 +222,50 @@ def test_on_real_traffic_the_true_type_wins() -> None:
     env.close()
 
 
+def test_the_leader_is_highway_env_s_front_vehicle_with_cars_placed_behind_the_lane_start() -> None:
+    """``traffic.vehicles_behind`` puts cars up to hundreds of metres before the lane's start, where highway-env's
+    ``on_lane`` sees no car: every car's leader as the filter reads it (both engines) is the front vehicle
+    ``Road.neighbour_vehicles`` gives it on highway-env, at every decision of an episode of the claim grid's
+    densest corner (the filter once took the close car ahead at x < −5 m, and ruled a true type out for good)."""
+    from safelane.env.factory import make_env
+    from safelane.safety.belief import LANE_START, Observation, _leader, leader_reference
+
+    dense = {"env.vehicles_density": 2.0, "traffic.vehicles_behind": 25}
+    env = make_env("hidden-types", simulator="highway-env", **dense)
+    _, info = env.reset(seed=4004210005)
+    behind_start = 0
+    for _ in range(3):
+        road = env.unwrapped.road
+        obs = Observation(info["snapshot"])
+        for i, vehicle in enumerate(road.vehicles):
+            if i == 0 or not obs.tracked[i]:
+                continue
+            front, _ = road.neighbour_vehicles(vehicle, vehicle.lane_index)
+            expected = road.vehicles.index(front) if front is not None else -1
+            lane = int(obs.lane[i])
+            assert leader_reference(obs.x, obs.y, i, lane, obs.lane_width) == expected, i
+            assert _leader(obs.x, obs.y, i, lane, obs.lane_width) == expected, i
+            behind_start += int(obs.x[i] < LANE_START)
+        _, _, terminated, truncated, info = env.step(1)
+        assert not (terminated or truncated)
+    assert behind_start > 20  # the case is exercised: cars before the lane's start, each followed or not
+    env.close()
+
+
+def test_a_car_before_the_lane_start_is_nobody_s_leader() -> None:
+    """Hand-built: a car 11 m behind another, both more than 5 m before the lane's start, a third on the lane 67 m
+    ahead: the one on the lane leads (highway-env's ``on_lane``), as it does for a car on the lane itself."""
+    from safelane.safety.belief import Observation, _leader, leader_reference
+
+    obs = Observation(snapshot([200.0, -57.1, -46.4, 10.0, -4.9], [25.0] * 5, [0, 0, 0, 0, 1]))
+    for find in (leader_reference, _leader):
+        assert find(obs.x, obs.y, 1, 0, LANE_W) == 3  # not 2, before the start
+        assert find(obs.x, obs.y, 2, 0, LANE_W) == 3
+    snap = snapshot([200.0, -20.0, -4.9], [25.0] * 3, [0, 0, 0])
+    obs = Observation(snap)
+    assert leader_reference(obs.x, obs.y, 1, 0, LANE_W) == _leader(obs.x, obs.y, 1, 0, LANE_W) == 2  # on the lane
+
+
 # --- the shields on the types' sets ------------------------------------------------------------------------------
 
 TYPES = tuple(IDM_PARAMETERS[t] for t in MIX.types)

@@ -55,6 +55,14 @@ docs/research/belief-calibration.md."""
 LANE_MARGIN = 1.0
 """[m] highway-env's ``neighbour_vehicles``: a body is on a lane within half its width plus this of its centre."""
 
+LANE_START = -5.0
+"""[m] highway-env's ``AbstractLane.on_lane`` also asks ``-Vehicle.LENGTH <= longitudinal``: a body more than a car's
+length (5 m) before the lane's start is on no lane, so no car follows it. ``traffic.vehicles_behind`` places cars
+there (hundreds of metres behind the ego, which starts near the road's beginning): a car right behind one of them
+follows the first car ahead that is on the lane, tens of metres further. Read as the leader, the close one made
+every type's prediction miss by metres per second squared, and the type that missed least was certain within two
+steps (a ``normal`` car read as ``timid`` at posterior 1.000 for a whole episode)."""
+
 NOT_ZERO = 1e-2
 """highway-env's ``utils.not_zero`` threshold."""
 
@@ -113,12 +121,12 @@ def _not_zero(x: float) -> float:
 
 
 def leader_reference(x: np.ndarray, y: np.ndarray, i: int, lane: int, lane_width: float) -> int:
-    """The body nearest ahead of body ``i`` (x ≥ its x) on lane ``lane`` (within half a lane + 1 m of its centre);
-    -1: none."""
+    """The body nearest ahead of body ``i`` (x ≥ its x) on lane ``lane`` (within half a lane + 1 m of its centre, at
+    most a car's length before the lane's start: :data:`LANE_START`); -1: none."""
     centre = lane * lane_width
     best, best_x = -1, math.inf
     for j in range(x.shape[0]):
-        if j == i or not abs(y[j] - centre) <= 0.5 * lane_width + LANE_MARGIN:
+        if j == i or not abs(y[j] - centre) <= 0.5 * lane_width + LANE_MARGIN or not x[j] >= LANE_START:
             continue
         if x[j] >= x[i] and x[j] < best_x:
             best, best_x = j, float(x[j])
@@ -223,7 +231,7 @@ def _leader(x, y, i, lane, lane_width):
     best = -1
     best_x = math.inf
     for j in range(x.shape[0]):
-        if j == i or not abs(y[j] - centre) <= 0.5 * lane_width + LANE_MARGIN:
+        if j == i or not abs(y[j] - centre) <= 0.5 * lane_width + LANE_MARGIN or not x[j] >= LANE_START:
             continue
         if x[j] >= x[i] and x[j] < best_x:
             best = j

@@ -136,14 +136,10 @@ class DecisionContext:
 
 @dataclass
 class _Judged:
-    """What :meth:`ControlFamily.commit` needs of the last judgement."""
+    """What :meth:`ControlFamily.commit` needs of the last judgement: the verdict and the state it was read in."""
 
     result: ControlResult
-    state: RoadState
-    dyn: Dynamics
-    sets: CarSets
-    vehicle: np.ndarray
-    tail: ControlPlan | None
+    ctx: DecisionContext
 
 
 @dataclass
@@ -256,7 +252,7 @@ class ControlFamily:
             entered=tuple(int(v) for v in vehicle[trace["entered"]]),
             ego_crashed=ctx.ego_crashed, checked=trace["checked"], evaluated=search.evaluated,
         )  # fmt: skip
-        self._judged = _Judged(result, ctx.state, ctx.dyn, ctx.sets, vehicle, tail)
+        self._judged = _Judged(result, ctx)
         return result
 
     def _kept_tail(self, state: RoadState, dyn: Dynamics, sets: CarSets, vehicle: np.ndarray, escaped: np.ndarray,
@@ -296,10 +292,10 @@ class ControlFamily:
         when forced or chosen); with none the memory of a plan ends."""
         if self._judged is None:
             return
-        judged = self._judged
-        result, state, dyn = judged.result, judged.state, judged.dyn
+        result, ctx = self._judged.result, self._judged.ctx
+        state, dyn = ctx.state, ctx.dyn
         plan = result.plan
-        same_plan = plan is not None and plan is judged.tail
+        same_plan = plan is not None and plan is ctx.tail
         self.kept_verified = plan is not None
         if plan is None and result.plan_forced and self.kept is not None:
             kept = self.kept
@@ -308,12 +304,12 @@ class ControlFamily:
                            lanes=tuple((lane, until - period) for lane, until in kept.lanes))  # fmt: skip
             same_plan = True
         self.kept = plan
-        self.carried = judged.sets
+        self.carried = ctx.sets
         self.carried_ahead = state.x >= state.ego_x
         if plan is None:
             self.followers = {}
         else:
-            fresh = _followers_of(state, dyn, judged.sets, judged.vehicle, plan)
+            fresh = _followers_of(state, dyn, ctx.sets, ctx.vehicle, plan)
             self.followers = carried_follower_bounds(self.followers if same_plan else {}, fresh,
                                                      dyn.frames_per_decision)  # fmt: skip
         self._judged = None

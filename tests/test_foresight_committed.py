@@ -89,6 +89,9 @@ def test_ceiling_table_has_the_committed_rows(tmp_path: Path) -> None:
     with pytest.raises(ConfigError, match="--rows"):
         ceiling_table(cfg, [1], 1, 7, out, rows=("foresight_committed", "committed"))
     assert np.isfinite(played["agent_committed"]["mean_speed"])
+    with pytest.raises(ConfigError, match="takes meta-actions; give it with --agent"):
+        ceiling_table(cfg, [1], 1, 7, tmp_path / "c2", rows=("agent_continuous",), continuous_agents={1: str(run_dir)},
+                      workers=1)  # fmt: skip
 
 
 def test_every_search_node_carries_the_memory_the_shield_has_after_its_actions() -> None:

@@ -77,7 +77,8 @@ class ForesightPlanner:
     ) -> None:
         if mask not in PLANNER_MASKS:
             raise ConfigError(f"mask: got {mask!r}; allowed: {', '.join(PLANNER_MASKS)}")
-        self.sim, self.depth, self.every = search_shape(env, horizon, beam, replan)  # decisions per search, between
+        # depth: decisions per search; every: decisions between searches
+        self.sim, self.depth, self.every = search_shape(env, horizon, beam, replan)
         self.beam = beam
         self.mask_mode: PlannerMask = mask
         kwargs: dict[str, Any] = {} if margin is None else {"margin": margin}

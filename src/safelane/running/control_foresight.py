@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import copy
 import time
+from collections.abc import Callable
 from typing import Any, NamedTuple
 
 import numpy as np
@@ -34,7 +35,7 @@ half braking, coasting, half and full throttle."""
 LANE_OFFSETS: tuple[int, ...] = (-1, 0, 1)
 """The target lanes the planner steers for, relative to the ego's lane now (those on the road)."""
 SPEED_CLASS = 2.0
-"""[m/s] The beam keeps the best sequence of each (lane, speed ÷ this) class first (:func:`diverse_controls`)."""
+"""[m/s] The beam keeps the best sequence of each (lane, speed ÷ this) class first (:func:`control_class`)."""
 
 
 class ControlNode(NamedTuple):
@@ -96,18 +97,25 @@ def control_set(snap: RoadSnapshot, acceleration_range: tuple[float, float], ste
     return [np.array([a, s], dtype=np.float32) for s in steerings for a in accelerations]
 
 
-def diverse_controls(children: list[ControlNode], beam: int) -> list[ControlNode]:
-    """The ``beam`` children to extend, best first by (rank, position, speed): the best of each (lane, speed class)
-    first, so that a slower or other-lane sequence survives beside the greedy ones; then the best of the rest."""
+def diverse_beam(children: list[Any], beam: int, kind: Callable[[Any], tuple[int, ...]]) -> list[Any]:
+    """The ``beam`` children (search nodes with ``rank``, ``x`` [m], ``v`` [m/s]) to extend, best first by (rank,
+    position, speed): the best of each class ``kind(child)`` first, so that a slower or other-lane sequence survives
+    beside the greedy ones (a beam of only the farthest can lose every sequence that brakes in time for a jam
+    ahead); then the best of the rest."""
     ranked = sorted(children, key=lambda c: (c.rank, c.x, c.v), reverse=True)
-    firsts: dict[tuple[int, int], int] = {}
+    firsts: dict[tuple[int, ...], int] = {}
     for i, c in enumerate(ranked):
-        firsts.setdefault((int(c.snap.lane[c.snap.ego]), int(c.v // SPEED_CLASS)), i)
+        firsts.setdefault(kind(c), i)
     chosen = sorted(firsts.values())[:beam]
     if len(chosen) < beam:
         taken = set(chosen)
         chosen += [i for i in range(len(ranked)) if i not in taken][: beam - len(chosen)]
     return [ranked[i] for i in sorted(chosen)]
+
+
+def control_class(node: ControlNode) -> tuple[int, int]:
+    """A continuous sequence's class in the beam: the ego's lane and its speed ÷ :data:`SPEED_CLASS`."""
+    return int(node.snap.lane[node.snap.ego]), int(node.v // SPEED_CLASS)
 
 
 class ControlForesightPlanner:
@@ -195,7 +203,7 @@ class ControlForesightPlanner:
                     children.append(node_child)
             if not children:
                 break
-            frontier = diverse_controls(children, self.beam)
+            frontier = diverse_beam(children, self.beam, control_class)
             if all(c.snap.time >= sim.sim.duration for c in frontier):
                 break
         sim.set_state(root)
@@ -236,6 +244,6 @@ class ControlForesightPlanner:
 
 
 __all__ = [
-    "CONTROL_ACCELERATIONS", "ControlForesightPlanner", "control_set", "diverse_controls", "fast_simulator_of",
-    "search_shape", "shield_of",
+    "CONTROL_ACCELERATIONS", "ControlForesightPlanner", "control_class", "control_set", "diverse_beam",
+    "fast_simulator_of", "search_shape", "shield_of",
 ]  # fmt: skip

@@ -29,7 +29,7 @@ from safelane.config import ConfigError, SafelaneConfig, apply_overrides, build_
 from safelane.core.snapshot import RoadSnapshot
 from safelane.core.spaces import ACTION_NAMES, N_ACTIONS
 from safelane.env.factory import make_env
-from safelane.running.control_foresight import ControlForesightPlanner, search_shape
+from safelane.running.control_foresight import ControlForesightPlanner, diverse_beam, search_shape
 from safelane.running.policies import overtaking_probe, snap_of
 from safelane.safety.belief import DriverTypes
 from safelane.safety.committed.family import CommittedFamily
@@ -164,7 +164,8 @@ class ForesightPlanner:
                     children.append(Node(-fallbacks, x, v, sim.get_state(), child, seq, child_memory))
             if not children:
                 break
-            frontier = [(c.state, c.snap, c.actions, -c.rank, c.memory) for c in diverse_beam(children, self.beam)]
+            kept = diverse_beam(children, self.beam, meta_action_class)
+            frontier = [(c.state, c.snap, c.actions, -c.rank, c.memory) for c in kept]
             if all(snap.time >= sim.sim.duration for _, snap, _, _, _ in frontier):
                 break
         sim.set_state(root)
@@ -213,22 +214,11 @@ class Node(NamedTuple):
     memory: CommittedFamily | None = None
 
 
-def diverse_beam(children: list[Node], beam: int) -> list[Node]:
-    """The ``beam`` children to extend, best first by (rank, position, speed): the best of each (lane,
-    target lane, set-point) class first, so that a slower or other-lane sequence survives next to the
-    greedy ones (a beam of only the farthest can lose every sequence that brakes in time for a jam
-    ahead); then the best of the rest."""
-    ranked = sorted(children, key=lambda c: (c.rank, c.x, c.v), reverse=True)
-    best_of_class: dict[tuple[int, int, int], int] = {}
-    for i, c in enumerate(ranked):
-        snap = c.snap
-        best_of_class.setdefault((int(snap.lane[0]), int(snap.target_lane[0]), snap.ego_speed_index), i)
-    firsts = sorted(best_of_class.values())
-    chosen = firsts[:beam]
-    if len(chosen) < beam:
-        taken = set(chosen)
-        chosen += [i for i in range(len(ranked)) if i not in taken][: beam - len(chosen)]
-    return [ranked[i] for i in sorted(chosen)]
+def meta_action_class(node: Node) -> tuple[int, int, int]:
+    """A meta-action sequence's class in the beam (:func:`~safelane.running.control_foresight.diverse_beam`): the
+    ego's lane, target lane and set-point."""
+    snap = node.snap
+    return int(snap.lane[0]), int(snap.target_lane[0]), snap.ego_speed_index
 
 
 def at_rate(cfg: SafelaneConfig, rate: int) -> SafelaneConfig:
